@@ -1,0 +1,33 @@
+# toppledb: two commands on a fresh machine, `make dataset` and `make test`.
+# Both depend on .venv, which this Makefile creates and fills by itself.
+
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+ARGS   ?=
+
+.PHONY: venv dataset test bench corpus clean
+
+venv: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or make PYTHON=python3)"; exit 1; }
+	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[dev]" --config-settings editable_mode=compat
+	touch $@
+
+dataset: venv
+	$(PY) -m pipeline dataset $(ARGS)
+
+test: venv
+	$(PY) -m pytest -q $(ARGS)
+
+bench: venv
+	$(PY) -m pipeline.bench $(ARGS)
+
+corpus: venv
+	$(PY) -m pipeline corpus $(ARGS)
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

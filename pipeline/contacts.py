@@ -1,0 +1,194 @@
+"""Candidate pushes (thesis 4.4.1) and whether a finger can execute them.
+
+Contact points are drawn once per object, spread evenly over its surface, and
+shared by all its poses (action i is the same surface point in every pose); each
+pose then decides which of them a finger can push: ``ok``, or why not.
+"""
+
+from __future__ import annotations
+
+import fcl
+import numpy as np
+import trimesh
+
+from .config import ContactConfig
+from .frames import axis_angle_matrices, transform_points, unit
+from .results import (
+    STATUS_FINGER_COLLISION,
+    STATUS_OK,
+    STATUS_PUSHES_UP,
+    STATUS_TOO_LOW,
+    Actions,
+)
+
+CONTACT_CLEARANCE = 5e-4
+"""m; gap left between the finger tip and the contact so that touching is not a collision."""
+
+
+def farthest_point_subset(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of ``count`` points chosen greedily to be far from each other.
+
+    points : (n, 3) float
+    returns : (count,) int, starting from point 0 (so the result is deterministic)
+    """
+    if count > len(points):
+        raise ValueError(f"cannot choose {count} points from {len(points)}")
+    chosen = np.empty(count, dtype=np.int64)
+    chosen[0] = 0
+    # Coordinate rows and squared distances keep each step to a few contiguous passes.
+    x, y, z = np.ascontiguousarray(points.T, dtype=float)
+    nearest = np.full(len(points), np.inf)
+    step = np.empty(len(points))
+    scratch = np.empty(len(points))
+    for i in range(count):
+        if i:
+            chosen[i] = np.argmax(nearest)
+        qx, qy, qz = points[chosen[i]]
+        np.subtract(x, qx, out=step)
+        np.multiply(step, step, out=step)
+        np.subtract(y, qy, out=scratch)
+        np.multiply(scratch, scratch, out=scratch)
+        step += scratch
+        np.subtract(z, qz, out=scratch)
+        np.multiply(scratch, scratch, out=scratch)
+        step += scratch
+        np.minimum(nearest, step, out=nearest)
+    return chosen
+
+
+def surface_points(
+    mesh: trimesh.Trimesh, count: int, rng: np.random.Generator, oversample: int = 20
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exactly ``count`` points spread evenly over the surface, with their face normals.
+
+    Uniform area-weighted samples, then a farthest-point subset: even spacing
+    without the shortfall of Poisson-disk rejection.
+
+    returns : points (count, 3) float, m; normals (count, 3) float, unit, outward
+    """
+    pool = max(count * oversample, count)
+    area = mesh.area_faces
+    faces = rng.choice(len(area), size=pool, p=area / area.sum())
+    uv = rng.random((pool, 2))
+    flip = uv.sum(axis=1) > 1.0
+    uv[flip] = 1.0 - uv[flip]
+    triangles = mesh.triangles[faces]
+    points = triangles[:, 0] + uv[:, :1] * (triangles[:, 1] - triangles[:, 0]) + uv[:, 1:] * (triangles[:, 2] - triangles[:, 0])
+    keep = farthest_point_subset(points, count)
+    return points[keep], mesh.face_normals[faces[keep]]
+
+
+def max_height_contact(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, max_angle: float):
+    """The Max-Height baseline's contact: the highest surface point whose normal is
+    within ``max_angle`` of horizontal (thesis 4.3.1).
+
+    vertices : (n, 3) float, m, pose frame; faces : (F, 3) int; normals : (F, 3) float, pose frame
+    returns : (point (3,), normal (3,)) or None when no face qualifies
+    """
+    steep = np.flatnonzero(np.abs(normals[:, 2]) <= np.sin(max_angle))
+    if len(steep) == 0:
+        return None
+    corner_z = vertices[faces[steep], 2]
+    best = steep[np.argmax(corner_z.max(axis=1))]
+    triangle = vertices[faces[best]]
+    top = triangle[np.argmax(triangle[:, 2])]
+    # A hair inside the face, so rays and collision checks see the face, not its edge.
+    point = top + 1e-3 * (triangle.mean(axis=0) - top)
+    return point, normals[best]
+
+
+def capsule_segments(points: np.ndarray, directions: np.ndarray, config: ContactConfig):
+    """End points of the finger capsule's axis: the finger as it sweeps from
+    ``approach_offset`` outside the contact to touching it.
+
+    returns : tip (A, 3), back (A, 3), m; the tip end is nearest the contact
+    """
+    tip = points - (config.finger_radius + CONTACT_CLEARANCE) * directions
+    back = points - (config.approach_offset + config.finger_length) * directions
+    return tip, back
+
+
+def finger_collisions(
+    collision_mesh: fcl.CollisionObject,
+    to_object: np.ndarray,
+    points: np.ndarray,
+    directions: np.ndarray,
+    config: ContactConfig,
+) -> np.ndarray:
+    """Whether the finger capsule hits the object or the table on its approach.
+
+    collision_mesh : fcl object of the mesh in the object frame (built once per object)
+    to_object : (4, 4) float, pose frame -> object frame
+    points, directions : (A, 3) float, pose frame
+    returns : (A,) bool
+    """
+    tip, back = capsule_segments(points, directions, config)
+    hits = np.minimum(tip[:, 2], back[:, 2]) - config.finger_radius < 0.0  # the table is z < 0
+    centers = transform_points(to_object, 0.5 * (tip + back))
+    axes = directions @ to_object[:3, :3].T
+    length = float(np.linalg.norm(tip[0] - back[0])) if len(points) else 0.0
+    capsule = fcl.Capsule(config.finger_radius, length)
+    request, rotations = fcl.CollisionRequest(), _z_to(axes)
+    for i in np.flatnonzero(~hits):
+        finger = fcl.CollisionObject(capsule, fcl.Transform(rotations[i], centers[i]))
+        hits[i] = fcl.collide(finger, collision_mesh, request, fcl.CollisionResult()) > 0
+    return hits
+
+
+def _z_to(axes: np.ndarray) -> np.ndarray:
+    """Rotations taking +z onto each unit axis; (A, 3) -> (A, 3, 3)."""
+    z = np.array([0.0, 0.0, 1.0])
+    cross = np.cross(z, axes)
+    sin = np.linalg.norm(cross, axis=1)
+    cos = axes[:, 2]
+    axis = np.where(sin[:, None] > 1e-12, cross / np.maximum(sin, 1e-12)[:, None], [1.0, 0.0, 0.0])
+    return axis_angle_matrices(axis, np.arctan2(sin, cos))
+
+
+def collision_object(mesh: trimesh.Trimesh) -> fcl.CollisionObject:
+    """An fcl BVH of the mesh in its own frame."""
+    model = fcl.BVHModel()
+    model.beginModel(len(mesh.vertices), len(mesh.faces))
+    model.addSubModel(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int32))
+    model.endModel()
+    return fcl.CollisionObject(model, fcl.Transform())
+
+
+def pose_actions(
+    points: np.ndarray,
+    normals: np.ndarray,
+    mesh: trimesh.Trimesh,
+    collision_mesh: fcl.CollisionObject,
+    transform: np.ndarray,
+    config: ContactConfig,
+) -> Actions:
+    """Candidate pushes of one pose: the object's contact points plus the Max-Height action.
+
+    points, normals : (N, 3) float, object frame, from ``surface_points``
+    mesh : object surface, object frame
+    transform : (4, 4) float, object frame -> pose frame
+    """
+    rotation = transform[:3, :3]
+    vertices = transform_points(transform, mesh.vertices)
+    face_normals = mesh.face_normals @ rotation.T
+    pose_points = transform_points(transform, points)
+    pose_normals = normals @ rotation.T
+    best = max_height_contact(vertices, mesh.faces, face_normals, config.max_height_normal_angle)
+    max_height = -1
+    if best is not None:
+        pose_points = np.vstack([pose_points, best[0]])
+        pose_normals = np.vstack([pose_normals, best[1]])
+        max_height = len(pose_points) - 1
+    pose_normals = unit(pose_normals)
+    directions = -pose_normals
+
+    status = np.full(len(pose_points), STATUS_OK, dtype=np.int8)
+    height = vertices[:, 2].max()
+    status[pose_points[:, 2] < config.min_height_fraction * height] = STATUS_TOO_LOW
+    pushes_up = (status == STATUS_OK) & (directions[:, 2] > np.sin(config.max_up_angle))
+    status[pushes_up] = STATUS_PUSHES_UP
+    candidates = np.flatnonzero(status == STATUS_OK)
+    to_object = np.linalg.inv(transform)
+    blocked = finger_collisions(collision_mesh, to_object, pose_points[candidates], directions[candidates], config)
+    status[candidates[blocked]] = STATUS_FINGER_COLLISION
+    return Actions(points=pose_points, normals=pose_normals, directions=directions, status=status, max_height=max_height)

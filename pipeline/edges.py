@@ -1,0 +1,121 @@
+"""The base of a resting object and the geometry of toppling over its edges.
+
+Everything here is in a pose frame (z up, table at z = 0) and is a property of
+(pose, edge): computed once per pose, never per trial.
+
+For a base edge (y0, y1), taken counter-clockwise seen from above:
+``direction`` e = (y1 - y0) / |y1 - y0|, ``outward`` o = (e_y, -e_x, 0).
+Rotating by a positive angle about +e through y0 lifts the interior of the base
+and swings the object outward over the edge: (o, e, z) -> e x z = o.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from .frames import axis_angle_matrices
+
+
+def base_polygon(vertices: np.ndarray, tolerance: float) -> np.ndarray:
+    """Convex polygon of the vertices touching the table.
+
+    vertices : (n, 3) float, m, pose frame (hull vertices)
+    tolerance : float, m, vertices with z below this touch the table
+    returns : (k, 3) float, m, polygon corners counter-clockwise seen from above, z = 0
+    """
+    low = vertices[vertices[:, 2] < tolerance][:, :2]
+    try:
+        hull = ConvexHull(low)
+    except (QhullError, ValueError):
+        raise ValueError("the base is degenerate (fewer than three non-collinear contact points)") from None
+    # scipy orders 2-D hull vertices counter-clockwise.
+    corners = low[hull.vertices]
+    return np.column_stack([corners, np.zeros(len(corners))])
+
+
+def base_edges(polygon: np.ndarray) -> np.ndarray:
+    """Consecutive corner pairs of a base polygon.
+
+    polygon : (k, 3) float, counter-clockwise
+    returns : (k, 2, 3) float, edges (y0, y1)
+    """
+    return np.stack([polygon, np.roll(polygon, -1, axis=0)], axis=1)
+
+
+@dataclass
+class EdgeGeometry:
+    """Per-edge quantities of the toppling model (all (E, ...) arrays, pose frame).
+
+    start : (E, 3) y0;  direction : (E, 3) unit e;  outward : (E, 3) unit o
+    com_distance : (E,) m, horizontal distance from the centre of mass to the edge line (> 0 inside)
+    origin : (E, 3) m, projection of the centre of mass onto the edge line (z = 0)
+    half_span : (E,) m, (|y0| + |y1|) / 2 with y measured along the edge from ``origin``;
+      tau_max = mu_T F_n half_span for two point contacts at the endpoints (thesis 4.2.2)
+    apex_angle : (E,) rad, rotation about the edge that brings the centre of mass above it
+    tip_rotation : (E, 3, 3) rotation by ``apex_angle`` about the edge (for contact normals)
+    """
+
+    start: np.ndarray
+    direction: np.ndarray
+    outward: np.ndarray
+    com_distance: np.ndarray
+    origin: np.ndarray
+    half_span: np.ndarray
+    apex_angle: np.ndarray
+    tip_rotation: np.ndarray
+
+
+def edge_geometry(edges: np.ndarray, center_mass: np.ndarray) -> EdgeGeometry:
+    """Per-edge quantities for ``edges`` (E, 2, 3) and ``center_mass`` (3,), pose frame."""
+    y0, y1 = edges[:, 0], edges[:, 1]
+    direction = (y1 - y0) / np.linalg.norm(y1 - y0, axis=1, keepdims=True)
+    outward = np.column_stack([direction[:, 1], -direction[:, 0], np.zeros(len(edges))])
+    to_com = center_mass - y0
+    com_distance = -np.einsum("ij,ij->i", to_com, outward)
+    along = np.einsum("ij,ij->i", to_com, direction)
+    origin = y0 + along[:, None] * direction
+    s0 = -along
+    s1 = np.einsum("ij,ij->i", y1 - origin, direction)
+    apex = np.arctan2(com_distance, center_mass[2])
+    return EdgeGeometry(
+        start=y0,
+        direction=direction,
+        outward=outward,
+        com_distance=com_distance,
+        origin=origin,
+        half_span=0.5 * (np.abs(s0) + np.abs(s1)),
+        apex_angle=apex,
+        tip_rotation=axis_angle_matrices(direction, apex),
+    )
+
+
+def landing_angles(geometry: EdgeGeometry, vertices: np.ndarray, tolerance: float) -> np.ndarray:
+    """Rotation about each edge at which another part of the hull meets the table.
+
+    A hull vertex at height w and outward offset u from the edge touches the
+    table after rotating by atan2(w, u).  Vertices on the table itself are
+    skipped: they only rise when rotating outward.
+
+    vertices : (n, 3) float, m, pose frame hull vertices
+    tolerance : float, m, base tolerance
+    returns : (E,) float, rad, in (0, pi]
+    """
+    raised = vertices[vertices[:, 2] >= tolerance]
+    if len(raised) == 0:
+        return np.full(len(geometry.start), np.pi)
+    offset = raised[None, :, :2] - geometry.start[:, None, :2]
+    u = np.einsum("enk,ek->en", offset, geometry.outward[:, :2])
+    w = np.broadcast_to(raised[None, :, 2], u.shape)
+    return np.arctan2(w, u).min(axis=1)
+
+
+def landing_down(geometry: EdgeGeometry, angles: np.ndarray) -> np.ndarray:
+    """Down direction, in the pose frame before the topple, once rotated by ``angles`` about each edge.
+
+    returns : (E, 3) float, unit
+    """
+    back = axis_angle_matrices(geometry.direction, -angles)
+    return back @ np.array([0.0, 0.0, -1.0])

@@ -1,0 +1,155 @@
+"""Loading and validating corpus meshes.
+
+A mesh becomes an ``ObjectModel``: the surface in metres, its convex hull, mass
+and centre of mass.  What trimesh can repair is repaired and listed in
+``ObjectModel.repairs``; what it cannot is rejected with a ``MeshError`` whose
+message is one line naming the object and the reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from .config import MeshConfig
+
+
+class MeshError(ValueError):
+    """A mesh that cannot be used; ``str(err)`` is one line: ``<name>: <reason>``."""
+
+
+@dataclass
+class ObjectModel:
+    """An object ready for the toppling model.
+
+    name : str, identifier used in messages and random streams
+    mesh : trimesh.Trimesh, surface in the object frame, metres
+    hull : trimesh.Trimesh, convex hull of ``mesh``
+    mass : float, kg
+    center_mass : (3,) float, m, object frame
+    repairs : list[str], what was repaired on load, for the manifest
+    """
+
+    name: str
+    mesh: trimesh.Trimesh
+    hull: trimesh.Trimesh
+    mass: float
+    center_mass: np.ndarray
+    repairs: list[str] = field(default_factory=list)
+
+
+def load_mesh(
+    path: str | Path,
+    scale: float = 1.0,
+    mass: float | None = None,
+    center_mass: np.ndarray | None = None,
+    name: str | None = None,
+    config: MeshConfig = MeshConfig(),
+) -> ObjectModel:
+    """Load an OBJ/STL/PLY file as an ``ObjectModel``.
+
+    Parameters
+    ----------
+    path : mesh file
+    scale : float, multiplies the file's coordinates to give metres
+    mass : float, kg; ``config.default_mass`` when None
+    center_mass : (3,) float, m, object frame; uniform density when None
+    name : identifier for messages; the file stem when None
+    """
+    name = name or Path(path).stem
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as err:  # trimesh raises many types for unreadable files
+        raise MeshError(f"{name}: cannot read {Path(path).name}: {_one_line(err)}") from None
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise MeshError(f"{name}: {Path(path).name} holds no triangle mesh")
+    return model_from_mesh(loaded, scale=scale, mass=mass, center_mass=center_mass, name=name, config=config)
+
+
+def model_from_mesh(
+    mesh: trimesh.Trimesh,
+    scale: float = 1.0,
+    mass: float | None = None,
+    center_mass: np.ndarray | None = None,
+    name: str = "mesh",
+    config: MeshConfig = MeshConfig(),
+) -> ObjectModel:
+    """Validate and repair an in-memory mesh; see ``load_mesh``."""
+    mass = config.default_mass if mass is None else float(mass)
+    if not np.isfinite(mass) or mass <= 0:
+        raise MeshError(f"{name}: mass must be a positive number of kg, got {mass}")
+    if not np.isfinite(scale) or scale <= 0:
+        raise MeshError(f"{name}: scale must be positive, got {scale}")
+    if len(mesh.faces) == 0 or len(mesh.vertices) == 0:
+        raise MeshError(f"{name}: empty mesh (no faces)")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise MeshError(f"{name}: non-finite vertex coordinates")
+
+    mesh = mesh.copy()
+    mesh.apply_scale(scale)
+    repairs = repair(mesh, config)
+
+    extent = float(mesh.extents.max())
+    if extent < config.min_extent:
+        raise MeshError(f"{name}: too small for a tabletop: largest side {extent:.4g} m < {config.min_extent} m")
+    if extent > config.max_extent:
+        raise MeshError(f"{name}: too large for a tabletop: largest side {extent:.4g} m > {config.max_extent} m")
+
+    try:
+        hull = mesh.convex_hull
+    except Exception as err:  # qhull fails on flat or degenerate input
+        raise MeshError(f"{name}: no convex hull ({_one_line(err)})") from None
+    if not hull.is_volume or hull.volume <= 1e-12:
+        raise MeshError(f"{name}: zero or negative volume (the mesh is flat or degenerate)")
+
+    if mesh.is_volume:
+        volume = float(mesh.volume)
+        if volume <= 1e-12:
+            raise MeshError(f"{name}: zero or negative volume ({volume:.3g} m^3)")
+        default_com = np.asarray(mesh.center_mass, dtype=float)
+    else:
+        # An open surface has no inside; its convex hull is the best solid we know.
+        repairs.append("not watertight after repair: centre of mass from the convex hull")
+        default_com = np.asarray(hull.center_mass, dtype=float)
+
+    com = default_com if center_mass is None else np.asarray(center_mass, dtype=float).reshape(3)
+    if not np.all(np.isfinite(com)):
+        raise MeshError(f"{name}: non-finite centre of mass")
+    # signed_distance is positive inside; a COM on or outside the hull cannot rest stably.
+    if center_mass is not None and trimesh.proximity.signed_distance(hull, com[None])[0] <= 0:
+        raise MeshError(f"{name}: centre of mass {np.round(com, 4).tolist()} is outside the convex hull")
+
+    return ObjectModel(name=name, mesh=mesh, hull=hull, mass=mass, center_mass=com, repairs=repairs)
+
+
+def repair(mesh: trimesh.Trimesh, config: MeshConfig) -> list[str]:
+    """Repair ``mesh`` in place with trimesh; return a line per repair made."""
+    repairs = []
+    n_vertices, n_faces = len(mesh.vertices), len(mesh.faces)
+    mesh.merge_vertices()
+    if len(mesh.vertices) < n_vertices:
+        repairs.append(f"merged {n_vertices - len(mesh.vertices)} duplicate vertices")
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.update_faces(mesh.unique_faces())
+    mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) < n_faces:
+        repairs.append(f"removed {n_faces - len(mesh.faces)} degenerate or duplicate faces")
+    if len(mesh.faces) == 0:
+        return repairs
+    if config.fill_holes and not mesh.is_watertight:
+        if mesh.fill_holes():
+            repairs.append("filled holes")
+    if mesh.is_watertight:
+        before = mesh.faces.copy()
+        trimesh.repair.fix_normals(mesh)
+        if mesh.faces.shape != before.shape or np.any(mesh.faces != before):
+            repairs.append("fixed face winding and normals")
+    return repairs
+
+
+def _one_line(err: Exception) -> str:
+    text = " ".join(str(err).split())
+    return text[:200] or type(err).__name__

@@ -1,0 +1,253 @@
+"""Stable poses of an object and quasi-static settling (Goldberg et al. 1999).
+
+The convex hull's faces form a "topples to" graph: a face whose plane holds the
+projection of the centre of mass rests; any other face rolls over the edge that
+the centre of mass projects beyond (the edge crossed on the way from the face's
+centroid to that projection, trimesh's rule) onto the neighbouring face.  The
+graph's sinks are the stable poses; a pose's probability is the solid angle, seen
+from the centre of mass, of the faces that drain into it.
+
+One graph serves the pose list, the topple outcomes and settling from an
+arbitrary orientation, so every pose a topple can reach is a pose of the list.
+``tests/test_poses.py`` holds it against ``trimesh.poses.compute_stable_poses``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from .config import PoseConfig
+from .edges import base_edges, base_polygon, edge_geometry, landing_angles, landing_down
+from .frames import canonical_transform, transform_points, unit
+from .mesh import MeshError, ObjectModel
+from .results import StablePose
+
+
+def face_neighbors(hull: trimesh.Trimesh) -> np.ndarray:
+    """Neighbouring face across each face's edges.
+
+    returns : (F, 3) int, entry k is the face across the edge opposite vertex k
+    """
+    faces = hull.faces
+    n = len(faces)
+    # Edge opposite vertex k joins vertices k+1 and k+2.
+    edges = np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1).reshape(-1, 2)
+    edges.sort(axis=1)
+    _, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    if np.any(counts != 2):
+        raise ValueError("convex hull is not a closed two-manifold")
+    order = np.argsort(inverse.ravel(), kind="stable")
+    first, second = order[0::2], order[1::2]
+    neighbors = np.empty(3 * n, dtype=np.int64)
+    neighbors[first] = second // 3
+    neighbors[second] = first // 3
+    return neighbors.reshape(n, 3)
+
+
+def facet_ids(hull: trimesh.Trimesh) -> np.ndarray:
+    """Coplanar group of each hull face; faces in no group are their own.
+
+    returns : (F,) int
+    """
+    ids = np.arange(len(hull.faces))
+    for facet in hull.facets:
+        ids[facet] = facet.min()
+    return ids
+
+
+def topple_graph(hull: trimesh.Trimesh, center_mass: np.ndarray) -> np.ndarray:
+    """The face each hull face rolls onto; a face in a stable facet maps to itself.
+
+    hull : convex hull, object frame
+    center_mass : (3,) float, m, object frame
+    returns : (F,) int
+    """
+    triangles = hull.triangles
+    normals = hull.face_normals
+    depth = np.einsum("ij,ij->i", normals, center_mass - triangles[:, 0])
+    projected = center_mass - depth[:, None] * normals
+    bary = trimesh.triangles.points_to_barycentric(triangles, projected)
+    inside = np.all(bary >= -1e-9, axis=1)
+    facets = facet_ids(hull)
+    stable = np.isin(facets, facets[inside])
+    # Walking from the centroid (1/3, 1/3, 1/3) towards the projection, coordinate k
+    # reaches zero first where t_k = (1/3) / (1/3 - b_k) is smallest.
+    with np.errstate(divide="ignore"):
+        exit_time = np.where(bary < 0, (1.0 / 3.0) / (1.0 / 3.0 - bary), np.inf)
+    exit_edge = np.argmin(exit_time, axis=1)
+    rows = np.arange(len(triangles))
+    return np.where(stable, rows, face_neighbors(hull)[rows, exit_edge])
+
+
+def sink_faces(next_face: np.ndarray) -> np.ndarray:
+    """Follow the topple graph to its sinks by pointer jumping.
+
+    next_face : (F,) int
+    returns : (F,) int, the resting face reached from each face
+    """
+    sink = next_face.copy()
+    for _ in range(int(np.ceil(np.log2(max(len(sink), 2)))) + 2):
+        sink = sink[sink]
+    if np.any(sink[sink] != sink):
+        raise ValueError("the topple graph has a cycle")
+    return sink
+
+
+def face_solid_angles(hull: trimesh.Trimesh, center_mass: np.ndarray) -> np.ndarray:
+    """Solid angle of each hull face seen from the centre of mass (Van Oosterom and Strackee).
+
+    returns : (F,) float, sr; sums to 4 pi for a closed hull around the centre of mass
+    """
+    a, b, c = (hull.triangles - center_mass).transpose(1, 0, 2)
+    la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+    numerator = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
+    denominator = (
+        la * lb * lc
+        + np.einsum("ij,ij->i", a, b) * lc
+        + np.einsum("ij,ij->i", a, c) * lb
+        + np.einsum("ij,ij->i", b, c) * la
+    )
+    return 2.0 * np.arctan2(numerator, denominator)
+
+
+def face_below(hull: trimesh.Trimesh, center_mass: np.ndarray, downs: np.ndarray) -> np.ndarray:
+    """The hull face pierced by the ray from the centre of mass along each down vector.
+
+    downs : (n, 3) float, unit, object frame
+    returns : (n,) int
+    """
+    normals = hull.face_normals
+    facing = downs @ normals.T
+    height = np.einsum("ij,ij->i", normals, hull.triangles[:, 0] - center_mass)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        distance = np.where(facing > 1e-12, height[None, :] / facing, np.inf)
+    return np.argmin(distance, axis=1)
+
+
+@dataclass
+class PoseSet:
+    """An object's stable poses and the graph that settles any orientation into one.
+
+    poses : list[StablePose], sorted by probability (descending), then closed under toppling
+    face_pose : (F,) int, pose each hull face drains into (-1: a pose left out of ``poses``)
+    """
+
+    poses: list[StablePose]
+    face_pose: np.ndarray
+
+    @property
+    def downs(self) -> np.ndarray:
+        return np.array([p.down for p in self.poses])
+
+    @property
+    def transforms(self) -> np.ndarray:
+        return np.array([p.transform for p in self.poses])
+
+
+def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig()) -> PoseSet:
+    """Stable poses of ``obj`` with probability >= ``config.min_probability``, plus
+    every pose reachable from them by toppling over a base edge.
+
+    Sink facets whose down vectors lie within ``config.same_pose_angle`` merge into
+    one pose (the more probable facet gives the down vector).
+    """
+    hull, com = obj.hull, obj.center_mass
+    try:
+        sink = sink_faces(topple_graph(hull, com))
+    except ValueError as err:
+        raise MeshError(f"{obj.name}: {err}") from None
+    probability = face_solid_angles(hull, com) / (4.0 * np.pi)
+
+    sinks, drain = np.unique(facet_ids(hull)[sink], return_inverse=True)
+    sink_probability = np.bincount(drain, weights=probability, minlength=len(sinks))
+    sink_down = hull.face_normals[sinks]
+
+    # Merge sinks into poses, most probable first.
+    order = np.argsort(-sink_probability, kind="stable")
+    pose_of_sink = np.full(len(sinks), -1)
+    downs: list[np.ndarray] = []
+    for s in order:
+        if downs:
+            angles = np.arccos(np.clip(np.array(downs) @ sink_down[s], -1.0, 1.0))
+            if angles.min() <= config.same_pose_angle:
+                pose_of_sink[s] = int(np.argmin(angles))
+                continue
+        pose_of_sink[s] = len(downs)
+        downs.append(sink_down[s])
+    candidate_probability = np.bincount(pose_of_sink, weights=sink_probability, minlength=len(downs))
+    face_candidate = pose_of_sink[drain]
+
+    geometry = [_pose_geometry(obj, down, face_candidate, i, config) for i, down in enumerate(downs)]
+
+    # Keep probable poses and close the set under toppling.
+    keep = set(np.flatnonzero(candidate_probability >= config.min_probability).tolist()) or {0}
+    frontier = list(keep)
+    while frontier:
+        for target in geometry[frontier.pop()]["edge_final_pose"].tolist():
+            if target not in keep:
+                keep.add(target)
+                frontier.append(target)
+    kept = sorted(keep, key=lambda i: (-candidate_probability[i], i))
+    new_index = np.full(len(downs), -1)
+    new_index[kept] = np.arange(len(kept))
+
+    poses = []
+    for i, old in enumerate(kept):
+        g = geometry[old]
+        poses.append(
+            StablePose(
+                index=i,
+                down=downs[old],
+                probability=float(candidate_probability[old]),
+                transform=g["transform"],
+                height=g["height"],
+                com_height=g["com_height"],
+                base_edges=g["base_edges"],
+                edge_final_pose=new_index[g["edge_final_pose"]],
+                edge_blocked=g["edge_blocked"],
+                apex_angle=g["apex_angle"],
+            )
+        )
+    return PoseSet(poses=poses, face_pose=new_index[face_candidate])
+
+
+def _pose_geometry(obj: ObjectModel, down: np.ndarray, face_pose: np.ndarray, index: int, config: PoseConfig) -> dict:
+    """Canonical transform, base edges and per-edge outcomes of the pose with this down vector."""
+    hull, com = obj.hull, obj.center_mass
+    transform = canonical_transform(down, com, hull.vertices)
+    vertices = transform_points(transform, hull.vertices)
+    com_pose = transform_points(transform, com[None])[0]
+    try:
+        edges = base_edges(base_polygon(vertices, config.base_tolerance))
+    except ValueError as err:
+        raise MeshError(f"{obj.name}: pose {index}: {err}") from None
+    geometry = edge_geometry(edges, com_pose)
+    landing = landing_angles(geometry, vertices, config.base_tolerance)
+    blocked = landing < geometry.apex_angle
+    # The face the object lands on is the hull face most aligned with the new down direction.
+    downs_object = landing_down(geometry, landing) @ transform[:3, :3]
+    landing_face = np.argmax(unit(downs_object) @ hull.face_normals.T, axis=1)
+    final = np.where(blocked, index, face_pose[landing_face])
+    return {
+        "transform": transform,
+        "height": float(vertices[:, 2].max()),
+        "com_height": float(com_pose[2]),
+        "base_edges": edges,
+        "edge_final_pose": final,
+        "edge_blocked": blocked,
+        "apex_angle": geometry.apex_angle,
+    }
+
+
+def settle(pose_set: PoseSet, obj: ObjectModel, rotation: np.ndarray) -> int:
+    """Stable pose an object comes to rest in when released in an orientation.
+
+    rotation : (3, 3) float, object frame -> world frame (z up)
+    returns : int, pose index, or -1 when it rests in a pose left out of ``pose_set``
+    """
+    down = rotation.T @ np.array([0.0, 0.0, -1.0])
+    face = face_below(obj.hull, obj.center_mass, down[None])[0]
+    return int(pose_set.face_pose[face])

@@ -1,0 +1,145 @@
+"""What one object's evaluation produces: the contract between the compute
+modules (poses, topple model, suction, MDP) and storage (shards, manifest).
+
+Frames: "object" is the mesh's own frame (metres); "pose" is the canonical frame
+of one stable pose: z up, table at z = 0, centre of mass over the origin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# Action status codes, stored as int8; names are the public vocabulary.
+STATUS_NAMES = ("ok", "too_low", "pushes_up", "finger_collision")
+STATUS_OK, STATUS_TOO_LOW, STATUS_PUSHES_UP, STATUS_FINGER_COLLISION = range(4)
+
+NO_OP = -1
+"""Action id a policy returns when it chooses not to push."""
+
+NO_EDGE = -1
+"""Trial outcome: the object did not topple over any base edge."""
+NOT_EVALUATED = -2
+"""Trial outcome for actions whose status is not ``ok``."""
+
+
+@dataclass
+class StablePose:
+    """One stable resting pose of an object.
+
+    index : int, position in the object's pose list (sorted by probability, descending)
+    down : (3,) float, unit vector in the object frame pointing down onto the table
+    probability : float, probability of resting in this pose when dropped (Goldberg et al.)
+    transform : (4, 4) float, object frame -> pose frame
+    height : float, m, top of the object above the table in this pose
+    com_height : float, m, centre of mass above the table
+    base_edges : (E, 2, 3) float, m, pose frame, counter-clockwise seen from above
+    edge_final_pose : (E,) int, pose reached by toppling over each edge
+      (this pose's own index when the topple is blocked)
+    edge_blocked : (E,) bool, another part of the hull meets the table before the apex
+    apex_angle : (E,) float, rad, rotation about the edge that brings the COM above it
+    """
+
+    index: int
+    down: np.ndarray
+    probability: float
+    transform: np.ndarray
+    height: float
+    com_height: float
+    base_edges: np.ndarray
+    edge_final_pose: np.ndarray
+    edge_blocked: np.ndarray
+    apex_angle: np.ndarray
+
+
+@dataclass
+class Actions:
+    """Candidate pushes of one pose, in the pose frame.
+
+    points : (A, 3) float, m, contact points
+    normals : (A, 3) float, outward unit surface normals
+    directions : (A, 3) float, unit push directions (default -normals)
+    status : (A,) int8, ``STATUS_*`` codes
+    max_height : int, index of the Max-Height baseline's action (the last one), or -1 if the
+      pose has no surface point with a near-horizontal normal
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    directions: np.ndarray
+    status: np.ndarray
+    max_height: int = -1
+
+
+@dataclass
+class ToppleTable:
+    """Outcome of the toppling model for every action of one pose.
+
+    next_pose : (A, P) float, P(x' | x, u); rows sum to 1 for ``ok`` actions and are NaN otherwise
+    p_topple : (A,) float, P(x' != x | x, u); NaN for actions that are not ``ok``
+    mean_force : (A,) float, N, mean required force over the trials that topple over
+      some edge; NaN when none does
+    outcomes : (A, T) int16, per trial: base edge toppled over, ``NO_EDGE``, or ``NOT_EVALUATED``
+    """
+
+    next_pose: np.ndarray
+    p_topple: np.ndarray
+    mean_force: np.ndarray
+    outcomes: np.ndarray
+
+
+@dataclass
+class SuctionResult:
+    """Best suction grasp of one pose (pose frame).
+
+    quality : float in [0, 1], V_s, robust quality of the best grasp (0 when none)
+    point : (3,) float, m, grasp contact point (NaN when none)
+    axis : (3,) float, unit approach axis pointing from the gripper into the object (NaN when none)
+    """
+
+    quality: float
+    point: np.ndarray
+    axis: np.ndarray
+
+
+@dataclass
+class PolicyChoice:
+    """A policy's decision in one pose: an action id (or ``NO_OP``) and its expected value."""
+
+    action: int
+    value: float
+
+
+@dataclass
+class PoseValues:
+    """Value-iteration results of one pose.
+
+    q : (A,) float, Q_T(x, u) for every action (NaN when not ``ok``)
+    greedy : (A,) float, E[V_s(x')] for every action (NaN when not ``ok``)
+    value : float, V_T(x)
+    policies : dict name -> PolicyChoice for ``max_height``, ``greedy``, ``value_iteration``
+    """
+
+    q: np.ndarray
+    greedy: np.ndarray
+    value: float
+    policies: dict[str, PolicyChoice]
+
+
+@dataclass
+class ObjectResult:
+    """Everything computed for one object."""
+
+    object_id: str
+    mass: float
+    center_mass: np.ndarray
+    hull_vertices: np.ndarray
+    hull_faces: np.ndarray
+    repairs: list[str]
+    poses: list[StablePose]
+    actions: list[Actions]
+    topple: list[ToppleTable]
+    suction: list[SuctionResult]
+    values: list[PoseValues]
+    timings: dict[str, float] = field(default_factory=dict)
