@@ -175,7 +175,7 @@ def trial_outcomes(
         origin_cross = np.column_stack([-edges.origin[:, 1], edges.origin[:, 0], np.zeros(len(edges.origin))])
         tau = p_cross_u[:, 2:3] - u @ origin_cross.T
         load = load + (tau / edges.half_span) ** 2
-    holds = load <= limit
+    holds = (load <= limit) & (trials.mu_table[:, None] > 0.0)
 
     passes = in_cone & rotates & holds & trials.valid[:, None]
     candidate = np.where(passes, force, np.inf)

@@ -1,0 +1,200 @@
+"""Scalar reference of one toppling trial, written straight from thesis 4.2.
+
+Plain Python floats and loops, no numpy in the arithmetic: it is slow on purpose
+and exists so the tests can hold the vectorised engine (``pipeline.topple``) to
+it trial by trial, and ``make bench`` can measure the speed-up.
+
+Inputs are the same noise draws the engine uses (``pipeline.topple.TrialNoise``
+values for one action and trial), so both compute the same trial.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+Vec = tuple[float, float, float]
+
+
+def _add(a: Vec, b: Vec) -> Vec:
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+def _sub(a: Vec, b: Vec) -> Vec:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+def _scale(a: Vec, s: float) -> Vec:
+    return (a[0] * s, a[1] * s, a[2] * s)
+
+
+def _dot(a: Vec, b: Vec) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cross(a: Vec, b: Vec) -> Vec:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _norm(a: Vec) -> float:
+    return math.sqrt(_dot(a, a))
+
+
+def _unit(a: Vec) -> Vec:
+    return _scale(a, 1.0 / _norm(a))
+
+
+def _rotate(v: Vec, axis: Vec, angle: float) -> Vec:
+    """Rodrigues: v rotated by ``angle`` about the unit ``axis``."""
+    c, s = math.cos(angle), math.sin(angle)
+    return _add(_add(_scale(v, c), _scale(_cross(axis, v), s)), _scale(axis, _dot(axis, v) * (1.0 - c)))
+
+
+def ray_cast(origin: Vec, direction: Vec, triangles: Sequence[tuple[Vec, Vec, Vec]]):
+    """First hit of a ray on a triangle soup (Moller-Trumbore); (t, triangle index) or None."""
+    best = None
+    for index, (a, b, c) in enumerate(triangles):
+        e1, e2 = _sub(b, a), _sub(c, a)
+        p = _cross(direction, e2)
+        det = _dot(e1, p)
+        if abs(det) < 1e-18:
+            continue
+        inv = 1.0 / det
+        s = _sub(origin, a)
+        u = _dot(s, p) * inv
+        if u < 0.0 or u > 1.0:
+            continue
+        q = _cross(s, e1)
+        v = _dot(direction, q) * inv
+        if v < 0.0 or u + v > 1.0:
+            continue
+        t = _dot(e2, q) * inv
+        if t > 1e-12 and (best is None or t < best[0]):
+            best = (t, index)
+    return best
+
+
+@dataclass
+class Scene:
+    """One pose of one object, as plain Python values (pose frame, SI units)."""
+
+    triangles: list[tuple[Vec, Vec, Vec]]
+    face_normals: list[Vec]
+    center_mass: Vec
+    mass: float
+    gravity: float
+    edges: list[tuple[Vec, Vec]]
+
+
+@dataclass
+class TrialDraw:
+    """One trial's inputs: the nominal action and its noise draws."""
+
+    point: Vec
+    normal: Vec
+    direction: Vec
+    mu_table: float
+    mu_finger: float
+    contact_offset: Vec
+    direction_offset: Vec
+    rotation_axis: Vec
+    rotation_angle: float
+
+
+def in_friction_cone(push: Vec, normal: Vec, mu: float) -> bool:
+    """Condition 1: the push lies in the friction cone at the contact (4.2.1)."""
+    cos = -_dot(push, normal)
+    if cos <= 0.0:
+        return False
+    angle = math.acos(min(1.0, cos))
+    return math.tan(angle) <= mu
+
+
+def reference_trial(scene: Scene, draw: TrialDraw, robust: bool, predicts_rotations: bool, ray_offset: float):
+    """Outcome of one trial: (edge index or -1, required force in N or inf)."""
+    push = _unit(_add(draw.direction, draw.direction_offset))
+    if robust:
+        c = scene.center_mass
+        origin = _add(_add(draw.point, draw.contact_offset), _scale(draw.normal, ray_offset))
+        origin = _add(_rotate(_sub(origin, c), draw.rotation_axis, draw.rotation_angle), c)
+        ray = _rotate(_scale(draw.normal, -1.0), draw.rotation_axis, draw.rotation_angle)
+        push = _rotate(push, draw.rotation_axis, draw.rotation_angle)
+        hit = ray_cast(origin, ray, scene.triangles)
+        if hit is None:
+            return -1, math.inf
+        contact = _add(origin, _scale(ray, hit[0]))
+        normal = scene.face_normals[hit[1]]
+        if _dot(normal, ray) >= 0.0:  # the finger started inside the object
+            return -1, math.inf
+    else:
+        contact, normal = draw.point, draw.normal
+
+    weight = scene.mass * scene.gravity
+    com = scene.center_mass
+    best_edge, best_force = -1, math.inf
+    for index, (y0, y1) in enumerate(scene.edges):
+        e = _unit(_sub(y1, y0))
+        outward = (e[1], -e[0], 0.0)
+        com_distance = -_dot(_sub(com, y0), outward)
+        # The tipping point: rotate about the edge until the COM is above it.
+        apex = math.atan2(com_distance, com[2])
+        if not in_friction_cone(push, normal, draw.mu_finger):
+            continue
+        if not in_friction_cone(push, _rotate(normal, e, apex), draw.mu_finger):
+            continue
+
+        # Condition 3 (4.2.3): |r_f x f'_f| >= |r_g x f_g| about the edge.
+        push_torque = _dot(_cross(_sub(contact, y0), push), e)
+        if push_torque <= 1e-12:
+            continue
+        force = weight * com_distance / push_torque
+
+        # Condition 2 (4.2.2): friction limit surface, two point contacts at the ends.
+        if draw.mu_table <= 0.0:
+            continue
+        f = _scale(push, force)
+        normal_force = weight + max(0.0, -f[2])
+        tangential = math.hypot(f[0], f[1])
+        origin_on_edge = _add(y0, _scale(e, _dot(_sub(com, y0), e)))
+        tau_max = draw.mu_table * normal_force / 2.0 * (
+            abs(_dot(_sub(y0, origin_on_edge), e)) + abs(_dot(_sub(y1, origin_on_edge), e))
+        )
+        tau_z = _cross(_sub(contact, origin_on_edge), f)[2] if predicts_rotations else 0.0
+        ellipse = (tangential / (draw.mu_table * normal_force)) ** 2 + (tau_z / tau_max) ** 2
+        if ellipse > 1.0:
+            continue
+        if force < best_force:
+            best_edge, best_force = index, force
+    return best_edge, best_force
+
+
+def scene_from_pose(obj, pose, gravity: float) -> Scene:
+    """Plain-Python scene of one stable pose (``ObjectModel``, ``StablePose``)."""
+    rotation, shift = pose.transform[:3, :3], pose.transform[:3, 3]
+    triangles = obj.mesh.triangles @ rotation.T + shift
+    as_vec = lambda v: tuple(float(x) for x in v)  # noqa: E731
+    return Scene(
+        triangles=[tuple(as_vec(corner) for corner in tri) for tri in triangles],
+        face_normals=[as_vec(n) for n in obj.mesh.face_normals @ rotation.T],
+        center_mass=as_vec(rotation @ obj.center_mass + shift),
+        mass=float(obj.mass),
+        gravity=float(gravity),
+        edges=[(as_vec(y0), as_vec(y1)) for y0, y1 in pose.base_edges],
+    )
+
+
+def draw_of(actions, noise, action: int, trial: int) -> TrialDraw:
+    """The ``TrialDraw`` of one (action, trial) from engine arrays (``Actions``, ``TrialNoise``)."""
+    as_vec = lambda v: tuple(float(x) for x in v)  # noqa: E731
+    return TrialDraw(
+        point=as_vec(actions.points[action]),
+        normal=as_vec(actions.normals[action]),
+        direction=as_vec(actions.directions[action]),
+        mu_table=float(noise.mu_table[action, trial]),
+        mu_finger=float(noise.mu_finger[action, trial]),
+        contact_offset=as_vec(noise.contact_offset[action, trial]),
+        direction_offset=as_vec(noise.direction_offset[action, trial]),
+        rotation_axis=as_vec(noise.rotation_axis[action, trial]),
+        rotation_angle=float(noise.rotation_angle[action, trial]),
+    )

@@ -1,0 +1,47 @@
+"""Test objects with known answers, shared by the geometry tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import pybullet_data
+import trimesh
+
+from pipeline.mesh import load_mesh, model_from_mesh
+
+DATA = pybullet_data.getDataPath()
+
+
+def box_object(size=(0.05, 0.08, 0.15), mass=0.25):
+    """A box with its base at z = 0; its standing pose is the identity."""
+    mesh = trimesh.creation.box(size)
+    mesh.apply_translation([0, 0, size[2] / 2])
+    return model_from_mesh(mesh, mass=mass, name="box")
+
+
+def boot_object():
+    """A tall block with a thin toe rising at 10 degrees from one bottom edge.
+
+    Standing on the block, a push over the toe's edge is blocked: the toe meets
+    the table (10 degrees) before the centre of mass passes the edge (~18 degrees).
+    """
+    block = trimesh.creation.box([0.04, 0.04, 0.10])
+    block.apply_translation([0.02, 0.02, 0.05])
+    # Inset in y so no vertex coincides with the block's: both shells stay closed.
+    toe = trimesh.creation.box([0.08, 0.036, 0.004])
+    toe.apply_translation([0.04, 0.02, 0.002])  # inner bottom edge on x = 0, z = 0
+    toe.apply_transform(trimesh.transformations.rotation_matrix(np.radians(-10), [0, 1, 0], [0, 0, 0]))
+    toe.apply_translation([0.04, 0, 0])
+    return model_from_mesh(trimesh.util.concatenate([block, toe]), mass=0.2, name="boot")
+
+
+def random_object(index: int):
+    """One of pybullet_data's random objects at its URDF scale and mass."""
+    return load_mesh(f"{DATA}/random_urdfs/{index:03d}/{index:03d}.obj", scale=0.015, mass=0.1, name=f"random_{index:03d}")
+
+
+def pose_with_down(pose_set, down, atol=1e-6):
+    """Index of the pose whose object-frame down vector is ``down``."""
+    for pose in pose_set.poses:
+        if np.allclose(pose.down, down, atol=atol):
+            return pose.index
+    raise AssertionError(f"no pose with down {down}")

@@ -1,0 +1,80 @@
+"""Mesh loading: repairs are reported, every rejection reason is one clear line."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.config import MeshConfig
+from pipeline.mesh import MeshError, load_mesh, model_from_mesh
+from shapes import DATA
+
+
+def test_loads_corpus_mesh_in_metres_with_mass():
+    obj = load_mesh(f"{DATA}/random_urdfs/000/000.obj", scale=0.015, mass=0.1)
+    assert obj.mass == 0.1
+    assert 0.05 < obj.mesh.extents.max() < 0.2
+    assert obj.hull.contains([obj.center_mass])[0]
+
+
+def test_default_mass_and_duplicate_vertices_repaired():
+    box = trimesh.creation.box([0.1, 0.1, 0.1])
+    soup = trimesh.Trimesh(box.triangles.reshape(-1, 3), np.arange(36).reshape(-1, 3), process=False)
+    obj = model_from_mesh(soup, name="soup")
+    assert obj.mass == MeshConfig().default_mass
+    assert any("merged" in r for r in obj.repairs)
+    assert np.isclose(obj.mesh.volume, 1e-3)
+
+
+def test_open_mesh_uses_hull_centre_of_mass_and_says_so():
+    box = trimesh.creation.box([0.1, 0.1, 0.1])
+    open_box = trimesh.Trimesh(box.vertices, box.faces[:-1], process=False)  # every corner kept
+    obj = model_from_mesh(open_box, name="open", config=MeshConfig(fill_holes=False))
+    assert any("convex hull" in r for r in obj.repairs)
+    assert np.allclose(obj.center_mass, 0, atol=1e-9)
+
+
+def _reason(mesh, **kwargs):
+    with pytest.raises(MeshError) as err:
+        model_from_mesh(mesh, name="bad", **kwargs)
+    message = str(err.value)
+    assert "\n" not in message and message.startswith("bad: ")
+    return message
+
+
+def test_rejects_empty_mesh():
+    assert "empty mesh" in _reason(trimesh.Trimesh())
+
+
+def test_rejects_non_finite_vertices():
+    box = trimesh.creation.box([0.1, 0.1, 0.1])
+    vertices = box.vertices.copy()
+    vertices[0, 0] = np.nan
+    assert "non-finite vertex" in _reason(trimesh.Trimesh(vertices, box.faces, process=False))
+
+
+def test_rejects_flat_mesh_as_zero_volume():
+    flat = trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0.1, 0.1, 0]], [[0, 1, 2], [1, 3, 2]], process=False)
+    assert "zero or negative volume" in _reason(flat)
+
+
+def test_rejects_centre_of_mass_outside_hull():
+    box = trimesh.creation.box([0.1, 0.1, 0.1])
+    assert "outside the convex hull" in _reason(box, center_mass=[0.2, 0, 0])
+
+
+def test_rejects_too_small_and_too_large():
+    assert "too small" in _reason(trimesh.creation.box([0.001] * 3))
+    assert "too large" in _reason(trimesh.creation.box([2.0, 0.1, 0.1]))
+    assert "too large" in _reason(trimesh.creation.box([0.1] * 3), scale=10.0)
+
+
+def test_rejects_bad_mass():
+    assert "mass must be a positive" in _reason(trimesh.creation.box([0.1] * 3), mass=-1.0)
+
+
+def test_unreadable_file_is_one_line(tmp_path):
+    path = tmp_path / "broken.obj"
+    path.write_text("this is not an obj file\nf 1 2 3\n")
+    with pytest.raises(MeshError) as err:
+        load_mesh(path)
+    assert str(err.value).startswith("broken: ") and "\n" not in str(err.value)

@@ -1,0 +1,140 @@
+"""The toppling model: analytic cases and invariants (thesis 4.2, DESIGN.md)."""
+
+import numpy as np
+import pytest
+
+from pipeline.api import evaluate
+from pipeline.config import Config
+from pipeline.frames import transform_points
+from pipeline.poses import stable_poses
+from pipeline.results import NOT_EVALUATED, STATUS_OK
+from shapes import box_object, boot_object, pose_with_down, random_object
+
+MU_TABLE = Config().topple.mu_table_mean
+
+
+@pytest.fixture(scope="module")
+def box():
+    obj = box_object((0.05, 0.08, 0.15))
+    pose_set = stable_poses(obj)
+    return obj, pose_set, pose_with_down(pose_set, [0, 0, -1])
+
+
+def _side_pushes(heights, y=0.0):
+    """Horizontal pushes along -x on the box's +x face (width 0.05 along x)."""
+    return np.column_stack([np.full(len(heights), 0.025), np.full(len(heights), y), heights])
+
+
+@pytest.mark.parametrize("variant", ["baseline", "rotations"])
+def test_box_topples_above_friction_height_and_slides_below(box, variant):
+    obj, pose_set, standing = box
+    threshold = 0.05 / (2 * MU_TABLE)  # F* = m g w / 2h <= mu_T m g
+    heights = threshold * np.array([0.5, 0.9, 0.98, 1.02, 1.1, 2.0])
+    result = evaluate(obj, pose_set, standing, points=_side_pushes(heights), variant=variant)
+    assert np.array_equal(result.table.p_topple, [0, 0, 0, 1, 1, 1])
+    # It rolls onto the -x face, the one it was pushed towards.
+    assert np.all(result.table.next_pose[3:, pose_with_down(pose_set, [-1, 0, 0])] == 1)
+    # The required force is m g w / (2 h).
+    expected = obj.mass * 9.81 * 0.05 / (2 * heights[3:])
+    assert np.allclose(result.table.mean_force[3:], expected)
+
+
+def test_push_pointing_away_never_topples(box):
+    obj, pose_set, standing = box
+    heights = np.linspace(0.03, 0.14, 8)
+    away = np.tile([1.0, 0.0, 0.0], (8, 1))  # along the outward normal of the +x face
+    for variant in ("baseline", "robust"):
+        result = evaluate(obj, pose_set, standing, points=_side_pushes(heights), directions=away, variant=variant)
+        assert np.all(result.table.p_topple == 0)
+
+
+def test_push_outside_friction_cone_slips(box):
+    obj, pose_set, standing = box
+    steep = np.array([[-1.0, 0.0, -1.5]])  # 56 degrees from the inward normal; tan > mu_f = 0.98
+    result = evaluate(obj, pose_set, standing, points=_side_pushes([0.14]), directions=steep, variant="baseline")
+    assert result.table.p_topple[0] == 0
+
+
+def test_baseline_ignores_planar_rotation_and_rotations_variant_does_not(box):
+    obj, pose_set, standing = box
+    # Just above the friction height, pushed near the face's end: a large torque about z.
+    points = _side_pushes([0.07, 0.07], y=0.0)
+    points[1, 1] = 0.039
+    baseline = evaluate(obj, pose_set, standing, points=points, variant="baseline").table.p_topple
+    rotations = evaluate(obj, pose_set, standing, points=points, variant="rotations").table.p_topple
+    assert np.array_equal(baseline, [1, 1])
+    assert np.array_equal(rotations, [1, 0])
+
+
+def test_blocked_topple_returns_to_start_pose():
+    obj = boot_object()
+    pose_set = stable_poses(obj)
+    standing = pose_with_down(pose_set, [0, 0, -1])
+    pose = pose_set.poses[standing]
+    blocked_edge = int(np.flatnonzero(pose.edge_blocked)[0])
+    # Push the block's -x face towards +x, high up: it tips towards the toe.
+    push = transform_points(pose.transform, np.array([[0.0, 0.02, 0.09]]))
+    result = evaluate(obj, pose_set, standing, points=push, variant="baseline")
+    assert result.table.outcomes[0, 0] == blocked_edge
+    assert result.table.p_topple[0] == 0 and result.table.next_pose[0, standing] == 1
+
+
+@pytest.fixture(scope="module")
+def random_table():
+    # Pose 4 of random object 1 stands on end: many pushes topple it (lying flat, none do).
+    obj = random_object(1)
+    pose_set = stable_poses(obj)
+    return obj, pose_set, evaluate(obj, pose_set, 4, n_contacts=150, n_trials=40, seed=3)
+
+
+def test_probabilities_sum_to_one_and_statuses_gate_evaluation(random_table):
+    _, pose_set, result = random_table
+    table, status = result.table, result.actions.status
+    ok = status == STATUS_OK
+    assert ok.sum() > 20 and (~ok).sum() > 0
+    assert np.allclose(table.next_pose[ok].sum(axis=1), 1.0)
+    assert np.all(table.next_pose[ok] >= 0)
+    assert np.all(np.isnan(table.next_pose[~ok])) and np.all(np.isnan(table.p_topple[~ok]))
+    assert np.all(table.outcomes[~ok] == NOT_EVALUATED) and np.all(table.outcomes[ok] >= -1)
+    assert np.allclose(table.p_topple[ok], 1 - table.next_pose[ok, 4])
+    assert table.p_topple[ok].max() > 0, "some push should topple a random object"
+    assert table.next_pose.shape == (151, len(pose_set.poses))
+
+
+def test_same_seed_same_result_different_seed_differs(random_table):
+    obj, pose_set, first = random_table
+    again = evaluate(obj, pose_set, 4, n_contacts=150, n_trials=40, seed=3)
+    other = evaluate(obj, pose_set, 4, n_contacts=150, n_trials=40, seed=4)
+    assert np.array_equal(first.table.outcomes, again.table.outcomes)
+    assert np.array_equal(first.actions.points, again.actions.points)
+    assert not np.array_equal(first.table.outcomes, other.table.outcomes)
+
+
+def test_robust_estimate_converges_with_trials(box):
+    obj, pose_set, standing = box
+    # Near the friction height the outcome is genuinely uncertain under noise.
+    points = _side_pushes([0.06, 0.07, 0.09])
+    estimates = {
+        trials: evaluate(obj, pose_set, standing, points=points, n_trials=trials, seed=7).table.p_topple
+        for trials in (25, 400, 6400)
+    }
+    truth = estimates[6400]
+    assert np.all((truth > 0.05) & (truth < 0.95))
+    # Monte Carlo error shrinks like 1/sqrt(T): stay within 4 standard errors.
+    for trials in (25, 400):
+        bound = 4 * np.sqrt(truth * (1 - truth) / trials) + 4 * np.sqrt(truth * (1 - truth) / 6400)
+        assert np.all(np.abs(estimates[trials] - truth) <= bound)
+    assert np.abs(estimates[400] - truth).max() < 0.1
+
+
+def test_noise_free_variants_run_one_trial(box):
+    obj, pose_set, standing = box
+    for variant, trials in (("baseline", 1), ("rotations", 1), ("robustness", 100), ("robust", 100)):
+        result = evaluate(obj, pose_set, standing, points=_side_pushes([0.1]), variant=variant)
+        assert result.table.outcomes.shape == (1, trials)
+
+
+def test_unknown_variant_is_rejected(box):
+    obj, pose_set, standing = box
+    with pytest.raises(ValueError, match="unknown variant"):
+        evaluate(obj, pose_set, standing, points=_side_pushes([0.1]), variant="magic")
