@@ -1,0 +1,151 @@
+"""``make bench``: speed and memory of the toppling model, suction quality and value
+iteration on a fixed set of corpus meshes, on one core.
+
+The process pins itself to one CPU and limits BLAS/OpenMP threads before numpy
+loads, so the figures are per core.  The scalar reference runs on a subsample of
+the same trials; the speed-up compares seconds per trial.  The last line printed
+is one JSON object.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import resource  # noqa: E402
+import time  # noqa: E402
+from types import SimpleNamespace  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from .api import object_contacts  # noqa: E402
+from .config import Config  # noqa: E402
+from .contacts import collision_object, pose_actions  # noqa: E402
+from .mdp import pose_values  # noqa: E402
+from .objects import load_object, pose_suction  # noqa: E402
+from .poses import stable_poses  # noqa: E402
+from .reference import draw_of, reference_trial, scene_from_pose  # noqa: E402
+from .results import STATUS_OK  # noqa: E402
+from .rng import stream  # noqa: E402
+from .topple import evaluate_pose, sample_noise  # noqa: E402
+
+THESIS_SECONDS_PER_POSE = 40.47
+
+
+def bench_specs(count: int) -> list[SimpleNamespace]:
+    """The first ``count`` of pybullet_data's random objects at their URDF scale and mass."""
+    import pybullet_data
+
+    root = pybullet_data.getDataPath()
+    return [
+        SimpleNamespace(object_id=f"random_{i:03d}", path=f"{root}/random_urdfs/{i:03d}/{i:03d}.obj", scale=0.015, mass=0.1)
+        for i in range(count)
+    ]
+
+
+def pin_to_one_core() -> int:
+    cpu = min(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {cpu})
+    return cpu
+
+
+def run(n_objects: int, reference_trials: int, config: Config) -> dict:
+    pose_seconds, suction_seconds, vi_seconds = [], [], []
+    engine_seconds = engine_trials = 0.0
+    reference_seconds, reference_count = 0.0, 0
+    per_object_reference = max(1, reference_trials // n_objects)
+    for spec in bench_specs(n_objects):
+        obj = load_object(spec, config)
+        poses = stable_poses(obj, config.poses).poses
+        start = time.perf_counter()
+        points, normals = object_contacts(obj, config.contacts, config.seed)
+        mesh_collision = collision_object(obj.mesh)
+        shared = (time.perf_counter() - start) / len(poses)
+        tables, all_actions, v_s = [], [], []
+        for pose in poses:
+            start = time.perf_counter()
+            actions = pose_actions(points, normals, obj.mesh, mesh_collision, pose.transform, config.contacts)
+            table = evaluate_pose(obj, pose, len(poses), actions, config.topple, stream(config.seed, obj.name, pose.index, "trials"))
+            elapsed = time.perf_counter() - start + shared
+            pose_seconds.append(elapsed)
+            engine_seconds += elapsed
+            engine_trials += int((actions.status == STATUS_OK).sum()) * config.topple.trials
+            tables.append(table)
+            all_actions.append(actions)
+
+            start = time.perf_counter()
+            v_s.append(pose_suction(obj, pose, config).quality)
+            suction_seconds.append(time.perf_counter() - start)
+
+        # The reference on a subsample of the very same trials.
+        rng = np.random.default_rng(0)
+        for _ in range(per_object_reference):
+            pose_index = int(rng.integers(len(poses)))
+            actions = all_actions[pose_index]
+            ok = np.flatnonzero(actions.status == STATUS_OK)
+            if len(ok) == 0:
+                continue
+            pose = poses[pose_index]
+            noise = sample_noise(stream(config.seed, obj.name, pose_index, "trials"), len(actions.status), config.topple)
+            scene = scene_from_pose(obj, pose, config.topple.gravity)
+            action, trial = int(rng.choice(ok)), int(rng.integers(config.topple.trials))
+            start = time.perf_counter()
+            edge, _ = reference_trial(
+                scene, draw_of(actions, noise, action, trial), config.topple.robust, config.topple.predicts_rotations, config.topple.ray_offset
+            )
+            reference_seconds += time.perf_counter() - start
+            reference_count += 1
+            if edge != tables[pose_index].outcomes[action, trial]:
+                raise AssertionError(f"engine and reference disagree on {obj.name} pose {pose_index} action {action} trial {trial}")
+
+        start = time.perf_counter()
+        pose_values([t.next_pose for t in tables], np.array(v_s), [a.max_height for a in all_actions], config.mdp)
+        vi_seconds.append(time.perf_counter() - start)
+
+    median = float(np.median(pose_seconds))
+    engine_per_trial = engine_seconds / max(engine_trials, 1)
+    reference_per_trial = reference_seconds / max(reference_count, 1)
+    return {
+        "objects": n_objects,
+        "poses": len(pose_seconds),
+        "contacts": config.contacts.n_contacts,
+        "trials": config.topple.trials,
+        "median_s_per_pose": round(median, 4),
+        "p90_s_per_pose": round(float(np.percentile(pose_seconds, 90)), 4),
+        "trials_per_s": round(engine_trials / engine_seconds),
+        "speedup_vs_thesis": round(THESIS_SECONDS_PER_POSE / median, 1),
+        "reference_trials": reference_count,
+        "reference_s_per_trial": round(reference_per_trial, 6),
+        "speedup_vs_reference": round(reference_per_trial / engine_per_trial, 1),
+        "vs_median_s_per_pose": round(float(np.median(suction_seconds)), 4),
+        "vi_median_s_per_object": round(float(np.median(vi_seconds)), 5),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m pipeline.bench", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--objects", type=int, default=20, help="random corpus objects to time (default 20)")
+    parser.add_argument("--reference-trials", type=int, default=400, help="trials re-run by the scalar reference")
+    args = parser.parse_args(argv)
+    cpu = pin_to_one_core()
+    config = Config()
+    print(f"toppledb bench: {args.objects} pybullet random objects, all stable poses, "
+          f"{config.contacts.n_contacts} contacts x {config.topple.trials} trials, variant {config.topple.variant}, CPU {cpu} only")
+    result = run(args.objects, args.reference_trials, config)
+    print(f"toppling model   median {result['median_s_per_pose']:.3f} s/pose (p90 {result['p90_s_per_pose']:.3f}) over {result['poses']} poses; "
+          f"{result['trials_per_s']:,} trials/s; {result['speedup_vs_thesis']}x the thesis's {THESIS_SECONDS_PER_POSE} s/pose")
+    print(f"scalar reference {result['reference_s_per_trial'] * 1e3:.2f} ms/trial over {result['reference_trials']} trials "
+          f"(all agree); engine speed-up {result['speedup_vs_reference']}x per trial")
+    print(f"suction V_s      median {result['vs_median_s_per_pose']:.3f} s/pose")
+    print(f"value iteration  median {result['vi_median_s_per_object'] * 1e3:.2f} ms/object")
+    print(f"peak memory      {result['peak_rss_mb']} MB")
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
