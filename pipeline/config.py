@@ -143,9 +143,12 @@ class SuctionConfig:
     friction: float = 0.5
     """Coefficient of friction of cup and surface (Dex-Net 3.0: mu = 0.5)."""
     torsional_friction: float = 0.0025
-    """m; torsional friction radius of the ring (Dex-Net 3.0: kappa = 0.005 m)."""
-    elastic_limit: float = 0.005
-    """N m, elastic bending limit (Dex-Net 3.0: alpha = 0.005)."""
+    """m; lever arm r_t of the ring's friction against twisting: it resists |tau_z| <= r_t mu f_N
+    (Dex-Net 3.0's form; r / sqrt(3) would be 8.7 mm, this is more conservative)."""
+    elastic_limit: float = 0.1
+    """N m; largest torque about the contact's tangent axes before the cup peels (Dex-Net 3.0's
+    form). 0.1 N m is about a 30 mm cup's peel torque at typical vacuum (0.3 N m) with a safety
+    factor of 3; see docs/MODEL.md 1.6 for why not 0.005."""
     position_std: float = 0.001
     """m, standard deviation of the grasp position."""
     axis_std: float = 0.05

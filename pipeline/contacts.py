@@ -12,7 +12,7 @@ import numpy as np
 import trimesh
 
 from .config import ContactConfig
-from .frames import axis_angle_matrices, transform_points, unit
+from .frames import transform_points, unit, z_to_axes
 from .results import (
     STATUS_FINGER_COLLISION,
     STATUS_OK,
@@ -128,21 +128,11 @@ def finger_collisions(
     axes = directions @ to_object[:3, :3].T
     length = float(np.linalg.norm(tip[0] - back[0])) if len(points) else 0.0
     capsule = fcl.Capsule(config.finger_radius, length)
-    request, rotations = fcl.CollisionRequest(), _z_to(axes)
+    request, rotations = fcl.CollisionRequest(), z_to_axes(axes)
     for i in np.flatnonzero(~hits):
         finger = fcl.CollisionObject(capsule, fcl.Transform(rotations[i], centers[i]))
         hits[i] = fcl.collide(finger, collision_mesh, request, fcl.CollisionResult()) > 0
     return hits
-
-
-def _z_to(axes: np.ndarray) -> np.ndarray:
-    """Rotations taking +z onto each unit axis; (A, 3) -> (A, 3, 3)."""
-    z = np.array([0.0, 0.0, 1.0])
-    cross = np.cross(z, axes)
-    sin = np.linalg.norm(cross, axis=1)
-    cos = axes[:, 2]
-    axis = np.where(sin[:, None] > 1e-12, cross / np.maximum(sin, 1e-12)[:, None], [1.0, 0.0, 0.0])
-    return axis_angle_matrices(axis, np.arctan2(sin, cos))
 
 
 def collision_object(mesh: trimesh.Trimesh) -> fcl.CollisionObject:

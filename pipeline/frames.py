@@ -23,6 +23,24 @@ def unit(vectors: np.ndarray) -> np.ndarray:
     return np.divide(vectors, norm, out=np.zeros_like(vectors, dtype=float), where=norm > 0)
 
 
+def tangent_frames(axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit tangents (u, v) with (u, v, axis) right-handed and orthonormal.
+
+    axes : (..., 3) float, unit
+    returns : u, v, each (..., 3) float
+    """
+    # Crossing with x fails only for axes near x; fall back to y there.
+    helper = np.where(np.abs(axes[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    u = unit(np.cross(axes, helper))
+    return u, np.cross(axes, u)
+
+
+def z_to_axes(axes: np.ndarray) -> np.ndarray:
+    """Rotations taking +z onto each unit axis: (..., 3) -> (..., 3, 3), columns (u, v, axis)."""
+    u, v = tangent_frames(axes)
+    return np.stack([u, v, axes], axis=-1)
+
+
 def axis_angle_matrices(axes: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """Rotation matrices from unit axes and angles (Rodrigues).
 

@@ -1,0 +1,235 @@
+"""Value iteration over an object's stable poses and the three toppling policies
+(Correa 2019, section 4.3), as pure numpy functions over per-pose tables.
+
+States are the object's stable poses x; the actions of a pose are its candidate
+pushes (only ``ok`` ones have transition rows) plus the no-op, which ends the
+episode with a suction grasp worth V_s(x):
+
+    Q_T(x, u) = sum_x' P(x' | x, u) V_T(x')
+    V_T(x)    = max(V_s(x), gamma * max_u Q_T(x, u))
+
+Inputs, for an object with P poses:
+
+next_pose : list of P arrays, next_pose[x] is (A_x, P) float, P(x' | x, u) for the
+  actions of pose x; rows of actions that are not ``ok`` are NaN (any NaN marks the
+  row) and are ignored; the other rows sum to 1
+v_s : (P,) float in [0, 1], suction grasp quality of each pose
+
+No geometry here: the service and planners can import it without the mesh stack.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import MDPConfig
+from .results import NO_OP, PolicyChoice, PoseValues
+
+IMPROVEMENT = 1e-12
+"""An action must beat the no-op by more than this to be chosen: rows summing to 1
+only up to rounding must not turn "stay in this pose" into a spurious improvement."""
+
+
+def _stack(next_pose: list[np.ndarray], n_poses: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All ``ok`` rows of all poses in one matrix, in pose order.
+
+    returns : rows (N, P) float; owner (N,) int, the pose of each row (non-decreasing);
+      ok (sum A_x,) bool, which of the concatenated actions are ``ok``
+    """
+    blocks = [np.asarray(t, dtype=float).reshape(-1, n_poses) for t in next_pose]
+    stacked = np.concatenate(blocks) if blocks else np.zeros((0, n_poses))
+    owner = np.repeat(np.arange(len(blocks)), [len(b) for b in blocks])
+    ok = ~np.isnan(stacked).any(axis=1)
+    return stacked[ok], owner[ok], ok
+
+
+def _split(values: np.ndarray, next_pose: list[np.ndarray]) -> list[np.ndarray]:
+    """Cut a stacked (sum A_x,) array back into one (A_x,) array per pose."""
+    if not next_pose:
+        return []
+    return np.split(values, np.cumsum([len(t) for t in next_pose])[:-1])
+
+
+def _greedy_step(
+    q: np.ndarray, starts: np.ndarray, ends: np.ndarray, poses: np.ndarray, n_poses: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Best Q and the row achieving it for every pose; -inf and -1 for poses without rows."""
+    best = np.full(n_poses, -np.inf)
+    row = np.full(n_poses, -1)
+    for x, a, b in zip(poses, starts, ends):
+        i = a + int(np.argmax(q[a:b]))
+        best[x], row[x] = q[i], i
+    return best, row
+
+
+def _policy_value(rows: np.ndarray, row: np.ndarray, acting: np.ndarray, v_s: np.ndarray, gamma: float) -> np.ndarray:
+    """Exact value of the stationary policy "push ``row[x]`` where ``acting``, else grasp".
+
+    Solves V_A = gamma (T_AA V_A + T_AS V_s(S)), V_S = V_s(S).  Any policy's value is a
+    lower bound on V_T, which is what lets value iteration jump to it.
+    """
+    value = v_s.copy()
+    act = np.flatnonzero(acting)
+    if len(act):
+        t = rows[row[act]]
+        stay = np.flatnonzero(~acting)
+        system = np.eye(len(act)) - gamma * t[:, act]
+        try:
+            value[act] = np.linalg.solve(system, gamma * t[:, stay] @ v_s[stay])
+        except np.linalg.LinAlgError:
+            # Only possible without discount (gamma = 1) and a closed loop of pushes;
+            # V_s is still a valid lower bound, and plain sweeps do the rest.
+            return v_s.copy()
+    return value
+
+
+def value_iteration(
+    next_pose: list[np.ndarray],
+    v_s: np.ndarray,
+    gamma: float,
+    tolerance: float,
+    max_iterations: int,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """V_T and Q_T by value iteration from V_T = V_s, accelerated by policy evaluation.
+
+    Each sweep applies the Bellman update V <- max(V_s, gamma * max_u T_u V) and also
+    evaluates exactly (one P x P linear solve) the greedy policy of the current V,
+    keeping the larger of the two.  Both are lower bounds on the fixed point, so the
+    iterates rise monotonically from V_s to it (V_T >= V_s everywhere) -- in a handful
+    of sweeps instead of the hundreds plain value iteration needs when pushes rarely
+    topple.  Stops, returning the last Bellman update, when it changes no value by
+    more than ``tolerance``; V_T is then within ``tolerance * gamma / (1 - gamma)`` of
+    the fixed point.  At most ``max_iterations`` sweeps (0 returns V_s).
+
+    next_pose : list of P (A_x, P) float, see the module docstring
+    v_s : (P,) float
+    gamma : discount in [0, 1)
+    tolerance : float, largest change of any V_T(x) in the last sweep
+    max_iterations : int, upper bound on sweeps
+    returns : V_T (P,) float; Q_T list of (A_x,) float, NaN where the row is NaN
+    """
+    v_s = np.asarray(v_s, dtype=float)
+    n_poses = len(v_s)
+    rows, owner, ok = _stack(next_pose, n_poses)
+    poses, starts = np.unique(owner, return_index=True)
+    ends = np.r_[starts[1:], len(owner)].astype(int)
+
+    value = v_s.copy()
+    for _ in range(max_iterations):
+        best, row = _greedy_step(rows @ value, starts, ends, poses, n_poses)
+        bellman = np.maximum(v_s, gamma * best)
+        change = float(np.max(bellman - value)) if n_poses else 0.0  # iterates only rise
+        if change <= tolerance:
+            value = bellman
+            break
+        value = np.maximum(bellman, _policy_value(rows, row, gamma * best > v_s, v_s, gamma))
+
+    q = np.full(len(ok), np.nan)
+    q[ok] = rows @ value
+    return value, _split(q, next_pose)
+
+
+def greedy_values(next_pose: list[np.ndarray], v_s: np.ndarray) -> list[np.ndarray]:
+    """E[V_s(x')] of every action: the suction quality expected right after the push.
+
+    returns : list of (A_x,) float, NaN where the row is NaN
+    """
+    v_s = np.asarray(v_s, dtype=float)
+    return [np.asarray(t, dtype=float).reshape(-1, len(v_s)) @ v_s for t in next_pose]
+
+
+def _best_action(values: np.ndarray) -> int:
+    """Index of the largest non-NaN value, or NO_OP when there is none."""
+    values = np.asarray(values, dtype=float)
+    if values.size == 0 or np.isnan(values).all():
+        return NO_OP
+    return int(np.nanargmax(values))
+
+
+def max_height_policy(pose: int, v_s: np.ndarray, max_height_action: int, greedy: np.ndarray) -> PolicyChoice:
+    """Max-Height baseline (thesis 4.3.1): push the highest near-horizontal-normal point.
+
+    No-op when the object already rests in a pose of the highest V_s, when the pose
+    has no Max-Height action (-1), or when that action is not ``ok`` (NaN greedy
+    value: the push cannot be executed, e.g. the finger collides).
+
+    pose : int;  v_s : (P,) float;  max_height_action : int, ``Actions.max_height``
+    greedy : (A_x,) float, ``greedy_values`` of this pose
+    returns : PolicyChoice; value = E[V_s(x')] of the push, or V_s(x) for the no-op
+    """
+    v_s = np.asarray(v_s, dtype=float)
+    stay = PolicyChoice(NO_OP, float(v_s[pose]))
+    if v_s[pose] >= v_s.max() or max_height_action < 0 or max_height_action >= len(greedy):
+        return stay
+    value = float(greedy[max_height_action])
+    if np.isnan(value):
+        return stay
+    return PolicyChoice(int(max_height_action), value)
+
+
+def greedy_policy(pose: int, v_s: np.ndarray, greedy: np.ndarray) -> PolicyChoice:
+    """Greedy baseline (thesis 4.3.2): argmax_u E[V_s(x')], no-op unless it beats V_s(x).
+
+    pose : int;  v_s : (P,) float;  greedy : (A_x,) float, ``greedy_values`` of this pose
+    returns : PolicyChoice; value = E[V_s(x')] of the push, or V_s(x) for the no-op
+    """
+    stay = float(np.asarray(v_s, dtype=float)[pose])
+    action = _best_action(greedy)
+    if action == NO_OP or not greedy[action] > stay + IMPROVEMENT:
+        return PolicyChoice(NO_OP, stay)
+    return PolicyChoice(action, float(greedy[action]))
+
+
+def value_iteration_policy(pose: int, v_s: np.ndarray, q: np.ndarray, gamma: float) -> PolicyChoice:
+    """Value Iteration policy (thesis 4.3.3): argmax_u Q_T(x, u), no-op when
+    V_s(x) >= gamma max_u Q_T(x, u).
+
+    pose : int;  v_s : (P,) float;  q : (A_x,) float, Q_T of this pose;  gamma : discount
+    returns : PolicyChoice; value = Q_T(x, u) of the push (the expected V_T of the next
+      pose, before this step's discount; V_T(x) = gamma Q_T), or V_s(x) for the no-op
+    """
+    stay = float(np.asarray(v_s, dtype=float)[pose])
+    action = _best_action(q)
+    if action == NO_OP or not gamma * q[action] > stay + IMPROVEMENT:
+        return PolicyChoice(NO_OP, stay)
+    return PolicyChoice(action, float(q[action]))
+
+
+def pose_values(
+    next_pose: list[np.ndarray],
+    v_s: np.ndarray,
+    max_height_actions: list[int] | np.ndarray,
+    config: MDPConfig = MDPConfig(),
+) -> list[PoseValues]:
+    """Value iteration, greedy values and all three policies' choices for every pose.
+
+    next_pose : list of P (A_x, P) float;  v_s : (P,) float
+    max_height_actions : (P,) int, ``Actions.max_height`` of each pose (-1: none)
+    returns : list of P PoseValues (q = Q_T, greedy = E[V_s(x')], value = V_T(x), and
+      policies ``max_height``, ``greedy``, ``value_iteration``)
+    """
+    v_s = np.asarray(v_s, dtype=float)
+    v_t, q = value_iteration(next_pose, v_s, config.gamma, config.tolerance, config.max_iterations)
+    greedy = greedy_values(next_pose, v_s)
+    out = []
+    for x in range(len(v_s)):
+        policies = {
+            "max_height": max_height_policy(x, v_s, int(max_height_actions[x]), greedy[x]),
+            "greedy": greedy_policy(x, v_s, greedy[x]),
+            "value_iteration": value_iteration_policy(x, v_s, q[x], config.gamma),
+        }
+        out.append(PoseValues(q=q[x], greedy=greedy[x], value=float(v_t[x]), policies=policies))
+    return out
+
+
+def is_selected(v_s: np.ndarray, com_heights: np.ndarray, high: float = 0.5, low: float = 0.25) -> bool:
+    """Object selection rule of thesis 4.4.1: keep an object that has a pose with
+    V_s > ``high`` and a pose with V_s < ``low`` whose centre of mass is lower than
+    that of the high-quality pose (toppling it up is then the interesting problem).
+
+    v_s : (P,) float;  com_heights : (P,) float, m, centre of mass above the table
+    """
+    v_s = np.asarray(v_s, dtype=float)
+    com = np.asarray(com_heights, dtype=float)
+    good, bad = v_s > high, v_s < low
+    return bool(np.any(good[:, None] & bad[None, :] & (com[None, :] < com[:, None])))

@@ -1,0 +1,288 @@
+"""Value iteration, greedy values, the three policies and the object selection rule
+(pipeline/mdp.py) on hand-built MDPs with known solutions."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from pipeline.config import MDPConfig
+from pipeline.mdp import (
+    greedy_policy,
+    greedy_values,
+    is_selected,
+    max_height_policy,
+    pose_values,
+    value_iteration,
+    value_iteration_policy,
+)
+from pipeline.results import NO_OP
+
+GAMMA = 0.95
+NAN_ROW = [np.nan] * 3
+
+
+def solve(next_pose, v_s, gamma=GAMMA, tolerance=1e-12, max_iterations=10_000):
+    return value_iteration([np.asarray(t, dtype=float) for t in next_pose], np.asarray(v_s, float), gamma, tolerance, max_iterations)
+
+
+def reference_values(next_pose, v_s, gamma, sweeps=800):
+    """Textbook value iteration with explicit loops, for comparison."""
+    value = np.array(v_s, dtype=float)
+    for _ in range(sweeps):
+        new = value.copy()
+        for x, table in enumerate(next_pose):
+            for row in np.asarray(table, dtype=float):
+                if not np.isnan(row).any():
+                    new[x] = max(new[x], gamma * float(row @ value))
+        new = np.maximum(new, v_s)
+        value = new
+    return value
+
+
+def random_mdp(rng, n_poses, n_actions):
+    tables = []
+    for _ in range(n_poses):
+        rows = rng.dirichlet(np.full(n_poses, 0.3), n_actions)
+        rows[rng.random(n_actions) < 0.3] = np.nan
+        tables.append(rows)
+    if n_poses > 2:
+        tables[1] = np.full((n_actions, n_poses), np.nan)  # a pose whose pushes are all infeasible
+        tables[2] = np.zeros((0, n_poses))  # a pose with no candidate pushes at all
+    return tables, rng.random(n_poses)
+
+
+def figure_4_6():
+    """Thesis figure 4.6: every pose reachable from pose 0 is as poor as pose 0, but
+    one of them topples on to a pose with a perfect grasp.
+
+    pose 0 (V_s 0.4): u0 stays, u1 -> pose 1, u2 -> pose 3 or stays
+    pose 1 (V_s 0.4): u0 -> pose 2 with 0.9, stays with 0.1
+    pose 2 (V_s 1.0): no pushes
+    pose 3 (V_s 0.4): u0 stays
+    """
+    v_s = np.array([0.4, 0.4, 1.0, 0.4])
+    next_pose = [
+        np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0.5, 0, 0, 0.5]], dtype=float),
+        np.array([[0, 0.1, 0.9, 0]], dtype=float),
+        np.zeros((0, 4)),
+        np.array([[0, 0, 0, 1]], dtype=float),
+    ]
+    return next_pose, v_s
+
+
+# ----------------------------------------------------------------------------- value iteration
+
+
+def test_one_topple_to_a_better_pose():
+    v, q = solve([[[0.0, 1.0]], np.zeros((0, 2))], [0.2, 0.9])
+    np.testing.assert_allclose(v, [GAMMA * 0.9, 0.9])
+    np.testing.assert_allclose(q[0], [0.9])
+    assert q[1].shape == (0,)
+
+
+def test_push_that_rarely_topples_has_the_geometric_series_value():
+    # V0 = gamma (0.9 V0 + 0.1 * 1)  =>  V0 = 0.1 gamma / (1 - 0.9 gamma)
+    v, q = solve([[[0.9, 0.1]], np.zeros((0, 2))], [0.0, 1.0])
+    expected = 0.1 * GAMMA / (1 - 0.9 * GAMMA)
+    np.testing.assert_allclose(v, [expected, 1.0], atol=1e-12)
+    np.testing.assert_allclose(q[0], [0.9 * expected + 0.1], atol=1e-12)
+
+
+def test_figure_4_6_values():
+    next_pose, v_s = figure_4_6()
+    v, q = solve(next_pose, v_s)
+    # pose 1: V = gamma (0.1 V1 + 0.9)  =>  V1 = 0.9 gamma / (1 - 0.1 gamma)
+    v1 = 0.9 * GAMMA / (1 - 0.1 * GAMMA)
+    np.testing.assert_allclose(v, [GAMMA * v1, v1, 1.0, 0.4], atol=1e-12)
+    np.testing.assert_allclose(q[0], [GAMMA * v1, v1, 0.5 * GAMMA * v1 + 0.5 * 0.4], atol=1e-12)
+
+
+def test_gamma_discounts_each_topple():
+    # A chain 0 -> 1 -> 2 with a perfect grasp only at the end: V_T(0) = gamma^2.
+    chain = [[[0, 1, 0]], [[0, 0, 1]], np.zeros((0, 3))]
+    for gamma in (0.5, 0.8, 0.95):
+        v, _ = solve(chain, [0.0, 0.0, 1.0], gamma=gamma)
+        np.testing.assert_allclose(v, [gamma**2, gamma, 1.0], atol=1e-12)
+    # Discounting can make grasping now better than a long detour.
+    v, _ = solve(chain, [0.6, 0.0, 1.0], gamma=0.7)
+    assert v[0] == pytest.approx(0.6)
+
+
+def test_matches_textbook_value_iteration_on_random_mdps():
+    rng = np.random.default_rng(0)
+    for n_poses, n_actions in [(2, 3), (5, 20), (8, 50)]:
+        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+        v, q = solve(next_pose, v_s)
+        np.testing.assert_allclose(v, reference_values(next_pose, v_s, GAMMA), atol=1e-10)
+        for table, qx in zip(next_pose, q):
+            np.testing.assert_allclose(qx, table @ v, atol=1e-12)  # NaN where the row is NaN
+
+
+def test_values_are_bounded_by_the_grasp_qualities():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        next_pose, v_s = random_mdp(rng, int(rng.integers(1, 9)), int(rng.integers(0, 30)))
+        v, _ = solve(next_pose, v_s)
+        assert np.all(v >= v_s)
+        assert np.all(v <= v_s.max() + 1e-12)
+
+
+def test_tolerance_bounds_the_bellman_residual():
+    rng = np.random.default_rng(2)
+    next_pose, v_s = random_mdp(rng, 6, 40)
+    exact, _ = solve(next_pose, v_s, tolerance=0.0, max_iterations=200)
+    for tolerance in (1e-2, 1e-6, 1e-12):
+        v, q = solve(next_pose, v_s, tolerance=tolerance)
+        best = np.array([np.nanmax(qx) if np.isfinite(qx).any() else -np.inf for qx in q])
+        residual = np.abs(np.maximum(v_s, GAMMA * best) - v)
+        assert residual.max() <= tolerance
+        assert np.all(v <= exact + 1e-12)
+        assert np.abs(v - exact).max() <= tolerance * GAMMA / (1 - GAMMA) + 1e-12
+
+
+def test_max_iterations_bounds_the_sweeps():
+    next_pose, v_s = figure_4_6()
+    v, q = solve(next_pose, v_s, max_iterations=0)
+    np.testing.assert_array_equal(v, v_s)
+    np.testing.assert_allclose(q[0], next_pose[0] @ v_s)
+
+
+def test_nan_rows_are_ignored():
+    base = [[[0.5, 0.5, 0.0]], [[0.0, 0.0, 1.0]], np.zeros((0, 3))]
+    v_s = [0.1, 0.2, 0.8]
+    with_nan = [
+        # A NaN row that would be worth a lot if it were read, and a partly NaN row.
+        [[0.5, 0.5, 0.0], NAN_ROW, [0.0, np.nan, 1.0]],
+        [NAN_ROW, [0.0, 0.0, 1.0]],
+        np.full((2, 3), np.nan),
+    ]
+    v, _ = solve(base, v_s)
+    v_nan, q_nan = solve(with_nan, v_s)
+    np.testing.assert_allclose(v_nan, v)
+    assert np.isnan(q_nan[0][1:]).all() and np.isfinite(q_nan[0][0])
+    assert np.isnan(q_nan[1][0]) and np.isfinite(q_nan[1][1])
+    assert np.isnan(q_nan[2]).all()
+
+
+def test_fast_enough_for_a_typical_object():
+    # ~7 poses x 1001 actions, topple rows from 100 trials; budget 10 ms (checked loosely).
+    rng = np.random.default_rng(3)
+    n_poses, n_actions = 7, 1001
+    next_pose = []
+    for x in range(n_poses):
+        rows = np.zeros((n_actions, n_poses))
+        rows[:, x] = 1.0
+        moved = rng.integers(0, 101, n_actions) / 100
+        target = rng.integers(0, n_poses, n_actions)
+        rows[np.arange(n_actions), x] -= moved
+        rows[np.arange(n_actions), target] += moved
+        rows[rng.random(n_actions) < 0.3] = np.nan
+        next_pose.append(rows)
+    v_s = rng.random(n_poses)
+    times = []
+    for _ in range(5):
+        start = time.perf_counter()
+        value_iteration(next_pose, v_s, GAMMA, 1e-9, 10_000)
+        times.append(time.perf_counter() - start)
+    assert np.median(times) < 0.05
+
+
+# ----------------------------------------------------------------------------- greedy values and policies
+
+
+def test_greedy_values_are_expected_next_grasp_quality():
+    table = np.array([[0.25, 0.75], [1.0, 0.0], NAN_ROW[:2]])
+    (g,) = greedy_values([table], np.array([0.2, 0.6]))
+    np.testing.assert_allclose(g[:2], [0.25 * 0.2 + 0.75 * 0.6, 0.2])
+    assert np.isnan(g[2])
+
+
+def test_figure_4_6_greedy_no_ops_while_value_iteration_acts():
+    next_pose, v_s = figure_4_6()
+    v, q = solve(next_pose, v_s)
+    greedy = greedy_values(next_pose, v_s)
+    g = greedy_policy(0, v_s, greedy[0])
+    assert (g.action, g.value) == (NO_OP, pytest.approx(0.4))
+    choice = value_iteration_policy(0, v_s, q[0], GAMMA)
+    assert choice.action == 1  # topple to pose 1, from which pose 2 is one more push away
+    assert choice.value == pytest.approx(q[0][1])
+    # From pose 1 both act; in pose 2 both grasp.
+    assert greedy_policy(1, v_s, greedy[1]).action == 0
+    assert value_iteration_policy(1, v_s, q[1], GAMMA).action == 0
+    assert greedy_policy(2, v_s, greedy[2]).action == NO_OP
+    assert value_iteration_policy(2, v_s, q[2], GAMMA).action == NO_OP
+
+
+def test_greedy_acts_only_on_a_strict_expected_improvement():
+    v_s = np.array([0.5, 0.3, 0.9])
+    worse_or_equal = np.array([[1.0, 0, 0], [0.5, 0.5, 0.0], [0.6, 0.4, 0.0]])  # E = 0.5, 0.4, 0.42
+    g = greedy_policy(0, v_s, worse_or_equal @ v_s)
+    assert g.action == NO_OP and g.value == 0.5
+    better = np.vstack([worse_or_equal, [0.0, 0.5, 0.5]])  # E = 0.6
+    g = greedy_policy(0, v_s, better @ v_s)
+    assert g.action == 3 and g.value == pytest.approx(0.6)
+    assert greedy_policy(0, v_s, np.full(2, np.nan)).action == NO_OP
+    assert greedy_policy(0, v_s, np.zeros(0)).action == NO_OP
+
+
+def test_value_iteration_policy_no_ops_when_grasping_now_is_at_least_as_good():
+    v_s = np.array([0.9, 0.0, 1.0])
+    q = np.array([0.92, 0.94, np.nan])  # gamma * 0.94 = 0.893 < 0.9
+    assert value_iteration_policy(0, v_s, q, GAMMA).action == NO_OP
+    assert value_iteration_policy(0, v_s, q, GAMMA).value == 0.9
+    assert value_iteration_policy(0, v_s, q, 0.99).action == 1  # 0.99 * 0.94 = 0.9306 > 0.9
+
+
+def test_max_height_policy_rules():
+    v_s = np.array([0.2, 0.9, 0.9])
+    greedy = np.array([0.3, 0.5, np.nan])
+    choice = max_height_policy(0, v_s, 1, greedy)
+    assert (choice.action, choice.value) == (1, 0.5)
+    # Max-Height does not look at outcomes: it pushes even when the push is worse than waiting.
+    assert max_height_policy(0, v_s, 0, np.array([0.1, 0.0, 0.0])).action == 0
+    assert max_height_policy(1, v_s, 1, greedy).action == NO_OP  # already in a best pose
+    assert max_height_policy(2, v_s, 0, greedy).action == NO_OP  # ties count as best
+    assert max_height_policy(0, v_s, -1, greedy).action == NO_OP  # no such action in this pose
+    stay = max_height_policy(0, v_s, 2, greedy)  # the action is not ok
+    assert (stay.action, stay.value) == (NO_OP, 0.2)
+
+
+def test_pose_values_ties_it_together():
+    next_pose, v_s = figure_4_6()
+    config = MDPConfig(gamma=GAMMA, tolerance=1e-12)
+    values = pose_values(next_pose, v_s, [1, 0, -1, 0], config)
+    v, q = solve(next_pose, v_s)
+    assert len(values) == 4
+    for x, pv in enumerate(values):
+        assert set(pv.policies) == {"max_height", "greedy", "value_iteration"}
+        assert pv.value == pytest.approx(v[x])
+        np.testing.assert_allclose(pv.q, q[x])
+        np.testing.assert_allclose(pv.greedy, next_pose[x] @ v_s)
+    assert values[0].policies["greedy"].action == NO_OP
+    assert values[0].policies["value_iteration"].action == 1
+    assert values[0].policies["max_height"].action == 1
+    assert values[2].policies["max_height"].action == NO_OP
+    assert values[3].policies["max_height"].action == 0  # 0.4 < 1.0: pushes though it cannot help
+
+
+# ----------------------------------------------------------------------------- object selection
+
+
+@pytest.mark.parametrize(
+    "v_s, com, kept",
+    [
+        ([0.9, 0.1], [0.05, 0.02], True),  # good pose stands taller than a bad one
+        ([0.9, 0.1], [0.02, 0.05], False),  # the bad pose is the taller one
+        ([0.9, 0.1, 0.1], [0.03, 0.05, 0.01], True),  # any qualifying pair will do
+        ([0.5, 0.1], [0.05, 0.02], False),  # 0.5 is not > 0.5
+        ([0.9, 0.25], [0.05, 0.02], False),  # 0.25 is not < 0.25
+        ([0.9, 0.8], [0.05, 0.02], False),  # no bad pose
+        ([0.9, 0.1], [0.05, 0.05], False),  # equal heights are not lower
+        ([0.9], [0.05], False),
+    ],
+)
+def test_selection_rule(v_s, com, kept):
+    assert is_selected(np.array(v_s), np.array(com)) is kept

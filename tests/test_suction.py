@@ -1,0 +1,316 @@
+"""Suction grasp quality V_s (pipeline/suction.py): known answers on simple shapes,
+the closed-form seal and wrench checks, and the gripper body against overhangs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.config import SuctionConfig
+from pipeline.contacts import collision_object
+from pipeline.suction import (
+    body_collisions,
+    sample_candidates,
+    seal_contacts,
+    suction_quality,
+    table_collisions,
+    wrench_resisted,
+)
+
+CONFIG = SuctionConfig()
+NO_BENDING = dataclasses.replace(CONFIG, elastic_limit=np.inf)
+"""For tests that bound V_s from above: every wrench constraint only removes successes,
+so a shape that scores low without the bending limit scores low with any limit --
+the low score is then the geometry's doing, whatever the default limit is."""
+LIGHT = 0.05
+"""kg; light enough that tests bounding V_s from below hold at the default bending limit."""
+
+
+def resting(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """A copy translated so that it rests on z = 0 with its centre of mass over the origin."""
+    mesh = mesh.copy()
+    com = mesh.center_mass
+    mesh.apply_translation([-com[0], -com[1], -mesh.bounds[0, 2]])
+    return mesh
+
+
+def lying(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Rotate a z-axis solid of revolution (cylinder) onto its side."""
+    mesh = mesh.copy()
+    mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    return resting(mesh)
+
+
+def quality(mesh, mass=LIGHT, config=CONFIG, seed=0, com=None):
+    com = mesh.center_mass if com is None else com
+    return suction_quality(mesh, com, mass, config, np.random.default_rng(seed))
+
+
+def prism(width: float, height: float, length: float) -> trimesh.Trimesh:
+    """A triangular prism lying on its base (width along x), ridge on top along y."""
+    section = np.array([[-width / 2, 0.0], [width / 2, 0.0], [0.0, height]])
+    points = [[x, y, z] for x, z in section for y in (-length / 2, length / 2)]
+    return trimesh.convex.convex_hull(np.array(points))
+
+
+def sheltered_slab(with_roof: bool = True) -> trimesh.Trimesh:
+    """A 10 x 10 x 1 cm slab whose flat top lies 3 cm under a roof.
+
+    The roof is a row of steep (60 degree) triangular ridges carried by a 1 cm wall at
+    +x, so it offers no upward face within 45 degrees and the wall's 1 cm wide top is
+    too narrow for the 3 cm cup: the slab's top is the only place a cup can seal.  The
+    parts overlap instead of being fused; ray casting and fcl need no watertight union.
+    """
+    parts = [trimesh.creation.box([0.11, 0.10, 0.01], trimesh.transformations.translation_matrix([0.005, 0, 0.005]))]
+    if with_roof:
+        parts.append(trimesh.creation.box([0.01, 0.10, 0.04], trimesh.transformations.translation_matrix([0.055, 0, 0.03])))
+        ridge_height = 0.01 * np.sqrt(3) / 2
+        for x in np.arange(-0.045, 0.055, 0.01):
+            ridge = prism(0.01, ridge_height, 0.10)
+            ridge.apply_translation([x, 0.0, 0.04])
+            parts.append(ridge)
+    return trimesh.util.concatenate(parts)
+
+
+# ----------------------------------------------------------------------------- known answers
+
+
+def test_flat_top_of_a_box_is_a_robust_grasp():
+    box = resting(trimesh.creation.box([0.08, 0.08, 0.05]))
+    for seed in range(3):
+        result = quality(box, seed=seed)
+        assert result.quality >= 0.9
+        assert result.point[2] == pytest.approx(0.05, abs=1e-9)
+        np.testing.assert_allclose(result.axis, [0, 0, -1], atol=1e-9)
+
+
+@pytest.mark.parametrize("radius", [0.01, 0.02])
+def test_thin_cylinder_lying_on_its_side_is_a_poor_grasp(radius):
+    cylinder = lying(trimesh.creation.cylinder(radius=radius, height=0.15, sections=48))
+    points, _ = sample_candidates(cylinder, CONFIG.n_candidates, CONFIG.max_approach_angle, np.random.default_rng(0))
+    assert len(points) > 0  # there are upward faces: the cup fails on the curvature, not on reach
+    assert quality(cylinder, config=NO_BENDING).quality <= 0.3
+
+
+def test_wide_cylinder_lying_on_its_side_is_graspable():
+    # The contrast to the thin cylinder: the same shape with a gentle curvature seals.
+    cylinder = lying(trimesh.creation.cylinder(radius=0.08, height=0.15, sections=96))
+    assert quality(cylinder).quality >= 0.5
+
+
+@pytest.mark.parametrize(
+    "shape",
+    [
+        pytest.param(lambda: trimesh.creation.cone(radius=0.03, height=0.02, sections=4), id="pyramid"),
+        pytest.param(lambda: trimesh.creation.cone(radius=0.04, height=0.015, sections=3), id="tetrahedron"),
+        pytest.param(lambda: trimesh.creation.cone(radius=0.03, height=0.02, sections=64), id="cone"),
+        pytest.param(lambda: prism(0.04, 0.01, 0.10), id="ridge"),
+    ],
+)
+def test_top_that_is_only_a_vertex_or_ridge_gives_no_grasp(shape):
+    mesh = resting(shape())
+    points, _ = sample_candidates(mesh, CONFIG.n_candidates, CONFIG.max_approach_angle, np.random.default_rng(0))
+    assert len(points) > 0  # slopes are within reach: it is the seal across the apex that fails
+    assert quality(mesh, config=NO_BENDING).quality <= 0.05
+
+
+def test_gripper_body_hitting_an_overhang_fails():
+    open_slab = resting(sheltered_slab(with_roof=False))
+    sheltered = sheltered_slab(with_roof=True)
+    com = open_slab.center_mass  # same slab, same load; the roof only gets in the way
+    assert quality(open_slab, com=com).quality >= 0.9
+    assert quality(sheltered, com=com, config=NO_BENDING).quality <= 0.05
+
+    # The slab top still seals under the roof: the body, not the cup, is what fails.
+    point, axis = np.array([[0.0, 0.0, 0.01]]), np.array([[0.0, 0.0, -1.0]])
+    sealed, _ = seal_contacts(sheltered, point, axis, CONFIG)
+    assert sealed.all()
+    assert body_collisions(collision_object(sheltered), point, axis, CONFIG).all()
+    assert not body_collisions(collision_object(open_slab), point, axis, CONFIG).any()
+
+
+def test_heavier_object_of_the_same_shape_never_scores_higher():
+    shapes = [
+        resting(trimesh.creation.box([0.08, 0.08, 0.05])),
+        resting(trimesh.creation.box([0.12, 0.03, 0.04])),
+        lying(trimesh.creation.cylinder(radius=0.05, height=0.12, sections=64)),
+    ]
+    dropped = False
+    for mesh in shapes:
+        scores = [quality(mesh, mass=m, seed=7).quality for m in (0.01, 0.1, 0.3, 1.0, 3.0)]
+        assert all(b <= a for a, b in zip(scores, scores[1:])), scores
+        dropped |= scores[-1] < scores[0]
+    assert dropped  # the masses span the bending limit, so the check above has teeth
+
+
+def test_quality_is_a_fraction_and_a_failed_pose_has_no_grasp():
+    rng = np.random.default_rng(3)
+    shapes = [
+        trimesh.creation.icosphere(subdivisions=2, radius=0.04),
+        trimesh.creation.capsule(height=0.08, radius=0.02),
+        trimesh.creation.box([0.05, 0.07, 0.02]),
+        trimesh.convex.convex_hull(rng.normal(0, 0.03, (30, 3))),
+    ]
+    for mesh in map(resting, shapes):
+        result = quality(mesh, mass=0.2)
+        assert 0.0 <= result.quality <= 1.0
+        k = CONFIG.n_samples
+        assert result.quality * k == pytest.approx(round(result.quality * k))
+        if result.quality == 0.0:
+            assert np.isnan(result.point).all() and np.isnan(result.axis).all()
+        else:
+            assert np.isfinite(result.point).all()
+            assert np.linalg.norm(result.axis) == pytest.approx(1.0)
+            assert result.axis[2] <= -np.cos(CONFIG.max_approach_angle) + 1e-9
+
+
+def test_same_generator_state_gives_the_same_result():
+    mesh = lying(trimesh.creation.cylinder(radius=0.05, height=0.12, sections=64))
+    a, b = quality(mesh, mass=0.3, seed=11), quality(mesh, mass=0.3, seed=11)
+    assert a.quality == b.quality
+    np.testing.assert_array_equal(a.point, b.point)
+
+
+def test_no_face_within_reach_means_no_grasp():
+    # A steep spike (72 degree slopes) offers no face within 45 degrees of vertical.
+    mesh = resting(trimesh.creation.cone(radius=0.02, height=0.06, sections=32))
+    points, _ = sample_candidates(mesh, CONFIG.n_candidates, CONFIG.max_approach_angle, np.random.default_rng(0))
+    assert len(points) == 0
+    result = quality(mesh)
+    assert result.quality == 0.0 and np.isnan(result.point).all()
+
+
+# ----------------------------------------------------------------------------- seal
+
+
+def test_seal_deflection_limit_on_a_tilted_approach():
+    # On a flat face the ring's hit depths spread by 2 r tan(tilt): the seal holds
+    # just under max_deflection and breaks just over it.
+    box = resting(trimesh.creation.box([0.1, 0.1, 0.05]))
+    limit = np.arctan(CONFIG.max_deflection / (2 * CONFIG.cup_radius))
+    tilts = np.array([0.0, 0.9 * limit, 1.1 * limit, 3 * limit])
+    axes = np.column_stack([np.sin(tilts), np.zeros(4), -np.cos(tilts)])
+    points = np.tile([0.0, 0.0, 0.05], (4, 1))
+    sealed, contacts = seal_contacts(box, points, axes, CONFIG)
+    np.testing.assert_array_equal(sealed, [True, True, False, False])
+    np.testing.assert_allclose(contacts[:, 2], 0.05, atol=1e-9)
+
+
+def test_seal_needs_the_whole_ring_on_the_surface():
+    box = resting(trimesh.creation.box([0.1, 0.1, 0.05]))
+    axis = np.array([[0.0, 0.0, -1.0]] * 2)
+    inside = 0.05 - CONFIG.cup_radius - 0.002
+    outside = 0.05 - CONFIG.cup_radius + 0.002  # part of the ring hangs over the edge
+    sealed, _ = seal_contacts(box, np.array([[inside, 0, 0.05], [outside, 0, 0.05]]), axis, CONFIG)
+    np.testing.assert_array_equal(sealed, [True, False])
+
+
+def test_seal_fails_over_a_hole_inside_the_ring():
+    # A washer: the ring lands flat on it all round, but the vacuum leaks through the hole.
+    washer = resting(trimesh.creation.annulus(r_min=0.006, r_max=0.05, height=0.01, sections=64))
+    axis = np.array([[0.0, 0.0, -1.0]] * 2)
+    points = np.array([[0.0, 0.0, 0.01], [0.03, 0.0, 0.01]])  # over the hole; beside it
+    small = dataclasses.replace(CONFIG, cup_radius=0.01)
+    sealed, contacts = seal_contacts(washer, points, axis, small)
+    np.testing.assert_array_equal(sealed, [False, True])
+    assert np.isnan(contacts[0]).all()
+
+
+def test_seal_strain_limit_on_a_curved_surface():
+    # Ring across a cylinder of radius R: strain and deflection grow as R shrinks.
+    loose = dataclasses.replace(CONFIG, max_deflection=1.0)  # isolate the strain check
+    axis = np.array([[0.0, 0.0, -1.0]])
+    results = []
+    for radius in (0.2, 0.016):
+        cylinder = lying(trimesh.creation.cylinder(radius=radius, height=0.2, sections=256))
+        top = np.array([[0.0, 0.0, cylinder.bounds[1, 2]]])
+        results.append(seal_contacts(cylinder, top, axis, loose)[0][0])
+    assert results == [True, False]
+
+
+# ----------------------------------------------------------------------------- wrench
+
+
+def test_bending_limit_bounds_the_lever_arm_of_gravity():
+    # Vertical approach, centre of mass d beside the contact: torque m g d about a tangent.
+    config = dataclasses.replace(CONFIG, elastic_limit=0.1)
+    m, g = 0.5, 9.81
+    lever = config.elastic_limit / (m * g)
+    d = np.array([0.5, 0.99, 1.01, 2.0]) * lever
+    contacts = np.column_stack([d, np.zeros(4), np.full(4, 0.05)])
+    axes = np.tile([0.0, 0.0, -1.0], (4, 1))
+    held = wrench_resisted(contacts, axes, np.array([0.0, 0.0, 0.02]), np.full(4, m), np.full(4, 0.5), config, g)
+    np.testing.assert_array_equal(held, [True, True, False, False])
+
+
+def test_friction_on_a_tilted_approach_uses_the_vacuum_augmented_normal_force():
+    # Centre of mass at the contact (no torque); approach tilted by theta:
+    # tangential load m g sin(theta) <= mu (V - m g cos(theta)).
+    config = dataclasses.replace(CONFIG, vacuum_force=10.0, friction=0.5)
+    g, theta = 9.81, np.radians(40)
+    critical = config.vacuum_force / (g * (np.sin(theta) / config.friction + np.cos(theta)))
+    mass = critical * np.array([0.9, 1.1])
+    axis = np.array([np.sin(theta), 0.0, -np.cos(theta)])
+    contact = np.array([0.0, 0.0, 0.05])
+    held = wrench_resisted(np.tile(contact, (2, 1)), np.tile(axis, (2, 1)), contact, mass, np.full(2, 0.5), config, g)
+    np.testing.assert_array_equal(held, [True, False])
+
+
+def test_vacuum_force_limits_the_pull():
+    config = dataclasses.replace(CONFIG, vacuum_force=5.0)
+    g = 9.81
+    mass = np.array([0.99, 1.01]) * config.vacuum_force / g
+    contact = np.array([0.0, 0.0, 0.05])
+    held = wrench_resisted(
+        np.tile(contact, (2, 1)), np.tile([0.0, 0.0, -1.0], (2, 1)), contact, mass, np.full(2, 0.5), config, g
+    )
+    np.testing.assert_array_equal(held, [True, False])
+
+
+def test_torsional_friction_limits_twist_about_the_approach():
+    # Tilted approach with the centre of mass off to the side in y: gravity twists the cup.
+    config = dataclasses.replace(CONFIG, elastic_limit=1e3)
+    theta, g, m, mu = np.radians(30), 9.81, 0.2, 0.5
+    axis = np.array([np.sin(theta), 0.0, -np.cos(theta)])
+    contact = np.zeros(3)
+    normal = config.vacuum_force - m * g * np.cos(theta)
+    f_t = m * g * np.sin(theta)
+    # tau_z = m g sin(theta) * y; the elliptic limit gives the largest |y|.
+    y_max = config.torsional_friction * np.sqrt((mu * normal) ** 2 - f_t**2) / (m * g * np.sin(theta))
+    coms = np.array([[0.0, 0.9 * y_max, 0.0], [0.0, 1.1 * y_max, 0.0]])
+    held = [
+        wrench_resisted(contact, axis, com, np.array(m), np.array(mu), config, g).item() for com in coms
+    ]
+    assert held == [True, False]
+
+
+def test_zero_friction_cannot_hold_a_tilted_grasp():
+    axis = np.array([np.sin(0.3), 0.0, -np.cos(0.3)])
+    held = wrench_resisted(np.zeros(3), axis, np.zeros(3), np.array(0.1), np.array(0.0), CONFIG)
+    assert not held
+
+
+# ----------------------------------------------------------------------------- gripper and table
+
+
+def test_gripper_body_near_the_table_collides_when_tilted():
+    # A grasp 5 mm above the table: vertical is clear, 45 degrees swings the body's rim under the table.
+    points = np.array([[0.0, 0.0, 0.005], [0.0, 0.0, 0.005], [0.0, 0.0, 0.05]])
+    tilt = np.radians(45)
+    axes = np.array([[0, 0, -1.0], [np.sin(tilt), 0, -np.cos(tilt)], [np.sin(tilt), 0, -np.cos(tilt)]])
+    np.testing.assert_array_equal(table_collisions(points, axes, CONFIG), [False, True, False])
+
+
+def test_gripper_body_must_clear_the_table_on_a_low_slope():
+    # A wedge whose only graspable face is a 40 degree ramp starting at the table.  The
+    # default body clears the table; a 4 cm radius body tilted 40 degrees dips its rim
+    # under it (the object itself lies wholly below the ramp's plane, so fcl sees nothing).
+    run, rise = 0.036, 0.036 * np.tan(np.radians(40))
+    section = [[0.0, 0.0], [run, 0.0], [run, rise]]
+    wedge = trimesh.convex.convex_hull(np.array([[x, y, z] for x, z in section for y in (-0.05, 0.05)]))
+    assert quality(wedge, mass=0.01).quality >= 0.8
+    wide = dataclasses.replace(NO_BENDING, gripper_radius=0.04)
+    assert quality(wedge, mass=0.01, config=wide).quality <= 0.1
