@@ -1,0 +1,83 @@
+"""Reading a toppledb dataset with pandas, polars, duckdb and pyarrow, and one plot.
+
+    .venv/bin/python docs/analyze_dataset.py [DATASET_DIR] [--plot docs/dataset_overview.png]
+
+Every query here is also in docs/DATASET.md ("Reading the tables").
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import duckdb
+import numpy as np
+import matplotlib
+
+matplotlib.use("Agg")  # files only, no display needed
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+import polars as pl  # noqa: E402
+import pyarrow.dataset as ds  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("dataset", nargs="?", default="data/dataset", type=Path)
+    parser.add_argument("--plot", type=Path, default=Path("docs/dataset_overview.png"))
+    args = parser.parse_args()
+    root = args.dataset
+
+    # pandas: the consolidated tables are single files; partitioned ones read as one table.
+    poses = pd.read_parquet(root / "poses.parquet")
+    actions = pd.read_parquet(root / "actions", columns=["object_id", "pose", "action", "status", "p_topple"])
+    print(f"pandas: {len(poses)} poses, {len(actions)} actions")
+
+    # polars: lazy scan of the hive-partitioned actions, only the rows and columns needed.
+    topple_by_object = (
+        pl.scan_parquet(root / "actions" / "**" / "*.parquet", hive_partitioning=True)
+        .filter(pl.col("status") == "ok")
+        .group_by("object_id")
+        .agg(pl.col("p_topple").mean().alias("mean_p_topple"), pl.len().alias("ok_actions"))
+        .sort("mean_p_topple", descending=True)
+        .collect()
+    )
+    print("polars: topple probability by object (top 5)")
+    print(topple_by_object.head(5))
+
+    # duckdb: join transitions with the poses they lead to: E[V_s(x')] of every action.
+    con = duckdb.connect()
+    expected_vs = con.execute(
+        f"""
+        select t.object_id, t.pose, t.action, sum(t.probability * p.v_s) as expected_v_s
+        from read_parquet('{root}/transitions/*/*.parquet', hive_partitioning = true) t
+        join '{root}/poses.parquet' p on p.object_id = t.object_id and p.pose = t.next_pose
+        group by all
+        order by expected_v_s desc
+        limit 5
+        """
+    ).df()
+    print("duckdb: the five pushes with the best expected suction quality afterwards")
+    print(expected_vs)
+
+    # pyarrow: filters are pushed down to the partition directories.
+    duck = ds.dataset(root / "actions", format="parquet", partitioning="hive")
+    print("pyarrow: duck actions:", duck.count_rows(filter=ds.field("object_id") == "duck"))
+
+    figure, (left, middle, right) = plt.subplots(1, 3, figsize=(15, 4))
+    ranked = topple_by_object["mean_p_topple"].to_numpy()
+    left.plot(range(len(ranked)), ranked)
+    left.set(xlabel="object (ranked)", ylabel="mean P(topple) of ok pushes", title="Topple probability by object")
+    counts, edges, _ = middle.hist(poses["v_s"], bins=np.linspace(0, 1, 11), edgecolor="white")
+    middle.set(xlabel="V_s", ylabel="stable poses", title=f"Suction quality V_s over {len(poses)} poses")
+    print("V_s histogram (bins of 0.1):", counts.astype(int).tolist(), f"mean {poses['v_s'].mean():.3f}")
+    right.scatter(poses["v_s"], poses["v_t"], s=6, alpha=0.5)
+    right.plot([0, 1], [0, 1], color="grey", linewidth=0.8)
+    right.set(xlabel="V_s (grasp now)", ylabel="V_T (topple first, value iteration)", title="Value of each stable pose")
+    figure.tight_layout()
+    figure.savefig(args.plot, dpi=110)
+    print(f"plot: {args.plot}")
+
+
+if __name__ == "__main__":
+    main()

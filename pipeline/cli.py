@@ -1,0 +1,197 @@
+"""Command line: ``python -m pipeline {dataset,verify,corpus}``.
+
+    python -m pipeline dataset [--corpus default|pybullet_data|DIR|LIST.csv] [--out data/dataset]
+                               [--limit N] [--contacts N] [--trials N] [--variant NAME] [--seed S]
+                               [--workers N | --scheduler ADDRESS] [--force] [--strict]
+                               [--config FILE.toml] [--set section.key=value ...]
+    python -m pipeline verify DIR
+    python -m pipeline corpus [--out pipeline/corpus_default.csv] [--count 189]
+
+Parameters: defaults (``pipeline.config``), then ``--config``, then each ``--set``,
+then the dedicated flags (``--contacts`` etc.).  Bad arguments, paths or
+parameters give one line on stderr and exit status 2; a failed build exits 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tomllib
+from pathlib import Path
+
+from .config import VARIANTS, Config
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+class UsageError(ValueError):
+    """Bad command-line input; the message is one line."""
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def parser() -> argparse.ArgumentParser:
+    main = argparse.ArgumentParser(prog="python -m pipeline", description="toppledb: build and check datasets")
+    commands = main.add_subparsers(dest="command", required=True, metavar="{dataset,verify,corpus}")
+
+    dataset = commands.add_parser("dataset", help="build (or resume building) a dataset")
+    dataset.add_argument(
+        "--corpus",
+        default="default",
+        help="'default' (the committed 189-object list), 'pybullet_data' (every candidate), "
+        "a directory of OBJ/STL/PLY meshes, or a CSV list with columns path[,scale,mass,object_id,source,sha256]",
+    )
+    dataset.add_argument("--out", default="data/dataset", help="dataset directory (default: %(default)s)")
+    dataset.add_argument("--limit", type=positive_int, metavar="N", help="only the first N objects of the corpus")
+    dataset.add_argument("--contacts", type=positive_int, metavar="N", help="candidate pushes per pose (contacts.n_contacts)")
+    dataset.add_argument("--trials", type=positive_int, metavar="N", help="Monte Carlo trials per push (topple.n_trials)")
+    dataset.add_argument("--variant", choices=VARIANTS, help="toppling model variant (topple.variant)")
+    dataset.add_argument("--seed", type=int, help="root of every random stream (seed)")
+    _add_execution(dataset)
+    dataset.add_argument("--force", action="store_true", help="discard what --out holds and recompute everything")
+    dataset.add_argument("--strict", action="store_true", help="stop at the first object that fails")
+
+    verify = commands.add_parser("verify", help="check a dataset against its manifest")
+    verify.add_argument("directory", help="dataset directory")
+
+    corpus = commands.add_parser("corpus", help="regenerate the default corpus list (thesis 4.4.1 selection)")
+    corpus.add_argument("--out", default=None, help="list to write (default: pipeline/corpus_default.csv)")
+    corpus.add_argument("--count", type=positive_int, default=189, help="objects to keep (default: %(default)s)")
+    corpus.add_argument("--limit", type=positive_int, metavar="N", help="consider only the first N candidates")
+    _add_execution(corpus)
+    return main
+
+
+def _add_execution(command: argparse.ArgumentParser) -> None:
+    command.add_argument("--workers", type=positive_int, help="local worker processes (default: all cores)")
+    command.add_argument("--scheduler", metavar="ADDRESS", help="run on this dask.distributed scheduler, e.g. tcp://host:8786")
+    command.add_argument("--config", type=Path, metavar="FILE.toml", help="parameters from a TOML file")
+    command.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override one parameter, e.g. --set topple.mu_table_mean=0.5 (repeatable)",
+    )
+    command.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def make_config(args: argparse.Namespace) -> Config:
+    """Defaults, then --config, then --set, then the dedicated flags."""
+    if args.config is not None:
+        if not args.config.is_file():
+            raise UsageError(f"config file not found: {args.config}")
+        try:
+            config = Config.from_toml(args.config)
+        except tomllib.TOMLDecodeError as err:
+            raise UsageError(f"{args.config}: not valid TOML ({err})") from None
+        except ValueError as err:
+            raise UsageError(f"{args.config}: {err}") from None
+    else:
+        config = Config()
+    overrides = {}
+    for item in args.overrides:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise UsageError(f"--set expects SECTION.KEY=VALUE, got {item!r}")
+        overrides[key.strip()] = value.strip()
+    flags = {
+        "contacts.n_contacts": getattr(args, "contacts", None),
+        "topple.n_trials": getattr(args, "trials", None),
+        "topple.variant": getattr(args, "variant", None),
+        "seed": getattr(args, "seed", None),
+    }
+    overrides.update({k: v for k, v in flags.items() if v is not None})
+    try:
+        return config.with_overrides(overrides) if overrides else config
+    except ValueError as err:  # unknown key, wrong type, bad variant: the user's input
+        raise UsageError(str(err)) from None
+
+
+def run_dataset(args: argparse.Namespace) -> int:
+    from .corpus import load_corpus
+    from .dataset import build_dataset
+
+    config = make_config(args)
+    corpus = load_corpus(args.corpus, config.mesh.default_mass).limit(args.limit)
+    summary = build_dataset(
+        corpus,
+        config,
+        args.out,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        force=args.force,
+        strict=args.strict,
+        progress=not args.no_progress,
+        log=lambda line: print(line, file=sys.stderr),
+    )
+    print(summary.text())
+    print(f"dataset: {Path(args.out).resolve()}")
+    return EXIT_OK
+
+
+def run_verify(args: argparse.Namespace) -> int:
+    from .manifest import read_manifest
+    from .verify import verify_dataset
+
+    problems = verify_dataset(args.directory)
+    for problem in problems:
+        print(problem)
+    if problems:
+        print(f"verify: {len(problems)} problem(s) in {args.directory}", file=sys.stderr)
+        return EXIT_FAILED
+    counts = read_manifest(args.directory)["counts"]
+    print(
+        f"ok: {args.directory}: {counts['objects']} objects, {counts['poses']} poses, "
+        f"{counts['actions']} actions, {counts['transitions']} transitions verified"
+    )
+    return EXIT_OK
+
+
+def run_corpus(args: argparse.Namespace) -> int:
+    from .corpus import DEFAULT_LIST, regenerate_default
+
+    config = make_config(args)
+    out = Path(args.out) if args.out else DEFAULT_LIST
+    counts = regenerate_default(
+        config, out, count=args.count, limit=args.limit, workers=args.workers,
+        scheduler=args.scheduler, progress=not args.no_progress,
+    )
+    for object_id, reason in counts["failures"].items():
+        print(f"not evaluated: {object_id}: {reason}", file=sys.stderr)
+    print(
+        f"{counts['candidates']} candidates, {counts['failed']} failed to load or evaluate, "
+        f"{counts['selected']} satisfy the selection rule, kept {counts['kept']} -> {out}"
+    )
+    if counts["kept"] < args.count:
+        print(f"warning: only {counts['kept']} objects selected, fewer than {args.count}", file=sys.stderr)
+    return EXIT_OK
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .corpus import CorpusError
+    from .dataset import BuildError
+    from .fanout import SchedulerError
+
+    args = parser().parse_args(argv)
+    commands = {"dataset": run_dataset, "verify": run_verify, "corpus": run_corpus}
+    try:
+        return commands[args.command](args)
+    except (UsageError, CorpusError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except (BuildError, SchedulerError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        print("interrupted; run the same command again to resume", file=sys.stderr)
+        return EXIT_INTERRUPTED

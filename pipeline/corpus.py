@@ -1,0 +1,404 @@
+"""Which objects a dataset is built from: the corpus.
+
+A corpus is a list of ``ObjectSpec`` (mesh file, scale to metres, mass, where it
+comes from, SHA-256 of the file).  Three kinds:
+
+- ``default``: ``pipeline/corpus_default.csv``, the 189 objects of pybullet_data
+  chosen by the selection rule of thesis 4.4.1 (``python -m pipeline corpus``
+  regenerates it, see ``regenerate_default``);
+- a directory of meshes (OBJ/STL/PLY, searched recursively), scale 1 and the
+  configured default mass;
+- a list file: CSV with a header and a ``path`` column, optionally ``object_id``,
+  ``source``, ``scale`` (default 1), ``mass`` (kg, default from the config) and
+  ``sha256`` (checked when given).
+
+Paths in a list file are resolved: absolute as they are; rows whose ``source`` is
+``pybullet_data`` or starts with ``pybullet_data/`` relative to the installed
+pybullet_data directory (so the committed default list works on any machine);
+all others relative to the list file's directory.
+
+Loading never fails on one bad entry: a missing file or a changed checksum is
+returned in ``Corpus.problems`` and becomes a failure of that object in the
+dataset.  A corpus that cannot be read at all (no such path, malformed CSV,
+duplicate ids) raises ``CorpusError`` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import os
+import re
+import xml.etree.ElementTree as ElementTree
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from schema.layout import check_object_id
+
+from .config import Config
+
+MESH_SUFFIXES = (".obj", ".stl", ".ply")
+DEFAULT_LIST = Path(__file__).with_name("corpus_default.csv")
+DEFAULT_COUNT = 189
+"""Objects in the thesis's dataset (4.4.1) and in the default corpus."""
+LIST_COLUMNS = ("object_id", "source", "path", "scale", "mass", "sha256")
+"""Columns of the default list as written by ``write_list``."""
+PYBULLET_SOURCE = "pybullet_data"
+
+NAMED_MESHES = (
+    # (object id, URDF giving mesh/scale/mass, or mesh with scale and mass when there is no URDF)
+    ("bunny", None, "bunny.obj", 0.1, None),  # no URDF; 0.1 makes it ~0.2 m tall, tabletop size
+    ("duck", "duck_vhacd.urdf", None, None, None),
+    ("lego", "lego/lego.urdf", None, None, None),
+    ("mug", "objects/mug.urdf", None, None, None),
+    ("teddy", "teddy_vhacd.urdf", None, None, None),
+)
+"""pybullet_data's named tabletop meshes.  From a URDF we take its visual mesh (the
+detailed one; collision meshes are convex decompositions or boxes), its scale and mass."""
+
+
+class CorpusError(ValueError):
+    """A corpus that cannot be read; the message is one line."""
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """One object of a corpus.
+
+    object_id : str, unique in the corpus, safe as a file name (see ``schema.layout``)
+    path : str, absolute path of the mesh file
+    scale : float, multiplies the file's coordinates to give metres
+    mass : float, kg
+    source : str, where the mesh comes from, e.g. ``pybullet_data/random_urdfs/042/042.urdf``
+    sha256 : str, hex digest of the mesh file ("" when it cannot be read)
+    """
+
+    object_id: str
+    path: str
+    scale: float
+    mass: float
+    source: str
+    sha256: str
+
+
+@dataclass
+class Corpus:
+    """Objects in a fixed order, and the entries already known to be unusable.
+
+    problems : object id -> one-line reason (missing file, checksum mismatch)
+    """
+
+    name: str
+    specs: list[ObjectSpec]
+    problems: dict[str, str] = field(default_factory=dict)
+
+    def limit(self, n: int | None) -> "Corpus":
+        """The first ``n`` objects (all when ``n`` is None)."""
+        if n is None:
+            return self
+        specs = self.specs[:n]
+        kept = {s.object_id for s in specs}
+        return Corpus(self.name, specs, {k: v for k, v in self.problems.items() if k in kept})
+
+
+def load_corpus(corpus: str, default_mass: float) -> Corpus:
+    """Resolve the ``--corpus`` argument: ``default``, ``pybullet_data`` (every
+    candidate, unselected), a directory of meshes, or a CSV list file."""
+    if corpus == "default":
+        if not DEFAULT_LIST.is_file():
+            raise CorpusError(f"default corpus list {DEFAULT_LIST} is missing; run `python -m pipeline corpus`")
+        return read_list(DEFAULT_LIST, default_mass, name="default")
+    if corpus == PYBULLET_SOURCE:
+        return Corpus(PYBULLET_SOURCE, candidate_specs(default_mass))
+    path = Path(corpus)
+    if path.is_dir():
+        return scan_directory(path, default_mass)
+    if path.is_file():
+        return read_list(path, default_mass)
+    raise CorpusError(f"corpus not found: {corpus} (give 'default', 'pybullet_data', a directory of meshes or a CSV file)")
+
+
+# --- files ------------------------------------------------------------------------
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of a file's bytes, "" when it cannot be read."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+    except OSError:
+        return ""
+    return digest.hexdigest()
+
+
+def pybullet_data_dir() -> Path:
+    try:
+        import pybullet_data
+    except ImportError:
+        raise CorpusError("pybullet_data is not installed (pip install pybullet)") from None
+    return Path(pybullet_data.getDataPath())
+
+
+def object_id_from_name(name: str) -> str:
+    """A valid object id from a file stem: other characters become '_', and ids that
+    would start with a digit get an ``obj_`` prefix (readers would take them for numbers)."""
+    cleaned = re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:120] or "obj"
+    return cleaned if re.match(r"[A-Za-z_]", cleaned) else f"obj_{cleaned}"
+
+
+def _unique(ids: list[str]) -> list[str]:
+    """Make derived ids unique deterministically: the second ``x`` becomes ``x-2``."""
+    seen: dict[str, int] = {}
+    out = []
+    for object_id in ids:
+        seen[object_id] = seen.get(object_id, 0) + 1
+        out.append(object_id if seen[object_id] == 1 else f"{object_id}-{seen[object_id]}")
+    return out
+
+
+def _check_files(specs: list[ObjectSpec], expected_sha: dict[str, str]) -> dict[str, str]:
+    problems = {}
+    for spec in specs:
+        if not os.path.isfile(spec.path):
+            problems[spec.object_id] = f"mesh file not found: {spec.path}"
+        elif not spec.sha256:
+            problems[spec.object_id] = f"mesh file cannot be read: {spec.path}"
+        elif expected_sha.get(spec.object_id) and expected_sha[spec.object_id] != spec.sha256:
+            problems[spec.object_id] = (
+                f"mesh file changed since the corpus was listed: sha256 {spec.sha256[:12]}..., "
+                f"listed {expected_sha[spec.object_id][:12]}..."
+            )
+    return problems
+
+
+# --- directory and list corpora ---------------------------------------------------------
+
+
+def scan_directory(directory: str | Path, default_mass: float) -> Corpus:
+    """Every OBJ/STL/PLY file under ``directory``, in path order; scale 1, default mass."""
+    directory = Path(directory).resolve()
+    files = sorted(
+        (p for p in directory.rglob("*") if p.is_file() and p.suffix.lower() in MESH_SUFFIXES),
+        key=lambda p: p.relative_to(directory).as_posix(),
+    )
+    if not files:
+        raise CorpusError(f"no OBJ, STL or PLY meshes in {directory}")
+    ids = _unique([object_id_from_name(p.stem) for p in files])
+    specs = [
+        ObjectSpec(object_id, str(p), 1.0, float(default_mass), f"dir:{directory.name}", file_sha256(p))
+        for object_id, p in zip(ids, files)
+    ]
+    return Corpus(str(directory), specs, _check_files(specs, {}))
+
+
+def read_list(path: str | Path, default_mass: float, name: str | None = None) -> Corpus:
+    """A CSV list file; see the module docstring for its columns and path rules."""
+    path = Path(path).resolve()
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise CorpusError(f"cannot read corpus list {path}: {err}") from None
+    lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    reader = csv.DictReader(io.StringIO("\n".join(lines)))
+    columns = [c.strip() for c in (reader.fieldnames or [])]
+    if "path" not in columns:
+        raise CorpusError(f"{path.name}: a corpus list needs a header with a 'path' column, got {columns}")
+    unknown = set(columns) - set(LIST_COLUMNS)
+    if unknown:
+        raise CorpusError(f"{path.name}: unknown column(s) {sorted(unknown)}; known: {', '.join(LIST_COLUMNS)}")
+
+    rows = []
+    for number, raw in enumerate(reader, start=2):
+        row = {(k or "").strip(): (v or "").strip() for k, v in raw.items()}
+        where = f"{path.name} row {number}"
+        if not row.get("path"):
+            raise CorpusError(f"{where}: empty path")
+        source = row.get("source") or f"list:{path.name}"
+        rows.append(
+            (
+                row.get("object_id") or None,
+                str(_resolve(row["path"], source, path.parent)),
+                _number(row.get("scale"), 1.0, "scale", where),
+                _number(row.get("mass"), default_mass, "mass", where),
+                source,
+                row.get("sha256", "").lower(),
+            )
+        )
+    if not rows:
+        raise CorpusError(f"{path.name}: the corpus list has no objects")
+
+    derived = _unique([object_id_from_name(Path(r[1]).stem) for r in rows])
+    ids = [given or auto for (given, *_), auto in zip(rows, derived)]
+    for object_id in ids:
+        try:
+            check_object_id(object_id)
+        except ValueError as err:
+            raise CorpusError(f"{path.name}: {err}") from None
+    duplicates = sorted({i for i in ids if ids.count(i) > 1})
+    if duplicates:
+        raise CorpusError(f"{path.name}: duplicate object ids {duplicates[:5]}")
+
+    specs = [
+        ObjectSpec(object_id, mesh, scale, mass, source, file_sha256(mesh))
+        for object_id, (_, mesh, scale, mass, source, _) in zip(ids, rows)
+    ]
+    expected = {object_id: row[5] for object_id, row in zip(ids, rows)}
+    return Corpus(name or str(path), specs, _check_files(specs, expected))
+
+
+def _resolve(mesh: str, source: str, list_dir: Path) -> Path:
+    if os.path.isabs(mesh):
+        return Path(mesh)
+    if source == PYBULLET_SOURCE or source.startswith(PYBULLET_SOURCE + "/"):
+        return pybullet_data_dir() / mesh
+    return (list_dir / mesh).resolve()
+
+
+def _number(text: str | None, default: float, what: str, where: str) -> float:
+    if not text:
+        return float(default)
+    try:
+        value = float(text)
+    except ValueError:
+        raise CorpusError(f"{where}: {what} {text!r} is not a number") from None
+    if not value > 0 or value == float("inf"):
+        raise CorpusError(f"{where}: {what} must be positive and finite, got {text}")
+    return value
+
+
+def write_list(specs: list[ObjectSpec], path: str | Path, root: Path) -> None:
+    """Write specs as a list file with paths relative to ``root``; atomic (temp file, rename)."""
+    path = Path(path)
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(LIST_COLUMNS)
+    for s in specs:
+        relative = Path(s.path).resolve().relative_to(root.resolve()).as_posix()
+        writer.writerow([s.object_id, s.source, relative, repr(s.scale), repr(s.mass), s.sha256])
+    temp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    temp.write_text(buffer.getvalue())
+    os.replace(temp, path)
+
+
+# --- pybullet_data candidates -----------------------------------------------------------
+
+
+def urdf_mesh(urdf: Path) -> tuple[Path, float | None, float | None]:
+    """Mesh file, uniform scale and mass of a single-link URDF (visual geometry first).
+
+    Returns (mesh path, scale or None when unspecified, mass in kg or None).
+    """
+    try:
+        root = ElementTree.parse(urdf).getroot()
+    except (OSError, ElementTree.ParseError) as err:
+        raise CorpusError(f"cannot parse {urdf}: {err}") from None
+    meshes = root.findall(".//visual/geometry/mesh") + root.findall(".//collision/geometry/mesh")
+    if not meshes:
+        raise CorpusError(f"{urdf.name}: no mesh geometry")
+    mesh = meshes[0]
+    scale = None
+    if mesh.get("scale"):
+        factors = {float(x) for x in mesh.get("scale").split()}
+        if len(factors) != 1:
+            raise CorpusError(f"{urdf.name}: non-uniform mesh scale {mesh.get('scale')!r}")
+        scale = factors.pop()
+    mass_element = root.find(".//inertial/mass")
+    mass = float(mass_element.get("value")) if mass_element is not None else None
+    if mass is not None and mass <= 0:
+        mass = None  # a zero URDF mass marks a static body, not a real mass
+    return urdf.parent / mesh.get("filename"), scale, mass
+
+
+def candidate_specs(default_mass: float, root: Path | None = None) -> list[ObjectSpec]:
+    """Every candidate object in pybullet_data: the named meshes, then the 1000 random
+    objects (``random_000`` ... ``random_999``), in that order."""
+    root = root or pybullet_data_dir()
+    specs = []
+    for object_id, urdf, mesh, scale, mass in NAMED_MESHES:
+        if urdf is not None:
+            if not (root / urdf).is_file():
+                continue
+            mesh_path, scale, mass = urdf_mesh(root / urdf)
+            source = f"{PYBULLET_SOURCE}/{urdf}"
+        else:
+            mesh_path, source = root / mesh, PYBULLET_SOURCE
+        if mesh_path.is_file():
+            specs.append(_spec(object_id, mesh_path, scale, mass, source, default_mass))
+    for urdf in sorted((root / "random_urdfs").glob("[0-9][0-9][0-9]/[0-9][0-9][0-9].urdf")):
+        mesh_path, scale, mass = urdf_mesh(urdf)
+        relative = urdf.relative_to(root).as_posix()
+        specs.append(_spec(f"random_{urdf.stem}", mesh_path, scale, mass, f"{PYBULLET_SOURCE}/{relative}", default_mass))
+    return specs
+
+
+def _spec(object_id, mesh_path: Path, scale, mass, source: str, default_mass: float) -> ObjectSpec:
+    return ObjectSpec(
+        object_id=object_id,
+        path=str(mesh_path.resolve()),
+        scale=float(scale) if scale is not None else 1.0,
+        mass=float(mass) if mass is not None else float(default_mass),
+        source=source,
+        sha256=file_sha256(mesh_path),
+    )
+
+
+# --- regenerating the default list (thesis 4.4.1) -----------------------------------------
+
+
+def selection_task(spec: ObjectSpec, config: Config) -> tuple[str, bool, str]:
+    """Apply the selection rule to one candidate: (object id, selected, reason if it failed).
+
+    Runs in a worker; any failure (bad mesh included) means "not selected".
+    """
+    from .mdp import is_selected
+    from .objects import select_info
+
+    try:
+        v_s, com_heights = select_info(spec, config)
+        return spec.object_id, bool(is_selected(v_s, com_heights)), ""
+    except Exception as err:  # one bad candidate must not stop the selection
+        return spec.object_id, False, " ".join(f"{type(err).__name__}: {err}".split())[:300]
+
+
+def regenerate_default(
+    config: Config,
+    out: str | Path = DEFAULT_LIST,
+    count: int = DEFAULT_COUNT,
+    limit: int | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> dict:
+    """Select objects from pybullet_data's candidates and write the default list.
+
+    Candidates are ordered named meshes first, then random objects by number; every
+    candidate is evaluated (stable poses and V_s per pose) and the first ``count``
+    that satisfy ``pipeline.mdp.is_selected`` are kept, so the choice does not depend
+    on evaluation order or the number of workers.
+
+    Returns counts (candidates, failed, selected, kept) and ``failures``: object id ->
+    reason for every candidate that could not be evaluated.
+    """
+    from .fanout import map_unordered
+
+    root = pybullet_data_dir()
+    candidates = candidate_specs(config.mesh.default_mass, root)[:limit]
+    outcome: dict[str, tuple[bool, str]] = {}
+    for object_id, selected, reason in map_unordered(
+        selection_task, [(spec, config) for spec in candidates], workers, scheduler, "selecting", progress
+    ):
+        outcome[object_id] = (selected, reason)
+    chosen = [spec for spec in candidates if outcome[spec.object_id][0]]
+    kept = chosen[:count]
+    write_list(kept, out, root)
+    failures = {spec.object_id: outcome[spec.object_id][1] for spec in candidates if outcome[spec.object_id][1]}
+    return {
+        "candidates": len(candidates),
+        "failed": len(failures),
+        "selected": len(chosen),
+        "kept": len(kept),
+        "failures": failures,
+    }

@@ -1,0 +1,114 @@
+"""Running one task per object on all local cores or on a dask cluster.
+
+joblib drives both: its ``loky`` backend (worker processes on this machine) by
+default, its ``dask`` backend when a ``dask.distributed`` scheduler address is
+given.  Results come back as they finish (unordered); callers key them by object
+id, so neither the number of workers nor the backend changes what is written.
+Randomness is seeded per object and pose inside the tasks, never per worker.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import time
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+import joblib
+from tqdm import tqdm
+
+
+class SchedulerError(RuntimeError):
+    """The dask scheduler cannot be reached; the message is one line."""
+
+
+def default_workers() -> int:
+    """Usable cores (respects CPU affinity and container limits)."""
+    return max(1, joblib.cpu_count())
+
+
+@contextlib.contextmanager
+def backend(workers: int | None = None, scheduler: str | None = None) -> Iterator[int]:
+    """Context in which joblib runs on loky (``workers`` processes) or, with a
+    ``scheduler`` address, on that dask.distributed cluster.  Yields ``n_jobs``."""
+    if scheduler is None:
+        yield workers or default_workers()
+        return
+    try:
+        from distributed import Client
+    except ImportError:
+        raise SchedulerError("--scheduler needs dask.distributed (pip install 'dask[distributed]')") from None
+    try:
+        client = Client(scheduler, timeout="10s", set_as_default=True)
+    except (OSError, TimeoutError, ValueError) as err:
+        raise SchedulerError(f"cannot connect to the dask scheduler at {scheduler}: {err}") from None
+    try:
+        with joblib.parallel_config(backend="dask"):
+            yield -1  # the cluster decides how many tasks run at once
+    finally:
+        client.close()
+
+
+def map_unordered(
+    function: Callable[..., Any],
+    arguments: Iterable[tuple],
+    workers: int | None = None,
+    scheduler: str | None = None,
+    description: str | None = None,
+    progress: bool = False,
+) -> Iterator[Any]:
+    """Yield ``function(*args)`` for each tuple of ``arguments`` as tasks finish.
+
+    One task per item (``batch_size=1``: items are whole objects, seconds each, and a
+    result must be handed back, and saved, as soon as it exists).  With ``workers=1``
+    and no scheduler everything runs in this process, in order.
+    """
+    arguments = list(arguments)
+    bar = tqdm(total=len(arguments), desc=description, unit="obj", disable=not progress, file=sys.stderr)
+    with backend(workers, scheduler) as n_jobs:
+        parallel = joblib.Parallel(n_jobs=n_jobs, batch_size=1, return_as="generator_unordered")
+        try:
+            for result in parallel(joblib.delayed(function)(*args) for args in arguments):
+                bar.update(1)
+                yield result
+        finally:
+            bar.close()
+
+
+class Progress:
+    """Progress bar of a dataset build: objects done of total, poses done, failures,
+    rate and ETA (tqdm's, over objects computed in this run)."""
+
+    def __init__(self, total: int, already_done: int = 0, already_poses: int = 0, enabled: bool = True):
+        self.poses = already_poses
+        self.new_poses = 0
+        self.failures = 0
+        self.started = time.perf_counter()
+        self.bar = tqdm(
+            total=total,
+            initial=already_done,
+            desc="objects",
+            unit="obj",
+            disable=not enabled,
+            file=sys.stderr,
+            mininterval=0.5,
+            dynamic_ncols=True,
+        )
+        self._postfix()
+
+    def object_done(self, n_poses: int, failed: bool = False) -> None:
+        self.poses += n_poses
+        self.new_poses += n_poses
+        self.failures += int(failed)
+        self._postfix()
+        self.bar.update(1)
+
+    def _postfix(self) -> None:
+        elapsed = max(time.perf_counter() - self.started, 1e-9)
+        self.bar.set_postfix_str(
+            f"poses={self.poses}, failed={self.failures}, {self.new_poses / elapsed:.2f} poses/s", refresh=False
+        )
+
+    def close(self) -> None:
+        self.bar.close()

@@ -1,0 +1,95 @@
+"""Checking a finished dataset against its manifest (``python -m pipeline verify DIR``).
+
+Every shard: its completion record agrees with the manifest, every file exists
+with the recorded SHA-256, Parquet files have the schema of ``schema.tables`` and
+the manifest's row counts, the HDF5 file has the layout of ``schema.hdf5``.  The
+consolidated tables: checksums, schemas, row counts.  Totals add up.  Nothing
+else is in the dataset's directories (no partition of an unknown object, no
+temporary file left behind).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from schema import layout, tables
+from schema.version import SCHEMA_VERSION
+
+from . import manifest as manifest_io
+from . import shards
+
+
+def verify_dataset(root: str | Path) -> list[str]:
+    """Every problem found, one line each; empty when the dataset is intact."""
+    root = Path(root)
+    if not root.is_dir():
+        return [f"{root}: {'not a directory' if root.exists() else 'no such directory'}"]
+    try:
+        manifest = manifest_io.read_manifest(root)
+    except (FileNotFoundError, ValueError) as err:
+        return [str(err)]
+    if manifest.get("schema_version") != SCHEMA_VERSION:
+        return [f"schema version {manifest.get('schema_version')!r}, this code reads {SCHEMA_VERSION!r}"]
+
+    problems = []
+    entries = manifest.get("shards", {})
+    for object_id, entry in entries.items():
+        problems += _shard_problems(root, object_id, entry)
+
+    counts = manifest.get("counts", {})
+    for key in ("poses", "actions", "ok_actions", "transitions"):
+        total = sum(entry["counts"][key] for entry in entries.values())
+        if counts.get(key) != total:
+            problems.append(f"manifest: {key} total {counts.get(key)} but the shards add up to {total}")
+    if counts.get("objects") != len(entries):
+        problems.append(f"manifest: {counts.get('objects')} objects but {len(entries)} shards")
+
+    expected_rows = {layout.OBJECTS_FILE: ("objects", len(entries)), layout.POSES_FILE: ("poses", counts.get("poses"))}
+    for name, (table, rows) in expected_rows.items():
+        entry = manifest.get("tables", {}).get(name)
+        if entry is None:
+            problems.append(f"manifest: no entry for {name}")
+            continue
+        actual = shards.file_sha256(root / name)
+        if not actual:
+            problems.append(f"{name}: missing")
+        elif actual != entry["sha256"]:
+            problems.append(f"{name}: sha256 {actual[:12]}... differs from the manifest's {entry['sha256'][:12]}...")
+        else:
+            problems += shards.parquet_problems(root / name, name, tables.TABLES[table], rows)
+
+    problems += _unexpected_files(root, set(entries))
+    return problems
+
+
+def _shard_problems(root: Path, object_id: str, entry: dict) -> list[str]:
+    record = shards.read_record(root, object_id)
+    where = layout.completion_record(object_id)
+    if record is None:
+        return [f"{where}: missing or unreadable: shard {object_id} is incomplete"]
+    if record.get("files") != entry.get("files") or record.get("counts") != entry.get("counts"):
+        return [f"{where}: differs from the manifest's entry for {object_id}"]
+    problems = shards.checksum_problems(root, record)
+    if not problems:
+        problems = shards.content_problems(root, record)
+    return problems
+
+
+def _unexpected_files(root: Path, object_ids: set[str]) -> list[str]:
+    problems = []
+    for path in sorted(root.rglob(f".*{layout.TEMP_SUFFIX}")):
+        problems.append(f"{path.relative_to(root)}: temporary file left behind")
+    for table in tables.PARTITIONED:
+        for directory in sorted((root / table).glob("*")):
+            key, _, object_id = directory.name.partition("=")
+            if key != tables.PARTITION_KEY or object_id not in object_ids:
+                problems.append(f"{table}/{directory.name}: not a shard in the manifest")
+            else:
+                extra = [p.name for p in directory.iterdir() if p.name != Path(layout.partition_file(table, object_id)).name]
+                extra = [name for name in extra if not name.startswith(".")]
+                if extra:
+                    problems.append(f"{table}/{directory.name}: unexpected files {extra}")
+    for path in sorted((root / layout.ARRAYS_DIR).glob("*")):
+        if path.suffix != ".h5" or path.stem not in object_ids:
+            problems.append(f"{layout.ARRAYS_DIR}/{path.name}: not a shard in the manifest")
+    return problems

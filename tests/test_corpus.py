@@ -1,0 +1,194 @@
+"""Corpus loading: the committed default list, pybullet_data candidates, directory and
+list corpora, and regenerating the default list with the selection rule."""
+
+from __future__ import annotations
+
+import csv
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.corpus import (
+    DEFAULT_COUNT,
+    DEFAULT_LIST,
+    CorpusError,
+    candidate_specs,
+    file_sha256,
+    load_corpus,
+    pybullet_data_dir,
+    read_list,
+    regenerate_default,
+    scan_directory,
+    urdf_mesh,
+)
+from pipeline.config import Config
+from schema.layout import check_object_id
+
+CUBE_OBJ = """\
+v 0 0 0
+v 1 0 0
+v 1 1 0
+v 0 1 0
+v 0 0 1
+v 1 0 1
+v 1 1 1
+v 0 1 1
+f 1 3 2
+f 1 4 3
+f 5 6 7
+f 5 7 8
+f 1 2 6
+f 1 6 5
+f 2 3 7
+f 2 7 6
+f 3 4 8
+f 3 8 7
+f 4 1 5
+f 4 5 8
+"""
+
+
+def test_default_list_is_committed_and_matches_pybullet_data():
+    assert DEFAULT_LIST.is_file(), "run `python -m pipeline corpus` to create it"
+    with open(DEFAULT_LIST) as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == DEFAULT_COUNT
+    assert list(rows[0]) == ["object_id", "source", "path", "scale", "mass", "sha256"]
+    ids = [row["object_id"] for row in rows]
+    assert len(set(ids)) == len(ids)
+    candidate_order = [spec.object_id for spec in candidate_specs(0.25)]
+    assert ids == [i for i in candidate_order if i in set(ids)], "kept in candidate order"
+
+    corpus = load_corpus("default", default_mass=0.25)
+    assert corpus.problems == {}, "every listed mesh exists in pybullet_data with the listed sha256"
+    for row, spec in zip(rows, corpus.specs):
+        assert not Path(row["path"]).is_absolute()
+        assert Path(spec.path) == pybullet_data_dir() / row["path"]
+        assert spec.sha256 == row["sha256"] and spec.scale == float(row["scale"]) and spec.mass == float(row["mass"])
+
+
+def test_candidates_take_scale_and_mass_from_urdfs():
+    specs = {spec.object_id: spec for spec in candidate_specs(default_mass=0.25)}
+    randoms = [i for i in specs if i.startswith("random_")]
+    assert len(randoms) == 1000
+    first = specs["random_000"]
+    assert first.path.endswith("random_urdfs/000/000.obj")
+    assert (first.scale, first.mass) == (0.015, 0.1)
+    assert first.source == "pybullet_data/random_urdfs/000/000.urdf"
+    duck = specs["duck"]
+    assert duck.path.endswith("duck.obj") and (duck.scale, duck.mass) == (0.05, 0.1)
+    assert specs["lego"].path.endswith("lego/lego.obj")
+    assert specs["teddy"].scale == 0.1
+    assert specs["bunny"].mass == 0.25, "no URDF: the configured default mass"
+    assert all(spec.sha256 == file_sha256(spec.path) for spec in list(specs.values())[:10])
+    for object_id in specs:
+        check_object_id(object_id)
+
+
+def test_urdf_with_non_uniform_scale_is_refused(tmp_path):
+    urdf = tmp_path / "thing.urdf"
+    urdf.write_text(
+        '<robot name="x"><link name="l"><inertial><mass value="0.3"/></inertial>'
+        '<visual><geometry><mesh filename="thing.obj" scale="1 2 1"/></geometry></visual></link></robot>'
+    )
+    with pytest.raises(CorpusError, match="non-uniform"):
+        urdf_mesh(urdf)
+    urdf.write_text(urdf.read_text().replace('scale="1 2 1"', 'scale="0.5 0.5 0.5"'))
+    assert urdf_mesh(urdf) == (tmp_path / "thing.obj", 0.5, 0.3)
+
+
+def test_list_file_resolves_paths_and_defaults(tmp_path):
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "cube.obj").write_text(CUBE_OBJ)
+    listing = tmp_path / "list.csv"
+    listing.write_text(
+        "path,scale,mass\n"
+        "meshes/cube.obj,0.05,0.2\n"
+        "# a comment line\n"
+        "meshes/cube.obj,,\n"
+        "random_urdfs/001/001.obj,0.015,\n"
+    )
+    # Same stem twice: ids are made unique; the third row is not a pybullet source, so its
+    # path is relative to the list and missing.
+    corpus = read_list(listing, default_mass=0.3)
+    ids = [s.object_id for s in corpus.specs]
+    assert ids == ["cube", "cube-2", "obj_001"]
+    first, second, third = corpus.specs
+    assert Path(first.path) == tmp_path / "meshes" / "cube.obj"
+    assert (first.scale, first.mass, second.scale, second.mass) == (0.05, 0.2, 1.0, 0.3)
+    assert first.sha256 == file_sha256(tmp_path / "meshes" / "cube.obj")
+    assert first.source == "list:list.csv"
+    assert set(corpus.problems) == {"obj_001"} and "not found" in corpus.problems["obj_001"]
+
+    listing.write_text("object_id,source,path,sha256\nx1,pybullet_data/random_urdfs,random_urdfs/001/001.obj,abc\n")
+    corpus = read_list(listing, default_mass=0.3)
+    assert Path(corpus.specs[0].path) == pybullet_data_dir() / "random_urdfs/001/001.obj"
+    assert "changed" in corpus.problems["x1"]
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("file,scale\na.obj,1\n", "'path' column"),
+        ("path,scale\na.obj,big\n", "row 2: scale 'big' is not a number"),
+        ("path,mass\na.obj,-1\n", "mass must be positive"),
+        ("path,colour\na.obj,red\n", "unknown column"),
+        ("object_id,path\nsame,a.obj\nsame,b.obj\n", "duplicate object ids"),
+        ("object_id,path\nbad/id,a.obj\n", "bad object id"),
+        ("path\n", "no objects"),
+    ],
+)
+def test_bad_list_files_give_one_line_errors(tmp_path, content, message):
+    listing = tmp_path / "list.csv"
+    listing.write_text(content)
+    with pytest.raises(CorpusError, match=message) as err:
+        read_list(listing, default_mass=0.25)
+    assert "\n" not in str(err.value)
+
+
+def test_directory_corpus(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "b.obj").write_text(CUBE_OBJ)
+    (tmp_path / "sub" / "007 thing.STL").write_text("solid x\nendsolid x\n")
+    (tmp_path / "notes.txt").write_text("not a mesh")
+    corpus = scan_directory(tmp_path, default_mass=0.4)
+    assert [s.object_id for s in corpus.specs] == ["b", "obj_007_thing"]
+    assert all(s.scale == 1.0 and s.mass == 0.4 for s in corpus.specs)
+    assert corpus.limit(1).specs == corpus.specs[:1]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CorpusError, match="no OBJ, STL or PLY"):
+        scan_directory(tmp_path / "empty", default_mass=0.4)
+
+
+def test_unknown_corpus_argument():
+    with pytest.raises(CorpusError, match="corpus not found"):
+        load_corpus("/no/such/corpus", default_mass=0.25)
+
+
+def test_regenerate_applies_the_selection_rule_in_candidate_order(tmp_path, monkeypatch):
+    """The rule itself (pipeline.mdp.is_selected) and V_s are the compute side's; here a
+    stand-in select_info shows that the list keeps the first selected candidates, in
+    candidate order, and that failures are counted, not fatal."""
+    selected = {"duck", "random_001", "random_003", "random_004"}
+
+    def select_info(spec, config):
+        if spec.object_id == "random_002":
+            raise ValueError("broken")
+        if spec.object_id in selected:  # high-quality pose with the higher COM
+            return np.array([0.9, 0.1]), np.array([0.05, 0.02])
+        return np.array([0.1, 0.1]), np.array([0.05, 0.02])
+
+    fake = types.ModuleType("pipeline.objects")
+    fake.select_info = select_info
+    monkeypatch.setitem(sys.modules, "pipeline.objects", fake)
+
+    out = tmp_path / "corpus.csv"
+    counts = regenerate_default(Config(), out, count=3, limit=10, workers=1, progress=False)
+    assert counts == {"candidates": 10, "failed": 1, "selected": 4, "kept": 3, "failures": {"random_002": "ValueError: broken"}}
+    corpus = read_list(out, default_mass=0.25)
+    assert [s.object_id for s in corpus.specs] == ["duck", "random_001", "random_003"]
+    assert corpus.problems == {}
+    assert not any(p.name.endswith(".tmp") for p in tmp_path.iterdir())

@@ -1,0 +1,329 @@
+"""Issue 4 acceptance: a small dataset builds with the real compute, verifies, survives
+corruption checks, SIGKILL and resume, and gives identical tables with 1 or 2 workers
+and on dask; broken meshes are recorded as failures; analysts' readers agree with
+the manifest.
+
+Kept small (3 objects, 30 pushes per pose, 5 trials, light suction sampling) so the
+whole file runs in a couple of minutes on 2 cores.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import duckdb
+import h5py
+import numpy as np
+import pyarrow as pa
+import pyarrow.dataset as ds
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline import shards
+from pipeline.cli import main
+from pipeline.config import Config
+from pipeline.corpus import read_list
+from pipeline.dataset import compute_shard
+from pipeline.manifest import read_manifest
+from pipeline.verify import verify_dataset
+from schema import TABLES, layout
+
+OBJECTS = ["random_000", "random_002", "random_001"]
+"""Small meshes from pybullet_data, listed by path as a user's list file would."""
+
+PARAMS = [
+    "--contacts", "30",
+    "--trials", "5",
+    "--set", "suction.n_candidates=20",
+    "--set", "suction.n_samples=5",
+    "--no-progress",
+]
+SORT_KEYS = {
+    "objects": ["object_id"],
+    "poses": ["object_id", "pose"],
+    "actions": ["object_id", "pose", "action"],
+    "transitions": ["object_id", "pose", "action", "next_pose"],
+}
+
+
+def write_corpus(directory: Path, names: list[str], extra_rows: str = "") -> Path:
+    rows = "".join(f"{n},pybullet_data/random_urdfs,random_urdfs/{n[-3:]}/{n[-3:]}.obj,0.015,0.1\n" for n in names)
+    path = directory / "corpus.csv"
+    path.write_text("object_id,source,path,scale,mass\n" + rows + extra_rows)
+    return path
+
+
+def build(corpus: Path, out: Path, *extra: str) -> int:
+    return main(["dataset", "--corpus", str(corpus), "--out", str(out), *PARAMS, *extra])
+
+
+def read_tables(root: Path) -> dict[str, pa.Table]:
+    """Every table as analysts read it, in a canonical order."""
+    tables = {}
+    for name in ("objects", "poses"):
+        tables[name] = pq.read_table(root / f"{name}.parquet")
+    for name in ("actions", "transitions"):
+        table = ds.dataset(root / name, format="parquet", partitioning="hive").to_table()
+        tables[name] = table.sort_by([(k, "ascending") for k in SORT_KEYS[name]])
+    return tables
+
+
+def read_arrays(root: Path) -> dict[str, np.ndarray]:
+    arrays = {}
+    for path in sorted((root / "arrays").glob("*.h5")):
+        with h5py.File(path, "r") as f:
+            f.visititems(lambda name, item: arrays.__setitem__(f"{path.stem}/{name}", item[()]) if isinstance(item, h5py.Dataset) else None)
+    return arrays
+
+
+def assert_same_dataset(a: Path, b: Path) -> None:
+    tables_a, tables_b = read_tables(a), read_tables(b)
+    for name in tables_a:
+        assert tables_a[name].equals(tables_b[name]), f"{name} differs"
+    arrays_a, arrays_b = read_arrays(a), read_arrays(b)
+    assert arrays_a.keys() == arrays_b.keys()
+    for key in arrays_a:
+        np.testing.assert_array_equal(arrays_a[key], arrays_b[key], err_msg=key)
+    manifest_a, manifest_b = read_manifest(a), read_manifest(b)
+    assert manifest_a["counts"] == manifest_b["counts"]
+    assert manifest_a["tables"] == manifest_b["tables"], "consolidated tables are byte-identical"
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory) -> Path:
+    return write_corpus(tmp_path_factory.mktemp("corpus"), OBJECTS)
+
+
+@pytest.fixture(scope="module")
+def reference(corpus, tmp_path_factory) -> Path:
+    """The dataset every other run is compared with: 2 local workers."""
+    out = tmp_path_factory.mktemp("reference") / "dataset"
+    assert build(corpus, out, "--workers", "2") == 0
+    return out
+
+
+def test_dataset_builds_with_manifest_and_verifies(reference, capsys):
+    manifest = read_manifest(reference)
+    counts = manifest["counts"]
+    assert counts["objects"] == 3 and counts["failed"] == 0 and manifest["failures"] == []
+    assert counts["poses"] >= 3
+    assert counts["poses"] * 30 <= counts["actions"] <= counts["poses"] * 31, "30 pushes + Max-Height per pose"
+    assert manifest["parameters"]["contacts"]["n_contacts"] == 30
+    assert manifest["parameters"]["topple"]["n_trials"] == 5
+    assert manifest["seed"] == 0 and manifest["schema_version"]
+    assert manifest["code_version"]["package"]
+    assert [o["object_id"] for o in manifest["corpus"]["objects"]] == OBJECTS
+    assert all(len(o["sha256"]) == 64 for o in manifest["corpus"]["objects"])
+    assert set(manifest["shards"]) == set(OBJECTS)
+    assert {"topple", "suction", "write"} <= set(manifest["timings"]["cpu_s_by_stage"])
+
+    for name, table in read_tables(reference).items():
+        assert table.schema.equals(_with_partition_key_last(TABLES[name], name), check_metadata=False), name
+    assert read_tables(reference)["objects"].column("object_id").to_pylist() == OBJECTS, "corpus order"
+
+    assert verify_dataset(reference) == []
+    capsys.readouterr()
+    assert main(["verify", str(reference)]) == 0
+    assert capsys.readouterr().out.startswith("ok: ")
+
+
+def _with_partition_key_last(schema: pa.Schema, name: str) -> pa.Schema:
+    """Hive readers append the partition column after the file's columns."""
+    if name not in ("actions", "transitions"):
+        return schema
+    return schema.remove(schema.get_field_index("object_id")).append(pa.field("object_id", pa.string()))
+
+
+def test_rerun_reuses_every_shard(reference, corpus, tmp_path):
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    before = {p: p.stat().st_mtime_ns for p in copy.rglob("complete.json")}
+    assert build(corpus, copy, "--workers", "2") == 0
+    assert read_manifest(copy)["run"]["computed"] == 0
+    assert {p: p.stat().st_mtime_ns for p in copy.rglob("complete.json")} == before
+    assert_same_dataset(reference, copy)
+
+
+def test_analysts_read_the_tables_and_counts_match_the_manifest(reference):
+    counts = read_manifest(reference)["counts"]
+    actions = ds.dataset(reference / "actions", format="parquet", partitioning="hive")
+    transitions = ds.dataset(reference / "transitions", format="parquet", partitioning="hive")
+    assert actions.count_rows() == counts["actions"]
+    assert transitions.count_rows() == counts["transitions"]
+    assert pq.read_metadata(reference / "poses.parquet").num_rows == counts["poses"]
+    assert pq.read_metadata(reference / "objects.parquet").num_rows == counts["objects"]
+
+    con = duckdb.connect()
+    root = reference.as_posix()
+    glob = "read_parquet('{}/{}/*/*.parquet', hive_partitioning = true)"
+    assert con.execute(f"select count(*) from {glob.format(root, 'actions')}").fetchone()[0] == counts["actions"]
+    assert con.execute(f"select count(*) from {glob.format(root, 'transitions')}").fetchone()[0] == counts["transitions"]
+    ok = con.execute(f"select count(*) from {glob.format(root, 'actions')} where status = 'ok'").fetchone()[0]
+    assert ok == counts["ok_actions"]
+
+    # The README's join: transitions with the V_s of the pose they lead to.
+    joined = con.execute(
+        f"""
+        select t.object_id, t.pose, t.action, sum(t.probability) as total, sum(t.probability * p.v_s) as greedy
+        from {glob.format(root, 'transitions')} t
+        join '{root}/poses.parquet' p on p.object_id = t.object_id and p.pose = t.next_pose
+        group by all
+        """
+    ).fetchall()
+    assert len(joined) == ok
+    assert all(abs(total - 1) < 1e-9 for *_, total, _ in joined)
+    by_object = con.execute(
+        f"select object_id, avg(p_topple) from {glob.format(root, 'actions')} group by all order by 1"
+    ).fetchall()
+    assert [row[0] for row in by_object] == sorted(OBJECTS)
+    assert all(0 <= row[1] <= 1 for row in by_object)
+
+    greedy = con.execute(f"select object_id, pose, action, greedy from {glob.format(root, 'actions')} where status = 'ok'").fetchall()
+    stored = {(o, p, a): g for o, p, a, g in greedy}
+    for object_id, pose, action, _, expected in joined:
+        assert stored[(object_id, pose, action)] == pytest.approx(expected, abs=1e-9)
+
+
+def test_verify_fails_after_a_shard_is_corrupted(reference, tmp_path, capsys):
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    target = copy / layout.partition_file("actions", OBJECTS[1])
+    data = bytearray(target.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    target.write_bytes(bytes(data))
+    (copy / layout.arrays_file(OBJECTS[2])).unlink()
+    (copy / "transitions" / "object_id=stranger").mkdir()
+
+    capsys.readouterr()
+    assert main(["verify", str(copy)]) == 1
+    out = capsys.readouterr().out
+    assert f"actions/object_id={OBJECTS[1]}/part-0.parquet: sha256" in out
+    assert f"arrays/{OBJECTS[2]}.h5: missing" in out
+    assert "transitions/object_id=stranger: not a shard in the manifest" in out
+    assert OBJECTS[0] not in out
+
+
+def test_one_worker_gives_the_same_dataset_as_two(reference, corpus, tmp_path):
+    assert build(corpus, tmp_path / "one", "--workers", "1") == 0
+    assert_same_dataset(reference, tmp_path / "one")
+
+
+def test_dask_backend_gives_the_same_dataset_as_loky(reference, corpus, tmp_path):
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+        assert build(corpus, tmp_path / "dask", "--scheduler", cluster.scheduler_address) == 0
+    assert read_manifest(tmp_path / "dask")["run"]["backend"] == "dask"
+    assert_same_dataset(reference, tmp_path / "dask")
+
+
+def test_sigkill_part_way_then_resume_gives_the_same_dataset(reference, corpus, tmp_path):
+    out = tmp_path / "killed"
+    command = [sys.executable, "-m", "pipeline", "dataset", "--corpus", str(corpus), "--out", str(out), *PARAMS]
+    process = subprocess.Popen(
+        [*command, "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True
+    )
+    records = out / layout.SHARDS_DIR
+    deadline = time.monotonic() + 120
+    while not list(records.glob("*/complete.json")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+    stderr = process.stderr.read().decode()
+    process.stderr.close()
+
+    finished = {p.parent.name: p.stat().st_mtime_ns for p in records.glob("*/complete.json")}
+    assert 1 <= len(finished) < len(OBJECTS), f"not killed part-way: {sorted(finished)} {stderr[-500:]}"
+    assert not (out / "manifest.json").exists()
+    assert verify_dataset(out) != []
+
+    resumed = subprocess.run([*command, "--workers", "2"], capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resuming: {len(finished)} of {len(OBJECTS)}" in resumed.stderr
+    manifest = read_manifest(out)
+    assert manifest["run"]["reused"] == len(finished)
+    assert manifest["run"]["computed"] == len(OBJECTS) - len(finished)
+    for object_id, mtime in finished.items():
+        assert (records / object_id / "complete.json").stat().st_mtime_ns == mtime, f"{object_id} was recomputed"
+    assert not list(out.rglob("*.tmp"))
+    assert verify_dataset(out) == []
+    assert_same_dataset(reference, out)
+
+
+def test_interrupted_shard_write_leaves_an_incomplete_shard(tmp_path, monkeypatch, corpus):
+    spec = read_list(corpus, default_mass=0.25).specs[0]
+    config = Config().with_overrides({"contacts.n_contacts": 10, "topple.n_trials": 2, "suction.n_candidates": 5})
+    shard = compute_shard(spec, config)
+    assert isinstance(shard, shards.ShardData), shard
+    inputs = shards.shard_inputs(spec, config)
+    key = shards.fingerprint(inputs)
+
+    record = shards.write_shard(tmp_path, shard, inputs)
+    assert shards.is_complete(tmp_path, spec.object_id, key) == record
+    assert shards.is_complete(tmp_path, spec.object_id, "other parameters") is None
+
+    def disk_full(path, shard):
+        Path(path).write_bytes(b"partial")
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(shards, "_write_hdf5", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        shards.write_shard(tmp_path, shard, inputs)
+    assert shards.read_record(tmp_path, spec.object_id) is None, "the old record goes first"
+    assert shards.is_complete(tmp_path, spec.object_id, key) is None
+    assert not list(tmp_path.rglob("*.tmp")), "the temporary file is removed"
+    assert (tmp_path / layout.arrays_file(spec.object_id)).read_bytes() != b"partial"
+
+
+def test_broken_mesh_is_a_failure_and_strict_makes_it_fatal(tmp_path, capsys):
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    (meshes / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nf 1 2 3\nf 1 3 4\n")
+    (meshes / "garbage.obj").write_text("this is not a mesh\n")
+    corpus = write_corpus(
+        tmp_path, OBJECTS[:1], "flat,,meshes/flat.obj,1,0.1\ngarbage,,meshes/garbage.obj,1,0.1\ngone,,meshes/gone.obj,1,0.1\n"
+    )
+    out = tmp_path / "dataset"
+    assert build(corpus, out, "--workers", "2") == 0
+    manifest = read_manifest(out)
+    assert manifest["counts"]["objects"] == 1 and manifest["counts"]["failed"] == 3
+    failures = {f["object_id"]: f for f in manifest["failures"]}
+    assert set(failures) == {"flat", "garbage", "gone"}
+    assert failures["gone"]["kind"] == "corpus" and "not found" in failures["gone"]["reason"]
+    for object_id in ("flat", "garbage"):
+        assert failures[object_id]["kind"] == "mesh", failures[object_id]
+        assert failures[object_id]["reason"].startswith(f"{object_id}: ")
+    summary = capsys.readouterr().out
+    assert "failed    flat:" in summary
+    assert verify_dataset(out) == []
+    assert pq.read_metadata(out / "objects.parquet").num_rows == 1
+
+    strict = write_corpus(tmp_path, [], "flat,,meshes/flat.obj,1,0.1\n")
+    assert build(strict, tmp_path / "strict", "--strict", "--workers", "1") == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: --strict: flat: ") and err.count("\n") == 1
+
+
+def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_path, capsys):
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    assert build(corpus, copy, "--trials", "6") == 1
+    err = capsys.readouterr().err
+    assert "3 shard(s) built from other inputs (config.topple.n_trials: 5 -> 6); use --force" in err
+    assert build(corpus, copy, "--limit", "2") == 1
+    assert f"1 shard(s) of objects not in this corpus (e.g. {OBJECTS[2]})" in capsys.readouterr().err
+    assert verify_dataset(copy) == [], "a refused run changes nothing"
+
+    assert build(corpus, copy, "--limit", "1", "--force", "--workers", "1") == 0
+    manifest = read_manifest(copy)
+    assert manifest["counts"]["objects"] == 1 and manifest["run"]["computed"] == 1
+    assert sorted(p.name for p in (copy / "actions").iterdir()) == [f"object_id={OBJECTS[0]}"]
+    assert verify_dataset(copy) == []
+    assert json.loads((copy / "manifest.json").read_text())["corpus"]["objects"][0]["object_id"] == OBJECTS[0]

@@ -1,0 +1,54 @@
+"""The data contract: documented columns, the docs in sync with the schemas, and the
+HDF5 layout check that writer and verifier share."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from schema import SCHEMA_VERSION, TABLES, describe, file_schema, hdf5
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "DATASET.md"
+
+
+def test_every_column_is_documented():
+    assert SCHEMA_VERSION
+    for name, schema in TABLES.items():
+        assert schema.field("object_id").type == "string", name
+        for field in schema:
+            assert field.metadata and field.metadata.get(b"description"), f"{name}.{field.name}"
+    assert "object_id" not in file_schema(TABLES["actions"]).names
+
+
+def test_dataset_docs_show_the_current_schemas():
+    text = DOCS.read_text()
+    for name, schema in TABLES.items():
+        assert describe(schema) in text, f"docs/DATASET.md is out of date for table {name}"
+    for spec in hdf5.OBJECT_ARRAYS + hdf5.POSE_ARRAYS:
+        assert spec.name in text
+
+
+def test_hdf5_layout_check_names_what_is_wrong(tmp_path):
+    path = tmp_path / "x.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs.update({"schema_version": SCHEMA_VERSION, "object_id": "x", "n_poses": 1, "n_trials": 4})
+        f["center_mass"] = np.zeros(3)
+        f["hull/vertices"] = np.zeros((8, 3))
+        f["hull/faces"] = np.zeros((12, 3), dtype=np.int64)  # wrong dtype
+        group = f.create_group(hdf5.pose_group(0))
+        group["transform"] = np.eye(4)
+        group["down"] = np.zeros(3)
+        group["base_edges"] = np.zeros((4, 2, 3))
+        group["edge_final_pose"] = np.zeros(5, dtype=np.int32)  # E disagrees with base_edges
+        group["edge_blocked"] = np.zeros(4, dtype=bool)
+        group["apex_angle"] = np.zeros(4)
+        group["outcomes"] = np.zeros((7, 4), dtype=np.int16)
+    with h5py.File(path) as f:
+        problems = hdf5.check_file(f, {"object_id": "x", "A": [7]})
+        assert len(problems) == 2
+        assert "/hull/faces: dtype int64, expected int32" in problems[0]
+        assert "/poses/000/edge_final_pose: shape (5,)" in problems[1]
+        assert hdf5.check_file(f, {"object_id": "y"}) == ["attribute object_id = 'x', expected 'y'"]
+        assert any("outcomes" in p for p in hdf5.check_file(f, {"A": [6]}))
