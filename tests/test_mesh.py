@@ -78,3 +78,14 @@ def test_unreadable_file_is_one_line(tmp_path):
     with pytest.raises(MeshError) as err:
         load_mesh(path)
     assert str(err.value).startswith("broken: ") and "\n" not in str(err.value)
+
+
+def test_stl_and_ply_round_trip(tmp_path):
+    box = trimesh.creation.box([40.0, 60.0, 100.0])  # millimetres in the file
+    for suffix in ("stl", "ply", "obj"):
+        path = tmp_path / f"box.{suffix}"
+        box.export(path)
+        obj = load_mesh(path, scale=0.001, mass=0.3)
+        assert obj.name == "box" and obj.mass == 0.3
+        assert np.allclose(sorted(obj.mesh.extents), [0.04, 0.06, 0.1])
+        assert np.isclose(obj.mesh.volume, 0.04 * 0.06 * 0.1)
