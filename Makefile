@@ -6,7 +6,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 ARGS   ?=
 
-.PHONY: venv dataset test bench corpus clean
+.PHONY: venv dataset test bench corpus serve clean
 
 venv: $(VENV)/.installed
 
@@ -28,6 +28,9 @@ bench: venv
 
 corpus: venv
 	$(PY) -m pipeline corpus $(ARGS)
+
+serve: venv
+	$(PY) -m service --dataset data/dataset $(ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

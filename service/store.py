@@ -1,0 +1,358 @@
+"""The dataset in memory: loaded once at start, read-only afterwards.
+
+Per object, pose data are arrays over its P poses and action data are arrays over
+all its N candidate pushes, pose after pose in action order: the actions of pose
+``p`` are rows ``action_offsets[p] : action_offsets[p + 1]`` (a slice is a view, so
+"per pose" arrays cost nothing).  Transitions are CSR over those rows: the next-pose
+distribution of row ``i`` is ``next_pose[k]``, ``probability[k]`` for ``k`` in
+``transition_offsets[i] : transition_offsets[i + 1]``, empty unless the push is ``ok``.
+
+Storage types trade precision the model does not have for memory: geometry,
+``p_topple``, ``mean_force`` and transition probabilities are float32 (the contact
+noise alone is 0.5 mm); ``q`` and ``greedy`` stay float64 so that ranking them agrees
+with the pipeline's.  Values leave as float64 through ``widen``, which serves the
+float32 0.6 as 0.6.  The default dataset (2.2 M pushes, 2.1 M transitions) takes
+about 160 MB of arrays; ``python -m service`` holds about 400 MB resident (130 MB of it
+the interpreter, FastAPI and pyarrow themselves).
+
+Imports numpy and pyarrow only: never the geometry stack.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+from pipeline.results import STATUS_NAMES, STATUS_OK
+from schema import POLICIES, SCHEMA_VERSION, layout
+
+from .errors import NotFound
+
+STATUS_CODES = pa.array(STATUS_NAMES)
+NO_OP = -1
+
+
+class DatasetError(RuntimeError):
+    """The directory is not a dataset this service can serve; the message says why."""
+
+
+def widen(values: np.ndarray) -> np.ndarray:
+    """float32 -> float64 through the shortest decimal that gives the same float32, NaN kept.
+
+    So that 0.6 stored as float32 is served as 0.6, not 0.6000000238418579; about 1 us
+    per value (numpy's shortest repr, in C).
+    """
+    return np.asarray(values, dtype=np.float32).astype(str).astype(np.float64)
+
+
+def optional(value: float) -> float | None:
+    """NaN (a null in the tables) -> None."""
+    return None if np.isnan(value) else float(value)
+
+
+@dataclass(eq=False)
+class ObjectData:
+    """Everything the service serves about one object.
+
+    Poses (P of them), from poses.parquet:
+      probability (P,), height (P,) m, com_height (P,) m, v_s (P,), v_t (P,): float64
+      transforms (P, 4, 4) float64, object frame -> pose frame; inverse_transforms likewise
+      downs (P, 3) float64, unit, object frame
+      grasp_point, grasp_axis (P, 3) float64, pose frame, NaN when the pose has no grasp
+      n_actions, n_ok_actions (P,) int32
+      policy_action, policy_value: per policy name, (P,) int32 (-1 no push) and float64
+    Actions (N = sum of n_actions), from actions/object_id=<id>/:
+      action_offsets (P + 1,) int64
+      status (N,) int8, index into pipeline.results.STATUS_NAMES
+      points, normals, directions (N, 3) float32, pose frame (m; unit; unit)
+      is_max_height (N,) bool
+      p_topple, mean_force (N,) float32 (N for the force), NaN unless ok / when none
+      q, greedy (N,) float64, NaN unless ok
+    Transitions (M nonzero entries), from transitions/object_id=<id>/:
+      transition_offsets (N + 1,) int32; next_pose (M,) int32; probability (M,) float32
+    """
+
+    object_id: str
+    source: str
+    sha256: str
+    mass: float
+    scale: float
+    center_mass: np.ndarray
+    probability: np.ndarray
+    transforms: np.ndarray
+    inverse_transforms: np.ndarray
+    downs: np.ndarray
+    height: np.ndarray
+    com_height: np.ndarray
+    v_s: np.ndarray
+    v_t: np.ndarray
+    grasp_point: np.ndarray
+    grasp_axis: np.ndarray
+    n_actions: np.ndarray
+    n_ok_actions: np.ndarray
+    policy_action: dict[str, np.ndarray]
+    policy_value: dict[str, np.ndarray]
+    action_offsets: np.ndarray
+    status: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    directions: np.ndarray
+    is_max_height: np.ndarray
+    p_topple: np.ndarray
+    mean_force: np.ndarray
+    q: np.ndarray
+    greedy: np.ndarray
+    transition_offsets: np.ndarray
+    next_pose: np.ndarray
+    transition_probability: np.ndarray
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.probability)
+
+    def check_pose(self, pose: int) -> int:
+        """``pose``, or NotFound."""
+        if not 0 <= pose < self.n_poses:
+            raise NotFound(f"object '{self.object_id}' has no pose {pose}: its poses are 0..{self.n_poses - 1}")
+        return pose
+
+    def pose_rows(self, pose: int) -> slice:
+        """Rows of the action arrays that belong to ``pose`` (action a is row start + a)."""
+        self.check_pose(pose)
+        return slice(int(self.action_offsets[pose]), int(self.action_offsets[pose + 1]))
+
+    def row(self, pose: int, action: int) -> int:
+        """Row of (pose, action) in the action arrays, or NotFound."""
+        rows = self.pose_rows(pose)
+        count = rows.stop - rows.start
+        if not 0 <= action < count:
+            raise NotFound(
+                f"pose {pose} of object '{self.object_id}' has no action {action}: its actions are 0..{count - 1}"
+            )
+        return rows.start + action
+
+    def is_ok(self, row: int) -> bool:
+        return int(self.status[row]) == STATUS_OK
+
+    def status_name(self, row: int) -> str:
+        return STATUS_NAMES[int(self.status[row])]
+
+    def transitions(self, row: int) -> tuple[np.ndarray, np.ndarray]:
+        """Next poses (K,) int32 and their probabilities (K,) float64 of one action row."""
+        span = slice(int(self.transition_offsets[row]), int(self.transition_offsets[row + 1]))
+        return self.next_pose[span], widen(self.transition_probability[span])
+
+    def action_counts(self, pose: int) -> dict[str, int]:
+        counts = np.bincount(self.status[self.pose_rows(pose)], minlength=len(STATUS_NAMES))
+        return {name: int(n) for name, n in zip(STATUS_NAMES, counts)}
+
+
+class Store:
+    """The loaded dataset: objects by id, the manifest parameters the service needs."""
+
+    def __init__(self, root: Path, manifest: dict, objects: dict[str, ObjectData], load_seconds: float):
+        self.root = root
+        self.manifest = manifest
+        self.objects = objects
+        self.load_seconds = load_seconds
+        parameters = manifest["parameters"]
+        self.schema_version: str = manifest["schema_version"]
+        self.tolerance = float(parameters["poses"]["same_pose_angle"])
+        """rad, largest angle between down vectors of one stable pose (pose matching)."""
+        self.approach_offset = float(parameters["contacts"]["approach_offset"])
+        """m, the finger starts this far outside the contact along the normal."""
+        self.push_depth = float(parameters["contacts"]["push_depth"])
+        """m, the finger ends this far inside the contact along the normal."""
+        self.gamma = float(parameters["mdp"]["gamma"])
+        self.failures = {f["object_id"]: f.get("reason", "") for f in manifest.get("failures", [])}
+        self.counts = {
+            "objects": len(objects),
+            "poses": sum(o.n_poses for o in objects.values()),
+            "actions": sum(len(o.status) for o in objects.values()),
+            "ok_actions": sum(int((o.status == STATUS_OK).sum()) for o in objects.values()),
+            "transitions": sum(len(o.next_pose) for o in objects.values()),
+        }
+
+    def object(self, object_id: str) -> ObjectData:
+        """The object, or NotFound saying whether its build failed."""
+        try:
+            return self.objects[object_id]
+        except KeyError:
+            if object_id in self.failures:
+                raise NotFound(
+                    f"object '{object_id}' is not in the dataset: its build failed ({self.failures[object_id]})"
+                ) from None
+            raise NotFound(f"unknown object '{object_id}' ({len(self.objects)} objects; GET /objects lists them)") from None
+
+    @classmethod
+    def load(cls, root: str | Path, threads: int | None = None) -> "Store":
+        """Read a finished dataset directory; DatasetError if it is not one this service reads."""
+        started = time.perf_counter()
+        root = Path(root)
+        manifest = read_manifest(root)
+        objects_table = _read(root / layout.OBJECTS_FILE)
+        poses_table = _read(root / layout.POSES_FILE)
+        pose_rows = _group_rows(poses_table.column("object_id").to_pylist())
+        ids = objects_table.column("object_id").to_pylist()
+        objects_rows = objects_table.to_pylist()
+        # pyarrow releases the GIL while decoding, so threads overlap the per-object reads;
+        # two take 25% off the load time, more only fragment memory (+100 MB RSS at 8).
+        with ThreadPoolExecutor(threads or min(2, os.cpu_count() or 1)) as pool:
+            loaded = list(
+                pool.map(lambda i: _load_object(root, objects_rows[i], poses_table, pose_rows.get(ids[i], [])), range(len(ids)))
+            )
+        store = cls(root, manifest, {o.object_id: o for o in loaded}, time.perf_counter() - started)
+        expected = {k: manifest.get("counts", {}).get(k) for k in store.counts}
+        if expected != store.counts:
+            raise DatasetError(
+                f"{root}: the tables hold {store.counts} but manifest.json says {expected}; "
+                f"check it with `python -m pipeline verify {root}`"
+            )
+        return store
+
+
+def read_manifest(root: Path) -> dict:
+    """manifest.json, checked for a schema version this service reads."""
+    path = root / layout.MANIFEST
+    if not root.is_dir():
+        raise DatasetError(f"{root}: no such dataset directory")
+    if not path.exists():
+        raise DatasetError(f"{root}: no {layout.MANIFEST}: not a dataset, or its build has not finished")
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise DatasetError(f"{path}: unreadable: {err}") from None
+    version = manifest.get("schema_version") if isinstance(manifest, dict) else None
+    if version != SCHEMA_VERSION:
+        raise DatasetError(
+            f"{root}: dataset schema version {version!r}, this service reads {SCHEMA_VERSION!r}; "
+            "rebuild the dataset with this code (make dataset) or serve it with the code that wrote it"
+        )
+    try:
+        for section, key in (("poses", "same_pose_angle"), ("contacts", "approach_offset"), ("contacts", "push_depth"), ("mdp", "gamma")):
+            float(manifest["parameters"][section][key])
+    except (KeyError, TypeError, ValueError):
+        raise DatasetError(f"{path}: parameters.{section}.{key} missing or not a number") from None
+    return manifest
+
+
+def _read(path: Path, columns: list[str] | None = None) -> pa.Table:
+    try:
+        return pq.read_table(path, columns=columns)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: missing") from None
+    except (OSError, pa.ArrowException) as err:
+        raise DatasetError(f"{path}: unreadable: {err}") from None
+
+
+def _group_rows(ids: list[str]) -> dict[str, list[int]]:
+    groups: dict[str, list[int]] = {}
+    for index, object_id in enumerate(ids):
+        groups.setdefault(object_id, []).append(index)
+    return groups
+
+
+def _floats(table: pa.Table, name: str, dtype=np.float64) -> np.ndarray:
+    """A numeric column as numpy, nulls as NaN."""
+    return table.column(name).to_numpy(zero_copy_only=False).astype(dtype, copy=False)
+
+
+def _vectors(table: pa.Table, prefix: str, dtype=np.float64) -> np.ndarray:
+    """Columns ``<prefix>_x, _y, _z`` as one (n, 3) array."""
+    return np.stack([_floats(table, f"{prefix}_{axis}", dtype) for axis in "xyz"], axis=1)
+
+
+ACTION_COLUMNS = [
+    "pose", "action", "status", "is_max_height", "p_topple", "mean_force", "q", "greedy",
+    *(f"{v}_{a}" for v in ("point", "normal", "direction") for a in "xyz"),
+]
+
+
+def _load_object(root: Path, row: dict, poses_table: pa.Table, pose_indices: list[int]) -> ObjectData:
+    object_id = row["object_id"]
+    poses = poses_table.take(pa.array(pose_indices, pa.int64())).sort_by("pose")
+    n_poses = int(row["n_poses"])
+    if poses.num_rows != n_poses or poses.column("pose").to_pylist() != list(range(n_poses)):
+        raise DatasetError(f"{object_id}: poses.parquet holds poses {poses.column('pose').to_pylist()}, expected 0..{n_poses - 1}")
+    n_actions = poses.column("n_actions").to_numpy().astype(np.int32)
+    offsets = np.concatenate([[0], np.cumsum(n_actions, dtype=np.int64)])
+
+    actions = _read(root / layout.partition_file("actions", object_id), ACTION_COLUMNS)
+    keys = _sorted_keys(actions, ["pose", "action"])
+    actions = actions.take(keys)
+    pose_of = actions.column("pose").to_numpy()
+    expected_action = np.arange(len(pose_of)) - offsets[np.clip(pose_of, 0, n_poses - 1)]
+    if len(pose_of) != offsets[-1] or not np.array_equal(actions.column("action").to_numpy(), expected_action):
+        raise DatasetError(f"{object_id}: the actions partition does not hold actions 0..n_actions - 1 of every pose")
+    status = pc.index_in(actions.column("status"), value_set=STATUS_CODES)
+    if status.null_count:
+        raise DatasetError(f"{object_id}: unknown action status; known: {', '.join(STATUS_NAMES)}")
+
+    transitions = _read(root / layout.partition_file("transitions", object_id), ["pose", "action", "next_pose", "probability"])
+    transitions = transitions.take(_sorted_keys(transitions, ["pose", "action", "next_pose"]))
+    t_pose = transitions.column("pose").to_numpy().astype(np.int64)
+    t_action = transitions.column("action").to_numpy().astype(np.int64)
+    next_pose = transitions.column("next_pose").to_numpy().astype(np.int32)
+    if len(t_pose) and (
+        t_pose.min() < 0 or t_pose.max() >= n_poses or next_pose.min() < 0 or next_pose.max() >= n_poses
+        or (t_action < 0).any() or (t_action >= n_actions[t_pose]).any()
+    ):
+        raise DatasetError(f"{object_id}: transitions refer to poses or actions that do not exist")
+    per_row = np.bincount(offsets[t_pose] + t_action, minlength=int(offsets[-1]))
+    transforms = _transforms(poses)
+
+    return ObjectData(
+        object_id=object_id,
+        source=row["source"],
+        sha256=row["sha256"],
+        mass=float(row["mass"]),
+        scale=float(row["scale"]),
+        center_mass=np.array([row["com_x"], row["com_y"], row["com_z"]], dtype=np.float64),
+        probability=_floats(poses, "probability"),
+        transforms=transforms,
+        inverse_transforms=np.linalg.inv(transforms),
+        downs=_vectors(poses, "down"),
+        height=_floats(poses, "height"),
+        com_height=_floats(poses, "com_height"),
+        v_s=_floats(poses, "v_s"),
+        v_t=_floats(poses, "v_t"),
+        grasp_point=_vectors(poses, "grasp_point"),
+        grasp_axis=_vectors(poses, "grasp_axis"),
+        n_actions=n_actions,
+        n_ok_actions=poses.column("n_ok_actions").to_numpy().astype(np.int32),
+        policy_action={p: poses.column(f"{p}_action").to_numpy().astype(np.int32) for p in POLICIES},
+        policy_value={p: _floats(poses, f"{p}_value") for p in POLICIES},
+        action_offsets=offsets,
+        status=status.to_numpy().astype(np.int8),
+        points=_vectors(actions, "point", np.float32),
+        normals=_vectors(actions, "normal", np.float32),
+        directions=_vectors(actions, "direction", np.float32),
+        is_max_height=actions.column("is_max_height").to_numpy(zero_copy_only=False).astype(bool),
+        p_topple=_floats(actions, "p_topple", np.float32),
+        mean_force=_floats(actions, "mean_force", np.float32),
+        q=_floats(actions, "q"),
+        greedy=_floats(actions, "greedy"),
+        transition_offsets=np.concatenate([[0], np.cumsum(per_row)]).astype(np.int32),
+        next_pose=next_pose,
+        transition_probability=_floats(transitions, "probability", np.float32),
+    )
+
+
+def _sorted_keys(table: pa.Table, keys: list[str]) -> pa.Array:
+    """Indices that sort ``table`` by ``keys`` (the pipeline writes them sorted; this makes sure)."""
+    return pc.sort_indices(table, sort_keys=[(k, "ascending") for k in keys])
+
+
+def _transforms(poses: pa.Table) -> np.ndarray:
+    """The fixed-size-list ``transform`` column as (P, 4, 4) float64."""
+    column = poses.column("transform").combine_chunks()
+    return column.flatten().to_numpy().astype(np.float64).reshape(-1, 4, 4)
