@@ -40,7 +40,7 @@ def positive_int(text: str) -> int:
 
 def parser() -> argparse.ArgumentParser:
     main = argparse.ArgumentParser(prog="python -m pipeline", description="toppledb: build and check datasets")
-    commands = main.add_subparsers(dest="command", required=True, metavar="{dataset,verify,corpus}")
+    commands = main.add_subparsers(dest="command", required=True, metavar="{dataset,verify,corpus,policies}")
 
     dataset = commands.add_parser("dataset", help="build (or resume building) a dataset")
     dataset.add_argument(
@@ -61,6 +61,13 @@ def parser() -> argparse.ArgumentParser:
 
     verify = commands.add_parser("verify", help="check a dataset against its manifest")
     verify.add_argument("directory", help="dataset directory")
+
+    policies = commands.add_parser("policies", help="replay the thesis 4.4.3 policy experiment on a dataset")
+    policies.add_argument("directory", help="dataset directory")
+    policies.add_argument("--trials", type=positive_int, default=20_000, help="trials (default: %(default)s)")
+    policies.add_argument("--steps", type=positive_int, default=5, help="most pushes per trial (default: %(default)s)")
+    policies.add_argument("--seed", type=int, default=0, help="seed of the trial draws (default: %(default)s)")
+    policies.add_argument("--plot", type=Path, metavar="PNG", help="also draw the mean gains to this file")
 
     corpus = commands.add_parser("corpus", help="regenerate the default corpus list (thesis 4.4.1 selection)")
     corpus.add_argument("--out", default=None, help="list to write (default: pipeline/corpus_default.csv)")
@@ -177,13 +184,31 @@ def run_corpus(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def run_policies(args: argparse.Namespace) -> int:
+    import json
+
+    from .policy_experiment import experiment, plot, summary
+
+    if not (Path(args.directory) / "poses.parquet").is_file():
+        raise UsageError(f"{args.directory}: no finished dataset (poses.parquet is missing)")
+    result = experiment(args.directory, n_trials=args.trials, max_steps=args.steps, seed=args.seed)
+    print(summary(result))
+    if args.plot:
+        plot(result, args.plot)
+        print(f"plot: {args.plot}")
+    for policy in result["policies"].values():
+        policy.pop("gains_useful")
+    print(json.dumps(result))
+    return EXIT_OK
+
+
 def main(argv: list[str] | None = None) -> int:
     from .corpus import CorpusError
     from .dataset import BuildError
     from .fanout import SchedulerError
 
     args = parser().parse_args(argv)
-    commands = {"dataset": run_dataset, "verify": run_verify, "corpus": run_corpus}
+    commands = {"dataset": run_dataset, "verify": run_verify, "corpus": run_corpus, "policies": run_policies}
     try:
         return commands[args.command](args)
     except (UsageError, CorpusError) as err:
