@@ -98,11 +98,14 @@ def model_from_mesh(
     if extent > config.max_extent:
         raise MeshError(f"{name}: too large for a tabletop: largest side {extent:.4g} m > {config.max_extent} m")
 
-    try:
-        hull = mesh.convex_hull
-    except Exception as err:  # qhull fails on flat or degenerate input
-        raise MeshError(f"{name}: no convex hull ({_one_line(err)})") from None
-    if not hull.is_volume or hull.volume <= 1e-12:
+    # A flat mesh makes trimesh divide by a zero volume; the rejection below says why.
+    with np.errstate(invalid="ignore", divide="ignore"):
+        try:
+            hull = mesh.convex_hull
+        except Exception as err:  # qhull fails on flat or degenerate input
+            raise MeshError(f"{name}: no convex hull ({_one_line(err)})") from None
+        flat = not hull.is_volume or hull.volume <= 1e-12
+    if flat:
         raise MeshError(f"{name}: zero or negative volume (the mesh is flat or degenerate)")
 
     if mesh.is_volume:
