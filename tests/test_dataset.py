@@ -227,8 +227,22 @@ def test_dask_backend_gives_the_same_dataset_as_loky(reference, corpus, tmp_path
 def test_sigkill_part_way_then_resume_gives_the_same_dataset(reference, corpus, tmp_path):
     out = tmp_path / "killed"
     command = [sys.executable, "-m", "pipeline", "dataset", "--corpus", str(corpus), "--out", str(out), *PARAMS]
+    # One in-process worker whose objects after the first pause before computing (same
+    # results): an object takes ~50 ms, too short a window to kill in on a busy machine.
+    slowed = (
+        "import sys, time, pipeline.objects as objects\n"
+        "compute, seen = objects.process_object, []\n"
+        "def process_object(spec, config):\n"
+        "    seen.append(spec.object_id)\n"
+        "    if len(seen) > 1: time.sleep(30)\n"
+        "    return compute(spec, config)\n"
+        "objects.process_object = process_object\n"
+        "from pipeline.cli import main\n"
+        "sys.exit(main(sys.argv[1:]))\n"
+    )
     process = subprocess.Popen(
-        [*command, "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True
+        [sys.executable, "-c", slowed, *command[3:], "--workers", "1"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
     )
     records = out / layout.SHARDS_DIR
     deadline = time.monotonic() + 120
