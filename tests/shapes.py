@@ -45,3 +45,12 @@ def pose_with_down(pose_set, down, atol=1e-6):
         if np.allclose(pose.down, down, atol=atol):
             return pose.index
     raise AssertionError(f"no pose with down {down}")
+
+
+def standing_box():
+    """(object, pose set, index of its pose standing on end) for the 0.05 x 0.08 x 0.15 m box."""
+    from pipeline.poses import stable_poses
+
+    obj = box_object((0.05, 0.08, 0.15))
+    pose_set = stable_poses(obj)
+    return obj, pose_set, pose_with_down(pose_set, [0, 0, -1])

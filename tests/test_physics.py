@@ -7,16 +7,14 @@ from pipeline.api import evaluate
 from pipeline.config import VARIANTS, Config
 from pipeline.physics import average_precision, empirical_distribution, simulate_push, total_variation, validate
 from pipeline.poses import stable_poses
-from shapes import box_object, pose_with_down
+from shapes import box_object, pose_with_down, standing_box
 
 MU_TABLE = Config().topple.mu_table_mean
 
 
 @pytest.fixture(scope="module")
 def box():
-    obj = box_object((0.05, 0.08, 0.15))
-    pose_set = stable_poses(obj)
-    return obj, pose_set, pose_with_down(pose_set, [0, 0, -1])
+    return standing_box()
 
 
 def test_box_pushed_high_topples_onto_the_adjacent_face_as_the_model_predicts(box):

@@ -8,16 +8,14 @@ from pipeline.config import Config
 from pipeline.frames import transform_points
 from pipeline.poses import stable_poses
 from pipeline.results import NOT_EVALUATED, STATUS_OK
-from shapes import box_object, boot_object, pose_with_down, random_object
+from shapes import boot_object, box_object, pose_with_down, random_object, standing_box
 
 MU_TABLE = Config().topple.mu_table_mean
 
 
 @pytest.fixture(scope="module")
 def box():
-    obj = box_object((0.05, 0.08, 0.15))
-    pose_set = stable_poses(obj)
-    return obj, pose_set, pose_with_down(pose_set, [0, 0, -1])
+    return standing_box()
 
 
 def _side_pushes(heights, y=0.0):
