@@ -14,7 +14,7 @@ $(VENV)/.installed: pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or make PYTHON=python3)"; exit 1; }
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[dev]" --config-settings editable_mode=compat
+	$(PY) -m pip install --quiet -e ".[all,dev]" --config-settings editable_mode=compat
 	touch $@
 
 dataset: venv
@@ -24,13 +24,13 @@ test: venv
 	$(PY) -m pytest -q $(ARGS)
 
 bench: venv
-	$(PY) -m pipeline.bench $(ARGS)
+	$(PY) -m pipeline bench $(ARGS)
 
 corpus: venv
 	$(PY) -m pipeline corpus $(ARGS)
 
 serve: venv
-	$(PY) -m service --dataset data/dataset $(ARGS)
+	$(PY) -m pipeline serve --dataset data/dataset $(ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

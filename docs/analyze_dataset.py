@@ -11,8 +11,8 @@ import argparse
 from pathlib import Path
 
 import duckdb
-import numpy as np
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")  # files only, no display needed
 import matplotlib.pyplot as plt  # noqa: E402

@@ -1,8 +1,15 @@
-"""toppledb's compute side: meshes, stable poses, the toppling model, suction
-quality, value iteration, and the dataset job.
+"""toppledb's compute side, in three layers that depend only downwards:
 
-The public API is loaded lazily so that light modules (``pipeline.frames``,
-``pipeline.results``) import without the geometry stack::
+- ``pipeline.model``: one object at a time (config, meshes, stable poses, candidate
+  pushes, the toppling model and its scalar reference, suction quality, value
+  iteration, one-object evaluation);
+- ``pipeline.build``: the dataset job (corpus, selection, rows, shards, manifest,
+  fan-out, verify);
+- ``pipeline.studies``: what is measured on top (bench, physics validation,
+  policy experiment).
+
+The public API (``pipeline.api``) is loaded lazily, so that ``import pipeline``
+does not pull in the geometry stack::
 
     import pipeline as toppledb
     obj = toppledb.load_mesh("duck.obj", scale=0.01, mass=0.1)
@@ -12,22 +19,15 @@ The public API is loaded lazily so that light modules (``pipeline.frames``,
 
 from importlib import import_module
 
-__version__ = "0.1.0"
+from schema.version import CODE_VERSION as __version__
 
-_EXPORTS = {
-    "Config": "pipeline.config",
-    "load_mesh": "pipeline.mesh",
-    "MeshError": "pipeline.mesh",
-    "stable_poses": "pipeline.poses",
-    "settle": "pipeline.poses",
-    "match_pose": "pipeline.frames",
-    "evaluate": "pipeline.api",
-}
+_PUBLIC = ("Config", "MeshError", "ObjectModel", "PoseEvaluation", "PoseSet", "evaluate", "load_mesh", "match_pose",
+           "settle", "stable_poses")
 
-__all__ = sorted(_EXPORTS) + ["__version__"]
+__all__ = sorted(_PUBLIC) + ["__version__"]
 
 
 def __getattr__(name):
-    if name in _EXPORTS:
-        return getattr(import_module(_EXPORTS[name]), name)
+    if name in _PUBLIC:
+        return getattr(import_module("pipeline.api"), name)
     raise AttributeError(f"module 'pipeline' has no attribute {name!r}")

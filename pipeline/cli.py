@@ -1,13 +1,15 @@
-"""Command line: ``python -m pipeline {dataset,verify,corpus}``.
+"""Command line: ``toppledb COMMAND`` (or ``python -m pipeline COMMAND``).
 
-    python -m pipeline dataset [--corpus default|pybullet_data|DIR|LIST.csv] [--out data/dataset]
-                               [--limit N] [--contacts N] [--trials N] [--variant NAME] [--seed S]
-                               [--workers N | --scheduler ADDRESS] [--force] [--strict]
-                               [--config FILE.toml] [--set section.key=value ...]
-    python -m pipeline verify DIR
-    python -m pipeline corpus [--out pipeline/corpus_default.csv] [--count 189]
+    toppledb dataset [--corpus default|pybullet_data|DIR|LIST.csv] [--out data/dataset]
+                     [--limit N] [--contacts N] [--trials N] [--variant NAME] [--seed S]
+                     [--workers N | --scheduler ADDRESS] [--force] [--strict]
+                     [--config FILE.toml] [--set section.key=value ...]
+    toppledb verify DIR
+    toppledb corpus [--out pipeline/build/corpus_default.csv] [--count 189]
+    toppledb policies DIR [--trials 20000] [--plot PNG]
+    toppledb bench | validate | serve [their own options]
 
-Parameters: defaults (``pipeline.config``), then ``--config``, then each ``--set``,
+Parameters: defaults (``pipeline.model.config``), then ``--config``, then each ``--set``,
 then the dedicated flags (``--contacts`` etc.).  Bad arguments, paths or
 parameters give one line on stderr and exit status 2; a failed build exits 1.
 """
@@ -19,9 +21,17 @@ import sys
 import tomllib
 from pathlib import Path
 
-from .config import VARIANTS, Config
+from .model.config import VARIANTS, Config
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+DELEGATED = {
+    "bench": ("pipeline.studies.bench", "time the engine, suction and value iteration on one core (make bench)"),
+    "validate": ("pipeline.studies.validation", "replay pushes in pybullet and score the model variants"),
+    "serve": ("service.__main__", "serve a finished dataset over HTTP (make serve)"),
+}
+"""Commands with parsers of their own: ``toppledb NAME ARGS`` runs ``MODULE.main(ARGS)``."""
+COMMANDS = ("dataset", "verify", "corpus", "policies", *DELEGATED)
 
 
 class UsageError(ValueError):
@@ -39,8 +49,8 @@ def positive_int(text: str) -> int:
 
 
 def parser() -> argparse.ArgumentParser:
-    main = argparse.ArgumentParser(prog="python -m pipeline", description="toppledb: build and check datasets")
-    commands = main.add_subparsers(dest="command", required=True, metavar="{dataset,verify,corpus,policies}")
+    main = argparse.ArgumentParser(prog="toppledb", description="toppledb: build, check, study and serve datasets")
+    commands = main.add_subparsers(dest="command", required=True, metavar="{" + ",".join(COMMANDS) + "}")
 
     dataset = commands.add_parser("dataset", help="build (or resume building) a dataset")
     dataset.add_argument(
@@ -70,10 +80,13 @@ def parser() -> argparse.ArgumentParser:
     policies.add_argument("--plot", type=Path, metavar="PNG", help="also draw the mean gains to this file")
 
     corpus = commands.add_parser("corpus", help="regenerate the default corpus list (thesis 4.4.1 selection)")
-    corpus.add_argument("--out", default=None, help="list to write (default: pipeline/corpus_default.csv)")
+    corpus.add_argument("--out", default=None, help="list to write (default: pipeline/build/corpus_default.csv)")
     corpus.add_argument("--count", type=positive_int, default=189, help="objects to keep (default: %(default)s)")
     corpus.add_argument("--limit", type=positive_int, metavar="N", help="consider only the first N candidates")
     _add_execution(corpus)
+
+    for name, (_, text) in DELEGATED.items():
+        commands.add_parser(name, help=f"{text} (see toppledb {name} --help)", add_help=False)
     return main
 
 
@@ -125,8 +138,8 @@ def make_config(args: argparse.Namespace) -> Config:
 
 
 def run_dataset(args: argparse.Namespace) -> int:
-    from .corpus import load_corpus
-    from .dataset import build_dataset
+    from .build.corpus import load_corpus
+    from .build.dataset import build_dataset
 
     config = make_config(args)
     corpus = load_corpus(args.corpus, config.mesh.default_mass).limit(args.limit)
@@ -147,8 +160,9 @@ def run_dataset(args: argparse.Namespace) -> int:
 
 
 def run_verify(args: argparse.Namespace) -> int:
-    from .manifest import read_manifest
-    from .verify import verify_dataset
+    from schema.manifest import read_manifest
+
+    from .build.verify import verify_dataset
 
     problems = verify_dataset(args.directory)
     for problem in problems:
@@ -156,16 +170,17 @@ def run_verify(args: argparse.Namespace) -> int:
     if problems:
         print(f"verify: {len(problems)} problem(s) in {args.directory}", file=sys.stderr)
         return EXIT_FAILED
-    counts = read_manifest(args.directory)["counts"]
+    counts = read_manifest(args.directory).counts
     print(
-        f"ok: {args.directory}: {counts['objects']} objects, {counts['poses']} poses, "
-        f"{counts['actions']} actions, {counts['transitions']} transitions verified"
+        f"ok: {args.directory}: {counts.objects} objects, {counts.poses} poses, "
+        f"{counts.actions} actions, {counts.transitions} transitions verified"
     )
     return EXIT_OK
 
 
 def run_corpus(args: argparse.Namespace) -> int:
-    from .corpus import DEFAULT_LIST, regenerate_default
+    from .build.corpus import DEFAULT_LIST
+    from .build.selection import regenerate_default
 
     config = make_config(args)
     out = Path(args.out) if args.out else DEFAULT_LIST
@@ -187,10 +202,14 @@ def run_corpus(args: argparse.Namespace) -> int:
 def run_policies(args: argparse.Namespace) -> int:
     import json
 
-    from .policy_experiment import experiment, plot, summary
+    from .studies.policy_experiment import experiment, plot, summary
 
-    if not (Path(args.directory) / "poses.parquet").is_file():
-        raise UsageError(f"{args.directory}: no finished dataset (poses.parquet is missing)")
+    from schema.reader import Dataset, DatasetUnreadable
+
+    try:
+        Dataset.open(args.directory)
+    except DatasetUnreadable as err:
+        raise UsageError(str(err)) from None
     result = experiment(args.directory, n_trials=args.trials, max_steps=args.steps, seed=args.seed)
     print(summary(result))
     if args.plot:
@@ -203,10 +222,15 @@ def run_policies(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .corpus import CorpusError
-    from .dataset import BuildError
-    from .fanout import SchedulerError
+    from .build.corpus import CorpusError
+    from .build.dataset import BuildError
+    from .build.fanout import SchedulerError
 
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in DELEGATED:
+        from importlib import import_module
+
+        return import_module(DELEGATED[argv[0]][0]).main(argv[1:]) or EXIT_OK
     args = parser().parse_args(argv)
     commands = {"dataset": run_dataset, "verify": run_verify, "corpus": run_corpus, "policies": run_policies}
     try:

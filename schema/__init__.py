@@ -10,7 +10,6 @@ pipeline that writes it and the service and analysts that read it.
 version it was written with, and shards of another version are rebuilt.
 """
 
-from schema.version import SCHEMA_VERSION
 from schema.tables import (
     ACTIONS,
     OBJECTS,
@@ -22,6 +21,7 @@ from schema.tables import (
     describe,
     file_schema,
 )
+from schema.version import SCHEMA_VERSION
 
 __all__ = [
     "SCHEMA_VERSION",

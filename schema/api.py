@@ -25,19 +25,21 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
+from schema.vocabulary import PolicyName, StatusName
+
 MAX_BATCH = 1000
 """Most items in one batch request; more is a 422."""
 
 ROTATION_TOLERANCE = 1e-3
 """Largest |R^T R - I| entry and |det R - 1| accepted for the rotation of an observed pose."""
 
-Policy = Literal["value_iteration", "greedy", "max_height"]
-"""Policies whose choice per pose is stored (thesis 4.3); the same names as ``schema.POLICIES``."""
+Policy = PolicyName
+"""Policies whose choice per pose is stored (thesis 4.3), ``schema.vocabulary.POLICIES``."""
 
 RankBy = Literal["q", "greedy", "p_topple"]
 
-Status = Literal["ok", "too_low", "pushes_up", "finger_collision"]
-"""``ok``, or why a candidate push cannot be executed (``pipeline.results.STATUS_NAMES``)."""
+Status = StatusName
+"""``ok``, or why a candidate push cannot be executed (``schema.vocabulary.STATUS_NAMES``)."""
 
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Vector2 = Annotated[list[float], Field(min_length=2, max_length=2)]

@@ -26,9 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-OUTCOME_NO_EDGE = -1
-OUTCOME_NOT_EVALUATED = -2
-
 
 @dataclass(frozen=True)
 class ArraySpec:

@@ -24,14 +24,11 @@ from __future__ import annotations
 
 import pyarrow as pa
 
+from schema.vocabulary import NO_OP, POLICIES
+
 PARTITION_KEY = "object_id"
 """Column by which ``actions`` and ``transitions`` are partitioned."""
 
-POLICIES = ("max_height", "greedy", "value_iteration")
-"""Policies whose choice per pose is stored (thesis 4.3): ``<name>_action``, ``<name>_value``."""
-
-NO_OP = -1
-"""Action id meaning "do not push" in the policy columns (as ``pipeline.results.NO_OP``)."""
 
 
 def column(name: str, type_: pa.DataType, description: str, unit: str | None = None, nullable: bool = False) -> pa.Field:

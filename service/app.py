@@ -6,8 +6,8 @@ from pathlib import Path
 
 from fastapi import FastAPI
 
-from pipeline import __version__
 from schema.api import Counts, Health
+from schema.version import CODE_VERSION
 
 from . import errors
 from .dependencies import StoreDep
@@ -32,7 +32,7 @@ def create_app(dataset_dir: str | Path) -> FastAPI:
     this schema version.
     """
     store = Store.load(dataset_dir)
-    app = FastAPI(title="toppledb", version=__version__, description=DESCRIPTION)
+    app = FastAPI(title="toppledb", version=CODE_VERSION, description=DESCRIPTION)
     app.state.store = store
     errors.install(app)
     app.include_router(objects.router)

@@ -20,7 +20,6 @@ Imports numpy and pyarrow only: never the geometry stack.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -30,15 +29,14 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 
-from pipeline.results import STATUS_NAMES, STATUS_OK
-from schema import POLICIES, SCHEMA_VERSION, layout
+from schema.manifest import Manifest
+from schema.reader import Dataset, DatasetUnreadable
+from schema.vocabulary import POLICIES, STATUS_NAMES, STATUS_OK
 
 from .errors import NotFound
 
 STATUS_CODES = pa.array(STATUS_NAMES)
-NO_OP = -1
 
 
 class DatasetError(RuntimeError):
@@ -72,7 +70,7 @@ class ObjectData:
       policy_action, policy_value: per policy name, (P,) int32 (-1 no push) and float64
     Actions (N = sum of n_actions), from actions/object_id=<id>/:
       action_offsets (P + 1,) int64
-      status (N,) int8, index into pipeline.results.STATUS_NAMES
+      status (N,) int8, index into schema.vocabulary.STATUS_NAMES
       points, normals, directions (N, 3) float32, pose frame (m; unit; unit)
       is_max_height (N,) bool
       p_topple, mean_force (N,) float32 (N for the force), NaN unless ok / when none
@@ -159,21 +157,21 @@ class ObjectData:
 class Store:
     """The loaded dataset: objects by id, the manifest parameters the service needs."""
 
-    def __init__(self, root: Path, manifest: dict, objects: dict[str, ObjectData], load_seconds: float):
+    def __init__(self, root: Path, manifest: Manifest, objects: dict[str, ObjectData], load_seconds: float):
         self.root = root
         self.manifest = manifest
         self.objects = objects
         self.load_seconds = load_seconds
-        parameters = manifest["parameters"]
-        self.schema_version: str = manifest["schema_version"]
-        self.tolerance = float(parameters["poses"]["same_pose_angle"])
+        parameters = manifest.parameters
+        self.schema_version: str = manifest.schema_version
+        self.tolerance = parameters.poses.same_pose_angle
         """rad, largest angle between down vectors of one stable pose (pose matching)."""
-        self.approach_offset = float(parameters["contacts"]["approach_offset"])
+        self.approach_offset = parameters.contacts.approach_offset
         """m, the finger starts this far outside the contact along the normal."""
-        self.push_depth = float(parameters["contacts"]["push_depth"])
+        self.push_depth = parameters.contacts.push_depth
         """m, the finger ends this far inside the contact along the normal."""
-        self.gamma = float(parameters["mdp"]["gamma"])
-        self.failures = {f["object_id"]: f.get("reason", "") for f in manifest.get("failures", [])}
+        self.gamma = parameters.mdp.gamma
+        self.failures = {f.object_id: f.reason for f in manifest.failures}
         self.counts = {
             "objects": len(objects),
             "poses": sum(o.n_poses for o in objects.values()),
@@ -198,9 +196,13 @@ class Store:
         """Read a finished dataset directory; DatasetError if it is not one this service reads."""
         started = time.perf_counter()
         root = Path(root)
-        manifest = read_manifest(root)
-        objects_table = _read(root / layout.OBJECTS_FILE)
-        poses_table = _read(root / layout.POSES_FILE)
+        try:
+            dataset = Dataset.open(root)
+            objects_table = dataset.table("objects")
+            poses_table = dataset.table("poses")
+        except DatasetUnreadable as err:
+            raise DatasetError(str(err)) from None
+        manifest = dataset.manifest
         pose_rows = _group_rows(poses_table.column("object_id").to_pylist())
         ids = objects_table.column("object_id").to_pylist()
         objects_rows = objects_table.to_pylist()
@@ -208,50 +210,16 @@ class Store:
         # two take 25% off the load time, more only fragment memory (+100 MB RSS at 8).
         with ThreadPoolExecutor(threads or min(2, os.cpu_count() or 1)) as pool:
             loaded = list(
-                pool.map(lambda i: _load_object(root, objects_rows[i], poses_table, pose_rows.get(ids[i], [])), range(len(ids)))
+                pool.map(lambda i: _load_object(dataset, objects_rows[i], poses_table, pose_rows.get(ids[i], [])), range(len(ids)))
             )
         store = cls(root, manifest, {o.object_id: o for o in loaded}, time.perf_counter() - started)
-        expected = {k: manifest.get("counts", {}).get(k) for k in store.counts}
+        expected = {k: getattr(manifest.counts, k) for k in store.counts}
         if expected != store.counts:
             raise DatasetError(
                 f"{root}: the tables hold {store.counts} but manifest.json says {expected}; "
-                f"check it with `python -m pipeline verify {root}`"
+                f"check it with `toppledb verify {root}`"
             )
         return store
-
-
-def read_manifest(root: Path) -> dict:
-    """manifest.json, checked for a schema version this service reads."""
-    path = root / layout.MANIFEST
-    if not root.is_dir():
-        raise DatasetError(f"{root}: no such dataset directory")
-    if not path.exists():
-        raise DatasetError(f"{root}: no {layout.MANIFEST}: not a dataset, or its build has not finished")
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise DatasetError(f"{path}: unreadable: {err}") from None
-    version = manifest.get("schema_version") if isinstance(manifest, dict) else None
-    if version != SCHEMA_VERSION:
-        raise DatasetError(
-            f"{root}: dataset schema version {version!r}, this service reads {SCHEMA_VERSION!r}; "
-            "rebuild the dataset with this code (make dataset) or serve it with the code that wrote it"
-        )
-    try:
-        for section, key in (("poses", "same_pose_angle"), ("contacts", "approach_offset"), ("contacts", "push_depth"), ("mdp", "gamma")):
-            float(manifest["parameters"][section][key])
-    except (KeyError, TypeError, ValueError):
-        raise DatasetError(f"{path}: parameters.{section}.{key} missing or not a number") from None
-    return manifest
-
-
-def _read(path: Path, columns: list[str] | None = None) -> pa.Table:
-    try:
-        return pq.read_table(path, columns=columns)
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: missing") from None
-    except (OSError, pa.ArrowException) as err:
-        raise DatasetError(f"{path}: unreadable: {err}") from None
 
 
 def _group_rows(ids: list[str]) -> dict[str, list[int]]:
@@ -277,7 +245,7 @@ ACTION_COLUMNS = [
 ]
 
 
-def _load_object(root: Path, row: dict, poses_table: pa.Table, pose_indices: list[int]) -> ObjectData:
+def _load_object(dataset: Dataset, row: dict, poses_table: pa.Table, pose_indices: list[int]) -> ObjectData:
     object_id = row["object_id"]
     poses = poses_table.take(pa.array(pose_indices, pa.int64())).sort_by("pose")
     n_poses = int(row["n_poses"])
@@ -286,7 +254,11 @@ def _load_object(root: Path, row: dict, poses_table: pa.Table, pose_indices: lis
     n_actions = poses.column("n_actions").to_numpy().astype(np.int32)
     offsets = np.concatenate([[0], np.cumsum(n_actions, dtype=np.int64)])
 
-    actions = _read(root / layout.partition_file("actions", object_id), ACTION_COLUMNS)
+    try:
+        actions = dataset.object_rows("actions", object_id, ACTION_COLUMNS)
+        transitions = dataset.object_rows("transitions", object_id, ["pose", "action", "next_pose", "probability"])
+    except DatasetUnreadable as err:
+        raise DatasetError(str(err)) from None
     keys = _sorted_keys(actions, ["pose", "action"])
     actions = actions.take(keys)
     pose_of = actions.column("pose").to_numpy()
@@ -297,7 +269,6 @@ def _load_object(root: Path, row: dict, poses_table: pa.Table, pose_indices: lis
     if status.null_count:
         raise DatasetError(f"{object_id}: unknown action status; known: {', '.join(STATUS_NAMES)}")
 
-    transitions = _read(root / layout.partition_file("transitions", object_id), ["pose", "action", "next_pose", "probability"])
     transitions = transitions.take(_sorted_keys(transitions, ["pose", "action", "next_pose"]))
     t_pose = transitions.column("pose").to_numpy().astype(np.int64)
     t_action = transitions.column("action").to_numpy().astype(np.int64)

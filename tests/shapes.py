@@ -6,7 +6,7 @@ import numpy as np
 import pybullet_data
 import trimesh
 
-from pipeline.mesh import load_mesh, model_from_mesh
+from pipeline.model.mesh import load_mesh, model_from_mesh
 
 DATA = pybullet_data.getDataPath()
 
@@ -49,7 +49,7 @@ def pose_with_down(pose_set, down, atol=1e-6):
 
 def standing_box():
     """(object, pose set, index of its pose standing on end) for the 0.05 x 0.08 x 0.15 m box."""
-    from pipeline.poses import stable_poses
+    from pipeline.model.poses import stable_poses
 
     obj = box_object((0.05, 0.08, 0.15))
     pose_set = stable_poses(obj)

@@ -9,7 +9,7 @@ import sys
 
 def test_bench_smoke_prints_json_with_the_agreed_keys():
     run = subprocess.run(
-        [sys.executable, "-m", "pipeline.bench", "--objects", "1", "--reference-trials", "10"],
+        [sys.executable, "-m", "pipeline.studies.bench", "--objects", "1", "--reference-trials", "10"],
         capture_output=True, text=True, timeout=300, check=True,
     )
     result = json.loads(run.stdout.strip().splitlines()[-1])

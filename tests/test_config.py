@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from pipeline.config import Config
+from pipeline.model.config import Config
 
 
 def test_defaults_are_the_thesis_values():

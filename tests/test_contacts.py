@@ -3,13 +3,19 @@
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
-
-from pipeline.config import ContactConfig
-from pipeline.contacts import collision_object, pose_actions, surface_points
-from pipeline.mesh import model_from_mesh
-from pipeline.poses import stable_poses
-from pipeline.results import STATUS_FINGER_COLLISION, STATUS_OK, STATUS_PUSHES_UP, STATUS_TOO_LOW
 from shapes import box_object, pose_with_down, random_object
+
+from pipeline.model.collision import collision_object
+from pipeline.model.config import ContactConfig
+from pipeline.model.contacts import pose_actions, surface_points
+from pipeline.model.mesh import model_from_mesh
+from pipeline.model.poses import stable_poses
+from schema.vocabulary import (
+    STATUS_FINGER_COLLISION,
+    STATUS_OK,
+    STATUS_PUSHES_UP,
+    STATUS_TOO_LOW,
+)
 
 
 def test_exactly_n_points_on_the_surface_evenly_spread():

@@ -11,20 +11,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.corpus import (
-    DEFAULT_COUNT,
+from pipeline.build.atomic import file_sha256
+from pipeline.build.corpus import (
     DEFAULT_LIST,
     CorpusError,
     candidate_specs,
-    file_sha256,
     load_corpus,
     pybullet_data_dir,
     read_list,
-    regenerate_default,
     scan_directory,
     urdf_mesh,
 )
-from pipeline.config import Config
+from pipeline.build.selection import DEFAULT_COUNT, regenerate_default
+from pipeline.model.config import Config
 from schema.layout import check_object_id
 
 CUBE_OBJ = """\
@@ -169,7 +168,7 @@ def test_unknown_corpus_argument():
 
 
 def test_regenerate_applies_the_selection_rule_in_candidate_order(tmp_path, monkeypatch):
-    """The rule itself (pipeline.mdp.is_selected) and V_s are the compute side's; here a
+    """The rule itself (pipeline.model.mdp.is_selected) and V_s are the compute side's; here a
     stand-in select_info shows that the list keeps the first selected candidates, in
     candidate order, and that failures are counted, not fatal."""
     selected = {"duck", "random_001", "random_003", "random_004"}
@@ -181,9 +180,9 @@ def test_regenerate_applies_the_selection_rule_in_candidate_order(tmp_path, monk
             return np.array([0.9, 0.1]), np.array([0.05, 0.02])
         return np.array([0.1, 0.1]), np.array([0.05, 0.02])
 
-    fake = types.ModuleType("pipeline.objects")
+    fake = types.ModuleType("pipeline.model.evaluation")
     fake.select_info = select_info
-    monkeypatch.setitem(sys.modules, "pipeline.objects", fake)
+    monkeypatch.setitem(sys.modules, "pipeline.model.evaluation", fake)
 
     out = tmp_path / "corpus.csv"
     counts = regenerate_default(Config(), out, count=3, limit=10, workers=1, progress=False)

@@ -26,14 +26,14 @@ import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline import shards
+from pipeline.build import rows, shards
+from pipeline.build.corpus import read_list
+from pipeline.build.dataset import compute_shard
+from pipeline.build.verify import verify_dataset
 from pipeline.cli import main
-from pipeline.config import Config
-from pipeline.corpus import read_list
-from pipeline.dataset import compute_shard
-from pipeline.manifest import read_manifest
-from pipeline.verify import verify_dataset
+from pipeline.model.config import Config
 from schema import TABLES, layout
+from schema.manifest import read_manifest
 
 OBJECTS = ["random_000", "random_002", "random_001"]
 """Small meshes from pybullet_data, listed by path as a user's list file would."""
@@ -92,8 +92,8 @@ def assert_same_dataset(a: Path, b: Path) -> None:
     for key in arrays_a:
         np.testing.assert_array_equal(arrays_a[key], arrays_b[key], err_msg=key)
     manifest_a, manifest_b = read_manifest(a), read_manifest(b)
-    assert manifest_a["counts"] == manifest_b["counts"]
-    assert manifest_a["tables"] == manifest_b["tables"], "consolidated tables are byte-identical"
+    assert manifest_a.counts == manifest_b.counts
+    assert manifest_a.tables == manifest_b.tables, "consolidated tables are byte-identical"
 
 
 @pytest.fixture(scope="module")
@@ -111,18 +111,18 @@ def reference(corpus, tmp_path_factory) -> Path:
 
 def test_dataset_builds_with_manifest_and_verifies(reference, capsys):
     manifest = read_manifest(reference)
-    counts = manifest["counts"]
-    assert counts["objects"] == 3 and counts["failed"] == 0 and manifest["failures"] == []
-    assert counts["poses"] >= 3
-    assert counts["poses"] * 30 <= counts["actions"] <= counts["poses"] * 31, "30 pushes + Max-Height per pose"
-    assert manifest["parameters"]["contacts"]["n_contacts"] == 30
-    assert manifest["parameters"]["topple"]["n_trials"] == 5
-    assert manifest["seed"] == 0 and manifest["schema_version"]
-    assert manifest["code_version"]["package"]
-    assert [o["object_id"] for o in manifest["corpus"]["objects"]] == OBJECTS
-    assert all(len(o["sha256"]) == 64 for o in manifest["corpus"]["objects"])
-    assert set(manifest["shards"]) == set(OBJECTS)
-    assert {"topple", "suction", "write"} <= set(manifest["timings"]["cpu_s_by_stage"])
+    counts = manifest.counts
+    assert counts.objects == 3 and counts.failed == 0 and manifest.failures == []
+    assert counts.poses >= 3
+    assert counts.poses * 30 <= counts.actions <= counts.poses * 31, "30 pushes + Max-Height per pose"
+    assert manifest.parameters.contacts.n_contacts == 30
+    assert manifest.parameters.topple.n_trials == 5
+    assert manifest.seed == 0 and manifest.schema_version
+    assert manifest.code_version.package
+    assert [o.object_id for o in manifest.corpus.objects] == OBJECTS
+    assert all(len(o.sha256) == 64 for o in manifest.corpus.objects)
+    assert set(manifest.shards) == set(OBJECTS)
+    assert {"topple", "suction", "write"} <= set(manifest.timings.cpu_s_by_stage)
 
     for name, table in read_tables(reference).items():
         assert table.schema.equals(_with_partition_key_last(TABLES[name], name), check_metadata=False), name
@@ -146,13 +146,13 @@ def test_rerun_reuses_every_shard(reference, corpus, tmp_path):
     shutil.copytree(reference, copy)
     before = {p: p.stat().st_mtime_ns for p in copy.rglob("complete.json")}
     assert build(corpus, copy, "--workers", "2") == 0
-    assert read_manifest(copy)["run"]["computed"] == 0
+    assert read_manifest(copy).run["computed"] == 0
     assert {p: p.stat().st_mtime_ns for p in copy.rglob("complete.json")} == before
     assert_same_dataset(reference, copy)
 
 
 def test_analysts_read_the_tables_and_counts_match_the_manifest(reference):
-    counts = read_manifest(reference)["counts"]
+    counts = read_manifest(reference).counts.model_dump()
     actions = ds.dataset(reference / "actions", format="parquet", partitioning="hive")
     transitions = ds.dataset(reference / "transitions", format="parquet", partitioning="hive")
     assert actions.count_rows() == counts["actions"]
@@ -220,7 +220,7 @@ def test_dask_backend_gives_the_same_dataset_as_loky(reference, corpus, tmp_path
 
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
         assert build(corpus, tmp_path / "dask", "--scheduler", cluster.scheduler_address) == 0
-    assert read_manifest(tmp_path / "dask")["run"]["backend"] == "dask"
+    assert read_manifest(tmp_path / "dask").run["backend"] == "dask"
     assert_same_dataset(reference, tmp_path / "dask")
 
 
@@ -230,7 +230,7 @@ def test_sigkill_part_way_then_resume_gives_the_same_dataset(reference, corpus, 
     # One in-process worker whose objects after the first pause before computing (same
     # results): an object takes ~50 ms, too short a window to kill in on a busy machine.
     slowed = (
-        "import sys, time, pipeline.objects as objects\n"
+        "import sys, time, pipeline.model.evaluation as objects\n"
         "compute, seen = objects.process_object, []\n"
         "def process_object(spec, config):\n"
         "    seen.append(spec.object_id)\n"
@@ -262,8 +262,8 @@ def test_sigkill_part_way_then_resume_gives_the_same_dataset(reference, corpus, 
     assert resumed.returncode == 0, resumed.stderr
     assert f"resuming: {len(finished)} of {len(OBJECTS)}" in resumed.stderr
     manifest = read_manifest(out)
-    assert manifest["run"]["reused"] == len(finished)
-    assert manifest["run"]["computed"] == len(OBJECTS) - len(finished)
+    assert manifest.run["reused"] == len(finished)
+    assert manifest.run["computed"] == len(OBJECTS) - len(finished)
     for object_id, mtime in finished.items():
         assert (records / object_id / "complete.json").stat().st_mtime_ns == mtime, f"{object_id} was recomputed"
     assert not list(out.rglob("*.tmp"))
@@ -275,7 +275,7 @@ def test_interrupted_shard_write_leaves_an_incomplete_shard(tmp_path, monkeypatc
     spec = read_list(corpus, default_mass=0.25).specs[0]
     config = Config().with_overrides({"contacts.n_contacts": 10, "topple.n_trials": 2, "suction.n_candidates": 5})
     shard = compute_shard(spec, config)
-    assert isinstance(shard, shards.ShardData), shard
+    assert isinstance(shard, rows.ShardData), shard
     inputs = shards.shard_inputs(spec, config)
     key = shards.fingerprint(inputs)
 
@@ -307,13 +307,13 @@ def test_broken_mesh_is_a_failure_and_strict_makes_it_fatal(tmp_path, capsys):
     out = tmp_path / "dataset"
     assert build(corpus, out, "--workers", "2") == 0
     manifest = read_manifest(out)
-    assert manifest["counts"]["objects"] == 1 and manifest["counts"]["failed"] == 3
-    failures = {f["object_id"]: f for f in manifest["failures"]}
+    assert manifest.counts.objects == 1 and manifest.counts.failed == 3
+    failures = {f.object_id: f for f in manifest.failures}
     assert set(failures) == {"flat", "garbage", "gone"}
-    assert failures["gone"]["kind"] == "corpus" and "not found" in failures["gone"]["reason"]
+    assert failures["gone"].kind == "corpus" and "not found" in failures["gone"].reason
     for object_id in ("flat", "garbage"):
-        assert failures[object_id]["kind"] == "mesh", failures[object_id]
-        assert failures[object_id]["reason"].startswith(f"{object_id}: ")
+        assert failures[object_id].kind == "mesh", failures[object_id]
+        assert failures[object_id].reason.startswith(f"{object_id}: ")
     summary = capsys.readouterr().out
     assert "failed    flat:" in summary
     assert verify_dataset(out) == []
@@ -337,7 +337,7 @@ def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_
 
     assert build(corpus, copy, "--limit", "1", "--force", "--workers", "1") == 0
     manifest = read_manifest(copy)
-    assert manifest["counts"]["objects"] == 1 and manifest["run"]["computed"] == 1
+    assert manifest.counts.objects == 1 and manifest.run["computed"] == 1
     assert sorted(p.name for p in (copy / "actions").iterdir()) == [f"object_id={OBJECTS[0]}"]
     assert verify_dataset(copy) == []
     assert json.loads((copy / "manifest.json").read_text())["corpus"]["objects"][0]["object_id"] == OBJECTS[0]

@@ -3,12 +3,11 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
-from pipeline.config import MDPConfig
-from pipeline.mdp import (
+from pipeline.model.config import MDPConfig
+from pipeline.model.mdp import (
     greedy_policy,
     greedy_values,
     is_selected,
@@ -17,7 +16,7 @@ from pipeline.mdp import (
     value_iteration,
     value_iteration_policy,
 )
-from pipeline.results import NO_OP
+from schema.vocabulary import NO_OP
 
 GAMMA = 0.95
 NAN_ROW = [np.nan] * 3

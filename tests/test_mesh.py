@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 import trimesh
-
-from pipeline.config import MeshConfig
-from pipeline.mesh import MeshError, load_mesh, model_from_mesh
 from shapes import DATA
+
+from pipeline.model.config import MeshConfig
+from pipeline.model.mesh import MeshError, load_mesh, model_from_mesh
 
 
 def test_loads_corpus_mesh_in_metres_with_mass():

@@ -1,13 +1,18 @@
-"""Physics validation (pipeline.physics): pybullet pushes against the toppling model."""
+"""Physics validation (pipeline.studies.validation): pybullet pushes against the toppling model."""
 
 import numpy as np
 import pytest
+from shapes import box_object, pose_with_down, standing_box
 
 from pipeline.api import evaluate
-from pipeline.config import VARIANTS, Config
-from pipeline.physics import average_precision, empirical_distribution, simulate_push, total_variation, validate
-from pipeline.poses import stable_poses
-from shapes import box_object, pose_with_down, standing_box
+from pipeline.model.config import VARIANTS, Config
+from pipeline.studies.validation import (
+    average_precision,
+    empirical_distribution,
+    simulate_push,
+    total_variation,
+    validate,
+)
 
 MU_TABLE = Config().topple.mu_table_mean
 
@@ -76,7 +81,7 @@ def test_tiny_validate_gives_metrics_in_unit_interval():
 def test_main_prints_the_table_and_a_json_last_line(capsys):
     import json
 
-    from pipeline.physics import main
+    from pipeline.studies.validation import main
 
     assert main(["--objects", "1", "--actions", "1", "--repeats", "1", "--contacts", "40", "--trials", "5", "--max-poses", "2"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()

@@ -4,9 +4,11 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from handmade import write_minimal_manifest
 
 from pipeline.cli import main
-from pipeline.policy_experiment import experiment
+from pipeline.studies.policy_experiment import experiment
+from schema.reader import Dataset
 
 
 def _write(root, p_success):
@@ -31,7 +33,7 @@ def _write(root, p_success):
 @pytest.mark.parametrize("steps", [1, 3])
 def test_gains_follow_the_transition_probabilities(tmp_path, steps):
     _write(tmp_path, p_success=0.3)
-    result = experiment(tmp_path, n_trials=20_000, max_steps=steps, seed=1)
+    result = experiment(Dataset(tmp_path, manifest=None), n_trials=20_000, max_steps=steps, seed=1)
     # Half the drops land in pose 0, where toppling is useful.
     assert abs(result["useful_trials"] / 20_000 - 0.5) < 0.02
     policies = result["policies"]
@@ -46,8 +48,11 @@ def test_gains_follow_the_transition_probabilities(tmp_path, steps):
 
 def test_cli_reports_and_refuses_a_missing_dataset(tmp_path, capsys):
     _write(tmp_path, p_success=1.0)
+    assert main(["policies", str(tmp_path)]) == 2, "tables without a manifest are no finished dataset"
+    assert "no manifest.json" in capsys.readouterr().err
+    write_minimal_manifest(tmp_path, {"cup": 2})
     assert main(["policies", str(tmp_path), "--trials", "500", "--plot", str(tmp_path / "p.png")]) == 0
     out = capsys.readouterr().out
     assert "points over Max-Height" in out and (tmp_path / "p.png").is_file()
     assert main(["policies", str(tmp_path / "nowhere")]) == 2
-    assert "no finished dataset" in capsys.readouterr().err
+    assert "no such dataset directory" in capsys.readouterr().err

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 import trimesh
+from shapes import boot_object, box_object, pose_with_down, random_object
 
-from pipeline.config import PoseConfig
-from pipeline.frames import axis_angle_matrices, match_pose, transform_points
-from pipeline.poses import face_solid_angles, settle, stable_poses
-from shapes import box_object, boot_object, pose_with_down, random_object
+from pipeline.model.config import PoseConfig
+from pipeline.model.poses import face_solid_angles, settle, stable_poses
+from schema.frames import axis_angle_matrices, match_pose, transform_points
 
 
 def test_box_has_six_poses_with_face_area_ordering():

@@ -4,16 +4,16 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from pipeline.api import object_contacts
-from pipeline.config import Config
-from pipeline.contacts import collision_object, pose_actions
-from pipeline.poses import stable_poses
-from pipeline.reference import draw_of, reference_trial, scene_from_pose
-from pipeline.results import STATUS_OK
-from pipeline.rng import stream
-from pipeline.topple import evaluate_pose, sample_noise
 from shapes import box_object, random_object
+
+from pipeline.model.collision import collision_object
+from pipeline.model.config import Config
+from pipeline.model.contacts import object_contacts, pose_actions
+from pipeline.model.poses import stable_poses
+from pipeline.model.reference import draw_of, reference_trial, scene_from_pose
+from pipeline.model.rng import stream
+from pipeline.model.topple import evaluate_pose, sample_noise
+from schema.vocabulary import STATUS_OK
 
 CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_001", "robust"),
@@ -64,7 +64,7 @@ def test_reference_required_force_matches_engine_on_box():
     obj = box_object()
     pose_set = stable_poses(obj)
     pose = next(p for p in pose_set.poses if np.allclose(p.down, [0, 0, -1]))
-    from pipeline.api import explicit_actions
+    from pipeline.model.contacts import explicit_actions
 
     actions = explicit_actions(obj, pose.transform, np.array([[0.025, 0.01, 0.1], [0.025, -0.02, 0.13]]), None)
     topple = replace(Config().topple, variant="rotations")

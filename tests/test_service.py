@@ -24,9 +24,9 @@ import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
 
-from pipeline.config import Config
-from pipeline.corpus import read_list
-from pipeline.dataset import build_dataset
+from pipeline.build.corpus import read_list
+from pipeline.build.dataset import build_dataset
+from pipeline.model.config import Config
 from schema import SCHEMA_VERSION
 from service import DatasetError, create_app
 from service.__main__ import DEFAULT_HOST, build_parser, main
@@ -397,10 +397,10 @@ def test_openapi_documents_every_endpoint(client):
 
 def test_a_mismatched_schema_version_is_refused(tmp_path, capsys):
     (tmp_path / "manifest.json").write_text(json.dumps({"schema_version": "0.9"}))
-    with pytest.raises(DatasetError, match=f"schema version '0.9', this service reads '{SCHEMA_VERSION}'"):
+    with pytest.raises(DatasetError, match=f"schema version '0.9', this code reads '{SCHEMA_VERSION}'"):
         create_app(tmp_path)
     (tmp_path / "building").mkdir()
-    with pytest.raises(DatasetError, match="no manifest.json: not a dataset, or its build has not finished"):
+    with pytest.raises(DatasetError, match="no manifest.json in .*: not a dataset, or its build did not finish"):
         create_app(tmp_path / "building")
     assert main(["--dataset", str(tmp_path / "nowhere")]) == 2
     assert capsys.readouterr().err.startswith("error: ")

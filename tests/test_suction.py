@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.config import SuctionConfig
-from pipeline.contacts import collision_object
-from pipeline.suction import (
+from pipeline.model.collision import collision_object
+from pipeline.model.config import SuctionConfig
+from pipeline.model.suction import (
     body_collisions,
     sample_candidates,
     seal_contacts,

@@ -1,14 +1,14 @@
-"""The toppling model: analytic cases and invariants (thesis 4.2, DESIGN.md)."""
+"""The toppling model: analytic cases and invariants (thesis 4.2, docs/MODEL.md 7)."""
 
 import numpy as np
 import pytest
+from shapes import boot_object, pose_with_down, random_object, standing_box
 
 from pipeline.api import evaluate
-from pipeline.config import Config
-from pipeline.frames import transform_points
-from pipeline.poses import stable_poses
-from pipeline.results import NOT_EVALUATED, STATUS_OK
-from shapes import boot_object, box_object, pose_with_down, random_object, standing_box
+from pipeline.model.config import Config
+from pipeline.model.poses import stable_poses
+from schema.frames import transform_points
+from schema.vocabulary import OUTCOME_NOT_EVALUATED, STATUS_OK
 
 MU_TABLE = Config().topple.mu_table_mean
 
@@ -93,7 +93,7 @@ def test_probabilities_sum_to_one_and_statuses_gate_evaluation(random_table):
     assert np.allclose(table.next_pose[ok].sum(axis=1), 1.0)
     assert np.all(table.next_pose[ok] >= 0)
     assert np.all(np.isnan(table.next_pose[~ok])) and np.all(np.isnan(table.p_topple[~ok]))
-    assert np.all(table.outcomes[~ok] == NOT_EVALUATED) and np.all(table.outcomes[ok] >= -1)
+    assert np.all(table.outcomes[~ok] == OUTCOME_NOT_EVALUATED) and np.all(table.outcomes[ok] >= -1)
     assert np.allclose(table.p_topple[ok], 1 - table.next_pose[ok, 4])
     assert table.p_topple[ok].max() > 0, "some push should topple a random object"
     assert table.next_pose.shape == (151, len(pose_set.poses))

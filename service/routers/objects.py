@@ -31,11 +31,11 @@ from schema.api import (
     TransitionResults,
     ValidationErrorBody,
 )
-from schema import POLICIES
+from schema.vocabulary import NO_OP, POLICIES
 
 from ..dependencies import StoreDep
 from ..errors import ServiceError
-from ..store import NO_OP, ObjectData, Store, optional, widen
+from ..store import ObjectData, Store, optional, widen
 
 ERRORS = {404: {"model": ErrorBody, "description": "Unknown object, pose or action"},
           422: {"model": ValidationErrorBody, "description": "Malformed request"}}

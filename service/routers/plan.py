@@ -3,7 +3,7 @@ action, and return the push in world coordinates.
 
 Frames: the observed pose ``O`` (object -> world) equals ``planar @ T_p`` where
 ``T_p`` (object -> pose frame) is stable pose p's transform and ``planar`` (pose ->
-world) a yaw about z plus an x, y translation (``pipeline.frames.match_pose``).  A
+world) a yaw about z plus an x, y translation (``schema.frames.match_pose``).  A
 pose-frame point x is therefore at ``planar @ [x, 1]`` in the world and a
 pose-frame direction d at ``planar[:3, :3] @ d``.
 """
@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 from fastapi import APIRouter
 
-from pipeline.frames import match_pose
 from schema.api import (
     ErrorBody,
     ItemError,
@@ -27,10 +26,12 @@ from schema.api import (
     ValidationErrorBody,
     WorldPush,
 )
+from schema.frames import match_pose
+from schema.vocabulary import NO_OP
 
 from ..dependencies import StoreDep
 from ..errors import NoStablePose, ServiceError
-from ..store import NO_OP, Store, optional, widen
+from ..store import Store, optional, widen
 from .objects import grasp_model, next_poses
 
 router = APIRouter(tags=["plan"])

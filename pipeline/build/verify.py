@@ -1,4 +1,4 @@
-"""Checking a finished dataset against its manifest (``python -m pipeline verify DIR``).
+"""Checking a finished dataset against its manifest (``toppledb verify DIR``).
 
 Every shard: its completion record agrees with the manifest, every file exists
 with the recorded SHA-256, Parquet files have the schema of ``schema.tables`` and
@@ -13,9 +13,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from schema import layout, tables
-from schema.version import SCHEMA_VERSION
+from schema.manifest import ManifestError, Shard, read_manifest
 
-from . import manifest as manifest_io
+from .atomic import file_sha256
 from . import shards
 
 
@@ -25,36 +25,34 @@ def verify_dataset(root: str | Path) -> list[str]:
     if not root.is_dir():
         return [f"{root}: {'not a directory' if root.exists() else 'no such directory'}"]
     try:
-        manifest = manifest_io.read_manifest(root)
-    except (FileNotFoundError, ValueError) as err:
+        manifest = read_manifest(root)
+    except ManifestError as err:
         return [str(err)]
-    if manifest.get("schema_version") != SCHEMA_VERSION:
-        return [f"schema version {manifest.get('schema_version')!r}, this code reads {SCHEMA_VERSION!r}"]
 
     problems = []
-    entries = manifest.get("shards", {})
+    entries = manifest.shards
     for object_id, entry in entries.items():
         problems += _shard_problems(root, object_id, entry)
 
-    counts = manifest.get("counts", {})
+    counts = manifest.counts
     for key in ("poses", "actions", "ok_actions", "transitions"):
-        total = sum(entry["counts"][key] for entry in entries.values())
-        if counts.get(key) != total:
-            problems.append(f"manifest: {key} total {counts.get(key)} but the shards add up to {total}")
-    if counts.get("objects") != len(entries):
-        problems.append(f"manifest: {counts.get('objects')} objects but {len(entries)} shards")
+        total = sum(getattr(entry.counts, key) for entry in entries.values())
+        if getattr(counts, key) != total:
+            problems.append(f"manifest: {key} total {getattr(counts, key)} but the shards add up to {total}")
+    if counts.objects != len(entries):
+        problems.append(f"manifest: {counts.objects} objects but {len(entries)} shards")
 
-    expected_rows = {layout.OBJECTS_FILE: ("objects", len(entries)), layout.POSES_FILE: ("poses", counts.get("poses"))}
+    expected_rows = {layout.OBJECTS_FILE: ("objects", len(entries)), layout.POSES_FILE: ("poses", counts.poses)}
     for name, (table, rows) in expected_rows.items():
-        entry = manifest.get("tables", {}).get(name)
+        entry = manifest.tables.get(name)
         if entry is None:
             problems.append(f"manifest: no entry for {name}")
             continue
-        actual = shards.file_sha256(root / name)
+        actual = file_sha256(root / name)
         if not actual:
             problems.append(f"{name}: missing")
-        elif actual != entry["sha256"]:
-            problems.append(f"{name}: sha256 {actual[:12]}... differs from the manifest's {entry['sha256'][:12]}...")
+        elif actual != entry.sha256:
+            problems.append(f"{name}: sha256 {actual[:12]}... differs from the manifest's {entry.sha256[:12]}...")
         else:
             problems += shards.parquet_problems(root / name, name, tables.TABLES[table], rows)
 
@@ -62,12 +60,12 @@ def verify_dataset(root: str | Path) -> list[str]:
     return problems
 
 
-def _shard_problems(root: Path, object_id: str, entry: dict) -> list[str]:
+def _shard_problems(root: Path, object_id: str, entry: Shard) -> list[str]:
     record = shards.read_record(root, object_id)
     where = layout.completion_record(object_id)
     if record is None:
         return [f"{where}: missing or unreadable: shard {object_id} is incomplete"]
-    if record.get("files") != entry.get("files") or record.get("counts") != entry.get("counts"):
+    if record.get("files") != entry.files or record.get("counts") != entry.counts.model_dump():
         return [f"{where}: differs from the manifest's entry for {object_id}"]
     problems = shards.checksum_problems(root, record)
     if not problems:

@@ -11,15 +11,20 @@ import fcl
 import numpy as np
 import trimesh
 
-from .config import ContactConfig
-from .frames import transform_points, unit, z_to_axes
-from .results import (
+from schema.frames import transform_points, unit
+from schema.vocabulary import (
     STATUS_FINGER_COLLISION,
     STATUS_OK,
     STATUS_PUSHES_UP,
     STATUS_TOO_LOW,
-    Actions,
 )
+
+from .collision import collides_each
+from .config import ContactConfig
+from .mesh import ObjectModel
+from .outcomes import Actions
+from .rng import stream
+from .sampling import area_weighted_faces, points_in_triangles
 
 CONTACT_CLEARANCE = 5e-4
 """m; gap left between the finger tip and the contact so that touching is not a collision."""
@@ -67,13 +72,8 @@ def surface_points(
     returns : points (count, 3) float, m; normals (count, 3) float, unit, outward
     """
     pool = max(count * oversample, count)
-    area = mesh.area_faces
-    faces = rng.choice(len(area), size=pool, p=area / area.sum())
-    uv = rng.random((pool, 2))
-    flip = uv.sum(axis=1) > 1.0
-    uv[flip] = 1.0 - uv[flip]
-    triangles = mesh.triangles[faces]
-    points = triangles[:, 0] + uv[:, :1] * (triangles[:, 1] - triangles[:, 0]) + uv[:, 1:] * (triangles[:, 2] - triangles[:, 0])
+    faces = area_weighted_faces(mesh.area_faces, pool, rng)
+    points = points_in_triangles(mesh.triangles[faces], rng.random((pool, 2)))
     keep = farthest_point_subset(points, count)
     return points[keep], mesh.face_normals[faces[keep]]
 
@@ -124,24 +124,13 @@ def finger_collisions(
     """
     tip, back = capsule_segments(points, directions, config)
     hits = np.minimum(tip[:, 2], back[:, 2]) - config.finger_radius < 0.0  # the table is z < 0
-    centers = transform_points(to_object, 0.5 * (tip + back))
-    axes = directions @ to_object[:3, :3].T
     length = float(np.linalg.norm(tip[0] - back[0])) if len(points) else 0.0
     capsule = fcl.Capsule(config.finger_radius, length)
-    request, rotations = fcl.CollisionRequest(), z_to_axes(axes)
-    for i in np.flatnonzero(~hits):
-        finger = fcl.CollisionObject(capsule, fcl.Transform(rotations[i], centers[i]))
-        hits[i] = fcl.collide(finger, collision_mesh, request, fcl.CollisionResult()) > 0
+    check = np.flatnonzero(~hits)
+    centers = transform_points(to_object, 0.5 * (tip[check] + back[check]))
+    axes = directions[check] @ to_object[:3, :3].T
+    hits[check] = collides_each(capsule, centers, axes, collision_mesh)
     return hits
-
-
-def collision_object(mesh: trimesh.Trimesh) -> fcl.CollisionObject:
-    """An fcl BVH of the mesh in its own frame."""
-    model = fcl.BVHModel()
-    model.beginModel(len(mesh.vertices), len(mesh.faces))
-    model.addSubModel(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int32))
-    model.endModel()
-    return fcl.CollisionObject(model, fcl.Transform())
 
 
 def pose_actions(
@@ -182,3 +171,22 @@ def pose_actions(
     blocked = finger_collisions(collision_mesh, to_object, pose_points[candidates], directions[candidates], config)
     status[candidates[blocked]] = STATUS_FINGER_COLLISION
     return Actions(points=pose_points, normals=pose_normals, directions=directions, status=status, max_height=max_height)
+
+
+def object_contacts(obj: ObjectModel, config: ContactConfig, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The object's candidate contact points and normals (object frame), shared by its poses."""
+    return surface_points(obj.mesh, config.n_contacts, stream(seed, obj.name, -1, "contacts"), config.oversample)
+
+
+def explicit_actions(obj: ObjectModel, transform: np.ndarray, points: np.ndarray, directions: np.ndarray | None) -> Actions:
+    """Actions at caller-chosen contact points (pose frame); all are evaluated (status ``ok``).
+
+    points : (A, 3) float, m, pose frame, on or near the surface (snapped to the closest surface point)
+    directions : (A, 3) float, pose frame, push directions; the inward normal when None
+    """
+    to_object = np.linalg.inv(transform)
+    closest, _, faces = trimesh.proximity.closest_point(obj.mesh, transform_points(to_object, np.atleast_2d(points)))
+    normals = obj.mesh.face_normals[faces] @ transform[:3, :3].T
+    points = transform_points(transform, closest)
+    directions = -normals if directions is None else unit(np.atleast_2d(np.asarray(directions, dtype=float)))
+    return Actions(points, normals, directions, np.full(len(points), STATUS_OK, dtype=np.int8), max_height=-1)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from .frames import axis_angle_matrices
+from schema.frames import axis_angle_matrices
 
 
 def base_polygon(vertices: np.ndarray, tolerance: float) -> np.ndarray:

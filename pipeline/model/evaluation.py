@@ -10,25 +10,28 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass, replace
 from typing import Iterator, Protocol
 
 import numpy as np
 
-from .api import object_contacts
+from schema.frames import transform_points
+from schema.vocabulary import STATUS_NAMES
+
+from .collision import collision_object
 from .config import Config
-from .contacts import collision_object, pose_actions
-from .frames import transform_points
+from .contacts import explicit_actions, object_contacts, pose_actions
 from .mdp import pose_values
 from .mesh import ObjectModel, load_mesh
-from .poses import stable_poses
-from .results import ObjectResult, StablePose, SuctionResult
+from .outcomes import Actions, ObjectResult, StablePose, SuctionResult, ToppleTable
+from .poses import PoseSet, stable_poses
 from .rng import stream
 from .suction import suction_quality
 from .topple import evaluate_pose
 
 
 class Spec(Protocol):
-    """What the job needs to know of a corpus entry (``pipeline.corpus.ObjectSpec``)."""
+    """What the job needs to know of a corpus entry (``pipeline.build.corpus.ObjectSpec``)."""
 
     object_id: str
     path: str
@@ -112,3 +115,58 @@ def select_info(spec: Spec, config: Config) -> tuple[np.ndarray, np.ndarray]:
         np.array([pose_suction(obj, p, config).quality for p in poses]),
         np.array([p.com_height for p in poses]),
     )
+
+
+@dataclass
+class PoseEvaluation:
+    """Candidate pushes of one pose and what the toppling model says of them."""
+
+    pose: int
+    actions: Actions
+    table: ToppleTable
+
+    def transitions(self) -> list[tuple[int, int, float]]:
+        """Long form (action, next_pose, probability) over ``ok`` actions, nonzero probabilities only."""
+        rows, cols = np.nonzero(np.nan_to_num(self.table.next_pose) > 0)
+        return [(int(a), int(x), float(self.table.next_pose[a, x])) for a, x in zip(rows, cols)]
+
+    def status_names(self) -> list[str]:
+        return [STATUS_NAMES[s] for s in self.actions.status]
+
+
+def evaluate(
+    obj: ObjectModel,
+    poses: PoseSet,
+    pose: int,
+    *,
+    points: np.ndarray | None = None,
+    directions: np.ndarray | None = None,
+    n_contacts: int | None = None,
+    n_trials: int | None = None,
+    variant: str | None = None,
+    seed: int = 0,
+    config: Config = Config(),
+) -> PoseEvaluation:
+    """Evaluate the toppling model on one stable pose.
+
+    points, directions : optional explicit pushes, (A, 3) pose frame; otherwise the
+      pose's ``n_contacts`` candidates plus the Max-Height action
+    n_contacts, n_trials, variant : override ``config.contacts`` / ``config.topple``
+    seed : root of the random streams (same seed, same result)
+    """
+    contact_config = config.contacts if n_contacts is None else replace(config.contacts, n_contacts=n_contacts)
+    topple_config = config.topple
+    if n_trials is not None or variant is not None:
+        topple_config = replace(
+            topple_config,
+            n_trials=topple_config.n_trials if n_trials is None else n_trials,
+            variant=topple_config.variant if variant is None else variant,
+        )
+    stable = poses.poses[pose]
+    if points is not None:
+        actions = explicit_actions(obj, stable.transform, points, directions)
+    else:
+        contacts, normals = object_contacts(obj, contact_config, seed)
+        actions = pose_actions(contacts, normals, obj.mesh, collision_object(obj.mesh), stable.transform, contact_config)
+    table = evaluate_pose(obj, stable, len(poses.poses), actions, topple_config, stream(seed, obj.name, pose, "trials"))
+    return PoseEvaluation(pose=pose, actions=actions, table=table)

@@ -22,16 +22,17 @@ from types import SimpleNamespace  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from .api import object_contacts  # noqa: E402
-from .config import Config  # noqa: E402
-from .contacts import collision_object, pose_actions  # noqa: E402
-from .mdp import pose_values  # noqa: E402
-from .objects import load_object, pose_suction  # noqa: E402
-from .poses import stable_poses  # noqa: E402
-from .reference import draw_of, reference_trial, scene_from_pose  # noqa: E402
-from .results import STATUS_OK  # noqa: E402
-from .rng import stream  # noqa: E402
-from .topple import evaluate_pose, sample_noise  # noqa: E402
+from schema.vocabulary import STATUS_OK  # noqa: E402
+
+from ..model.collision import collision_object  # noqa: E402
+from ..model.config import Config  # noqa: E402
+from ..model.contacts import object_contacts, pose_actions  # noqa: E402
+from ..model.evaluation import load_object, pose_suction  # noqa: E402
+from ..model.mdp import pose_values  # noqa: E402
+from ..model.poses import stable_poses  # noqa: E402
+from ..model.reference import draw_of, reference_trial, scene_from_pose  # noqa: E402
+from ..model.rng import stream  # noqa: E402
+from ..model.topple import evaluate_pose, sample_noise  # noqa: E402
 
 THESIS_SECONDS_PER_POSE = 40.47
 
@@ -128,7 +129,7 @@ def run(n_objects: int, reference_trials: int, config: Config) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m pipeline.bench", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="toppledb bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--objects", type=int, default=20, help="random corpus objects to time (default 20)")
     parser.add_argument("--reference-trials", type=int, default=400, help="trials re-run by the scalar reference")
     args = parser.parse_args(argv)

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import json
 import os
 import platform
 import subprocess
@@ -25,11 +24,13 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from schema import layout, tables
-from schema.version import SCHEMA_VERSION
+from schema.manifest import Manifest
+from schema.version import CODE_VERSION, SCHEMA_VERSION
 
-from .config import Config
+from ..model.config import Config
 from .corpus import Corpus
-from .shards import PARQUET_COMPRESSION, write_atomic
+from .atomic import write_atomic, write_text_atomic
+from .shards import PARQUET_COMPRESSION
 
 LIBRARIES = ("numpy", "scipy", "trimesh", "embreex", "python-fcl", "pyarrow", "h5py", "joblib", "pybullet")
 
@@ -46,7 +47,7 @@ def code_version() -> dict[str, Any]:
             return None
 
     return {
-        "package": version("toppledb"),
+        "package": CODE_VERSION,
         "git_commit": _git_commit(),
         "python": platform.python_version(),
         "libraries": {name: version(name) for name in LIBRARIES},
@@ -92,7 +93,7 @@ def make_manifest(
     consolidated: dict[str, dict],
     failures: list[dict],
     run: dict[str, Any],
-) -> dict[str, Any]:
+) -> Manifest:
     """The manifest of a finished build.
 
     records : object id -> completion record of every shard in the dataset
@@ -107,7 +108,7 @@ def make_manifest(
     for object_id in order:
         for stage, seconds in records[object_id].get("timings", {}).items():
             cpu_by_stage[stage] = cpu_by_stage.get(stage, 0.0) + seconds
-    return {
+    return Manifest.model_validate({
         "schema_version": SCHEMA_VERSION,
         "code_version": code_version(),
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
@@ -134,23 +135,11 @@ def make_manifest(
             "cpu_s_total": round(sum(cpu_by_stage.values()), 3),
         },
         "run": run,
-    }
+    })
 
 
-def write_manifest(root: str | Path, manifest: dict[str, Any]) -> None:
-    text = json.dumps(manifest, indent=1)
-    write_atomic(Path(root) / layout.MANIFEST, lambda path: Path(path).write_text(text))
-
-
-def read_manifest(root: str | Path) -> dict[str, Any]:
-    """The manifest; raises FileNotFoundError or ValueError (one line) when unusable."""
-    path = Path(root) / layout.MANIFEST
-    if not path.is_file():
-        raise FileNotFoundError(f"no {layout.MANIFEST} in {root}: not a dataset, or its build did not finish")
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from None
+def write_manifest(root: str | Path, manifest: Manifest) -> None:
+    write_text_atomic(Path(root) / layout.MANIFEST, manifest.to_json())
 
 
 def remove_manifest(root: str | Path) -> None:

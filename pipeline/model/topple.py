@@ -10,11 +10,11 @@ One trial of one action asks, for every base edge of the pose:
    stay inside the friction limit surface ellipse of the edge contact?
 
 The object topples over the passing edge with the least F*, or stays.  Where it
-ends up is a property of (pose, edge) computed once (``pipeline.poses``).
+ends up is a property of (pose, edge) computed once (``pipeline.model.poses``).
 
 Noise (4.2.5) perturbs friction, the contact point, the push direction and the
 object's orientation; the perturbed contact is found again on the mesh by casting
-the finger's ray (embree through trimesh).  ``pipeline.reference`` computes the
+the finger's ray (embree through trimesh).  ``pipeline.model.reference`` computes the
 same trial one scalar at a time; the tests hold this module to it trial by trial.
 """
 
@@ -24,11 +24,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from schema.frames import axis_angle_matrices, transform_points, unit
+from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
+
 from .config import ToppleConfig
 from .edges import EdgeGeometry, edge_geometry
-from .frames import axis_angle_matrices, transform_points, unit
 from .mesh import ObjectModel
-from .results import NO_EDGE, NOT_EVALUATED, STATUS_OK, Actions, StablePose, ToppleTable
+from .outcomes import Actions, StablePose, ToppleTable
 
 
 @dataclass
@@ -144,7 +146,7 @@ def trial_outcomes(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Edge each trial topples over, and the force it takes.
 
-    returns : edge (n,) int (``NO_EDGE`` when none), required_force (n,) float, N (inf when none)
+    returns : edge (n,) int (``OUTCOME_NO_EDGE`` when none), required_force (n,) float, N (inf when none)
     """
     n = trials.contact.shape[0]
     u, normal, contact = trials.push, trials.normal, np.nan_to_num(trials.contact)
@@ -181,7 +183,7 @@ def trial_outcomes(
     candidate = np.where(passes, force, np.inf)
     edge = np.argmin(candidate, axis=1)
     required = candidate[np.arange(n), edge]
-    return np.where(np.isfinite(required), edge, NO_EDGE), required
+    return np.where(np.isfinite(required), edge, OUTCOME_NO_EDGE), required
 
 
 def _inside_cone(cos: np.ndarray, mu: np.ndarray) -> np.ndarray:
@@ -207,9 +209,9 @@ def evaluate_pose(
     noise = sample_noise(rng, n_actions, config)
     center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
     edges = edge_geometry(pose.base_edges, center_mass)
-    final_pose = np.append(pose.edge_final_pose, pose.index)  # index -1 (NO_EDGE): stays
+    final_pose = np.append(pose.edge_final_pose, pose.index)  # index -1 (OUTCOME_NO_EDGE): stays
 
-    outcomes = np.full((n_actions, trials), NOT_EVALUATED, dtype=np.int16)
+    outcomes = np.full((n_actions, trials), OUTCOME_NOT_EVALUATED, dtype=np.int16)
     forces = np.full((n_actions, trials), np.inf)
     ok = np.flatnonzero(actions.status == STATUS_OK)
     for chunk in np.array_split(ok, max(1, int(np.ceil(len(ok) / config.chunk_actions)))):

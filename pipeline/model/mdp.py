@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from schema.vocabulary import NO_OP
+
 from .config import MDPConfig
-from .results import NO_OP, PolicyChoice, PoseValues
+from .outcomes import PolicyChoice, PoseValues
 
 IMPROVEMENT = 1e-12
 """An action must beat the no-op by more than this to be chosen: rows summing to 1

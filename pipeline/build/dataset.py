@@ -25,11 +25,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from schema import layout, tables
+from schema.manifest import Manifest
 
-from . import fanout, manifest, shards
-from .config import Config
+from . import fanout, manifest, rows, shards
+from ..model.config import Config
 from .corpus import Corpus, ObjectSpec
-from .results import ObjectResult
+from ..model.outcomes import ObjectResult
 
 Process = Callable[[ObjectSpec, Config], ObjectResult]
 
@@ -50,19 +51,19 @@ class Failure:
     """Last lines of the traceback for unexpected errors, to find the bug."""
 
 
-def compute_shard(spec: ObjectSpec, config: Config, process: Process | None = None) -> shards.ShardData | Failure:
+def compute_shard(spec: ObjectSpec, config: Config, process: Process | None = None) -> rows.ShardData | Failure:
     """Evaluate one object and build its shard's tables; runs in a worker.
 
     Never raises for a problem of this object: a rejected mesh or any other
     exception comes back as a ``Failure`` so that the run goes on.
     """
-    from .mesh import MeshError
+    from ..model.mesh import MeshError
 
     if process is None:
-        from .objects import process_object as process
+        from ..model.evaluation import process_object as process
     try:
         result = process(spec, config)
-        return shards.build_shard(spec, result, config.topple.trials)
+        return rows.build_shard(spec, result, config.topple.trials)
     except MeshError as err:
         return Failure(spec.object_id, _one_line(str(err)), "mesh")
     except Exception as err:  # any bug or numerical failure in one object must not end the run
@@ -78,24 +79,23 @@ def _one_line(text: str) -> str:
 class Summary:
     """What a build did; ``manifest`` is the written manifest."""
 
-    manifest: dict
+    manifest: Manifest
     computed: int
     reused: int
     wall_s: float
 
     def text(self) -> str:
-        m = self.manifest
-        counts, timings = m["counts"], m["timings"]
+        counts, timings = self.manifest.counts, self.manifest.timings
         lines = [
-            f"objects   {counts['objects']} ({self.computed} computed, {self.reused} reused), failed {counts['failed']}",
-            f"poses     {counts['poses']}",
-            f"actions   {counts['actions']} ({counts['ok_actions']} ok), transitions {counts['transitions']}",
+            f"objects   {counts.objects} ({self.computed} computed, {self.reused} reused), failed {counts.failed}",
+            f"poses     {counts.poses}",
+            f"actions   {counts.actions} ({counts.ok_actions} ok), transitions {counts.transitions}",
             f"wall      {self.wall_s:.1f} s",
-            f"cpu       {timings['cpu_s_total']:.1f} s over all objects: "
-            + ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in timings["cpu_s_by_stage"].items()),
+            f"cpu       {timings.cpu_s_total:.1f} s over all objects: "
+            + ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in timings.cpu_s_by_stage.items()),
         ]
-        for failure in m["failures"]:
-            lines.append(f"failed    {failure['object_id']}: {failure['reason']}")
+        for failure in self.manifest.failures:
+            lines.append(f"failed    {failure.object_id}: {failure.reason}")
         return "\n".join(lines)
 
 
@@ -117,7 +117,7 @@ def build_dataset(
     scheduler : address of a dask.distributed scheduler to run the tasks on
     force : discard whatever ``out`` holds and compute every object
     strict : stop at the first failed object (its reason is the error)
-    process : the per-object computation, ``pipeline.objects.process_object`` by default
+    process : the per-object computation, ``pipeline.model.evaluation.process_object`` by default
     """
     started = time.perf_counter()
     out = Path(out)

@@ -3,9 +3,9 @@
 A corpus is a list of ``ObjectSpec`` (mesh file, scale to metres, mass, where it
 comes from, SHA-256 of the file).  Three kinds:
 
-- ``default``: ``pipeline/corpus_default.csv``, the 189 objects of pybullet_data
-  chosen by the selection rule of thesis 4.4.1 (``python -m pipeline corpus``
-  regenerates it, see ``regenerate_default``);
+- ``default``: ``pipeline/build/corpus_default.csv``, the 189 objects of pybullet_data
+  chosen by the selection rule of thesis 4.4.1 (``toppledb corpus`` regenerates it,
+  see ``pipeline.build.selection``);
 - a directory of meshes (OBJ/STL/PLY, searched recursively), scale 1 and the
   configured default mass;
 - a list file: CSV with a header and a ``path`` column, optionally ``object_id``,
@@ -36,12 +36,10 @@ from pathlib import Path
 
 from schema.layout import check_object_id
 
-from .config import Config
+from .atomic import file_sha256, write_text_atomic
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply")
 DEFAULT_LIST = Path(__file__).with_name("corpus_default.csv")
-DEFAULT_COUNT = 189
-"""Objects in the thesis's dataset (4.4.1) and in the default corpus."""
 LIST_COLUMNS = ("object_id", "source", "path", "scale", "mass", "sha256")
 """Columns of the default list as written by ``write_list``."""
 PYBULLET_SOURCE = "pybullet_data"
@@ -107,7 +105,7 @@ def load_corpus(corpus: str, default_mass: float) -> Corpus:
     candidate, unselected), a directory of meshes, or a CSV list file."""
     if corpus == "default":
         if not DEFAULT_LIST.is_file():
-            raise CorpusError(f"default corpus list {DEFAULT_LIST} is missing; run `python -m pipeline corpus`")
+            raise CorpusError(f"default corpus list {DEFAULT_LIST} is missing; run `toppledb corpus`")
         return read_list(DEFAULT_LIST, default_mass, name="default")
     if corpus == PYBULLET_SOURCE:
         return Corpus(PYBULLET_SOURCE, candidate_specs(default_mass))
@@ -120,18 +118,6 @@ def load_corpus(corpus: str, default_mass: float) -> Corpus:
 
 
 # --- files ------------------------------------------------------------------------
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex SHA-256 of a file's bytes, "" when it cannot be read."""
-    digest = hashlib.sha256()
-    try:
-        with open(path, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                digest.update(block)
-    except OSError:
-        return ""
-    return digest.hexdigest()
 
 
 def pybullet_data_dir() -> Path:
@@ -270,7 +256,7 @@ def _number(text: str | None, default: float, what: str, where: str) -> float:
 
 
 def write_list(specs: list[ObjectSpec], path: str | Path, root: Path) -> None:
-    """Write specs as a list file with paths relative to ``root``; atomic (temp file, rename)."""
+    """Write specs as a list file with paths relative to ``root``, atomically."""
     path = Path(path)
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
@@ -278,9 +264,7 @@ def write_list(specs: list[ObjectSpec], path: str | Path, root: Path) -> None:
     for s in specs:
         relative = Path(s.path).resolve().relative_to(root.resolve()).as_posix()
         writer.writerow([s.object_id, s.source, relative, repr(s.scale), repr(s.mass), s.sha256])
-    temp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    temp.write_text(buffer.getvalue())
-    os.replace(temp, path)
+    write_text_atomic(path, buffer.getvalue())
 
 
 # --- pybullet_data candidates -----------------------------------------------------------
@@ -343,62 +327,3 @@ def _spec(object_id, mesh_path: Path, scale, mass, source: str, default_mass: fl
         source=source,
         sha256=file_sha256(mesh_path),
     )
-
-
-# --- regenerating the default list (thesis 4.4.1) -----------------------------------------
-
-
-def selection_task(spec: ObjectSpec, config: Config) -> tuple[str, bool, str]:
-    """Apply the selection rule to one candidate: (object id, selected, reason if it failed).
-
-    Runs in a worker; any failure (bad mesh included) means "not selected".
-    """
-    from .mdp import is_selected
-    from .objects import select_info
-
-    try:
-        v_s, com_heights = select_info(spec, config)
-        return spec.object_id, bool(is_selected(v_s, com_heights)), ""
-    except Exception as err:  # one bad candidate must not stop the selection
-        return spec.object_id, False, " ".join(f"{type(err).__name__}: {err}".split())[:300]
-
-
-def regenerate_default(
-    config: Config,
-    out: str | Path = DEFAULT_LIST,
-    count: int = DEFAULT_COUNT,
-    limit: int | None = None,
-    workers: int | None = None,
-    scheduler: str | None = None,
-    progress: bool = True,
-) -> dict:
-    """Select objects from pybullet_data's candidates and write the default list.
-
-    Candidates are ordered named meshes first, then random objects by number; every
-    candidate is evaluated (stable poses and V_s per pose) and the first ``count``
-    that satisfy ``pipeline.mdp.is_selected`` are kept, so the choice does not depend
-    on evaluation order or the number of workers.
-
-    Returns counts (candidates, failed, selected, kept) and ``failures``: object id ->
-    reason for every candidate that could not be evaluated.
-    """
-    from .fanout import map_unordered
-
-    root = pybullet_data_dir()
-    candidates = candidate_specs(config.mesh.default_mass, root)[:limit]
-    outcome: dict[str, tuple[bool, str]] = {}
-    for object_id, selected, reason in map_unordered(
-        selection_task, [(spec, config) for spec in candidates], workers, scheduler, "selecting", progress
-    ):
-        outcome[object_id] = (selected, reason)
-    chosen = [spec for spec in candidates if outcome[spec.object_id][0]]
-    kept = chosen[:count]
-    write_list(kept, out, root)
-    failures = {spec.object_id: outcome[spec.object_id][1] for spec in candidates if outcome[spec.object_id][1]}
-    return {
-        "candidates": len(candidates),
-        "failed": len(failures),
-        "selected": len(chosen),
-        "kept": len(kept),
-        "failures": failures,
-    }

@@ -1,7 +1,7 @@
 """Every parameter of toppledb in one typed, documented place.
 
 Defaults are the thesis's values (Correa 2019, chapter 4) or, where it is silent,
-the values of ``shared/DESIGN.md``.  A ``Config`` is overridable from a TOML file
+the project's own choices; ``docs/MODEL.md`` section 13 gives each one's source.  A ``Config`` is overridable from a TOML file
 (``Config.from_toml``) and from dotted ``section.field=value`` strings
 (``Config.with_overrides``, what the CLI uses), and is written whole into every
 dataset manifest (``Config.to_dict``).
@@ -45,7 +45,7 @@ class PoseConfig:
     same_pose_angle: float = math.radians(10.0)
     """rad; two orientations are the same stable pose when their down vectors differ by at most this."""
     base_tolerance: float = 1e-3
-    """m; hull vertices this close to the table form the base (DESIGN: 1 mm)."""
+    """m; hull vertices this close to the table form the base (docs/MODEL.md 5)."""
 
 
 @dataclass(frozen=True)
@@ -148,7 +148,7 @@ class SuctionConfig:
     elastic_limit: float = 0.1
     """N m; largest torque about the contact's tangent axes before the cup peels (Dex-Net 3.0's
     form). 0.1 N m is about a 30 mm cup's peel torque at typical vacuum (0.3 N m) with a safety
-    factor of 3; see docs/MODEL.md 1.6 for why not 0.005."""
+    factor of 3; see docs/MODEL.md 11.5 for why not 0.005."""
     position_std: float = 0.001
     """m, standard deviation of the grasp position."""
     axis_std: float = 0.05
@@ -175,7 +175,7 @@ class MDPConfig:
 
 @dataclass(frozen=True)
 class Config:
-    """The whole parameter set; ``seed`` roots every random stream (see ``pipeline.rng``)."""
+    """The whole parameter set; ``seed`` roots every random stream (see ``pipeline.model.rng``)."""
 
     seed: int = 0
     mesh: MeshConfig = field(default_factory=MeshConfig)

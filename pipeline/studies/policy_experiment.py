@@ -11,7 +11,7 @@ All three policies see the same random draws (common random numbers), so the
 differences between them are the policies' own.  Only the dataset's tables are
 read; no geometry is recomputed.
 
-    python -m pipeline policies data/dataset [--trials 20000] [--plot docs/policy_experiment.png]
+    toppledb policies data/dataset [--trials 20000] [--plot docs/policy_experiment.png]
 """
 
 from __future__ import annotations
@@ -20,11 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pyarrow.dataset as ds
-import pyarrow.parquet as pq
 
-POLICIES = ("max_height", "greedy", "value_iteration")
-NO_PUSH = -1
+from schema.reader import Dataset
+from schema.vocabulary import NO_OP, POLICIES
+
 THESIS_GAIN_OVER_MAX_HEIGHT = {"greedy": 0.255, "value_iteration": 0.284}
 """Absolute gain in suction grasp reliability over Max-Height (thesis 4.4.3, figure 4.10)."""
 
@@ -34,7 +33,7 @@ class PolicyTables:
     """What the policies need, as flat arrays over every (object, pose).
 
     first_pose : (O + 1,) int, row of each object's pose 0; probability, v_s : (N,) float
-    actions : dict policy -> (N,) int, the policy's push (NO_PUSH for none)
+    actions : dict policy -> (N,) int, the policy's push (NO_OP for none)
     keys : (M,) int64, sorted (row, action) keys of the transitions; next_row : (M,) int;
     cumulative : (M,) float, running sum of the transition probabilities in key order
     """
@@ -53,11 +52,11 @@ ACTION_SPAN = 1 << 20
 """Transition key = row * ACTION_SPAN + action; far above any pose's action count."""
 
 
-def load_tables(root: str | Path) -> PolicyTables:
-    """Read poses.parquet and the transitions of every policy's chosen push."""
-    root = Path(root)
-    poses = pq.read_table(
-        root / "poses.parquet",
+def load_tables(root: str | Path | Dataset) -> PolicyTables:
+    """Read the poses table and the transitions of every policy's chosen push."""
+    dataset = root if isinstance(root, Dataset) else Dataset.open(root)
+    poses = dataset.table(
+        "poses",
         columns=["object_id", "pose", "probability", "v_s"] + [f"{p}_action" for p in POLICIES],
     ).sort_by([("object_id", "ascending"), ("pose", "ascending")])
     object_column = poses["object_id"].to_numpy(zero_copy_only=False)
@@ -69,10 +68,9 @@ def load_tables(root: str | Path) -> PolicyTables:
 
     chosen = set()
     for policy_actions in actions.values():
-        for row in np.flatnonzero(policy_actions != NO_PUSH):
+        for row in np.flatnonzero(policy_actions != NO_OP):
             chosen.add((row, int(policy_actions[row])))
-    transitions = ds.dataset(root / "transitions", format="parquet", partitioning="hive")
-    table = transitions.to_table(columns=["object_id", "pose", "action", "next_pose", "probability"])
+    table = dataset.partitioned("transitions", columns=["object_id", "pose", "action", "next_pose", "probability"])
     objects = table["object_id"].to_numpy(zero_copy_only=False)
     rows = row_of(objects, table["pose"].to_numpy())
     action = table["action"].to_numpy()
@@ -127,7 +125,7 @@ def run_policy(tables: PolicyTables, policy: str, starts: np.ndarray, uniforms: 
     pushes = np.zeros(len(rows), dtype=np.int64)
     for draws in uniforms:
         action = tables.actions[policy][rows]
-        acting = np.flatnonzero(action != NO_PUSH)
+        acting = np.flatnonzero(action != NO_OP)
         if len(acting) == 0:
             break
         rows[acting] = step(tables, rows[acting], action[acting], draws[acting])
@@ -141,13 +139,13 @@ def best_pose_value(tables: PolicyTables) -> np.ndarray:
     return np.repeat(per_object, np.diff(tables.first_pose))
 
 
-def experiment(root: str | Path, n_trials: int = 20_000, max_steps: int = 5, seed: int = 0) -> dict:
+def experiment(root: str | Path | Dataset, n_trials: int = 20_000, max_steps: int = 5, seed: int = 0) -> dict:
     """Run every policy on the same trials; mean V_s gains over the useful ones."""
     tables = load_tables(root)
     rng = np.random.default_rng(seed)
     starts = draw_starts(tables, n_trials, rng)
     uniforms = rng.random((max_steps, n_trials))
-    useful = (tables.v_s[starts] < best_pose_value(tables)[starts]) & (tables.actions["greedy"][starts] != NO_PUSH)
+    useful = (tables.v_s[starts] < best_pose_value(tables)[starts]) & (tables.actions["greedy"][starts] != NO_OP)
     result = {"trials": n_trials, "useful_trials": int(useful.sum()), "max_steps": max_steps, "policies": {}}
     for policy in POLICIES:
         final, pushes = run_policy(tables, policy, starts, uniforms)

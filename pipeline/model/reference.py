@@ -1,10 +1,10 @@
 """Scalar reference of one toppling trial, written straight from thesis 4.2.
 
 Plain Python floats and loops, no numpy in the arithmetic: it is slow on purpose
-and exists so the tests can hold the vectorised engine (``pipeline.topple``) to
+and exists so the tests can hold the vectorised engine (``pipeline.model.topple``) to
 it trial by trial, and ``make bench`` can measure the speed-up.
 
-Inputs are the same noise draws the engine uses (``pipeline.topple.TrialNoise``
+Inputs are the same noise draws the engine uses (``pipeline.model.topple.TrialNoise``
 values for one action and trial), so both compute the same trial.
 """
 

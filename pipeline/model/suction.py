@@ -22,10 +22,12 @@ import fcl
 import numpy as np
 import trimesh
 
+from schema.frames import tangent_frames, unit
+
+from .collision import collides_each, collision_object
 from .config import SuctionConfig
-from .contacts import collision_object
-from .frames import tangent_frames, unit, z_to_axes
-from .results import SuctionResult
+from .outcomes import SuctionResult
+from .sampling import area_weighted_faces, points_in_triangles
 
 TIE_TOLERANCE = 1e-9
 """Qualities closer than this are ties; the grasp nearer the centre of mass (in plan) wins."""
@@ -56,14 +58,9 @@ def sample_candidates(
     faces = np.flatnonzero(upward_faces(normals, max_approach_angle) & (mesh.area_faces > 0))
     if len(faces) == 0 or count <= 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    area = mesh.area_faces[faces]
-    chosen = faces[rng.choice(len(faces), size=count, p=area / area.sum())]
-    # Uniform barycentric coordinates by folding the unit square onto the triangle.
-    a, b = rng.random(count), rng.random(count)
-    fold = a + b > 1.0
-    a, b = np.where(fold, 1.0 - a, a), np.where(fold, 1.0 - b, b)
-    tri = mesh.triangles[chosen]
-    points = tri[:, 0] + a[:, None] * (tri[:, 1] - tri[:, 0]) + b[:, None] * (tri[:, 2] - tri[:, 0])
+    chosen = faces[area_weighted_faces(mesh.area_faces[faces], count, rng)]
+    # Two rows of uniforms (all u, then all v): this stream's draw order since version 1.0.
+    points = points_in_triangles(mesh.triangles[chosen], rng.random((2, count)).T)
     return points, -normals[chosen]
 
 
@@ -247,14 +244,7 @@ def body_collisions(
     """
     bottom, top = body_segments(points, axes, config)
     cylinder = fcl.Cylinder(config.gripper_radius, config.gripper_length)
-    request = fcl.CollisionRequest()
-    hits = np.zeros(len(points), dtype=bool)
-    rotations = z_to_axes(-axes)
-    for i in range(len(points)):
-        pose = fcl.Transform(rotations[i], 0.5 * (bottom[i] + top[i]))
-        body = fcl.CollisionObject(cylinder, pose)
-        hits[i] = fcl.collide(body, collision_mesh, request, fcl.CollisionResult()) > 0
-    return hits
+    return collides_each(cylinder, 0.5 * (bottom + top), -axes, collision_mesh)
 
 
 # ----------------------------------------------------------------------------- quality

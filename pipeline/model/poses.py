@@ -19,11 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from schema.frames import canonical_transform, transform_points, unit
+
 from .config import PoseConfig
 from .edges import base_edges, base_polygon, edge_geometry, landing_angles, landing_down
-from .frames import canonical_transform, transform_points, unit
 from .mesh import MeshError, ObjectModel
-from .results import StablePose
+from .outcomes import StablePose
 
 
 def face_neighbors(hull: trimesh.Trimesh) -> np.ndarray:

@@ -1,5 +1,6 @@
-"""What one object's evaluation produces: the contract between the compute
-modules (poses, topple model, suction, MDP) and storage (shards, manifest).
+"""What one object's evaluation produces: the contract between the model
+(poses, topple model, suction, MDP) and the build (rows, shards, manifest).
+Status codes, policy names and outcome codes are ``schema.vocabulary``'s.
 
 Frames: "object" is the mesh's own frame (metres); "pose" is the canonical frame
 of one stable pose: z up, table at z = 0, centre of mass over the origin.
@@ -10,18 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-
-# Action status codes, stored as int8; names are the public vocabulary.
-STATUS_NAMES = ("ok", "too_low", "pushes_up", "finger_collision")
-STATUS_OK, STATUS_TOO_LOW, STATUS_PUSHES_UP, STATUS_FINGER_COLLISION = range(4)
-
-NO_OP = -1
-"""Action id a policy returns when it chooses not to push."""
-
-NO_EDGE = -1
-"""Trial outcome: the object did not topple over any base edge."""
-NOT_EVALUATED = -2
-"""Trial outcome for actions whose status is not ``ok``."""
 
 
 @dataclass
@@ -80,7 +69,7 @@ class ToppleTable:
     p_topple : (A,) float, P(x' != x | x, u); NaN for actions that are not ``ok``
     mean_force : (A,) float, N, mean required force over the trials that topple over
       some edge; NaN when none does
-    outcomes : (A, T) int16, per trial: base edge toppled over, ``NO_EDGE``, or ``NOT_EVALUATED``
+    outcomes : (A, T) int16, per trial: base edge toppled over, ``OUTCOME_NO_EDGE``, or ``OUTCOME_NOT_EVALUATED``
     """
 
     next_pose: np.ndarray

@@ -1,0 +1,243 @@
+"""One object's shard on disk: its rows of every table and its HDF5 file, written
+atomically, and the checks that tell a complete shard from an unfinished one.
+
+``write_shard`` writes each file of a ``ShardData`` (``pipeline.build.rows``) under
+a temporary name, reads it back, renames it into place, and writes the completion
+record, with the SHA-256 of every file, last.  A process killed at any point
+leaves either a complete shard or one without a record, which the next run
+redoes.  File locations are in ``schema.layout``, columns in ``schema.tables``,
+the HDF5 layout in ``schema.hdf5``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import h5py
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from schema import hdf5, layout, tables
+from schema.version import SCHEMA_VERSION
+
+from ..model.config import Config
+from .atomic import file_sha256, write_atomic, write_text_atomic
+from .corpus import ObjectSpec
+from .rows import ShardData, ShardError
+
+PARQUET_COMPRESSION = "zstd"
+HDF5_COMPRESSION = {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+COMPRESS_ABOVE_BYTES = 16 * 1024
+"""Smaller HDF5 arrays are stored contiguous: compression would only add overhead."""
+
+
+# --- identity of a shard's inputs ---------------------------------------------------------
+
+
+def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:
+    """Everything that determines a shard's content: schema version, every parameter,
+    and the object (mesh checksum, scale, mass, id, source).  The mesh's location is
+    left out: the same file elsewhere gives the same shard."""
+    identity = {k: v for k, v in dataclasses.asdict(spec).items() if k != "path"}
+    return {"schema_version": SCHEMA_VERSION, "config": config.to_dict(), "object": identity}
+
+
+def fingerprint(inputs: dict[str, Any]) -> str:
+    """SHA-256 of ``shard_inputs``: equal fingerprints, equal shards."""
+    return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()
+
+
+def input_differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
+    """What changed between two ``shard_inputs``, as ``key: old -> new`` lines."""
+    lines = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            lines += input_differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            lines.append(f"{prefix}{key}: {_short(a)} -> {_short(b)}")
+    return lines
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+# --- writing --------------------------------------------------------------------------------
+
+
+def write_shard(root: str | Path, shard: ShardData, inputs: dict[str, Any]) -> dict:
+    """Write one shard atomically; return its completion record.
+
+    The old record goes first, so from then until the new record is in place the
+    shard reads as incomplete; each file is written to a temporary name, read back
+    and renamed; the record (files with SHA-256, counts, timings) is written last.
+    """
+    root = Path(root)
+    started = time.process_time()
+    object_id = layout.check_object_id(shard.object_id)
+    record_path = root / layout.completion_record(object_id)
+    record_path.unlink(missing_ok=True)
+
+    files = {}
+    for table in tables.PARTITIONED:
+        relative = layout.partition_file(table, object_id)
+        files[relative] = write_atomic(root / relative, _parquet_writer(shard.rows[table]), _parquet_reader(shard.rows[table]))
+    for table in ("objects", "poses"):
+        relative = layout.shard_rows_file(table, object_id)
+        files[relative] = write_atomic(root / relative, _parquet_writer(shard.rows[table]), _parquet_reader(shard.rows[table]))
+    relative = layout.arrays_file(object_id)
+    files[relative] = write_atomic(root / relative, lambda path: _write_hdf5(path, shard), lambda path: _check_hdf5(path, shard))
+
+    timings = dict(shard.timings)
+    timings["write"] = time.process_time() - started
+    record = {
+        "object_id": object_id,
+        "schema_version": SCHEMA_VERSION,
+        "fingerprint": fingerprint(inputs),
+        "files": files,
+        "counts": shard.counts,
+        "timings": timings,
+        "inputs": inputs,
+    }
+    text = json.dumps(record, indent=1, sort_keys=True)
+    write_text_atomic(record_path, text)
+    return record
+
+
+def _parquet_writer(table: pa.Table) -> Callable[[Path], None]:
+    return lambda path: pq.write_table(table, path, compression=PARQUET_COMPRESSION)
+
+
+def _parquet_reader(table: pa.Table) -> Callable[[Path], None]:
+    def check(path: Path) -> None:
+        stored = pq.read_metadata(path)
+        if stored.num_rows != table.num_rows:
+            raise OSError(f"{path}: read back {stored.num_rows} rows, wrote {table.num_rows}")
+
+    return check
+
+
+def _write_hdf5(path: Path, shard: ShardData) -> None:
+    with h5py.File(path, "w") as f:
+        for name, value in shard.attributes.items():
+            f.attrs[name] = value
+        for spec in hdf5.OBJECT_ARRAYS:
+            _dataset(f, spec.name, shard.object_arrays[spec.name], spec.dtype)
+        for pose, arrays in enumerate(shard.pose_arrays):
+            for spec in hdf5.POSE_ARRAYS:
+                _dataset(f, f"{hdf5.pose_group(pose)}/{spec.name}", arrays[spec.name], spec.dtype)
+
+
+def _dataset(f: h5py.File, name: str, values, dtype: np.dtype) -> None:
+    array = np.ascontiguousarray(np.asarray(values).astype(dtype, copy=False))
+    options = HDF5_COMPRESSION if array.nbytes > COMPRESS_ABOVE_BYTES else {}
+    f.create_dataset(name, data=array, **options)
+
+
+def _check_hdf5(path: Path, shard: ShardData) -> None:
+    with h5py.File(path, "r") as f:
+        problems = hdf5.check_file(f, _expected_attributes(shard.attributes, shard.rows["poses"]))
+    if problems:
+        raise ShardError(f"{shard.object_id}: HDF5 does not match its layout: {problems[0]}")
+
+
+def _expected_attributes(attributes: dict, poses: pa.Table) -> dict:
+    expected = {k: attributes[k] for k in ("schema_version", "object_id", "n_poses", "n_trials")}
+    expected["A"] = poses.column("n_actions").to_pylist()
+    return expected
+
+
+# --- reading and checking -------------------------------------------------------------------
+
+
+def read_record(root: str | Path, object_id: str) -> dict | None:
+    """The shard's completion record, or None when absent or unreadable."""
+    try:
+        return json.loads((Path(root) / layout.completion_record(object_id)).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def checksum_problems(root: str | Path, record: dict) -> list[str]:
+    """Files of a record that are missing or whose SHA-256 differs."""
+    problems = []
+    for relative, expected in record.get("files", {}).items():
+        actual = file_sha256(Path(root) / relative)
+        if not actual:
+            problems.append(f"{relative}: missing")
+        elif actual != expected:
+            problems.append(f"{relative}: sha256 {actual[:12]}... differs from the record's {expected[:12]}...")
+    return problems
+
+
+def is_complete(root: str | Path, object_id: str, shard_fingerprint: str) -> dict | None:
+    """The record of a complete, verified shard made from the same inputs, else None."""
+    record = read_record(root, object_id)
+    if record is None or record.get("fingerprint") != shard_fingerprint:
+        return None
+    if record.get("schema_version") != SCHEMA_VERSION or checksum_problems(root, record):
+        return None
+    return record
+
+
+def content_problems(root: str | Path, record: dict) -> list[str]:
+    """Deep check of a shard: Parquet schemas and row counts, HDF5 layout (after checksums)."""
+    root = Path(root)
+    object_id = record["object_id"]
+    counts = record.get("counts", {})
+    problems = []
+    expected_rows = {
+        layout.partition_file("actions", object_id): (tables.file_schema(tables.ACTIONS), counts.get("actions")),
+        layout.partition_file("transitions", object_id): (tables.file_schema(tables.TRANSITIONS), counts.get("transitions")),
+        layout.shard_rows_file("objects", object_id): (tables.OBJECTS, 1),
+        layout.shard_rows_file("poses", object_id): (tables.POSES, counts.get("poses")),
+    }
+    for relative, (schema, rows) in expected_rows.items():
+        problems += parquet_problems(root / relative, relative, schema, rows)
+    if problems:
+        return problems
+    poses = pq.read_table(root / layout.shard_rows_file("poses", object_id))
+    relative = layout.arrays_file(object_id)
+    try:
+        with h5py.File(root / relative, "r") as f:
+            expected = {
+                "schema_version": SCHEMA_VERSION,
+                "object_id": object_id,
+                "n_poses": counts.get("poses"),
+                "A": poses.column("n_actions").to_pylist(),
+            }
+            problems += [f"{relative}: {p}" for p in hdf5.check_file(f, expected)]
+    except OSError as err:
+        problems.append(f"{relative}: not a readable HDF5 file ({err})")
+    return problems
+
+
+def parquet_problems(path: Path, name: str, schema: pa.Schema, rows: int | None) -> list[str]:
+    """A Parquet file that is unreadable, has another schema, or another row count."""
+    try:
+        stored = pq.read_schema(path)
+        n_rows = pq.read_metadata(path).num_rows
+    except (OSError, pa.ArrowException) as err:
+        return [f"{name}: not a readable Parquet file ({' '.join(str(err).split())[:120]})"]
+    if not stored.equals(schema, check_metadata=False):
+        return [f"{name}: schema differs from schema.tables (columns {stored.names})"]
+    if rows is not None and n_rows != rows:
+        return [f"{name}: {n_rows} rows, the manifest says {rows}"]
+    return []
+
+
+def remove_temp_files(root: str | Path) -> int:
+    """Delete temporary files left by a killed run; return how many."""
+    removed = 0
+    for path in Path(root).rglob(f".*{layout.TEMP_SUFFIX}"):
+        path.unlink(missing_ok=True)
+        removed += 1
+    return removed

@@ -1,0 +1,173 @@
+"""``manifest.json``: what a finished dataset holds and how it was made, as a typed
+model shared by the pipeline that writes it and the service and studies that read it.
+
+The pipeline writes the manifest last; a directory without one is a build in
+progress (or a failed one) and readers refuse it.  ``read_manifest`` is the one
+reader: it checks that the file parses, fits this model, and has this code's
+``SCHEMA_VERSION``.
+
+``parameters`` holds the whole ``pipeline.model.config.Config``; the sections and
+fields a reader relies on are typed here (the rest is kept as written), so a
+manifest that lacks one is refused at load time, not at the first request.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from schema import layout
+from schema.version import SCHEMA_VERSION
+
+
+class ManifestError(ValueError):
+    """A directory that is not a finished dataset this code can read (one-line message)."""
+
+
+class _Open(BaseModel):
+    """A section whose typed fields are what readers need; other fields are kept."""
+
+    model_config = ConfigDict(extra="allow")
+
+
+class _Closed(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class PoseParameters(_Open):
+    same_pose_angle: float = Field(gt=0, description="rad; observed poses within this angle of a stable pose match it")
+
+
+class ContactParameters(_Open):
+    n_contacts: int = Field(ge=1)
+    approach_offset: float = Field(ge=0, description="m; the finger starts this far outside the contact")
+    push_depth: float = Field(ge=0, description="m; and ends this far inside it")
+
+
+class ToppleParameters(_Open):
+    variant: str
+    n_trials: int = Field(ge=1)
+
+
+class MDPParameters(_Open):
+    gamma: float = Field(gt=0, le=1)
+
+
+class Parameters(_Open):
+    """``Config.to_dict()``: every model parameter of the build."""
+
+    seed: int
+    poses: PoseParameters
+    contacts: ContactParameters
+    topple: ToppleParameters
+    mdp: MDPParameters
+
+
+class CodeVersion(_Open):
+    package: str
+    git_commit: str | None = None
+    python: str
+    libraries: dict[str, str | None] = {}
+
+
+class CorpusObject(_Closed):
+    object_id: str
+    path: str
+    scale: float
+    mass: float
+    source: str
+    sha256: str
+
+
+class Corpus(_Closed):
+    name: str
+    objects: list[CorpusObject]
+
+
+class Counts(_Closed):
+    objects: int
+    failed: int
+    poses: int
+    actions: int
+    ok_actions: int
+    transitions: int
+
+
+class TableFile(_Closed):
+    sha256: str
+    rows: int
+
+
+class ShardCounts(_Closed):
+    poses: int
+    actions: int
+    ok_actions: int
+    transitions: int
+
+
+class Shard(_Closed):
+    files: dict[str, str] = Field(description="path relative to the dataset -> SHA-256")
+    counts: ShardCounts
+    fingerprint: str = Field(description="SHA-256 of the shard's inputs (parameters, object, schema version)")
+
+
+class Failure(_Closed):
+    object_id: str
+    path: str
+    reason: str
+    kind: Literal["mesh", "corpus", "error"]
+    detail: str = ""
+
+
+class Timings(_Closed):
+    wall_s: float
+    cpu_s_by_stage: dict[str, float]
+    cpu_s_total: float
+
+
+class Manifest(_Closed):
+    schema_version: str
+    code_version: CodeVersion
+    created: str = Field(description="UTC, ISO 8601, when the build finished")
+    seed: int
+    parameters: Parameters
+    corpus: Corpus
+    counts: Counts
+    tables: dict[str, TableFile]
+    shards: dict[str, Shard]
+    failures: list[Failure]
+    timings: Timings
+    run: dict[str, object] = Field(description="workers, backend, scheduler, computed, reused")
+
+    def to_json(self) -> str:
+        return json.dumps(self.model_dump(mode="json"), indent=1)
+
+
+def read_manifest(root: str | Path) -> Manifest:
+    """The dataset's manifest; ``ManifestError`` with a one-line reason when the
+    directory is missing, unfinished, unreadable, malformed or of another schema version."""
+    root = Path(root)
+    path = root / layout.MANIFEST
+    if not root.is_dir():
+        raise ManifestError(f"{root}: no such dataset directory")
+    if not path.is_file():
+        raise ManifestError(f"no {layout.MANIFEST} in {root}: not a dataset, or its build did not finish")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise ManifestError(f"{path}: not valid JSON ({err})") from None
+    version = data.get("schema_version") if isinstance(data, dict) else None
+    if version != SCHEMA_VERSION:
+        raise ManifestError(
+            f"{root}: dataset schema version {version!r}, this code reads {SCHEMA_VERSION!r}; "
+            "rebuild the dataset with this code (make dataset) or read it with the code that wrote it"
+        )
+    try:
+        return Manifest.model_validate(data)
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(part) for part in first["loc"])
+        raise ManifestError(f"{path}: {where}: {first['msg']}") from None
