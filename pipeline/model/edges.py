@@ -7,6 +7,12 @@ For a base edge (y0, y1), taken counter-clockwise seen from above:
 ``direction`` e = (y1 - y0) / |y1 - y0|, ``outward`` o = (e_y, -e_x, 0).
 Rotating by a positive angle about +e through y0 lifts the interior of the base
 and swings the object outward over the edge: (o, e, z) -> e x z = o.
+
+Shapes: E base edges, n hull vertices; every per-edge array is (E, ...) and is
+broadcast, in ``pipeline.model.topple``, against (n, 1) per-trial columns (the names
+are those of docs/MODEL.md sections 5 and 10).  Row-wise dot products of two (E, 3)
+arrays are ``einsum("ij,ij->i", a, b)``; edges x vertices products are
+``einsum("enk,ek->en", ...)`` on an (E, n, 2) offset array.
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from schema.frames import axis_angle_matrices
+from schema.frames import DOWN, axis_angle_matrices
 
 
 def base_polygon(vertices: np.ndarray, tolerance: float) -> np.ndarray:
@@ -26,13 +32,13 @@ def base_polygon(vertices: np.ndarray, tolerance: float) -> np.ndarray:
     tolerance : float, m, vertices with z below this touch the table
     returns : (k, 3) float, m, polygon corners counter-clockwise seen from above, z = 0
     """
-    low = vertices[vertices[:, 2] < tolerance][:, :2]
+    low = vertices[vertices[:, 2] < tolerance][:, :2]  # (m, 2), m <= n touching vertices, xy only
     try:
         hull = ConvexHull(low)
     except (QhullError, ValueError):
         raise ValueError("the base is degenerate (fewer than three non-collinear contact points)") from None
     # scipy orders 2-D hull vertices counter-clockwise.
-    corners = low[hull.vertices]
+    corners = low[hull.vertices]  # (k, 2)
     return np.column_stack([corners, np.zeros(len(corners))])
 
 
@@ -70,16 +76,16 @@ class EdgeGeometry:
 
 def edge_geometry(edges: np.ndarray, center_mass: np.ndarray) -> EdgeGeometry:
     """Per-edge quantities for ``edges`` (E, 2, 3) and ``center_mass`` (3,), pose frame."""
-    y0, y1 = edges[:, 0], edges[:, 1]
-    direction = (y1 - y0) / np.linalg.norm(y1 - y0, axis=1, keepdims=True)
-    outward = np.column_stack([direction[:, 1], -direction[:, 0], np.zeros(len(edges))])
-    to_com = center_mass - y0
-    com_distance = -np.einsum("ij,ij->i", to_com, outward)
-    along = np.einsum("ij,ij->i", to_com, direction)
-    origin = y0 + along[:, None] * direction
-    s0 = -along
-    s1 = np.einsum("ij,ij->i", y1 - origin, direction)
-    apex = np.arctan2(com_distance, center_mass[2])
+    y0, y1 = edges[:, 0], edges[:, 1]  # (E, 3) each
+    direction = (y1 - y0) / np.linalg.norm(y1 - y0, axis=1, keepdims=True)  # (E, 3), e; base edges have length > 0
+    outward = np.column_stack([direction[:, 1], -direction[:, 0], np.zeros(len(edges))])  # (E, 3), o = e x z
+    to_com = center_mass - y0  # (3,) - (E, 3) -> (E, 3), c - y0
+    com_distance = -np.einsum("ij,ij->i", to_com, outward)  # (E,), d_e = -(c - y0) . o, m
+    along = np.einsum("ij,ij->i", to_com, direction)  # (E,), (c - y0) . e, m
+    origin = y0 + along[:, None] * direction  # (E, 3), O_e: c projected on the edge line (z = 0)
+    s0 = -along  # (E,), y0 measured along e from O_e
+    s1 = np.einsum("ij,ij->i", y1 - origin, direction)  # (E,), y1 measured along e from O_e
+    apex = np.arctan2(com_distance, center_mass[2])  # (E,), theta_e, rad
     return EdgeGeometry(
         start=y0,
         direction=direction,
@@ -88,7 +94,7 @@ def edge_geometry(edges: np.ndarray, center_mass: np.ndarray) -> EdgeGeometry:
         origin=origin,
         half_span=0.5 * (np.abs(s0) + np.abs(s1)),
         apex_angle=apex,
-        tip_rotation=axis_angle_matrices(direction, apex),
+        tip_rotation=axis_angle_matrices(direction, apex),  # (E, 3, 3), batched Rodrigues
     )
 
 
@@ -103,13 +109,14 @@ def landing_angles(geometry: EdgeGeometry, vertices: np.ndarray, tolerance: floa
     tolerance : float, m, base tolerance
     returns : (E,) float, rad, in (0, pi]
     """
-    raised = vertices[vertices[:, 2] >= tolerance]
+    raised = vertices[vertices[:, 2] >= tolerance]  # (m, 3), the vertices above the base
     if len(raised) == 0:
+        # A flat hull (nothing above the base) lands on its other side after a half turn.
         return np.full(len(geometry.start), np.pi)
-    offset = raised[None, :, :2] - geometry.start[:, None, :2]
-    u = np.einsum("enk,ek->en", offset, geometry.outward[:, :2])
-    w = np.broadcast_to(raised[None, :, 2], u.shape)
-    return np.arctan2(w, u).min(axis=1)
+    offset = raised[None, :, :2] - geometry.start[:, None, :2]  # (1, m, 2) - (E, 1, 2) -> (E, m, 2)
+    u = np.einsum("enk,ek->en", offset, geometry.outward[:, :2])  # (E, m), outward offset per (edge, vertex)
+    w = np.broadcast_to(raised[None, :, 2], u.shape)  # (E, m), heights
+    return np.arctan2(w, u).min(axis=1)  # (E,), the first vertex to reach the table
 
 
 def landing_down(geometry: EdgeGeometry, angles: np.ndarray) -> np.ndarray:
@@ -117,5 +124,5 @@ def landing_down(geometry: EdgeGeometry, angles: np.ndarray) -> np.ndarray:
 
     returns : (E, 3) float, unit
     """
-    back = axis_angle_matrices(geometry.direction, -angles)
-    return back @ np.array([0.0, 0.0, -1.0])
+    back = axis_angle_matrices(geometry.direction, -angles)  # (E, 3, 3)
+    return back @ DOWN  # (E, 3, 3) @ (3,) -> (E, 3)

@@ -6,6 +6,13 @@ it trial by trial, and ``make bench`` can measure the speed-up.
 
 Inputs are the same noise draws the engine uses (``pipeline.model.topple.TrialNoise``
 values for one action and trial), so both compute the same trial.
+
+No shapes here: every vector is a ``Vec`` (3 floats) and the loop over base edges is an
+explicit ``for``; the engine's (n, E) arrays are this function's values for every
+(trial, edge) pair (docs/MODEL.md section 10).  The equation numbers in the comments are
+docs/MODEL.md's.  The only thresholds are the push-torque cut (7.4), shared with the
+engine (``MIN_PUSH_TORQUE``), and the two of the ray cast below, which stands in for
+embree's.
 """
 
 from __future__ import annotations
@@ -14,7 +21,22 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
+from .topple import MIN_PUSH_TORQUE
+
 Vec = tuple[float, float, float]
+
+RAY_PARALLEL_DET = 1e-18
+"""m^2, Moller-Trumbore's determinant det = e1 . (r x e2) (unit ray r, triangle edges e1,
+e2 in m) below which the ray counts as parallel to the triangle's plane and the triangle is
+skipped.  It only guards the division by det: 1e-18 m^2 is the scale of a triangle with
+1 nm edges, below any real face, and an almost-parallel ray that passes it gets huge
+barycentric coordinates, which the range tests then reject."""
+
+RAY_MIN_DISTANCE = 1e-12
+"""m, hits at a ray parameter t at or below this are behind or at the ray's origin, not in
+front of it.  The finger's ray starts ``ray_offset`` (15 mm) outside the surface, so real
+hits lie at t ~ 1e-2 m; 1e-12 m only rejects t <= 0 up to rounding.  Embree, which the
+engine uses, likewise reports only hits in front of the origin."""
 
 
 def _add(a: Vec, b: Vec) -> Vec:
@@ -46,7 +68,7 @@ def _unit(a: Vec) -> Vec:
 
 
 def _rotate(v: Vec, axis: Vec, angle: float) -> Vec:
-    """Rodrigues: v rotated by ``angle`` about the unit ``axis``."""
+    """Rodrigues: v rotated by ``angle`` about the unit ``axis`` (the engine's ``axis_angle_matrices``)."""
     c, s = math.cos(angle), math.sin(angle)
     return _add(_add(_scale(v, c), _scale(_cross(axis, v), s)), _scale(axis, _dot(axis, v) * (1.0 - c)))
 
@@ -58,19 +80,19 @@ def ray_cast(origin: Vec, direction: Vec, triangles: Sequence[tuple[Vec, Vec, Ve
         e1, e2 = _sub(b, a), _sub(c, a)
         p = _cross(direction, e2)
         det = _dot(e1, p)
-        if abs(det) < 1e-18:
+        if abs(det) < RAY_PARALLEL_DET:
             continue
         inv = 1.0 / det
         s = _sub(origin, a)
         u = _dot(s, p) * inv
-        if u < 0.0 or u > 1.0:
+        if u < 0.0 or u > 1.0:  # barycentric range: exact, a hit on an edge belongs to both triangles
             continue
         q = _cross(s, e1)
         v = _dot(direction, q) * inv
         if v < 0.0 or u + v > 1.0:
             continue
         t = _dot(e2, q) * inv
-        if t > 1e-12 and (best is None or t < best[0]):
+        if t > RAY_MIN_DISTANCE and (best is None or t < best[0]):
             best = (t, index)
     return best
 
@@ -103,18 +125,18 @@ class TrialDraw:
 
 
 def in_friction_cone(push: Vec, normal: Vec, mu: float) -> bool:
-    """Condition 1: the push lies in the friction cone at the contact (4.2.1)."""
+    """Condition 1: the push lies in the friction cone at the contact (4.2.1), (7.1)."""
     cos = -_dot(push, normal)
-    if cos <= 0.0:
+    if cos <= 0.0:  # pointing away from or along the surface: outside every cone
         return False
-    angle = math.acos(min(1.0, cos))
+    angle = math.acos(min(1.0, cos))  # the clip only absorbs rounding of a unit dot product above 1
     return math.tan(angle) <= mu
 
 
 def reference_trial(scene: Scene, draw: TrialDraw, robust: bool, predicts_rotations: bool, ray_offset: float):
     """Outcome of one trial: (edge index or -1, required force in N or inf)."""
-    push = _unit(_add(draw.direction, draw.direction_offset))
-    if robust:
+    push = _unit(_add(draw.direction, draw.direction_offset))  # u0 (8.2)
+    if robust:  # (8.2)-(8.3): re-find the noisy contact with the rotated finger ray
         c = scene.center_mass
         origin = _add(_add(draw.point, draw.contact_offset), _scale(draw.normal, ray_offset))
         origin = _add(_rotate(_sub(origin, c), draw.rotation_axis, draw.rotation_angle), c)
@@ -139,18 +161,18 @@ def reference_trial(scene: Scene, draw: TrialDraw, robust: bool, predicts_rotati
         com_distance = -_dot(_sub(com, y0), outward)
         # The tipping point: rotate about the edge until the COM is above it.
         apex = math.atan2(com_distance, com[2])
-        if not in_friction_cone(push, normal, draw.mu_finger):
+        if not in_friction_cone(push, normal, draw.mu_finger):  # (7.2), at the start
             continue
-        if not in_friction_cone(push, _rotate(normal, e, apex), draw.mu_finger):
+        if not in_friction_cone(push, _rotate(normal, e, apex), draw.mu_finger):  # (7.2), at the apex
             continue
 
-        # Condition 3 (4.2.3): |r_f x f'_f| >= |r_g x f_g| about the edge.
+        # Condition 3 (4.2.3): |r_f x f'_f| >= |r_g x f_g| about the edge, (7.3)-(7.5).
         push_torque = _dot(_cross(_sub(contact, y0), push), e)
-        if push_torque <= 1e-12:
+        if push_torque <= MIN_PUSH_TORQUE:  # (7.4): does not rotate the object outward
             continue
         force = weight * com_distance / push_torque
 
-        # Condition 2 (4.2.2): friction limit surface, two point contacts at the ends.
+        # Condition 2 (4.2.2): friction limit surface, two point contacts at the ends, (7.6)-(7.9).
         if draw.mu_table <= 0.0:
             continue
         f = _scale(push, force)
@@ -162,9 +184,9 @@ def reference_trial(scene: Scene, draw: TrialDraw, robust: bool, predicts_rotati
         )
         tau_z = _cross(_sub(contact, origin_on_edge), f)[2] if predicts_rotations else 0.0
         ellipse = (tangential / (draw.mu_table * normal_force)) ** 2 + (tau_z / tau_max) ** 2
-        if ellipse > 1.0:
+        if ellipse > 1.0:  # outside the unit ellipse (7.9): the base slides or spins
             continue
-        if force < best_force:
+        if force < best_force:  # (7.10): the least-force passing edge; the first on a tie, as argmin
             best_edge, best_force = index, force
     return best_edge, best_force
 

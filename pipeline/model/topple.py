@@ -16,6 +16,28 @@ Noise (4.2.5) perturbs friction, the contact point, the push direction and the
 object's orientation; the perturbed contact is found again on the mesh by casting
 the finger's ray (embree through trimesh).  ``pipeline.model.reference`` computes the
 same trial one scalar at a time; the tests hold this module to it trial by trial.
+
+Shapes (docs/MODEL.md section 10 uses the same names).  A pose has A actions, T trials
+per action, E base edges and the object P poses.  The ``ok`` actions run in blocks of
+a <= ``chunk_actions``; a block's a x T trials are flattened, action-major, to n = a T
+rows (row i is action i // T, trial i % T), so every per-trial array is (n, ...) and every
+per-(trial, edge) array is (n, E): actions x trials x edges with the first two axes
+flattened.  Per-edge arrays (``EdgeGeometry``) are (E, ...) and broadcast against
+(n, 1) per-trial columns; results are reshaped back to (a, T) per block.
+
+Vectorisation identities (numbered as in docs/MODEL.md section 10):
+
+- batched rotation / dot: ``einsum("nij,nj->ni", R, v)`` is R_i v_i for every row,
+  ``einsum("ij,ij->i", a, b)`` is a_i . b_i; ``v @ M.T`` applies one matrix M to every row;
+- (10.1) cone at the apex: -u . (Rot_e n) = -sum_jk (u n^T)_jk (Rot_e)_jk, so all E
+  apex cosines of a trial are one (n, 9) @ (9, E) product of flattened outer products;
+- (10.2) torque identity: e . ((p - y0) x u) = e . (p x u) - u . (e x y0), so one batched
+  cross product p x u (n, 3) serves all edges: (n, 3) @ (3, E) - (n, 3) @ (3, E);
+- (10.3) tau_z about O_e: ((p - O_e) x u)_z = (p x u)_z - u . (-O_y, O_x, 0);
+- (10.4) the limit-surface ellipse (7.9) divided through by F*^2, so it needs no f = F* u;
+- (10.5) tan(beta) <= mu as sin(beta) <= mu cos(beta), no acos or tan;
+- (10.6) least-force edge: argmin over E of where(pass, F*, inf);
+- (10.7) P(x'|x,u) as one bincount of (action row * P + landed pose).
 """
 
 from __future__ import annotations
@@ -31,6 +53,19 @@ from .config import ToppleConfig
 from .edges import EdgeGeometry, edge_geometry
 from .mesh import ObjectModel
 from .outcomes import Actions, StablePose, ToppleTable
+
+MIN_PUSH_TORQUE = 1e-12
+"""m (torque per newton of push), (7.4): a push rotates the object outward over an edge
+only if e . ((p - y0) x u) exceeds this.  Not zero, because a push through the edge
+line (or parallel to it) gives a torque that is zero up to rounding (|p| ~ 0.1 m,
+float64 eps ~ 2e-16, so rounding is ~1e-17 m), and F* = m g d / tau would then be a
+huge force of arbitrary sign.  1e-12 m is far below any physical lever arm (a 1 um
+lever arm is 1e-6 m) and far above rounding.  ``pipeline.model.reference`` uses the
+same constant so both models cut at the same place."""
+
+NO_ROTATION_AXIS = (0.0, 0.0, 1.0)
+"""Rotation axis of the noise-free variants, whose rotation angle is 0: any unit axis
+gives the identity; a fixed one keeps ``TrialNoise`` valid (unit axes) in every variant."""
 
 
 @dataclass
@@ -60,7 +95,7 @@ def sample_noise(rng: np.random.Generator, n_actions: int, config: ToppleConfig)
             mu_finger=np.full(shape, config.mu_finger_mean),
             contact_offset=np.zeros(shape + (3,)),
             direction_offset=np.zeros(shape + (3,)),
-            rotation_axis=np.tile([0.0, 0.0, 1.0], shape + (1,)),
+            rotation_axis=np.tile(NO_ROTATION_AXIS, shape + (1,)),
             rotation_angle=np.zeros(shape),
         )
     return TrialNoise(
@@ -111,8 +146,10 @@ def noisy_trials(
     points, normals, directions : (a, 3) pose frame;  noise : for these a actions
     """
     a, t = noise.mu_table.shape
+    # (a, T, k) -> (n, k), n = a T, action-major: row i is action i // T, trial i % T.
     flat = lambda v: v.reshape(a * t, -1)  # noqa: E731
-    push = unit(directions[:, None, :] + noise.direction_offset)
+    # (a, 1, 3) + (a, T, 3): each action's nominal direction broadcast over its trials.
+    push = unit(directions[:, None, :] + noise.direction_offset)  # (a, T, 3), u0 of (8.2)
     if not config.robust:
         return Trials(
             contact=flat(np.broadcast_to(points[:, None], (a, t, 3))).copy(),
@@ -122,21 +159,27 @@ def noisy_trials(
             mu_finger=noise.mu_finger.ravel(),
             valid=np.ones(a * t, dtype=bool),
         )
-    rotation = axis_angle_matrices(flat(noise.rotation_axis), noise.rotation_angle.ravel())
+    rotation = axis_angle_matrices(flat(noise.rotation_axis), noise.rotation_angle.ravel())  # (n, 3, 3), R
+    # (a, 1, 3) + (a, T, 3) + (a, 1, 3): p + dp + ray_offset n of (8.2)
     origin = points[:, None] + noise.contact_offset + config.ray_offset * normals[:, None]
-    origin = np.einsum("nij,nj->ni", rotation, flat(origin) - center_mass) + center_mass
-    ray = np.einsum("nij,nj->ni", rotation, flat(np.broadcast_to(-normals[:, None], (a, t, 3))))
-    push = np.einsum("nij,nj->ni", rotation, flat(push))
+    # Batched R_i v_i ("nij,nj->ni"), about the centre of mass: o = c + R (. - c).
+    origin = np.einsum("nij,nj->ni", rotation, flat(origin) - center_mass) + center_mass  # (n, 3)
+    ray = np.einsum("nij,nj->ni", rotation, flat(np.broadcast_to(-normals[:, None], (a, t, 3))))  # (n, 3), R(-n)
+    push = np.einsum("nij,nj->ni", rotation, flat(push))  # (n, 3), u = R u0
 
-    to_object = np.linalg.inv(transform)
+    # One embree cast per block, in the object frame (the mesh's frame).  Directions take
+    # only the rotation: rows times its transpose, ``v @ M.T`` = (M v^T)^T.
+    to_object = np.linalg.inv(transform)  # (4, 4), pose -> object
     faces, rays, hits = obj.mesh.ray.intersects_id(
         transform_points(to_object, origin), ray @ to_object[:3, :3].T, multiple_hits=False, return_locations=True
-    )
-    contact = np.full((a * t, 3), np.nan)
-    normal = np.full((a * t, 3), np.nan)
+    )  # (h,) face index, (h,) row index into n, (h, 3) hit point (object frame); h <= n hits
+    contact = np.full((a * t, 3), np.nan)  # (n, 3), NaN where the ray missed
+    normal = np.full((a * t, 3), np.nan)  # (n, 3)
     contact[rays] = transform_points(transform, hits)
     normal[rays] = obj.mesh.face_normals[faces] @ transform[:3, :3].T
-    valid = np.zeros(a * t, dtype=bool)
+    valid = np.zeros(a * t, dtype=bool)  # (n,)
+    # Front face iff n' . r < 0 (8.3): an exact sign test, a grazing hit (n' . r ~ 0) is
+    # as good as any other, so no tolerance.
     valid[rays] = np.einsum("ij,ij->i", normal[rays], ray[rays]) < 0.0
     return Trials(contact, normal, push, noise.mu_table.ravel(), noise.mu_finger.ravel(), valid)
 
@@ -147,47 +190,65 @@ def trial_outcomes(
     """Edge each trial topples over, and the force it takes.
 
     returns : edge (n,) int (``OUTCOME_NO_EDGE`` when none), required_force (n,) float, N (inf when none)
+
+    Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
+    per-edge rows (E,) into (n, E).  Invalid trials' NaN contacts are zeroed so the
+    arithmetic stays finite; ``valid`` removes them at the end.
     """
     n = trials.contact.shape[0]
-    u, normal, contact = trials.push, trials.normal, np.nan_to_num(trials.contact)
+    u, normal, contact = trials.push, trials.normal, np.nan_to_num(trials.contact)  # (n, 3) each
     normal = np.nan_to_num(normal)
-    mu_f = trials.mu_finger[:, None]
+    mu_f = trials.mu_finger[:, None]  # (n, 1)
 
-    # 1. Contact slip, at the start and with the normal rotated to each edge's apex.
-    cos_start = -np.einsum("ij,ij->i", u, normal)[:, None]
-    outer = (u[:, :, None] * normal[:, None, :]).reshape(n, 9)
-    cos_tip = -(outer @ edges.tip_rotation.reshape(-1, 9).T)
-    in_cone = _inside_cone(cos_start, mu_f) & _inside_cone(cos_tip, mu_f)
+    # 1. Contact slip (7.1)-(7.2), at the start and with the normal rotated to each edge's apex.
+    cos_start = -np.einsum("ij,ij->i", u, normal)[:, None]  # (n, 1), -u . n
+    # (10.1): -u . (Rot_e n) = -<u n^T, Rot_e> (Frobenius), all E edges in one product.
+    outer = (u[:, :, None] * normal[:, None, :]).reshape(n, 9)  # (n, 3, 1) * (n, 1, 3) -> (n, 9)
+    cos_tip = -(outer @ edges.tip_rotation.reshape(-1, 9).T)  # (n, 9) @ (9, E) -> (n, E)
+    in_cone = _inside_cone(cos_start, mu_f) & _inside_cone(cos_tip, mu_f)  # (n, 1) & (n, E) -> (n, E)
 
-    # 2. Minimum push force: e . ((p - y0) x u) = e . (p x u) - u . (e x y0).
-    p_cross_u = np.cross(contact, u)
-    torque = p_cross_u @ edges.direction.T - u @ np.cross(edges.direction, edges.start).T
-    rotates = torque > 1e-12
-    gravity_torque = mass * gravity * edges.com_distance
-    force = np.where(rotates, gravity_torque / np.where(rotates, torque, 1.0), np.inf)
+    # 2. Minimum push force (7.3)-(7.5).  Torque identity (10.2):
+    #    e . ((p - y0) x u) = e . (p x u) - u . (e x y0), so p x u is crossed once per trial
+    #    and e x y0 once per edge, instead of (p - y0) x u once per (trial, edge).
+    p_cross_u = np.cross(contact, u)  # (n, 3), batched cross product
+    torque = p_cross_u @ edges.direction.T - u @ np.cross(edges.direction, edges.start).T  # (n, E), tau_e, m
+    rotates = torque > MIN_PUSH_TORQUE  # (n, E), (7.4)
+    gravity_torque = mass * gravity * edges.com_distance  # (E,), m g d_e, N m
+    # The inner where puts a harmless divisor (1) where the push does not rotate; those
+    # entries are replaced by inf anyway, this only keeps division warnings away.
+    force = np.where(rotates, gravity_torque / np.where(rotates, torque, 1.0), np.inf)  # (n, E), F*_e, N
 
-    # 3. Workspace slip on the friction limit surface, divided through by F*^2.
+    # 3. Workspace slip on the friction limit surface (7.6)-(7.9), divided through by F*^2 (10.4):
     #    tangential: F*|u_xy| <= mu_T F_n;  F_n = m g + F* max(0, -u_z)
     with np.errstate(divide="ignore", invalid="ignore"):
-        normal_per_newton = mass * gravity / force + np.maximum(0.0, -u[:, 2:3])
-    limit = (trials.mu_table[:, None] * normal_per_newton) ** 2
-    load = (u[:, 0:1] ** 2 + u[:, 1:2] ** 2) * np.ones_like(force)
+        normal_per_newton = mass * gravity / force + np.maximum(0.0, -u[:, 2:3])  # (n, E), F_n / F*
+    limit = (trials.mu_table[:, None] * normal_per_newton) ** 2  # (n, 1) * (n, E) -> (n, E)
+    load = (u[:, 0:1] ** 2 + u[:, 1:2] ** 2) * np.ones_like(force)  # (n, 1) -> (n, E), |u_xy|^2
     if predicts_rotations:
-        # tau_z per newton about the COM's projection on the edge: (p x u)_z - (O x u)_z
-        origin_cross = np.column_stack([-edges.origin[:, 1], edges.origin[:, 0], np.zeros(len(edges.origin))])
-        tau = p_cross_u[:, 2:3] - u @ origin_cross.T
-        load = load + (tau / edges.half_span) ** 2
-    holds = (load <= limit) & (trials.mu_table[:, None] > 0.0)
+        # tau_z per newton about the COM's projection on the edge (10.3): (p x u)_z - (O x u)_z,
+        # with (O x u)_z = u . (-O_y, O_x, 0).
+        origin_cross = np.column_stack([-edges.origin[:, 1], edges.origin[:, 0], np.zeros(len(edges.origin))])  # (E, 3)
+        tau = p_cross_u[:, 2:3] - u @ origin_cross.T  # (n, 1) - (n, 3) @ (3, E) -> (n, E), m
+        load = load + (tau / edges.half_span) ** 2  # (n, E) / (E,)
+    # mu_T <= 0 (a draw of (8.1) below zero) holds nothing; exact, not a tolerance.
+    holds = (load <= limit) & (trials.mu_table[:, None] > 0.0)  # (n, E)
 
-    passes = in_cone & rotates & holds & trials.valid[:, None]
-    candidate = np.where(passes, force, np.inf)
-    edge = np.argmin(candidate, axis=1)
-    required = candidate[np.arange(n), edge]
+    passes = in_cone & rotates & holds & trials.valid[:, None]  # (n, E), (7.10)
+    candidate = np.where(passes, force, np.inf)  # (n, E)
+    # (10.6): the least-force passing edge; a row of all inf means no edge passes.
+    edge = np.argmin(candidate, axis=1)  # (n,)
+    required = candidate[np.arange(n), edge]  # (n,), N
     return np.where(np.isfinite(required), edge, OUTCOME_NO_EDGE), required
 
 
 def _inside_cone(cos: np.ndarray, mu: np.ndarray) -> np.ndarray:
-    """tan(angle) <= mu for a push making angle acos(cos) with the inward normal."""
+    """tan(angle) <= mu for a push making angle acos(cos) with the inward normal (7.1).
+
+    cos : (n, 1) or (n, E) float;  mu : (n, 1) float;  returns : cos's shape, bool
+    (10.5): sin <= mu cos, with cos > 0, is tan <= mu without acos or tan; the clip at 0
+    only absorbs rounding of |cos| slightly above 1.  cos > 0 is exact: a push
+    perpendicular to the normal is outside every cone (tan = inf).
+    """
     sin = np.sqrt(np.maximum(0.0, 1.0 - cos * cos))
     return (cos > 0.0) & (sin <= mu * cos)
 
@@ -205,19 +266,21 @@ def evaluate_pose(
     obj : the object;  pose : one of its stable poses;  n_poses : size of its pose set
     actions : candidate pushes of this pose;  rng : stream for this (object, pose)
     """
-    n_actions, trials = len(actions.status), config.trials
-    noise = sample_noise(rng, n_actions, config)
-    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
-    edges = edge_geometry(pose.base_edges, center_mass)
-    final_pose = np.append(pose.edge_final_pose, pose.index)  # index -1 (OUTCOME_NO_EDGE): stays
+    n_actions, trials = len(actions.status), config.trials  # A, T
+    # Drawn once for all A actions, ok or not, before blocking: blocking never changes a draw.
+    noise = sample_noise(rng, n_actions, config)  # (A, T), (A, T, 3) fields
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]  # (3,), pose frame
+    edges = edge_geometry(pose.base_edges, center_mass)  # (E, ...) fields
+    final_pose = np.append(pose.edge_final_pose, pose.index)  # (E + 1,); index -1 (OUTCOME_NO_EDGE): stays
 
-    outcomes = np.full((n_actions, trials), OUTCOME_NOT_EVALUATED, dtype=np.int16)
-    forces = np.full((n_actions, trials), np.inf)
-    ok = np.flatnonzero(actions.status == STATUS_OK)
+    outcomes = np.full((n_actions, trials), OUTCOME_NOT_EVALUATED, dtype=np.int16)  # (A, T)
+    forces = np.full((n_actions, trials), np.inf)  # (A, T), N
+    ok = np.flatnonzero(actions.status == STATUS_OK)  # (n_ok,) action indices
+    # ceil(n_ok / chunk_actions) nearly equal blocks of a <= chunk_actions actions.
     for chunk in np.array_split(ok, max(1, int(np.ceil(len(ok) / config.chunk_actions)))):
         if len(chunk) == 0:
             continue
-        chunk_noise = TrialNoise(*(getattr(noise, f)[chunk] for f in TrialNoise.__dataclass_fields__))
+        chunk_noise = TrialNoise(*(getattr(noise, f)[chunk] for f in TrialNoise.__dataclass_fields__))  # (a, T, ...)
         chunk_trials = noisy_trials(
             obj,
             pose.transform,
@@ -228,19 +291,20 @@ def evaluate_pose(
             chunk_noise,
             config,
         )
-        edge, force = trial_outcomes(chunk_trials, edges, obj.mass, config.gravity, config.predicts_rotations)
-        outcomes[chunk] = edge.reshape(len(chunk), trials)
+        edge, force = trial_outcomes(chunk_trials, edges, obj.mass, config.gravity, config.predicts_rotations)  # (n,)
+        outcomes[chunk] = edge.reshape(len(chunk), trials)  # (n,) -> (a, T), undoing the action-major flattening
         forces[chunk] = force.reshape(len(chunk), trials)
 
-    next_pose = np.full((n_actions, n_poses), np.nan)
-    landed = final_pose[outcomes[ok]]
-    cells = np.repeat(np.arange(len(ok)), trials) * n_poses + landed.ravel()
-    counts = np.bincount(cells, minlength=len(ok) * n_poses).reshape(len(ok), n_poses)
+    # (9.1) via (10.7): pose landed in per (ok action, trial), counted per (action, pose) cell.
+    next_pose = np.full((n_actions, n_poses), np.nan)  # (A, P)
+    landed = final_pose[outcomes[ok]]  # (n_ok, T) pose indices; outcome -1 reads the last entry (stays)
+    cells = np.repeat(np.arange(len(ok)), trials) * n_poses + landed.ravel()  # (n_ok T,), row * P + pose
+    counts = np.bincount(cells, minlength=len(ok) * n_poses).reshape(len(ok), n_poses)  # (n_ok, P)
     next_pose[ok] = counts / trials
-    p_topple = np.full(n_actions, np.nan)
+    p_topple = np.full(n_actions, np.nan)  # (A,), (9.2)
     p_topple[ok] = 1.0 - next_pose[ok, pose.index]
-    toppled = outcomes >= 0
+    toppled = outcomes >= 0  # (A, T), toppled over some edge (blocked ones included, section 9)
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean_force = np.where(toppled, forces, 0.0).sum(axis=1) / toppled.sum(axis=1)
+        mean_force = np.where(toppled, forces, 0.0).sum(axis=1) / toppled.sum(axis=1)  # (A,), (9.3), N
     mean_force[toppled.sum(axis=1) == 0] = np.nan
     return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes)
