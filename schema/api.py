@@ -23,7 +23,7 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from schema.vocabulary import PolicyName, StatusName
 
@@ -32,6 +32,21 @@ MAX_BATCH = 1000
 
 ROTATION_TOLERANCE = 1e-3
 """Largest |R^T R - I| entry and |det R - 1| accepted for the rotation of an observed pose."""
+
+HEIGHT_TOLERANCE = 0.005
+"""m, default largest |z_offset| of an observed pose: the height above z = 0 of the matched
+stable pose's support point (the pose frame's origin, on the bottom under the centre of mass).
+Further off, the object is not resting on the table (stacked, held, or a perception error) and
+/plan answers 409; the service's ``--height-tolerance`` / ``TOPPLEDB_HEIGHT_TOLERANCE`` overrides it."""
+
+FINGER_FORCE_LIMIT = 20.0
+"""N, default largest push force the finger may apply, used when the manifest has no
+``parameters.contacts.finger_force_limit``.  An assumed budget for a thin finger on a
+collaborative arm, not a measured one: set it for your robot (``--finger-force-limit`` or
+``TOPPLEDB_FINGER_FORCE_LIMIT`` overrides both)."""
+
+QUATERNION_TOLERANCE = 1e-3
+"""Largest | |q| - 1 | accepted for a ROS orientation quaternion (it is then normalised)."""
 
 Policy = PolicyName
 """Policies whose choice per pose is stored (thesis 4.3), ``schema.vocabulary.POLICIES``."""
@@ -86,6 +101,62 @@ class Model(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+
+
+class Point(Model):
+    """geometry_msgs/Point: m."""
+
+    x: Finite
+    y: Finite
+    z: Finite
+
+
+class Quaternion(Model):
+    """geometry_msgs/Quaternion, x, y, z, w (Hamilton, w the scalar part); unit within QUATERNION_TOLERANCE."""
+
+    x: Finite
+    y: Finite
+    z: Finite
+    w: Finite
+
+    @model_validator(mode="after")
+    def _unit(self) -> Quaternion:
+        norm = float(np.sqrt(self.x**2 + self.y**2 + self.z**2 + self.w**2))
+        if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+            raise ValueError(f"the orientation quaternion is not unit: |q| = {norm:.6g} (tolerance {QUATERNION_TOLERANCE:g})")
+        return self
+
+
+class RosPose(Model):
+    """A pose as ROS sends it (geometry_msgs/PoseStamped flattened): the object frame in ``frame_id``."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"position": {"x": 0.4, "y": -0.1, "z": 0.02},
+                                         "orientation": {"x": 0.0, "y": 0.0, "z": 0.7071068, "w": 0.7071068},
+                                         "frame_id": "world"}]},
+    )
+
+    position: Point
+    orientation: Quaternion
+    frame_id: str = Field(description="Must be the service's table frame (z up, table at z = 0), 'world' unless configured; "
+                          "the service does not know other frames: transform the pose into it first")
+
+    def matrix(self) -> np.ndarray:
+        """(4, 4) float, object frame -> ``frame_id``."""
+        q = np.array([self.orientation.x, self.orientation.y, self.orientation.z, self.orientation.w], dtype=float)
+        x, y, z, w = q / np.linalg.norm(q)
+        out = np.eye(4)
+        out[:3, :3] = [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+        out[:3, 3] = [self.position.x, self.position.y, self.position.z]
+        return out
+
+
 # --- errors -------------------------------------------------------------------------
 
 
@@ -110,10 +181,21 @@ class ValidationErrorBody(ErrorBody):
 class NoMatchBody(ErrorBody):
     """409: the observed orientation is no stable pose of the object."""
 
+    reason: Literal["no_stable_pose"] = "no_stable_pose"
     object_id: str
     nearest_pose: int = Field(description="Stable pose whose down vector is closest to the observed one")
     angle_error: float = Field(description="rad, angle between the observed and the nearest pose's down vector")
     tolerance: float = Field(description="rad, largest angle that still matches (manifest poses.same_pose_angle)")
+
+
+class OffTableBody(ErrorBody):
+    """409: the observed orientation matches a stable pose but the object is not on the table z = 0."""
+
+    reason: Literal["off_table"] = "off_table"
+    object_id: str
+    pose: int = Field(description="The matched stable pose")
+    z_offset: float = Field(description="m, observed height of the pose's support point (pose frame origin) above z = 0")
+    height_tolerance: float = Field(description="m, largest |z_offset| accepted")
 
 
 # --- service -----------------------------------------------------------------------
@@ -127,11 +209,25 @@ class Counts(Model):
     transitions: int
 
 
+class DatasetIdentity(Model):
+    """Which build the service answers from."""
+
+    path: str = Field(description="Dataset directory as the service was given it")
+    manifest_sha256: str = Field(description="SHA-256 of manifest.json: names the build (its tables' checksums are in it)")
+    created: str = Field(description="UTC, ISO 8601, when the build finished (manifest created)")
+    code_version: str = Field(description="toppledb version that built it, with the git commit when known")
+    parameters_sha256: str = Field(description="SHA-256 of the manifest's parameters (canonical JSON): equal digests, equal model")
+    loaded_at: str = Field(description="UTC, ISO 8601, when this worker loaded it")
+
+
 class Health(Model):
     status: Literal["ok"]
     schema_version: str
+    service_version: str = Field(description="toppledb version of the running service")
+    dataset: DatasetIdentity
     counts: Counts
-    load_seconds: float = Field(description="s, time taken to load the dataset at start")
+    load_seconds: float = Field(description="s, time taken to load the dataset")
+    reloads: int = Field(description="Datasets swapped in since start (SIGHUP or a changed manifest.json)")
 
 
 # --- objects and poses -------------------------------------------------------------
@@ -258,24 +354,29 @@ class TransitionBatch(Model):
 
 
 class PlanRequest(Model):
-    model_config = ConfigDict(
-        extra="forbid",
-        json_schema_extra={
-            "examples": [
-                {
-                    "object_id": "random_001",
-                    "pose": [[0, -1, 0, 0.4], [1, 0, 0, -0.1], [0, 0, 1, 0.02], [0, 0, 0, 1]],
-                    "policy": "value_iteration",
-                }
-            ]
-        },
-    )
+    """Plan for one observed object. The served OpenAPI document's example is a real object
+    and pose of the served dataset (the service fills it in at start)."""
 
     object_id: str
-    pose: RigidTransform = Field(
-        description="Observed pose: object frame -> world frame (z up, table z = 0), 4x4 row-major"
+    pose: RigidTransform | None = Field(
+        None, description="Observed pose, object frame -> world frame (z up, table z = 0), 4x4 row-major; "
+        "give this or ros_pose"
+    )
+    ros_pose: RosPose | None = Field(
+        None, description="The observed pose as ROS sends it (position, orientation quaternion x, y, z, w, frame_id); "
+        "give this or pose"
     )
     policy: Policy = "value_iteration"
+
+    @model_validator(mode="after")
+    def _one_pose(self) -> PlanRequest:
+        if (self.pose is None) == (self.ros_pose is None):
+            raise ValueError("give exactly one of pose (a 4x4 matrix) and ros_pose (position, orientation, frame_id)")
+        return self
+
+    def observed(self) -> np.ndarray:
+        """(4, 4) float, object frame -> world frame, from whichever form was given."""
+        return np.asarray(self.pose, dtype=np.float64) if self.pose is not None else self.ros_pose.matrix()
 
 
 class PoseMatch(Model):
@@ -285,10 +386,16 @@ class PoseMatch(Model):
     yaw: float = Field(description="rad, rotation about world z of the pose frame, in (-pi, pi]")
     translation: Vector2 = Field(description="m, world x, y of the pose frame's origin (below the centre of mass)")
     z_offset: float = Field(
-        description="m, observed height of the pose frame's origin above z = 0; "
-        "nonzero when the object does not rest on the table z = 0 (the push assumes it does)"
+        description="m, observed height of the pose frame's origin (the support point under the centre of mass) "
+        "above z = 0; |z_offset| <= height_tolerance, else the answer is 409 off_table"
     )
-    planar: Matrix4 = Field(description="pose frame -> world frame: rotation yaw about z, translation in x, y")
+    height_tolerance: float = Field(description="m, largest |z_offset| accepted")
+    planar: Matrix4 = Field(description="pose frame -> world frame, the planar part only: rotation yaw about z, translation in x, y")
+    pose_to_world: Matrix4 = Field(
+        description="pose frame -> world frame as observed (observed pose @ inverse of the stable pose's transform): "
+        "planar plus the observed tilt and z_offset. Pushes and grasps are placed through it, so they lie on "
+        "the object's surface as observed"
+    )
 
 
 class WorldPush(Model):
@@ -301,19 +408,43 @@ class WorldPush(Model):
     end: Vector3 = Field(description="m, end of the finger's line: point - push_depth * normal")
     approach_offset: float = Field(description="m, manifest contacts.approach_offset")
     push_depth: float = Field(description="m, manifest contacts.push_depth")
+    required_force: float | None = Field(
+        description="N, mean least push force that topples the object over its trials (dataset mean_force); "
+        "null when no trial toppled it"
+    )
+    finger_force_limit: float = Field(description="N, largest force the finger may apply (see docs/SERVICE.md)")
+    within_force_limit: bool | None = Field(description="required_force <= finger_force_limit; null when required_force is null")
+
+
+Decision = Literal["push", "grasp", "no_grasp"]
+"""What to do: ``push`` (then look again), ``grasp`` now at ``grasp``, or ``no_grasp``: the
+policy does not push and this pose has no suction grasp (V_s = 0): neither helps."""
 
 
 class PlanResponse(Model):
+    """Every value field means the same for every policy; the policy only chooses ``action``."""
+
     object_id: str
     policy: Policy
+    frame_id: str = Field(description="Frame of every world quantity here (the table frame, z up, table z = 0)")
     match: PoseMatch
-    v_s: float = Field(description="Suction quality of the matched pose (the value of grasping now)")
-    action: int | None = Field(description="The policy's action in the matched pose; null: no push, grasp now")
-    expected_value: float = Field(description="The policy's expected value (stored <policy>_value)")
-    p_topple: float | None = Field(description="null for no push")
-    push: WorldPush | None = Field(description="The push in world coordinates; null for no push")
-    next_poses: list[NextPose] = Field(description="Where the push leads; empty for no push")
-    grasp: Grasp | None = Field(description="The matched pose's best suction grasp, world frame; null when none")
+    decision: Decision = Field(description="push, grasp (now, at grasp) or no_grasp (no push and no grasp: V_s = 0)")
+    reason: str = Field(description="One sentence: why this decision, with the values behind it")
+    action: int | None = Field(description="The policy's action in the matched pose; null when it does not push")
+    v_s: float = Field(description="V_s of the matched pose: robust suction grasp quality of grasping now, in [0, 1]")
+    v_t: float = Field(description="V_T of the matched pose: its value under value iteration, max(V_s, gamma max_u Q_T)")
+    q_value: float | None = Field(
+        description="Q_T(pose, action) of the push: expected V_T of the next pose, before the push's discount gamma; null when no push"
+    )
+    expected_v_s_after: float | None = Field(
+        description="Expected V_s of the next pose after the push, sum_x' P(x' | pose, action) V_s(x'); null when no push"
+    )
+    p_topple: float | None = Field(description="P(next pose != pose) of the push; null when no push")
+    push: WorldPush | None = Field(description="The push in world coordinates; null when no push")
+    next_poses: list[NextPose] = Field(description="Where the push leads; empty when no push")
+    grasp: Grasp | None = Field(
+        description="The matched pose's best suction grasp, world frame (execute it when decision is grasp); null when none"
+    )
 
 
 class PlanBatch(Model):

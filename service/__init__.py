@@ -10,4 +10,4 @@ app.  The service imports numpy, pyarrow and FastAPI only, never the geometry st
 from .app import create_app
 from .store import DatasetError, Store
 
-__all__ = ["create_app", "DatasetError", "Store"]
+__all__ = ["DatasetError", "Store", "create_app"]

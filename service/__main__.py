@@ -1,7 +1,8 @@
-"""``python -m service --dataset data/dataset [--host 127.0.0.1] [--port 8000]``.
+"""``python -m service --dataset data/dataset [--host 127.0.0.1] [--port 8000] [--workers 2] [--token ...]``.
 
-Binds to 127.0.0.1 unless ``--host`` says otherwise: the service has no
-authentication, so exposing it is a decision for whoever runs it.
+Binds to 127.0.0.1 unless ``--host`` says otherwise: exposing the service is a decision
+for whoever runs it (then give it ``--token`` or ``TOPPLEDB_TOKEN``).  Every option that
+is a setting of the app also reads its ``TOPPLEDB_*`` variable (``service.settings``).
 """
 
 from __future__ import annotations
@@ -9,15 +10,28 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .server import DEFAULT_KEEP_ALIVE, DEFAULT_LIMIT_CONCURRENCY, DEFAULT_REQUEST_TIMEOUT
+
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8000
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m service", description="Serve a toppledb dataset over HTTP.")
-    parser.add_argument("--dataset", default="data/dataset", help="dataset directory (default: %(default)s)")
+    parser.add_argument("--dataset", default=None, help="dataset directory (default: $TOPPLEDB_DATASET or data/dataset)")
     parser.add_argument("--host", default=DEFAULT_HOST, help="address to bind (default: %(default)s, this machine only)")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port (default: %(default)s)")
+    parser.add_argument("--workers", type=int, default=1, help="worker processes, each with its own copy of the dataset")
+    parser.add_argument("--token", default=None, help="bearer token for every endpoint except /health (better: $TOPPLEDB_TOKEN)")
+    parser.add_argument("--max-body-bytes", type=int, default=None, help="largest request body, else 413")
+    parser.add_argument("--height-tolerance", type=float, default=None, help="m, largest |z_offset| of an observed pose")
+    parser.add_argument("--finger-force-limit", type=float, default=None, help="N, overrides the manifest's")
+    parser.add_argument("--frame-id", default=None, help="the table frame a ROS pose must be in (default world)")
+    parser.add_argument("--watch-seconds", type=float, default=None, help="s between checks for a rebuilt dataset; 0: SIGHUP only")
+    parser.add_argument("--limit-concurrency", type=int, default=DEFAULT_LIMIT_CONCURRENCY, help="503 beyond this many connections")
+    parser.add_argument("--timeout-keep-alive", type=int, default=DEFAULT_KEEP_ALIVE, help="s an idle connection stays open")
+    parser.add_argument("--request-timeout", type=float, default=DEFAULT_REQUEST_TIMEOUT, help="s to deliver a whole request")
+    parser.add_argument("--access-log", action="store_true", help="log a line per request (off: /metrics counts them)")
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     return parser
 
@@ -30,22 +44,38 @@ def main(argv: list[str] | None = None) -> int:
     # the life of the process; the system allocator gives them back.
     pa.set_memory_pool(pa.system_memory_pool())
     from .app import create_app
+    from .server import run
+    from .settings import Settings
     from .store import DatasetError
 
     try:
-        app = create_app(args.dataset)
-    except DatasetError as err:
+        settings = Settings.from_env(
+            dataset=args.dataset, token=args.token, max_body_bytes=args.max_body_bytes, height_tolerance=args.height_tolerance,
+            finger_force_limit=args.finger_force_limit, frame_id=args.frame_id, watch_seconds=args.watch_seconds,
+        )
+        app = create_app(settings=settings) if args.workers == 1 else None
+        if app is None:  # check the manifest once, before starting workers that would each fail
+            from schema.reader import Dataset, DatasetUnreadable
+
+            try:
+                Dataset.open(settings.dataset)
+            except DatasetUnreadable as err:
+                raise DatasetError(str(err)) from None
+    except (DatasetError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    import uvicorn
-
-    store = app.state.store
-    print(
-        f"toppledb: {store.counts['objects']} objects, {store.counts['poses']} poses, "
-        f"{store.counts['actions']} actions loaded from {args.dataset} in {store.load_seconds:.1f} s",
-        file=sys.stderr,
+    if app is not None:
+        store = app.state.live.store
+        print(
+            f"toppledb: {store.counts['objects']} objects, {store.counts['poses']} poses, "
+            f"{store.counts['actions']} actions loaded from {settings.dataset} in {store.load_seconds:.1f} s",
+            file=sys.stderr,
+        )
+    run(
+        settings, args.host, args.port, workers=args.workers, log_level=args.log_level, access_log=args.access_log,
+        limit_concurrency=args.limit_concurrency, timeout_keep_alive=args.timeout_keep_alive,
+        request_timeout=args.request_timeout, app=app,
     )
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level)
     return 0
 
 

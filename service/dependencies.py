@@ -1,4 +1,4 @@
-"""FastAPI dependencies: the loaded dataset for route handlers."""
+"""FastAPI dependencies: the served dataset and the settings, for route handlers."""
 
 from __future__ import annotations
 
@@ -6,12 +6,24 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
-from .store import Store
+from .settings import Settings
+from .store import LiveStore, Store
+
+
+def get_live(request: Request) -> LiveStore:
+    return request.app.state.live
 
 
 def get_store(request: Request) -> Store:
-    """The store ``create_app`` loaded at start (tests may override this dependency)."""
-    return request.app.state.store
+    """The store being served when the request arrived: taken once, so a dataset swap
+    during the request never mixes two builds in one answer."""
+    return request.app.state.live.store
 
 
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+LiveDep = Annotated[LiveStore, Depends(get_live)]
 StoreDep = Annotated[Store, Depends(get_store)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]

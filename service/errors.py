@@ -1,13 +1,17 @@
 """Errors of the service and how they become JSON responses.
 
 Every error body is ``{"detail": "<one message>"}`` (``schema.api.ErrorBody``), so a
-client needs one code path: 404 unknown ids, 409 an observed pose that is no stable
-pose, 422 malformed input (with ``errors``, one entry per problem), 500 a bug.
+client needs one code path: 401 a missing or wrong bearer token, 404 unknown ids, 409 an
+observed pose that is no stable pose or not on the table (``reason`` says which), 413 a body
+over the limit, 415 a body that is not JSON, 422 malformed input (with ``errors``, one entry
+per problem), 500 a bug (its traceback logged, at most ``TRACEBACKS_PER_MINUTE`` a minute).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
+import time
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -43,6 +47,67 @@ class NoStablePose(ServiceError):
     status_code = 409
 
 
+class OffTable(ServiceError):
+    """An observed pose whose support point is too far above or below the table z = 0."""
+
+    status_code = 409
+
+
+class UnknownFrame(ServiceError):
+    """A ROS pose given in a frame other than the service's table frame: malformed input."""
+
+    status_code = 422
+
+    def body(self) -> dict:
+        return {"detail": f"body.ros_pose.frame_id: {self.detail}",
+                "errors": [{"loc": ["body", "ros_pose", "frame_id"], "msg": self.detail, "type": "unknown_frame"}]}
+
+
+TRACEBACKS_PER_MINUTE = 10
+"""Most tracebacks logged a minute: a bug hit by every request must not fill the disk."""
+
+
+class RateLimit:
+    """At most ``per_minute`` events a minute (fixed window); counts the rest."""
+
+    def __init__(self, per_minute: int):
+        self.per_minute = per_minute
+        self.window = 0.0
+        self.used = 0
+        self.suppressed = 0
+        self._lock = threading.Lock()
+
+    def allow(self) -> tuple[bool, int]:
+        """(allowed, events suppressed since the last allowed one)."""
+        with self._lock:
+            now = time.monotonic()
+            if now - self.window >= 60.0:
+                self.window, self.used = now, 0
+            if self.used < self.per_minute:
+                self.used += 1
+                suppressed, self.suppressed = self.suppressed, 0
+                return True, suppressed
+            self.suppressed += 1
+            return False, 0
+
+
+_tracebacks = RateLimit(TRACEBACKS_PER_MINUTE)
+
+
+def validation_body(errors: list[dict]) -> dict:
+    """The 422 body for pydantic/FastAPI error dicts: a one-line ``detail`` and ``errors``."""
+    # FastAPI's default body is a list under "detail"; ours keeps "detail" a message
+    # and drops "input"/"ctx", which may echo huge bodies or hold non-JSON objects.
+    errors = [
+        {"loc": list(e.get("loc", ())), "msg": str(e.get("msg", "")).removeprefix("Value error, "), "type": str(e.get("type", ""))}
+        for e in errors
+    ]
+    detail = "; ".join(f"{_location(e['loc'])}: {e['msg']}" for e in errors[:10])
+    if len(errors) > 10:
+        detail += f"; ... {len(errors) - 10} more"
+    return {"detail": detail or "malformed request", "errors": errors}
+
+
 def _location(loc) -> str:
     return ".".join(str(part) for part in loc)
 
@@ -52,16 +117,7 @@ async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    # FastAPI's default body is a list under "detail"; ours keeps "detail" a message
-    # and drops "input"/"ctx", which may echo huge bodies or hold non-JSON objects.
-    errors = [
-        {"loc": list(e.get("loc", ())), "msg": str(e.get("msg", "")).removeprefix("Value error, "), "type": str(e.get("type", ""))}
-        for e in exc.errors()
-    ]
-    detail = "; ".join(f"{_location(e['loc'])}: {e['msg']}" for e in errors[:10])
-    if len(errors) > 10:
-        detail += f"; ... {len(errors) - 10} more"
-    return JSONResponse({"detail": detail or "malformed request", "errors": errors}, status_code=422)
+    return JSONResponse(validation_body(list(exc.errors())), status_code=422)
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
@@ -69,7 +125,10 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
 
 
 async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
-    log.exception("unhandled error on %s %s", request.method, request.url.path)
+    allowed, suppressed = _tracebacks.allow()
+    if allowed:
+        more = f" ({suppressed} more since the last one logged)" if suppressed else ""
+        log.error("unhandled error on %s %s%s", request.method, request.url.path, more, exc_info=exc)
     return JSONResponse({"detail": "internal error (logged by the service)"}, status_code=500)
 
 

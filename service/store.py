@@ -20,7 +20,12 @@ Imports numpy and pyarrow only: never the geometry stack.
 
 from __future__ import annotations
 
+import datetime
+import hashlib
+import json
+import logging
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -30,13 +35,16 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from schema import layout
+from schema.api import FINGER_FORCE_LIMIT
 from schema.manifest import Manifest
 from schema.reader import Dataset, DatasetUnreadable
-from schema.vocabulary import POLICIES, STATUS_NAMES, STATUS_OK
+from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .errors import NotFound
 
 STATUS_CODES = pa.array(STATUS_NAMES)
+log = logging.getLogger("service")
 
 
 class DatasetError(RuntimeError):
@@ -157,12 +165,25 @@ class ObjectData:
 class Store:
     """The loaded dataset: objects by id, the manifest parameters the service needs."""
 
-    def __init__(self, root: Path, manifest: Manifest, objects: dict[str, ObjectData], load_seconds: float):
+    def __init__(
+        self, root: Path, manifest: Manifest, objects: dict[str, ObjectData], load_seconds: float, manifest_sha256: str = ""
+    ):
         self.root = root
         self.manifest = manifest
         self.objects = objects
         self.load_seconds = load_seconds
+        self.manifest_sha256 = manifest_sha256
+        """SHA-256 of manifest.json's bytes as read before the tables: names the build."""
+        self.loaded_at = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
         parameters = manifest.parameters
+        self.parameters_sha256 = hashlib.sha256(
+            json.dumps(parameters.model_dump(mode="json"), sort_keys=True, separators=(",", ":")).encode()
+        ).hexdigest()
+        code = manifest.code_version
+        self.code_version = code.package + (f"+g{code.git_commit[:12]}" if code.git_commit else "")
+        manifest_limit = (parameters.contacts.model_extra or {}).get("finger_force_limit")
+        self.manifest_finger_force_limit: float | None = float(manifest_limit) if manifest_limit is not None else None
+        """N, the manifest's contacts.finger_force_limit when the build recorded one."""
         self.schema_version: str = manifest.schema_version
         self.tolerance = parameters.poses.same_pose_angle
         """rad, largest angle between down vectors of one stable pose (pose matching)."""
@@ -180,6 +201,23 @@ class Store:
             "transitions": sum(len(o.next_pose) for o in objects.values()),
         }
 
+    def finger_force_limit(self, override: float | None = None) -> float:
+        """N: ``override`` (service setting), else the manifest's, else schema.api.FINGER_FORCE_LIMIT."""
+        if override is not None:
+            return override
+        return self.manifest_finger_force_limit if self.manifest_finger_force_limit is not None else FINGER_FORCE_LIMIT
+
+    def example_object(self) -> tuple[str, int, np.ndarray] | None:
+        """(object_id, pose, transform (4, 4)) of the first object with a pushing pose under
+        value iteration, else of the first object: the OpenAPI examples come from here."""
+        for obj in self.objects.values():
+            pushing = np.flatnonzero(obj.policy_action["value_iteration"] != NO_OP)
+            if len(pushing):
+                return obj.object_id, int(pushing[0]), obj.transforms[int(pushing[0])]
+        for obj in self.objects.values():
+            return obj.object_id, 0, obj.transforms[0]
+        return None
+
     def object(self, object_id: str) -> ObjectData:
         """The object, or NotFound saying whether its build failed."""
         try:
@@ -192,10 +230,14 @@ class Store:
             raise NotFound(f"unknown object '{object_id}' ({len(self.objects)} objects; GET /objects lists them)") from None
 
     @classmethod
-    def load(cls, root: str | Path, threads: int | None = None) -> "Store":
+    def load(cls, root: str | Path, threads: int | None = None) -> Store:
         """Read a finished dataset directory; DatasetError if it is not one this service reads."""
         started = time.perf_counter()
         root = Path(root)
+        try:
+            manifest_sha256 = hashlib.sha256((root / layout.MANIFEST).read_bytes()).hexdigest()
+        except OSError:
+            manifest_sha256 = ""  # Dataset.open below says what is wrong
         try:
             dataset = Dataset.open(root)
             objects_table = dataset.table("objects")
@@ -212,7 +254,7 @@ class Store:
             loaded = list(
                 pool.map(lambda i: _load_object(dataset, objects_rows[i], poses_table, pose_rows.get(ids[i], [])), range(len(ids)))
             )
-        store = cls(root, manifest, {o.object_id: o for o in loaded}, time.perf_counter() - started)
+        store = cls(root, manifest, {o.object_id: o for o in loaded}, time.perf_counter() - started, manifest_sha256)
         expected = {k: getattr(manifest.counts, k) for k in store.counts}
         if expected != store.counts:
             raise DatasetError(
@@ -327,3 +369,58 @@ def _transforms(poses: pa.Table) -> np.ndarray:
     """The fixed-size-list ``transform`` column as (P, 4, 4) float64."""
     column = poses.column("transform").combine_chunks()
     return column.flatten().to_numpy().astype(np.float64).reshape(-1, 4, 4)
+
+
+def manifest_stamp(root: Path) -> tuple | None:
+    """(inode, size, mtime_ns) of manifest.json, None when absent: a rebuild replaces the file
+    (the pipeline writes it last, atomically), so any change of the stamp is a new build."""
+    try:
+        st = os.stat(Path(root) / layout.MANIFEST)
+    except OSError:
+        return None
+    return (st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+class LiveStore:
+    """The store a worker serves now, swapped atomically for a rebuilt dataset.
+
+    A request takes ``live.store`` once (``dependencies.get_store``) and uses that object to
+    the end, so a swap never mixes two builds in one answer nor fails a request in flight;
+    the old store is freed when its last request finishes.  A failed reload (half-written
+    rebuild, wrong schema) keeps the old store and is logged once per manifest stamp.
+    """
+
+    def __init__(self, store: Store):
+        self.store = store
+        self.reloads = 0
+        self._stamp = manifest_stamp(store.root)
+        self._failed_stamp: tuple | None = None
+        self._lock = threading.Lock()
+
+    def changed(self) -> bool:
+        stamp = manifest_stamp(self.store.root)
+        return stamp is not None and stamp != self._stamp and stamp != self._failed_stamp
+
+    def reload(self, force: bool = False) -> bool:
+        """Load the dataset again if its manifest changed (or ``force``); True when swapped.
+        Blocking (seconds for a full dataset): call it from a thread, not the event loop."""
+        with self._lock:  # one load at a time; a second trigger waits and then finds nothing new
+            if not force and not self.changed():
+                return False
+            stamp = manifest_stamp(self.store.root)
+            try:
+                fresh = Store.load(self.store.root)
+            except DatasetError as err:
+                if stamp != self._failed_stamp:
+                    log.warning("reload of %s failed, still serving manifest %s: %s", self.store.root,
+                                self.store.manifest_sha256[:12], err)
+                self._failed_stamp = stamp
+                return False
+            if fresh.manifest_sha256 == self.store.manifest_sha256 and not force:
+                self._stamp = stamp
+                return False
+            self.store, self._stamp, self._failed_stamp = fresh, stamp, None
+            self.reloads += 1
+            log.warning("now serving %s manifest %s (%d objects, loaded in %.1f s)", fresh.root,
+                        fresh.manifest_sha256[:12], fresh.counts["objects"], fresh.load_seconds)
+            return True

@@ -215,15 +215,26 @@ def test_plan_round_trip_recovers_pose_planar_transform_and_push(client, tables)
             np.testing.assert_allclose(match["planar"], planar, atol=1e-12)
             assert match["z_offset"] == pytest.approx(0.0, abs=1e-12)
             assert body["action"] == no_op(row[f"{policy}_action"])
-            assert body["expected_value"] == row[f"{policy}_value"] and body["v_s"] == row["v_s"]
+            assert body["v_s"] == row["v_s"] and body["v_t"] == row["v_t"]
             if row["grasp_point_x"] is not None:
                 np.testing.assert_allclose(body["grasp"]["point"], (planar @ [*xyz(row, "grasp_point"), 1])[:3], atol=1e-12)
             if body["action"] is None:
                 assert body["push"] is None and body["next_poses"] == [] and body["p_topple"] is None
+                assert body["q_value"] is None and body["expected_v_s_after"] is None
+                assert row[f"{policy}_value"] == row["v_s"], "a policy that grasps is worth V_s"
+                no_grasp = row["grasp_point_x"] is None or row["v_s"] == 0
+                assert body["decision"] == ("no_grasp" if no_grasp else "grasp") and (body["grasp"] is None) <= no_grasp
                 continue
             pushes += 1
+            assert body["decision"] == "push"
             action = tables["actions"][(object_id, pose, body["action"])]
             assert action["status"] == "ok"
+            # Same meaning for every policy: Q_T and E[V_s(next)] of the chosen push, as stored.
+            assert body["q_value"] == action["q"] and body["expected_v_s_after"] == action["greedy"]
+            if policy == "value_iteration":
+                assert row[f"{policy}_value"] == body["q_value"]
+            else:
+                assert row[f"{policy}_value"] == body["expected_v_s_after"]
             point = (planar @ [*xyz(action, "point"), 1.0])[:3]
             normal = planar[:3, :3] @ xyz(action, "normal")
             push = body["push"]
@@ -284,7 +295,7 @@ MALFORMED = [
     (json.dumps({"object_id": "random_001", "pose": _identity_with(1, 1, "one")}), "valid number"),
     (json.dumps({"object_id": "random_001", "pose": _identity_with(0, 0, True)}), "body.pose.0.0: Input should be a valid number"),
     (json.dumps({"object_id": "random_001", "pose": np.eye(4).tolist(), "policy": "random"}), "body.policy"),
-    (json.dumps({"object_id": "random_001"}), "body.pose: Field required"),
+    (json.dumps({"object_id": "random_001"}), "body: give exactly one of pose (a 4x4 matrix) and ros_pose"),
     (json.dumps({"object_id": "random_001", "pose": np.eye(4).tolist(), "frame": "world"}), "body.frame: Extra inputs"),
     (json.dumps([1, 2, 3]), "valid dictionary"),
     ("{not json", "JSON decode error"),

@@ -8,14 +8,13 @@ mass over the origin).
 from __future__ import annotations
 
 import numpy as np
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
+from fastapi.responses import Response
 
 from schema.api import (
     ActionDetail,
     ErrorBody,
     Grasp,
-    ItemError,
-    NextPose,
     ObjectDetail,
     ObjectList,
     ObjectSummary,
@@ -27,14 +26,16 @@ from schema.api import (
     RankBy,
     RankedAction,
     TransitionBatch,
+    TransitionQuery,
     TransitionResult,
     TransitionResults,
     ValidationErrorBody,
 )
 from schema.vocabulary import NO_OP, POLICIES
 
+from .. import batches
 from ..dependencies import StoreDep
-from ..errors import ServiceError
+from ..planning import next_poses
 from ..store import ObjectData, Store, optional, widen
 
 ERRORS = {404: {"model": ErrorBody, "description": "Unknown object, pose or action"},
@@ -65,11 +66,6 @@ def pose_summary(obj: ObjectData, pose: int) -> PoseSummary:
         n_ok_actions=int(obj.n_ok_actions[pose]),
         value_iteration_action=_action_or_none(obj.policy_action["value_iteration"][pose]),
     )
-
-
-def next_poses(obj: ObjectData, row: int) -> list[NextPose]:
-    poses, probabilities = obj.transitions(row)
-    return [NextPose(next_pose=int(p), probability=float(q)) for p, q in zip(poses, probabilities)]
 
 
 def action_detail(obj: ObjectData, pose: int, action: int) -> ActionDetail:
@@ -201,22 +197,23 @@ async def get_q(
     )
 
 
-def _transition(store: Store, object_id: str, pose: int, action: int) -> TransitionResult:
-    try:
-        return TransitionResult(result=action_detail(store.object(object_id), pose, action))
-    except ServiceError as err:
-        return TransitionResult(error=ItemError(status=err.status_code, detail=err.detail))
+def _transition(store: Store, item: TransitionQuery) -> ActionDetail:
+    return action_detail(store.object(item.object_id), item.pose, item.action)
 
 
-# A plain def: FastAPI runs it in a worker thread, so a 1000-item batch does not stall
-# the event loop that serves single lookups.
 @batch.post(
     "/transitions",
     response_model=TransitionResults,
     summary="Many actions and their next-pose distributions at once",
     description="`results[i]` answers `items[i]`: `result` (as GET .../actions/{action}) or `error` "
     "(`status` 404 and a `detail`) for an unknown id; one bad id does not fail the batch. A malformed "
-    "body, or more than 1000 items, fails the whole batch with 422.",
+    "body, or more than 1000 items, fails the whole batch with 422. Batches run in their own lane, one at a "
+    "time per worker, so they do not delay the single lookups and POST /plan.",
+    openapi_extra=batches.request_body(TransitionBatch),
 )
-def batch_transitions(body: TransitionBatch, store: StoreDep) -> TransitionResults:
-    return TransitionResults(results=[_transition(store, i.object_id, i.pose, i.action) for i in body.items])
+async def batch_transitions(request: Request, store: StoreDep) -> Response:
+    body = await request.body()
+    answer = await batches.run(
+        request.app.state.lane, body, TransitionBatch, lambda item: _transition(store, item), TransitionResults, TransitionResult
+    )
+    return Response(answer, media_type="application/json")

@@ -1,0 +1,56 @@
+"""Batch bodies, handled whole in the batch lane (``service.lane``): parse, validate,
+answer each item, serialise.  Returns JSON bytes, or raises ``BatchInvalid`` with the
+same error dicts FastAPI would give, so a malformed batch is the same 422 as elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ValidationError
+
+from .errors import ServiceError
+
+
+class BatchInvalid(Exception):
+    def __init__(self, errors: list[dict]):
+        self.errors = errors
+
+
+def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_model: type[BaseModel], result_model) -> bytes:
+    """``results_model(results=[...])`` as JSON bytes, one result per item of the body.
+
+    item(request_item) -> the result, or raises ServiceError (becomes that item's error).
+    """
+    try:
+        # The standard library parser, as FastAPI uses: it reads NaN and Infinity, which
+        # validation then refuses with a message naming the field (orjson would not say where).
+        data = json.loads(body)
+    except (ValueError, UnicodeDecodeError) as err:
+        raise BatchInvalid([{"type": "json_invalid", "loc": ("body", getattr(err, "pos", 0)), "msg": "JSON decode error"}]) from None
+    try:
+        parsed = request_model.model_validate(data)
+    except ValidationError as err:
+        raise BatchInvalid([{**e, "loc": ("body", *e["loc"])} for e in err.errors(include_url=False)]) from None
+    results = []
+    for request in parsed.items:
+        try:
+            results.append(result_model(result=item(request)))
+        except ServiceError as err:
+            results.append(result_model(error={"status": err.status_code, "detail": err.detail}))
+    return results_model(results=results).model_dump_json().encode()
+
+
+async def run(lane, *args) -> bytes:
+    """``answer(*args)`` in the lane; a malformed batch raises RequestValidationError (422)."""
+    try:
+        return await lane.run(answer, *args)
+    except BatchInvalid as err:
+        raise RequestValidationError(err.errors) from None
+
+
+def request_body(model: type[BaseModel]) -> dict:
+    """openapi_extra documenting a body FastAPI does not parse itself."""
+    return {"requestBody": {"required": True, "content": {"application/json": {"schema": {"$ref": f"#/components/schemas/{model.__name__}"}}}}}

@@ -1,0 +1,163 @@
+"""Planning from an observed pose: match it to a stable pose, check that the object rests
+on the table, look up the policy's action, and place the push and the grasp in the world.
+
+Frames: the observed pose ``O`` (object -> world) is ``pose_to_world @ T_p`` where ``T_p``
+(object -> pose frame) is stable pose p's transform, so ``pose_to_world = O @ T_p^-1``.
+For an exact observation that is ``planar`` (a yaw about z and an x, y translation,
+``schema.frames.match_pose``); a real one adds a small tilt (within the pose tolerance)
+and a small height (within ``height_tolerance``).  Pushes and grasps are mapped through
+``pose_to_world`` itself, so they lie on the object's surface as observed: mapping through
+``planar`` alone would leave a tilted object's contact point millimetres off its surface.
+
+Imports numpy and schema only (the service never loads the geometry stack).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from schema.api import Grasp, NextPose, PlanRequest, PlanResponse, PoseMatch, WorldPush
+from schema.frames import match_pose
+from schema.vocabulary import NO_OP
+
+from .errors import NoStablePose, OffTable, UnknownFrame
+from .settings import Settings
+from .store import ObjectData, Store, optional, widen
+
+
+def next_poses(obj: ObjectData, row: int) -> list[NextPose]:
+    poses, probabilities = obj.transitions(row)
+    return [NextPose(next_pose=int(p), probability=float(q)) for p, q in zip(poses, probabilities)]
+
+
+def world_grasp(obj: ObjectData, pose: int, pose_to_world: np.ndarray) -> Grasp | None:
+    """The pose's best grasp mapped to the world; None when the pose has none (NaN)."""
+    point, axis = obj.grasp_point[pose], obj.grasp_axis[pose]
+    if np.isnan(point).any() or np.isnan(axis).any():
+        return None
+    rotation = pose_to_world[:3, :3]
+    return Grasp(point=(rotation @ point + pose_to_world[:3, 3]).tolist(), axis=(rotation @ axis).tolist())
+
+
+def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
+    """(4, 4) object -> world from the request; UnknownFrame for a ROS pose in another frame."""
+    if request.ros_pose is not None and request.ros_pose.frame_id != settings.frame_id:
+        raise UnknownFrame(
+            f"ros_pose.frame_id is '{request.ros_pose.frame_id}', but this service plans in '{settings.frame_id}' "
+            "(z up, table at z = 0); transform the pose into it first (e.g. tf2)"
+        )
+    return request.observed()
+
+
+def plan(store: Store, request: PlanRequest, settings: Settings) -> PlanResponse:
+    """The policy's decision for an object observed at the request's pose.
+
+    NotFound (unknown object), NoStablePose (orientation within tolerance of no stable pose),
+    OffTable (|z_offset| > settings.height_tolerance), UnknownFrame (ROS pose in another frame).
+    """
+    obj = store.object(request.object_id)
+    observed = observed_pose(request, settings)
+    # An infinite tolerance always names the nearest pose, which the 409 message reports.
+    match = match_pose(observed, obj.downs, obj.transforms, tolerance=np.inf)
+    if match.angle_error > store.tolerance:
+        raise NoStablePose(
+            f"the observed orientation of '{obj.object_id}' is no stable pose: the nearest, pose {match.pose}, "
+            f"is {np.degrees(match.angle_error):.1f} deg away (tolerance {np.degrees(store.tolerance):.1f} deg); "
+            "is the object resting on the table, and is the world frame z up?",
+            object_id=obj.object_id,
+            nearest_pose=match.pose,
+            angle_error=match.angle_error,
+            tolerance=store.tolerance,
+        )
+    pose = match.pose
+    pose_to_world = observed @ obj.inverse_transforms[pose]
+    z_offset = float(pose_to_world[2, 3])
+    if not abs(z_offset) <= settings.height_tolerance:
+        raise OffTable(
+            f"'{obj.object_id}' is observed {z_offset * 1000:.1f} mm {'above' if z_offset > 0 else 'below'} the table "
+            f"(pose {pose}'s support point at z = {z_offset:.4g} m, tolerance {settings.height_tolerance * 1000:.1f} mm): "
+            "it is not resting on the table z = 0, so no stored push applies; is the world frame's origin on the table?",
+            object_id=obj.object_id,
+            pose=pose,
+            z_offset=z_offset,
+            height_tolerance=settings.height_tolerance,
+        )
+
+    grasp = world_grasp(obj, pose, pose_to_world)
+    v_s = float(obj.v_s[pose])
+    action = int(obj.policy_action[request.policy][pose])
+    push = p_topple = q_value = after = None
+    outcomes: list[NextPose] = []
+    if action != NO_OP:
+        row = obj.row(pose, action)
+        local = widen(np.stack([obj.points[row], obj.normals[row], obj.directions[row]]))  # (3, 3) pose frame
+        rotation = pose_to_world[:3, :3]
+        point = rotation @ local[0] + pose_to_world[:3, 3]
+        normal = rotation @ local[1]
+        direction = rotation @ local[2]
+        force = optional(widen(obj.mean_force[row]))
+        limit = store.finger_force_limit(settings.finger_force_limit)
+        push = WorldPush(
+            point=point.tolist(),
+            normal=normal.tolist(),
+            direction=direction.tolist(),
+            start=(point + store.approach_offset * normal).tolist(),
+            end=(point - store.push_depth * normal).tolist(),
+            approach_offset=store.approach_offset,
+            push_depth=store.push_depth,
+            required_force=force,
+            finger_force_limit=limit,
+            within_force_limit=None if force is None else bool(force <= limit),
+        )
+        p_topple = optional(widen(obj.p_topple[row]))
+        q_value = optional(obj.q[row])
+        after = optional(obj.greedy[row])
+        outcomes = next_poses(obj, row)
+
+    decision, reason = _decision(request.policy, action, v_s, grasp, p_topple, after, push)
+    return PlanResponse(
+        object_id=obj.object_id,
+        policy=request.policy,
+        frame_id=settings.frame_id,
+        match=PoseMatch(
+            pose=pose,
+            angle_error=match.angle_error,
+            tolerance=store.tolerance,
+            yaw=match.yaw,
+            translation=match.translation.tolist(),
+            z_offset=z_offset,
+            height_tolerance=settings.height_tolerance,
+            planar=match.planar.tolist(),
+            pose_to_world=pose_to_world.tolist(),
+        ),
+        decision=decision,
+        reason=reason,
+        action=None if action == NO_OP else action,
+        v_s=v_s,
+        v_t=float(obj.v_t[pose]),
+        q_value=q_value,
+        expected_v_s_after=after,
+        p_topple=p_topple,
+        push=push,
+        next_poses=outcomes,
+        grasp=grasp,
+    )
+
+
+def _decision(policy, action, v_s, grasp, p_topple, after, push) -> tuple[str, str]:
+    """(decision, one-sentence reason) for the response."""
+    if action != NO_OP:
+        force = ""
+        if push is not None and push.within_force_limit is False:
+            force = (f"; it needs {push.required_force:.3g} N, more than the finger's limit of "
+                     f"{push.finger_force_limit:.3g} N: do not execute it with this finger")
+        return "push", (f"{policy} pushes: P(topple) {_g(p_topple)}, expected V_s after the push {_g(after)} "
+                        f"vs V_s {v_s:.3g} now{force}")
+    if grasp is None or v_s <= 0.0:
+        return "no_grasp", (f"{policy} does not push and this pose has no suction grasp (V_s = {v_s:.3g}): "
+                            "no stored push nor grasp helps; pick another object or another tool")
+    return "grasp", f"{policy} does not push: grasp now at grasp (V_s = {v_s:.3g})"
+
+
+def _g(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.3g}"
