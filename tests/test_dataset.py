@@ -26,14 +26,16 @@ import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.build import rows, shards
+from pipeline.build import fanout, rows, shards
+from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import read_list
-from pipeline.build.dataset import compute_shard
+from pipeline.build.dataset import compute_shard, staging_dir
 from pipeline.build.verify import verify_dataset
 from pipeline.cli import main
 from pipeline.model.config import Config
 from schema import TABLES, layout
 from schema.manifest import read_manifest
+from schema.reader import Dataset
 
 OBJECTS = ["random_000", "random_002", "random_001"]
 """Small meshes from pybullet_data, listed by path as a user's list file would."""
@@ -141,14 +143,58 @@ def _with_partition_key_last(schema: pa.Schema, name: str) -> pa.Schema:
     return schema.remove(schema.get_field_index("object_id")).append(pa.field("object_id", pa.string()))
 
 
-def test_rerun_reuses_every_shard(reference, corpus, tmp_path):
+def test_rerun_reuses_every_shard(reference, corpus, tmp_path, capsys):
     copy = tmp_path / "dataset"
     shutil.copytree(reference, copy)
-    before = {p: p.stat().st_mtime_ns for p in copy.rglob("complete.json")}
+    before = snapshot(copy)
+    capsys.readouterr()
     assert build(corpus, copy, "--workers", "2") == 0
-    assert read_manifest(copy).run["computed"] == 0
-    assert {p: p.stat().st_mtime_ns for p in copy.rglob("complete.json")} == before
+    assert "up to date: all 3 objects" in capsys.readouterr().err
+    assert snapshot(copy) == before, "a run with nothing to do writes nothing"
+    assert not staging_dir(copy).exists()
     assert_same_dataset(reference, copy)
+
+
+def snapshot(root: Path) -> dict[str, tuple[str, int]]:
+    """Every file under ``root`` (but the lock) -> (SHA-256, mtime)."""
+    return {
+        p.relative_to(root).as_posix(): (file_sha256(p), p.stat().st_mtime_ns)
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != ".lock"
+    }
+
+
+def assert_intact(root: Path, before: dict) -> None:
+    """The finished dataset is exactly as it was: verifiable and servable."""
+    assert snapshot(root) == before
+    assert verify_dataset(root) == []
+    Dataset.open(root).table("poses")
+
+
+def test_failed_runs_leave_the_finished_dataset_intact(reference, corpus, tmp_path, capsys, monkeypatch):
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    before = snapshot(copy)
+    monkeypatch.setattr(fanout, "CONNECT_TIMEOUT_S", 0.5)
+    unreachable = ["--scheduler", "tcp://127.0.0.1:1"]
+
+    # Nothing to compute: the scheduler is never contacted, nothing is written.
+    assert build(corpus, copy, *unreachable) == 0
+    assert_intact(copy, before)
+
+    # One more object, but no scheduler: the run fails and the old dataset stays.
+    grown = write_corpus(tmp_path, [*OBJECTS, "random_003"])
+    capsys.readouterr()
+    assert build(grown, copy, *unreachable) == 1
+    assert "cannot connect to the dask scheduler at tcp://127.0.0.1:1" in capsys.readouterr().err
+    assert_intact(copy, before)
+
+    # Bad parameters, and a strict run that meets a broken mesh, change nothing either.
+    assert build(corpus, copy, "--set", "topple.mu_table_mean=many") == 2
+    (tmp_path / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nf 1 2 3\n")
+    broken = write_corpus(tmp_path, OBJECTS, "flat,,flat.obj,1,0.1\n")
+    assert build(broken, copy, "--strict", "--workers", "1") == 1
+    assert_intact(copy, before)
 
 
 def test_analysts_read_the_tables_and_counts_match_the_manifest(reference):
@@ -224,34 +270,53 @@ def test_dask_backend_gives_the_same_dataset_as_loky(reference, corpus, tmp_path
     assert_same_dataset(reference, tmp_path / "dask")
 
 
+KILLABLE = (
+    "import os, signal, sys, time, pipeline.model.evaluation as objects, pipeline.build.dataset as dataset\n"
+    "compute, move, seen, moved = objects.process_object, dataset._move, [], []\n"
+    "stop = sys.argv.pop(1)\n"
+    "def process_object(spec, config):\n"
+    "    seen.append(spec.object_id)\n"
+    "    if stop == 'compute' and len(seen) > 1: time.sleep(30)\n"
+    "    return compute(spec, config)\n"
+    "def _move(source, target):\n"
+    "    moved.append(target)\n"
+    "    if stop == 'commit' and len(moved) == 3: os.kill(os.getpid(), signal.SIGKILL)\n"
+    "    return move(source, target)\n"
+    "objects.process_object, dataset._move = process_object, _move\n"
+    "from pipeline.cli import main\n"
+    "sys.exit(main(sys.argv[1:]))\n"
+)
+"""Runs the CLI in one in-process worker.  ``compute``: objects after the first pause
+before computing (same results; an object takes ~50 ms, too short a window to kill in
+on a busy machine).  ``commit``: the process kills itself at the commit's third move."""
+
+
+def run_killed(stop: str, corpus: Path, out: Path) -> str:
+    """Run a build that is SIGKILLed at ``stop``: once a shard is staged (``compute``)
+    or by itself (``commit``).  Returns its stderr."""
+    staged = staging_dir(out) / layout.SHARDS_DIR
+    command = ["dataset", "--corpus", str(corpus), "--out", str(out), *PARAMS, "--workers", "1"]
+    process = subprocess.Popen(
+        [sys.executable, "-c", KILLABLE, stop, *command],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
+    )
+    deadline = time.monotonic() + 120
+    if stop == "compute":
+        while not list(staged.glob("*/complete.json")) and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        os.killpg(process.pid, signal.SIGKILL)
+    process.wait(timeout=120)
+    assert process.returncode == -signal.SIGKILL, process.stderr.read().decode()[-500:]
+    stderr = process.stderr.read().decode()
+    process.stderr.close()
+    return stderr
+
+
 def test_sigkill_part_way_then_resume_gives_the_same_dataset(reference, corpus, tmp_path):
     out = tmp_path / "killed"
     command = [sys.executable, "-m", "pipeline", "dataset", "--corpus", str(corpus), "--out", str(out), *PARAMS]
-    # One in-process worker whose objects after the first pause before computing (same
-    # results): an object takes ~50 ms, too short a window to kill in on a busy machine.
-    slowed = (
-        "import sys, time, pipeline.model.evaluation as objects\n"
-        "compute, seen = objects.process_object, []\n"
-        "def process_object(spec, config):\n"
-        "    seen.append(spec.object_id)\n"
-        "    if len(seen) > 1: time.sleep(30)\n"
-        "    return compute(spec, config)\n"
-        "objects.process_object = process_object\n"
-        "from pipeline.cli import main\n"
-        "sys.exit(main(sys.argv[1:]))\n"
-    )
-    process = subprocess.Popen(
-        [sys.executable, "-c", slowed, *command[3:], "--workers", "1"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
-    )
-    records = out / layout.SHARDS_DIR
-    deadline = time.monotonic() + 120
-    while not list(records.glob("*/complete.json")) and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.01)
-    os.killpg(process.pid, signal.SIGKILL)
-    process.wait()
-    stderr = process.stderr.read().decode()
-    process.stderr.close()
+    records = staging_dir(out) / layout.SHARDS_DIR
+    stderr = run_killed("compute", corpus, out)
 
     finished = {p.parent.name: p.stat().st_mtime_ns for p in records.glob("*/complete.json")}
     assert 1 <= len(finished) < len(OBJECTS), f"not killed part-way: {sorted(finished)} {stderr[-500:]}"
@@ -265,8 +330,36 @@ def test_sigkill_part_way_then_resume_gives_the_same_dataset(reference, corpus, 
     assert manifest.run["reused"] == len(finished)
     assert manifest.run["computed"] == len(OBJECTS) - len(finished)
     for object_id, mtime in finished.items():
-        assert (records / object_id / "complete.json").stat().st_mtime_ns == mtime, f"{object_id} was recomputed"
-    assert not list(out.rglob("*.tmp"))
+        record = out / layout.completion_record(object_id)
+        assert record.stat().st_mtime_ns == mtime, f"{object_id} was recomputed"
+    assert not list(out.rglob("*.tmp")) and not staging_dir(out).exists()
+    assert verify_dataset(out) == []
+    assert_same_dataset(reference, out)
+
+
+def test_sigkill_while_extending_a_finished_dataset_keeps_it_until_the_commit(reference, tmp_path):
+    """Killed while computing new objects: the old dataset is untouched.  Killed inside
+    the commit: the next run finishes that commit before anything else."""
+    small = write_corpus(tmp_path, OBJECTS[:1])
+    out = tmp_path / "dataset"
+    assert build(small, out, "--workers", "1") == 0
+    before = snapshot(out)
+
+    grown = write_corpus(tmp_path, OBJECTS)
+    run_killed("compute", grown, out)
+    assert_intact(out, before)
+    assert len(list((staging_dir(out) / layout.SHARDS_DIR).glob("*/complete.json"))) == 1
+
+    run_killed("commit", grown, out)
+    assert (staging_dir(out) / "commit.json").exists(), "killed after the commit point"
+    resumed = subprocess.run(
+        [sys.executable, "-m", "pipeline", "dataset", "--corpus", str(grown), "--out", str(out), *PARAMS, "--workers", "1"],
+        capture_output=True, text=True,
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert "finished the commit of an interrupted run" in resumed.stderr
+    assert "up to date: all 3 objects" in resumed.stderr, "the rolled-forward commit is the whole build"
+    assert not staging_dir(out).exists()
     assert verify_dataset(out) == []
     assert_same_dataset(reference, out)
 

@@ -1,11 +1,23 @@
 """Building a dataset: which objects still need work, fanning them out, writing
 their shards as they finish, then the consolidated tables and the manifest.
 
+A finished dataset is never damaged by a later run.  New shards, the consolidated
+tables and the new manifest are written to a staging directory beside the dataset
+(``.<name>.staging``, see ``staging_dir``); only when all of it exists does a
+*commit* move them in: the commit plan is written first (the commit point), then
+the files are renamed into place, files of objects the new manifest no longer
+lists are removed, and the manifest is replaced last.  A run that fails or is
+killed before the commit point leaves the previous dataset exactly as it was
+(verifiable and servable) and its finished shards in the staging directory, where
+the next run reuses them; a run killed after it is rolled forward by the next run
+(or by ``toppledb add``) before anything else.  A run with nothing to compute
+writes nothing and never contacts a scheduler.
+
 A rerun skips every shard that is complete, verified (SHA-256 of its files) and
 made from the same inputs (``shards.fingerprint``: schema version, parameters,
-mesh checksum); it redoes shards left incomplete by a killed run.  It refuses to
-mix: complete shards of other parameters or of objects outside the corpus make
-it stop with a message, unless ``force`` (rebuild everything).
+mesh checksum).  It refuses to mix: complete shards of other parameters or of
+objects outside the corpus make it stop with a message, unless ``force``
+(recompute everything; the old dataset is replaced only at the commit).
 
 Workers compute (``compute_shard``: the object's evaluation and its tables); this
 process alone writes, so a cluster needs no shared file system and every write
@@ -15,7 +27,9 @@ is atomic.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
+import json
 import os
 import shutil
 import time
@@ -25,9 +39,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from schema import layout, tables
-from schema.manifest import Manifest
+from schema.manifest import Manifest, ManifestError, read_manifest
 
 from . import fanout, manifest, rows, shards
+from .atomic import fsync_directory, write_text_atomic
 from ..model.config import Config
 from .corpus import Corpus, ObjectSpec
 from ..model.outcomes import ObjectResult
@@ -111,77 +126,67 @@ def build_dataset(
     process: Process | None = None,
     log: Callable[[str], None] = print,
 ) -> Summary:
-    """Build (or finish building) the dataset of ``corpus`` under ``out``.
+    """Build (or finish building, or extend) the dataset of ``corpus`` under ``out``.
 
     workers : local processes (default: all cores); ignored with ``scheduler``
     scheduler : address of a dask.distributed scheduler to run the tasks on
-    force : discard whatever ``out`` holds and compute every object
+    force : recompute every object (the old dataset stays until the new one is committed)
     strict : stop at the first failed object (its reason is the error)
     process : the per-object computation, ``pipeline.model.evaluation.process_object`` by default
     """
     started = time.perf_counter()
     out = Path(out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise BuildError(f"cannot create output directory {out}: {err.strerror}") from None
+    _make_directory(out, "output directory")
+    staging = staging_dir(out)
 
     with _exclusive(out):
+        if finish_interrupted_commit(out):
+            log(f"finished the commit of an interrupted run in {out}")
         inputs = {spec.object_id: shards.shard_inputs(spec, config) for spec in corpus.specs}
         fingerprints = {object_id: shards.fingerprint(i) for object_id, i in inputs.items()}
         if force:
-            _remove_dataset_files(out)
+            shutil.rmtree(staging, ignore_errors=True)
         else:
-            _refuse_foreign_shards(out, inputs)  # before touching anything: a refused run changes nothing
-        manifest.remove_manifest(out)  # from here on the directory is a build in progress
-        shards.remove_temp_files(out)
+            _refuse_foreign_shards(out, inputs)  # before computing anything: a refused run changes nothing
+        _discard_stale_staging(staging, fingerprints)
+        shards.remove_temp_files(out)  # left by builds of earlier versions, never part of a dataset
 
         records: dict[str, dict] = {}
+        staged: dict[str, dict] = {}
         failures: dict[str, Failure] = {}
         todo: list[ObjectSpec] = []
         for spec in corpus.specs:
             if spec.object_id in corpus.problems:
                 failures[spec.object_id] = Failure(spec.object_id, corpus.problems[spec.object_id], "corpus")
                 continue
-            record = shards.is_complete(out, spec.object_id, fingerprints[spec.object_id])
+            key = fingerprints[spec.object_id]
+            record = None if force else shards.is_complete(out, spec.object_id, key)
             if record is not None:
                 records[spec.object_id] = record
+            elif (record := shards.is_complete(staging, spec.object_id, key)) is not None:
+                staged[spec.object_id] = record
             else:
                 todo.append(spec)
-        reused = len(records)
+        reused = len(records) + len(staged)
         if strict and failures:
             first = next(iter(failures.values()))
             raise BuildError(f"--strict: {first.object_id}: {first.reason}")
+
+        current = _current_manifest(out)
+        if not todo and not staged and not force and _up_to_date(current, config, corpus, records, failures):
+            log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
+            return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
         if reused:
             log(f"resuming: {reused} of {len(corpus.specs)} objects already complete in {out}")
 
-        bar = fanout.Progress(
-            total=len(corpus.specs),
-            already_done=reused + len(failures),
-            already_poses=sum(r["counts"]["poses"] for r in records.values()),
-            enabled=progress,
-        )
-        try:
-            # Largest meshes first: the slowest tasks start early and the run ends evenly.
-            todo.sort(key=lambda s: -_size(s.path))
-            tasks = [(spec, config, process) for spec in todo]
-            for outcome in fanout.map_unordered(compute_shard, tasks, workers, scheduler):
-                if isinstance(outcome, Failure):
-                    _remove_object_files(out, outcome.object_id)
-                    if strict:
-                        raise BuildError(f"--strict: {outcome.object_id}: {outcome.reason}")
-                    failures[outcome.object_id] = outcome
-                    bar.object_done(0, failed=True)
-                    continue
-                records[outcome.object_id] = shards.write_shard(out, outcome, inputs[outcome.object_id])
-                bar.object_done(outcome.counts["poses"])
-        except fanout.SchedulerError as err:
-            raise BuildError(str(err)) from None
-        finally:
-            bar.close()
+        if todo:
+            _make_directory(staging, "staging directory")
+            staged.update(_compute(todo, config, process, staging, inputs, failures, workers, scheduler, strict, progress, reused))
 
-        order = [spec.object_id for spec in corpus.specs if spec.object_id in records]
-        consolidated = manifest.consolidate(out, order)
+        order = [spec.object_id for spec in corpus.specs if spec.object_id in records or spec.object_id in staged]
+        sources = {object_id: (staging if object_id in staged else out) for object_id in order}
+        _make_directory(staging, "staging directory")
+        consolidated = manifest.consolidate(staging, order, sources)
         wall = time.perf_counter() - started
         paths = {spec.object_id: spec.path for spec in corpus.specs}
         failure_list = [
@@ -202,9 +207,160 @@ def build_dataset(
             "reused": reused,
             "wall_s": round(wall, 3),
         }
-        written = manifest.make_manifest(config, corpus, records, consolidated, failure_list, run)
-        manifest.write_manifest(out, written)
+        written = manifest.make_manifest(config, corpus, {**records, **staged}, consolidated, failure_list, run)
+        manifest.write_manifest(staging, written)
+        commit(out, staging, sorted(staged), keep=set(order))
     return Summary(written, computed=len(todo), reused=reused, wall_s=wall)
+
+
+def _compute(
+    todo: list[ObjectSpec],
+    config: Config,
+    process: Process | None,
+    staging: Path,
+    inputs: dict[str, dict],
+    failures: dict[str, Failure],
+    workers: int | None,
+    scheduler: str | None,
+    strict: bool,
+    progress: bool,
+    already_done: int,
+) -> dict[str, dict]:
+    """Compute ``todo`` and write each shard into ``staging`` as it arrives; add the
+    objects that fail to ``failures``; return the new shards' records."""
+    written: dict[str, dict] = {}
+    bar = fanout.Progress(
+        total=already_done + len(failures) + len(todo),
+        already_done=already_done + len(failures),
+        enabled=progress,
+    )
+    try:
+        # Largest meshes first: the slowest tasks start early and the run ends evenly.
+        todo = sorted(todo, key=lambda s: -_size(s.path))
+        tasks = [(spec, config, process) for spec in todo]
+        for outcome in fanout.map_unordered(compute_shard, tasks, workers, scheduler):
+            if isinstance(outcome, Failure):
+                _remove_object_files(staging, outcome.object_id)
+                if strict:
+                    raise BuildError(f"--strict: {outcome.object_id}: {outcome.reason}")
+                failures[outcome.object_id] = outcome
+                bar.object_done(0, failed=True)
+                continue
+            written[outcome.object_id] = shards.write_shard(staging, outcome, inputs[outcome.object_id])
+            bar.object_done(outcome.counts["poses"])
+    except fanout.SchedulerError as err:
+        raise BuildError(str(err)) from None
+    finally:
+        bar.close()
+    return written
+
+
+# --- staging and commit ---------------------------------------------------------------------
+
+COMMIT_PLAN = "commit.json"
+"""In the staging directory: written when everything is staged; its presence means
+the commit has begun and must be finished (rolled forward)."""
+
+
+def staging_dir(out: str | Path) -> Path:
+    """Where a run stages its work: ``.<name>.staging`` beside ``out`` (same file system,
+    so renames are atomic; outside ``out``, so readers and ``verify`` never see it)."""
+    out = Path(out).resolve()
+    return out.with_name(f".{out.name}.staging")
+
+
+def commit(out: Path, staging: Path, object_ids: list[str], keep: set[str]) -> None:
+    """Move the staged shards of ``object_ids``, the consolidated tables and the manifest
+    from ``staging`` into ``out``; remove shards of objects not in ``keep``."""
+    moves = []
+    for object_id in object_ids:
+        record = shards.read_record(staging, object_id)
+        moves += [relative for relative in record["files"]]
+    moves += [layout.completion_record(object_id) for object_id in object_ids]  # records after their files
+    moves += [layout.OBJECTS_FILE, layout.POSES_FILE, layout.MANIFEST]  # the manifest last
+    plan = {"moves": moves, "keep": sorted(keep)}
+    write_text_atomic(staging / COMMIT_PLAN, json.dumps(plan, indent=1))  # the commit point
+    _apply(out, staging, plan)
+
+
+def finish_interrupted_commit(out: str | Path) -> bool:
+    """Roll forward a commit that a killed run began; True when there was one."""
+    out = Path(out)
+    staging = staging_dir(out)
+    try:
+        plan = json.loads((staging / COMMIT_PLAN).read_text())
+    except (OSError, ValueError):
+        return False  # no commit begun (an unreadable plan was never complete: write_atomic)
+    _apply(out, staging, plan)
+    return True
+
+
+def _apply(out: Path, staging: Path, plan: dict) -> None:
+    """Idempotent: a file already moved is skipped, so it can be re-run after a kill."""
+    keep = set(plan["keep"])
+    for relative in plan["moves"]:
+        if relative.endswith("complete.json"):
+            break
+        _move(staging / relative, out / relative)
+    for object_id in _shard_ids_on_disk(out) - keep:
+        _remove_object_files(out, object_id)
+    for relative in plan["moves"]:
+        if relative.endswith("complete.json") or relative in (layout.OBJECTS_FILE, layout.POSES_FILE, layout.MANIFEST):
+            _move(staging / relative, out / relative)
+    for directory in {(out / relative).parent for relative in plan["moves"]}:
+        if directory.is_dir():
+            fsync_directory(directory)
+    shutil.rmtree(staging, ignore_errors=True)
+
+
+def _move(source: Path, target: Path) -> None:
+    if source.exists():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(source, target)
+
+
+def _discard_stale_staging(staging: Path, fingerprints: dict[str, str]) -> None:
+    """Staged shards this run cannot use (other inputs, objects outside the corpus)."""
+    for object_id in _shard_ids_on_disk(staging):
+        record = shards.read_record(staging, object_id)
+        if record is None or record.get("fingerprint") != fingerprints.get(object_id):
+            _remove_object_files(staging, object_id)
+    if staging.is_dir():
+        shards.remove_temp_files(staging)
+
+
+def _current_manifest(out: Path) -> Manifest | None:
+    try:
+        return read_manifest(out)
+    except ManifestError:
+        return None
+
+
+def _up_to_date(
+    current: Manifest | None, config: Config, corpus: Corpus, records: dict[str, dict], failures: dict[str, Failure]
+) -> bool:
+    """The finished manifest already describes exactly this build (same objects, shards,
+    parameters and failures): a run would rewrite the same dataset."""
+    if current is None:
+        return False
+    order = [spec.object_id for spec in corpus.specs if spec.object_id in records]
+    return (
+        list(current.shards) == order
+        and all(current.shards[i].fingerprint == records[i]["fingerprint"] for i in order)
+        and [o.model_dump() for o in current.corpus.objects] == [dataclasses.asdict(s) for s in corpus.specs]
+        and current.parameters.model_dump() == config.to_dict()
+        and [(f.object_id, f.reason) for f in current.failures]
+        == [(s.object_id, failures[s.object_id].reason) for s in corpus.specs if s.object_id in failures]
+    )
+
+
+def _make_directory(path: Path, what: str) -> None:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise BuildError(f"cannot create {what} {path}: {err.strerror}") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise BuildError(f"cannot write to {what} {path}: permission denied")
 
 
 def _size(path: str) -> int:
@@ -267,11 +423,3 @@ def _remove_object_files(out: Path, object_id: str) -> None:
         shutil.rmtree(out / Path(layout.partition_file(table, object_id)).parent, ignore_errors=True)
     (out / layout.arrays_file(object_id)).unlink(missing_ok=True)
     shutil.rmtree(out / layout.shard_dir(object_id), ignore_errors=True)
-
-
-def _remove_dataset_files(out: Path) -> None:
-    """Everything a build writes (and nothing else that may be in ``out``)."""
-    for name in (layout.MANIFEST, layout.OBJECTS_FILE, layout.POSES_FILE):
-        (out / name).unlink(missing_ok=True)
-    for directory in (*tables.PARTITIONED, layout.ARRAYS_DIR, layout.SHARDS_DIR):
-        shutil.rmtree(out / directory, ignore_errors=True)

@@ -19,6 +19,10 @@ import joblib
 from tqdm import tqdm
 
 
+CONNECT_TIMEOUT_S = 10.0
+"""How long to try reaching a dask scheduler before giving up (distributed retries within it)."""
+
+
 class SchedulerError(RuntimeError):
     """The dask scheduler cannot be reached; the message is one line."""
 
@@ -40,7 +44,7 @@ def backend(workers: int | None = None, scheduler: str | None = None) -> Iterato
     except ImportError:
         raise SchedulerError("--scheduler needs dask.distributed (pip install 'dask[distributed]')") from None
     try:
-        client = Client(scheduler, timeout="10s", set_as_default=True)
+        client = Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=True)
     except (OSError, TimeoutError, ValueError) as err:
         raise SchedulerError(f"cannot connect to the dask scheduler at {scheduler}: {err}") from None
     try:

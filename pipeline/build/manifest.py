@@ -4,7 +4,8 @@
 and code versions, every parameter (``Config.to_dict()``), the seed, the corpus
 with each mesh's SHA-256, every shard's files with their SHA-256 and counts, the
 consolidated tables' checksums, totals, failures with their reasons and timings.
-It is written last, atomically; a directory without one is a build in progress.
+It is written last, atomically (staged, then moved in by the build's commit,
+``pipeline.build.dataset``); a directory without one is a build in progress.
 
 ``objects.parquet`` and ``poses.parquet`` are concatenated from the shards' rows
 in corpus order, so they do not depend on which worker finished first.
@@ -14,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import os
 import platform
 import subprocess
 from pathlib import Path
@@ -69,14 +69,21 @@ def _git_commit() -> str | None:
     return out.stdout.strip() if out.returncode == 0 else None
 
 
-def consolidate(root: str | Path, object_ids: list[str]) -> dict[str, dict[str, Any]]:
-    """Write objects.parquet and poses.parquet from the shards of ``object_ids``
-    (in that order); return {file: {"sha256", "rows"}}."""
+def consolidate(
+    root: str | Path, object_ids: list[str], sources: dict[str, str | Path] | None = None
+) -> dict[str, dict[str, Any]]:
+    """Write objects.parquet and poses.parquet under ``root`` from the shards of
+    ``object_ids`` (in that order), each read from ``sources[object_id]`` (default
+    ``root``); return {file: {"sha256", "rows"}}."""
     root = Path(root)
+    sources = sources or {}
     written = {}
     for table, name in (("objects", layout.OBJECTS_FILE), ("poses", layout.POSES_FILE)):
         schema = tables.TABLES[table]
-        parts = [pq.read_table(root / layout.shard_rows_file(table, object_id), schema=schema) for object_id in object_ids]
+        parts = [
+            pq.read_table(Path(sources.get(object_id, root)) / layout.shard_rows_file(table, object_id), schema=schema)
+            for object_id in object_ids
+        ]
         combined = pa.concat_tables(parts) if parts else schema.empty_table()
         digest = write_atomic(
             root / name,
@@ -140,12 +147,3 @@ def make_manifest(
 
 def write_manifest(root: str | Path, manifest: Manifest) -> None:
     write_text_atomic(Path(root) / layout.MANIFEST, manifest.to_json())
-
-
-def remove_manifest(root: str | Path) -> None:
-    """Mark the directory as a build in progress."""
-    for name in (layout.MANIFEST,):
-        try:
-            os.unlink(Path(root) / name)
-        except FileNotFoundError:
-            pass
