@@ -25,6 +25,8 @@ class ServiceError(Exception):
     """A request the dataset cannot answer; ``extra`` fields join ``detail`` in the body."""
 
     status_code = 400
+    reason: str | None = None
+    """Machine-readable cause, in the body as ``reason`` when set (409 has two causes)."""
 
     def __init__(self, detail: str, **extra):
         super().__init__(detail)
@@ -32,7 +34,8 @@ class ServiceError(Exception):
         self.extra = extra
 
     def body(self) -> dict:
-        return {"detail": self.detail, **self.extra}
+        reason = {} if self.reason is None else {"reason": self.reason}
+        return {"detail": self.detail, **reason, **self.extra}
 
 
 class NotFound(ServiceError):
@@ -45,12 +48,14 @@ class NoStablePose(ServiceError):
     """An observed orientation within tolerance of no stable pose of the object."""
 
     status_code = 409
+    reason = "no_stable_pose"
 
 
 class OffTable(ServiceError):
     """An observed pose whose support point is too far above or below the table z = 0."""
 
     status_code = 409
+    reason = "off_table"
 
 
 class UnknownFrame(ServiceError):

@@ -39,7 +39,12 @@ JSON = {"content-type": "application/json"}
 
 @pytest.fixture(scope="session")
 def dataset(tmp_path_factory) -> Path:
-    directory = tmp_path_factory.mktemp("service")
+    """The tiny dataset, built once per session (the tests/test_service_*.py modules import
+    this fixture; the fixed directory under the session's base temp lets them share it)."""
+    directory = tmp_path_factory.getbasetemp() / "service-dataset"
+    if (directory / "dataset" / "manifest.json").is_file():
+        return directory / "dataset"
+    directory.mkdir(exist_ok=True)
     corpus = directory / "corpus.csv"
     corpus.write_text(
         "object_id,source,path,scale,mass\n"

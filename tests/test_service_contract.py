@@ -1,0 +1,296 @@
+"""The service's answers as a robot controller relies on them: decisions, off-table poses,
+pushes on a tilted object's surface, forces against the finger's limit, ROS poses, and the
+guard's 401/413/415/422 (the tiny dataset of tests/test_service.py)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from schema.api import FINGER_FORCE_LIMIT, HEIGHT_TOLERANCE, RosPose
+from schema.vocabulary import NO_OP
+from service import create_app
+from service.settings import Settings
+from tests.test_service import client, dataset, planar_transform, stored_transform, tables, tilted, xyz  # noqa: F401 (fixtures)
+
+JSON = {"content-type": "application/json"}
+TOKEN = "s3cret-token-for-tests"
+
+
+def rotation_about(axis, angle: float) -> np.ndarray:
+    axis = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    out = np.eye(4)
+    out[:3, :3] = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+    return out
+
+
+def pushing_poses(tables, policy: str = "value_iteration") -> list[tuple[str, int, dict]]:
+    return [(o, p, r) for (o, p), r in sorted(tables["poses"].items()) if r[f"{policy}_action"] != NO_OP]
+
+
+def observe(tables, object_id: str, pose: int, lift: float = 0.0, tilt: float = 0.0) -> np.ndarray:
+    """Object -> world: the stable pose at yaw 0.7, (0.3, -0.2), raised by ``lift`` m and
+    tilted by ``tilt`` rad about a horizontal axis through the support point."""
+    observed = planar_transform(0.7, 0.3, -0.2) @ stored_transform(tables, object_id, pose)
+    support = np.eye(4)
+    support[:3, 3] = [0.3, -0.2, 0.0]
+    observed = support @ rotation_about([1.0, 2.0, 0.0], tilt) @ np.linalg.inv(support) @ observed
+    observed[2, 3] += lift
+    return observed
+
+
+def post_plan(client, object_id, observed, policy="value_iteration"):
+    return client.post("/plan", json={"object_id": object_id, "pose": observed.tolist(), "policy": policy})
+
+
+# --- off the table -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("lift", [0.02, -0.02, 1000.0])
+def test_an_object_off_the_table_is_409_with_its_height(client, tables, lift):
+    object_id, pose, _ = pushing_poses(tables)[0]
+    response = post_plan(client, object_id, observe(tables, object_id, pose, lift=lift))
+    assert response.status_code == 409, response.text
+    body = response.json()
+    assert body["reason"] == "off_table" and body["pose"] == pose and body["height_tolerance"] == HEIGHT_TOLERANCE
+    assert body["z_offset"] == pytest.approx(lift, abs=1e-9)
+    assert ("above" if lift > 0 else "below") in body["detail"] and "not resting on the table" in body["detail"]
+
+
+def test_within_the_height_tolerance_the_push_follows_the_observed_height(client, tables):
+    object_id, pose, _ = pushing_poses(tables)[0]
+    lift = 0.8 * HEIGHT_TOLERANCE
+    low, high = (post_plan(client, object_id, observe(tables, object_id, pose, lift=h)).json() for h in (0.0, lift))
+    assert high["match"]["z_offset"] == pytest.approx(lift, abs=1e-12)
+    np.testing.assert_allclose(np.subtract(high["push"]["point"], low["push"]["point"]), [0, 0, lift], atol=1e-9)
+
+
+def test_a_409_for_no_stable_pose_says_so(client, tables):
+    observed, _ = tilted(tables, "random_001", 0, math.radians(30))
+    body = post_plan(client, "random_001", observed).json()
+    assert body["reason"] == "no_stable_pose" and body["object_id"] == "random_001"
+
+
+# --- pushes placed through the observed pose -----------------------------------------
+
+
+def test_a_tilted_observation_gets_the_push_on_its_surface(client, tables):
+    tilt = math.radians(6.0)
+    checked = 0
+    for object_id, pose, _row in pushing_poses(tables):
+        observed = observe(tables, object_id, pose, tilt=tilt)
+        response = post_plan(client, object_id, observed)
+        if response.status_code != 200 or response.json()["match"]["pose"] != pose:
+            continue  # the tilt brought it nearer another pose, or lifted the support point off the table
+        body = response.json()
+        pose_to_world = observed @ np.linalg.inv(stored_transform(tables, object_id, pose))
+        np.testing.assert_allclose(body["match"]["pose_to_world"], pose_to_world, atol=1e-12)
+        action = tables["actions"][(object_id, pose, body["action"])]
+        # The stored contact, carried by the object as observed: on its surface, not beside it.
+        on_surface = (pose_to_world @ [*xyz(action, "point"), 1.0])[:3]
+        np.testing.assert_allclose(body["push"]["point"], on_surface, atol=1e-6)
+        np.testing.assert_allclose(body["push"]["normal"], pose_to_world[:3, :3] @ xyz(action, "normal"), atol=1e-6)
+        planar_only = (np.asarray(body["match"]["planar"]) @ [*xyz(action, "point"), 1.0])[:3]
+        if np.linalg.norm(xyz(action, "point")[:2]) > 0.005 or xyz(action, "point")[2] > 0.005:
+            assert np.linalg.norm(planar_only - on_surface) > 1e-4, "the tilt must move the contact"
+        checked += 1
+    assert checked >= 2
+
+
+# --- values, decisions, forces ---------------------------------------------------------
+
+
+def test_force_is_reported_against_the_finger_limit(dataset, tables):
+    object_id, pose, row = pushing_poses(tables)[0]
+    action = tables["actions"][(object_id, pose, row["value_iteration_action"])]
+    force = action["mean_force"]
+    observed = observe(tables, object_id, pose)
+    for limit, settings in [(FINGER_FORCE_LIMIT, Settings()), (force / 2, Settings(finger_force_limit=force / 2))]:
+        with TestClient(create_app(dataset, settings=settings)) as c:
+            push = post_plan(c, object_id, observed).json()["push"]
+        assert push["required_force"] == pytest.approx(force, rel=1e-6) and push["finger_force_limit"] == limit
+        assert push["within_force_limit"] == (force <= limit)
+    assert force / 2 < force, "the halved limit must be exceeded"
+
+
+def test_a_manifest_finger_force_limit_is_used(dataset, tables, tmp_path):
+    import shutil
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["parameters"]["contacts"]["finger_force_limit"] = 0.001
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    object_id, pose, _ = pushing_poses(tables)[0]
+    with TestClient(create_app(copy, settings=Settings())) as c:
+        push = post_plan(c, object_id, observe(tables, object_id, pose)).json()["push"]
+        body = post_plan(c, object_id, observe(tables, object_id, pose)).json()
+    assert push["finger_force_limit"] == 0.001 and push["within_force_limit"] is False
+    assert "more than the finger's limit" in body["reason"]
+
+
+def test_no_push_and_no_grasp_says_so(dataset, tables):
+    object_id, pose, _ = pushing_poses(tables)[0]
+    app = create_app(dataset)
+    obj = app.state.live.store.objects[object_id]
+    obj.policy_action["value_iteration"] = obj.policy_action["value_iteration"].copy()
+    obj.v_s, obj.grasp_point = obj.v_s.copy(), obj.grasp_point.copy()
+    obj.policy_action["value_iteration"][pose] = NO_OP  # a pose where the policy does not push ...
+    obj.v_s[pose] = 0.0  # ... and there is no grasp
+    obj.grasp_point[pose] = np.nan
+    with TestClient(app) as c:
+        body = post_plan(c, object_id, observe(tables, object_id, pose)).json()
+    assert body["decision"] == "no_grasp" and body["grasp"] is None and body["v_s"] == 0.0
+    assert "no suction grasp" in body["reason"] and body["push"] is None
+
+
+# --- ROS poses ---------------------------------------------------------------------------
+
+
+def quaternion(rotation: np.ndarray) -> list[float]:
+    """x, y, z, w of a rotation matrix (Shepperd, w > 0 branch suffices for these tests)."""
+    w = math.sqrt(max(0.0, 1 + np.trace(rotation))) / 2
+    if w < 1e-3:
+        pytest.skip("rotation near a half turn")
+    return [(rotation[2, 1] - rotation[1, 2]) / (4 * w), (rotation[0, 2] - rotation[2, 0]) / (4 * w),
+            (rotation[1, 0] - rotation[0, 1]) / (4 * w), w]
+
+
+def ros_pose(observed: np.ndarray, frame_id: str = "world") -> dict:
+    x, y, z, w = quaternion(observed[:3, :3])
+    return {"position": dict(zip("xyz", observed[:3, 3])), "orientation": {"x": x, "y": y, "z": z, "w": w}, "frame_id": frame_id}
+
+
+def test_a_ros_pose_plans_like_its_matrix(client, tables):
+    for object_id, pose, _ in pushing_poses(tables)[:4]:
+        observed = observe(tables, object_id, pose)
+        given = ros_pose(observed)
+        np.testing.assert_allclose(RosPose.model_validate(given).matrix(), observed, atol=1e-12)
+        by_matrix = post_plan(client, object_id, observed).json()
+        by_ros = client.post("/plan", json={"object_id": object_id, "ros_pose": given}).json()
+        assert by_ros["action"] == by_matrix["action"] and by_ros["match"]["pose"] == pose
+        np.testing.assert_allclose(by_ros["push"]["point"], by_matrix["push"]["point"], atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "change,message",
+    [
+        ({"frame_id": "camera_link"}, "frame_id is 'camera_link', but this service plans in 'world'"),
+        ({"orientation": {"x": 0, "y": 0, "z": 0, "w": 2}}, "not unit: |q| = 2"),
+        ({"orientation": {"x": 0, "y": 0, "z": 0}}, "body.ros_pose.orientation.w: Field required"),
+        ({"position": {"x": 0, "y": 0, "z": "NaN"}}, "body.ros_pose.position.z"),
+    ],
+)
+def test_malformed_ros_poses_are_422(client, tables, change, message):
+    object_id, pose, _ = pushing_poses(tables)[0]
+    given = {**ros_pose(observe(tables, object_id, pose)), **change}
+    response = client.post("/plan", json={"object_id": object_id, "ros_pose": given})
+    assert response.status_code == 422 and message in response.json()["detail"], response.text
+
+
+def test_both_pose_forms_at_once_are_422(client, tables):
+    object_id, pose, _ = pushing_poses(tables)[0]
+    observed = observe(tables, object_id, pose)
+    response = client.post("/plan", json={"object_id": object_id, "pose": observed.tolist(), "ros_pose": ros_pose(observed)})
+    assert response.status_code == 422 and "exactly one of pose" in response.json()["detail"]
+
+
+# --- the guard: content type, body size, malformed JSON, token -------------------------------
+
+
+@pytest.mark.parametrize("path", ["/plan", "/batch/plan", "/batch/transitions"])
+def test_wrong_content_type_is_415_and_malformed_json_422(client, path):
+    for content_type in ("text/plain", "application/x-www-form-urlencoded", None):
+        headers = {} if content_type is None else {"content-type": content_type}
+        response = client.post(path, content=b'{"items": []}', headers=headers)
+        assert response.status_code == 415 and "application/json" in response.json()["detail"], response.text
+    for broken in (b"{not json", b'{"items": [1,', b"\xff\xfe"):
+        response = client.post(path, content=broken, headers=JSON)
+        assert response.status_code == 422 and "JSON decode error" in response.json()["detail"], (broken, response.text)
+    response = client.post(path, content=b"", headers=JSON)
+    assert response.status_code == 422 and response.json()["detail"] == "body: Field required"
+
+
+@pytest.mark.parametrize("path", ["/plan", "/batch/plan"])
+def test_oversized_bodies_are_413_before_parsing(dataset, path):
+    with TestClient(create_app(dataset, settings=Settings(max_body_bytes=4096))) as c:
+        big = b'{"items": [' + b"1," * 4000 + b"1]}"
+        response = c.post(path, content=big, headers=JSON)
+        assert response.status_code == 413 and "at most 4096" in response.json()["detail"]
+
+        def chunks():  # no content-length: counted while read
+            yield big[:3000]
+            yield big[3000:]
+
+        response = c.post(path, content=chunks(), headers=JSON)
+        assert response.status_code == 413 and "over 4096 bytes" in response.json()["detail"]
+
+
+def test_a_bearer_token_guards_everything_but_health(dataset):
+    with TestClient(create_app(dataset, settings=Settings(token=TOKEN))) as c:
+        assert c.get("/health").status_code == 200
+        for path in ("/objects", "/metrics", "/openapi.json", "/docs"):
+            missing = c.get(path)
+            assert missing.status_code == 401 and missing.headers["www-authenticate"] == "Bearer"
+            assert c.get(path, headers={"authorization": "Bearer wrong-token-of-some-length"}).status_code == 401
+            assert c.get(path, headers={"authorization": f"Bearer {TOKEN}"}).status_code == 200
+        assert c.post("/plan", json={}).status_code == 401  # before the body is looked at
+        schema = c.get("/openapi.json", headers={"authorization": f"Bearer {TOKEN}"}).json()
+        assert "401" in schema["paths"]["/plan"]["post"]["responses"] and "401" not in schema["paths"]["/health"]["get"]["responses"]
+    with pytest.raises(ValueError, match="at least 16 characters"):
+        Settings(token="short").check()
+
+
+# --- operations: health, metrics, docs, examples -------------------------------------------
+
+
+def test_health_names_the_build(client, dataset, tables):
+    body = client.get("/health").json()
+    identity = body["dataset"]
+    assert identity["manifest_sha256"] == hashlib.sha256((dataset / "manifest.json").read_bytes()).hexdigest()
+    assert identity["created"] == tables["manifest"]["created"]
+    parameters = json.dumps(tables["manifest"]["parameters"], sort_keys=True, separators=(",", ":")).encode()
+    assert identity["parameters_sha256"] == hashlib.sha256(parameters).hexdigest()
+    assert identity["code_version"].startswith(tables["manifest"]["code_version"]["package"])
+
+
+def test_metrics_count_requests_per_route_in_prometheus_format(client):
+    def count(text: str, route: str, status: str) -> float:
+        match = re.search(rf'toppledb_requests_total\{{method="GET",route="{re.escape(route)}",status="{status}"\}} (\S+)', text)
+        return float(match.group(1)) if match else 0.0
+
+    before = client.get("/metrics").text
+    for _ in range(3):
+        client.get("/objects/nothing-here")
+    after = client.get("/metrics")
+    assert after.headers["content-type"].startswith("text/plain")
+    assert count(after.text, "/objects/{object_id}", "404") - count(before, "/objects/{object_id}", "404") == 3
+    assert 'toppledb_request_seconds_bucket{le="0.001",method="GET",route="/objects/{object_id}"}' in after.text
+
+
+def test_docs_and_redoc_load_nothing_from_the_internet(client):
+    for page in ("/docs", "/redoc"):
+        html = client.get(page).text
+        assert re.findall(r"https?://", html) == [], page
+        for asset in re.findall(r'(?:src|href)="([^"]+)"', html):
+            if asset.startswith("/"):
+                assert client.get(asset).status_code == 200, asset
+
+
+def test_openapi_examples_come_from_the_served_dataset(client, tables):
+    schema = client.get("/openapi.json").json()
+    example = schema["components"]["schemas"]["PlanRequest"]["examples"][0]
+    assert example["object_id"] in {o for o, _ in tables["poses"]}
+    response = client.post("/plan", json=example)
+    assert response.status_code == 200 and response.json()["decision"] == "push"
+    batch = schema["components"]["schemas"]["PlanBatch"]["examples"][0]
+    assert client.post("/batch/plan", json=batch).json()["results"][0]["result"] == response.json()
+    transitions = schema["components"]["schemas"]["TransitionBatch"]["examples"][0]
+    assert client.post("/batch/transitions", json=transitions).json()["results"][0]["error"] is None

@@ -1,0 +1,154 @@
+"""Operating the service: swapping to a rebuilt dataset without failing a request, SIGHUP,
+closing connections that never finish their request, no access log by default, and the
+app factory under uvicorn's workers (the tiny dataset of tests/test_service.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+
+from service import create_app
+from service.settings import Settings
+from service.store import LiveStore, Store
+from tests.test_service import ROOT, dataset  # noqa: F401 (fixture)
+
+DEADLINE = 30.0
+"""s, the most any wait here takes before the test fails (generous: 2 shared cores)."""
+
+
+def rebuilt(directory: Path, created: str) -> None:
+    """Stand-in for a rebuild: the same tables under a new manifest (written atomically, as the pipeline does)."""
+    manifest = json.loads((directory / "manifest.json").read_text())
+    manifest["created"] = created
+    tmp = directory / "manifest.json.tmp"
+    tmp.write_text(json.dumps(manifest))
+    os.replace(tmp, directory / "manifest.json")
+
+
+def wait_for(predicate, what: str):
+    deadline = time.monotonic() + DEADLINE
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_live_store_swaps_only_for_a_new_readable_build(dataset, tmp_path):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    live = LiveStore(Store.load(copy))
+    first = live.store
+    assert not live.changed() and not live.reload()
+    rebuilt(copy, "2030-01-01T00:00:00+00:00")
+    assert live.changed() and live.reload() and live.reloads == 1
+    assert live.store is not first and live.store.manifest.created == "2030-01-01T00:00:00+00:00"
+    assert live.store.manifest_sha256 != first.manifest_sha256
+    # A half-written rebuild is refused; the good build keeps being served, and is not retried until it changes.
+    (copy / "manifest.json").write_text("{")
+    served = live.store
+    assert live.changed() and not live.reload() and live.store is served and not live.changed()
+
+
+def test_the_watcher_swaps_builds_while_requests_keep_succeeding(dataset, tmp_path):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    with TestClient(create_app(copy, settings=Settings(watch_seconds=0.05))) as client:
+        before = client.get("/health").json()["dataset"]["manifest_sha256"]
+        rebuilt(copy, "2031-01-01T00:00:00+00:00")
+        statuses = []
+
+        def swapped():
+            statuses.append(client.get("/objects/random_001/poses/0/q").status_code)
+            return client.get("/health").json()["reloads"] == 1
+
+        wait_for(swapped, "the watcher to load the rebuilt dataset")
+        health = client.get("/health").json()
+        assert health["dataset"]["manifest_sha256"] != before and health["dataset"]["created"].startswith("2031")
+        assert set(statuses) == {200}
+        assert 'toppledb_dataset_reloads_total 1.0' in client.get("/metrics").text
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start(args: list[str], env: dict | None = None) -> tuple[subprocess.Popen, str]:
+    port = free_port()
+    process = subprocess.Popen(
+        [*args, "--port", str(port)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+    )
+    url = f"http://127.0.0.1:{port}"
+
+    def up():
+        assert process.poll() is None, process.stderr.read().decode()
+        try:
+            return httpx.get(f"{url}/health", timeout=1).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    wait_for(up, "the server to answer /health")
+    return process, url
+
+
+def stop(process: subprocess.Popen) -> tuple[str, str]:
+    process.send_signal(signal.SIGINT)
+    try:
+        out, err = process.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        out, err = process.communicate()
+    return out.decode(), err.decode()
+
+
+def test_server_closes_unfinished_requests_reloads_on_sighup_and_logs_no_access_lines(dataset, tmp_path):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    process, url = start(
+        [sys.executable, "-m", "service", "--dataset", str(copy), "--request-timeout", "1", "--watch-seconds", "0"]
+    )
+    try:
+        host, port = url.removeprefix("http://").split(":")
+        silent, partial = socket.create_connection((host, int(port))), socket.create_connection((host, int(port)))
+        partial.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n")  # headers never finish
+        for sock in (silent, partial):
+            sock.settimeout(DEADLINE)
+            assert sock.recv(1024) == b"", "the server must close the connection"
+            sock.close()
+        for _ in range(20):
+            assert httpx.get(f"{url}/objects").status_code == 200
+        rebuilt(copy, "2032-01-01T00:00:00+00:00")
+        process.send_signal(signal.SIGHUP)
+        wait_for(lambda: httpx.get(f"{url}/health").json()["reloads"] == 1, "SIGHUP to reload")
+        assert httpx.get(f"{url}/health").json()["dataset"]["created"].startswith("2032")
+    finally:
+        out, err = stop(process)
+    assert "GET /objects" not in out + err, "no access log line per request by default"
+
+
+@pytest.mark.slow
+def test_the_factory_runs_under_uvicorn_workers(dataset):
+    process, url = start(
+        [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--workers", "2", "--no-access-log"],
+        env={"TOPPLEDB_DATASET": str(dataset), "TOPPLEDB_WATCH_SECONDS": "0"},
+    )
+    try:
+        assert httpx.get(f"{url}/health").json()["counts"]["objects"] == 3
+        assert httpx.get(f"{url}/objects/random_001").status_code == 200
+    finally:
+        stop(process)
