@@ -2,47 +2,14 @@
 
 import numpy as np
 import pytest
-from shapes import box_object, pose_with_down, standing_box
+from shapes import box_object
 
-from pipeline.api import evaluate
 from pipeline.model.config import VARIANTS, Config
 from pipeline.studies.validation import (
     average_precision,
-    empirical_distribution,
-    simulate_push,
     total_variation,
     validate,
 )
-
-MU_TABLE = Config().topple.mu_table_mean
-
-
-@pytest.fixture(scope="module")
-def box():
-    return standing_box()
-
-
-def test_box_pushed_high_topples_onto_the_adjacent_face_as_the_model_predicts(box):
-    obj, pose_set, standing = box
-    point, direction = np.array([0.025, 0.0, 0.13]), np.array([-1.0, 0.0, 0.0])
-    simulated = simulate_push(obj, pose_set, standing, point, direction, Config(), noise=False)
-    predicted = evaluate(obj, pose_set, standing, points=point[None], directions=direction[None], variant="baseline")
-    assert simulated == pose_with_down(pose_set, [-1, 0, 0])
-    assert predicted.table.next_pose[0, simulated] == 1.0
-
-
-def test_box_pushed_low_slides_and_stays(box):
-    obj, pose_set, standing = box
-    low = 0.5 * 0.05 / (2 * MU_TABLE)  # half the height below which sliding wins
-    simulated = simulate_push(obj, pose_set, standing, np.array([0.025, 0.0, low]), np.array([-1.0, 0.0, 0.0]), Config(), noise=False)
-    assert simulated == standing
-
-
-def test_noisy_push_is_reproducible_from_the_rng(box):
-    obj, pose_set, standing = box
-    args = (obj, pose_set, standing, np.array([0.025, 0.0, 0.13]), np.array([-1.0, 0.0, 0.0]), Config())
-    first = [simulate_push(*args, np.random.default_rng(3)) for _ in range(2)]
-    assert first[0] == first[1]
 
 
 def test_total_variation_sup_form():
@@ -50,10 +17,6 @@ def test_total_variation_sup_form():
     assert total_variation(p, p) == 0.0
     assert total_variation([1.0, 0.0, 0.0], [0.0, 0.5, 0.5]) == 1.0
     assert total_variation([0.5, 0.5], [0.25, 0.75]) == pytest.approx(0.25)
-
-
-def test_empirical_distribution_puts_unknown_poses_last():
-    assert np.allclose(empirical_distribution(np.array([0, 0, 2, -1]), 3), [0.5, 0, 0.25, 0.25])
 
 
 def test_average_precision():

@@ -11,7 +11,8 @@ import hashlib
 
 import numpy as np
 
-PURPOSES = ("contacts", "trials", "suction")
+PURPOSES = ("contacts", "trials", "suction", "play")
+"""``play``: the push player's draws (which pushes, their noise; ``pipeline.studies.playlog``)."""
 
 
 def stream(seed: int, object_id: str, pose: int, purpose: str) -> np.random.Generator:

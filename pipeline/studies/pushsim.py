@@ -1,23 +1,31 @@
-"""A push player in pybullet: one candidate push of one stable pose, played in a
-physics engine, and the stable pose the object comes to rest in.
+"""The push player: one push of one object, played in pybullet, and the pose it comes to rest in.
 
-The object's convex hull rests on a plane in the canonical transform of a stable
-pose (pose frame == world frame, z up, table z = 0); a small sphere finger, held by
-a stiff constraint, moves slowly along the action's line, then is withdrawn; once
-the object has come to rest its orientation is settled into a stable pose with
-``pipeline.model.poses.settle``.
+``play_push`` places the object at a given transform (object -> world, table z = 0),
+lets it come to rest, then drives a small sphere finger along the push: the
+fingertip runs along the push direction, through the contact point, from
+``approach_offset`` before it to ``push_depth`` past it, at ``FINGER_SPEED``.  The
+finger is then withdrawn and the object left to come to rest.  It returns the
+observed start and final transforms (4x4, object -> world), what a robot's camera
+would log.  ``settle`` (``pipeline.model.poses``) turns a final transform into a
+stable pose index; ``simulate_push`` does both for a push given in a pose frame.
 
 Simulation choices, and why:
 
 * Convex hull collision shape: the model is quasi-static on the hull, and pybullet's
   ``GEOM_MESH`` without the concave flag is a convex hull anyway.
-* Mass properties from trimesh (uniform density), scaled to the object's mass, about the
-  object's centre of mass; the link frame is the principal frame so the inertia is diagonal.
+* Collision margin ``COLLISION_MARGIN`` (0.1 mm) instead of Bullet's 1 mm: Bullet
+  inflates a convex hull by its margin, so with the default a resting object floats
+  about 1 mm above the table (measured: 0.99 mm for a box and random_042), which
+  lowers every push contact by a millimetre and changes where it meets the object.
+  A small non-zero margin keeps Bullet's convex contact generation robust.
+* Mass properties from the model (``body_model``): trimesh's uniform-density inertia,
+  scaled to the object's mass, about the model's centre of mass; the link frame is the
+  principal frame so the inertia is diagonal.
 * Friction: Bullet multiplies the two bodies' coefficients, so the plane has 1, the object
   mu_T and the finger mu_f / mu_T; the object-table pair then has mu_T, the finger-object pair mu_f.
 * Noise: friction coefficients, contact point and push direction, with ``config.topple``'s
-  standard deviations.  The model's object-rotation noise is not applied: a rotated object
-  is not at rest, and the engine's own pose is exact.
+  distributions.  The model's object-rotation noise is not applied: a rotated object
+  is not at rest, and the engine observes its own pose exactly.
 """
 
 from __future__ import annotations
@@ -34,21 +42,55 @@ from ..model.poses import PoseSet, settle
 
 TIME_STEP = 1.0 / 240.0
 """s, simulation step."""
+SOLVER_ITERATIONS = 50
+"""Bullet constraint solver iterations per step (its default, 10, lets stacked contacts sag)."""
+COLLISION_MARGIN = 1e-4
+"""m, Bullet collision margin of the object's hull and of the table (see the module docstring)."""
+TABLE_HALF_SIZE = 1.0
+"""m, half the side of the table box (objects are at most 0.5 m and pushes move them centimetres)."""
 FINGER_SPEED = 0.05
 """m/s; slow enough to be close to quasi-static."""
 FINGER_MASS = 0.05
 """kg; the finger is dynamic but held by a constraint far stronger than any push."""
 FINGER_MAX_FORCE = 200.0
 """N, strength of the constraint that drags the finger along its path."""
+REST_BEFORE = 0.2
+"""s the object is left on the table before the finger appears, so that its contacts have formed."""
 SETTLE_TIME = 1.5
 """s, most simulated time after the push for the object to come to rest."""
-REST_SPEED = 2e-3
-"""m/s and rad/s; below both for REST_STEPS steps in a row counts as at rest."""
+REST_SPEED = 5e-3
+"""m/s, speed of the centre of mass below which the object may be at rest."""
+REST_SPIN = 2e-2
+"""rad/s, angular speed below which the object may be at rest (Bullet lets a small hull creep at
+about 1e-3 rad/s on the table; a 0.1 s window at this speed turns it by 0.1 degree)."""
 REST_STEPS = 24
+"""Steps in a row below both speeds that count as at rest (0.1 s)."""
 MIN_FRICTION = 0.05
 """Noisy friction coefficients are clipped here: Bullet treats 0 as frictionless, a noisy draw below 0 as nonsense."""
 OUTSIDE = -1
 """Next-pose bucket for a rest pose outside the pose set (``settle`` returned -1)."""
+PLAYER_VERSION = "2"
+"""Bumped whenever the player's physics changes, so that push logs made before are not resumed into."""
+
+
+def player_parameters() -> dict:
+    """The player's constants, for the parameters recorded with a push log."""
+    return {
+        "player_version": PLAYER_VERSION,
+        "time_step": TIME_STEP,
+        "solver_iterations": SOLVER_ITERATIONS,
+        "collision_margin": COLLISION_MARGIN,
+        "table_half_size": TABLE_HALF_SIZE,
+        "finger_speed": FINGER_SPEED,
+        "finger_mass": FINGER_MASS,
+        "finger_max_force": FINGER_MAX_FORCE,
+        "rest_before": REST_BEFORE,
+        "settle_time": SETTLE_TIME,
+        "rest_speed": REST_SPEED,
+        "rest_spin": REST_SPIN,
+        "rest_steps": REST_STEPS,
+        "min_friction": MIN_FRICTION,
+    }
 
 
 # ---------------------------------------------------------------- rigid body description
@@ -97,6 +139,27 @@ def _quaternion(rotation: np.ndarray) -> list[float]:
     return Rotation.from_matrix(rotation).as_quat().tolist()
 
 
+def link_pose(body: BodyModel, transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where pybullet's base (the link frame at the centre of mass) is for an object transform.
+
+    transform : (4, 4) float, object -> world
+    returns : position (3,) float, m; rotation (3, 3) float, link -> world
+    """
+    return transform_points(transform, body.center_mass[None])[0], transform[:3, :3] @ body.link_from_object.T
+
+
+def object_transform(body: BodyModel, position: np.ndarray, world_from_link: np.ndarray) -> np.ndarray:
+    """The object's transform (object -> world, (4, 4)) from pybullet's base position and rotation.
+
+    An object point p is at position + world_from_link @ link_from_object @ (p - center_mass).
+    """
+    rotation = world_from_link @ body.link_from_object
+    transform = np.eye(4)
+    transform[:3, :3] = rotation
+    transform[:3, 3] = np.asarray(position) - rotation @ body.center_mass
+    return transform
+
+
 # ---------------------------------------------------------------- one simulated push
 
 
@@ -104,7 +167,8 @@ def _quaternion(rotation: np.ndarray) -> list[float]:
 class PushNoise:
     """One push's perturbation (zeros and means when noise-free).
 
-    mu_table, mu_finger : float;  contact_offset : (3,) float, m;  direction_offset : (3,) float
+    mu_table, mu_finger : float;  contact_offset : (3,) float, m, world frame;
+    direction_offset : (3,) float, world frame, added to the unit direction
     """
 
     mu_table: float
@@ -142,74 +206,62 @@ def finger_path(point: np.ndarray, direction: np.ndarray, config: Config, n_step
     return point + s[:, None] * direction - c.finger_radius * direction
 
 
-def simulate_push(
-    obj: ObjectModel,
-    pose_set: PoseSet,
-    pose_index: int,
+def finger_steps(config: Config) -> int:
+    """Simulation steps of the finger's stroke at ``FINGER_SPEED``."""
+    stroke = config.contacts.approach_offset + config.contacts.push_depth
+    return max(2, int(round(stroke / FINGER_SPEED / TIME_STEP)))
+
+
+@dataclass
+class PlayedPush:
+    """What a played push observed.
+
+    start_transform : (4, 4) float, object -> world once at rest, before the finger came
+    final_transform : (4, 4) float, object -> world after the push, once at rest (or at the time cap)
+    at_rest : bool, the object came to rest before ``SETTLE_TIME`` ran out
+    point, direction : (3,) float, world frame, the push as executed (noise included)
+    noise : the draws it was played with
+    """
+
+    start_transform: np.ndarray
+    final_transform: np.ndarray
+    at_rest: bool
+    point: np.ndarray
+    direction: np.ndarray
+    noise: PushNoise
+
+
+def play_push(
+    body: BodyModel,
+    transform: np.ndarray,
     point: np.ndarray,
     direction: np.ndarray,
     config: Config = Config(),
-    rng: np.random.Generator | None = None,
-    noise: bool = True,
-    body: BodyModel | None = None,
-) -> int:
-    """Push the object in one of its stable poses in pybullet; the pose it comes to rest in.
+    noise: PushNoise | None = None,
+) -> PlayedPush:
+    """Play one push of an object placed at ``transform`` on the table.
 
-    point : (3,) float, m, contact point, pose frame (== world frame: the object starts in
-      the pose's canonical transform)
-    direction : (3,) float, push direction, pose frame (normalised here)
-    rng : draws the noise when ``noise`` is True
-    body : ``body_model(obj)``, to reuse across pushes of one object
-    returns : int, index into ``pose_set.poses``, or ``OUTSIDE`` (-1) for a rest pose left
-      out of the set
+    body : ``body_model(obj)``
+    transform : (4, 4) float, object -> world where the object is placed (resting on z = 0)
+    point : (3,) float, m, contact point, object frame
+    direction : (3,) float, push direction, object frame (normalised here)
+    noise : the push's perturbation (``draw_noise``); noise-free at the config's means when None
+
+    The push is mapped to the world through the object's transform observed once it
+    has come to rest, as a robot maps a planned push through the pose it sees.
     """
-    import pybullet as pb
+    noise = noise or draw_noise(config, None, noise=False)
+    pb, client = _client()
+    table, obj_id = _place(pb, client, body, transform, noise.mu_table, config)
+    start = _observe(pb, client, obj_id, body)
 
-    body = body or body_model(obj)
-    draws = draw_noise(config, rng, noise)
-    point = np.asarray(point, dtype=float) + draws.contact_offset
-    direction = unit(np.asarray(direction, dtype=float) + draws.direction_offset)
-
-    client = pb.connect(pb.DIRECT)
-    try:
-        rotation = _run(pb, client, body, pose_set.poses[pose_index].transform, point, direction, draws, config)
-    finally:
-        pb.disconnect(client)
-    return settle(pose_set, obj, rotation)
-
-
-def _run(pb, client, body: BodyModel, transform, point, direction, draws: PushNoise, config: Config) -> np.ndarray:
-    """Build the scene, push, withdraw, wait for rest; the object's final rotation (object -> world)."""
-    pb.setGravity(0, 0, -config.topple.gravity, physicsClientId=client)
-    pb.setPhysicsEngineParameter(fixedTimeStep=TIME_STEP, numSolverIterations=50, physicsClientId=client)
-
-    plane = pb.createMultiBody(0, pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=client), physicsClientId=client)
-    pb.changeDynamics(plane, -1, lateralFriction=1.0, physicsClientId=client)
-
-    world_from_link = transform[:3, :3] @ body.link_from_object.T
-    start = transform_points(transform, body.center_mass[None])[0]
-    shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=body.vertices.tolist(), physicsClientId=client)
-    obj_id = pb.createMultiBody(
-        body.mass, shape, basePosition=start.tolist(), baseOrientation=_quaternion(world_from_link), physicsClientId=client
-    )
-    pb.changeDynamics(
-        obj_id,
-        -1,
-        lateralFriction=draws.mu_table,
-        localInertiaDiagonal=body.inertia.tolist(),
-        rollingFriction=0.0,
-        spinningFriction=0.0,
-        physicsClientId=client,
-    )
-    # Bullet's collision margin lifts a convex hull slightly; let it find its rest first.
-    for _ in range(48):
-        pb.stepSimulation(physicsClientId=client)
-
-    path = finger_path(point, direction, config, max(2, int(round((config.contacts.approach_offset + config.contacts.push_depth) / FINGER_SPEED / TIME_STEP))))
+    world_point = transform_points(start, np.asarray(point, dtype=float)[None])[0] + noise.contact_offset
+    world_direction = unit(start[:3, :3] @ unit(np.asarray(direction, dtype=float)) + noise.direction_offset)
+    path = finger_path(world_point, world_direction, config, finger_steps(config))
     sphere = pb.createCollisionShape(pb.GEOM_SPHERE, radius=config.contacts.finger_radius, physicsClientId=client)
     finger = pb.createMultiBody(FINGER_MASS, sphere, basePosition=path[0].tolist(), physicsClientId=client)
-    pb.changeDynamics(finger, -1, lateralFriction=draws.mu_finger / draws.mu_table, physicsClientId=client)
-    pb.setCollisionFilterPair(finger, plane, -1, -1, 0, physicsClientId=client)
+    pb.changeDynamics(finger, -1, lateralFriction=noise.mu_finger / noise.mu_table, physicsClientId=client)
+    pb.setCollisionFilterPair(finger, table, -1, -1, 0, physicsClientId=client)
     grip = pb.createConstraint(finger, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], path[0].tolist(), physicsClientId=client)
     for target in path:
         pb.changeConstraint(grip, target.tolist(), maxForce=FINGER_MAX_FORCE, physicsClientId=client)
@@ -222,13 +274,117 @@ def _run(pb, client, body: BodyModel, transform, point, direction, draws: PushNo
     for _ in range(int(SETTLE_TIME / TIME_STEP)):
         pb.stepSimulation(physicsClientId=client)
         linear, angular = pb.getBaseVelocity(obj_id, physicsClientId=client)
-        still = still + 1 if max(np.linalg.norm(linear), np.linalg.norm(angular)) < REST_SPEED else 0
+        still = still + 1 if np.linalg.norm(linear) < REST_SPEED and np.linalg.norm(angular) < REST_SPIN else 0
         if still >= REST_STEPS:
             break
-    _, quaternion = pb.getBasePositionAndOrientation(obj_id, physicsClientId=client)
+    final = _observe(pb, client, obj_id, body)
+    return PlayedPush(start, final, still >= REST_STEPS, world_point, world_direction, noise)
+
+
+def rest_on_table(body: BodyModel, transform: np.ndarray, config: Config = Config(), duration: float = REST_BEFORE) -> np.ndarray:
+    """Place the object at ``transform`` (object -> world), leave it ``duration`` s, and observe it.
+
+    What ``play_push`` does before the finger comes; the object's transform then, (4, 4).
+    """
+    pb, client = _client()
+    _, obj_id = _place(pb, client, body, transform, config.topple.mu_table_mean, config, duration)
+    return _observe(pb, client, obj_id, body)
+
+
+_CLIENTS: dict[int, int] = {}
+"""This process's pybullet client (connecting costs ~60 ms, resetting it ~3 ms), by process id."""
+
+
+def _client():
+    """pybullet and this process's DIRECT client, connected on first use."""
+    import os
+
+    import pybullet as pb
+
+    pid = os.getpid()  # a forked worker must not share its parent's client
+    if pid not in _CLIENTS or not pb.isConnected(_CLIENTS[pid]):
+        _CLIENTS[pid] = pb.connect(pb.DIRECT)
+    return pb, _CLIENTS[pid]
+
+
+def _place(pb, client, body: BodyModel, transform: np.ndarray, mu_table: float, config: Config, duration: float = REST_BEFORE) -> tuple[int, int]:
+    """Empty the world, build the table and the object at ``transform``, let it rest ``duration`` s.
+
+    ``resetSimulation`` first, so that a push does not depend on what this process
+    played before it (results are the same whatever the number of workers).
+    returns : (table body id, object body id)
+    """
+    pb.resetSimulation(physicsClientId=client)
+    pb.setGravity(0, 0, -config.topple.gravity, physicsClientId=client)
+    pb.setPhysicsEngineParameter(fixedTimeStep=TIME_STEP, numSolverIterations=SOLVER_ITERATIONS, physicsClientId=client)
+
+    # The table is a thick box with its top face at z = 0 (a GEOM_PLANE costs ~15 ms to create).
+    half = [TABLE_HALF_SIZE] * 3
+    table = pb.createMultiBody(
+        0, pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half, physicsClientId=client),
+        basePosition=[0.0, 0.0, -TABLE_HALF_SIZE], physicsClientId=client,
+    )
+    pb.changeDynamics(table, -1, lateralFriction=1.0, collisionMargin=COLLISION_MARGIN, physicsClientId=client)
+
+    position, world_from_link = link_pose(body, transform)
+    shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=body.vertices.tolist(), physicsClientId=client)
+    obj_id = pb.createMultiBody(
+        body.mass, shape, basePosition=position.tolist(), baseOrientation=_quaternion(world_from_link), physicsClientId=client
+    )
+    pb.changeDynamics(
+        obj_id,
+        -1,
+        lateralFriction=mu_table,
+        localInertiaDiagonal=body.inertia.tolist(),
+        rollingFriction=0.0,
+        spinningFriction=0.0,
+        collisionMargin=COLLISION_MARGIN,
+        physicsClientId=client,
+    )
+    for _ in range(int(round(duration / TIME_STEP))):
+        pb.stepSimulation(physicsClientId=client)
+    return table, obj_id
+
+
+def _observe(pb, client, obj_id: int, body: BodyModel) -> np.ndarray:
+    """The object's current transform, object -> world, (4, 4)."""
+    position, quaternion = pb.getBasePositionAndOrientation(obj_id, physicsClientId=client)
     world_from_link = np.array(pb.getMatrixFromQuaternion(quaternion)).reshape(3, 3)
-    # Still moving at the time cap: ``settle`` follows the hull's topple graph from here.
-    return world_from_link @ body.link_from_object
+    return object_transform(body, np.array(position), world_from_link)
+
+
+def simulate_push(
+    obj: ObjectModel,
+    pose_set: PoseSet,
+    pose_index: int,
+    point: np.ndarray,
+    direction: np.ndarray,
+    config: Config = Config(),
+    rng: np.random.Generator | None = None,
+    noise: bool = True,
+    body: BodyModel | None = None,
+) -> int:
+    """Push the object standing in one of its stable poses; the stable pose it comes to rest in.
+
+    point : (3,) float, m, contact point, pose frame (the object starts in the pose's
+      canonical transform, so pose frame == world frame)
+    direction : (3,) float, push direction, pose frame (normalised here)
+    rng : draws the noise when ``noise`` is True
+    body : ``body_model(obj)``, to reuse across pushes of one object
+    returns : int, index into ``pose_set.poses``, or ``OUTSIDE`` (-1) for a rest pose left
+      out of the set (settled with the hull's topple graph if still moving at the time cap)
+    """
+    transform = pose_set.poses[pose_index].transform
+    to_object = np.linalg.inv(transform)
+    played = play_push(
+        body or body_model(obj),
+        transform,
+        transform_points(to_object, np.asarray(point, dtype=float)[None])[0],
+        to_object[:3, :3] @ np.asarray(direction, dtype=float),
+        config,
+        draw_noise(config, rng, noise),
+    )
+    return settle(pose_set, obj, played.final_transform[:3, :3])
 
 
 def empirical_distribution(outcomes: np.ndarray, n_poses: int) -> np.ndarray:

@@ -1,0 +1,437 @@
+"""``toppledb play``: a push-outcome log made by the push player (thesis 4.4.2).
+
+For every chosen object and each of its most probable stable poses, the robust
+model evaluates the pose's candidate pushes; ``--actions`` distinct ``ok`` pushes
+are drawn with probability proportional to P(topple) + eps (the thesis's sampling,
+which favours pushes the model expects to topple without leaving out the rest), and
+each is played ``--repeats`` times in pybullet under the model's noise on friction,
+contact point and push direction.  Every played push is one row of the push log
+(``schema.pushlog``), the same table a robot team logs its own pushes in.
+
+Objects: ``corpus`` draws from the dataset's default corpus (to calibrate on);
+``heldout`` from pybullet_data's objects outside it: the named meshes it does not
+list, then random objects it does not list, in an order shuffled by the seed.
+
+    toppledb play --objects corpus --count 40 --out data/logs/corpus
+    toppledb play --objects heldout --count 40 --out data/logs/heldout
+
+The log is a directory: one Parquet file per object (``<object_id>.parquet``, written
+atomically once the object is done, with the parameters it was made with in its
+metadata) and ``_play.json`` (the run's parameters and counts; readers skip names
+starting with ``_`` or ``.``).  A killed run resumes: the same command skips every
+object whose file exists with the same parameters.  Every random draw comes from
+``rng.stream(seed, object_id, pose, "play")``, so the log does not depend on the
+number of workers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from schema.pushlog import PUSHLOG, PUSHLOG_VERSION, row_problems
+from schema.vocabulary import STATUS_OK
+
+from ..build.atomic import write_atomic, write_text_atomic
+from ..build.corpus import DEFAULT_LIST, PYBULLET_SOURCE, CorpusError, ObjectSpec, candidate_specs, pybullet_data_dir, read_list
+from ..model.config import Config
+from ..model.rng import stream
+from .pushsim import FINGER_SPEED, PlayedPush, body_model, draw_noise, play_push, player_parameters
+
+OBJECT_MODES = ("corpus", "heldout")
+PURPOSE = "play"
+"""Random stream purpose of every draw made here."""
+SELECTION_STREAM = -1
+"""``pose`` argument of the stream that orders the candidate objects (a per-object draw)."""
+PUSH_ID_SPAN = 10_000
+"""push_id = pose * PUSH_ID_SPAN + action: unique within an object, readable, the same for a push's repeats."""
+DEFAULT_EPS = 0.05
+METADATA_KEY = b"toppledb_play"
+"""Parquet metadata key of a part file: its per-object parameters and summary (JSON)."""
+RUN_FILE = "_play.json"
+SOURCE = "pybullet"
+
+
+class PlayError(ValueError):
+    """Bad play input (unknown mode, a log directory made with other parameters); one line."""
+
+
+# ---------------------------------------------------------------- parameters
+
+
+@dataclass(frozen=True)
+class PlayParams:
+    """What decides a part file's content (besides the object itself).
+
+    actions : pushes drawn per pose;  repeats : noisy plays of each push
+    eps : added to every P(topple) before sampling;  max_poses : most probable poses per object (all: None)
+    seed : root of the play's draws (the model's own candidates use ``config.seed``)
+    """
+
+    actions: int = 3
+    repeats: int = 10
+    eps: float = DEFAULT_EPS
+    max_poses: int | None = 4
+    seed: int = 0
+    config: Config = field(default_factory=Config)
+
+    def record(self) -> dict:
+        """The parameters as JSON-ready values (with the player's constants and the log version)."""
+        return {
+            "actions": self.actions,
+            "repeats": self.repeats,
+            "eps": self.eps,
+            "max_poses": self.max_poses,
+            "seed": self.seed,
+            "config": self.config.to_dict(),
+            "player": player_parameters(),
+            "pushlog_version": PUSHLOG_VERSION,
+        }
+
+    def key(self, spec: ObjectSpec) -> dict:
+        """Everything that makes one object's rows; a part file is reused only when this is equal."""
+        return {"object_id": spec.object_id, "mesh_sha256": spec.sha256, "scale": spec.scale, "mass": spec.mass, **self.record()}
+
+
+# ---------------------------------------------------------------- which objects
+
+
+@functools.lru_cache(maxsize=4)
+def corpus_specs(default_mass: float) -> tuple[ObjectSpec, ...]:
+    """The default corpus's objects whose files are present and unchanged."""
+    corpus = read_list(DEFAULT_LIST, default_mass, name="default")
+    return tuple(s for s in corpus.specs if s.object_id not in corpus.problems)
+
+
+@functools.lru_cache(maxsize=4)  # hashing pybullet_data's ~1,000 meshes takes seconds
+def heldout_specs(default_mass: float) -> tuple[ObjectSpec, ...]:
+    """pybullet_data's candidate objects that the default corpus does not list.
+
+    An object is excluded when its id, its mesh file or its mesh's SHA-256 is the
+    corpus's, so a renamed copy of a corpus mesh is not held out either.
+    """
+    corpus = read_list(DEFAULT_LIST, default_mass, name="default").specs
+    ids = {s.object_id for s in corpus}
+    paths = {str(Path(s.path).resolve()) for s in corpus}
+    digests = {s.sha256 for s in corpus if s.sha256}
+    return tuple(
+        s
+        for s in candidate_specs(default_mass)
+        if s.object_id not in ids and str(Path(s.path).resolve()) not in paths and s.sha256 not in digests and s.sha256
+    )
+
+
+def select_objects(mode: str, count: int | None, seed: int, default_mass: float) -> list[ObjectSpec]:
+    """``count`` objects (all when None) in a seeded order; a larger count extends a smaller one.
+
+    corpus : the default corpus, shuffled;  heldout : the named meshes outside it first
+    (there are few and they are the realistic ones), then the random objects outside it, shuffled.
+    """
+    if mode not in OBJECT_MODES:
+        raise PlayError(f"unknown --objects {mode!r}; choose one of {', '.join(OBJECT_MODES)}")
+    specs = corpus_specs(default_mass) if mode == "corpus" else heldout_specs(default_mass)
+    named = [s for s in specs if mode == "heldout" and not s.object_id.startswith("random_")]
+    rest = [s for s in specs if s not in named]
+    order = stream(seed, f"select:{mode}", SELECTION_STREAM, PURPOSE).permutation(len(rest))
+    chosen = named + [rest[i] for i in order]
+    return chosen if count is None else chosen[:count]
+
+
+# ---------------------------------------------------------------- one object
+
+
+def sample_actions(p_topple: np.ndarray, status: np.ndarray, k: int, rng: np.random.Generator, eps: float) -> np.ndarray:
+    """Up to ``k`` distinct ``ok`` actions, drawn with probability proportional to P(topple) + eps (thesis 4.4.2).
+
+    p_topple : (A,) float (NaN for actions that are not ok);  status : (A,) int8
+    returns : (min(k, #ok),) int, action indices, ascending
+    """
+    ok = np.flatnonzero(status == STATUS_OK)
+    if len(ok) == 0 or k < 1:
+        return ok[:0]
+    weights = np.nan_to_num(p_topple[ok]) + eps
+    return np.sort(rng.choice(ok, size=min(k, len(ok)), replace=False, p=weights / weights.sum()))
+
+
+def mesh_location(spec: ObjectSpec) -> tuple[str, str]:
+    """(mesh_source, mesh_path) of a log row: relative to pybullet_data when it comes from there."""
+    if spec.source == PYBULLET_SOURCE or spec.source.startswith(PYBULLET_SOURCE + "/"):
+        try:
+            return PYBULLET_SOURCE, Path(spec.path).resolve().relative_to(pybullet_data_dir().resolve()).as_posix()
+        except (ValueError, CorpusError):
+            pass
+    return "file", str(Path(spec.path).resolve())
+
+
+@dataclass
+class ObjectLog:
+    """One object's played pushes: its log rows (``table``) and what happened, or why it failed."""
+
+    object_id: str
+    table: pa.Table
+    key: dict
+    summary: dict
+
+
+def play_object(spec: ObjectSpec, params: PlayParams) -> ObjectLog:
+    """Choose and play one object's pushes (runs in a worker); never raises for a bad object."""
+    from ..model.evaluation import evaluate, load_object
+    from ..model.mesh import MeshError
+    from ..model.poses import settle, stable_poses
+
+    config = params.config
+    key = params.key(spec)
+    try:
+        obj = load_object(spec, config)
+        pose_set = stable_poses(obj, config.poses)
+    except MeshError as err:
+        return ObjectLog(spec.object_id, empty_log(), key, {"failure": str(err), "pushes": 0})
+    body = body_model(obj)
+    source, path = mesh_location(spec)
+    columns: dict[str, list] = {f.name: [] for f in PUSHLOG}
+    n_poses = len(pose_set.poses) if params.max_poses is None else min(params.max_poses, len(pose_set.poses))
+    toppled = at_rest = outside = 0
+    for pose in range(n_poses):
+        rng = stream(params.seed, spec.object_id, pose, PURPOSE)
+        table = evaluate(obj, pose_set, pose, variant="robust", seed=config.seed, config=config)
+        chosen = sample_actions(table.table.p_topple, table.actions.status, params.actions, rng, params.eps)
+        transform = pose_set.poses[pose].transform
+        to_object = np.linalg.inv(transform)
+        for action in chosen:
+            point = to_object[:3, :3] @ table.actions.points[action] + to_object[:3, 3]
+            direction = to_object[:3, :3] @ table.actions.directions[action]
+            for repeat in range(params.repeats):
+                played = play_push(body, transform, point, direction, config, draw_noise(config, rng, noise=True))
+                final_pose = settle(pose_set, obj, played.final_transform[:3, :3])
+                toppled += int(final_pose != pose)
+                outside += int(final_pose < 0)
+                at_rest += int(played.at_rest)
+                _append_row(columns, spec, source, path, pose * PUSH_ID_SPAN + int(action), repeat, pose, int(action),
+                            point, direction, played, config, params.seed)
+    table = pa.Table.from_pydict(columns, schema=PUSHLOG)
+    summary = {"poses": n_poses, "pushes": table.num_rows, "toppled": toppled, "outside": outside, "at_rest": at_rest}
+    return ObjectLog(spec.object_id, table, key, summary)
+
+
+def _append_row(columns, spec, source, path, push_id, repeat, pose, action, point, direction, played: PlayedPush, config, seed) -> None:
+    c = config.contacts
+    row = {
+        "object_id": spec.object_id,
+        "mesh_sha256": spec.sha256,
+        "mesh_source": source,
+        "mesh_path": path,
+        "scale": float(spec.scale),
+        "mass": float(spec.mass),
+        "push_id": push_id,
+        "repeat": repeat,
+        "start_pose": pose,
+        "start_transform": played.start_transform.ravel().tolist(),
+        "action": action,
+        "finger_speed": FINGER_SPEED,
+        "approach_offset": c.approach_offset,
+        "push_depth": c.push_depth,
+        "finger_radius": c.finger_radius,
+        "final_transform": played.final_transform.ravel().tolist(),
+        "mu_table": played.noise.mu_table,
+        "mu_finger": played.noise.mu_finger,
+        "source": SOURCE,
+        "seed": seed,
+    }
+    for axis, p, d in zip("xyz", point, direction):
+        row[f"point_{axis}"], row[f"direction_{axis}"] = float(p), float(d)
+    for name, value in row.items():
+        columns[name].append(value)
+
+
+def empty_log() -> pa.Table:
+    return PUSHLOG.empty_table()
+
+
+# ---------------------------------------------------------------- the log directory
+
+
+def part_path(out: Path, object_id: str) -> Path:
+    return out / f"{object_id}.parquet"
+
+
+def write_part(out: Path, log: ObjectLog) -> None:
+    """One object's rows, atomically, with its key and summary in the file's metadata."""
+    problems = [p for p in row_problems(log.table) if p is not None]
+    if problems:  # a player bug, not bad input: never write a row the contract rejects
+        raise RuntimeError(f"{log.object_id}: the player made {len(problems)} invalid row(s): {problems[0]}")
+    metadata = dict(PUSHLOG.metadata)
+    metadata[METADATA_KEY] = json.dumps({"key": log.key, "summary": log.summary}, sort_keys=True).encode()
+    table = log.table.replace_schema_metadata(metadata)
+    write_atomic(part_path(out, log.object_id), lambda temp: pq.write_table(table, temp), check=lambda temp: pq.read_metadata(temp))
+
+
+def read_part_record(path: Path) -> dict | None:
+    """A part file's recorded key and summary; None when it is unreadable or not ours."""
+    try:
+        metadata = pq.read_schema(path).metadata or {}
+        return json.loads(metadata[METADATA_KEY])
+    except (OSError, KeyError, ValueError, pa.ArrowException):
+        return None
+
+
+def _canonical(value):
+    """JSON round trip, so that a key compares equal to the key read back from a file."""
+    return json.loads(json.dumps(value, sort_keys=True))
+
+
+@dataclass
+class PlaySummary:
+    """What a run did: counts over the whole log (reused parts included)."""
+
+    objects: int = 0
+    reused: int = 0
+    failed: dict[str, str] = field(default_factory=dict)
+    poses: int = 0
+    pushes: int = 0
+    toppled: int = 0
+    outside: int = 0
+    at_rest: int = 0
+    wall_s: float = 0.0
+
+    def add(self, summary: dict) -> None:
+        self.objects += 1
+        for name in ("poses", "pushes", "toppled", "outside", "at_rest"):
+            setattr(self, name, getattr(self, name) + int(summary.get(name, 0)))
+
+    def text(self) -> str:
+        rate = self.toppled / self.pushes if self.pushes else float("nan")
+        return (
+            f"{self.objects} objects ({self.reused} reused, {len(self.failed)} failed to load), {self.poses} poses, "
+            f"{self.pushes} pushes: {self.toppled} toppled ({rate:.3f}), {self.outside} into poses outside the set, "
+            f"{self.pushes - self.at_rest} still moving at the time cap; {self.wall_s:.1f} s"
+        )
+
+
+def play(
+    specs: list[ObjectSpec],
+    params: PlayParams,
+    out: str | Path,
+    *,
+    workers: int | None = 1,
+    progress: bool = False,
+    force: bool = False,
+    run_info: dict | None = None,
+    stop_after: int | None = None,
+) -> PlaySummary:
+    """Play every object's pushes into ``out`` (one part file per object), resuming what exists.
+
+    force : remove part files of other parameters or of objects not in ``specs`` instead of refusing
+    run_info : extra parameters recorded in ``_play.json`` (the command's mode, count)
+    stop_after : stop after writing this many new part files (to test resuming)
+    """
+    from ..build.fanout import map_unordered
+
+    started = time.perf_counter()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    wanted = {s.object_id for s in specs}
+    summary = PlaySummary()
+    todo = []
+    for existing in sorted(out.glob("*.parquet")):
+        if existing.stem not in wanted:
+            if not force:
+                raise PlayError(f"{out} holds {existing.name}, an object this run does not play; use another --out or --force")
+            existing.unlink()
+    for spec in specs:
+        path = part_path(out, spec.object_id)
+        record = read_part_record(path) if path.exists() else None
+        if record is not None and record["key"] == _canonical(params.key(spec)):
+            summary.add(record["summary"])
+            summary.reused += 1
+            if "failure" in record["summary"]:
+                summary.failed[spec.object_id] = record["summary"]["failure"]
+            continue
+        if path.exists() and not force:
+            raise PlayError(f"{path} was made with other parameters; use another --out or --force")
+        todo.append(spec)
+    written = 0
+    for log in map_unordered(play_object, [(s, params) for s in todo], workers, description="objects", progress=progress):
+        write_part(out, log)
+        summary.add(log.summary)
+        if "failure" in log.summary:
+            summary.failed[log.object_id] = log.summary["failure"]
+        written += 1
+        if stop_after is not None and written >= stop_after:
+            break
+    summary.wall_s = time.perf_counter() - started
+    if stop_after is None or written < stop_after:
+        record = {
+            "run": run_info or {},
+            "parameters": params.record(),
+            "objects": [s.object_id for s in specs],
+            "summary": dict(summary.__dict__),
+        }
+        write_text_atomic(out / RUN_FILE, json.dumps(record, indent=1, sort_keys=True) + "\n")
+    return summary
+
+
+def read_log(out: str | Path) -> pa.Table:
+    """Every row of a log directory (its part files, in object order)."""
+    parts = sorted(Path(out).glob("*.parquet"))
+    return pa.concat_tables([pq.read_table(p, schema=PUSHLOG) for p in parts]) if parts else empty_log()
+
+
+# ---------------------------------------------------------------- command line
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``toppledb play``: choose objects, play their pushes, write the log; prints a summary line."""
+    from ..cli import UsageError, make_config, positive_int
+
+    parser = argparse.ArgumentParser(prog="toppledb play", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--objects", choices=OBJECT_MODES, default="corpus",
+                        help="'corpus': the default corpus (to calibrate on); 'heldout': pybullet_data objects outside it")
+    parser.add_argument("--out", type=Path, required=True, help="log directory (one Parquet file per object)")
+    parser.add_argument("--count", type=positive_int, metavar="N", help="objects to play (default: all of the mode's)")
+    parser.add_argument("--max-poses", type=positive_int, default=PlayParams.max_poses, metavar="P",
+                        help="each object's P most probable poses (default: %(default)s)")
+    parser.add_argument("--actions", type=positive_int, default=PlayParams.actions, metavar="N",
+                        help="pushes drawn per pose, P(topple) + eps weighted (default: %(default)s)")
+    parser.add_argument("--repeats", type=positive_int, default=PlayParams.repeats, metavar="R",
+                        help="noisy plays of each push (default: %(default)s)")
+    parser.add_argument("--eps", type=float, default=DEFAULT_EPS, help="added to P(topple) when sampling pushes (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the play's draws (default: %(default)s)")
+    parser.add_argument("--workers", type=positive_int, help="worker processes (default: all cores)")
+    parser.add_argument("--config", type=Path, metavar="FILE.toml", help="model and noise parameters from a TOML file")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="override one parameter, e.g. --set topple.mu_table_std=0.05 (repeatable)")
+    parser.add_argument("--force", action="store_true", help="replace part files made with other parameters")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    try:
+        if not np.isfinite(args.eps) or args.eps <= 0:
+            raise UsageError(f"--eps must be positive, got {args.eps}")
+        config = make_config(args)
+        params = PlayParams(args.actions, args.repeats, args.eps, args.max_poses, args.seed, config)
+        specs = select_objects(args.objects, args.count, args.seed, config.mesh.default_mass)
+        summary = play(specs, params, args.out, workers=args.workers, progress=not args.no_progress, force=args.force,
+                       run_info={"objects": args.objects, "count": args.count})
+    except (UsageError, PlayError, CorpusError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    print(summary.text())
+    print(f"log: {args.out.resolve()}")
+    for object_id, reason in summary.failed.items():
+        print(f"not played: {object_id}: {reason}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,251 @@
+"""The push player (pipeline.studies.pushsim) and the push-log producer (pipeline.studies.playlog):
+pushes played faithfully, logs that pass the schema.pushlog contract, deterministic
+whatever the number of workers, resumable, and held-out objects really held out."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import trimesh
+from shapes import DATA, box_object, pose_with_down, random_object, standing_box
+
+from pipeline.api import evaluate
+from pipeline.build.atomic import file_sha256
+from pipeline.build.corpus import DEFAULT_LIST, ObjectSpec, read_list
+from pipeline.model.config import Config
+from pipeline.model.poses import stable_poses
+from pipeline.studies import playlog
+from pipeline.studies.pushsim import (
+    FINGER_SPEED,
+    body_model,
+    draw_noise,
+    empirical_distribution,
+    link_pose,
+    object_transform,
+    play_push,
+    rest_on_table,
+    simulate_push,
+)
+from schema.frames import transform_points
+from schema.pushlog import PUSHLOG, row_problems
+
+MU_TABLE = Config().topple.mu_table_mean
+FLOAT_TOLERANCE = 2e-4
+"""m; a resting hull's lowest vertex must be this close to the table (Bullet's default margin lifts it ~1 mm)."""
+PUSH = {"point": np.array([0.025, 0.0, 0.13]), "direction": np.array([-1.0, 0.0, 0.0])}
+"""A push on the standing box's +x face, 13 cm up, towards -x (pose frame == object frame)."""
+TINY = Config().with_overrides({"contacts.n_contacts": 40, "topple.n_trials": 8})
+"""Model settings small enough for a log test; the player does not depend on them."""
+
+
+@pytest.fixture(scope="module")
+def box():
+    return standing_box()
+
+
+# ---------------------------------------------------------------- the player
+
+
+@pytest.mark.parametrize("make", [lambda: box_object(), lambda: random_object(42)], ids=["box", "random_042"])
+def test_a_resting_object_lies_on_the_table_not_a_margin_above_it(make):
+    obj = make()
+    pose_set, body = stable_poses(obj), body_model(obj)
+    for pose in pose_set.poses[:3]:
+        rested = rest_on_table(body, pose.transform, duration=0.5)
+        lowest = transform_points(rested, obj.hull.vertices)[:, 2].min()
+        assert abs(lowest) <= FLOAT_TOLERANCE, (pose.index, lowest)
+        # It rests where it was placed: the canonical transform of its stable pose.
+        np.testing.assert_allclose(rested[:3, :3], pose.transform[:3, :3], atol=1e-3)
+
+
+def test_body_model_has_the_boxs_analytic_inertia_and_round_trips_transforms():
+    size, mass = np.array([0.05, 0.08, 0.15]), 0.25
+    body = body_model(box_object(tuple(size), mass))
+    analytic = mass / 12 * np.array([size[1] ** 2 + size[2] ** 2, size[0] ** 2 + size[2] ** 2, size[0] ** 2 + size[1] ** 2])
+    np.testing.assert_allclose(np.sort(body.inertia), np.sort(analytic), rtol=1e-6)
+    np.testing.assert_allclose(body.center_mass, [0, 0, size[2] / 2], atol=1e-9)
+    angle = 0.7
+    transform = np.eye(4)
+    transform[:3, :3] = [[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]]
+    transform[:3, 3] = [0.1, -0.2, 0.0]
+    np.testing.assert_allclose(object_transform(body, *link_pose(body, transform)), transform, atol=1e-12)
+
+
+def test_box_pushed_high_topples_onto_the_adjacent_face_as_the_model_predicts(box):
+    obj, pose_set, standing = box
+    simulated = simulate_push(obj, pose_set, standing, PUSH["point"], PUSH["direction"], Config(), noise=False)
+    predicted = evaluate(obj, pose_set, standing, points=PUSH["point"][None], directions=PUSH["direction"][None], variant="baseline")
+    assert simulated == pose_with_down(pose_set, [-1, 0, 0])
+    assert predicted.table.next_pose[0, simulated] == 1.0
+
+
+def test_box_pushed_low_slides_along_the_push_and_stays_standing(box):
+    obj, pose_set, standing = box
+    low = 0.5 * 0.05 / (2 * MU_TABLE)  # half the height below which sliding wins
+    transform = pose_set.poses[standing].transform
+    played = play_push(body_model(obj), transform, np.array([0.025, 0.0, low]), PUSH["direction"], Config())
+    assert played.at_rest
+    np.testing.assert_allclose(played.final_transform[:3, :3], transform[:3, :3], atol=0.02)  # still standing, hardly turned
+    moved = played.final_transform[:3, 3] - played.start_transform[:3, 3]
+    # The finger runs push_depth past the contact along the push: the box slides that far, along it.
+    assert moved[0] == pytest.approx(-Config().contacts.push_depth, abs=0.005)
+    assert abs(moved[1]) < 0.002 and abs(moved[2]) < 1e-3
+    assert simulate_push(obj, pose_set, standing, np.array([0.025, 0.0, low]), PUSH["direction"], Config(), noise=False) == standing
+
+
+def test_the_push_is_mapped_through_the_objects_transform(box):
+    """The same object-frame push on the box turned 90 degrees about z and moved: the same topple, turned."""
+    obj, pose_set, standing = box
+    body = body_model(obj)
+    turned = np.eye(4)
+    turned[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    turned[:3, 3] = [0.3, 0.1, 0.0]
+    here = play_push(body, pose_set.poses[standing].transform, PUSH["point"], PUSH["direction"])
+    there = play_push(body, turned @ pose_set.poses[standing].transform, PUSH["point"], PUSH["direction"])
+    expected = turned @ here.final_transform
+    assert abs(expected[:3, :3] @ [0, 0, 1] @ there.final_transform[:3, 2] - 1) < 1e-3  # the same face down
+    # A topple lands with a bounce: a few millimetres and degrees apart, not centimetres.
+    np.testing.assert_allclose(there.final_transform[:3, :3], expected[:3, :3], atol=0.05)
+    np.testing.assert_allclose(there.final_transform[:3, 3], expected[:3, 3], atol=0.005)
+    assert abs(here.final_transform[2, 2]) < 0.1  # it did topple: the box's long axis lies flat
+
+
+def test_noisy_push_is_reproducible_from_the_rng(box):
+    obj, pose_set, standing = box
+    body = body_model(obj)
+    first, second = (
+        play_push(body, pose_set.poses[standing].transform, PUSH["point"], PUSH["direction"], Config(),
+                  draw_noise(Config(), np.random.default_rng(3), True)).final_transform
+        for _ in range(2)
+    )
+    np.testing.assert_array_equal(first, second)
+
+
+def test_empirical_distribution_puts_unknown_poses_last():
+    assert np.allclose(empirical_distribution(np.array([0, 0, 2, -1]), 3), [0.5, 0, 0.25, 0.25])
+
+
+# ---------------------------------------------------------------- the log producer
+
+
+def test_sampling_draws_distinct_ok_actions_favouring_likely_topples():
+    status = np.array([0, 0, 1, 0, 0, 2, 0])
+    p_topple = np.array([1.0, 0.0, np.nan, 0.0, 0.0, np.nan, 0.0])
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        chosen = playlog.sample_actions(p_topple, status, 3, rng, eps=1e-6)
+        assert len(set(chosen)) == 3 and set(chosen) <= {0, 1, 3, 4, 6}
+        assert 0 in chosen  # weight 1 + eps against eps: drawn first almost surely
+    assert len(playlog.sample_actions(p_topple, status, 10, rng, 0.05)) == 5
+    assert len(playlog.sample_actions(p_topple, np.full(7, 1), 3, rng, 0.05)) == 0
+
+
+@pytest.fixture(scope="module")
+def specs(tmp_path_factory) -> list[ObjectSpec]:
+    """A box (file outside pybullet_data) and one pybullet_data random object."""
+    directory = tmp_path_factory.mktemp("meshes")
+    mesh = trimesh.creation.box((0.05, 0.08, 0.15))
+    mesh.export(directory / "box.stl")
+    path = f"{DATA}/random_urdfs/002/002.obj"
+    return [
+        ObjectSpec("box", str(directory / "box.stl"), 1.0, 0.25, "test", file_sha256(directory / "box.stl")),
+        ObjectSpec("random_002", path, 0.015, 0.1, "pybullet_data/random_urdfs/002/002.urdf", file_sha256(path)),
+    ]
+
+
+PARAMS = playlog.PlayParams(actions=2, repeats=2, eps=0.05, max_poses=2, seed=5, config=TINY)
+
+
+@pytest.fixture(scope="module")
+def reference_log(specs, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("log") / "one_worker"
+    summary = playlog.play(specs, PARAMS, out, workers=1)
+    assert summary.objects == 2 and summary.pushes > 0 and not summary.failed
+    return out
+
+
+def test_every_logged_row_passes_the_contract_and_round_trips(reference_log, specs):
+    table = playlog.read_log(reference_log)
+    assert table.schema.equals(PUSHLOG, check_metadata=False)
+    assert table.num_rows == sum(playlog.read_part_record(p)["summary"]["pushes"] for p in reference_log.glob("*.parquet"))
+    assert all(problem is None for problem in row_problems(table))
+    rows = table.to_pylist()
+    assert {r["object_id"] for r in rows} == {"box", "random_002"}
+    assert {r["mesh_source"] for r in rows if r["object_id"] == "random_002"} == {"pybullet_data"}
+    by_object = {s.object_id: s for s in specs}
+    for row in rows:
+        assert row["mesh_sha256"] == by_object[row["object_id"]].sha256
+        assert row["push_id"] == row["start_pose"] * playlog.PUSH_ID_SPAN + row["action"]
+        assert row["finger_speed"] == FINGER_SPEED and row["source"] == "pybullet" and row["seed"] == PARAMS.seed
+    # Each object's pushes: PARAMS.actions per pose, PARAMS.repeats each, the same nominal push in every repeat.
+    box_rows = [r for r in rows if r["object_id"] == "box"]
+    pushes = {r["push_id"] for r in box_rows}
+    assert len(box_rows) == PARAMS.repeats * len(pushes) and len(pushes) == PARAMS.actions * PARAMS.max_poses
+    # Points are in the object frame: on the box's surface, whatever pose it started in.
+    box_mesh = trimesh.creation.box((0.05, 0.08, 0.15))  # as written to box.stl
+    points = np.array([[r[f"point_{a}"] for a in "xyz"] for r in box_rows])
+    assert np.abs(trimesh.proximity.signed_distance(box_mesh, points)).max() < 1e-6
+
+
+def test_the_log_is_the_same_whatever_the_number_of_workers(reference_log, specs, tmp_path):
+    playlog.play(specs, PARAMS, tmp_path / "two", workers=2)
+    assert playlog.read_log(tmp_path / "two").equals(playlog.read_log(reference_log))
+
+
+def test_a_stopped_run_resumes_and_gives_the_same_log(reference_log, specs, tmp_path):
+    out = tmp_path / "log"
+    playlog.play(specs, PARAMS, out, workers=1, stop_after=1)
+    assert len(list(out.glob("*.parquet"))) == 1 and not (out / playlog.RUN_FILE).exists()
+    resumed = playlog.play(specs, PARAMS, out, workers=1)
+    assert resumed.reused == 1 and resumed.objects == 2
+    assert playlog.read_log(out).equals(playlog.read_log(reference_log))
+    # A lost part file is played again, the other reused.
+    (out / "box.parquet").unlink()
+    again = playlog.play(specs, PARAMS, out, workers=1)
+    assert again.reused == 1
+    assert playlog.read_log(out).equals(playlog.read_log(reference_log))
+    # Other parameters never mix into the same directory.
+    other = playlog.PlayParams(actions=1, repeats=1, eps=0.05, max_poses=1, seed=5, config=TINY)
+    with pytest.raises(playlog.PlayError, match="other parameters"):
+        playlog.play(specs, other, out, workers=1)
+    with pytest.raises(playlog.PlayError, match="does not play"):
+        playlog.play(specs[:1], PARAMS, out, workers=1)
+
+
+def test_a_mesh_that_cannot_be_loaded_is_recorded_not_fatal(specs, tmp_path):
+    broken = tmp_path / "flat.stl"
+    trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], [[0, 1, 2]]).export(broken)
+    spec = ObjectSpec("flat", str(broken), 1.0, 0.1, "test", file_sha256(broken))
+    summary = playlog.play([spec], PARAMS, tmp_path / "log", workers=1)
+    assert "flat" in summary.failed and summary.pushes == 0
+    assert pq.read_table(tmp_path / "log" / "flat.parquet").num_rows == 0
+    assert playlog.play([spec], PARAMS, tmp_path / "log", workers=1).reused == 1
+
+
+def test_heldout_objects_exclude_every_corpus_object():
+    corpus = read_list(DEFAULT_LIST, 0.25).specs
+    heldout = playlog.heldout_specs(0.25)
+    assert heldout and {s.object_id for s in heldout}.isdisjoint({s.object_id for s in corpus})
+    assert {s.sha256 for s in heldout}.isdisjoint({s.sha256 for s in corpus})
+    assert {str(Path(s.path).resolve()) for s in heldout}.isdisjoint({str(Path(s.path).resolve()) for s in corpus})
+    # pybullet_data's named meshes that the corpus does not list come first, then seeded random ones.
+    named = {"bunny", "duck", "lego", "mug", "teddy"} - {s.object_id for s in corpus}
+    chosen = playlog.select_objects("heldout", len(named) + 5, seed=1, default_mass=0.25)
+    assert {s.object_id for s in chosen[: len(named)]} == named
+    assert [s.object_id for s in chosen] == [s.object_id for s in playlog.select_objects("heldout", len(named) + 5, 1, 0.25)]
+    longer = playlog.select_objects("heldout", len(named) + 8, seed=1, default_mass=0.25)
+    assert [s.object_id for s in longer[: len(chosen)]] == [s.object_id for s in chosen]
+    other_seed = playlog.select_objects("heldout", len(named) + 5, seed=2, default_mass=0.25)
+    assert [s.object_id for s in other_seed] != [s.object_id for s in chosen]
+    # Corpus mode draws from the corpus only.
+    assert {s.object_id for s in playlog.select_objects("corpus", 10, 0, 0.25)} <= {s.object_id for s in corpus}
+
+
+def test_play_command_rejects_bad_input(capsys, tmp_path):
+    assert playlog.main(["--out", str(tmp_path / "x"), "--eps", "0", "--no-progress"]) == 2
+    assert "--eps" in capsys.readouterr().err
+    assert playlog.main(["--out", str(tmp_path / "x"), "--set", "topple.nope=1", "--no-progress"]) == 2
+    assert "nope" in capsys.readouterr().err
