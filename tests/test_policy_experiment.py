@@ -7,19 +7,19 @@ import pytest
 from handmade import write_minimal_manifest
 
 from pipeline.cli import main
-from pipeline.studies.policy_experiment import experiment
+from pipeline.studies.policy_experiment import PolicyTables, draw_starts, experiment
 from schema.reader import Dataset
 
 
-def _write(root, p_success):
-    """One object, two equally likely poses: pose 0 ungraspable, pose 1 perfect.
+def _write(root, p_success, drop=(0.5, 0.5)):
+    """One object, two poses dropped into with probabilities ``drop``: pose 0 ungraspable, pose 1 perfect.
 
     In pose 0 Greedy and Value Iteration push action 3, which reaches pose 1 with
     probability ``p_success`` and otherwise leaves the object where it was; Max-Height
     pushes action 7, which never topples.  In pose 1 every policy grasps.
     """
     pq.write_table(pa.table({
-        "object_id": ["cup", "cup"], "pose": [0, 1], "probability": [0.5, 0.5], "v_s": [0.0, 1.0],
+        "object_id": ["cup", "cup"], "pose": [0, 1], "probability": list(drop), "v_s": [0.0, 1.0],
         "max_height_action": [7, -1], "greedy_action": [3, -1], "value_iteration_action": [3, -1],
     }), root / "poses.parquet")
     part = root / "transitions" / "object_id=cup"
@@ -56,3 +56,36 @@ def test_cli_reports_and_refuses_a_missing_dataset(tmp_path, capsys):
     assert "points over Max-Height" in out and (tmp_path / "p.png").is_file()
     assert main(["policies", str(tmp_path / "nowhere")]) == 2
     assert "no such dataset directory" in capsys.readouterr().err
+
+
+def _drop_tables(probability, poses_per_object):
+    """PolicyTables with only what ``draw_starts`` reads: objects, their pose rows, drop probabilities."""
+    first_pose = np.concatenate([[0], np.cumsum(poses_per_object)])
+    return PolicyTables(
+        object_ids=[f"o{i}" for i in range(len(poses_per_object))], first_pose=first_pose,
+        probability=np.asarray(probability, dtype=float), v_s=np.zeros(len(probability)), actions={},
+        keys=np.zeros(0, np.int64), next_row=np.zeros(0, int), cumulative=np.zeros(0),
+    )
+
+
+def test_starts_pick_a_uniform_object_then_a_pose_by_drop_probability():
+    # Object 0 has three poses; object 1 one pose. Object 0's stored probabilities sum to
+    # 0.5 only (poses dropped by the build are gone): they are renormalised to 0.6, 0.3, 0.1.
+    tables = _drop_tables([0.3, 0.15, 0.05, 1.0], [3, 1])
+    n = 40_000
+    starts = draw_starts(tables, n, np.random.default_rng(5))
+    frequency = np.bincount(starts, minlength=4) / n
+    expected = np.array([0.5 * 0.6, 0.5 * 0.3, 0.5 * 0.1, 0.5])  # objects are equally likely, whatever their pose count
+    assert np.all(np.abs(frequency - expected) <= 4 * np.sqrt(expected * (1 - expected) / n))
+    # A pose with zero drop probability is never a start.
+    never = draw_starts(_drop_tables([0.0, 1.0, 0.0], [3]), 5_000, np.random.default_rng(6))
+    assert np.all(never == 1)
+
+
+def test_useful_trials_follow_the_drop_probabilities(tmp_path):
+    # Only drops into pose 0 are useful (pose 1 is already the best), so their share is P(pose 0).
+    _write(tmp_path, p_success=0.3, drop=(0.8, 0.2))
+    result = experiment(Dataset(tmp_path, manifest=None), n_trials=20_000, max_steps=1, seed=2)
+    assert abs(result["useful_trials"] / 20_000 - 0.8) < 0.02
+    # Greedy's mean gain over all trials: 0.8 of them start in pose 0 and topple with 0.3.
+    assert abs(result["policies"]["greedy"]["mean_gain_all"] - 0.8 * 0.3) < 0.02

@@ -1,5 +1,7 @@
 """The toppling model: analytic cases and invariants (thesis 4.2, docs/MODEL.md 7)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from shapes import boot_object, pose_with_down, random_object, standing_box
@@ -7,6 +9,9 @@ from shapes import boot_object, pose_with_down, random_object, standing_box
 from pipeline.api import evaluate
 from pipeline.model.config import Config
 from pipeline.model.poses import stable_poses
+from pipeline.model.reference import draw_of, reference_trial, scene_from_pose
+from pipeline.model.rng import stream
+from pipeline.model.topple import sample_noise
 from schema.frames import transform_points
 from schema.vocabulary import OUTCOME_NOT_EVALUATED, STATUS_OK
 
@@ -136,3 +141,26 @@ def test_unknown_variant_is_rejected(box):
     obj, pose_set, standing = box
     with pytest.raises(ValueError, match="unknown variant"):
         evaluate(obj, pose_set, standing, points=_side_pushes([0.1]), variant="magic")
+
+
+def test_mean_force_is_the_mean_over_the_trials_that_topple(box):
+    # Under noise each trial needs its own force (contact height, direction and the
+    # object's tilt change the torques); the table keeps their mean over toppling trials.
+    obj, pose_set, standing = box
+    config = Config()
+    heights = [0.07, 0.1, 0.14]  # the lowest is near the friction height: only some trials topple
+    result = evaluate(obj, pose_set, standing, points=_side_pushes(heights), n_trials=60, seed=5)
+    topple = config.topple
+    noise = sample_noise(stream(5, obj.name, standing, "trials"), len(heights), replace(topple, n_trials=60))
+    scene = scene_from_pose(obj, pose_set.poses[standing], topple.gravity)
+    for action in range(len(heights)):
+        toppled = result.table.outcomes[action] >= 0
+        forces = []
+        for trial in np.flatnonzero(toppled):
+            draw = draw_of(result.actions, noise, action, trial)
+            edge, force = reference_trial(scene, draw, True, topple.predicts_rotations, topple.ray_offset)
+            assert edge == result.table.outcomes[action, trial]
+            forces.append(force)
+        assert len(forces) >= 10 and np.ptp(forces) > 0.01 * np.mean(forces), "the forces should vary over trials"
+        assert result.table.mean_force[action] == pytest.approx(np.mean(forces), rel=1e-6)
+    assert 0 < result.table.p_topple[0] < 1
