@@ -7,7 +7,7 @@
     toppledb verify DIR
     toppledb corpus [--out pipeline/build/corpus_default.csv] [--count 189]
     toppledb policies DIR [--trials 20000] [--plot PNG]
-    toppledb bench | validate | serve [their own options]
+    toppledb bench | report | calibrate | serve [their own options]
 
 Parameters: defaults (``pipeline.model.config``), then ``--config``, then each ``--set``,
 then the dedicated flags (``--contacts`` etc.).  Bad arguments, paths or
@@ -27,8 +27,11 @@ EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 DELEGATED = {
     "bench": ("pipeline.studies.bench", "time the engine, suction and value iteration on one core (make bench)"),
-    "validate": ("pipeline.studies.validation", "replay pushes in pybullet and score the model variants"),
+    "report": ("pipeline.studies.validation", "score the model variants against push logs (validation report)"),
+    "calibrate": ("pipeline.studies.calibrate", "search the noise parameters on push logs, write a config TOML"),
     "serve": ("service.__main__", "serve a finished dataset over HTTP (make serve)"),
+    "play": ("pipeline.studies.playlog", "play pushes in pybullet and write a push-outcome log"),
+    "policies-physics": ("pipeline.studies.policies_physics", "play each policy's pushes in pybullet from dropped poses"),
 }
 """Commands with parsers of their own: ``toppledb NAME ARGS`` runs ``MODULE.main(ARGS)``."""
 COMMANDS = ("dataset", "verify", "corpus", "policies", *DELEGATED)
@@ -46,6 +49,29 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
+    return value
+
+
+def corpus_units(args: argparse.Namespace):
+    """The --units/--scale/--mass/--density flags as ``corpus.Units``."""
+    from .build.corpus import Units
+    from .model.mesh import UNIT_SCALES
+
+    if args.units and args.scale:
+        raise UsageError("give --units or --scale, not both")
+    if args.mass and args.density:
+        raise UsageError("give --mass or --density, not both")
+    scale = UNIT_SCALES[args.units] if args.units else args.scale
+    return Units(scale=scale, mass=args.mass, density=args.density)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -66,6 +92,13 @@ def parser() -> argparse.ArgumentParser:
     dataset.add_argument("--variant", choices=VARIANTS, help="toppling model variant (topple.variant)")
     dataset.add_argument("--seed", type=int, help="root of every random stream (seed)")
     _add_execution(dataset)
+    units = dataset.add_argument_group(
+        "units and mass (a directory corpus; they override the sidecar's defaults, not its per-mesh entries)"
+    )
+    units.add_argument("--units", choices=("mm", "cm", "m", "in"), help="the meshes' length unit (scale 0.001, 0.01, 1, 0.0254)")
+    units.add_argument("--scale", type=positive_float, help="metres per file unit, e.g. 0.001 for millimetres")
+    units.add_argument("--mass", type=positive_float, metavar="KG", help="mass of every mesh, kg")
+    units.add_argument("--density", type=positive_float, metavar="KG/M3", help="mass = density x volume, e.g. 1000 for water")
     dataset.add_argument("--force", action="store_true", help="discard what --out holds and recompute everything")
     dataset.add_argument("--strict", action="store_true", help="stop at the first object that fails")
 
@@ -142,7 +175,7 @@ def run_dataset(args: argparse.Namespace) -> int:
     from .build.dataset import build_dataset
 
     config = make_config(args)
-    corpus = load_corpus(args.corpus, config.mesh.default_mass).limit(args.limit)
+    corpus = load_corpus(args.corpus, config.mesh.default_mass, corpus_units(args)).limit(args.limit)
     summary = build_dataset(
         corpus,
         config,
@@ -156,6 +189,9 @@ def run_dataset(args: argparse.Namespace) -> int:
     )
     print(summary.text())
     print(f"dataset: {Path(args.out).resolve()}")
+    if summary.all_failed:
+        print(f"error: every object failed ({summary.manifest.counts.failed}); see the reasons above", file=sys.stderr)
+        return EXIT_FAILED
     return EXIT_OK
 
 

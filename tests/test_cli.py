@@ -78,3 +78,32 @@ def test_module_entry_point_prints_no_traceback(tmp_path):
     )
     assert run.returncode == 2
     assert run.stderr.startswith("error: corpus not found") and "Traceback" not in run.stderr
+
+
+FAST = ["--contacts", "10", "--trials", "2", "--set", "suction.n_candidates=5", "--set", "suction.n_samples=3",
+        "--no-progress", "--workers", "1"]
+
+
+def test_millimetre_meshes_fail_with_a_unit_hint_until_units_are_given(tmp_path, capsys):
+    import trimesh
+
+    meshes = tmp_path / "cad"
+    meshes.mkdir()
+    for name, size in (("bracket", [120.0, 60.0, 30.0]), ("block", [50.0, 40.0, 90.0])):
+        trimesh.creation.box(size).export(meshes / f"{name}.stl")
+    (meshes / "noise.obj").write_bytes(bytes(range(256)) * 4)
+    out = tmp_path / "out"
+
+    assert main(["dataset", "--corpus", str(meshes), "--out", str(out), *FAST]) == 1, "every object failed"
+    captured = capsys.readouterr()
+    assert "error: every object failed (3)" in captured.err
+    assert "2  too large for a tabletop (block, bracket); try --units mm" in captured.out
+    assert "1  cannot read # (noise)" in captured.out
+
+    assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--units", "mm", "--mass", "0.2", *FAST]) == 0
+    captured = capsys.readouterr()
+    assert "objects   2 (3 computed, 0 reused), failed 1" in captured.out
+    assert "failed    noise: cannot read noise.obj: no triangles, not a valid OBJ file" in captured.out
+
+    assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--units", "mm", "--mass", "0.2", "--strict", *FAST]) == 1
+    assert "--strict: noise:" in capsys.readouterr().err

@@ -4,6 +4,7 @@ list corpora, and regenerating the default list with the selection rule."""
 from __future__ import annotations
 
 import csv
+import re
 import sys
 import types
 from pathlib import Path
@@ -15,6 +16,7 @@ from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import (
     DEFAULT_LIST,
     CorpusError,
+    Units,
     candidate_specs,
     load_corpus,
     pybullet_data_dir,
@@ -191,3 +193,64 @@ def test_regenerate_applies_the_selection_rule_in_candidate_order(tmp_path, monk
     assert [s.object_id for s in corpus.specs] == ["duck", "random_001", "random_003"]
     assert corpus.problems == {}
     assert not any(p.name.endswith(".tmp") for p in tmp_path.iterdir())
+
+
+def _cube_dir(tmp_path: Path, names: list[str]) -> Path:
+    for name in names:
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(CUBE_OBJ)
+    return tmp_path
+
+
+def test_directory_sidecar_toml_sets_units_and_mass_with_per_mesh_entries(tmp_path):
+    _cube_dir(tmp_path, ["a.obj", "b.obj", "parts/c.obj"])
+    (tmp_path / "corpus.toml").write_text(
+        'units = "cm"\nmass = 0.2\n[objects."b.obj"]\nscale = 0.05\nmass = 0.3\nobject_id = "bee"\n'
+        '[objects."parts/c.obj"]\ndensity = 1000\n'
+    )
+    specs = {s.object_id: s for s in scan_directory(tmp_path, default_mass=0.4).specs}
+    assert (specs["a"].scale, specs["a"].mass) == (0.01, 0.2), "the sidecar's defaults"
+    assert (specs["bee"].scale, specs["bee"].mass) == (0.05, 0.3), "a per-mesh entry wins"
+    assert specs["c"].scale == 0.01
+    assert specs["c"].mass == pytest.approx(1000 * 0.01**3), "density x volume of the scaled unit cube"
+
+    # Flags override the sidecar's defaults but not its per-mesh entries.
+    flagged = {s.object_id: s for s in scan_directory(tmp_path, 0.4, Units(scale=0.02, mass=0.5)).specs}
+    assert (flagged["a"].scale, flagged["a"].mass) == (0.02, 0.5)
+    assert (flagged["bee"].scale, flagged["bee"].mass) == (0.05, 0.3)
+    assert flagged["c"].mass == pytest.approx(1000 * 0.02**3), "its own density beats the --mass flag"
+
+
+def test_directory_sidecar_csv_and_flags_without_sidecar(tmp_path):
+    _cube_dir(tmp_path, ["a.obj", "b.obj"])
+    plain = {s.object_id: s for s in scan_directory(tmp_path, 0.4, Units(scale=0.0254, density=500)).specs}
+    assert plain["a"].scale == 0.0254 and plain["a"].mass == pytest.approx(500 * 0.0254**3)
+    (tmp_path / "corpus.csv").write_text("path,units,mass\nb.obj,mm,0.7\n")
+    specs = {s.object_id: s for s in scan_directory(tmp_path, default_mass=0.4).specs}
+    assert (specs["a"].scale, specs["a"].mass) == (1.0, 0.4)
+    assert (specs["b"].scale, specs["b"].mass) == (0.001, 0.7)
+
+
+@pytest.mark.parametrize(
+    "sidecar, text, message",
+    [
+        ("corpus.toml", 'units = "furlong"\n', "units 'furlong' is not one of mm, cm, in, m"),
+        ("corpus.toml", 'units = "mm"\nscale = 0.001\n', "units or scale, not both"),
+        ("corpus.toml", "mass = -1\n", "mass must be positive"),
+        ("corpus.toml", "colour = 1\n", "unknown key(s) ['colour']"),
+        ("corpus.toml", '[objects."missing.obj"]\nmass = 1\n', "names meshes that are not there"),
+        ("corpus.toml", "units = \n", "corpus.toml"),
+        ("corpus.csv", "path,mass,density\na.obj,1,2\n", "mass or density, not both"),
+    ],
+)
+def test_bad_sidecars_give_one_line_errors(tmp_path, sidecar, text, message):
+    _cube_dir(tmp_path, ["a.obj"])
+    (tmp_path / sidecar).write_text(text)
+    with pytest.raises(CorpusError, match=re.escape(message)) as err:
+        scan_directory(tmp_path, default_mass=0.4)
+    assert "\n" not in str(err.value)
+
+
+def test_unit_flags_are_refused_for_list_corpora():
+    with pytest.raises(CorpusError, match="apply to a directory of meshes"):
+        load_corpus("default", 0.25, Units(scale=0.001))

@@ -1,5 +1,7 @@
 """Mesh loading: repairs are reported, every rejection reason is one clear line."""
 
+import sys
+
 import numpy as np
 import pytest
 import trimesh
@@ -89,3 +91,34 @@ def test_stl_and_ply_round_trip(tmp_path):
         assert obj.name == "box" and obj.mass == 0.3
         assert np.allclose(sorted(obj.mesh.extents), [0.04, 0.06, 0.1])
         assert np.isclose(obj.mesh.volume, 0.04 * 0.06 * 0.1)
+
+
+@pytest.mark.parametrize("suffix", ["obj", "stl"])
+@pytest.mark.parametrize("without_charset_detector", [False, True])
+def test_random_bytes_name_the_file_not_a_module(tmp_path, monkeypatch, suffix, without_charset_detector):
+    if without_charset_detector:  # trimesh imports it only for non-UTF-8 bytes
+        monkeypatch.setitem(sys.modules, "charset_normalizer", None)
+    path = tmp_path / f"noise.{suffix}"
+    path.write_bytes(np.random.default_rng(0).integers(0, 256, 3000, dtype=np.uint8).tobytes())
+    with pytest.raises(MeshError) as err:
+        load_mesh(path)
+    message = str(err.value)
+    assert message.startswith(f"noise: ") and message.count("noise:") == 1 and "\n" not in message
+    assert f"not a valid {suffix.upper()} file" in message and "module" not in message
+
+
+def test_empty_and_missing_files_say_so(tmp_path):
+    (tmp_path / "empty.obj").write_bytes(b"")
+    with pytest.raises(MeshError, match="empty.obj: no triangles, the file is empty"):
+        load_mesh(tmp_path / "empty.obj")
+    with pytest.raises(MeshError, match="mesh file not found"):
+        load_mesh(tmp_path / "gone.obj")
+
+
+def test_size_errors_name_the_likely_unit():
+    millimetres = trimesh.creation.box([120.0, 80.0, 40.0])  # a 12 cm part drawn in mm, read as metres
+    assert "probably in millimetres: use --units mm" in _reason(millimetres)
+    inches = trimesh.creation.box([8.0, 3.0, 3.0])  # 8 in = 20 cm, or 8 cm
+    assert "probably in centimetres or inches" in _reason(inches)
+    assert "units" not in _reason(trimesh.creation.box([3000.0, 1, 1])), "no unit makes a 3 km object fit"
+    assert "check the file's units" in _reason(trimesh.creation.box([0.1] * 3), scale=0.01)

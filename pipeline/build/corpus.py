@@ -6,8 +6,10 @@ comes from, SHA-256 of the file).  Three kinds:
 - ``default``: ``pipeline/build/corpus_default.csv``, the 189 objects of pybullet_data
   chosen by the selection rule of thesis 4.4.1 (``toppledb corpus`` regenerates it,
   see ``pipeline.build.selection``);
-- a directory of meshes (OBJ/STL/PLY, searched recursively), scale 1 and the
-  configured default mass;
+- a directory of meshes (OBJ/STL/PLY, searched recursively); their units and
+  masses come from a sidecar beside them (``corpus.toml`` or ``corpus.csv``, see
+  ``SIDECAR_HELP``) and from ``Units`` (the ``--units/--scale/--mass/--density``
+  flags), else scale 1 and the configured default mass;
 - a list file: CSV with a header and a ``path`` column, optionally ``object_id``,
   ``source``, ``scale`` (default 1), ``mass`` (kg, default from the config) and
   ``sha256`` (checked when given).
@@ -60,6 +62,126 @@ class CorpusError(ValueError):
     """A corpus that cannot be read; the message is one line."""
 
 
+SIDECAR_TOML, SIDECAR_CSV = "corpus.toml", "corpus.csv"
+SIDECAR_HELP = """\
+A directory of meshes may hold a sidecar saying their units and masses:
+
+  corpus.toml                           corpus.csv
+    units = "mm"      # or scale = 0.001      path,scale,mass,object_id
+    mass = 0.2        # kg, every mesh        bunny.obj,0.1,0.3,bunny
+    # density = 700   # or kg/m^3 x volume    parts/bolt.stl,0.001,,
+    [objects."bunny.obj"]  # one mesh, by path relative to the directory
+    scale = 0.1
+    mass = 0.3
+
+Each mesh takes, in order: its own sidecar entry, then the --units/--scale/--mass/
+--density flags, then the sidecar's defaults, then scale 1 and mesh.default_mass."""
+
+
+@dataclass(frozen=True)
+class Units:
+    """Scale and mass settings for the meshes of a directory (flags or sidecar).
+
+    scale : metres per file unit (``units`` is the same as a name: mm, cm, in, m)
+    mass : kg for every mesh; density : kg/m^3, mass = density x volume (of the
+    mesh when watertight, else of its convex hull).  None: not set here.
+    """
+
+    scale: float | None = None
+    mass: float | None = None
+    density: float | None = None
+    object_id: str | None = None
+
+    @classmethod
+    def parse(cls, values: dict, where: str) -> "Units":
+        """From a sidecar table or CSV row: ``units`` or ``scale``, ``mass`` or ``density``."""
+        from ..model.mesh import UNIT_SCALES
+
+        known = {"units", "scale", "mass", "density", "object_id", "path", "objects"}
+        unknown = set(values) - known
+        if unknown:
+            raise CorpusError(f"{where}: unknown key(s) {sorted(unknown)}; known: units, scale, mass, density, object_id")
+        scale = values.get("scale")
+        units = values.get("units")
+        if units not in (None, ""):
+            if units not in UNIT_SCALES:
+                raise CorpusError(f"{where}: units {units!r} is not one of {', '.join(UNIT_SCALES)}")
+            if scale not in (None, ""):
+                raise CorpusError(f"{where}: give units or scale, not both")
+            scale = UNIT_SCALES[units]
+        mass, density = values.get("mass"), values.get("density")
+        if mass not in (None, "") and density not in (None, ""):
+            raise CorpusError(f"{where}: give mass or density, not both")
+        return cls(
+            scale=_number(scale, None, "scale", where),
+            mass=_number(mass, None, "mass", where),
+            density=_number(density, None, "density", where),
+            object_id=values.get("object_id") or None,
+        )
+
+    def over(self, other: "Units") -> "Units":
+        """These settings, falling back to ``other`` for what is not set (mass and density together)."""
+        has_mass = self.mass is not None or self.density is not None
+        return Units(
+            scale=self.scale if self.scale is not None else other.scale,
+            mass=self.mass if has_mass else other.mass,
+            density=self.density if has_mass else other.density,
+            object_id=self.object_id or other.object_id,
+        )
+
+
+def read_sidecar(directory: Path) -> tuple[Units, dict[str, Units]]:
+    """The directory's defaults and per-mesh entries (by path relative to it, POSIX)."""
+    toml_path, csv_path = directory / SIDECAR_TOML, directory / SIDECAR_CSV
+    if toml_path.is_file() and csv_path.is_file():
+        raise CorpusError(f"{directory}: both {SIDECAR_TOML} and {SIDECAR_CSV}; keep one")
+    if toml_path.is_file():
+        import tomllib
+
+        try:
+            data = tomllib.loads(toml_path.read_text())
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
+            raise CorpusError(f"{toml_path}: {' '.join(str(err).split())}") from None
+        objects = data.get("objects", {})
+        if not isinstance(objects, dict) or not all(isinstance(v, dict) for v in objects.values()):
+            raise CorpusError(f'{toml_path}: [objects."path"] entries must be tables')
+        defaults = Units.parse({k: v for k, v in data.items() if k != "objects"}, SIDECAR_TOML)
+        if defaults.object_id:
+            raise CorpusError(f"{toml_path}: object_id belongs in an [objects.\"path\"] table")
+        entries = {_posix(k): Units.parse(v, f"{SIDECAR_TOML} [objects.{k!r}]") for k, v in objects.items()}
+        return defaults, entries
+    if csv_path.is_file():
+        try:
+            rows = list(csv.DictReader(io.StringIO(csv_path.read_text())))
+        except (OSError, UnicodeDecodeError, csv.Error) as err:
+            raise CorpusError(f"{csv_path}: {err}") from None
+        entries = {}
+        for number, row in enumerate(rows, start=2):
+            row = {(k or "").strip(): (v or "").strip() for k, v in row.items()}
+            if not row.get("path"):
+                raise CorpusError(f"{SIDECAR_CSV} row {number}: empty path")
+            entries[_posix(row["path"])] = Units.parse(row, f"{SIDECAR_CSV} row {number}")
+        return Units(), entries
+    return Units(), {}
+
+
+def _posix(path: str) -> str:
+    return Path(path).as_posix().removeprefix("./")
+
+
+def mass_from_density(path: Path, scale: float, density: float) -> float | None:
+    """kg: density x volume of the scaled mesh (its convex hull when it is not closed);
+    None when the mesh cannot be loaded (the build then reports why)."""
+    from ..model.mesh import MeshError, load_mesh
+
+    try:
+        obj = load_mesh(path, scale=scale, mass=1.0)
+    except MeshError:
+        return None
+    volume = float(obj.mesh.volume) if obj.mesh.is_volume else float(obj.hull.volume)
+    return density * volume
+
+
 @dataclass(frozen=True)
 class ObjectSpec:
     """One object of a corpus.
@@ -100,9 +222,17 @@ class Corpus:
         return Corpus(self.name, specs, {k: v for k, v in self.problems.items() if k in kept})
 
 
-def load_corpus(corpus: str, default_mass: float) -> Corpus:
+def load_corpus(corpus: str, default_mass: float, units: Units | None = None) -> Corpus:
     """Resolve the ``--corpus`` argument: ``default``, ``pybullet_data`` (every
-    candidate, unselected), a directory of meshes, or a CSV list file."""
+    candidate, unselected), a directory of meshes, or a CSV list file.
+
+    units : scale/mass settings (the CLI flags), for a directory of meshes only.
+    """
+    if units is not None and units != Units() and not Path(corpus).is_dir():
+        raise CorpusError(
+            "--units, --scale, --mass and --density apply to a directory of meshes; "
+            "a list file has scale and mass columns"
+        )
     if corpus == "default":
         if not DEFAULT_LIST.is_file():
             raise CorpusError(f"default corpus list {DEFAULT_LIST} is missing; run `toppledb corpus`")
@@ -111,7 +241,7 @@ def load_corpus(corpus: str, default_mass: float) -> Corpus:
         return Corpus(PYBULLET_SOURCE, candidate_specs(default_mass))
     path = Path(corpus)
     if path.is_dir():
-        return scan_directory(path, default_mass)
+        return scan_directory(path, default_mass, units)
     if path.is_file():
         return read_list(path, default_mass)
     raise CorpusError(f"corpus not found: {corpus} (give 'default', 'pybullet_data', a directory of meshes or a CSV file)")
@@ -163,8 +293,10 @@ def _check_files(specs: list[ObjectSpec], expected_sha: dict[str, str]) -> dict[
 # --- directory and list corpora ---------------------------------------------------------
 
 
-def scan_directory(directory: str | Path, default_mass: float) -> Corpus:
-    """Every OBJ/STL/PLY file under ``directory``, in path order; scale 1, default mass."""
+def scan_directory(directory: str | Path, default_mass: float, units: Units | None = None) -> Corpus:
+    """Every OBJ/STL/PLY file under ``directory``, in path order.  Scale and mass per
+    mesh: its sidecar entry, then ``units`` (flags), then the sidecar's defaults, then
+    scale 1 and ``default_mass`` (see ``SIDECAR_HELP``)."""
     directory = Path(directory).resolve()
     files = sorted(
         (p for p in directory.rglob("*") if p.is_file() and p.suffix.lower() in MESH_SUFFIXES),
@@ -172,11 +304,30 @@ def scan_directory(directory: str | Path, default_mass: float) -> Corpus:
     )
     if not files:
         raise CorpusError(f"no OBJ, STL or PLY meshes in {directory}")
-    ids = _unique([object_id_from_name(p.stem) for p in files])
-    specs = [
-        ObjectSpec(object_id, str(p), 1.0, float(default_mass), f"dir:{directory.name}", file_sha256(p))
-        for object_id, p in zip(ids, files)
-    ]
+    defaults, entries = read_sidecar(directory)
+    relative = [p.relative_to(directory).as_posix() for p in files]
+    unknown = sorted(set(entries) - set(relative))
+    if unknown:
+        raise CorpusError(f"{directory}: the sidecar names meshes that are not there: {unknown[:3]}")
+    base = (units or Units()).over(defaults)
+    chosen = [entries.get(r, Units()).over(base) for r in relative]
+    derived = _unique([object_id_from_name(p.stem) for p in files])
+    ids = [c.object_id or auto for c, auto in zip(chosen, derived)]
+    for object_id in ids:
+        try:
+            check_object_id(object_id)
+        except ValueError as err:
+            raise CorpusError(f"{directory}: {err}") from None
+    duplicates = sorted({i for i in ids if ids.count(i) > 1})
+    if duplicates:
+        raise CorpusError(f"{directory}: duplicate object ids {duplicates[:5]}")
+    specs = []
+    for object_id, p, c in zip(ids, files, chosen):
+        scale = c.scale if c.scale is not None else 1.0
+        mass = c.mass if c.mass is not None else float(default_mass)
+        if c.density is not None:
+            mass = mass_from_density(p, scale, c.density) or float(default_mass)
+        specs.append(ObjectSpec(object_id, str(p), float(scale), float(mass), f"dir:{directory.name}", file_sha256(p)))
     return Corpus(str(directory), specs, _check_files(specs, {}))
 
 
@@ -243,12 +394,12 @@ def _resolve(mesh: str, source: str, list_dir: Path) -> Path:
     return (list_dir / mesh).resolve()
 
 
-def _number(text: str | None, default: float, what: str, where: str) -> float:
-    if not text:
-        return float(default)
+def _number(text: str | float | None, default: float | None, what: str, where: str) -> float | None:
+    if text is None or text == "":
+        return None if default is None else float(default)
     try:
         value = float(text)
-    except ValueError:
+    except (TypeError, ValueError):
         raise CorpusError(f"{where}: {what} {text!r} is not a number") from None
     if not value > 0 or value == float("inf"):
         raise CorpusError(f"{where}: {what} must be positive and finite, got {text}")

@@ -31,6 +31,7 @@ import dataclasses
 import fcntl
 import json
 import os
+import re
 import shutil
 import time
 import traceback
@@ -90,14 +91,26 @@ def _one_line(text: str) -> str:
     return " ".join(text.split())[:500]
 
 
+MAX_FAILURE_LINES = 10
+"""The summary lists at most this many failed objects one by one (the manifest has all)."""
+
+
 @dataclass
 class Summary:
-    """What a build did; ``manifest`` is the written manifest."""
+    """What a build did; ``manifest`` is the written manifest.
+
+    repairs : object id -> what loading repaired, for objects computed in this run
+    """
 
     manifest: Manifest
     computed: int
     reused: int
     wall_s: float
+    repairs: dict[str, list[str]] = dataclasses.field(default_factory=dict)
+
+    @property
+    def all_failed(self) -> bool:
+        return self.manifest.counts.objects == 0 and self.manifest.counts.failed > 0
 
     def text(self) -> str:
         counts, timings = self.manifest.counts, self.manifest.timings
@@ -109,9 +122,38 @@ class Summary:
             f"cpu       {timings.cpu_s_total:.1f} s over all objects: "
             + ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in timings.cpu_s_by_stage.items()),
         ]
-        for failure in self.manifest.failures:
-            lines.append(f"failed    {failure.object_id}: {failure.reason}")
+        for object_id, repairs in self.repairs.items():
+            lines.append(f"repaired  {object_id}: {'; '.join(repairs)}")
+        failures = self.manifest.failures
+        for failure in failures[:MAX_FAILURE_LINES]:
+            lines.append(f"failed    {failure.object_id}: {failure.reason.removeprefix(failure.object_id + ': ')}")
+        if len(failures) > MAX_FAILURE_LINES:
+            lines.append(f"failed    ... and {len(failures) - MAX_FAILURE_LINES} more (every one is in manifest.json)")
+        if len(failures) > 1:
+            lines.append("failures by reason:")
+            reasons = {f.object_id: f.reason for f in failures}
+            for reason, ids in failure_groups(list(reasons.items())).items():
+                examples = ", ".join(ids[:3]) + (", ..." if len(ids) > 3 else "")
+                hints = {m.group(1) for i in ids if (m := re.search(r"use (--units \w+)", reasons[i]))}
+                hint = f"; try {hints.pop()}" if len(hints) == 1 else ""
+                lines.append(f"  {len(ids):5d}  {reason} ({examples}){hint}")
         return "\n".join(lines)
+
+
+def failure_groups(failures: list[tuple[str, str]]) -> dict[str, list[str]]:
+    """Failed object ids grouped by the kind of their reason, most common first.
+
+    The kind is the reason without its object id, cut at the first detail (':' or
+    '('), with file names and numbers masked: "too large for a tabletop",
+    "cannot read #", "mesh file not found".
+    """
+    groups: dict[str, list[str]] = {}
+    for object_id, reason in failures:
+        text = reason.removeprefix(f"{object_id}: ")
+        kind = re.split(r"[:(;]", text, maxsplit=1)[0].strip()
+        kind = re.sub(r"\S*[\d./\\]\S*", "#", kind) or text[:60]
+        groups.setdefault(kind, []).append(object_id)
+    return dict(sorted(groups.items(), key=lambda item: -len(item[1])))
 
 
 def build_dataset(
@@ -179,9 +221,12 @@ def build_dataset(
         if reused:
             log(f"resuming: {reused} of {len(corpus.specs)} objects already complete in {out}")
 
+        repairs: dict[str, list[str]] = {}
         if todo:
             _make_directory(staging, "staging directory")
-            staged.update(_compute(todo, config, process, staging, inputs, failures, workers, scheduler, strict, progress, reused))
+            staged.update(
+                _compute(todo, config, process, staging, inputs, failures, workers, scheduler, strict, progress, reused, repairs)
+            )
 
         order = [spec.object_id for spec in corpus.specs if spec.object_id in records or spec.object_id in staged]
         sources = {object_id: (staging if object_id in staged else out) for object_id in order}
@@ -210,7 +255,8 @@ def build_dataset(
         written = manifest.make_manifest(config, corpus, {**records, **staged}, consolidated, failure_list, run)
         manifest.write_manifest(staging, written)
         commit(out, staging, sorted(staged), keep=set(order))
-    return Summary(written, computed=len(todo), reused=reused, wall_s=wall)
+    order_repairs = {s.object_id: repairs[s.object_id] for s in corpus.specs if s.object_id in repairs}
+    return Summary(written, computed=len(todo), reused=reused, wall_s=wall, repairs=order_repairs)
 
 
 def _compute(
@@ -225,9 +271,11 @@ def _compute(
     strict: bool,
     progress: bool,
     already_done: int,
+    repairs: dict[str, list[str]],
 ) -> dict[str, dict]:
     """Compute ``todo`` and write each shard into ``staging`` as it arrives; add the
-    objects that fail to ``failures``; return the new shards' records."""
+    objects that fail to ``failures`` and what loading repaired to ``repairs``;
+    return the new shards' records."""
     written: dict[str, dict] = {}
     bar = fanout.Progress(
         total=already_done + len(failures) + len(todo),
@@ -247,6 +295,9 @@ def _compute(
                 bar.object_done(0, failed=True)
                 continue
             written[outcome.object_id] = shards.write_shard(staging, outcome, inputs[outcome.object_id])
+            repaired = outcome.rows["objects"].column("repairs").to_pylist()[0]
+            if repaired:
+                repairs[outcome.object_id] = repaired
             bar.object_done(outcome.counts["poses"])
     except fanout.SchedulerError as err:
         raise BuildError(str(err)) from None

@@ -60,13 +60,59 @@ def load_mesh(
     name : identifier for messages; the file stem when None
     """
     name = name or Path(path).stem
+    file = Path(path).name
+    if not Path(path).is_file():
+        raise MeshError(f"{name}: mesh file not found: {path}")
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
+    except ImportError:
+        # trimesh imports its text-encoding detector only for bytes that are not UTF-8;
+        # the real cause is the file, not the missing module.
+        raise MeshError(f"{name}: cannot read {file}: {_not_a_mesh(path)}") from None
     except Exception as err:  # trimesh raises many types for unreadable files
-        raise MeshError(f"{name}: cannot read {Path(path).name}: {_one_line(err)}") from None
+        raise MeshError(f"{name}: cannot read {file}: {_one_line(err)}") from None
     if not isinstance(loaded, trimesh.Trimesh):
-        raise MeshError(f"{name}: {Path(path).name} holds no triangle mesh")
+        raise MeshError(f"{name}: {file} holds no triangle mesh")
+    if len(loaded.faces) == 0:
+        raise MeshError(f"{name}: cannot read {file}: no triangles, {_not_a_mesh(path)}")
     return model_from_mesh(loaded, scale=scale, mass=mass, center_mass=center_mass, name=name, config=config)
+
+
+def _not_a_mesh(path: str | Path) -> str:
+    """Why a file gave no mesh, for the user: empty, binary garbage, or text without faces."""
+    data = Path(path).read_bytes()[:4096]
+    kind = Path(path).suffix.lower().lstrip(".").upper() or "mesh"
+    if not data:
+        return "the file is empty"
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError:
+        return f"not a valid {kind} file (binary data that is neither {kind} nor UTF-8 text)"
+    return f"not a valid {kind} file (text without vertices and faces)"
+
+
+UNIT_SCALES = {"mm": 0.001, "cm": 0.01, "in": 0.0254, "m": 1.0}
+"""Metres per file unit, for the ``--units`` flag and ``units`` in a corpus sidecar."""
+UNIT_NAMES = {"mm": "millimetres", "cm": "centimetres", "in": "inches", "m": "metres"}
+
+
+def unit_hint(extent: float, config: MeshConfig) -> str:
+    """For an object ``extent`` metres across that is out of the tabletop range, the
+    file units that would make it fit, as a hint: "" when none would."""
+    fits = [
+        unit for unit, factor in UNIT_SCALES.items()
+        if unit != "m" and config.min_extent <= extent * factor <= config.max_extent
+    ]
+    if extent < config.min_extent:
+        grown = [extent / factor for unit, factor in UNIT_SCALES.items() if unit != "m"]
+        fitting = any(config.min_extent <= size <= config.max_extent for size in grown)
+        return "; check the file's units (--units, --scale, or the corpus's scale)" if fitting else ""
+    if not fits:
+        return ""
+    return (
+        "; the file is probably in " + " or ".join(UNIT_NAMES[u] for u in fits)
+        + f": use --units {fits[0]} (or units = \"{fits[0]}\" in corpus.toml, or a scale column)"
+    )
 
 
 def model_from_mesh(
@@ -94,9 +140,13 @@ def model_from_mesh(
 
     extent = float(mesh.extents.max())
     if extent < config.min_extent:
-        raise MeshError(f"{name}: too small for a tabletop: largest side {extent:.4g} m < {config.min_extent} m")
+        raise MeshError(
+            f"{name}: too small for a tabletop: largest side {extent:.4g} m < {config.min_extent} m{unit_hint(extent, config)}"
+        )
     if extent > config.max_extent:
-        raise MeshError(f"{name}: too large for a tabletop: largest side {extent:.4g} m > {config.max_extent} m")
+        raise MeshError(
+            f"{name}: too large for a tabletop: largest side {extent:.4g} m > {config.max_extent} m{unit_hint(extent, config)}"
+        )
 
     # A flat mesh makes trimesh divide by a zero volume; the rejection below says why.
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -115,7 +165,7 @@ def model_from_mesh(
         default_com = np.asarray(mesh.center_mass, dtype=float)
     else:
         # An open surface has no inside; its convex hull is the best solid we know.
-        repairs.append("not watertight after repair: centre of mass from the convex hull")
+        repairs.append("open surface (not watertight after repair): treated as its convex hull for the centre of mass")
         default_com = np.asarray(hull.center_mass, dtype=float)
 
     com = default_com if center_mass is None else np.asarray(center_mass, dtype=float).reshape(3)
