@@ -1,11 +1,24 @@
-"""Validation of the toppling model against a physics engine (thesis 4.4.2, table 4.3).
+"""Validation report: the toppling model against a push-outcome log (thesis 4.4.2, table 4.3).
 
-The thesis compared the model with 700 physical pushes; here ``pushsim`` plays the
-pushes in pybullet.  Repeating a push under the model's noise gives an empirical
-next-pose distribution, compared with each model variant's prediction by the
-thesis's metrics (mean total variation in sup form, mAP of "it topples").
+The pushes were executed elsewhere (``toppledb play`` in pybullet, or a real robot)
+and logged with ``schema.pushlog``; this module runs no simulation.  It reads the
+log against the model (``logreader``), predicts every push with each model variant
+(``scoring``) and scores the predictions:
 
-    toppledb validate --objects 4 --actions 5 --repeats 10 --plot docs/physics_validation.png
+* sup-form total variation (TV), max over next poses of |P_model - P_observed|, the
+  mean over all pushes and over the *informative* ones (the model or physics says
+  something topples; the rest are trivially right for every model);
+* average precision of "it topples" (label: observed P(topple) > 0.5, score: the
+  predicted P(topple)), pooled and per object (mAP);
+* a reliability diagram (predicted P(topple) in bins against the observed
+  frequency) and the expected calibration error (ECE);
+* the trivial predictors as reference rows: "never topples", and "constant rate"
+  (the topple rate of *calibration* data, given with ``--rate`` or ``--rate-from``,
+  never that of the reported log);
+* per-object results with the worst objects named, bootstrap confidence intervals
+  over objects, counts (rejected rows by reason).
+
+    toppledb report data/logs/heldout --rate-from data/logs/calibration --out reports/validation.json --plot reports/validation.png
 """
 
 
@@ -13,20 +26,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from schema.vocabulary import STATUS_OK
-
 from ..model.config import VARIANTS, Config
-from ..model.evaluation import evaluate
-from ..model.mesh import MeshError, ObjectModel, load_mesh, model_from_mesh
-from ..model.poses import PoseSet, stable_poses
-from .pushsim import BodyModel, body_model, empirical_distribution, simulate_push
+from .logreader import LogError, PushLog, read_log
+from .scoring import Scorer, Scores
 
 THESIS_TABLE_4_3 = {
     "baseline": {"tv": 0.424, "map": 0.412},
@@ -35,6 +44,16 @@ THESIS_TABLE_4_3 = {
     "robust": {"tv": 0.211, "map": 0.589},
 }
 """Thesis table 4.3: final-pose predictions against 700 physical pushes (6-fold cross-validated)."""
+
+RELIABILITY_BINS = 10
+"""Equal-width bins of predicted P(topple) for the reliability diagram and the ECE."""
+TOPPLES = 0.5
+"""A push "topples" (the AP label) when more than this fraction of its repeats toppled."""
+BOOTSTRAP = 1000
+"""Bootstrap resamples of the objects for the confidence intervals."""
+CONFIDENCE = 0.95
+WORST = 5
+"""Objects named as the worst in a report."""
 
 # ---------------------------------------------------------------- metrics
 
@@ -70,241 +89,359 @@ def average_precision(scores: np.ndarray, labels: np.ndarray) -> float:
     return float(np.sum(np.diff(np.r_[0.0, recall]) * precision))
 
 
-# ---------------------------------------------------------------- validation
+def reliability(predicted: np.ndarray, observed: np.ndarray, n_bins: int = RELIABILITY_BINS) -> dict:
+    """Reliability diagram and expected calibration error of predicted probabilities.
 
-
-@dataclass
-class ActionRecord:
-    """One validated action: where, what physics did, what each variant predicted.
-
-    object, pose, action : identifiers;  point, direction : (3,) float, pose frame
-    empirical : (P + 1,) float, simulated next-pose frequencies (last: outside the pose set)
-    predicted : dict variant -> (P + 1,) float
+    predicted : (n,) float in [0, 1], predicted P(topple) per push
+    observed : (n,) float in [0, 1], observed topple frequency per push
+    returns : {"bins": [{"low", "high", "count", "predicted", "observed"}, ...], "ece": float}
+      ECE = sum over bins of (count / n) |mean predicted - mean observed|; empty bins count 0.
+      A prediction of exactly 1 falls in the last bin.
     """
+    predicted = np.asarray(predicted, dtype=float)
+    observed = np.asarray(observed, dtype=float)
+    which = np.clip((predicted * n_bins).astype(int), 0, n_bins - 1)
+    count = np.bincount(which, minlength=n_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_predicted = np.bincount(which, weights=predicted, minlength=n_bins) / count
+        mean_observed = np.bincount(which, weights=observed, minlength=n_bins) / count
+    gap = np.where(count > 0, np.abs(mean_predicted - mean_observed), 0.0)
+    ece = float(np.sum(count * gap) / len(predicted)) if len(predicted) else float("nan")
+    bins = [
+        {"low": b / n_bins, "high": (b + 1) / n_bins, "count": int(count[b]),
+         "predicted": _number(mean_predicted[b]), "observed": _number(mean_observed[b])}
+        for b in range(n_bins)
+    ]
+    return {"bins": bins, "ece": ece}
 
-    object: str
-    pose: int
-    action: int
-    point: np.ndarray
-    direction: np.ndarray
-    empirical: np.ndarray
-    predicted: dict[str, np.ndarray]
 
-    @property
-    def empirical_topple(self) -> float:
-        """Fraction of repeats that ended in another pose (outside the set counts as toppled)."""
-        return 1.0 - float(self.empirical[self.pose])
+def expected_calibration_error(predicted: np.ndarray, observed: np.ndarray, n_bins: int = RELIABILITY_BINS) -> float:
+    return reliability(predicted, observed, n_bins)["ece"]
 
 
-def choose_actions(p_topple: np.ndarray, status: np.ndarray, k: int, rng: np.random.Generator, eps: float = 0.05) -> np.ndarray:
-    """Up to ``k`` distinct ``ok`` actions, drawn with probability proportional to P(topple) + eps (thesis 4.4.2).
+def informative(predicted_topple: np.ndarray, observed_topple: np.ndarray) -> np.ndarray:
+    """Pushes where the model or physics says something topples: (n,) bool."""
+    return (np.asarray(predicted_topple) > 0) | (np.asarray(observed_topple) > 0)
 
-    p_topple : (A,) float (NaN for actions that are not ok);  status : (A,) int8
-    returns : (min(k, #ok),) int, action indices
+
+def push_metrics(tv: np.ndarray, predicted: np.ndarray, observed: np.ndarray, groups: np.ndarray) -> dict[str, float]:
+    """The headline metrics of one predictor on a set of pushes.
+
+    tv : (n,) float, sup-form TV per push;  predicted, observed : (n,) float, P(topple)
+    groups : (n,) int, object of each push (for the per-object mAP)
+    returns : tv_all, tv_informative, informative (fraction of pushes), ap, map, ece
     """
-    ok = np.flatnonzero(status == STATUS_OK)
-    if len(ok) == 0:
-        return ok
-    weights = np.nan_to_num(p_topple[ok]) + eps
-    return np.sort(rng.choice(ok, size=min(k, len(ok)), replace=False, p=weights / weights.sum()))
+    useful = informative(predicted, observed)
+    labels = observed > TOPPLES
+    per_object = [average_precision(predicted[groups == g], labels[groups == g]) for g in np.unique(groups)]
+    per_object = [ap for ap in per_object if not math.isnan(ap)]
+    return {
+        "tv_all": float(np.mean(tv)) if len(tv) else float("nan"),
+        "tv_informative": float(np.mean(tv[useful])) if useful.any() else float("nan"),
+        "informative": float(np.mean(useful)) if len(tv) else float("nan"),
+        "ap": average_precision(predicted, labels),
+        "map": float(np.mean(per_object)) if per_object else float("nan"),
+        "ece": expected_calibration_error(predicted, observed),
+    }
 
 
-def validate_pose(
-    obj: ObjectModel,
-    pose_set: PoseSet,
-    pose: int,
-    n_actions: int,
-    n_repeats: int,
-    config: Config,
-    seed: int,
-    body: BodyModel,
-    n_contacts: int = 200,
-    n_trials: int = 50,
-) -> list[ActionRecord]:
-    """Pick actions of one pose from the robust model's table, simulate them, predict them with every variant."""
-    rng = np.random.default_rng([seed, pose, _name_key(obj.name)])
-    table = evaluate(obj, pose_set, pose, n_contacts=n_contacts, n_trials=n_trials, variant="robust", seed=seed, config=config)
-    chosen = choose_actions(table.table.p_topple, table.actions.status, n_actions, rng)
-    if len(chosen) == 0:
-        return []
-    points, directions = table.actions.points[chosen], table.actions.directions[chosen]
-    n_poses = len(pose_set.poses)
-    predicted = {}
-    for variant in VARIANTS:
-        result = evaluate(obj, pose_set, pose, points=points, directions=directions, n_trials=n_trials, variant=variant, seed=seed, config=config)
-        predicted[variant] = np.hstack([result.table.next_pose, np.zeros((len(chosen), 1))])
-    records = []
-    for i, action in enumerate(chosen):
-        outcomes = np.array(
-            [simulate_push(obj, pose_set, pose, points[i], directions[i], config, rng, noise=True, body=body) for _ in range(n_repeats)]
-        )
-        records.append(
-            ActionRecord(obj.name, pose, int(action), points[i], directions[i], empirical_distribution(outcomes, n_poses),
-                         {v: predicted[v][i] for v in VARIANTS})
-        )
-    return records
+def bootstrap_intervals(
+    tv: np.ndarray,
+    predicted: np.ndarray,
+    observed: np.ndarray,
+    objects: np.ndarray,
+    n_resamples: int = BOOTSTRAP,
+    seed: int = 0,
+    confidence: float = CONFIDENCE,
+) -> dict[str, list[float]]:
+    """Percentile bootstrap over objects: resample objects with replacement (each drawn copy
+    counts as its own object) and recompute the metrics of ``push_metrics``.
 
-
-def _name_key(name: str) -> int:
-    """A stable integer from an object name for seeding (``hash`` is salted per process)."""
-    return int.from_bytes(name.encode()[:16].ljust(16, b"\0"), "little") % (2**63)
-
-
-def metrics(records: list[ActionRecord]) -> dict[str, dict[str, float]]:
-    """Mean TV and mAP per variant.
-
-    TV: mean over (pose, action) of the sup-form total variation.
-    mAP: average precision of the variant's P(topple) as the score for the label "most
-    repeats toppled" (empirical P(topple) > 0.5), computed per object and averaged over the
-    objects that have at least one positive label; ``ap_pooled`` is the same over all actions.
+    Sums per object are computed once, so a resample costs one matrix product, plus one
+    sort for the pooled AP.
+    objects : (n,) int, object of each push
+    returns : metric -> [low, high]; NaN bounds when a metric is undefined in most resamples
     """
+    rng = np.random.default_rng(seed)
+    names, which = np.unique(objects, return_inverse=True)
+    k = len(names)
+    useful = informative(predicted, observed)
+    labels = observed > TOPPLES
+    bins = np.clip((predicted * RELIABILITY_BINS).astype(int), 0, RELIABILITY_BINS - 1)
+
+    def per_object(weights: np.ndarray) -> np.ndarray:
+        return np.bincount(which, weights=weights, minlength=k)
+
+    pushes = per_object(np.ones(len(tv)))
+    tv_sum, tv_useful, n_useful = per_object(tv), per_object(tv * useful), per_object(useful.astype(float))
+    cell = which * RELIABILITY_BINS + bins
+    bin_count = np.bincount(cell, minlength=k * RELIABILITY_BINS).reshape(k, -1)
+    bin_predicted = np.bincount(cell, weights=predicted, minlength=k * RELIABILITY_BINS).reshape(k, -1)
+    bin_observed = np.bincount(cell, weights=observed, minlength=k * RELIABILITY_BINS).reshape(k, -1)
+    object_ap = np.array([average_precision(predicted[which == i], labels[which == i]) for i in range(k)])
+    rows = [np.flatnonzero(which == i) for i in range(k)]
+
+    samples: dict[str, list[float]] = {key: [] for key in ("tv_all", "tv_informative", "informative", "ap", "map", "ece")}
+    for _ in range(n_resamples):
+        draw = rng.integers(k, size=k)
+        times = np.bincount(draw, minlength=k).astype(float)
+        n = times @ pushes
+        samples["tv_all"].append(times @ tv_sum / n)
+        samples["tv_informative"].append(times @ tv_useful / (times @ n_useful) if times @ n_useful else math.nan)
+        samples["informative"].append(times @ n_useful / n)
+        index = np.concatenate([rows[d] for d in draw])
+        samples["ap"].append(average_precision(predicted[index], labels[index]))
+        drawn_ap = object_ap[draw]
+        samples["map"].append(float(np.mean(drawn_ap[~np.isnan(drawn_ap)])) if (~np.isnan(drawn_ap)).any() else math.nan)
+        count = times @ bin_count
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gap = np.abs(times @ bin_predicted - times @ bin_observed) / count
+        samples["ece"].append(float(np.sum(np.where(count > 0, count * gap, 0.0)) / n))
+    tail = 100 * (1 - confidence) / 2
     out = {}
-    for variant in VARIANTS:
-        tv = [total_variation(r.predicted[variant], r.empirical) for r in records]
-        scores = np.array([1.0 - r.predicted[variant][r.pose] for r in records])
-        labels = np.array([r.empirical_topple > 0.5 for r in records])
-        names = np.array([r.object for r in records])
-        per_object = [average_precision(scores[names == n], labels[names == n]) for n in dict.fromkeys(names)]
-        per_object = [ap for ap in per_object if not np.isnan(ap)]
-        out[variant] = {
-            "tv": float(np.mean(tv)) if tv else float("nan"),
-            "map": float(np.mean(per_object)) if per_object else float("nan"),
-            "ap_pooled": average_precision(scores, labels) if len(records) else float("nan"),
-        }
+    for key, values in samples.items():
+        values = np.array(values, dtype=float)
+        values = values[~np.isnan(values)]
+        out[key] = [float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))] if len(values) > n_resamples / 2 else [math.nan, math.nan]
     return out
 
 
-@dataclass
-class Validation:
-    """Result of ``validate``: per-action records, metrics per variant, counts."""
-
-    records: list[ActionRecord]
-    metrics: dict[str, dict[str, float]]
-    counts: dict[str, int]
+# ---------------------------------------------------------------- the report
 
 
-def validate(
-    objects: list[ObjectModel],
-    n_actions: int = 5,
-    n_repeats: int = 10,
+def predictor_summary(scores: Scores, scorer: Scorer, *, n_resamples: int, seed: int, rows: np.ndarray | None = None) -> dict:
+    """Metrics, confidence intervals and the reliability diagram of one predictor (on ``rows``, default all)."""
+    rows = np.arange(len(scorer)) if rows is None else rows
+    tv, predicted, observed = scores.tv[rows], scores.p_topple[rows], scorer.empirical_topple[rows]
+    objects = scorer.object_index[rows]
+    out = push_metrics(tv, predicted, observed, objects)
+    out["ci"] = bootstrap_intervals(tv, predicted, observed, objects, n_resamples, seed) if n_resamples else {}
+    out["reliability"] = reliability(predicted, observed)["bins"]
+    return out
+
+
+def per_object(scores: Scores, scorer: Scorer) -> list[dict]:
+    """One row per object: pushes, informative pushes, TV, AP, observed and predicted topple rates."""
+    out = []
+    for i, name in enumerate(scorer.object_ids):
+        rows = np.flatnonzero(scorer.object_index == i)
+        m = push_metrics(scores.tv[rows], scores.p_topple[rows], scorer.empirical_topple[rows], np.zeros(len(rows), int))
+        out.append({
+            "object_id": name, "pushes": len(rows),
+            "informative_pushes": int(informative(scores.p_topple[rows], scorer.empirical_topple[rows]).sum()),
+            "tv_all": m["tv_all"], "tv_informative": m["tv_informative"], "ap": m["ap"],
+            "observed_topple": float(scorer.empirical_topple[rows].mean()),
+            "predicted_topple": float(scores.p_topple[rows].mean()),
+        })
+    return out
+
+
+def worst_objects(objects: list[dict], n: int = WORST) -> list[str]:
+    """Objects with the highest informative TV (ties: more pushes first)."""
+    ranked = [o for o in objects if not math.isnan(o["tv_informative"])]
+    ranked.sort(key=lambda o: (-o["tv_informative"], -o["pushes"], o["object_id"]))
+    return [o["object_id"] for o in ranked[:n]]
+
+
+def report(
+    log: PushLog,
     config: Config = Config(),
-    seed: int = 0,
+    variants: tuple[str, ...] = VARIANTS,
     *,
-    max_poses: int | None = None,
-    n_contacts: int = 200,
-    n_trials: int = 50,
-) -> Validation:
-    """Simulate pushes chosen from the robust model on every pose of every object and score each variant.
+    rate: float | None = None,
+    rate_source: str | None = None,
+    n_resamples: int = BOOTSTRAP,
+    seed: int = 0,
+    scorer: Scorer | None = None,
+) -> dict:
+    """The validation report of ``config`` on ``log`` as a JSON-ready dict.
 
-    objects : the objects;  n_actions : actions per pose;  n_repeats : simulated pushes per action
-    max_poses : only each object's most probable poses (all when None)
-    n_contacts, n_trials : the model's candidate contacts and trials per action
+    variants : model variants to score with ``config``'s parameters
+    rate : topple rate of the *calibration* data for the constant-rate reference (omitted when None)
     """
-    records: list[ActionRecord] = []
-    n_poses = 0
-    for obj in objects:
-        pose_set = stable_poses(obj, config.poses)
-        body = body_model(obj)
-        indices = range(len(pose_set.poses) if max_poses is None else min(max_poses, len(pose_set.poses)))
-        for pose in indices:
-            n_poses += 1
-            records += validate_pose(obj, pose_set, pose, n_actions, n_repeats, config, seed, body, n_contacts, n_trials)
-    counts = {"objects": len(objects), "poses": n_poses, "actions": len(records), "pushes": len(records) * n_repeats}
-    return Validation(records, metrics(records), counts)
+    scorer = scorer or Scorer(log, config.seed)
+    main_variant = config.topple.variant if config.topple.variant in variants else variants[-1]
+    results: dict[str, dict] = {}
+    objects: list[dict] = []
+    for variant in variants:
+        scores = scorer.score_variant(config.topple, variant)
+        results[variant] = predictor_summary(scores, scorer, n_resamples=n_resamples, seed=seed)
+        if variant == main_variant:
+            objects = per_object(scores, scorer)
+    references = {"never_topples": predictor_summary(scorer.never_topples(), scorer, n_resamples=n_resamples, seed=seed)}
+    if rate is not None:
+        references["constant_rate"] = predictor_summary(scorer.constant_rate(rate), scorer, n_resamples=n_resamples, seed=seed)
+        references["constant_rate"]["rate"] = rate
+        references["constant_rate"]["rate_from"] = rate_source
+    counts = log.counts()
+    counts["objects_in_corpus"] = sum(1 for o in log.objects.values() if o.in_corpus)
+    return {
+        "log": log.files,
+        "counts": counts,
+        "rejected_examples": {k: [list(e) for e in v] for k, v in log.examples.items()},
+        "topple": {k: getattr(config.topple, k) for k in NOISE_KEYS},
+        "seed": config.seed,
+        "n_trials": config.topple.n_trials,
+        "variants": results,
+        "references": references,
+        "main_variant": main_variant,
+        "objects": objects,
+        "worst_objects": worst_objects(objects),
+        "bootstrap": {"resamples": n_resamples, "confidence": CONFIDENCE, "seed": seed, "over": "objects"},
+        "thesis_table_4_3": THESIS_TABLE_4_3,
+    }
 
 
-# ---------------------------------------------------------------- command line
+NOISE_KEYS = ("mu_table_mean", "mu_table_std", "mu_finger_mean", "mu_finger_std", "contact_std", "direction_std", "rotation_std")
+"""The noise parameters of ``ToppleConfig`` that calibration searches."""
 
 
-def default_objects(n: int) -> list[ObjectModel]:
-    """A box and pybullet_data's random objects (URDF scale 0.015, mass 0.1), ``n`` in all; unloadable ones skipped."""
-    import pybullet_data
-    import trimesh
-
-    box = trimesh.creation.box((0.05, 0.08, 0.15))
-    box.apply_translation([0, 0, 0.075])
-    objects = [model_from_mesh(box, mass=0.25, name="box")][:n]
-    root = Path(pybullet_data.getDataPath()) / "random_urdfs"
-    index = 0
-    while len(objects) < n and index < 1000:
-        try:
-            objects.append(load_mesh(root / f"{index:03d}" / f"{index:03d}.obj", scale=0.015, mass=0.1, name=f"random_{index:03d}"))
-        except (MeshError, OSError):
-            pass
-        index += 1
-    return objects
+def observed_topple_rate(log: PushLog) -> float:
+    """Mean observed topple rate over the pushes of a log (each push weighted once)."""
+    return float(np.mean([p.topple_rate for p in log.pushes])) if log.pushes else float("nan")
 
 
-def format_table(result: Validation) -> str:
-    """Plain-text table: per variant, simulated TV / mAP next to thesis table 4.3."""
+# ---------------------------------------------------------------- output
+
+
+def format_report(result: dict) -> str:
+    """Plain-text table: one line per variant and reference predictor."""
     def cell(value):
-        return "  -  " if value is None or np.isnan(value) else f"{value:.3f}"
+        return "  -  " if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.3f}"
 
+    def ci(m, key):
+        low, high = m.get("ci", {}).get(key, [math.nan, math.nan])
+        return "" if math.isnan(low) else f" [{low:.3f}, {high:.3f}]"
+
+    c = result["counts"]
     lines = [
-        f"{'variant':<11} {'TV (sim)':>9} {'mAP (sim)':>10} {'AP pooled':>10} {'TV thesis':>10} {'mAP thesis':>11}",
+        (f"{c['pushes']} pushes ({c['repeats_min']}-{c['repeats_max']} repeats), {c['objects']} objects, "
+         f"{c['rows_used']} of {c['rows']} rows used"),
     ]
-    for variant in VARIANTS:
-        m, thesis = result.metrics[variant], THESIS_TABLE_4_3.get(variant, {})
+    for reason, count in c["rejected_by_reason"].items():
+        lines.append(f"  rejected {count} rows: {reason}")
+    lines.append(f"{'predictor':<15} {'TV inform.':>26} {'TV all':>8} {'AP':>26} {'mAP':>7} {'ECE':>7} {'inform.':>8}")
+    rows = list(result["variants"].items()) + list(result["references"].items())
+    for name, m in rows:
         lines.append(
-            f"{variant:<11} {cell(m['tv']):>9} {cell(m['map']):>10} {cell(m['ap_pooled']):>10} "
-            f"{cell(thesis.get('tv')):>10} {cell(thesis.get('map')):>11}"
+            f"{name:<15} {cell(m['tv_informative']) + ci(m, 'tv_informative'):>26} {cell(m['tv_all']):>8} "
+            f"{cell(m['ap']) + ci(m, 'ap'):>26} {cell(m['map']):>7} {cell(m['ece']):>7} {cell(m['informative']):>8}"
         )
+    lines.append(f"worst objects ({result['main_variant']}, informative TV): {', '.join(result['worst_objects'])}")
     return "\n".join(lines)
 
 
-def plot(result: Validation, path: str | Path) -> None:
-    """Bar chart of mean TV and mAP per variant, with the thesis's table 4.3 values marked."""
+def plot(result: dict, path: str | Path) -> None:
+    """Reliability diagram per variant, and TV / AP per predictor with bootstrap intervals."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
-    x = np.arange(len(VARIANTS))
-    for ax, key, title in zip(axes, ("tv", "map"), ("mean TV (lower is better)", "mAP of 'topples' (higher is better)")):
-        ax.bar(x, [result.metrics[v][key] for v in VARIANTS], color="tab:blue", label="pybullet")
-        thesis = [THESIS_TABLE_4_3.get(v, {}).get(key, np.nan) for v in VARIANTS]
-        ax.scatter(x, thesis, color="tab:red", marker="_", s=600, linewidths=3, label="thesis (physical)", zorder=3)
-        ax.set_xticks(x, VARIANTS)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.2))
+    ax = axes[0]
+    ax.plot([0, 1], [0, 1], color="grey", lw=1, ls="--")
+    for name, m in result["variants"].items():
+        bins = [b for b in m["reliability"] if b["count"]]
+        ax.plot([b["predicted"] for b in bins], [b["observed"] for b in bins], marker="o", label=f"{name} (ECE {m['ece']:.3f})")
+    ax.set_xlabel("predicted P(topple)")
+    ax.set_ylabel("observed topple frequency")
+    ax.set_title("reliability")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.legend(fontsize=8)
+    rows = list(result["variants"].items()) + list(result["references"].items())
+    x = np.arange(len(rows))
+    for ax, key, title in ((axes[1], "tv_informative", "sup-TV, informative pushes (lower is better)"),
+                           (axes[2], "ap", "AP of 'it topples' (higher is better)")):
+        values = np.array([np.nan if m[key] is None else m[key] for _, m in rows], dtype=float)
+        ci = np.array([m.get("ci", {}).get(key, [np.nan, np.nan]) for _, m in rows], dtype=float)
+        err = np.abs(np.vstack([values - ci[:, 0], ci[:, 1] - values]))
+        colors = ["tab:blue"] * len(result["variants"]) + ["tab:grey"] * len(result["references"])
+        ax.bar(x, values, color=colors, yerr=np.nan_to_num(err), capsize=3)
+        ax.set_xticks(x, [name.replace("_", "\n") for name, _ in rows], fontsize=8)
         ax.set_ylim(0, 1)
-        ax.set_title(title)
-    axes[0].legend(loc="upper right")
-    c = result.counts
-    fig.suptitle(f"Model vs pybullet: {c['objects']} objects, {c['poses']} poses, {c['actions']} actions, {c['pushes']} pushes")
+        ax.set_title(title, fontsize=10)
+    c = result["counts"]
+    fig.suptitle(f"Model vs push log: {c['objects']} objects, {c['pushes']} pushes, {c['repeats_max']} repeats; "
+                 f"bars: {int(100 * CONFIDENCE)}% bootstrap over objects")
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
+def to_json(value):
+    """NaN and infinities become null so the output is strict JSON; numpy scalars become numbers."""
+    if isinstance(value, dict):
+        return {str(k): to_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_json(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return None if not math.isfinite(float(value)) else float(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def _number(value: float) -> float | None:
+    return None if not math.isfinite(float(value)) else float(value)
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    """``--config`` then ``--set``, through the dataset command's rules (one-line errors)."""
+    from ..cli import make_config
+
+    return make_config(argparse.Namespace(config=args.config, overrides=args.overrides, seed=args.seed))
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``toppledb validate``: run ``validate`` on a box and random objects and print the table."""
-    parser = argparse.ArgumentParser(prog="toppledb validate", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--objects", type=int, default=4, help="number of objects: a box, then pybullet_data random objects")
-    parser.add_argument("--actions", type=int, default=5, help="actions per pose")
-    parser.add_argument("--repeats", type=int, default=10, help="simulated pushes per action")
-    parser.add_argument("--max-poses", type=int, default=None, help="only each object's most probable poses")
-    parser.add_argument("--contacts", type=int, default=200, help="candidate contacts of the model's table")
-    parser.add_argument("--trials", type=int, default=50, help="model trials per action (robust variants)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--plot", default=None, help="write a bar chart to this PNG")
+    """``toppledb report LOG...``: score model variants against push logs and write the report."""
+    from ..build.corpus import CorpusError, load_corpus
+    from ..cli import UsageError
+
+    parser = argparse.ArgumentParser(prog="toppledb report", description=__doc__.split("\n\n")[0])
+    parser.add_argument("logs", nargs="+", help="push-log Parquet files or directories")
+    parser.add_argument("--config", type=Path, metavar="FILE.toml", help="model parameters (default: the thesis defaults)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    parser.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS), help="variants to score (default: all)")
+    rate = parser.add_mutually_exclusive_group()
+    rate.add_argument("--rate", type=float, help="topple rate of the calibration data, for the constant-rate reference")
+    rate.add_argument("--rate-from", nargs="+", metavar="LOG", help="calibration log(s) to take that rate from")
+    parser.add_argument("--corpus", default="default", help="calibration corpus, to count reported objects inside it (default: %(default)s)")
+    parser.add_argument("--exclude-corpus", action="store_true", help="reject rows of corpus objects (a held-out report)")
+    parser.add_argument("--bootstrap", type=int, default=BOOTSTRAP, help="resamples over objects (default: %(default)s; 0: none)")
+    parser.add_argument("--seed", type=int, default=None, help="model trial streams and bootstrap seed (default: the config's)")
+    parser.add_argument("--out", type=Path, default=Path("reports/validation.json"), help="JSON report (default: %(default)s)")
+    parser.add_argument("--plot", type=Path, default=None, metavar="PNG", help="also draw the report")
     args = parser.parse_args(argv)
 
     started = time.perf_counter()
-    config = Config(seed=args.seed)
-    result = validate(default_objects(args.objects), args.actions, args.repeats, config, args.seed,
-                      max_poses=args.max_poses, n_contacts=args.contacts, n_trials=args.trials)
-    wall = time.perf_counter() - started
-    c = result.counts
-    print(f"{c['objects']} objects, {c['poses']} poses, {c['actions']} actions x {args.repeats} repeats = {c['pushes']} simulated pushes, {wall:.1f} s")
-    print(format_table(result))
+    try:
+        config = config_from_args(args)
+        corpus = load_corpus(args.corpus, config.mesh.default_mass) if args.corpus else None
+        log = read_log(args.logs, config, corpus, exclude_corpus=args.exclude_corpus)
+        if not log.pushes:
+            raise UsageError(f"no usable pushes in {' '.join(args.logs)} ({log.rows} rows; rejected: {dict(log.rejected)})")
+        rate_value, rate_source = args.rate, None
+        if args.rate_from:
+            calibration = read_log(args.rate_from, config)
+            rate_value, rate_source = observed_topple_rate(calibration), " ".join(args.rate_from)
+        if rate_value is not None and not 0.0 <= rate_value <= 1.0:
+            raise UsageError(f"--rate must be in [0, 1], got {rate_value}")
+    except (UsageError, CorpusError, LogError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    result = report(log, config, tuple(args.variants), rate=rate_value, rate_source=rate_source,
+                    n_resamples=args.bootstrap, seed=config.seed)
+    result["wall_s"] = round(time.perf_counter() - started, 1)
+    print(format_report(result))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
+    print(f"report: {args.out} ({result['wall_s']} s)")
     if args.plot:
         plot(result, args.plot)
         print(f"plot: {args.plot}")
-    # NaN (no positive label) becomes null so the last line is strict JSON.
-    metrics_json = {v: {k: None if np.isnan(x) else x for k, x in m.items()} for v, m in result.metrics.items()}
-    print(json.dumps({"counts": c, "repeats": args.repeats, "seed": args.seed, "wall_s": round(wall, 1),
-                      "metrics": metrics_json, "thesis": THESIS_TABLE_4_3}, allow_nan=False))
     return 0
 
 

@@ -1,0 +1,367 @@
+"""Reading a push-outcome log (``schema.pushlog``) against the model.
+
+A log row is one executed push.  To compare it with the toppling model the reader
+loads each logged object's mesh (after checking its SHA-256), computes its stable
+poses with the same ``config.poses`` the dataset uses, matches the observed start
+transform to a stable pose (``schema.frames.match_pose``) and settles the observed
+final transform into one (``pipeline.model.poses.settle``; a rest pose outside the
+pose set is its own bucket).  Repeats of one push (same object and ``push_id``)
+become one empirical next-pose distribution.
+
+Nothing is dropped silently and nothing crashes: every row that cannot be used is
+counted under a one-line reason (``PushLog.rejected``), with the first few rows of
+each reason kept as examples.
+
+    log = read_log(["data/logs/calibration"], Config())
+    log.pushes        # list[Push], one per push_id with its repeats
+    log.rejected      # reason -> number of rows
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from schema.frames import match_pose, transform_points, unit
+from schema.pushlog import PUSHLOG, row_problems
+
+from ..build.atomic import file_sha256
+from ..build.corpus import PYBULLET_SOURCE, Corpus, CorpusError, pybullet_data_dir
+from ..model.config import Config
+from ..model.mesh import MeshError, ObjectModel, load_mesh
+from ..model.poses import PoseSet, settle, stable_poses
+
+OUTSIDE = -1
+"""Final pose outside the model's pose set: the last bucket of every distribution."""
+SAME_PUSH_TOLERANCE = 1e-6
+"""m (points) and unit-vector components (directions): repeats of one push must agree this closely."""
+EXAMPLES_PER_REASON = 5
+"""Rejected rows kept as examples per reason (all are counted)."""
+
+
+class LogError(ValueError):
+    """A log that cannot be read at all (missing file, not Parquet, wrong columns); one line."""
+
+
+@dataclass
+class LoggedObject:
+    """One object of the log, loaded and checked.
+
+    model : the mesh as the toppling model sees it;  poses : its stable poses
+    sha256 : the mesh file's digest;  in_corpus : whether the object is in the given corpus
+    """
+
+    object_id: str
+    model: ObjectModel
+    poses: PoseSet
+    sha256: str
+    in_corpus: bool | None = None
+
+
+@dataclass
+class Push:
+    """One push and what its repeats did.
+
+    object_id, push_id : identifiers;  pose : start pose index
+    point, direction : (3,) float, pose frame (m, unit)
+    outcomes : (R,) int, final pose of each repeat (``OUTSIDE`` when not in the pose set)
+    """
+
+    object_id: str
+    push_id: int
+    pose: int
+    point: np.ndarray
+    direction: np.ndarray
+    outcomes: np.ndarray
+
+    def empirical(self, n_poses: int) -> np.ndarray:
+        """(n_poses + 1,) float: frequency of each final pose, the last entry for ``OUTSIDE``."""
+        return np.bincount(np.where(self.outcomes == OUTSIDE, n_poses, self.outcomes), minlength=n_poses + 1) / len(self.outcomes)
+
+    @property
+    def topple_rate(self) -> float:
+        """Fraction of repeats that left the start pose (outside the pose set counts as toppled)."""
+        return float(np.mean(self.outcomes != self.pose))
+
+
+@dataclass
+class PushLog:
+    """A log read against the model.
+
+    objects : object id -> ``LoggedObject`` (only objects with at least one usable row)
+    pushes : usable pushes, sorted by (object, pose, push_id)
+    rejected : reason -> rows;  examples : reason -> [(file, row, object_id, push_id), ...]
+    rows : rows read in all
+    """
+
+    objects: dict[str, LoggedObject]
+    pushes: list[Push]
+    rejected: Counter = field(default_factory=Counter)
+    examples: dict[str, list[tuple[str, int, str, int]]] = field(default_factory=dict)
+    rows: int = 0
+    files: list[str] = field(default_factory=list)
+
+    @property
+    def rows_used(self) -> int:
+        return int(sum(len(p.outcomes) for p in self.pushes))
+
+    def counts(self) -> dict:
+        """Counts for reports: rows read / used / rejected by reason, pushes, repeats, objects, poses."""
+        repeats = [len(p.outcomes) for p in self.pushes]
+        return {
+            "rows": self.rows,
+            "rows_used": self.rows_used,
+            "rows_rejected": int(sum(self.rejected.values())),
+            "rejected_by_reason": dict(sorted(self.rejected.items(), key=lambda kv: -kv[1])),
+            "pushes": len(self.pushes),
+            "repeats_min": int(min(repeats)) if repeats else 0,
+            "repeats_max": int(max(repeats)) if repeats else 0,
+            "objects": len({p.object_id for p in self.pushes}),
+            "start_poses": len({(p.object_id, p.pose) for p in self.pushes}),
+        }
+
+    def subset(self, object_ids) -> PushLog:
+        """The same log restricted to some objects (counts of rejected rows are kept whole)."""
+        keep = set(object_ids)
+        return PushLog(
+            {k: v for k, v in self.objects.items() if k in keep},
+            [p for p in self.pushes if p.object_id in keep],
+            self.rejected,
+            self.examples,
+            self.rows,
+            self.files,
+        )
+
+
+# ---------------------------------------------------------------- files
+
+
+def log_files(paths: list[str | Path]) -> list[Path]:
+    """Parquet files named by ``paths``: files as given, directories searched recursively
+    (skipping names that start with "_" or ".")."""
+    files: list[Path] = []
+    for path in map(Path, paths):
+        if path.is_dir():
+            # Names starting with "_" or "." are the writer's own (run records, temporaries).
+            found = sorted(p for p in path.rglob("*.parquet") if p.is_file() and not p.name.startswith(("_", ".")))
+            if not found:
+                raise LogError(f"no .parquet files under {path}")
+            files += found
+        elif path.is_file():
+            files.append(path)
+        else:
+            raise LogError(f"push log not found: {path}")
+    return files
+
+
+def read_tables(files: list[Path]) -> pa.Table:
+    """All files concatenated, with a ``_file`` and ``_row`` column; raises ``LogError`` on unreadable files."""
+    tables = []
+    required = set(PUSHLOG.names)
+    for file in files:
+        try:
+            table = pq.read_table(file)
+        except (OSError, pa.ArrowInvalid) as err:
+            raise LogError(f"{file}: not a readable Parquet file ({str(err).splitlines()[0]})") from None
+        missing = sorted(required - set(table.column_names))
+        if missing:
+            raise LogError(f"{file}: not a push log, missing column(s) {', '.join(missing)}")
+        try:
+            table = table.select(PUSHLOG.names).cast(PUSHLOG)
+        except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as err:
+            raise LogError(f"{file}: columns do not have the push-log types ({str(err).splitlines()[0]})") from None
+        n = table.num_rows
+        table = table.append_column("_file", pa.array([str(file)] * n)).append_column("_row", pa.array(np.arange(n)))
+        tables.append(table)
+    return pa.concat_tables(tables)
+
+
+def resolve_mesh(source: str, path: str, log_file: str) -> Path:
+    """The mesh file a row names: relative to pybullet_data, absolute, or relative to the log file."""
+    if source == PYBULLET_SOURCE or source.startswith(PYBULLET_SOURCE + "/"):
+        return pybullet_data_dir() / path
+    candidate = Path(path)
+    return candidate if candidate.is_absolute() else Path(log_file).parent / candidate
+
+
+# ---------------------------------------------------------------- reading against the model
+
+
+class _Rejections:
+    def __init__(self) -> None:
+        self.counts: Counter = Counter()
+        self.examples: dict[str, list] = {}
+
+    def add(self, reason: str, file: str, row: int, object_id: str, push_id: int) -> None:
+        self.counts[reason] += 1
+        examples = self.examples.setdefault(reason, [])
+        if len(examples) < EXAMPLES_PER_REASON:
+            examples.append((file, int(row), object_id, int(push_id)))
+
+
+def read_log(
+    paths: list[str | Path],
+    config: Config = Config(),
+    corpus: Corpus | None = None,
+    *,
+    corpus_only: bool = False,
+    exclude_corpus: bool = False,
+) -> PushLog:
+    """Read push logs and match every row to the model's stable poses.
+
+    paths : Parquet files or directories of them
+    config : ``config.mesh`` loads the meshes, ``config.poses`` gives the stable poses
+    corpus : when given, each object is looked up in it (``LoggedObject.in_corpus``);
+      ``corpus_only`` rejects rows of objects outside it (calibration), ``exclude_corpus``
+      rejects rows of objects inside it (a held-out report)
+    Raises ``LogError`` only when a file cannot be read as a push log at all.
+    """
+    files = log_files(paths)
+    table = read_tables(files)
+    n = table.num_rows
+    columns = {name: table.column(name).to_pylist() for name in ("object_id", "mesh_sha256", "mesh_source", "mesh_path", "_file")}
+    scale = table.column("scale").to_numpy(zero_copy_only=False).astype(float)
+    mass = table.column("mass").to_numpy(zero_copy_only=False).astype(float)
+    push_id = table.column("push_id").to_numpy(zero_copy_only=False)
+    row_number = table.column("_row").to_numpy(zero_copy_only=False)
+    start_pose = table.column("start_pose").to_pylist()
+    problems = row_problems(table)
+    rejections = _Rejections()
+
+    def reject(i: int, reason: str) -> None:
+        rejections.add(reason, columns["_file"][i], row_number[i], columns["object_id"][i], push_id[i])
+
+    # Objects: one mesh per object id, checked once.
+    loaded: dict[str, LoggedObject] = {}
+    object_problem: dict[tuple, str | None] = {}
+    identity_of: dict[str, tuple] = {}
+    usable = np.zeros(n, dtype=bool)
+    for i in range(n):
+        if problems[i] is not None:
+            reject(i, problems[i])
+            continue
+        object_id = columns["object_id"][i]
+        identity = (columns["mesh_sha256"][i], columns["mesh_source"][i], columns["mesh_path"][i], scale[i], mass[i])
+        first = identity_of.setdefault(object_id, identity)
+        if first != identity:
+            reject(i, "object_id logged with a different mesh, scale or mass than its first row")
+            continue
+        key = (object_id, *identity, columns["_file"][i] if columns["mesh_source"][i] == "file" else "")
+        if key not in object_problem:
+            object_problem[key] = _load_object(key, config, corpus, corpus_only, exclude_corpus, loaded)
+        if object_problem[key] is not None:
+            reject(i, object_problem[key])
+            continue
+        usable[i] = True
+
+    # Poses: start matched within the same-pose angle, final settled.
+    start = _matrices(table, "start_transform")
+    final = _matrices(table, "final_transform")
+    points = _vectors(table, "point")
+    directions = unit(_vectors(table, "direction"))
+    start_index = np.full(n, -1)
+    final_index = np.full(n, OUTSIDE)
+    for i in np.flatnonzero(usable):
+        obj = loaded[columns["object_id"][i]]
+        match = match_pose(start[i], obj.poses.downs, obj.poses.transforms, config.poses.same_pose_angle)
+        if not match.matched:
+            reject(i, "start pose matches no stable pose (tilted beyond poses.same_pose_angle)")
+            usable[i] = False
+            continue
+        if start_pose[i] is not None and start_pose[i] != match.pose:
+            reject(i, "start_pose column disagrees with the pose start_transform matches")
+            usable[i] = False
+            continue
+        start_index[i] = match.pose
+        final_index[i] = settle(obj.poses, obj.model, final[i][:3, :3])
+
+    # Pushes: repeats of one (object, push_id) must describe the same push.
+    groups: dict[tuple[str, int], list[int]] = {}
+    for i in np.flatnonzero(usable):
+        groups.setdefault((columns["object_id"][i], int(push_id[i])), []).append(int(i))
+    repeat = table.column("repeat").to_numpy(zero_copy_only=False)
+    pushes = []
+    for (object_id, pid), rows in groups.items():
+        rows = np.array(rows)
+        _, first_of_repeat = np.unique(repeat[rows], return_index=True)
+        for i in np.setdiff1d(np.arange(len(rows)), first_of_repeat):
+            reject(rows[i], "duplicate (push_id, repeat)")
+        rows = rows[np.sort(first_of_repeat)]
+        same = (
+            np.all(start_index[rows] == start_index[rows[0]])
+            and np.abs(points[rows] - points[rows[0]]).max() <= SAME_PUSH_TOLERANCE
+            and np.abs(directions[rows] - directions[rows[0]]).max() <= SAME_PUSH_TOLERANCE
+        )
+        if not same:
+            for i in rows:
+                reject(i, "repeats of one push_id disagree on start pose, point or direction")
+            continue
+        obj = loaded[object_id]
+        pose = obj.poses.poses[int(start_index[rows[0]])]
+        pushes.append(
+            Push(
+                object_id=object_id,
+                push_id=pid,
+                pose=pose.index,
+                point=transform_points(pose.transform, points[rows[0]][None])[0],
+                direction=directions[rows[0]] @ pose.transform[:3, :3].T,
+                outcomes=final_index[rows],
+            )
+        )
+    pushes.sort(key=lambda p: (p.object_id, p.pose, p.push_id))
+    used = {p.object_id for p in pushes}
+    return PushLog(
+        objects={k: v for k, v in loaded.items() if k in used},
+        pushes=pushes,
+        rejected=rejections.counts,
+        examples=rejections.examples,
+        rows=n,
+        files=[str(f) for f in files],
+    )
+
+
+def _load_object(key: tuple, config: Config, corpus: Corpus | None, corpus_only: bool, exclude_corpus: bool,
+                 loaded: dict[str, LoggedObject]) -> str | None:
+    """Load one logged object into ``loaded``; returns the reason it cannot be used, or None."""
+    object_id, sha256, source, path, scale, mass, log_file = key
+    spec = None
+    if corpus is not None:
+        spec = next((s for s in corpus.specs if s.object_id == object_id), None)
+        if corpus_only and spec is None:
+            return "object not in the calibration corpus"
+        if exclude_corpus and spec is not None:
+            return "object is in the calibration corpus (not held out)"
+        if spec is not None and spec.sha256 and spec.sha256 != sha256:
+            return "mesh_sha256 differs from the corpus's mesh of this object_id"
+    try:
+        file = resolve_mesh(source, path, log_file)
+    except CorpusError as err:  # pybullet_data is not installed
+        return f"unknown object: {err}"
+    if not file.is_file():
+        return "unknown object: mesh file not found"
+    digest = file_sha256(file)
+    if digest != sha256:
+        return "mesh changed: file sha256 differs from mesh_sha256"
+    try:
+        model = load_mesh(file, scale=scale, mass=mass, name=object_id, config=config.mesh)
+        poses = stable_poses(model, config.poses)
+    except MeshError as err:
+        return f"mesh unusable: {str(err).split(': ', 1)[-1]}"
+    loaded[object_id] = LoggedObject(object_id, model, poses, digest, None if corpus is None else spec is not None)
+    return None
+
+
+def _matrices(table: pa.Table, name: str) -> np.ndarray:
+    """(n, 4, 4) float; rows with a missing matrix are NaN (row_problems has rejected them)."""
+    values = table.column(name).to_pylist()
+    return np.array([np.full(16, math.nan) if v is None else v for v in values], dtype=float).reshape(-1, 4, 4)
+
+
+def _vectors(table: pa.Table, prefix: str) -> np.ndarray:
+    return np.stack([table.column(f"{prefix}_{a}").to_numpy(zero_copy_only=False) for a in "xyz"], axis=1).astype(float)

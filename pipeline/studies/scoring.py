@@ -1,0 +1,149 @@
+"""Scoring model settings against a push log, cheaply enough to search over them.
+
+Everything that does not depend on the noise parameters is computed once
+(``Scorer.__init__``): meshes, stable poses, the explicit actions of every logged
+push (contact snapped to the surface, normal, direction in the pose frame), the
+empirical next-pose distributions.  Scoring one setting (``Scorer.score``) then
+runs the vectorised engine (``pipeline.model.topple.evaluate_pose``) once per
+(object, start pose) on all of its pushes.  The embree ray structure of each mesh
+is built on first use and kept with the mesh, so later settings reuse it.
+
+The trial noise of (object, pose) comes from ``stream(seed, object, pose, "trials")``
+and numpy draws normal(mean, std) as mean + std * z, so every setting sees the same
+standard draws z: differences between settings are the parameters' effect, not
+resampling noise (common random numbers), and a search over settings is deterministic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..model.config import ToppleConfig
+from ..model.contacts import explicit_actions
+from ..model.outcomes import Actions, StablePose
+from ..model.rng import stream
+from ..model.topple import evaluate_pose
+from .logreader import PushLog
+
+
+@dataclass
+class Group:
+    """The pushes of one (object, start pose): what the engine needs, built once.
+
+    rows : (n,) int, positions of these pushes in ``PushLog.pushes``
+    empirical : (n, P + 1) float, observed next-pose frequencies (last: outside the pose set)
+    """
+
+    object_id: str
+    pose: StablePose
+    n_poses: int
+    actions: Actions
+    rows: np.ndarray
+    empirical: np.ndarray
+
+
+@dataclass
+class Scores:
+    """One predictor against every push of a log.
+
+    tv : (n,) float, sup-form total variation between predicted and empirical next-pose distributions
+    p_topple : (n,) float, predicted P(topple) (1 - P(start pose))
+    """
+
+    tv: np.ndarray
+    p_topple: np.ndarray
+
+
+class Scorer:
+    """A log prepared for scoring many settings; see the module docstring.
+
+    log : a ``PushLog``;  seed : root of the model's trial streams
+    empirical_topple : (n,) float, observed topple rate of each push
+    object_index : (n,) int, index into ``object_ids`` of each push's object
+    """
+
+    def __init__(self, log: PushLog, seed: int = 0) -> None:
+        self.log = log
+        self.seed = seed
+        self.object_ids = sorted({p.object_id for p in log.pushes})
+        index = {name: i for i, name in enumerate(self.object_ids)}
+        self.object_index = np.array([index[p.object_id] for p in log.pushes], dtype=int)
+        self.empirical_topple = np.array([p.topple_rate for p in log.pushes])
+        self.repeats = np.array([len(p.outcomes) for p in log.pushes])
+        self.groups: list[Group] = []
+        by_group: dict[tuple[str, int], list[int]] = {}
+        for row, push in enumerate(log.pushes):
+            by_group.setdefault((push.object_id, push.pose), []).append(row)
+        for (object_id, pose_index), rows in by_group.items():
+            logged = log.objects[object_id]
+            pose = logged.poses.poses[pose_index]
+            pushes = [log.pushes[r] for r in rows]
+            points = np.array([p.point for p in pushes])
+            directions = np.array([p.direction for p in pushes])
+            n_poses = len(logged.poses.poses)
+            self.groups.append(
+                Group(
+                    object_id=object_id,
+                    pose=pose,
+                    n_poses=n_poses,
+                    actions=explicit_actions(logged.model, pose.transform, points, directions),
+                    rows=np.array(rows),
+                    empirical=np.array([p.empirical(n_poses) for p in pushes]),
+                )
+            )
+
+    def __len__(self) -> int:
+        return len(self.log.pushes)
+
+    def score(self, topple: ToppleConfig) -> Scores:
+        """The toppling model with these parameters against every push."""
+        tv = np.empty(len(self))
+        p_topple = np.empty(len(self))
+        for group in self.groups:
+            obj = self.log.objects[group.object_id].model
+            rng = stream(self.seed, obj.name, group.pose.index, "trials")
+            table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng)
+            predicted = np.hstack([table.next_pose, np.zeros((len(group.rows), 1))])
+            tv[group.rows] = sup_tv(predicted, group.empirical)
+            p_topple[group.rows] = table.p_topple
+        return Scores(tv, p_topple)
+
+    def score_variant(self, topple: ToppleConfig, variant: str) -> Scores:
+        return self.score(replace(topple, variant=variant))
+
+    def never_topples(self) -> Scores:
+        """The trivial predictor "it stays": all mass on the start pose."""
+        return self.constant_rate(0.0)
+
+    def constant_rate(self, rate: float) -> Scores:
+        """The trivial predictor "it topples with probability ``rate``", whatever the push.
+
+        The topple mass is spread evenly over the start pose's base edges that are not
+        blocked, onto the pose each one leads to (geometry only, nothing learnt from the log);
+        a pose without such an edge keeps all its mass.
+        """
+        tv = np.empty(len(self))
+        p_topple = np.empty(len(self))
+        for group in self.groups:
+            predicted = np.zeros(group.n_poses + 1)
+            targets = group.pose.edge_final_pose[~group.pose.edge_blocked]
+            targets = targets[targets != group.pose.index]
+            if len(targets) and rate > 0:
+                np.add.at(predicted, targets, rate / len(targets))
+                predicted[group.pose.index] = 1.0 - rate
+            else:
+                predicted[group.pose.index] = 1.0
+            tv[group.rows] = sup_tv(predicted[None], group.empirical)
+            p_topple[group.rows] = 1.0 - predicted[group.pose.index]
+        return Scores(tv, p_topple)
+
+
+def sup_tv(predicted: np.ndarray, empirical: np.ndarray) -> np.ndarray:
+    """Row-wise sup-form total variation, max over buckets of |predicted - empirical|.
+
+    predicted : (n, B) or (1, B) float;  empirical : (n, B) float
+    returns : (n,) float in [0, 1]
+    """
+    return np.abs(predicted - empirical).max(axis=1)

@@ -1,0 +1,275 @@
+"""The validation report: metrics on hand-made cases, the log reader's per-row checks, the report end to end."""
+
+import json
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import trimesh
+from shapes import pose_with_down
+
+from pipeline.build.atomic import file_sha256
+from pipeline.model.config import VARIANTS, Config
+from pipeline.studies.logreader import OUTSIDE, LogError, read_log
+from pipeline.studies.scoring import Scorer
+from pipeline.studies.synthetic_log import planar
+from pipeline.studies.validation import (
+    average_precision,
+    bootstrap_intervals,
+    expected_calibration_error,
+    main,
+    push_metrics,
+    reliability,
+    report,
+    total_variation,
+)
+from schema.pushlog import PUSHLOG
+
+BOX = (0.05, 0.08, 0.15)
+
+
+# ---------------------------------------------------------------- metrics on hand-made numbers
+
+
+def test_total_variation_sup_form():
+    p = np.array([0.2, 0.3, 0.5])
+    assert total_variation(p, p) == 0.0
+    assert total_variation([1.0, 0.0, 0.0], [0.0, 0.5, 0.5]) == 1.0
+    assert total_variation([0.5, 0.5], [0.25, 0.75]) == pytest.approx(0.25)
+    assert total_variation([0.7, 0.1, 0.2], [0.4, 0.5, 0.1]) == pytest.approx(0.4)
+
+
+def test_average_precision_on_hand_made_rankings():
+    labels = np.array([True, True, False, False])
+    assert average_precision([0.9, 0.8, 0.3, 0.1], labels) == 1.0
+    assert average_precision([0.1, 0.2, 0.8, 0.9], labels) == pytest.approx((1 / 3 + 2 / 4) / 2)
+    assert average_precision([0.9, 0.1, 0.8, 0.2], labels) == pytest.approx((1 + 2 / 4) / 2)  # ranks 1 and 4
+    # One tie of all scores: precision is the base rate, whatever the order.
+    assert average_precision([1.0, 1.0, 1.0, 1.0], labels) == pytest.approx(0.5)
+    assert np.isnan(average_precision([0.5, 0.5], [False, False]))
+
+
+def test_reliability_bins_and_ece_on_hand_made_bins():
+    predicted = np.array([0.05, 0.05, 0.15, 0.15, 0.85, 0.85, 1.0])
+    observed = np.array([0.0, 0.1, 0.5, 0.5, 0.9, 0.7, 1.0])
+    result = reliability(predicted, observed, n_bins=10)
+    counts = [b["count"] for b in result["bins"]]
+    assert counts == [2, 2, 0, 0, 0, 0, 0, 0, 2, 1]  # 1.0 falls in the last bin
+    assert result["bins"][1]["observed"] == pytest.approx(0.5)
+    assert result["bins"][2]["predicted"] is None
+    # Bin gaps: |0.05 - 0.05| = 0, |0.15 - 0.5| = 0.35, |0.85 - 0.8| = 0.05, |1 - 1| = 0
+    assert result["ece"] == pytest.approx((2 * 0.0 + 2 * 0.35 + 2 * 0.05 + 1 * 0.0) / 7)
+    # Calibrated within each bin (mean observed = mean predicted) is perfect, whatever the spread.
+    assert expected_calibration_error([0.05, 0.05, 0.55], [0.0, 0.1, 0.55]) == pytest.approx(0.0, abs=1e-12)
+    assert expected_calibration_error(np.full(4, 0.9), np.zeros(4)) == pytest.approx(0.9)
+
+
+def test_push_metrics_informative_and_labels():
+    tv = np.array([0.0, 0.0, 0.4, 0.2])
+    predicted = np.array([0.0, 0.0, 0.6, 0.1])
+    observed = np.array([0.0, 0.0, 0.2, 0.3])
+    m = push_metrics(tv, predicted, observed, np.array([0, 0, 0, 1]))
+    assert m["tv_all"] == pytest.approx(0.15)
+    assert m["tv_informative"] == pytest.approx(0.3)  # the two pushes where someone says "topples"
+    assert m["informative"] == pytest.approx(0.5)
+    assert np.isnan(m["ap"])  # no push toppled in more than half its repeats
+
+
+def _object_level_data(n_objects, pushes, rng):
+    objects = np.repeat(np.arange(n_objects), pushes)
+    level = rng.uniform(0.1, 0.5, n_objects)[objects]
+    tv = np.clip(level + rng.normal(0, 0.05, len(objects)), 0, 1)
+    observed = rng.uniform(0, 1, len(objects))
+    predicted = np.clip(observed + rng.normal(0, 0.2, len(objects)), 0, 1)
+    return tv, predicted, observed, objects
+
+
+def test_bootstrap_interval_contains_the_estimate_and_shrinks_with_more_objects():
+    rng = np.random.default_rng(0)
+    widths = []
+    for n_objects in (8, 80):
+        tv, predicted, observed, objects = _object_level_data(n_objects, 20, rng)
+        point = push_metrics(tv, predicted, observed, objects)
+        ci = bootstrap_intervals(tv, predicted, observed, objects, n_resamples=200, seed=1)
+        for key in ("tv_all", "tv_informative", "ap", "ece"):
+            assert ci[key][0] <= point[key] <= ci[key][1], (n_objects, key, ci[key], point[key])
+        widths.append(ci["tv_all"][1] - ci["tv_all"][0])
+    assert widths[1] < 0.6 * widths[0]
+    # Seeded: the same seed gives the same interval.
+    again = bootstrap_intervals(tv, predicted, observed, objects, n_resamples=200, seed=1)
+    assert again == ci
+
+
+# ---------------------------------------------------------------- hand-made logs
+
+
+@pytest.fixture(scope="module")
+def box_file(tmp_path_factory):
+    mesh = trimesh.creation.box(BOX)
+    mesh.apply_translation([0, 0, BOX[2] / 2])
+    path = tmp_path_factory.mktemp("meshes") / "box.stl"
+    mesh.export(path)
+    return path
+
+
+def _rows(box_file, pushes):
+    """A push log from (push_id, start transform, point, direction, [final transforms]) tuples."""
+    columns = {name: [] for name in PUSHLOG.names}
+    digest = file_sha256(box_file)
+    for push_id, start, point, direction, finals in pushes:
+        for repeat, final in enumerate(finals):
+            row = {
+                "object_id": "box", "mesh_sha256": digest, "mesh_source": "file", "mesh_path": str(box_file),
+                "scale": 1.0, "mass": 0.25, "push_id": push_id, "repeat": repeat, "start_pose": None,
+                "start_transform": np.asarray(start, float).ravel().tolist(),
+                "point_x": point[0], "point_y": point[1], "point_z": point[2],
+                "direction_x": direction[0], "direction_y": direction[1], "direction_z": direction[2],
+                "action": None, "finger_speed": 0.05, "approach_offset": 0.015, "push_depth": 0.04,
+                "finger_radius": 0.004, "final_transform": np.asarray(final, float).ravel().tolist(),
+                "mu_table": None, "mu_finger": None, "source": "test", "seed": None,
+            }
+            for name, value in row.items():
+                columns[name].append(value)
+    return pa.Table.from_pydict(columns, schema=PUSHLOG)
+
+
+def _replace(table, name, values):
+    index = table.schema.get_field_index(name)
+    return table.set_column(index, PUSHLOG.field(name), pa.array(values, PUSHLOG.field(name).type))
+
+
+@pytest.fixture(scope="module")
+def box_poses(box_file):
+    from pipeline.model.mesh import load_mesh
+    from pipeline.model.poses import stable_poses
+
+    poses = stable_poses(load_mesh(box_file, mass=0.25))
+    return poses, pose_with_down(poses, [0, 0, -1]), pose_with_down(poses, [-1, 0, 0])
+
+
+def test_high_push_known_outcomes_give_known_tv(box_file, box_poses, tmp_path):
+    """A push the noise-free model says topples onto -x, observed toppling in 1 of 4 repeats: TV 0.75."""
+    poses, standing, lying = box_poses
+    stand, lie = poses.poses[standing].transform, poses.poses[lying].transform
+    start = planar(0.3, 0.1, -0.05) @ stand
+    finals = [planar(1.0, 0.2, 0.0) @ lie] + [planar(0.1 * k, 0.0, 0.0) @ stand for k in range(3)]
+    # +x face at 13 cm height, pushed towards -x; object frame == standing pose frame here.
+    log_table = _rows(box_file, [(0, start, [0.025, 0.0, 0.13], [-1.0, 0.0, 0.0], finals)])
+    pq.write_table(log_table, tmp_path / "log.parquet")
+    log = read_log([tmp_path], Config())
+    assert log.rejected == {} and len(log.pushes) == 1
+    push = log.pushes[0]
+    assert push.pose == standing and sorted(push.outcomes.tolist()) == sorted([lying, standing, standing, standing])
+    assert push.topple_rate == pytest.approx(0.25)
+    scores = Scorer(log).score_variant(Config().topple, "baseline")
+    assert scores.p_topple[0] == 1.0 and scores.tv[0] == pytest.approx(0.75)
+    never = Scorer(log).never_topples()
+    assert never.p_topple[0] == 0.0 and never.tv[0] == pytest.approx(0.25)
+
+
+def test_bad_rows_are_counted_by_reason_never_dropped_silently(box_file, box_poses, tmp_path):
+    poses, standing, lying = box_poses
+    stand, lie = poses.poses[standing].transform, poses.poses[lying].transform
+    tilted = trimesh.transformations.rotation_matrix(np.radians(40), [1, 0, 0]) @ stand
+    nan = stand.copy()
+    nan[0, 0] = np.nan
+    stretched = stand.copy()
+    stretched[:3, :3] *= 2.0
+    point, direction = [0.025, 0.0, 0.13], [-1.0, 0.0, 0.0]
+    good = _rows(box_file, [(0, stand, point, direction, [lie, stand])])
+    bad = _rows(box_file, [
+        (1, tilted, point, direction, [lie]),
+        (2, nan, point, direction, [lie]),
+        (3, stand, point, direction, [stretched]),
+        (4, stand, point, [0.0, 0.0, 0.0], [lie]),
+    ])
+    unknown = _rows(box_file, [(5, stand, point, direction, [lie])])
+    unknown = _replace(_replace(unknown, "mesh_path", ["/nonexistent/box.stl"]), "object_id", ["ghost"])
+    changed = _rows(box_file, [(6, stand, point, direction, [lie])])
+    changed = _replace(_replace(changed, "mesh_sha256", ["0" * 64]), "object_id", ["box2"])
+    duplicate = _rows(box_file, [(0, stand, point, direction, [lie])])  # push 0, repeat 0 again
+    disagree = _rows(box_file, [(7, stand, point, direction, [lie])])
+    disagree = _replace(disagree, "start_pose", [lying])
+    table = pa.concat_tables([good, bad, unknown, changed, duplicate, disagree])
+    pq.write_table(table, tmp_path / "bad.parquet")
+
+    log = read_log([tmp_path / "bad.parquet"], Config())
+    assert log.rows == table.num_rows
+    assert log.rows_used == 2 and len(log.pushes) == 1
+    assert sum(log.rejected.values()) == table.num_rows - 2
+    reasons = log.rejected
+    assert reasons["start pose matches no stable pose (tilted beyond poses.same_pose_angle)"] == 1
+    assert reasons["start_transform has NaN or infinite entries"] == 1
+    assert any("final_transform is not a rigid transform" in r for r in reasons)
+    assert reasons["direction is zero"] == 1
+    assert reasons["unknown object: mesh file not found"] == 1
+    assert reasons["mesh changed: file sha256 differs from mesh_sha256"] == 1
+    assert reasons["duplicate (push_id, repeat)"] == 1
+    assert reasons["start_pose column disagrees with the pose start_transform matches"] == 1
+    assert all(len(v) >= 1 for v in log.examples.values())
+    assert log.counts()["rows_rejected"] == table.num_rows - 2
+
+
+def test_unreadable_logs_are_one_line_errors(tmp_path, capsys):
+    (tmp_path / "junk.parquet").write_text("not parquet")
+    with pytest.raises(LogError, match="not a readable Parquet file"):
+        read_log([tmp_path / "junk.parquet"])
+    pq.write_table(pa.table({"x": [1]}), tmp_path / "other.parquet")
+    with pytest.raises(LogError, match="missing column"):
+        read_log([tmp_path / "other.parquet"])
+    assert main([str(tmp_path / "missing.parquet"), "--out", str(tmp_path / "r.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: push log not found") and "\n" not in err
+
+
+# ---------------------------------------------------------------- the report end to end
+
+
+@pytest.fixture(scope="module")
+def model_logs(tmp_path_factory):
+    """Two small logs made by the model on boxes: a 'calibration' one and a 'reported' one."""
+    from pipeline.studies.synthetic_log import MeshSpec, model_log
+
+    root = tmp_path_factory.mktemp("logs")
+    specs = []
+    for i, size in enumerate([(0.05, 0.08, 0.15), (0.06, 0.06, 0.12), (0.04, 0.1, 0.2)]):
+        mesh = trimesh.creation.box(size)
+        mesh.export(root / f"box{i}.stl")
+        specs.append(MeshSpec(f"box{i}", str(root / f"box{i}.stl"), 1.0, 0.25))
+    low_friction = Config().with_overrides({"topple.mu_table_mean": 0.25})
+    pq.write_table(model_log(specs[:2], low_friction, pushes_per_pose=6, repeats=5, seed=1), root / "calibration.parquet")
+    pq.write_table(model_log(specs, Config(), pushes_per_pose=6, repeats=5, seed=2), root / "reported.parquet")
+    return root
+
+
+def test_report_writes_json_with_variants_references_and_counts(model_logs, tmp_path):
+    out, png = tmp_path / "validation.json", tmp_path / "validation.png"
+    code = main([str(model_logs / "reported.parquet"), "--rate-from", str(model_logs / "calibration.parquet"),
+                 "--corpus", "", "--bootstrap", "50", "--out", str(out), "--plot", str(png)])
+    assert code == 0 and png.stat().st_size > 0
+    result = json.loads(out.read_text())
+    assert set(result["variants"]) == set(VARIANTS)
+    assert set(result["references"]) == {"never_topples", "constant_rate"}
+    calibration_rate = np.mean([p.topple_rate for p in read_log([model_logs / "calibration.parquet"]).pushes])
+    reported_rate = np.mean([p.topple_rate for p in read_log([model_logs / "reported.parquet"]).pushes])
+    # The constant-rate reference uses the calibration data's rate, not the reported log's.
+    assert result["references"]["constant_rate"]["rate"] == pytest.approx(calibration_rate)
+    assert abs(calibration_rate - reported_rate) > 1e-6
+    assert result["counts"]["objects"] == 3 and result["counts"]["rows_rejected"] == 0
+    assert len(result["objects"]) == 3 and 1 <= len(result["worst_objects"]) <= 3
+    for m in result["variants"].values():
+        assert m["ci"]["tv_informative"][0] <= m["tv_informative"] <= m["ci"]["tv_informative"][1]
+        assert sum(b["count"] for b in m["reliability"]) == result["counts"]["pushes"]
+    # A log made by the robust model is predicted better by it than by "never topples".
+    assert result["variants"]["robust"]["tv_informative"] < result["references"]["never_topples"]["tv_informative"]
+
+
+def test_report_outcomes_outside_the_pose_set_are_their_own_bucket(model_logs):
+    log = read_log([model_logs / "reported.parquet"])
+    push = log.pushes[0]
+    push.outcomes = np.array([OUTSIDE] * len(push.outcomes))
+    n_poses = len(log.objects[push.object_id].poses.poses)
+    assert push.empirical(n_poses)[-1] == 1.0 and push.topple_rate == 1.0
+    result = report(log, Config(), ("baseline",), n_resamples=0)
+    assert result["variants"]["baseline"]["tv_all"] > 0
