@@ -1,0 +1,398 @@
+"""The policy experiment executed in physics: each policy's pushes played in pybullet.
+
+``toppledb policies`` replays thesis 4.4.3 inside the model: every next pose is drawn
+from the dataset's own P(x' | x, u), so it measures what the model believes.  Here
+the pushes are played by the push player instead:
+
+1. a trial drops a corpus object (uniformly) into a stable pose drawn by its drop
+   probability, standing in that pose's canonical transform on the table;
+2. each policy (max_height, greedy, value_iteration) looks its push up in the dataset
+   (``<policy>_action`` of the pose, the action's point and direction in the pose
+   frame), which is mapped to the world through the object's observed transform, as
+   the service's ``/plan`` does (``pose_to_world = observed @ T_pose^-1``);
+3. pybullet plays it under the model's noise (friction, contact, direction); the
+   object's final transform is re-observed and settled into a stable pose
+   (``pipeline.model.poses.settle``), and the policy re-plans from there, at most
+   ``max_pushes`` times or until it chooses not to push.
+
+Per policy it reports the physical V_s gain (V_s of the pose the object ends in minus
+V_s of the start pose) beside the gain the model's own table predicts for the same
+start (the exact expectation over the stored transitions, up to ``max_pushes``
+pushes), and the chosen pushes' predicted P(topple) against how often they toppled.
+All policies see the same starts and the same noise draws (common random numbers), so
+their differences are their own.  Every push played is also written to a push log
+(``schema.pushlog``), one part file per object.
+
+    toppledb policies-physics data/dataset --trials 200 --log data/logs/policies
+
+A trial whose object comes to rest in a pose outside the dataset's pose set (no V_s
+is known for it) is counted under ``outside`` and left out of every policy's means,
+so the comparison stays paired.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from schema.pushlog import PUSHLOG
+from schema.reader import Dataset, DatasetUnreadable
+from schema.vocabulary import NO_OP, POLICIES
+
+from ..build.atomic import file_sha256, write_text_atomic
+from ..build.corpus import PYBULLET_SOURCE, ObjectSpec, pybullet_data_dir
+from ..model.config import Config
+from ..model.rng import stream
+from .playlog import ObjectLog, _append_row, mesh_location, write_part
+from .policy_experiment import ACTION_SPAN, PolicyTables, best_pose_value, draw_starts, load_tables
+from .pushsim import body_model, draw_noise, play_push, player_parameters
+
+MAX_PUSHES = 3
+"""Most pushes per trial and policy (the experiment of the issue; ``toppledb policies`` uses 5)."""
+PUSH_STEP_SPAN = 10
+"""Log push_id = (trial * len(POLICIES) + policy index) * PUSH_STEP_SPAN + push number."""
+PURPOSE = "play"
+TRANSFORM_TOLERANCE = 1e-6
+"""Largest difference between a recomputed pose transform and the dataset's for the pose sets to agree."""
+
+
+class ExperimentError(ValueError):
+    """The experiment cannot run on this dataset; one line."""
+
+
+# ---------------------------------------------------------------- the model's side
+
+
+def dataset_config(dataset: Dataset) -> Config:
+    """The parameters the dataset was built with (its stable poses and noise)."""
+    try:
+        return Config.from_dict(dataset.manifest.parameters.model_dump())
+    except ValueError as err:
+        raise ExperimentError(f"{dataset.root}: the manifest's parameters are not this code's: {err}") from None
+
+
+def predicted_values(tables: PolicyTables, policy: str, max_pushes: int) -> np.ndarray:
+    """Expected V_s after following ``policy`` for at most ``max_pushes`` pushes, under the stored transitions.
+
+    E_0 = V_s;  E_k(x) = V_s(x) where the policy does not push, else sum_x' P(x' | x, u) E_{k-1}(x').
+    returns : (N,) float, one per (object, pose) row of ``tables``
+    """
+    rows, actions = tables.keys // ACTION_SPAN, tables.keys % ACTION_SPAN
+    mine = actions == tables.actions[policy][rows]
+    probability = np.diff(np.concatenate([[0.0], tables.cumulative]))[mine]
+    rows, next_rows = rows[mine], tables.next_row[mine]
+    acting = tables.actions[policy] != NO_OP
+    values = tables.v_s.copy()
+    for _ in range(max_pushes):
+        expected = np.bincount(rows, weights=probability * values[next_rows], minlength=len(values))
+        values = np.where(acting, expected, tables.v_s)
+    return values
+
+
+@dataclass
+class ObjectPlan:
+    """What the workers need of one object from the dataset.
+
+    transforms : (P, 4, 4) float, object -> pose frame of each stable pose;  v_s : (P,) float
+    actions : policy -> (P,) int, the policy's action per pose (NO_OP: no push)
+    pushes : (pose, action) -> (point (3,), direction (3,), p_topple), pose frame
+    """
+
+    spec: ObjectSpec
+    transforms: np.ndarray
+    v_s: np.ndarray
+    actions: dict[str, np.ndarray]
+    pushes: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, float]]
+
+
+def object_plans(dataset: Dataset, object_ids: list[str]) -> dict[str, ObjectPlan]:
+    """Each object's spec (mesh path resolved, checked against the manifest's SHA-256) and policy pushes."""
+    corpus = {o.object_id: o for o in dataset.manifest.corpus.objects}
+    poses = dataset.table("poses", columns=["object_id", "pose", "transform", "v_s", *(f"{p}_action" for p in POLICIES)])
+    poses = poses.sort_by([("object_id", "ascending"), ("pose", "ascending")]).to_pydict()
+    by_object: dict[str, list[int]] = {}
+    for i, object_id in enumerate(poses["object_id"]):
+        by_object.setdefault(object_id, []).append(i)
+    plans = {}
+    for object_id in object_ids:
+        entry = corpus[object_id]
+        path = Path(entry.path)
+        if not path.is_absolute() and (entry.source == PYBULLET_SOURCE or entry.source.startswith(PYBULLET_SOURCE + "/")):
+            path = pybullet_data_dir() / path
+        if file_sha256(path) != entry.sha256:
+            raise ExperimentError(f"{object_id}: mesh {path} is missing or differs from the dataset's (sha256)")
+        spec = ObjectSpec(object_id, str(path), entry.scale, entry.mass, entry.source, entry.sha256)
+        rows = by_object[object_id]
+        actions = {p: np.array([poses[f"{p}_action"][i] for i in rows]) for p in POLICIES}
+        chosen = {(pose, int(a[pose])) for a in actions.values() for pose in range(len(rows)) if a[pose] != NO_OP}
+        table = dataset.object_rows(
+            "actions", object_id,
+            columns=["pose", "action", "point_x", "point_y", "point_z", "direction_x", "direction_y", "direction_z", "p_topple"],
+        ).to_pydict()
+        pushes = {}
+        for i, key in enumerate(zip(table["pose"], table["action"])):
+            if key in chosen:
+                point = np.array([table[f"point_{a}"][i] for a in "xyz"])
+                direction = np.array([table[f"direction_{a}"][i] for a in "xyz"])
+                pushes[key] = (point, direction, float(table["p_topple"][i]))
+        if len(pushes) != len(chosen):
+            raise ExperimentError(f"{object_id}: a policy's action is missing from the actions table")
+        plans[object_id] = ObjectPlan(
+            spec=spec,
+            transforms=np.array([np.reshape(poses["transform"][i], (4, 4)) for i in rows]),
+            v_s=np.array([poses["v_s"][i] for i in rows]),
+            actions=actions,
+            pushes=pushes,
+        )
+    return plans
+
+
+# ---------------------------------------------------------------- the physics side
+
+
+@dataclass
+class PolicyRun:
+    """One policy in one trial: the poses it went through and its pushes.
+
+    poses : visited poses, start first (the last is where it ended; -1: outside the pose set)
+    predicted : (n,) P(topple) of each push;  toppled : (n,) bool, the push changed the pose
+    """
+
+    poses: list[int]
+    predicted: list[float] = field(default_factory=list)
+    toppled: list[bool] = field(default_factory=list)
+
+
+def play_trials(plan: ObjectPlan, trials: list[tuple[int, int]], config: Config, seed: int, max_pushes: int) -> tuple[str, dict, ObjectLog]:
+    """Play every policy from each (trial, start pose) of one object (runs in a worker).
+
+    returns : (object id, {trial: {policy: PolicyRun}} or {"failure": reason}, the pushes as a log)
+    """
+    from ..model.evaluation import load_object
+    from ..model.mesh import MeshError
+    from ..model.poses import settle, stable_poses
+
+    spec = plan.spec
+    key = {"object_id": spec.object_id, "mesh_sha256": spec.sha256, "experiment": "policies-physics", "seed": seed,
+           "max_pushes": max_pushes, "player": player_parameters()}
+    try:
+        obj = load_object(spec, config)
+        pose_set = stable_poses(obj, config.poses)
+    except MeshError as err:
+        return spec.object_id, {"failure": str(err)}, ObjectLog(spec.object_id, PUSHLOG.empty_table(), key, {"pushes": 0})
+    if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms, atol=TRANSFORM_TOLERANCE):
+        reason = f"{spec.object_id}: its stable poses differ from the dataset's (other code or parameters)"
+        return spec.object_id, {"failure": reason}, ObjectLog(spec.object_id, PUSHLOG.empty_table(), key, {"pushes": 0})
+    body = body_model(obj)
+    source, path = mesh_location(spec)
+    columns: dict[str, list] = {f.name: [] for f in PUSHLOG}
+    results: dict[int, dict[str, PolicyRun]] = {}
+    for trial, start in trials:
+        rng = stream(seed, f"{spec.object_id}/trial/{trial}", start, PURPOSE)
+        noises = [draw_noise(config, rng, noise=True) for _ in range(max_pushes)]  # shared by the policies
+        results[trial] = {}
+        for policy_index, policy in enumerate(POLICIES):
+            run = PolicyRun([start])
+            pose, transform = start, plan.transforms[start]
+            for step in range(max_pushes):
+                action = int(plan.actions[policy][pose])
+                if action == NO_OP:
+                    break
+                point, direction, p_topple = plan.pushes[(pose, action)]
+                to_object = np.linalg.inv(plan.transforms[pose])
+                point, direction = to_object[:3, :3] @ point + to_object[:3, 3], to_object[:3, :3] @ direction
+                played = play_push(body, transform, point, direction, config, noises[step])
+                after = settle(pose_set, obj, played.final_transform[:3, :3])
+                push_id = (trial * len(POLICIES) + policy_index) * PUSH_STEP_SPAN + step
+                _append_row(columns, spec, source, path, push_id, 0, pose, action, point, direction, played, config, seed)
+                run.predicted.append(p_topple)
+                run.toppled.append(after != pose)
+                run.poses.append(after)
+                if after < 0:
+                    break
+                pose, transform = after, played.final_transform
+            results[trial][policy] = run
+    table = pa.Table.from_pydict(columns, schema=PUSHLOG)
+    return spec.object_id, results, ObjectLog(spec.object_id, table, key, {"pushes": table.num_rows, "trials": len(trials)})
+
+
+# ---------------------------------------------------------------- the experiment
+
+
+def experiment(
+    root: str | Path,
+    n_trials: int,
+    *,
+    max_pushes: int = MAX_PUSHES,
+    seed: int = 0,
+    workers: int | None = 1,
+    log: str | Path | None = None,
+    progress: bool = False,
+) -> dict:
+    """Run every policy in physics from ``n_trials`` dropped starts; the report as a dict (JSON-ready)."""
+    from ..build.fanout import map_unordered
+
+    started = time.perf_counter()
+    try:
+        dataset = Dataset.open(root)
+    except DatasetUnreadable as err:
+        raise ExperimentError(str(err)) from None
+    config = dataset_config(dataset)
+    tables = load_tables(dataset)
+    starts = draw_starts(tables, n_trials, stream(seed, "policies-physics/starts", -1, PURPOSE))
+    objects = np.searchsorted(tables.first_pose, starts, side="right") - 1
+    start_pose = starts - tables.first_pose[objects]
+    by_object: dict[str, list[tuple[int, int]]] = {}
+    for trial, (o, p) in enumerate(zip(objects, start_pose)):
+        by_object.setdefault(tables.object_ids[o], []).append((trial, int(p)))
+    plans = object_plans(dataset, sorted(by_object))
+
+    runs: dict[int, dict[str, PolicyRun]] = {}
+    failures: dict[str, str] = {}
+    tasks = [(plans[o], by_object[o], config, seed, max_pushes) for o in sorted(by_object)]
+    for object_id, results, object_log in map_unordered(play_trials, tasks, workers, description="objects", progress=progress):
+        if "failure" in results:
+            failures[object_id] = results["failure"]
+            continue
+        runs.update(results)
+        if log is not None:
+            write_part(Path(log), object_log)
+
+    predicted = {p: predicted_values(tables, p, max_pushes) for p in POLICIES}
+    best = best_pose_value(tables)
+    report = summarise(tables, starts, runs, predicted, best, max_pushes)
+    report.update({
+        "dataset": str(Path(root).resolve()),
+        "trials": n_trials,
+        "objects": len(by_object),
+        "failed_objects": failures,
+        "seed": seed,
+        "wall_s": round(time.perf_counter() - started, 1),
+    })
+    if log is not None:
+        write_text_atomic(Path(log) / "_policies_physics.json", json.dumps(report, indent=1) + "\n")
+    return report
+
+
+def _mean_and_error(values: np.ndarray) -> tuple[float | None, float | None]:
+    """Mean and its standard error; None for an empty sample (JSON null)."""
+    if len(values) == 0:
+        return None, None
+    error = float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else None
+    return float(np.mean(values)), error
+
+
+def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str, PolicyRun]],
+              predicted: dict[str, np.ndarray], best: np.ndarray, max_pushes: int) -> dict:
+    """Per policy: physical and predicted V_s gains (all and useful trials), pushes, topple rates."""
+    played = np.array(sorted(runs), dtype=np.int64)
+    outside = np.array([any(r.poses[-1] < 0 for r in runs[t].values()) for t in played], dtype=bool)
+    kept = played[~outside]
+    rows = starts[kept]
+    first_of = np.searchsorted(tables.first_pose, rows, side="right") - 1
+    useful = (tables.v_s[rows] < best[rows]) & (tables.actions["greedy"][rows] != NO_OP)
+    report: dict = {"max_pushes": max_pushes, "played_trials": len(played), "outside_trials": int(outside.sum()),
+                    "useful_trials": int(useful.sum()), "policies": {}}
+    gains = {}
+    for policy in POLICIES:
+        final_rows = np.array([tables.first_pose[o] + runs[t][policy].poses[-1] for t, o in zip(kept, first_of)], dtype=np.int64)
+        physical = tables.v_s[final_rows] - tables.v_s[rows] if len(kept) else np.zeros(0)
+        model = predicted[policy][rows] - tables.v_s[rows] if len(kept) else np.zeros(0)
+        gains[policy] = physical
+        pushes = [r for t in played for r in [runs[t][policy]]]
+        p_hat = np.array([p for r in pushes for p in r.predicted])
+        toppled = np.array([x for r in pushes for x in r.toppled], dtype=float)
+        n_pushes = np.array([len(runs[t][policy].predicted) for t in kept])
+        entry = {
+            "physical_gain_all": _mean_and_error(physical)[0],
+            "model_gain_all": _mean_and_error(model)[0],
+            "physical_gain_useful": _mean_and_error(physical[useful])[0],
+            "physical_gain_useful_se": _mean_and_error(physical[useful])[1],
+            "model_gain_useful": _mean_and_error(model[useful])[0],
+            "mean_pushes_useful": _mean_and_error(n_pushes[useful])[0],
+            "pushes": int(len(p_hat)),
+            "predicted_topple_rate": _mean_and_error(p_hat)[0],
+            "physical_topple_rate": _mean_and_error(toppled)[0],
+        }
+        report["policies"][policy] = entry
+    for policy in ("greedy", "value_iteration"):
+        difference = gains[policy][useful] - gains["max_height"][useful]
+        mean, error = _mean_and_error(difference)
+        model_difference = report["policies"][policy]["model_gain_useful"], report["policies"]["max_height"]["model_gain_useful"]
+        report["policies"][policy]["physical_gain_over_max_height"] = mean
+        report["policies"][policy]["physical_gain_over_max_height_se"] = error
+        report["policies"][policy]["model_gain_over_max_height"] = (
+            None if None in model_difference else model_difference[0] - model_difference[1]
+        )
+    return report
+
+
+def text(report: dict) -> str:
+    """A plain-text table of the report."""
+    def cell(value, signed=True):
+        return "    -" if value is None else (f"{value:+.3f}" if signed else f"{value:.3f}")
+
+    lines = [
+        f"{report['played_trials']} trials on {report['objects']} objects (at most {report['max_pushes']} pushes each), "
+        f"{report['useful_trials']} useful, {report['outside_trials']} left out (a rest pose outside the pose set); "
+        f"{report['wall_s']} s",
+        f"{'policy':<16} {'V_s gain physics':>17} {'model':>7} {'(all trials: physics':>21} {'model)':>7} "
+        f"{'pushes':>7} {'P(topple) predicted':>20} {'physics':>8}",
+    ]
+    for policy, r in report["policies"].items():
+        lines.append(
+            f"{policy:<16} {cell(r['physical_gain_useful']):>17} {cell(r['model_gain_useful']):>7} "
+            f"{cell(r['physical_gain_all']):>21} {cell(r['model_gain_all']):>7} {r['pushes']:>7} "
+            f"{cell(r['predicted_topple_rate'], False):>20} {cell(r['physical_topple_rate'], False):>8}"
+        )
+    for policy in ("greedy", "value_iteration"):
+        r = report["policies"][policy]
+        se = r["physical_gain_over_max_height_se"]
+        lines.append(
+            f"{policy} - max_height on useful trials: physics {cell(r['physical_gain_over_max_height'])}"
+            f"{'' if se is None else f' +/- {se:.3f}'}, model {cell(r['model_gain_over_max_height'])}"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``toppledb policies-physics DATASET --trials N``: the report as a table, then one JSON line."""
+    from ..cli import positive_int
+
+    parser = argparse.ArgumentParser(prog="toppledb policies-physics", description=__doc__.split("\n\n")[0])
+    parser.add_argument("dataset", help="dataset directory (its corpus objects and policy tables)")
+    parser.add_argument("--trials", type=positive_int, default=100, help="dropped starts (default: %(default)s)")
+    parser.add_argument("--max-pushes", type=positive_int, default=MAX_PUSHES, help="most pushes per trial (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the starts and the noise (default: %(default)s)")
+    parser.add_argument("--workers", type=positive_int, help="worker processes (default: all cores)")
+    parser.add_argument("--log", type=Path, metavar="DIR", help="also write every push played to this push-log directory")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the report to this JSON file")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    try:
+        report = experiment(args.dataset, args.trials, max_pushes=args.max_pushes, seed=args.seed, workers=args.workers,
+                            log=args.log, progress=not args.no_progress)
+    except ExperimentError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    print(text(report))
+    for object_id, reason in report["failed_objects"].items():
+        print(f"not played: {object_id}: {reason}", file=sys.stderr)
+    if args.json:
+        write_text_atomic(args.json, json.dumps(report, indent=1) + "\n")
+    print(json.dumps(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

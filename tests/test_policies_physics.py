@@ -1,0 +1,80 @@
+"""The policy experiment executed in physics (pipeline.studies.policies_physics): the model's
+predicted gain is the exact expectation over the stored transitions, and a small run on a
+real (tiny) dataset plays each policy's pushes, re-plans, and logs them in the push-log schema."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main as cli
+from pipeline.studies import playlog, policies_physics
+from pipeline.studies.policy_experiment import ACTION_SPAN, PolicyTables
+from schema.pushlog import row_problems
+from schema.vocabulary import NO_OP, POLICIES
+
+
+def chain_tables() -> PolicyTables:
+    """One object, poses 0, 1, 2 with V_s 0.1, 0.5, 0.9.  Every policy pushes action 7 in pose 0
+    (to 1 with 0.6, stays with 0.4) and action 3 in pose 1 (to 2 with 0.5, back to 0 with 0.5);
+    pose 2 is not pushed."""
+    keys = np.array([0 * ACTION_SPAN + 7, 0 * ACTION_SPAN + 7, 1 * ACTION_SPAN + 3, 1 * ACTION_SPAN + 3], dtype=np.int64)
+    probability = np.array([0.4, 0.6, 0.5, 0.5])
+    actions = np.array([7, 3, NO_OP])
+    return PolicyTables(
+        object_ids=["a"], first_pose=np.array([0, 3]), probability=np.full(3, 1 / 3), v_s=np.array([0.1, 0.5, 0.9]),
+        actions={p: actions for p in POLICIES}, keys=keys, next_row=np.array([0, 1, 2, 0]), cumulative=np.cumsum(probability),
+    )
+
+
+def test_predicted_values_are_the_exact_expectation_over_the_stored_transitions():
+    tables = chain_tables()
+    v = tables.v_s
+    one = policies_physics.predicted_values(tables, "greedy", 1)
+    np.testing.assert_allclose(one, [0.4 * v[0] + 0.6 * v[1], 0.5 * v[2] + 0.5 * v[0], v[2]])
+    two = policies_physics.predicted_values(tables, "greedy", 2)
+    np.testing.assert_allclose(two, [0.4 * one[0] + 0.6 * one[1], 0.5 * one[2] + 0.5 * one[0], v[2]])
+    np.testing.assert_allclose(policies_physics.predicted_values(tables, "greedy", 0), v)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("policies")
+    corpus = directory / "corpus.csv"
+    corpus.write_text(
+        "object_id,source,path,scale,mass\n"
+        + "".join(f"random_{n},pybullet_data/random_urdfs,random_urdfs/{n}/{n}.obj,0.015,0.1\n" for n in ("000", "002"))
+    )
+    out = directory / "dataset"
+    assert cli(["dataset", "--corpus", str(corpus), "--out", str(out), "--contacts", "40", "--trials", "8",
+                "--set", "suction.n_candidates=20", "--set", "suction.n_samples=5", "--workers", "1", "--no-progress"]) == 0
+    return out
+
+
+def test_a_small_run_plays_every_policy_and_logs_its_pushes(dataset, tmp_path):
+    log = tmp_path / "log"
+    report = policies_physics.experiment(dataset, 8, seed=1, workers=1, log=log)
+    assert report["played_trials"] == 8 and not report["failed_objects"]
+    table = playlog.read_log(log)
+    assert all(problem is None for problem in row_problems(table))
+    policy_of = (np.asarray(table["push_id"]) // policies_physics.PUSH_STEP_SPAN) % len(POLICIES)
+    for index, policy in enumerate(POLICIES):
+        r = report["policies"][policy]
+        assert r["pushes"] == int((policy_of == index).sum())
+        assert r["pushes"] <= 8 * policies_physics.MAX_PUSHES
+        for key in ("predicted_topple_rate", "physical_topple_rate"):
+            assert r[key] is None or 0.0 <= r[key] <= 1.0
+    # Every logged push starts where the previous push of its trial and policy ended.
+    rows = sorted(table.to_pylist(), key=lambda row: (row["object_id"], row["push_id"]))
+    for before, after in zip(rows, rows[1:]):
+        if before["object_id"] == after["object_id"] and after["push_id"] == before["push_id"] + 1:
+            start, end = np.reshape(after["start_transform"], (4, 4)), np.reshape(before["final_transform"], (4, 4))
+            np.testing.assert_allclose(start[:3, :3], end[:3, :3], atol=0.02)
+    # Same seed, same starts and noise: the same report.
+    again = policies_physics.experiment(dataset, 8, seed=1, workers=1)
+    assert again["policies"] == report["policies"]
+
+
+def test_a_missing_dataset_is_a_one_line_error(tmp_path, capsys):
+    assert policies_physics.main([str(tmp_path / "nope"), "--trials", "1", "--no-progress"]) == 2
+    assert "nope" in capsys.readouterr().err
