@@ -4,6 +4,8 @@ real (tiny) dataset plays each policy's pushes, re-plans, and logs them in the p
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -66,7 +68,7 @@ def test_a_small_run_plays_every_policy_and_logs_its_pushes(dataset, tmp_path):
             assert r[key] is None or 0.0 <= r[key] <= 1.0
     # Every logged push starts where the previous push of its trial and policy ended.
     rows = sorted(table.to_pylist(), key=lambda row: (row["object_id"], row["push_id"]))
-    for before, after in zip(rows, rows[1:]):
+    for before, after in itertools.pairwise(rows):
         if before["object_id"] == after["object_id"] and after["push_id"] == before["push_id"] + 1:
             start, end = np.reshape(after["start_transform"], (4, 4)), np.reshape(before["final_transform"], (4, 4))
             np.testing.assert_allclose(start[:3, :3], end[:3, :3], atol=0.02)

@@ -215,14 +215,19 @@ def play_object(spec: ObjectSpec, params: PlayParams) -> ObjectLog:
                 toppled += int(final_pose != pose)
                 outside += int(final_pose < 0)
                 at_rest += int(played.at_rest)
-                _append_row(columns, spec, source, path, pose * PUSH_ID_SPAN + int(action), repeat, pose, int(action),
+                append_row(columns, spec, source, path, pose * PUSH_ID_SPAN + int(action), repeat, pose, int(action),
                             point, direction, played, config, params.seed)
     table = pa.Table.from_pydict(columns, schema=PUSHLOG)
     summary = {"poses": n_poses, "pushes": table.num_rows, "toppled": toppled, "outside": outside, "at_rest": at_rest}
     return ObjectLog(spec.object_id, table, key, summary)
 
 
-def _append_row(columns, spec, source, path, push_id, repeat, pose, action, point, direction, played: PlayedPush, config, seed) -> None:
+def append_row(columns, spec, source, path, push_id, repeat, pose, action, point, direction, played: PlayedPush, config, seed) -> None:
+    """Append one played push to ``columns`` (column name -> values, ``PUSHLOG``'s names).
+
+    spec : the object;  source, path : ``mesh_location(spec)``;  point, direction : (3,) float,
+    object frame, the push as commanded (the noise is in ``played``);  config : its finger geometry
+    """
     c = config.contacts
     row = {
         "object_id": spec.object_id,

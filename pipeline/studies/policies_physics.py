@@ -50,7 +50,7 @@ from ..build.atomic import file_sha256, write_text_atomic
 from ..build.corpus import PYBULLET_SOURCE, ObjectSpec, pybullet_data_dir
 from ..model.config import Config
 from ..model.rng import stream
-from .playlog import ObjectLog, _append_row, mesh_location, write_part
+from .playlog import ObjectLog, append_row, mesh_location, write_part
 from .policy_experiment import ACTION_SPAN, PolicyTables, best_pose_value, draw_starts, load_tables
 from .pushsim import body_model, draw_noise, play_push, player_parameters
 
@@ -211,7 +211,7 @@ def play_trials(plan: ObjectPlan, trials: list[tuple[int, int]], config: Config,
                 played = play_push(body, transform, point, direction, config, noises[step])
                 after = settle(pose_set, obj, played.final_transform[:3, :3])
                 push_id = (trial * len(POLICIES) + policy_index) * PUSH_STEP_SPAN + step
-                _append_row(columns, spec, source, path, push_id, 0, pose, action, point, direction, played, config, seed)
+                append_row(columns, spec, source, path, push_id, 0, pose, action, point, direction, played, config, seed)
                 run.predicted.append(p_topple)
                 run.toppled.append(after != pose)
                 run.poses.append(after)
@@ -317,7 +317,7 @@ def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str
             "physical_gain_useful_se": _mean_and_error(physical[useful])[1],
             "model_gain_useful": _mean_and_error(model[useful])[0],
             "mean_pushes_useful": _mean_and_error(n_pushes[useful])[0],
-            "pushes": int(len(p_hat)),
+            "pushes": len(p_hat),
             "predicted_topple_rate": _mean_and_error(p_hat)[0],
             "physical_topple_rate": _mean_and_error(toppled)[0],
         }
@@ -340,11 +340,15 @@ def text(report: dict) -> str:
         return "    -" if value is None else (f"{value:+.3f}" if signed else f"{value:.3f}")
 
     lines = [
-        f"{report['played_trials']} trials on {report['objects']} objects (at most {report['max_pushes']} pushes each), "
-        f"{report['useful_trials']} useful, {report['outside_trials']} left out (a rest pose outside the pose set); "
-        f"{report['wall_s']} s",
-        f"{'policy':<16} {'V_s gain physics':>17} {'model':>7} {'(all trials: physics':>21} {'model)':>7} "
-        f"{'pushes':>7} {'P(topple) predicted':>20} {'physics':>8}",
+        (
+            f"{report['played_trials']} trials on {report['objects']} objects (at most {report['max_pushes']} pushes each), "
+            f"{report['useful_trials']} useful, {report['outside_trials']} left out (a rest pose outside the pose set); "
+            f"{report['wall_s']} s"
+        ),
+        (
+            f"{'policy':<16} {'V_s gain physics':>17} {'model':>7} {'(all trials: physics':>21} {'model)':>7} "
+            f"{'pushes':>7} {'P(topple) predicted':>20} {'physics':>8}"
+        ),
     ]
     for policy, r in report["policies"].items():
         lines.append(

@@ -40,6 +40,8 @@ from ..model.config import Config
 from ..model.mesh import ObjectModel
 from ..model.poses import PoseSet, settle
 
+DEFAULT_CONFIG = Config()
+"""The parameters a push is played with when none are given (frozen, safe to share)."""
 TIME_STEP = 1.0 / 240.0
 """s, simulation step."""
 SOLVER_ITERATIONS = 50
@@ -209,7 +211,7 @@ def finger_path(point: np.ndarray, direction: np.ndarray, config: Config, n_step
 def finger_steps(config: Config) -> int:
     """Simulation steps of the finger's stroke at ``FINGER_SPEED``."""
     stroke = config.contacts.approach_offset + config.contacts.push_depth
-    return max(2, int(round(stroke / FINGER_SPEED / TIME_STEP)))
+    return max(2, round(stroke / FINGER_SPEED / TIME_STEP))
 
 
 @dataclass
@@ -236,7 +238,7 @@ def play_push(
     transform: np.ndarray,
     point: np.ndarray,
     direction: np.ndarray,
-    config: Config = Config(),
+    config: Config = DEFAULT_CONFIG,
     noise: PushNoise | None = None,
 ) -> PlayedPush:
     """Play one push of an object placed at ``transform`` on the table.
@@ -281,7 +283,7 @@ def play_push(
     return PlayedPush(start, final, still >= REST_STEPS, world_point, world_direction, noise)
 
 
-def rest_on_table(body: BodyModel, transform: np.ndarray, config: Config = Config(), duration: float = REST_BEFORE) -> np.ndarray:
+def rest_on_table(body: BodyModel, transform: np.ndarray, config: Config = DEFAULT_CONFIG, duration: float = REST_BEFORE) -> np.ndarray:
     """Place the object at ``transform`` (object -> world), leave it ``duration`` s, and observe it.
 
     What ``play_push`` does before the finger comes; the object's transform then, (4, 4).
@@ -341,7 +343,7 @@ def _place(pb, client, body: BodyModel, transform: np.ndarray, mu_table: float, 
         collisionMargin=COLLISION_MARGIN,
         physicsClientId=client,
     )
-    for _ in range(int(round(duration / TIME_STEP))):
+    for _ in range(round(duration / TIME_STEP)):
         pb.stepSimulation(physicsClientId=client)
     return table, obj_id
 
@@ -359,7 +361,7 @@ def simulate_push(
     pose_index: int,
     point: np.ndarray,
     direction: np.ndarray,
-    config: Config = Config(),
+    config: Config = DEFAULT_CONFIG,
     rng: np.random.Generator | None = None,
     noise: bool = True,
     body: BodyModel | None = None,
