@@ -20,6 +20,7 @@ distribution; a policy that chooses not to push has ``action`` null.  Errors are
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal
 
 import numpy as np
@@ -70,14 +71,16 @@ def check_rigid(matrix: list[list[float]]) -> list[list[float]]:
     """
     m = np.asarray(matrix, dtype=float)
     rotation = m[:3, :3]
-    drift = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
-    if drift > ROTATION_TOLERANCE:
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: drift is inf or NaN, refused below
+        drift = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    if not drift <= ROTATION_TOLERANCE:  # NaN too
         raise ValueError(
             f"the upper-left 3x3 block is not a rotation: its columns are not orthonormal "
             f"(largest |R^T R - I| entry {drift:.3g}, at most {ROTATION_TOLERANCE:g})"
         )
-    det = float(np.linalg.det(rotation))
-    if abs(det - 1.0) > ROTATION_TOLERANCE:
+    with np.errstate(over="ignore", invalid="ignore"):
+        det = float(np.linalg.det(rotation))
+    if not abs(det - 1.0) <= ROTATION_TOLERANCE:
         raise ValueError(f"the upper-left 3x3 block is not a rotation: det = {det:.3g}, expected +1 (a reflection?)")
     if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-9:
         raise ValueError(f"the last row must be [0, 0, 0, 1], got {m[3].tolist()}")
@@ -122,7 +125,7 @@ class Quaternion(Model):
 
     @model_validator(mode="after")
     def _unit(self) -> Quaternion:
-        norm = float(np.sqrt(self.x**2 + self.y**2 + self.z**2 + self.w**2))
+        norm = math.hypot(self.x, self.y, self.z, self.w)  # no overflow for huge components
         if abs(norm - 1.0) > QUATERNION_TOLERANCE:
             raise ValueError(f"the orientation quaternion is not unit: |q| = {norm:.6g} (tolerance {QUATERNION_TOLERANCE:g})")
         return self
@@ -340,10 +343,14 @@ class QValues(Model):
     top: list[RankedAction] = Field(description="The best ok actions, highest first (ties: lower action first)")
 
 
+StrictInt = Annotated[int, Field(strict=True)]
+"""A JSON integer; strict, so that true, 1.0 or "1" is an error rather than 1."""
+
+
 class TransitionQuery(Model):
     object_id: str
-    pose: int
-    action: int
+    pose: StrictInt
+    action: StrictInt
 
 
 class TransitionBatch(Model):
@@ -357,12 +364,16 @@ class PlanRequest(Model):
     """Plan for one observed object. The served OpenAPI document's example is a real object
     and pose of the served dataset (the service fills it in at start)."""
 
+    # Exactly one of pose and ros_pose; neither is nullable (a default is not validated, so an
+    # absent field is None while an explicit null is refused), which the schema says with oneOf.
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"oneOf": [{"required": ["pose"]}, {"required": ["ros_pose"]}]})
+
     object_id: str
-    pose: RigidTransform | None = Field(
+    pose: RigidTransform = Field(
         None, description="Observed pose, object frame -> world frame (z up, table z = 0), 4x4 row-major; "
         "give this or ros_pose"
     )
-    ros_pose: RosPose | None = Field(
+    ros_pose: RosPose = Field(
         None, description="The observed pose as ROS sends it (position, orientation quaternion x, y, z, w, frame_id); "
         "give this or pose"
     )

@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (pytest fixtures imported from tests/test_service.py)
 """The service's answers as a robot controller relies on them: decisions, off-table poses,
 pushes on a tilted object's surface, forces against the finger's limit, ROS poses, and the
 guard's 401/413/415/422 (the tiny dataset of tests/test_service.py)."""
@@ -211,7 +212,7 @@ def test_wrong_content_type_is_415_and_malformed_json_422(client, path):
         headers = {} if content_type is None else {"content-type": content_type}
         response = client.post(path, content=b'{"items": []}', headers=headers)
         assert response.status_code == 415 and "application/json" in response.json()["detail"], response.text
-    for broken in (b"{not json", b'{"items": [1,', b"\xff\xfe"):
+    for broken in (b"{not json", b'{"items": [1,', b"\xff\xfe", b"\x80", b'{"items": "\xe9"}'):
         response = client.post(path, content=broken, headers=JSON)
         assert response.status_code == 422 and "JSON decode error" in response.json()["detail"], (broken, response.text)
     response = client.post(path, content=b"", headers=JSON)
