@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (pytest fixture imported from tests/test_service.py)
 """Operating the service: swapping to a rebuilt dataset without failing a request, SIGHUP,
 closing connections that never finish their request, no access log by default, and the
 app factory under uvicorn's workers (the tiny dataset of tests/test_service.py)."""
