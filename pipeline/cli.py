@@ -17,6 +17,8 @@ parameters give one line on stderr and exit status 2; a failed build exits 1.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
 import tomllib
 from pathlib import Path
@@ -51,6 +53,12 @@ def positive_int(text: str) -> int:
     return value
 
 
+def _cores() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -78,19 +86,28 @@ def parser() -> argparse.ArgumentParser:
     main = argparse.ArgumentParser(prog="toppledb", description="toppledb: build, check, study and serve datasets")
     commands = main.add_subparsers(dest="command", required=True, metavar="{" + ",".join(COMMANDS) + "}")
 
-    dataset = commands.add_parser("dataset", help="build (or resume building) a dataset")
+    defaults = Config()
+    dataset = commands.add_parser(
+        "dataset",
+        help="build (or resume building) a dataset",
+        description="Build, resume or extend a dataset.  A finished dataset in --out stays intact\n"
+        "until the new one is complete; a run with nothing to do writes nothing.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=dataset_epilog(defaults),
+    )
     dataset.add_argument(
         "--corpus",
         default="default",
         help="'default' (the committed 189-object list), 'pybullet_data' (every candidate), "
-        "a directory of OBJ/STL/PLY meshes, or a CSV list with columns path[,scale,mass,object_id,source,sha256]",
+        "a directory of OBJ/STL/PLY meshes (units: see below), or a CSV list with columns "
+        "path[,scale,mass,object_id,source,sha256] (default: %(default)s)",
     )
     dataset.add_argument("--out", default="data/dataset", help="dataset directory (default: %(default)s)")
     dataset.add_argument("--limit", type=positive_int, metavar="N", help="only the first N objects of the corpus")
-    dataset.add_argument("--contacts", type=positive_int, metavar="N", help="candidate pushes per pose (contacts.n_contacts)")
-    dataset.add_argument("--trials", type=positive_int, metavar="N", help="Monte Carlo trials per push (topple.n_trials)")
-    dataset.add_argument("--variant", choices=VARIANTS, help="toppling model variant (topple.variant)")
-    dataset.add_argument("--seed", type=int, help="root of every random stream (seed)")
+    dataset.add_argument("--contacts", type=positive_int, metavar="N", help=f"candidate pushes per pose (contacts.n_contacts, default: {defaults.contacts.n_contacts})")
+    dataset.add_argument("--trials", type=positive_int, metavar="N", help=f"Monte Carlo trials per push (topple.n_trials, default: {defaults.topple.n_trials})")
+    dataset.add_argument("--variant", choices=VARIANTS, help=f"toppling model variant (topple.variant, default: {defaults.topple.variant})")
+    dataset.add_argument("--seed", type=int, help=f"root of every random stream (seed, default: {defaults.seed})")
     _add_execution(dataset)
     units = dataset.add_argument_group(
         "units and mass (a directory corpus; they override the sidecar's defaults, not its per-mesh entries)"
@@ -99,8 +116,8 @@ def parser() -> argparse.ArgumentParser:
     units.add_argument("--scale", type=positive_float, help="metres per file unit, e.g. 0.001 for millimetres")
     units.add_argument("--mass", type=positive_float, metavar="KG", help="mass of every mesh, kg")
     units.add_argument("--density", type=positive_float, metavar="KG/M3", help="mass = density x volume, e.g. 1000 for water")
-    dataset.add_argument("--force", action="store_true", help="discard what --out holds and recompute everything")
-    dataset.add_argument("--strict", action="store_true", help="stop at the first object that fails")
+    dataset.add_argument("--force", action="store_true", help="recompute every object, replacing what --out holds once the new dataset is complete")
+    dataset.add_argument("--strict", action="store_true", help="stop at the first object that fails (exit 1; --out is left as it was)")
 
     verify = commands.add_parser("verify", help="check a dataset against its manifest")
     verify.add_argument("directory", help="dataset directory")
@@ -123,8 +140,31 @@ def parser() -> argparse.ArgumentParser:
     return main
 
 
+def dataset_epilog(defaults: Config) -> str:
+    """Examples, the directory sidecar and every --set key with its default and range."""
+    from .build.corpus import SIDECAR_HELP
+    from .model.config import parameter_table
+
+    examples = """\
+examples:
+  toppledb dataset                                        # default corpus -> data/dataset
+  toppledb dataset --limit 5 --contacts 200 --out /tmp/small
+  toppledb dataset --corpus meshes/ --units mm --density 700 --out data/mine
+  toppledb dataset --corpus list.csv --set topple.mu_table_mean=0.5 --config params.toml
+  toppledb dataset --scheduler tcp://head:8786            # on a dask.distributed cluster
+  toppledb add data/dataset part.stl --units mm --mass 0.2
+
+exit status: 0 done, 1 build failed (or every object failed), 2 bad arguments or paths,
+130 interrupted (SIGINT/SIGTERM; the same command resumes)."""
+    keys = ["--set keys (SECTION.KEY=VALUE; default, accepted range):"]
+    for key, value, accepted in parameter_table(defaults):
+        shown = f"{value:.6g}" if isinstance(value, float) else str(value)
+        keys.append(f"  {key:34s} {shown:>10s}  {accepted}")
+    return "\n\n".join([examples, SIDECAR_HELP, "\n".join(keys)])
+
+
 def _add_execution(command: argparse.ArgumentParser) -> None:
-    command.add_argument("--workers", type=positive_int, help="local worker processes (default: all cores)")
+    command.add_argument("--workers", type=positive_int, help="local worker processes (default: all cores, here %s)" % _cores())
     command.add_argument("--scheduler", metavar="ADDRESS", help="run on this dask.distributed scheduler, e.g. tcp://host:8786")
     command.add_argument("--config", type=Path, metavar="FILE.toml", help="parameters from a TOML file")
     command.add_argument(
@@ -258,25 +298,48 @@ def run_policies(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .build.corpus import CorpusError
-    from .build.dataset import BuildError
-    from .build.fanout import SchedulerError
-
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in DELEGATED:
+        # Before anything from pipeline.build: `toppledb serve` must work with only the service extra.
         from importlib import import_module
 
         return import_module(DELEGATED[argv[0]][0]).main(argv[1:]) or EXIT_OK
+    from .build.corpus import CorpusError
+    from .build.dataset import BuildError, OutputError
+    from .build.fanout import SchedulerError
+
     args = parser().parse_args(argv)
     commands = {"dataset": run_dataset, "verify": run_verify, "corpus": run_corpus, "policies": run_policies}
     try:
-        return commands[args.command](args)
-    except (UsageError, CorpusError) as err:
+        with _terminate_as_interrupt():
+            return commands[args.command](args)
+    except (UsageError, CorpusError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except (BuildError, SchedulerError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_FAILED
     except KeyboardInterrupt:
-        print("interrupted; run the same command again to resume", file=sys.stderr)
+        print(
+            "interrupted; workers stopped, a finished dataset is unchanged; run the same command again to resume",
+            file=sys.stderr,
+        )
         return EXIT_INTERRUPTED
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM (a job scheduler, ``kill``) unwinds like Ctrl-C, so the build's cleanup
+    runs and the loky workers are stopped instead of being orphaned."""
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

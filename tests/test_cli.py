@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
 from pipeline.cli import main, make_config, parser
+from pipeline.model.config import parameter_table
 
 
 def test_parameters_come_from_defaults_toml_set_then_flags(tmp_path):
@@ -34,10 +39,18 @@ def test_parameters_come_from_defaults_toml_set_then_flags(tmp_path):
         (["dataset", "--config", "/no/such.toml"], "config file not found"),
         (["dataset", "--corpus", "/no/such/corpus", "--out", "{tmp}/out"], "corpus not found"),
         (["corpus", "--set", "suction.cup_radius=wide"], "expects float"),
+        (["dataset", "--set", "contacts.n_contacts=0"], "config key 'contacts.n_contacts' must be >= 1, got '0'"),
+        (["dataset", "--set", "topple.mu_table_mean=-3"], "config key 'topple.mu_table_mean' must be >= 0"),
+        (["dataset", "--seed", "-2"], "config key 'seed' must be >= 0"),
+        (["dataset", "--out", "{tmp}/a_file/out"], "cannot create output directory {tmp}/a_file/out: Not a directory"),
+        (["dataset", "--out", "{tmp}/a_file"], "cannot create output directory {tmp}/a_file: File exists"),
+        (["dataset", "--corpus", "default", "--units", "mm", "--out", "{tmp}/out"], "apply to a directory of meshes"),
     ],
 )
 def test_bad_input_is_one_line_with_status_2(tmp_path, capsys, argv, message):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    message = message.replace("{tmp}", str(tmp_path))
+    (tmp_path / "a_file").write_text("not a directory")
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err
@@ -107,3 +120,91 @@ def test_millimetre_meshes_fail_with_a_unit_hint_until_units_are_given(tmp_path,
 
     assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--units", "mm", "--mass", "0.2", "--strict", *FAST]) == 1
     assert "--strict: noise:" in capsys.readouterr().err
+
+
+def test_help_shows_defaults_set_keys_and_examples(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "250")  # argparse wraps to the terminal width
+    with pytest.raises(SystemExit):
+        main(["dataset", "--help"])
+    text = capsys.readouterr().out
+    assert "(contacts.n_contacts, default: 1000)" in text and "(default: data/dataset)" in text
+    assert "examples:" in text and "--units mm" in text and "corpus.toml" in text
+    for key, value, accepted in parameter_table():
+        assert key in text, f"--set key {key} missing from --help"
+    assert "topple.mu_table_mean" in text and ">= 0" in text
+
+
+SLOW_WORKERS = """\
+import os
+if os.environ.get("TOPPLEDB_TEST_SLOW_OBJECTS"):  # every interpreter, loky workers included
+    import time
+    import pipeline.model.evaluation as evaluation
+
+    def process_object(spec, config):
+        time.sleep(600)
+
+    evaluation.process_object = process_object
+"""
+
+
+def loky_workers(parent) -> list:
+    """Worker processes (not loky's resource tracker, which lives as long as its parent)."""
+    commands = [(c, " ".join(c.cmdline())) for c in parent.children(recursive=True)]
+    return [c for c, command in commands if "loky" in command and "resource_tracker" not in command]
+
+
+def test_sigterm_stops_the_workers(tmp_path):
+    """SIGTERM to the parent alone (a job scheduler's stop) used to orphan the workers."""
+    psutil = pytest.importorskip("psutil")
+    (tmp_path / "sitecustomize.py").write_text(SLOW_WORKERS)
+    corpus = tmp_path / "corpus.csv"
+    corpus.write_text("".join(
+        ["object_id,source,path,scale\n"]
+        + [f"r{i},pybullet_data/random_urdfs,random_urdfs/00{i}/00{i}.obj,0.015\n" for i in range(3)]
+    ))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]),
+           "TOPPLEDB_TEST_SLOW_OBJECTS": "1"}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "dataset", "--corpus", str(corpus), "--out", str(tmp_path / "out"),
+         "--workers", "2", "--no-progress"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True,
+    )
+    try:
+        parent = psutil.Process(process.pid)
+        deadline = time.monotonic() + 120
+        workers = []
+        while len(workers) < 2 and process.poll() is None and time.monotonic() < deadline:
+            workers = loky_workers(parent)
+            time.sleep(0.1)
+        assert len(workers) >= 2, "the loky workers never started"
+        time.sleep(1.0)  # let them pick up their tasks
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=60) == 130
+        gone, alive = psutil.wait_procs(workers, timeout=20)
+        assert not alive, f"workers left running: {[p.pid for p in alive]}"
+        stderr = process.stderr.read()
+        assert "interrupted; workers stopped" in stderr and "Traceback" not in stderr, stderr[-2000:]
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+        process.stderr.close()
+
+
+def test_an_interrupted_fan_out_stops_its_workers():
+    """Ctrl-C (SIGINT) reaches the parent as KeyboardInterrupt while it waits for results;
+    leaving the loop must kill the workers still busy, without joblib's warning."""
+    import warnings
+
+    psutil = pytest.importorskip("psutil")
+    from pipeline.build import fanout
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # joblib's "tasks ... cancelled" would fail the test
+        with pytest.raises(KeyboardInterrupt):
+            with contextlib.closing(fanout.map_unordered(time.sleep, [(0,), (120,), (120,)], workers=2)) as results:
+                for _ in results:
+                    workers = loky_workers(psutil.Process())
+                    raise KeyboardInterrupt
+    assert len(workers) == 2
+    gone, alive = psutil.wait_procs(workers, timeout=20)
+    assert not alive, f"workers left running: {[p.pid for p in alive]}"

@@ -1,10 +1,11 @@
 """The typed config: defaults from the thesis, overrides from a file and the CLI."""
 
 import math
+import re
 
 import pytest
 
-from pipeline.model.config import Config
+from pipeline.model.config import Config, ContactConfig, Range, field_range, parameter_table
 
 
 def test_defaults_are_the_thesis_values():
@@ -38,3 +39,31 @@ def test_round_trip_and_overrides(tmp_path):
 def test_bad_overrides_are_clear_errors(overrides, message):
     with pytest.raises(ValueError, match=message):
         Config().with_overrides(overrides)
+
+
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("contacts.n_contacts", "0", "must be >= 1"),
+        ("topple.mu_table_mean", "-3", "must be >= 0"),
+        ("topple.mu_table_mean", "nan", "must be >= 0"),
+        ("mdp.gamma", "0", "must be in (0, 1]"),
+        ("mdp.gamma", "1.5", "must be in (0, 1]"),
+        ("poses.min_probability", "1", "must be in [0, 1)"),
+        ("suction.ring_samples", "2", "must be >= 3"),
+        ("contacts.max_up_angle", "2", "must be in [0, 1.5708]"),
+        ("seed", "-1", "must be >= 0"),
+    ],
+)
+def test_every_parameter_is_range_checked(key, value, message):
+    with pytest.raises(ValueError, match=re.escape(f"config key '{key}' {message}")):
+        Config().with_overrides({key: value})
+
+
+def test_ranges_live_on_the_fields_and_accept_the_defaults():
+    rows = parameter_table()
+    numeric = [(key, value) for key, value, _ in rows if isinstance(value, (int, float)) and not isinstance(value, bool)]
+    assert all(accepted for key, value, accepted in rows if (key, value) in numeric), "every number has a range"
+    assert Config.from_dict(Config().to_dict()) == Config(), "the defaults pass their own checks"
+    assert field_range(ContactConfig, "n_contacts") == Range(1, None)
+    assert Range(0.0, 1.0, lo_open=True).contains(1.0) and not Range(0.0, 1.0, lo_open=True).contains(0.0)

@@ -26,7 +26,7 @@ import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.build import fanout, rows, shards
+from pipeline.build import dataset, fanout, rows, shards
 from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import read_list
 from pipeline.build.dataset import compute_shard, staging_dir
@@ -271,29 +271,23 @@ def test_dask_backend_gives_the_same_dataset_as_loky(reference, corpus, tmp_path
 
 
 KILLABLE = (
-    "import os, signal, sys, time, pipeline.model.evaluation as objects, pipeline.build.dataset as dataset\n"
-    "compute, move, seen, moved = objects.process_object, dataset._move, [], []\n"
+    "import sys, time, pipeline.model.evaluation as objects\n"
+    "compute, seen = objects.process_object, []\n"
     "stop = sys.argv.pop(1)\n"
     "def process_object(spec, config):\n"
     "    seen.append(spec.object_id)\n"
     "    if stop == 'compute' and len(seen) > 1: time.sleep(30)\n"
     "    return compute(spec, config)\n"
-    "def _move(source, target):\n"
-    "    moved.append(target)\n"
-    "    if stop == 'commit' and len(moved) == 3: os.kill(os.getpid(), signal.SIGKILL)\n"
-    "    return move(source, target)\n"
-    "objects.process_object, dataset._move = process_object, _move\n"
+    "objects.process_object = process_object\n"
     "from pipeline.cli import main\n"
     "sys.exit(main(sys.argv[1:]))\n"
 )
-"""Runs the CLI in one in-process worker.  ``compute``: objects after the first pause
-before computing (same results; an object takes ~50 ms, too short a window to kill in
-on a busy machine).  ``commit``: the process kills itself at the commit's third move."""
+"""Runs the CLI in one in-process worker; objects after the first pause before computing
+(same results; an object takes ~50 ms, too short a window to kill in on a busy machine)."""
 
 
 def run_killed(stop: str, corpus: Path, out: Path) -> str:
-    """Run a build that is SIGKILLed at ``stop``: once a shard is staged (``compute``)
-    or by itself (``commit``).  Returns its stderr."""
+    """Run a build that is SIGKILLed once a shard is staged (``stop="compute"``).  Returns its stderr."""
     staged = staging_dir(out) / layout.SHARDS_DIR
     command = ["dataset", "--corpus", str(corpus), "--out", str(out), *PARAMS, "--workers", "1"]
     process = subprocess.Popen(
@@ -337,9 +331,10 @@ def test_sigkill_part_way_then_resume_gives_the_same_dataset(reference, corpus, 
     assert_same_dataset(reference, out)
 
 
-def test_sigkill_while_extending_a_finished_dataset_keeps_it_until_the_commit(reference, tmp_path):
-    """Killed while computing new objects: the old dataset is untouched.  Killed inside
-    the commit: the next run finishes that commit before anything else."""
+def test_sigkill_while_extending_a_finished_dataset_keeps_it_until_the_commit(reference, tmp_path, monkeypatch, capsys):
+    """Killed while computing new objects: the old dataset is untouched.  Stopped inside
+    the commit (here by an exception at its third rename: the files on disk are what a
+    kill leaves): the next run finishes that commit before anything else."""
     small = write_corpus(tmp_path, OBJECTS[:1])
     out = tmp_path / "dataset"
     assert build(small, out, "--workers", "1") == 0
@@ -350,15 +345,26 @@ def test_sigkill_while_extending_a_finished_dataset_keeps_it_until_the_commit(re
     assert_intact(out, before)
     assert len(list((staging_dir(out) / layout.SHARDS_DIR).glob("*/complete.json"))) == 1
 
-    run_killed("commit", grown, out)
-    assert (staging_dir(out) / "commit.json").exists(), "killed after the commit point"
-    resumed = subprocess.run(
-        [sys.executable, "-m", "pipeline", "dataset", "--corpus", str(grown), "--out", str(out), *PARAMS, "--workers", "1"],
-        capture_output=True, text=True,
-    )
-    assert resumed.returncode == 0, resumed.stderr
-    assert "finished the commit of an interrupted run" in resumed.stderr
-    assert "up to date: all 3 objects" in resumed.stderr, "the rolled-forward commit is the whole build"
+    move, moved = dataset._move, []
+
+    def crash_after_first_partition(source, target):
+        if moved and "actions" in moved[-1].parts:
+            raise SystemExit("killed")
+        moved.append(target)
+        move(source, target)
+
+    monkeypatch.setattr(dataset, "_move", crash_after_first_partition)
+    with pytest.raises(SystemExit):
+        build(grown, out, "--workers", "1")
+    monkeypatch.setattr(dataset, "_move", move)
+    assert (staging_dir(out) / "commit.json").exists(), "stopped after the commit point"
+    assert verify_dataset(out) != [], "half-way through the renames"
+
+    capsys.readouterr()
+    assert build(grown, out, "--workers", "1") == 0
+    err = capsys.readouterr().err
+    assert "finished the commit of an interrupted run" in err
+    assert "up to date: all 3 objects" in err, "the rolled-forward commit is the whole build"
     assert not staging_dir(out).exists()
     assert verify_dataset(out) == []
     assert_same_dataset(reference, out)
@@ -423,7 +429,8 @@ def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_
     shutil.copytree(reference, copy)
     assert build(corpus, copy, "--trials", "6") == 1
     err = capsys.readouterr().err
-    assert "3 shard(s) built from other inputs (config.topple.n_trials: 5 -> 6); use --force" in err
+    assert "3 shard(s) built from other inputs (config.topple.n_trials: 5 -> 6). To replace it, add --force" in err
+    assert f"choose another --out, e.g. --out {copy}-2" in err and err.count("\n") == 1
     assert build(corpus, copy, "--limit", "2") == 1
     assert f"1 shard(s) of objects not in this corpus (e.g. {OBJECTS[2]})" in capsys.readouterr().err
     assert verify_dataset(copy) == [], "a refused run changes nothing"

@@ -55,6 +55,10 @@ class BuildError(RuntimeError):
     """The build cannot go on; the message is one line for the user."""
 
 
+class OutputError(BuildError):
+    """The output directory cannot be created or written (a bad path, permissions)."""
+
+
 @dataclass
 class Failure:
     """An object that has no shard, and why."""
@@ -85,6 +89,12 @@ def compute_shard(spec: ObjectSpec, config: Config, process: Process | None = No
     except Exception as err:  # any bug or numerical failure in one object must not end the run
         detail = "".join(traceback.format_exception(err)[-6:])
         return Failure(spec.object_id, _one_line(f"{type(err).__name__}: {err}"), "error", detail)
+
+
+def _named(failure: Failure) -> str:
+    """``id: reason`` (mesh errors already start with the id)."""
+    prefix = f"{failure.object_id}: "
+    return failure.reason if failure.reason.startswith(prefix) else prefix + failure.reason
 
 
 def _one_line(text: str) -> str:
@@ -212,7 +222,7 @@ def build_dataset(
         reused = len(records) + len(staged)
         if strict and failures:
             first = next(iter(failures.values()))
-            raise BuildError(f"--strict: {first.object_id}: {first.reason}")
+            raise BuildError(f"--strict: {_named(first)}")
 
         current = _current_manifest(out)
         if not todo and not staged and not force and _up_to_date(current, config, corpus, records, failures):
@@ -286,19 +296,21 @@ def _compute(
         # Largest meshes first: the slowest tasks start early and the run ends evenly.
         todo = sorted(todo, key=lambda s: -_size(s.path))
         tasks = [(spec, config, process) for spec in todo]
-        for outcome in fanout.map_unordered(compute_shard, tasks, workers, scheduler):
-            if isinstance(outcome, Failure):
-                _remove_object_files(staging, outcome.object_id)
-                if strict:
-                    raise BuildError(f"--strict: {outcome.object_id}: {outcome.reason}")
-                failures[outcome.object_id] = outcome
-                bar.object_done(0, failed=True)
-                continue
-            written[outcome.object_id] = shards.write_shard(staging, outcome, inputs[outcome.object_id])
-            repaired = outcome.rows["objects"].column("repairs").to_pylist()[0]
-            if repaired:
-                repairs[outcome.object_id] = repaired
-            bar.object_done(outcome.counts["poses"])
+        # closing(): an exception here (--strict, Ctrl-C) stops the workers at once, not at garbage collection.
+        with contextlib.closing(fanout.map_unordered(compute_shard, tasks, workers, scheduler)) as outcomes:
+            for outcome in outcomes:
+                if isinstance(outcome, Failure):
+                    _remove_object_files(staging, outcome.object_id)
+                    if strict:
+                        raise BuildError(f"--strict: {_named(outcome)}")
+                    failures[outcome.object_id] = outcome
+                    bar.object_done(0, failed=True)
+                    continue
+                written[outcome.object_id] = shards.write_shard(staging, outcome, inputs[outcome.object_id])
+                repaired = outcome.rows["objects"].column("repairs").to_pylist()[0]
+                if repaired:
+                    repairs[outcome.object_id] = repaired
+                bar.object_done(outcome.counts["poses"])
     except fanout.SchedulerError as err:
         raise BuildError(str(err)) from None
     finally:
@@ -409,9 +421,9 @@ def _make_directory(path: Path, what: str) -> None:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise BuildError(f"cannot create {what} {path}: {err.strerror}") from None
+        raise OutputError(f"cannot create {what} {path}: {err.strerror}") from None
     if not os.access(path, os.W_OK | os.X_OK):
-        raise BuildError(f"cannot write to {what} {path}: permission denied")
+        raise OutputError(f"cannot write to {what} {path}: permission denied")
 
 
 def _size(path: str) -> int:
@@ -425,7 +437,11 @@ def _size(path: str) -> int:
 def _exclusive(out: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``out`` so that two builds never write it at once;
     the kernel drops the lock when the process dies, even by SIGKILL."""
-    with open(out / ".lock", "w") as lock:
+    try:
+        lock = open(out / ".lock", "w")
+    except OSError as err:
+        raise OutputError(f"cannot write to output directory {out}: {err.strerror}") from None
+    with lock:
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -465,7 +481,10 @@ def _refuse_foreign_shards(out: Path, inputs: dict[str, dict]) -> None:
         what = f"{len(changed)} shard(s) built from other inputs ({'; '.join(differences[:3]) or 'not recorded'})"
     else:
         what = f"{len(outside)} shard(s) of objects not in this corpus (e.g. {outside[0]})"
-    raise BuildError(f"{out} holds {what}; use --force to rebuild it or choose another --out")
+    raise BuildError(
+        f"{out} holds {what}. To replace it, add --force (the old "
+        f"dataset stays until the new one is complete); to keep it, choose another --out, e.g. --out {out}-2"
+    )
 
 
 def _remove_object_files(out: Path, object_id: str) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import sys
 import time
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
@@ -72,12 +73,35 @@ def map_unordered(
     bar = tqdm(total=len(arguments), desc=description, unit="obj", disable=not progress, file=sys.stderr)
     with backend(workers, scheduler) as n_jobs:
         parallel = joblib.Parallel(n_jobs=n_jobs, batch_size=1, return_as="generator_unordered")
+        results = parallel(joblib.delayed(function)(*args) for args in arguments)
+        finished = False
         try:
-            for result in parallel(joblib.delayed(function)(*args) for args in arguments):
+            for result in results:
                 bar.update(1)
                 yield result
+            finished = True
         finally:
             bar.close()
+            if not finished:
+                # Abandoned on purpose (--strict, an error, Ctrl-C): the cancelled tasks are
+                # expected, so joblib's advice about them is noise for the user.
+                with warnings.catch_warnings():
+                    warnings.filterwarnings("ignore", message=r".*tasks which were still being processed", category=UserWarning)
+                    results.close()
+                if scheduler is None:
+                    stop_local_workers()
+
+
+def stop_local_workers() -> None:
+    """Kill loky's worker processes now.  They outlive an abandoned run otherwise
+    (an exception, Ctrl-C, SIGTERM, ``--strict``): loky keeps them for reuse, each
+    holding its memory, and joblib warns about the tasks they were still running."""
+    from joblib.externals.loky import reusable_executor
+
+    with reusable_executor._executor_lock:  # loky's own handle on its pool (no public accessor)
+        executor = reusable_executor._executor
+    if executor is not None:
+        executor.shutdown(wait=True, kill_workers=True)
 
 
 class Progress:

@@ -18,19 +18,77 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
-VARIANTS = ("baseline", "rotations", "robustness", "robust")
+@dataclass(frozen=True)
+class Range:
+    """The values a numeric parameter accepts: ``lo``/``hi`` bounds (None: unbounded),
+    inclusive unless ``lo_open``/``hi_open``.  Kept on the field as ``metadata["range"]``
+    (``bounded``), checked wherever a config is read (TOML, ``--set``, flags)."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def contains(self, value: float) -> bool:
+        if not math.isfinite(value):
+            return False
+        if self.lo is not None and (value <= self.lo if self.lo_open else value < self.lo):
+            return False
+        return self.hi is None or (value < self.hi if self.hi_open else value <= self.hi)
+
+    def text(self) -> str:
+        """``> 0``, ``>= 1``, ``in [0, 1)``."""
+        def number(x: float) -> str:
+            return f"{x:.6g}"
+
+        if self.hi is None:
+            return f"{'>' if self.lo_open else '>='} {number(self.lo)}" if self.lo is not None else "finite"
+        if self.lo is None:
+            return f"{'<' if self.hi_open else '<='} {number(self.hi)}"
+        return f"in {'(' if self.lo_open else '['}{number(self.lo)}, {number(self.hi)}{')' if self.hi_open else ']'}"
+
+
+POSITIVE = Range(0.0, None, lo_open=True)
+NON_NEGATIVE = Range(0.0, None)
+AT_LEAST_ONE = Range(1, None)
+FRACTION = Range(0.0, 1.0)
+RIGHT_ANGLE = Range(0.0, math.pi / 2)
+"""rad, an angle between 0 and 90 degrees."""
+
+
+def bounded(default: Any, accepted: Range) -> Any:
+    """A dataclass field with its accepted range as metadata."""
+    return field(default=default, metadata={"range": accepted})
+
+
+def field_range(cls: type, name: str) -> Range | None:
+    """The accepted range of ``cls.name``, None when it has none (strings, booleans)."""
+    return next((f.metadata.get("range") for f in fields(cls) if f.name == name), None)
+
+
+THESIS_VARIANTS = ("baseline", "rotations", "robustness", "robust")
 """Model variants of thesis table 4.1: (predicts planar rotations, robust estimates)."""
+
+VARIANTS = THESIS_VARIANTS + ("corrected",)
+"""Every selectable variant: the thesis's four, and ``corrected`` (the robust model with the
+corrections of docs/MODEL.md "Corrections beyond the thesis" named in ``topple.corrections``)."""
+
+CORRECTIONS = ("finger_friction", "force_limit")
+"""Corrections the ``corrected`` variant can apply (docs/MODEL.md, "Corrections beyond the thesis"):
+``finger_friction``: the finger's force follows Coulomb sliding at the contact while the object
+tips (friction in the moment balance, pushes from above, faces the finger wedges under);
+``force_limit``: a push that needs more than ``max_finger_force`` does not topple."""
 
 
 @dataclass(frozen=True)
 class MeshConfig:
     """Loading and validation of corpus meshes."""
 
-    default_mass: float = 0.25
+    default_mass: float = bounded(0.25, POSITIVE)
     """kg, used when the corpus gives no mass."""
-    min_extent: float = 0.01
+    min_extent: float = bounded(0.01, POSITIVE)
     """m; an object whose largest bounding-box side is smaller is rejected as too small."""
-    max_extent: float = 0.5
+    max_extent: float = bounded(0.5, POSITIVE)
     """m; an object whose largest bounding-box side is larger is rejected as too large for a tabletop."""
     fill_holes: bool = True
     """Let trimesh fill small holes before the watertightness check."""
@@ -40,11 +98,11 @@ class MeshConfig:
 class PoseConfig:
     """Stable poses and their identity."""
 
-    min_probability: float = 0.01
+    min_probability: float = bounded(0.01, Range(0.0, 1.0, hi_open=True))
     """Stable poses dropped with lower probability are left out unless a topple reaches them."""
-    same_pose_angle: float = math.radians(10.0)
+    same_pose_angle: float = bounded(math.radians(10.0), Range(0.0, math.pi, lo_open=True))
     """rad; two orientations are the same stable pose when their down vectors differ by at most this."""
-    base_tolerance: float = 1e-3
+    base_tolerance: float = bounded(1e-3, POSITIVE)
     """m; hull vertices this close to the table form the base (docs/MODEL.md 5)."""
 
 
@@ -52,23 +110,23 @@ class PoseConfig:
 class ContactConfig:
     """Candidate pushes (thesis 4.4.1) and the finger that executes them."""
 
-    n_contacts: int = 1000
+    n_contacts: int = bounded(1000, AT_LEAST_ONE)
     """Candidate contact points per pose, exactly this many, spread evenly over the surface."""
-    oversample: int = 10
+    oversample: int = bounded(10, AT_LEAST_ONE)
     """Uniform surface samples per candidate from which the even subset is chosen."""
-    min_height_fraction: float = 0.15
+    min_height_fraction: float = bounded(0.15, FRACTION)
     """Contacts lower than this fraction of the object's height in the pose are ``too_low``."""
-    max_up_angle: float = math.radians(60.0)
+    max_up_angle: float = bounded(math.radians(60.0), RIGHT_ANGLE)
     """rad; a push pointing up more than this above horizontal is ``pushes_up``."""
-    finger_radius: float = 0.004
+    finger_radius: float = bounded(0.004, POSITIVE)
     """m, radius of the finger capsule."""
-    finger_length: float = 0.06
+    finger_length: float = bounded(0.06, POSITIVE)
     """m, length of the finger capsule."""
-    approach_offset: float = 0.015
+    approach_offset: float = bounded(0.015, NON_NEGATIVE)
     """m; the finger starts this far outside the contact along the normal."""
-    push_depth: float = 0.04
+    push_depth: float = bounded(0.04, NON_NEGATIVE)
     """m; the executed motion ends this far inside the contact (p - push_depth n)."""
-    max_height_normal_angle: float = math.radians(15.0)
+    max_height_normal_angle: float = bounded(math.radians(15.0), RIGHT_ANGLE)
     """rad; Max-Height baseline pushes the highest point whose normal is this close to horizontal."""
 
 
@@ -81,38 +139,67 @@ class ToppleConfig:
 
     variant: str = "robust"
     """One of ``baseline``, ``rotations``, ``robustness``, ``robust`` (thesis table 4.1)."""
-    n_trials: int = 100
+    n_trials: int = bounded(100, AT_LEAST_ONE)
     """Noisy trials per action for the robust variants; noise-free variants use one."""
-    gravity: float = 9.81
+    gravity: float = bounded(9.81, POSITIVE)
     """m/s^2."""
-    mu_table_mean: float = 0.43
-    mu_table_std: float = 0.1
-    mu_finger_mean: float = 0.98
-    mu_finger_std: float = 0.2
-    contact_std: float = 5.05e-4
+    mu_table_mean: float = bounded(0.43, NON_NEGATIVE)
+    mu_table_std: float = bounded(0.1, NON_NEGATIVE)
+    mu_finger_mean: float = bounded(0.98, NON_NEGATIVE)
+    mu_finger_std: float = bounded(0.2, NON_NEGATIVE)
+    contact_std: float = bounded(5.05e-4, NON_NEGATIVE)
     """m, isotropic standard deviation of the contact position."""
-    direction_std: float = 0.055
+    direction_std: float = bounded(0.055, NON_NEGATIVE)
     """Isotropic standard deviation added to the unit push direction before renormalising."""
-    rotation_std: float = 0.22
+    rotation_std: float = bounded(0.22, NON_NEGATIVE)
     """rad, standard deviation of the object rotation about a uniformly random axis."""
-    ray_offset: float = 0.015
+    ray_offset: float = bounded(0.015, POSITIVE)
     """m; the finger ray that re-finds a noisy contact starts this far outside it."""
-    chunk_actions: int = 256
+    chunk_actions: int = bounded(256, AT_LEAST_ONE)
     """Actions evaluated per vectorised block; bounds peak memory, not results."""
+    corrections: str = "all"
+    """Comma-separated corrections the ``corrected`` variant applies (``CORRECTIONS``), or
+    ``all`` or ``none``; the thesis's variants apply none, whatever this says."""
+    finger_friction_scale: float = bounded(0.25, FRACTION)
+    """Share of the finger's Coulomb friction that resists tipping (``finger_friction``
+    correction): 1 is Coulomb's law, which the standing box in pybullet follows; 0.25 is the
+    middle of the flat optimum (0.15-0.5) on the corpus push log, where pushes from above
+    topple more often than Coulomb sliding allows (docs/MODEL.md C.2)."""
+    max_finger_force: float = bounded(20.0, POSITIVE)
+    """N, the largest finger force (magnitude) of a push (``force_limit`` correction): about
+    the sustained Cartesian force of a light collaborative arm's fingertip, 8 times a 0.25 kg
+    object's weight; docs/MODEL.md "Corrections beyond the thesis" gives the reasoning."""
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
         if self.n_trials < 1:
             raise ValueError("n_trials must be at least 1")
+        self.applied_corrections  # noqa: B018, validates ``corrections``
 
     @property
     def predicts_rotations(self) -> bool:
-        return self.variant in ("rotations", "robust")
+        return self.variant in ("rotations", "robust", "corrected")
 
     @property
     def robust(self) -> bool:
-        return self.variant in ("robustness", "robust")
+        return self.variant in ("robustness", "robust", "corrected")
+
+    @property
+    def applied_corrections(self) -> frozenset[str]:
+        """The corrections this configuration applies: none for the thesis's variants."""
+        names = {c.strip() for c in self.corrections.split(",") if c.strip()}
+        if names == {"all"}:
+            names = set(CORRECTIONS)
+        elif names == {"none"}:
+            names = set()
+        unknown = names - set(CORRECTIONS)
+        if unknown:
+            raise ValueError(
+                f"unknown correction(s) {', '.join(sorted(unknown))} in topple.corrections; "
+                f"choose from {', '.join(CORRECTIONS)}, or all / none"
+            )
+        return frozenset(names) if self.variant == "corrected" else frozenset()
 
     @property
     def trials(self) -> int:
@@ -124,42 +211,42 @@ class ToppleConfig:
 class SuctionConfig:
     """Suction grasp quality V_s (Dex-Net 3.0 style); see docs/MODEL.md for sources."""
 
-    cup_radius: float = 0.015
+    cup_radius: float = bounded(0.015, POSITIVE)
     """m, radius of the suction cup's perimeter ring."""
-    ring_samples: int = 16
+    ring_samples: int = bounded(16, Range(3, None))
     """Points on the perimeter ring checked for a seal."""
-    max_approach_angle: float = math.radians(45.0)
+    max_approach_angle: float = bounded(math.radians(45.0), RIGHT_ANGLE)
     """rad; grasps approach from above within this angle of vertical."""
-    n_candidates: int = 100
+    n_candidates: int = bounded(100, AT_LEAST_ONE)
     """Candidate grasp points sampled per pose."""
-    n_samples: int = 20
+    n_samples: int = bounded(20, AT_LEAST_ONE)
     """Monte Carlo perturbations per candidate grasp."""
-    max_strain: float = 0.1
+    max_strain: float = bounded(0.1, POSITIVE)
     """Max relative change of a perimeter ring edge length for a seal (Dex-Net 3.0)."""
-    max_deflection: float = 0.004
+    max_deflection: float = bounded(0.004, POSITIVE)
     """m; max spread of ring contact depths along the approach for a seal."""
-    vacuum_force: float = 250.0
+    vacuum_force: float = bounded(250.0, NON_NEGATIVE)
     """N, vacuum force of the cup (Dex-Net 3.0: V = 250 N)."""
-    friction: float = 0.5
+    friction: float = bounded(0.5, NON_NEGATIVE)
     """Coefficient of friction of cup and surface (Dex-Net 3.0: mu = 0.5)."""
-    torsional_friction: float = 0.0025
+    torsional_friction: float = bounded(0.0025, NON_NEGATIVE)
     """m; lever arm r_t of the ring's friction against twisting: it resists |tau_z| <= r_t mu f_N
     (Dex-Net 3.0's form; r / sqrt(3) would be 8.7 mm, this is more conservative)."""
-    elastic_limit: float = 0.1
+    elastic_limit: float = bounded(0.1, NON_NEGATIVE)
     """N m; largest torque about the contact's tangent axes before the cup peels (Dex-Net 3.0's
     form). 0.1 N m is about a 30 mm cup's peel torque at typical vacuum (0.3 N m) with a safety
     factor of 3; see docs/MODEL.md 11.5 for why not 0.005."""
-    position_std: float = 0.001
+    position_std: float = bounded(0.001, NON_NEGATIVE)
     """m, standard deviation of the grasp position."""
-    axis_std: float = 0.05
+    axis_std: float = bounded(0.05, NON_NEGATIVE)
     """rad, standard deviation of the approach axis."""
-    friction_std: float = 0.1
+    friction_std: float = bounded(0.1, NON_NEGATIVE)
     """Standard deviation of the friction coefficient."""
-    mass_std_fraction: float = 0.1
+    mass_std_fraction: float = bounded(0.1, NON_NEGATIVE)
     """Relative standard deviation of the object's mass."""
-    gripper_radius: float = 0.0125
+    gripper_radius: float = bounded(0.0125, POSITIVE)
     """m, radius of the gripper body cylinder above the cup."""
-    gripper_length: float = 0.1
+    gripper_length: float = bounded(0.1, POSITIVE)
     """m, length of the gripper body above the cup."""
 
 
@@ -167,17 +254,17 @@ class SuctionConfig:
 class MDPConfig:
     """Value iteration over an object's stable poses (thesis 4.3.3)."""
 
-    gamma: float = 0.95
-    tolerance: float = 1e-9
+    gamma: float = bounded(0.95, Range(0.0, 1.0, lo_open=True))
+    tolerance: float = bounded(1e-9, POSITIVE)
     """Stop when no value changes by more than this."""
-    max_iterations: int = 10_000
+    max_iterations: int = bounded(10_000, AT_LEAST_ONE)
 
 
 @dataclass(frozen=True)
 class Config:
     """The whole parameter set; ``seed`` roots every random stream (see ``pipeline.model.rng``)."""
 
-    seed: int = 0
+    seed: int = bounded(0, Range(0, None))
     mesh: MeshConfig = field(default_factory=MeshConfig)
     poses: PoseConfig = field(default_factory=PoseConfig)
     contacts: ContactConfig = field(default_factory=ContactConfig)
@@ -228,7 +315,29 @@ def _build(cls, data: dict[str, Any], prefix: str):
             kwargs[name] = _build(type(default), value, f"{prefix}{name}.")
         else:
             kwargs[name] = _coerce(value, default, prefix + name)
+            accepted = f.metadata.get("range")
+            if accepted is not None and not accepted.contains(kwargs[name]):
+                raise ValueError(f"config key {prefix + name!r} must be {accepted.text()}, got {value!r}")
     return cls(**kwargs)
+
+
+def parameter_table(config: "Config | None" = None) -> list[tuple[str, Any, str]]:
+    """Every ``section.key`` with its value in ``config`` (default: the defaults) and
+    accepted range, for ``--help`` and error messages."""
+    config = config or Config()
+    rows = []
+
+    def walk(node: Any, prefix: str) -> None:
+        for f in fields(node):
+            value = getattr(node, f.name)
+            if is_dataclass(value):
+                walk(value, f"{prefix}{f.name}.")
+            else:
+                accepted = f.metadata.get("range")
+                rows.append((prefix + f.name, value, accepted.text() if accepted else ""))
+
+    walk(config, "")
+    return rows
 
 
 def _coerce(value: Any, default: Any, key: str) -> Any:

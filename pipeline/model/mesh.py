@@ -153,7 +153,8 @@ def model_from_mesh(
         try:
             hull = mesh.convex_hull
         except Exception as err:  # qhull fails on flat or degenerate input
-            raise MeshError(f"{name}: no convex hull ({_one_line(err)})") from None
+            qhull = _one_line(err).split(" While executing")[0]
+            raise MeshError(f"{name}: zero volume: the mesh is flat or degenerate ({qhull[:120]})") from None
         flat = not hull.is_volume or hull.volume <= 1e-12
     if flat:
         raise MeshError(f"{name}: zero or negative volume (the mesh is flat or degenerate)")
