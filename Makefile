@@ -6,7 +6,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 ARGS   ?=
 
-.PHONY: venv dataset test bench corpus serve clean
+.PHONY: venv dataset test bench bench-service corpus serve clean
 
 venv: $(VENV)/.installed
 
@@ -25,6 +25,11 @@ test: venv
 
 bench: venv
 	$(PY) -m pipeline bench $(ARGS)
+
+# Starts the service on data/dataset (else a small dataset it builds), loads it over TCP with a
+# light asyncio HTTP/1.1 client (service/bench.py), prints one JSON line; about 30 s.
+bench-service: venv
+	$(PY) -m service.bench $(ARGS)
 
 corpus: venv
 	$(PY) -m pipeline corpus $(ARGS)

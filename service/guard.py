@@ -83,7 +83,9 @@ class Guard:
             return
         length = headers.get(b"content-length")
         if length is not None and (not length.isdigit() or int(length) > self.max_body_bytes):
-            await self._reply(send, 413, f"request body of {length.decode('latin-1')[:20]} bytes; at most {self.max_body_bytes}")
+            # connection: close, so the server does not go on reading (and discarding) the rest.
+            await self._reply(send, 413, f"request body of {length.decode('latin-1')[:20]} bytes; at most {self.max_body_bytes}",
+                              [(b"connection", b"close")])
             return
         if not is_json(headers.get(b"content-type", b"")):
             given = headers.get(b"content-type", b"").decode("latin-1")[:60] or "none"
@@ -97,7 +99,7 @@ class Guard:
             chunk = message.get("body", b"")
             size += len(chunk)
             if size > self.max_body_bytes:
-                await self._reply(send, 413, f"request body over {self.max_body_bytes} bytes")
+                await self._reply(send, 413, f"request body over {self.max_body_bytes} bytes", [(b"connection", b"close")])
                 return
             chunks.append(chunk)
             if not message.get("more_body", False):

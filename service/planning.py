@@ -9,6 +9,11 @@ and a small height (within ``height_tolerance``).  Pushes and grasps are mapped 
 ``pose_to_world`` itself, so they lie on the object's surface as observed: mapping through
 ``planar`` alone would leave a tilted object's contact point millimetres off its surface.
 
+The response models are built with ``model_construct`` (no validation): every value is a
+Python int, float, str, bool or list made here from the validated request and the loaded
+store, and validating them again would cost as much as the planning; tests/test_service_fuzz.py
+checks the served answers against the OpenAPI schema.
+
 Imports numpy and schema only (the service never loads the geometry stack).
 """
 
@@ -27,7 +32,7 @@ from .store import ObjectData, Store, optional, widen
 
 def next_poses(obj: ObjectData, row: int) -> list[NextPose]:
     poses, probabilities = obj.transitions(row)
-    return [NextPose(next_pose=int(p), probability=float(q)) for p, q in zip(poses, probabilities)]
+    return [NextPose.model_construct(next_pose=int(p), probability=float(q)) for p, q in zip(poses, probabilities)]
 
 
 def world_grasp(obj: ObjectData, pose: int, pose_to_world: np.ndarray) -> Grasp | None:
@@ -36,7 +41,7 @@ def world_grasp(obj: ObjectData, pose: int, pose_to_world: np.ndarray) -> Grasp 
     if np.isnan(point).any() or np.isnan(axis).any():
         return None
     rotation = pose_to_world[:3, :3]
-    return Grasp(point=(rotation @ point + pose_to_world[:3, 3]).tolist(), axis=(rotation @ axis).tolist())
+    return Grasp.model_construct(point=(rotation @ point + pose_to_world[:3, 3]).tolist(), axis=(rotation @ axis).tolist())
 
 
 def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
@@ -90,14 +95,16 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> PlanResponse
     outcomes: list[NextPose] = []
     if action != NO_OP:
         row = obj.row(pose, action)
-        local = widen(np.stack([obj.points[row], obj.normals[row], obj.directions[row]]))  # (3, 3) pose frame
+        # One widen for all float32 values of the row: (3, 3) pose-frame point, normal, direction, then the scalars.
+        values = widen(np.concatenate([obj.points[row], obj.normals[row], obj.directions[row], [obj.mean_force[row], obj.p_topple[row]]]))
+        local = values[:9].reshape(3, 3)
         rotation = pose_to_world[:3, :3]
         point = rotation @ local[0] + pose_to_world[:3, 3]
         normal = rotation @ local[1]
         direction = rotation @ local[2]
-        force = optional(widen(obj.mean_force[row]))
+        force = optional(values[9])
         limit = store.finger_force_limit(settings.finger_force_limit)
-        push = WorldPush(
+        push = WorldPush.model_construct(
             point=point.tolist(),
             normal=normal.tolist(),
             direction=direction.tolist(),
@@ -109,17 +116,17 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> PlanResponse
             finger_force_limit=limit,
             within_force_limit=None if force is None else bool(force <= limit),
         )
-        p_topple = optional(widen(obj.p_topple[row]))
+        p_topple = optional(values[10])
         q_value = optional(obj.q[row])
         after = optional(obj.greedy[row])
         outcomes = next_poses(obj, row)
 
     decision, reason = _decision(request.policy, action, v_s, grasp, p_topple, after, push)
-    return PlanResponse(
+    return PlanResponse.model_construct(
         object_id=obj.object_id,
         policy=request.policy,
         frame_id=settings.frame_id,
-        match=PoseMatch(
+        match=PoseMatch.model_construct(
             pose=pose,
             angle_error=match.angle_error,
             tolerance=store.tolerance,

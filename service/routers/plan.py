@@ -45,8 +45,10 @@ batch = APIRouter(prefix="/batch", tags=["batch"])
         422: {"model": ValidationErrorBody, "description": "Malformed request (NaN, not a rotation, unknown frame_id, ...)"},
     },
 )
-async def post_plan(request: PlanRequest, store: StoreDep, settings: SettingsDep) -> PlanResponse:
-    return plan(store, request, settings)
+async def post_plan(request: PlanRequest, store: StoreDep, settings: SettingsDep) -> Response:
+    # Serialised here: the answer is built from validated parts, and FastAPI's second validation
+    # of response_model (kept for the OpenAPI document) would cost as much as the planning.
+    return Response(plan(store, request, settings).model_dump_json(), media_type="application/json")
 
 
 @batch.post(
