@@ -22,7 +22,13 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_009", "robust"),
     ("box", "rotations"),
     ("random_002", "baseline"),
+    ("random_004", "corrected"),  # every correction, the default force limit
+    ("random_009", "corrected:finger_friction"),
+    ("box", "corrected:force_limit"),  # with a limit low enough to bite (LOW_LIMIT)
 ]
+
+LOW_LIMIT = 1.0
+"""N, a finger force limit below many of the box's required forces, so the cut is exercised."""
 
 
 def _object(name):
@@ -33,12 +39,15 @@ def _object(name):
 def test_engine_matches_reference_trial_by_trial(name, variant):
     obj = _object(name)
     config = Config()
-    topple = replace(config.topple, variant=variant, n_trials=8)
+    variant, _, corrections = variant.partition(":")
+    topple = replace(config.topple, variant=variant, n_trials=8, corrections=corrections or "all")
+    if corrections == "force_limit":
+        topple = replace(topple, max_finger_force=LOW_LIMIT)
     contacts = replace(config.contacts, n_contacts=60)
     points, normals = object_contacts(obj, contacts, seed=11)
     mesh_collision = collision_object(obj.mesh)
     pose_set = stable_poses(obj)
-    compared = agreed = toppled = 0
+    compared = agreed = toppled = capped = 0
     for pose in pose_set.poses:
         actions = pose_actions(points, normals, obj.mesh, mesh_collision, pose.transform, contacts)
         table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(11, obj.name, pose.index, "trials"))
@@ -47,17 +56,28 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         for action in np.flatnonzero(actions.status == STATUS_OK)[:25]:
             for trial in range(topple.trials):
                 edge, force = reference_trial(
-                    scene, draw_of(actions, noise, action, trial), topple.robust, topple.predicts_rotations, topple.ray_offset
+                    scene,
+                    draw_of(actions, noise, action, trial),
+                    topple.robust,
+                    topple.predicts_rotations,
+                    topple.ray_offset,
+                    topple.applied_corrections,
+                    topple.max_finger_force,
                 )
                 compared += 1
                 agreed += edge == table.outcomes[action, trial]
                 toppled += edge >= 0
+                if corrections == "force_limit":  # trials the limit stops: the uncapped model topples them
+                    free = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset)
+                    capped += free[0] >= 0 and edge < 0
     # Embree casts in float32, the reference in float64: allow a rare flip at a boundary.
     print(f"{name} {variant}: {compared} trials, {compared - agreed} disagree, {toppled} topple")
     assert compared >= 150
     assert agreed >= compared - max(1, compared // 500), f"{compared - agreed} of {compared} trials disagree"
     if name != "random_002":
         assert toppled > 0, "the comparison should include trials that topple"
+    if corrections == "force_limit":
+        assert capped > 0, "the force limit should stop some trials that would topple"
 
 
 def test_reference_required_force_matches_engine_on_box():

@@ -133,8 +133,21 @@ def in_friction_cone(push: Vec, normal: Vec, mu: float) -> bool:
     return math.tan(angle) <= mu
 
 
-def reference_trial(scene: Scene, draw: TrialDraw, robust: bool, predicts_rotations: bool, ray_offset: float):
-    """Outcome of one trial: (edge index or -1, required force in N or inf)."""
+def reference_trial(
+    scene: Scene,
+    draw: TrialDraw,
+    robust: bool,
+    predicts_rotations: bool,
+    ray_offset: float,
+    corrections: frozenset = frozenset(),
+    max_force: float = math.inf,
+    friction_scale: float = 1.0,
+):
+    """Outcome of one trial: (edge index or -1, required force in N or inf).
+
+    ``corrections`` (names of ``config.CORRECTIONS``), ``max_force`` and ``friction_scale`` are the corrected
+    variant's (docs/MODEL.md "Corrections beyond the thesis"); empty, it is the thesis's trial.
+    """
     push = _unit(_add(draw.direction, draw.direction_offset))  # u0 (8.2)
     if robust:  # (8.2)-(8.3): re-find the noisy contact with the rotated finger ray
         c = scene.center_mass
@@ -159,36 +172,80 @@ def reference_trial(scene: Scene, draw: TrialDraw, robust: bool, predicts_rotati
         e = _unit(_sub(y1, y0))
         outward = (e[1], -e[0], 0.0)
         com_distance = -_dot(_sub(com, y0), outward)
-        # The tipping point: rotate about the edge until the COM is above it.
-        apex = math.atan2(com_distance, com[2])
-        if not in_friction_cone(push, normal, draw.mu_finger):  # (7.2), at the start
+        if "finger_friction" in corrections:
+            force = sliding_force(contact, normal, push, draw.mu_table, friction_scale * draw.mu_finger, e, y0, y1, com, weight, com_distance)
+        else:
+            force = _thesis_force(contact, normal, push, draw, e, y0, y1, com, weight, com_distance, predicts_rotations)
+        if force is None:
             continue
-        if not in_friction_cone(push, _rotate(normal, e, apex), draw.mu_finger):  # (7.2), at the apex
-            continue
-
-        # Condition 3 (4.2.3): |r_f x f'_f| >= |r_g x f_g| about the edge, (7.3)-(7.5).
-        push_torque = _dot(_cross(_sub(contact, y0), push), e)
-        if push_torque <= MIN_PUSH_TORQUE:  # (7.4): does not rotate the object outward
-            continue
-        force = weight * com_distance / push_torque
-
-        # Condition 2 (4.2.2): friction limit surface, two point contacts at the ends, (7.6)-(7.9).
-        if draw.mu_table <= 0.0:
-            continue
-        f = _scale(push, force)
-        normal_force = weight + max(0.0, -f[2])
-        tangential = math.hypot(f[0], f[1])
-        origin_on_edge = _add(y0, _scale(e, _dot(_sub(com, y0), e)))
-        tau_max = draw.mu_table * normal_force / 2.0 * (
-            abs(_dot(_sub(y0, origin_on_edge), e)) + abs(_dot(_sub(y1, origin_on_edge), e))
-        )
-        tau_z = _cross(_sub(contact, origin_on_edge), f)[2] if predicts_rotations else 0.0
-        ellipse = (tangential / (draw.mu_table * normal_force)) ** 2 + (tau_z / tau_max) ** 2
-        if ellipse > 1.0:  # outside the unit ellipse (7.9): the base slides or spins
+        if "force_limit" in corrections and not 0.0 < force <= max_force:  # C.1: a finger pushes, and only so hard
             continue
         if force < best_force:  # (7.10): the least-force passing edge; the first on a tie, as argmin
             best_edge, best_force = index, force
     return best_edge, best_force
+
+
+def sliding_force(contact: Vec, normal: Vec, push: Vec, mu_table: float, mu_finger: float, e: Vec, y0: Vec, y1: Vec, com: Vec, weight: float, com_distance: float):
+    """Finger force (N) to topple over edge (y0, y1) with the finger sliding on the face (C.2), or None.
+
+    mu_finger : the friction that resists tipping (the trial's mu_f times ``finger_friction_scale``)
+    """
+    velocity = _cross(e, _sub(contact, y0))  # the contact point's velocity per unit tipping rate
+    face_speed = _dot(velocity, normal)
+    approach = _dot(push, normal)
+    if approach >= 0.0 or face_speed >= -MIN_PUSH_TORQUE:  # the finger cannot follow the face
+        return None
+    relative = _sub(velocity, _scale(push, face_speed / approach))  # the face sliding along the finger
+    slide = _norm(relative)
+    tangent = _scale(relative, -1.0 / slide) if slide > MIN_PUSH_TORQUE else (0.0, 0.0, 0.0)
+    direction = _sub(_scale(tangent, mu_finger), normal)  # -n + k mu_f t, per newton of normal force
+    torque = _dot(direction, velocity)
+    if torque <= MIN_PUSH_TORQUE or com_distance <= 0.0:
+        return None
+    normal_force = weight * com_distance / torque
+    f = _scale(direction, normal_force)
+    table = weight - f[2]
+    if table <= 0.0 or mu_table <= 0.0:
+        return None
+    origin_on_edge = _add(y0, _scale(e, _dot(_sub(com, y0), e)))
+    half_span = (abs(_dot(_sub(y0, origin_on_edge), e)) + abs(_dot(_sub(y1, origin_on_edge), e))) / 2.0
+    tau_z = _cross(_sub(contact, origin_on_edge), f)[2]
+    # (7.9) with the whole finger force: |f_xy|^2 + (tau_z / h_e)^2 <= (mu_T F_table)^2
+    if f[0] ** 2 + f[1] ** 2 + (tau_z / half_span) ** 2 > (mu_table * table) ** 2:
+        return None
+    return normal_force * _norm(direction)
+
+
+def _thesis_force(contact, normal, push, draw, e, y0, y1, com, weight, com_distance, predicts_rotations):
+    """Thesis 4.2.1-4.2.3 for one edge: F*_e in N if the edge passes, else None."""
+    # The tipping point: rotate about the edge until the COM is above it.
+    apex = math.atan2(com_distance, com[2])
+    if not in_friction_cone(push, normal, draw.mu_finger):  # (7.2), at the start
+        return None
+    if not in_friction_cone(push, _rotate(normal, e, apex), draw.mu_finger):  # (7.2), at the apex
+        return None
+
+    # Condition 3 (4.2.3): |r_f x f'_f| >= |r_g x f_g| about the edge, (7.3)-(7.5).
+    push_torque = _dot(_cross(_sub(contact, y0), push), e)
+    if push_torque <= MIN_PUSH_TORQUE:  # (7.4): does not rotate the object outward
+        return None
+    force = weight * com_distance / push_torque
+
+    # Condition 2 (4.2.2): friction limit surface, two point contacts at the ends, (7.6)-(7.9).
+    if draw.mu_table <= 0.0:
+        return None
+    f = _scale(push, force)
+    normal_force = weight + max(0.0, -f[2])
+    tangential = math.hypot(f[0], f[1])
+    origin_on_edge = _add(y0, _scale(e, _dot(_sub(com, y0), e)))
+    tau_max = draw.mu_table * normal_force / 2.0 * (
+        abs(_dot(_sub(y0, origin_on_edge), e)) + abs(_dot(_sub(y1, origin_on_edge), e))
+    )
+    tau_z = _cross(_sub(contact, origin_on_edge), f)[2] if predicts_rotations else 0.0
+    ellipse = (tangential / (draw.mu_table * normal_force)) ** 2 + (tau_z / tau_max) ** 2
+    if ellipse > 1.0:  # outside the unit ellipse (7.9): the base slides or spins
+        return None
+    return force
 
 
 def scene_from_pose(obj, pose, gravity: float) -> Scene:

@@ -185,16 +185,46 @@ def noisy_trials(
 
 
 def trial_outcomes(
-    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, predicts_rotations: bool
+    trials: Trials,
+    edges: EdgeGeometry,
+    mass: float,
+    gravity: float,
+    predicts_rotations: bool,
+    corrections: frozenset[str] = frozenset(),
+    max_force: float = np.inf,
+    friction_scale: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Edge each trial topples over, and the force it takes.
 
+    corrections : names from ``config.CORRECTIONS`` (empty: the thesis's model, section 7)
+    max_force : N, the finger force limit of the ``force_limit`` correction
+    friction_scale : share of the finger friction resisting tipping (``finger_friction``)
     returns : edge (n,) int (``OUTCOME_NO_EDGE`` when none), required_force (n,) float, N (inf when none)
 
     Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
     per-edge rows (E,) into (n, E).  Invalid trials' NaN contacts are zeroed so the
     arithmetic stays finite; ``valid`` removes them at the end.
     """
+    if "finger_friction" in corrections:
+        force, passes = sliding_contact(trials, edges, mass, gravity, friction_scale)  # (n, E) each
+    else:
+        force, passes = _thesis_conditions(trials, edges, mass, gravity, predicts_rotations)
+    if "force_limit" in corrections:
+        # A finger pushes (F* > 0: a negative F* means the centre of mass is already past
+        # the edge, not a push) and no harder than the arm can (MODEL.md C.1).
+        passes = passes & (force > 0.0) & (force <= max_force)
+    n = len(force)
+    candidate = np.where(passes, force, np.inf)  # (n, E)
+    # (10.6): the least-force passing edge; a row of all inf means no edge passes.
+    edge = np.argmin(candidate, axis=1)  # (n,)
+    required = candidate[np.arange(n), edge]  # (n,), N
+    return np.where(np.isfinite(required), edge, OUTCOME_NO_EDGE), required
+
+
+def _thesis_conditions(
+    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, predicts_rotations: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Thesis 4.2.1-4.2.3 (MODEL.md section 7): F*_e (n, E) float, N, and pass_e (n, E) bool."""
     n = trials.contact.shape[0]
     u, normal, contact = trials.push, trials.normal, np.nan_to_num(trials.contact)  # (n, 3) each
     normal = np.nan_to_num(normal)
@@ -234,11 +264,59 @@ def trial_outcomes(
     holds = (load <= limit) & (trials.mu_table[:, None] > 0.0)  # (n, E)
 
     passes = in_cone & rotates & holds & trials.valid[:, None]  # (n, E), (7.10)
-    candidate = np.where(passes, force, np.inf)  # (n, E)
-    # (10.6): the least-force passing edge; a row of all inf means no edge passes.
-    edge = np.argmin(candidate, axis=1)  # (n,)
-    required = candidate[np.arange(n), edge]  # (n,), N
-    return np.where(np.isfinite(required), edge, OUTCOME_NO_EDGE), required
+    return force, passes
+
+
+def sliding_contact(
+    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, friction_scale: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``finger_friction`` correction (MODEL.md C.2): the finger's force while the object tips.
+
+    Tipping about edge e at unit rate moves the contact point with v_e = e x (p - y0).  The
+    finger, advancing along u, keeps touching the face only if the face recedes along the
+    push (v_e . n < 0, so the finger advances s_e = v_e . n / u . n > 0 per radian); the face
+    then slides along the fingertip with v_rel = v_e - s_e u, and Coulomb friction puts the
+    finger's force on its cone's edge: f = F_n (-n + k mu_f t), t = -v_rel / |v_rel|
+    (k = ``friction_scale``, 1 for Coulomb's law).  Its
+    torque about the edge per newton of normal force is tau_e = f_hat . v_e (triple product),
+    so F_n* = m g d_e / tau_e and the finger force is F_n* |f_hat|.  The table takes the
+    weight minus the push's vertical part (m g - f_z, which must stay positive) and the
+    limit-surface check (7.9) uses the whole force f with tau_z about O_e.  Replaces
+    conditions 1-3 of section 7; the thesis's friction-cone checks have no role once the
+    sliding is modelled.
+
+    returns : force (n, E) float, N (finger force magnitude); passes (n, E) bool
+    """
+    u, normal, contact = trials.push, np.nan_to_num(trials.normal), np.nan_to_num(trials.contact)  # (n, 3) each
+    offset = contact[:, None, :] - edges.start[None, :, :]  # (n, 1, 3) - (1, E, 3) -> (n, E, 3), p - y0
+    velocity = np.cross(edges.direction[None, :, :], offset)  # (n, E, 3), v_e = e x (p - y0), m per rad
+    face_speed = np.einsum("nek,nk->ne", velocity, normal)  # (n, E), v_e . n
+    approach = np.einsum("nk,nk->n", u, normal)[:, None]  # (n, 1), u . n < 0: the finger moves into the face
+    # The face recedes from the advancing finger (MIN_PUSH_TORQUE: v_e . n is also the
+    # frictionless torque per newton, so the same cut as (7.4)).
+    follows = (approach < 0.0) & (face_speed < -MIN_PUSH_TORQUE)  # (n, E)
+    advance = np.where(follows, face_speed / np.where(approach < 0.0, approach, -1.0), 0.0)  # (n, E), s_e >= 0
+    relative = velocity - advance[:, :, None] * u[:, None, :]  # (n, E, 3), v_rel, tangent to the face
+    slide = np.linalg.norm(relative, axis=2)  # (n, E), m per rad
+    # No sliding (v_e along u): the contact sticks and friction does no work; take t = 0.
+    sliding = slide > MIN_PUSH_TORQUE
+    tangent = -relative / np.where(sliding, slide, 1.0)[:, :, None] * sliding[:, :, None]  # (n, E, 3), t
+    mu = friction_scale * trials.mu_finger  # (n,), k mu_f
+    direction = mu[:, None, None] * tangent - normal[:, None, :]  # (n, E, 3), f_hat = -n + k mu_f t
+    torque = np.einsum("nek,nek->ne", direction, velocity)  # (n, E), tau_e = f_hat . v_e, m
+    rotates = follows & (torque > MIN_PUSH_TORQUE) & (edges.com_distance > 0.0)  # (n, E)
+    weight = mass * gravity
+    normal_force = np.where(rotates, weight * edges.com_distance / np.where(rotates, torque, 1.0), 0.0)  # (n, E), F_n*
+    push = normal_force[:, :, None] * direction  # (n, E, 3), f, N
+    table = weight - push[:, :, 2]  # (n, E), the edge's normal force, N
+    lever = contact[:, None, :2] - edges.origin[None, :, :2]  # (n, E, 2), (p - O_e)_xy
+    tau_z = lever[:, :, 0] * push[:, :, 1] - lever[:, :, 1] * push[:, :, 0]  # (n, E), ((p - O_e) x f)_z
+    load = push[:, :, 0] ** 2 + push[:, :, 1] ** 2 + (tau_z / edges.half_span) ** 2  # (n, E), N^2
+    mu_t = trials.mu_table[:, None]  # (n, 1)
+    holds = (table > 0.0) & (mu_t > 0.0) & (load <= (mu_t * table) ** 2)  # (n, E), (7.9) with the whole f
+    passes = rotates & holds & trials.valid[:, None]  # (n, E)
+    force = np.where(rotates, normal_force * np.linalg.norm(direction, axis=2), np.inf)  # (n, E), |f|, N
+    return force, passes
 
 
 def _inside_cone(cos: np.ndarray, mu: np.ndarray) -> np.ndarray:
@@ -291,7 +369,16 @@ def evaluate_pose(
             chunk_noise,
             config,
         )
-        edge, force = trial_outcomes(chunk_trials, edges, obj.mass, config.gravity, config.predicts_rotations)  # (n,)
+        edge, force = trial_outcomes(
+            chunk_trials,
+            edges,
+            obj.mass,
+            config.gravity,
+            config.predicts_rotations,
+            config.applied_corrections,
+            config.max_finger_force,
+            config.finger_friction_scale,
+        )  # (n,)
         outcomes[chunk] = edge.reshape(len(chunk), trials)  # (n,) -> (a, T), undoing the action-major flattening
         forces[chunk] = force.reshape(len(chunk), trials)
 

@@ -1,0 +1,134 @@
+"""The corrected variant (docs/MODEL.md "Corrections beyond the thesis") against closed forms.
+
+The standing 0.05 x 0.08 x 0.15 m box, pushed horizontally on a side face, topples over the
+far bottom edge from the height (C.2.3)
+
+    h* = d / mu_T + k mu_f (w - d)
+
+(d: the centre of mass's horizontal distance to that edge, w: the pushed face's), with a
+finger force |f| = F_n sqrt(1 + (k mu_f)^2), F_n = m g d / (h - k mu_f w).
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from shapes import random_object, standing_box
+
+from pipeline.model.config import CORRECTIONS, Config
+from pipeline.model.contacts import explicit_actions
+from pipeline.model.rng import stream
+from pipeline.model.topple import evaluate_pose
+
+MU_TABLE = 0.43
+STEP = 1e-3
+"""m, pushes are placed this far below and above the closed-form threshold."""
+
+
+def _noise_free(variant="corrected", **fields):
+    """A noise-free trial of ``variant`` (corrected is robust, so every spread is zeroed)."""
+    topple = replace(
+        Config().topple,
+        variant=variant,
+        n_trials=1,
+        mu_table_mean=MU_TABLE,
+        mu_table_std=0.0,
+        mu_finger_std=0.0,
+        contact_std=0.0,
+        direction_std=0.0,
+        rotation_std=0.0,
+    )
+    return replace(topple, **fields)
+
+
+@pytest.fixture(scope="module")
+def box():
+    return standing_box()
+
+
+def _push(box, points, direction, topple):
+    obj, pose_set, index = box
+    pose = pose_set.poses[index]
+    actions = explicit_actions(obj, pose.transform, np.asarray(points, float), np.tile(direction, (len(points), 1)))
+    return evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, "box", index, "trials"))
+
+
+@pytest.mark.parametrize("mu_finger", [0.0, 0.98])
+@pytest.mark.parametrize("scale", [1.0, 0.25])
+@pytest.mark.parametrize("axis, width", [(0, 0.05), (1, 0.08)])  # push across the 5 cm side, then the 8 cm side
+def test_standing_box_threshold_and_force_match_the_closed_form(box, mu_finger, scale, axis, width):
+    obj, pose_set, index = box
+    topple = _noise_free(corrections="finger_friction", mu_finger_mean=mu_finger, finger_friction_scale=scale)
+    mu = scale * mu_finger
+    d = width / 2
+    threshold = d / MU_TABLE + mu * (width - d)
+    heights = np.array([threshold - STEP, threshold + STEP, threshold + 10 * STEP])
+    points = np.zeros((3, 3))
+    points[:, axis] = -d  # on the face at -d along the push axis; the far edge is at +d
+    points[:, 2] = heights
+    direction = np.eye(3)[axis]
+    table = _push(box, points, direction, topple)
+    assert table.p_topple.tolist() == [0.0, 1.0, 1.0]
+    weight = obj.mass * topple.gravity
+    expected = weight * d / (heights[1:] - mu * width) * np.hypot(1.0, mu)
+    np.testing.assert_allclose(table.mean_force[1:], expected, rtol=1e-9)
+
+
+def test_thesis_model_ignores_finger_friction_in_the_moment_balance(box):
+    """The thesis's threshold is d / mu_T whatever mu_f (the ``rotations`` variant, noise-free)."""
+    d = 0.025
+    heights = np.array([d / MU_TABLE - STEP, d / MU_TABLE + STEP])
+    points = np.column_stack([np.full(2, -d), np.zeros(2), heights])
+    table = _push(box, points, [1.0, 0.0, 0.0], _noise_free("rotations", mu_finger_mean=0.98))
+    assert table.p_topple.tolist() == [0.0, 1.0]
+
+
+def test_push_from_above_cannot_tip_what_would_have_to_rise_into_the_finger(box):
+    """A push down-and-forward onto the top face, inside the base: to tip over the far edge
+    the top face would rise into the finger, so the corrected model says it stays; the
+    thesis's model, whose force simply points along the push, tips it."""
+    points = [[0.015, 0.0, 0.15], [0.02, 0.01, 0.15]]
+    direction = np.array([0.45, 0.0, -1.0]) / np.hypot(0.45, 1.0)  # inside the 44 degree cone of mu_f 0.98
+    thesis = _push(box, points, direction, _noise_free("rotations"))
+    corrected = _push(box, points, direction, _noise_free(corrections="finger_friction"))
+    assert thesis.p_topple.tolist() == [1.0, 1.0]
+    assert corrected.p_topple.tolist() == [0.0, 0.0]
+
+
+def test_force_limit_stops_pushes_that_need_more(box):
+    d = 0.025
+    points = np.array([[-d, 0.0, 0.06], [-d, 0.0, 0.12]])  # the lower push needs more force
+    free = _push(box, points, [1.0, 0.0, 0.0], _noise_free(corrections="none"))
+    assert free.p_topple.tolist() == [1.0, 1.0] and free.mean_force[0] > free.mean_force[1]
+    limit = 0.5 * (free.mean_force[0] + free.mean_force[1])
+    capped = _push(box, points, [1.0, 0.0, 0.0], _noise_free(corrections="force_limit", max_finger_force=limit))
+    assert capped.p_topple.tolist() == [0.0, 1.0]
+    assert capped.mean_force[1] == free.mean_force[1]
+
+
+def test_limited_forces_are_positive_and_below_the_limit_on_a_random_object():
+    obj = random_object(4)
+    from pipeline.model.contacts import object_contacts
+    from pipeline.model.poses import stable_poses
+
+    pose_set = stable_poses(obj)
+    pose = pose_set.poses[0]
+    points, _ = object_contacts(obj, replace(Config().contacts, n_contacts=80), seed=3)
+    from schema.frames import transform_points
+
+    actions = explicit_actions(obj, pose.transform, transform_points(pose.transform, points), None)
+    topple = replace(Config().topple, variant="corrected", n_trials=20, max_finger_force=1.5)
+    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, obj.name, 0, "trials"))
+    forces = table.mean_force[np.isfinite(table.mean_force)]
+    assert len(forces) > 0 and np.all(forces > 0) and np.all(forces <= 1.5)
+
+
+def test_thesis_variants_apply_no_correction_and_unknown_names_are_refused():
+    for variant in ("baseline", "rotations", "robustness", "robust"):
+        assert replace(Config().topple, variant=variant, corrections="all").applied_corrections == frozenset()
+    assert replace(Config().topple, variant="corrected").applied_corrections == frozenset(CORRECTIONS)
+    assert replace(Config().topple, variant="corrected", corrections="none").applied_corrections == frozenset()
+    one = Config().with_overrides({"topple.variant": "corrected", "topple.corrections": "force_limit"})
+    assert one.topple.applied_corrections == {"force_limit"}
+    with pytest.raises(ValueError, match="unknown correction.*slippery"):
+        Config().with_overrides({"topple.corrections": "force_limit,slippery"})
