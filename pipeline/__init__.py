@@ -21,8 +21,9 @@ from importlib import import_module
 
 from schema.version import CODE_VERSION as __version__
 
-_PUBLIC = ("Config", "MeshError", "ObjectModel", "PoseEvaluation", "PoseSet", "evaluate", "load_mesh", "match_pose",
-           "settle", "stable_poses")
+_PUBLIC = ("Config", "MeshError", "NotResting", "ObjectModel", "ObjectResult", "ObservedPose", "Plan", "PoseEvaluation",
+           "PoseSet", "evaluate", "evaluate_object", "grasp_quality", "load_mesh", "match_pose", "plan", "settle", "solve",
+           "stable_poses")
 
 __all__ = sorted(_PUBLIC) + ["__version__"]
 

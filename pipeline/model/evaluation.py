@@ -10,20 +10,20 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Iterator, Protocol
 
 import numpy as np
 
-from schema.frames import transform_points
-from schema.vocabulary import STATUS_NAMES
+from schema.frames import PoseMatch, match_pose, transform_points
+from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES
 
 from .collision import collision_object
 from .config import Config
 from .contacts import explicit_actions, object_contacts, pose_actions
 from .mdp import pose_values
 from .mesh import ObjectModel, load_mesh
-from .outcomes import Actions, ObjectResult, StablePose, SuctionResult, ToppleTable
+from .outcomes import Actions, ObjectResult, PoseValues, StablePose, SuctionResult, ToppleTable
 from .poses import PoseSet, stable_poses
 from .rng import stream
 from .suction import suction_quality
@@ -67,6 +67,24 @@ def process_object(spec: Spec, config: Config) -> ObjectResult:
     timings: dict[str, float] = {}
     with _stage(timings, "load"):
         obj = load_object(spec, config)
+    return evaluate_object(obj, config, object_id=spec.object_id, timings=timings)
+
+
+def evaluate_object(
+    obj: ObjectModel,
+    config: Config = Config(),
+    *,
+    object_id: str | None = None,
+    timings: dict[str, float] | None = None,
+) -> ObjectResult:
+    """One loaded object end to end, exactly as the dataset job computes it: stable
+    poses, each pose's candidate pushes and toppling table, V_s and best grasp, value
+    iteration and the three policies.
+
+    object_id : the id in the result (default ``obj.name``); random streams use ``obj.name``
+    timings : dict to add CPU seconds per stage to
+    """
+    timings = {} if timings is None else timings
     with _stage(timings, "poses"):
         pose_set = stable_poses(obj, config.poses)
     poses = pose_set.poses
@@ -89,7 +107,7 @@ def process_object(spec: Spec, config: Config) -> ObjectResult:
             config.mdp,
         )
     return ObjectResult(
-        object_id=spec.object_id,
+        object_id=object_id or obj.name,
         mass=obj.mass,
         center_mass=obj.center_mass,
         hull_vertices=np.asarray(obj.hull.vertices),
@@ -170,3 +188,147 @@ def evaluate(
         actions = pose_actions(contacts, normals, obj.mesh, collision_object(obj.mesh), stable.transform, contact_config)
     table = evaluate_pose(obj, stable, len(poses.poses), actions, topple_config, stream(seed, obj.name, pose, "trials"))
     return PoseEvaluation(pose=pose, actions=actions, table=table)
+
+
+def grasp_quality(obj: ObjectModel, poses: PoseSet, pose: int, config: Config = Config()) -> SuctionResult:
+    """V_s and the best suction grasp (pose frame) of one stable pose."""
+    return pose_suction(obj, poses.poses[pose], config)
+
+
+def solve(evaluations: list["PoseEvaluation"], v_s: np.ndarray, config: Config = Config()) -> list[PoseValues]:
+    """Value iteration and the three policies over ``evaluate``'s tables, one per pose
+    in pose order (``v_s`` : (P,) float, each pose's V_s)."""
+    if [e.pose for e in evaluations] != list(range(len(v_s))):
+        raise ValueError("solve needs one evaluation per stable pose, in pose order")
+    return pose_values(
+        [e.table.next_pose for e in evaluations], np.asarray(v_s, dtype=float),
+        [e.actions.max_height for e in evaluations], config.mdp,
+    )
+
+
+# --- an observed pose: match it, and the policy's push in the world --------------------------
+
+DEFAULT_HEIGHT_TOLERANCE = 0.01
+"""m; an observed pose whose support plane is further than this from the table is not resting on it."""
+
+
+@dataclass
+class ObservedPose(PoseMatch):
+    """``schema.frames.PoseMatch`` plus where the matched pose stands in the world.
+
+    pose_to_world : (4, 4) float, pose frame -> world (``observed @ inverse(transform)``)
+    z_offset : float, m, height of the pose's support plane above the table (0 when resting on it)
+    """
+
+    pose_to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
+    z_offset: float = 0.0
+
+
+def observe(
+    observed: np.ndarray,
+    poses: list[StablePose],
+    tolerance: float | None = None,
+    table_height: float = 0.0,
+    config: Config = Config(),
+) -> ObservedPose:
+    """Match an observed 4x4 pose (object -> world, z up) to the nearest stable pose.
+
+    tolerance : rad, largest angle between down vectors (default ``config.poses.same_pose_angle``, 10 deg)
+    table_height : m, the table's z in the world frame; ``z_offset`` is measured from it
+    """
+    observed = np.asarray(observed, dtype=float)
+    if observed.shape != (4, 4) or not np.all(np.isfinite(observed)):
+        raise ValueError("observed must be a finite (4, 4) object-to-world transform")
+    tolerance = config.poses.same_pose_angle if tolerance is None else tolerance
+    downs = np.array([p.down for p in poses])
+    transforms = np.array([p.transform for p in poses])
+    match = match_pose(observed, downs, transforms, np.inf)  # the nearest pose, whatever its angle
+    pose_to_world = observed @ np.linalg.inv(transforms[match.pose])
+    return ObservedPose(
+        pose=match.pose if match.angle_error <= tolerance else -1,
+        angle_error=match.angle_error,
+        yaw=match.yaw,
+        translation=match.translation,
+        planar=match.planar,
+        pose_to_world=pose_to_world,
+        z_offset=float(pose_to_world[2, 3] - table_height),
+    )
+
+
+@dataclass
+class Plan:
+    """A policy's decision for an observed pose, in world coordinates.
+
+    match : ObservedPose (pose index, angle error, yaw, z_offset, pose_to_world)
+    action : int or None; None means do not push (grasp now, at ``grasp``)
+    value : float, the policy's expected value (V_s when it does not push)
+    p_topple : float or None, probability that the push topples the object
+    push : dict of (3,) world arrays ``point``, ``normal``, ``direction``, ``start``
+      (``approach_offset`` out along the normal) and ``end`` (``push_depth`` in), or None
+    next_poses : [(pose, probability), ...] after the push, most likely first
+    grasp : (point (3,), axis (3,)) world, the best suction grasp in this pose, or None
+    """
+
+    match: ObservedPose
+    policy: str
+    action: int | None
+    value: float
+    p_topple: float | None
+    push: dict[str, np.ndarray] | None
+    next_poses: list[tuple[int, float]]
+    grasp: tuple[np.ndarray, np.ndarray] | None
+
+
+class NotResting(ValueError):
+    """The observed pose is no stable pose, or not on the table (one-line message)."""
+
+
+def plan(
+    result: ObjectResult,
+    observed: np.ndarray,
+    policy: str = "value_iteration",
+    tolerance: float | None = None,
+    table_height: float = 0.0,
+    height_tolerance: float = DEFAULT_HEIGHT_TOLERANCE,
+    config: Config = Config(),
+) -> Plan:
+    """What ``policy`` (``max_height``, ``greedy``, ``value_iteration``) does for the object
+    of ``result`` observed at ``observed`` (4x4, object -> world, z up, table at ``table_height``).
+
+    Raises ``NotResting`` when the orientation is within ``tolerance`` of no stable pose
+    or the pose's support plane is more than ``height_tolerance`` from the table.
+    """
+    if policy not in POLICIES:
+        raise ValueError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
+    match = observe(observed, result.poses, tolerance, table_height, config)
+    if not match.matched:
+        raise NotResting(
+            f"{result.object_id}: the observed orientation is no stable pose "
+            f"(nearest {np.degrees(match.angle_error):.1f} deg away)"
+        )
+    if abs(match.z_offset) > height_tolerance:
+        raise NotResting(f"{result.object_id}: observed {match.z_offset * 1000:.1f} mm off the table")
+    pose = match.pose
+    rotation, origin = match.pose_to_world[:3, :3], match.pose_to_world[:3, 3]
+    suction = result.suction[pose]
+    grasp = None
+    if np.all(np.isfinite(suction.point)):
+        grasp = (rotation @ suction.point + origin, rotation @ suction.axis)
+    choice = result.values[pose].policies[policy]
+    if choice.action == NO_OP:
+        return Plan(match, policy, None, float(choice.value), None, None, [], grasp)
+    actions, table = result.actions[pose], result.topple[pose]
+    a = int(choice.action)
+    point = rotation @ actions.points[a] + origin
+    normal = rotation @ actions.normals[a]
+    push = {
+        "point": point,
+        "normal": normal,
+        "direction": rotation @ actions.directions[a],
+        "start": point + config.contacts.approach_offset * normal,
+        "end": point - config.contacts.push_depth * normal,
+    }
+    distribution = np.nan_to_num(np.asarray(table.next_pose[a], dtype=float))
+    order = np.argsort(-distribution, kind="stable")
+    next_poses = [(int(x), float(distribution[x])) for x in order if distribution[x] > 0]
+    return Plan(match, policy, a, float(choice.value), float(table.p_topple[a]), push, next_poses, grasp)

@@ -1,0 +1,106 @@
+"""The public Python API covers one object end to end without a dataset: load, stable
+poses, topple tables, V_s, value iteration, and the plan for an observed pose."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from shapes import random_object
+
+import pipeline as toppledb
+from schema.frames import PoseMatch
+from schema.vocabulary import NO_OP, POLICIES
+
+CONFIG = toppledb.Config().with_overrides({
+    "contacts.n_contacts": 40, "topple.n_trials": 5, "suction.n_candidates": 20, "suction.n_samples": 5, "seed": 3,
+})
+
+
+@pytest.fixture(scope="module")
+def box():
+    """(object, poses, a pose to observe, the object's evaluation): a random object that
+    has poses worth toppling out of (a box is graspable in every pose)."""
+    obj = random_object(1)
+    poses = toppledb.stable_poses(obj, CONFIG.poses)
+    return obj, poses, 0, toppledb.evaluate_object(obj, CONFIG)
+
+
+def world(transform: np.ndarray, yaw: float, xy=(0.3, -0.1), z: float = 0.0) -> np.ndarray:
+    """Object -> world for the object resting in ``transform``'s pose, turned by ``yaw``."""
+    planar = np.eye(4)
+    planar[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    planar[:3, 3] = [*xy, z]
+    return planar @ transform
+
+
+def test_one_object_end_to_end_agrees_with_its_parts(box):
+    obj, poses, _, result = box
+    assert [p.index for p in result.poses] == [p.index for p in poses.poses]
+    v_s = np.array([s.quality for s in result.suction])
+    for pose in range(len(poses.poses)):
+        assert toppledb.grasp_quality(obj, poses, pose, CONFIG).quality == v_s[pose]
+    # The same tables, pose by pose through ``evaluate``, and value iteration over them.
+    evaluations = [toppledb.evaluate(obj, poses, pose, config=CONFIG, seed=CONFIG.seed) for pose in range(len(v_s))]
+    for evaluation, table in zip(evaluations, result.topple):
+        np.testing.assert_array_equal(evaluation.table.p_topple, table.p_topple)
+    solved = toppledb.solve(evaluations, v_s, CONFIG)
+    for mine, theirs in zip(solved, result.values):
+        np.testing.assert_array_equal(mine.q, theirs.q)
+        assert mine.policies == theirs.policies
+    # Toppling first never loses, and V_T is a discounted expected V_s.
+    for pose, values in enumerate(result.values):
+        assert v_s[pose] - 1e-12 <= values.value <= 1 + 1e-12
+    assert any(c.action != NO_OP for values in result.values for c in values.policies.values()), "some pose pushes"
+    with pytest.raises(ValueError, match="one evaluation per stable pose"):
+        toppledb.solve(evaluations[1:], v_s, CONFIG)
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_plan_for_an_observed_pose_is_the_stored_decision_in_the_world(box, policy):
+    _, _, _, result = box
+    yaw, table = 0.7, 0.75
+    for pose in result.poses:
+        observed = world(pose.transform, yaw, z=table)
+        planned = toppledb.plan(result, observed, policy=policy, table_height=table, config=CONFIG)
+        assert planned.match.pose == pose.index
+        assert planned.match.angle_error < 1e-6 and abs(planned.match.z_offset) < 1e-9
+        assert planned.match.yaw == pytest.approx(yaw)
+        choice = result.values[pose.index].policies[policy]
+        assert planned.value == choice.value
+        if choice.action == NO_OP:
+            assert planned.action is None and planned.push is None
+            continue
+        assert planned.action == choice.action
+        local = result.actions[pose.index].points[choice.action]
+        expected = world(np.eye(4), yaw, z=table)[:3] @ np.append(local, 1.0)
+        np.testing.assert_allclose(planned.push["point"], expected, atol=1e-12)
+        np.testing.assert_allclose(planned.push["start"] - planned.push["end"],
+                                   (CONFIG.contacts.approach_offset + CONFIG.contacts.push_depth) * planned.push["normal"])
+        assert planned.p_topple == result.topple[pose.index].p_topple[choice.action]
+        assert sum(p for _, p in planned.next_poses) == pytest.approx(1.0)
+
+
+def test_match_pose_defaults_height_offset_and_refusals(box):
+    obj, poses, standing, result = box
+    transform = poses.poses[standing].transform
+    lifted = world(transform, 0.2, z=0.05)
+    match = toppledb.match_pose(lifted, poses)
+    assert isinstance(match, toppledb.ObservedPose) and match.pose == standing
+    assert match.z_offset == pytest.approx(0.05)
+    assert toppledb.match_pose(lifted, poses, table_height=0.05).z_offset == pytest.approx(0.0)
+    with pytest.raises(toppledb.NotResting, match="50.0 mm off the table"):
+        toppledb.plan(result, lifted)
+
+    tilt = np.eye(4)
+    tilt[:3, :3] = [[1, 0, 0], [0, np.cos(0.35), -np.sin(0.35)], [0, np.sin(0.35), np.cos(0.35)]]  # 20 deg
+    tilted = world(transform, 0.0) @ np.linalg.inv(transform) @ tilt @ transform
+    assert toppledb.match_pose(tilted, poses).pose == -1, "beyond the default 10 deg"
+    assert toppledb.match_pose(tilted, poses, tolerance=np.radians(25)).pose == standing
+    with pytest.raises(toppledb.NotResting, match="no stable pose"):
+        toppledb.plan(result, tilted)
+    with pytest.raises(ValueError, match="unknown policy"):
+        toppledb.plan(result, lifted, policy="best")
+
+    # The array form (README) is unchanged.
+    old = toppledb.match_pose(world(transform, 0.2), poses.downs, poses.transforms, np.radians(10))
+    assert isinstance(old, PoseMatch) and old.pose == standing
