@@ -221,11 +221,6 @@ def test_service_extra_alone_serves_a_dataset(service_venv, tiny_dataset, tmp_pa
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="pipeline/cli.py main() imports pipeline.build (joblib, trimesh) before delegating, "
-    "so `toppledb serve` needs the pipeline extra; remove this mark once it delegates first",
-)
 def test_toppledb_serve_works_with_only_the_service_extra(service_venv, tmp_path):
     out = run([service_venv / "bin" / "toppledb", "serve", "--help"], timeout=120, cwd=tmp_path, env=isolated_env()).stdout
     assert "--dataset" in out
