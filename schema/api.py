@@ -67,23 +67,28 @@ def check_rigid(matrix: list[list[float]]) -> list[list[float]]:
     """Accept a 4x4 rigid transform: rotation (orthonormal, det +1) and last row [0, 0, 0, 1].
 
     The tolerance (``ROTATION_TOLERANCE``) admits rotations that went through float32 or
-    a few printed digits; anything further off is a client bug, not a pose.
+    a few printed digits; anything further off is a client bug, not a pose.  Plain Python
+    arithmetic: on a 3x3 block it is several times faster than numpy's per-call overhead,
+    and it runs on every /plan request.
     """
-    m = np.asarray(matrix, dtype=float)
-    rotation = m[:3, :3]
-    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: drift is inf or NaN, refused below
-        drift = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    r = [row[:3] for row in matrix[:3]]
+    try:
+        drift = max(
+            abs(sum(r[k][i] * r[k][j] for k in range(3)) - (1.0 if i == j else 0.0)) for i in range(3) for j in range(3)
+        )
+        det = (r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+               + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]))
+    except OverflowError:  # huge entries: not a rotation either
+        drift = det = math.inf
     if not drift <= ROTATION_TOLERANCE:  # NaN too
         raise ValueError(
             f"the upper-left 3x3 block is not a rotation: its columns are not orthonormal "
             f"(largest |R^T R - I| entry {drift:.3g}, at most {ROTATION_TOLERANCE:g})"
         )
-    with np.errstate(over="ignore", invalid="ignore"):
-        det = float(np.linalg.det(rotation))
     if not abs(det - 1.0) <= ROTATION_TOLERANCE:
         raise ValueError(f"the upper-left 3x3 block is not a rotation: det = {det:.3g}, expected +1 (a reflection?)")
-    if np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-9:
-        raise ValueError(f"the last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+    if max(abs(a - b) for a, b in zip(matrix[3], (0.0, 0.0, 0.0, 1.0))) > 1e-9:
+        raise ValueError(f"the last row must be [0, 0, 0, 1], got {list(matrix[3])}")
     return matrix
 
 

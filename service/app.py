@@ -111,9 +111,10 @@ def create_app(dataset_dir: str | Path | None = None, settings: Settings | None 
     app.state.lane = lane
     metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
     errors.install(app)
+    # /plan first: the control path's route is matched before the others are tried.
+    app.include_router(plan.router)
     app.include_router(objects.router)
     app.include_router(objects.batch)
-    app.include_router(plan.router)
     app.include_router(plan.batch)
     app.add_middleware(Guard, metrics=metrics, token=settings.token, max_body_bytes=settings.max_body_bytes)
 

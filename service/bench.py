@@ -13,7 +13,9 @@ Phases and keys of the JSON line:
 - start-up: ``startup_s`` from launching ``python -m service`` to the first answered /health;
   ``rss_mb_per_worker`` resident memory of each serving process after the load.
 - throughput: ``connections`` clients send POST /plan back to back: ``plan_rps``,
-  ``plan_p50_ms``, ``plan_p99_ms``, ``plan_errors`` (non-200 or transport errors).
+  ``plan_p50_ms``, ``plan_p99_ms``, ``plan_errors`` (non-200 or transport errors), and
+  ``plan_server_cpu_us_per_request`` (the server's CPU time over requests served: the
+  figure that holds when other work shares the cores, as ``load_average`` shows).
 - isolation: a 50 Hz controller (one POST /plan every 20 ms on its own connection) alone
   (``controller_alone_p99_ms``), while two clients send 1,000-item /batch/plan back to back
   (``controller_batches_p99_ms``, ``controller_batches_max_ms``, ``batch_items_per_s``), and
@@ -53,7 +55,7 @@ class Connection:
         self.host, self.port = host, port
         self.reader = self.writer = None
 
-    async def open(self) -> "Connection":
+    async def open(self) -> Connection:
         self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
         return self
 
@@ -105,7 +107,7 @@ async def observations(conn: Connection, count: int, rng: random.Random) -> list
         status, body = await conn.request(get(f"/objects/{object_id}"))
         n_poses = len(json.loads(body)["poses"])
         for pose in range(min(n_poses, 6)):
-            status, body = await conn.request(get(f"/objects/{object_id}/poses/{pose}"))
+            _, body = await conn.request(get(f"/objects/{object_id}/poses/{pose}"))
             transforms.append((object_id, np.array(json.loads(body)["transform"])))
     requests = []
     for _ in range(count):
@@ -144,7 +146,7 @@ async def hammer(host, port, bodies: list[bytes], seconds: float, connections: i
     began = time.perf_counter()
     await asyncio.gather(*(client(k) for k in range(connections)))
     elapsed = time.perf_counter() - began
-    return {"rps": round(len(latencies) / elapsed, 1), "p50": percentile_ms(latencies, 50), "p99": percentile_ms(latencies, 99),
+    return {"rps": round(len(latencies) / elapsed, 1), "elapsed": elapsed, "p50": percentile_ms(latencies, 50), "p99": percentile_ms(latencies, 99),
             "errors": errors}
 
 
@@ -207,7 +209,7 @@ def oversized_sender(host, port):
                 writer.write(head + first)
                 head_in = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 5)
                 unexpected += int(head_in[9:12]) != 413
-            except (OSError, asyncio.IncompleteReadError, asyncio.TimeoutError, asyncio.LimitOverrunError):
+            except (TimeoutError, OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError):
                 unexpected += 1
             finally:
                 if writer is not None:
@@ -249,7 +251,19 @@ def rss_mb(pid: int) -> list[float]:
     return [round(p.memory_info().rss / 1e6, 1) for p in (workers or [parent])]
 
 
-async def run_load(host: str, port: int, seconds: float, connections: int) -> dict:
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU s of the server and its workers so far."""
+    import psutil
+
+    parent = psutil.Process(pid)
+    total = 0.0
+    for process in [parent, *parent.children(recursive=True)]:
+        times = process.cpu_times()
+        total += times.user + times.system
+    return total
+
+
+async def run_load(host: str, port: int, seconds: float, connections: int, pid: int) -> dict:
     rng = random.Random(SEED)
     conn = await Connection(host, port).open()
     requests = await observations(conn, 2000, rng)
@@ -257,7 +271,10 @@ async def run_load(host: str, port: int, seconds: float, connections: int) -> di
     plan_bodies = [post("/plan", json.dumps(r).encode()) for r in requests]
     batch_body = post("/batch/plan", json.dumps({"items": requests[:BATCH_ITEMS]}).encode())
 
+    cpu_before = cpu_seconds(pid)
     throughput = await hammer(host, port, plan_bodies, seconds, connections)
+    served = throughput["rps"] * throughput["elapsed"]
+    cpu_per_request_us = round((cpu_seconds(pid) - cpu_before) / max(served, 1) * 1e6, 1)
     alone = await controller(host, port, plan_bodies, seconds)
     batches = await controller(host, port, plan_bodies, seconds, [batch_sender(host, port, batch_body) for _ in range(2)])
     oversized = await controller(host, port, plan_bodies, seconds, [oversized_sender(host, port)])
@@ -265,7 +282,7 @@ async def run_load(host: str, port: int, seconds: float, connections: int) -> di
     errors += sum(b["errors"] for b in batches["background"]) + sum(b["errors"] for b in oversized["background"])
     return {
         "plan_rps": throughput["rps"], "plan_p50_ms": throughput["p50"], "plan_p99_ms": throughput["p99"],
-        "plan_errors": throughput["errors"], "connections": connections,
+        "plan_errors": throughput["errors"], "connections": connections, "plan_server_cpu_us_per_request": cpu_per_request_us,
         "controller_alone_p99_ms": alone["p99"],
         "controller_batches_p99_ms": batches["p99"], "controller_batches_max_ms": batches["max"],
         "batch_items_per_s": round(sum(b["items_per_s"] for b in batches["background"]), 1),
@@ -281,7 +298,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--seconds", type=float, default=5.0, help="length of each phase")
     parser.add_argument("--connections", type=int, default=32)
+    parser.add_argument("--attach", type=int, metavar="PID", default=None,
+                        help="load an already running server (this process id, --port) instead of starting one")
+    parser.add_argument("--port", type=int, default=None, help="with --attach: its port on 127.0.0.1")
     args = parser.parse_args(argv)
+    if args.attach is not None:
+        import uvloop
+
+        result = uvloop.run(run_load("127.0.0.1", args.port, args.seconds, args.connections, args.attach))
+        print(json.dumps({"attached": args.attach, **result, "rss_mb_per_worker": rss_mb(args.attach),
+                          "load_average": round(os.getloadavg()[0], 2)}))
+        return 0
     dataset = ensure_dataset(args.dataset)
     port = free_port()
     load_average = os.getloadavg()[0]
@@ -299,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
             runner = uvloop.run
         except ImportError:
             runner = asyncio.run
-        result = runner(run_load("127.0.0.1", port, args.seconds, args.connections))
+        result = runner(run_load("127.0.0.1", port, args.seconds, args.connections, server.pid))
         rss = rss_mb(server.pid)
     finally:
         server.terminate()

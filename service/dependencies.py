@@ -1,4 +1,8 @@
-"""FastAPI dependencies: the served dataset and the settings, for route handlers."""
+"""FastAPI dependencies: the served dataset and the settings, for route handlers.
+
+All ``async def``: FastAPI runs a plain ``def`` dependency in its thread pool, a thread
+hop per dependency per request that cost more CPU than the planning itself.
+"""
 
 from __future__ import annotations
 
@@ -10,17 +14,17 @@ from .settings import Settings
 from .store import LiveStore, Store
 
 
-def get_live(request: Request) -> LiveStore:
+async def get_live(request: Request) -> LiveStore:
     return request.app.state.live
 
 
-def get_store(request: Request) -> Store:
+async def get_store(request: Request) -> Store:
     """The store being served when the request arrived: taken once, so a dataset swap
     during the request never mixes two builds in one answer."""
     return request.app.state.live.store
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 

@@ -1,0 +1,190 @@
+"""A typed Python client of the service, for robot code: timeouts, retries, typed answers.
+
+    from service.client import Client
+
+    with Client("http://127.0.0.1:8000", token=None, timeout=0.5) as toppledb:
+        answer = toppledb.plan("bunny", pose=observed_4x4)              # or ros_pose={...}
+        if answer.decision == "push" and answer.push.within_force_limit:
+            execute(answer.push.start, answer.push.end)
+        elif answer.decision == "grasp":
+            grasp(answer.grasp.point, answer.grasp.axis)
+
+Every answer is the ``schema.api`` model of the route (``PlanResponse``, ``Health``, ...).
+Errors are exceptions carrying the service's ``detail``: ``NotFound`` (404),
+``NoStablePose`` and ``OffTable`` (409, by ``reason``), ``InvalidRequest`` (422), and
+``ServiceError`` for anything else.  Every request is read-only, hence safe to repeat:
+connection errors, timeouts and 503s are retried ``retries`` times with exponential
+backoff; a 4xx never is.  Needs httpx (``pip install toppledb[service]`` brings it with
+the dev extra; the client imports nothing of the server).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, TypeVar
+
+import httpx
+import numpy as np
+from pydantic import BaseModel
+
+from schema.api import (
+    ActionDetail,
+    Health,
+    ObjectDetail,
+    ObjectList,
+    PlanResponse,
+    PlanResults,
+    PoseDetail,
+    QValues,
+    RosPose,
+    TransitionResults,
+)
+
+DEFAULT_TIMEOUT = 1.0
+"""s, per attempt (connect, read, write each); a controller at 50 Hz wants well under its period."""
+DEFAULT_RETRIES = 2
+DEFAULT_BACKOFF = 0.05
+"""s, wait before the first retry; doubles after each."""
+RETRY_STATUSES = frozenset({502, 503, 504})
+
+Model = TypeVar("Model", bound=BaseModel)
+
+
+class ServiceError(RuntimeError):
+    """A non-2xx answer: ``status``, the service's ``detail`` and the whole JSON ``body``."""
+
+    def __init__(self, status: int, detail: str, body: dict | None = None):
+        super().__init__(f"{status}: {detail}")
+        self.status, self.detail, self.body = status, detail, body or {}
+
+
+class NotFound(ServiceError):
+    """404: unknown object, pose or action."""
+
+
+class NoStablePose(ServiceError):
+    """409 no_stable_pose: the observed orientation is no stable pose (``body['nearest_pose']``, ``angle_error``)."""
+
+
+class OffTable(ServiceError):
+    """409 off_table: the object is not on the table (``body['z_offset']``, ``height_tolerance``)."""
+
+
+class InvalidRequest(ServiceError):
+    """422 (or 413, 415): the request is malformed; ``body['errors']`` lists the problems."""
+
+
+class Unauthorized(ServiceError):
+    """401: missing or wrong bearer token."""
+
+
+def _error(response: httpx.Response) -> ServiceError:
+    try:
+        body = response.json()
+    except ValueError:
+        body = {"detail": response.text[:200]}
+    detail = str(body.get("detail", "")) if isinstance(body, dict) else str(body)
+    status = response.status_code
+    kind = {401: Unauthorized, 404: NotFound, 413: InvalidRequest, 415: InvalidRequest, 422: InvalidRequest}.get(status, ServiceError)
+    if status == 409:
+        kind = OffTable if body.get("reason") == "off_table" else NoStablePose
+    return kind(status, detail, body if isinstance(body, dict) else {})
+
+
+class Client:
+    """Synchronous client; ``http`` may be any ``httpx.Client`` (tests pass FastAPI's TestClient)."""
+
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        token: str | None = None,
+        timeout: float = DEFAULT_TIMEOUT,
+        retries: int = DEFAULT_RETRIES,
+        backoff: float = DEFAULT_BACKOFF,
+        http: httpx.Client | None = None,
+    ):
+        headers = {"authorization": f"Bearer {token}"} if token else {}
+        self.http = http or httpx.Client(base_url=base_url, timeout=timeout)
+        self.http.headers.update(headers)
+        self.timeout, self.retries, self.backoff = timeout, retries, backoff
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.http.close()
+
+    # --- routes -------------------------------------------------------------------
+
+    def health(self) -> Health:
+        return self._call("GET", "/health", Health)
+
+    def objects(self) -> ObjectList:
+        return self._call("GET", "/objects", ObjectList)
+
+    def object(self, object_id: str) -> ObjectDetail:
+        return self._call("GET", f"/objects/{object_id}", ObjectDetail)
+
+    def pose(self, object_id: str, pose: int) -> PoseDetail:
+        return self._call("GET", f"/objects/{object_id}/poses/{pose}", PoseDetail)
+
+    def action(self, object_id: str, pose: int, action: int) -> ActionDetail:
+        return self._call("GET", f"/objects/{object_id}/poses/{pose}/actions/{action}", ActionDetail)
+
+    def q_values(self, object_id: str, pose: int, top: int = 10, by: str = "q") -> QValues:
+        return self._call("GET", f"/objects/{object_id}/poses/{pose}/q", QValues, params={"top": top, "by": by})
+
+    def plan(
+        self,
+        object_id: str,
+        pose: Any = None,
+        ros_pose: RosPose | dict | None = None,
+        policy: str = "value_iteration",
+    ) -> PlanResponse:
+        """The decision for one observed object: ``pose`` a 4x4 object -> world matrix (array or
+        nested lists) or ``ros_pose`` (position, orientation x, y, z, w, frame_id)."""
+        return self._call("POST", "/plan", PlanResponse, json=plan_item(object_id, pose, ros_pose, policy))
+
+    def plan_batch(self, items: list[dict]) -> PlanResults:
+        """Up to 1000 items of ``plan_item(...)``; per-item errors are in ``results[i].error``."""
+        return self._call("POST", "/batch/plan", PlanResults, json={"items": items})
+
+    def transitions(self, items: list[tuple[str, int, int]]) -> TransitionResults:
+        """(object_id, pose, action) triples, up to 1000."""
+        body = {"items": [{"object_id": o, "pose": int(p), "action": int(a)} for o, p, a in items]}
+        return self._call("POST", "/batch/transitions", TransitionResults, json=body)
+
+    # --- transport ----------------------------------------------------------------
+
+    def _call(self, method: str, path: str, model: type[Model], **kwargs) -> Model:
+        wait = self.backoff
+        for attempt in range(self.retries + 1):
+            last = attempt == self.retries
+            try:
+                response = self.http.request(method, path, timeout=self.timeout, **kwargs)
+            except httpx.TransportError:  # connect/read/write errors and timeouts
+                if last:
+                    raise
+            else:
+                if response.status_code < 300:
+                    return model.model_validate_json(response.content)
+                if response.status_code not in RETRY_STATUSES or last:
+                    raise _error(response)
+            time.sleep(wait)
+            wait *= 2
+        raise AssertionError("unreachable")
+
+
+def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None = None, policy: str = "value_iteration") -> dict:
+    """One /plan body (also one /batch/plan item) from a matrix or a ROS pose."""
+    if (pose is None) == (ros_pose is None):
+        raise ValueError("give exactly one of pose (4x4) and ros_pose")
+    item: dict = {"object_id": object_id, "policy": policy}
+    if pose is not None:
+        item["pose"] = np.asarray(pose, dtype=float).tolist()
+    else:
+        item["ros_pose"] = ros_pose.model_dump() if isinstance(ros_pose, RosPose) else ros_pose
+    return item
