@@ -36,7 +36,7 @@ DELEGATED = {
     "policies-physics": ("pipeline.studies.policies_physics", "play each policy's pushes in pybullet from dropped poses"),
 }
 """Commands with parsers of their own: ``toppledb NAME ARGS`` runs ``MODULE.main(ARGS)``."""
-COMMANDS = ("dataset", "verify", "corpus", "policies", *DELEGATED)
+COMMANDS = ("dataset", "add", "verify", "corpus", "policies", *DELEGATED)
 
 
 class UsageError(ValueError):
@@ -118,6 +118,21 @@ def parser() -> argparse.ArgumentParser:
     units.add_argument("--density", type=positive_float, metavar="KG/M3", help="mass = density x volume, e.g. 1000 for water")
     dataset.add_argument("--force", action="store_true", help="recompute every object, replacing what --out holds once the new dataset is complete")
     dataset.add_argument("--strict", action="store_true", help="stop at the first object that fails (exit 1; --out is left as it was)")
+
+    add = commands.add_parser(
+        "add",
+        help="add one mesh to a finished dataset, computing only it",
+        description="Add one mesh to a finished dataset with the dataset's own parameters; only the new object "
+        "is computed and the manifest is replaced atomically (a running service picks it up on reload).",
+    )
+    add.add_argument("directory", help="a finished dataset")
+    add.add_argument("mesh", type=Path, help="OBJ, STL or PLY file")
+    add.add_argument("--id", dest="object_id", help="object id (default: from the file name)")
+    add.add_argument("--units", choices=("mm", "cm", "m", "in"), help="the mesh's length unit")
+    add.add_argument("--scale", type=positive_float, help="metres per file unit (default: 1)")
+    add.add_argument("--mass", type=positive_float, metavar="KG", help="kg (default: the dataset's mesh.default_mass)")
+    add.add_argument("--density", type=positive_float, metavar="KG/M3", help="mass = density x volume")
+    add.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     verify = commands.add_parser("verify", help="check a dataset against its manifest")
     verify.add_argument("directory", help="dataset directory")
@@ -275,6 +290,40 @@ def run_corpus(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def run_add(args: argparse.Namespace) -> int:
+    from .build.atomic import file_sha256
+    from .build.corpus import ObjectSpec, mass_from_density, object_id_from_name
+    from .build.dataset import add_object
+    from schema.layout import check_object_id
+    from schema.manifest import ManifestError, read_manifest
+
+    units = corpus_units(args)
+    mesh = args.mesh.resolve()
+    if not mesh.is_file():
+        raise UsageError(f"mesh file not found: {args.mesh}")
+    try:
+        object_id = check_object_id(args.object_id or object_id_from_name(mesh.stem))
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    scale = units.scale or 1.0
+    mass = units.mass
+    if units.density is not None:
+        mass = mass_from_density(mesh, scale, units.density)
+        if mass is None:
+            raise UsageError(f"{mesh.name}: cannot compute a mass from the density: the mesh does not load")
+    if mass is None:
+        try:
+            mass = float(read_manifest(args.directory).parameters.model_dump()["mesh"]["default_mass"])
+        except (ManifestError, KeyError) as err:
+            raise UsageError(f"cannot add to {args.directory}: {err}") from None
+    spec = ObjectSpec(object_id, str(mesh), float(scale), float(mass), f"added:{mesh.name}", file_sha256(mesh))
+    summary = add_object(args.directory, spec, log=lambda line: print(line, file=sys.stderr), progress=not args.no_progress)
+    shard = summary.manifest.shards[object_id]
+    print(f"added     {object_id}: {shard.counts.poses} poses, {shard.counts.actions} actions ({summary.wall_s:.1f} s)")
+    print(summary.text())
+    return EXIT_OK
+
+
 def run_policies(args: argparse.Namespace) -> int:
     import json
 
@@ -309,7 +358,9 @@ def main(argv: list[str] | None = None) -> int:
     from .build.fanout import SchedulerError
 
     args = parser().parse_args(argv)
-    commands = {"dataset": run_dataset, "verify": run_verify, "corpus": run_corpus, "policies": run_policies}
+    commands = {
+        "dataset": run_dataset, "add": run_add, "verify": run_verify, "corpus": run_corpus, "policies": run_policies,
+    }
     try:
         with _terminate_as_interrupt():
             return commands[args.command](args)

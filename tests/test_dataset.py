@@ -9,6 +9,7 @@ whole file runs in a couple of minutes on 2 cores.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -441,3 +442,34 @@ def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_
     assert sorted(p.name for p in (copy / "actions").iterdir()) == [f"object_id={OBJECTS[0]}"]
     assert verify_dataset(copy) == []
     assert json.loads((copy / "manifest.json").read_text())["corpus"]["objects"][0]["object_id"] == OBJECTS[0]
+
+
+def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_path, capsys):
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    before = snapshot(copy)
+    mesh = Path(read_list(write_corpus(tmp_path, ["random_003"]), 0.25).specs[0].path)
+
+    assert main(["add", str(copy), str(mesh), "--id", "random_000"]) == 2, "an id already in the dataset"
+    assert "already has an object 'random_000'; choose another --id" in capsys.readouterr().err
+    (tmp_path / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nf 1 2 3\n")
+    assert main(["add", str(copy), str(tmp_path / "flat.obj"), "--no-progress"]) == 1
+    assert "--strict: flat: zero volume" in capsys.readouterr().err
+    assert_intact(copy, before)
+
+    assert main(["add", str(copy), str(mesh), "--scale", "0.015", "--mass", "0.1", "--id", "extra", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("added     extra: ") and "(1 computed, 3 reused)" in out
+    assert verify_dataset(copy) == []
+    manifest = read_manifest(copy)
+    assert list(manifest.shards) == [*OBJECTS, "extra"] and manifest.counts.objects == 4
+    assert {k: v for k, v in snapshot(copy).items() if k.startswith(("actions", "transitions", "arrays", "_shards"))} == {
+        k: v for k, v in before.items() if k.startswith(("actions", "transitions", "arrays", "_shards"))
+    } | {k: v for k, v in snapshot(copy).items() if "extra" in k}, "the other shards are untouched"
+
+    # The added shard is what a build with the dataset's parameters computes for it.
+    spec = read_list(write_corpus(tmp_path, ["random_003"]), 0.25).specs[0]
+    spec = dataclasses.replace(spec, object_id="extra")
+    expected = compute_shard(spec, Config.from_dict(manifest.parameters.model_dump()))
+    stored = pq.read_table(copy / layout.partition_file("actions", "extra"))
+    assert stored.equals(expected.rows["actions"])

@@ -133,7 +133,11 @@ class Summary:
             + ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in timings.cpu_s_by_stage.items()),
         ]
         for object_id, repairs in self.repairs.items():
-            lines.append(f"repaired  {object_id}: {'; '.join(repairs)}")
+            # Merging duplicate vertices is routine (every STL stores each triangle's own);
+            # objects.parquet keeps it, the console only what changed the shape or its reading.
+            notable = [r for r in repairs if not r.startswith("merged ")]
+            if notable:
+                lines.append(f"repaired  {object_id}: {'; '.join(notable)}")
         failures = self.manifest.failures
         for failure in failures[:MAX_FAILURE_LINES]:
             lines.append(f"failed    {failure.object_id}: {failure.reason.removeprefix(failure.object_id + ': ')}")
@@ -177,6 +181,7 @@ def build_dataset(
     progress: bool = True,
     process: Process | None = None,
     log: Callable[[str], None] = print,
+    previous_failures: dict[str, Failure] | None = None,
 ) -> Summary:
     """Build (or finish building, or extend) the dataset of ``corpus`` under ``out``.
 
@@ -185,6 +190,7 @@ def build_dataset(
     force : recompute every object (the old dataset stays until the new one is committed)
     strict : stop at the first failed object (its reason is the error)
     process : the per-object computation, ``pipeline.model.evaluation.process_object`` by default
+    previous_failures : objects that failed before and are not to be retried (``add_object``)
     """
     started = time.perf_counter()
     out = Path(out)
@@ -223,6 +229,10 @@ def build_dataset(
         if strict and failures:
             first = next(iter(failures.values()))
             raise BuildError(f"--strict: {_named(first)}")
+        for object_id, failure in (previous_failures or {}).items():
+            if any(spec.object_id == object_id for spec in todo):
+                todo = [spec for spec in todo if spec.object_id != object_id]
+                failures[object_id] = failure
 
         current = _current_manifest(out)
         if not todo and not staged and not force and _up_to_date(current, config, corpus, records, failures):
@@ -424,6 +434,40 @@ def _make_directory(path: Path, what: str) -> None:
         raise OutputError(f"cannot create {what} {path}: {err.strerror}") from None
     if not os.access(path, os.W_OK | os.X_OK):
         raise OutputError(f"cannot write to {what} {path}: permission denied")
+
+
+def add_object(
+    root: str | Path,
+    spec: ObjectSpec,
+    log: Callable[[str], None] = print,
+    progress: bool = False,
+) -> Summary:
+    """Add one object to a finished dataset: compute only it (in this process), with the
+    dataset's own parameters, and commit the new manifest atomically.  The objects that
+    failed before stay failures; a failure of the new object changes nothing.
+    """
+    root = Path(root)
+    if finish_interrupted_commit(root):
+        log(f"finished the commit of an interrupted run in {root}")
+    try:
+        current = read_manifest(root)
+    except ManifestError as err:
+        raise OutputError(f"cannot add to {root}: {err}") from None
+    try:
+        config = Config.from_dict(current.parameters.model_dump())
+    except ValueError as err:
+        raise BuildError(f"{root}: its parameters do not fit this code ({err}); rebuild it") from None
+    specs = [ObjectSpec(**o.model_dump()) for o in current.corpus.objects]
+    if any(s.object_id == spec.object_id for s in specs):
+        raise OutputError(f"{root} already has an object {spec.object_id!r}; choose another --id")
+    previous = {
+        f.object_id: Failure(f.object_id, f.reason, f.kind, f.detail) for f in current.failures
+    }
+    corpus = Corpus(current.corpus.name, [*specs, spec])
+    quiet = lambda line: None if line.startswith("resuming:") else log(line)  # noqa: E731 (every other object is reused)
+    return build_dataset(
+        corpus, config, root, workers=1, strict=True, progress=progress, log=quiet, previous_failures=previous
+    )
 
 
 def _size(path: str) -> int:
