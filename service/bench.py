@@ -100,11 +100,11 @@ def percentile_ms(samples: list[float], q: float) -> float | None:
 
 async def observations(conn: Connection, count: int, rng: random.Random) -> list[dict]:
     """``count`` plan requests: stable poses of the served objects at random planar placements."""
-    status, body = await conn.request(get("/objects"))
+    _, body = await conn.request(get("/objects"))
     objects = [o["object_id"] for o in json.loads(body)["objects"]]
     transforms = []
     for object_id in rng.sample(objects, min(len(objects), 40)):
-        status, body = await conn.request(get(f"/objects/{object_id}"))
+        _, body = await conn.request(get(f"/objects/{object_id}"))
         n_poses = len(json.loads(body)["poses"])
         for pose in range(min(n_poses, 6)):
             _, body = await conn.request(get(f"/objects/{object_id}/poses/{pose}"))

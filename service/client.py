@@ -21,7 +21,7 @@ the dev extra; the client imports nothing of the server).
 from __future__ import annotations
 
 import time
-from typing import Any, TypeVar
+from typing import Any, Self, TypeVar
 
 import httpx
 import numpy as np
@@ -92,7 +92,8 @@ def _error(response: httpx.Response) -> ServiceError:
 
 
 class Client:
-    """Synchronous client; ``http`` may be any ``httpx.Client`` (tests pass FastAPI's TestClient)."""
+    """Synchronous client.  ``timeout`` (s, per attempt) configures the ``httpx.Client`` made
+    here; a client passed as ``http`` keeps its own timeouts (tests pass FastAPI's TestClient)."""
 
     def __init__(
         self,
@@ -108,7 +109,7 @@ class Client:
         self.http.headers.update(headers)
         self.timeout, self.retries, self.backoff = timeout, retries, backoff
 
-    def __enter__(self) -> Client:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -164,7 +165,7 @@ class Client:
         for attempt in range(self.retries + 1):
             last = attempt == self.retries
             try:
-                response = self.http.request(method, path, timeout=self.timeout, **kwargs)
+                response = self.http.request(method, path, **kwargs)
             except httpx.TransportError:  # connect/read/write errors and timeouts
                 if last:
                     raise

@@ -1,0 +1,93 @@
+# ruff: noqa: F811  (pytest fixtures imported from tests/test_service.py)
+"""service.client: typed answers equal to the service's JSON, errors as exceptions by status
+and reason, retries only where repeating is safe and useful."""
+
+from __future__ import annotations
+
+import math
+
+import httpx
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from schema.api import PlanResponse
+from schema.vocabulary import NO_OP
+from service import create_app
+from service.client import Client, InvalidRequest, NoStablePose, NotFound, OffTable, ServiceError, Unauthorized, plan_item
+from service.settings import Settings
+from tests.test_service import client, dataset, planar_transform, stored_transform, tables, tilted  # noqa: F401
+
+TOKEN = "client-test-token-0123"
+
+
+@pytest.fixture(scope="module")
+def typed(dataset):
+    with TestClient(create_app(dataset, settings=Settings(token=TOKEN))) as http:
+        yield Client(token=TOKEN, http=http, retries=0)
+
+
+def pushing(tables) -> tuple[str, int]:
+    return next((o, p) for (o, p), r in sorted(tables["poses"].items()) if r["value_iteration_action"] != NO_OP)
+
+
+def test_typed_answers_equal_the_json(typed, client, tables):
+    object_id, pose = pushing(tables)
+    observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
+    answer = typed.plan(object_id, pose=observed)
+    assert isinstance(answer, PlanResponse) and answer.decision == "push" and answer.match.pose == pose
+    assert answer.model_dump(mode="json") == client.post("/plan", json=plan_item(object_id, pose=observed)).json()
+    assert typed.health().counts.objects == 3 and typed.objects().count == 3
+    assert typed.pose(object_id, pose).pose == pose and typed.object(object_id).object_id == object_id
+    assert typed.action(object_id, pose, answer.action).status == "ok"
+    assert typed.q_values(object_id, pose, top=3).top[0].action == answer.action
+    batch = typed.plan_batch([plan_item(object_id, pose=observed), plan_item("mug", pose=np.eye(4))])
+    assert batch.results[0].result == answer and batch.results[1].error.status == 404
+    assert typed.transitions([(object_id, pose, answer.action)]).results[0].result.action == answer.action
+
+
+def test_errors_are_exceptions_by_status_and_reason(typed, tables):
+    object_id, pose = pushing(tables)
+    lifted = planar_transform(0.0, 0.0, 0.0) @ stored_transform(tables, object_id, pose)
+    lifted[2, 3] += 0.5
+    with pytest.raises(OffTable) as off:
+        typed.plan(object_id, pose=lifted)
+    assert off.value.status == 409 and off.value.body["z_offset"] == pytest.approx(0.5)
+    with pytest.raises(NoStablePose):
+        typed.plan("random_001", pose=tilted(tables, "random_001", 0, math.radians(30))[0])
+    with pytest.raises(NotFound, match="unknown object 'mug'"):
+        typed.plan("mug", pose=np.eye(4))
+    with pytest.raises(InvalidRequest, match="not a rotation"):
+        typed.plan(object_id, pose=np.diag([2.0, 1, 1, 1]))
+    with pytest.raises(ValueError, match="exactly one"):
+        plan_item(object_id)
+    with pytest.raises(Unauthorized):
+        Client(http=typed.http, retries=0, token="another-token-of-length").objects()
+
+
+def test_retries_transport_errors_and_503_but_never_4xx(dataset):
+    app = create_app(dataset)
+    calls: list[str] = []
+    script = iter(["connect", "503", "pass"] + ["404"] * 10)
+
+    with TestClient(app) as real:
+
+        def handler(request: httpx.Request) -> httpx.Response:
+            step = next(script)
+            calls.append(step)
+            if step == "connect":
+                raise httpx.ConnectError("refused", request=request)
+            if step == "503":
+                return httpx.Response(503, json={"detail": "busy"})
+            if step == "404":
+                return httpx.Response(404, json={"detail": "unknown object 'x'"})
+            return httpx.Response(200, content=real.get(request.url.path).content)
+
+        flaky = Client(http=httpx.Client(transport=httpx.MockTransport(handler), base_url="http://x"), retries=2, backoff=0.0)
+        assert flaky.health().status == "ok" and calls == ["connect", "503", "pass"]
+        with pytest.raises(NotFound):
+            flaky.health()
+        assert calls[3:] == ["404"], "a 404 is an answer, not a failure to retry"
+        with pytest.raises(ServiceError):
+            Client(http=httpx.Client(transport=httpx.MockTransport(lambda r: httpx.Response(503, json={"detail": "busy"})),
+                                     base_url="http://x"), retries=1, backoff=0.0).health()
