@@ -126,9 +126,41 @@ def test_limited_forces_are_positive_and_below_the_limit_on_a_random_object():
 def test_thesis_variants_apply_no_correction_and_unknown_names_are_refused():
     for variant in ("baseline", "rotations", "robustness", "robust"):
         assert replace(Config().topple, variant=variant, corrections="all").applied_corrections == frozenset()
-    assert replace(Config().topple, variant="corrected").applied_corrections == frozenset(CORRECTIONS)
+    assert replace(Config().topple, variant="corrected", corrections="all").applied_corrections == frozenset(CORRECTIONS)
+    assert replace(Config().topple, variant="corrected").applied_corrections == {"finger_friction", "force_limit"}
     assert replace(Config().topple, variant="corrected", corrections="none").applied_corrections == frozenset()
     one = Config().with_overrides({"topple.variant": "corrected", "topple.corrections": "force_limit"})
     assert one.topple.applied_corrections == {"force_limit"}
     with pytest.raises(ValueError, match="unknown correction.*slippery"):
         Config().with_overrides({"topple.corrections": "force_limit,slippery"})
+
+
+def test_a_marginal_pose_falls_over_its_nearest_edge_whatever_the_push():
+    """Centre of mass 0.5 mm inside the standing box's +x edge: with ``stability_margin`` every
+    push (and the weakest) lands where that edge leads, with no force; without, the pushes differ."""
+    from shapes import box_object, pose_with_down
+
+    from pipeline.model.poses import stability_margin, stable_poses
+
+    box = box_object((0.05, 0.08, 0.15))
+    obj = replace(box, center_mass=box.center_mass + np.array([0.0245, 0.0, 0.0]))
+    pose_set = stable_poses(obj)
+    pose = pose_set.poses[pose_with_down(pose_set, [0, 0, -1])]
+    margin, edge = stability_margin(pose, obj.center_mass)
+    assert margin == pytest.approx(5e-4, abs=1e-9)
+    outward = np.cross(pose.base_edges[edge, 1] - pose.base_edges[edge, 0], [0, 0, 1])
+    np.testing.assert_allclose(outward / np.linalg.norm(outward), pose.transform[:3, :3] @ [1, 0, 0], atol=1e-9)
+
+    # Pose frame (the centre of mass above the origin): the -x face low and high, the top's centre.
+    points = np.array([[-0.0495, 0.0, 0.02], [-0.0495, 0.0, 0.14], [-0.0245, 0.0, 0.15]])
+    actions = explicit_actions(obj, pose.transform, points, None)
+    falls = replace(Config().topple, variant="corrected", corrections="stability_margin,finger_friction", n_trials=5)
+    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, falls, stream(0, "m", pose.index, "trials"))
+    landing = pose.edge_final_pose[edge]
+    assert landing != pose.index
+    np.testing.assert_array_equal(table.next_pose[:, landing], 1.0)
+    np.testing.assert_array_equal(table.mean_force, 0.0)
+    stands = replace(falls, min_stability_margin=4e-4)  # 0.5 mm is not marginal at 0.4 mm
+    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, stands, stream(0, "m", pose.index, "trials"))
+    assert table.p_topple[2] == 0.0  # pushed down onto the top, inside the base: it stays
+

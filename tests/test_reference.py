@@ -25,6 +25,7 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_004", "corrected"),  # every correction, the default force limit
     ("random_009", "corrected:finger_friction"),
     ("box", "corrected:force_limit"),  # with a limit low enough to bite (LOW_LIMIT)
+    ("random_031", "corrected:stability_margin,finger_friction"),  # its pose 6 is marginal (0.03 mm)
 ]
 
 LOW_LIMIT = 1.0
@@ -63,6 +64,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                     topple.ray_offset,
                     topple.applied_corrections,
                     topple.max_finger_force,
+                    topple.finger_friction_scale,
+                    topple.min_stability_margin,
                 )
                 compared += 1
                 agreed += edge == table.outcomes[action, trial]

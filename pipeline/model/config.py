@@ -73,11 +73,13 @@ VARIANTS = THESIS_VARIANTS + ("corrected",)
 """Every selectable variant: the thesis's four, and ``corrected`` (the robust model with the
 corrections of docs/MODEL.md "Corrections beyond the thesis" named in ``topple.corrections``)."""
 
-CORRECTIONS = ("finger_friction", "force_limit")
+CORRECTIONS = ("finger_friction", "force_limit", "stability_margin")
 """Corrections the ``corrected`` variant can apply (docs/MODEL.md, "Corrections beyond the thesis"):
 ``finger_friction``: the finger's force follows Coulomb sliding at the contact while the object
 tips (friction in the moment balance, pushes from above, faces the finger wedges under);
-``force_limit``: a push that needs more than ``max_finger_force`` does not topple."""
+``force_limit``: a push that needs more than ``max_finger_force`` does not topple;
+``stability_margin``: a pose whose centre of mass is within ``min_stability_margin`` of a
+base edge falls over that edge whatever the push."""
 
 
 @dataclass(frozen=True)
@@ -138,7 +140,8 @@ class ToppleConfig:
     """
 
     variant: str = "robust"
-    """One of ``baseline``, ``rotations``, ``robustness``, ``robust`` (thesis table 4.1)."""
+    """One of ``baseline``, ``rotations``, ``robustness``, ``robust`` (thesis table 4.1), or
+    ``corrected`` (docs/MODEL.md "Corrections beyond the thesis")."""
     n_trials: int = bounded(100, AT_LEAST_ONE)
     """Noisy trials per action for the robust variants; noise-free variants use one."""
     gravity: float = bounded(9.81, POSITIVE)
@@ -157,14 +160,19 @@ class ToppleConfig:
     """m; the finger ray that re-finds a noisy contact starts this far outside it."""
     chunk_actions: int = bounded(256, AT_LEAST_ONE)
     """Actions evaluated per vectorised block; bounds peak memory, not results."""
-    corrections: str = "all"
+    corrections: str = "finger_friction,force_limit"
     """Comma-separated corrections the ``corrected`` variant applies (``CORRECTIONS``), or
-    ``all`` or ``none``; the thesis's variants apply none, whatever this says."""
+    ``all`` or ``none``; the thesis's variants apply none, whatever this says.  The default
+    leaves out ``stability_margin``, which physics does not support as a rule (docs/MODEL.md C.3)."""
     finger_friction_scale: float = bounded(0.25, FRACTION)
     """Share of the finger's Coulomb friction that resists tipping (``finger_friction``
     correction): 1 is Coulomb's law, which the standing box in pybullet follows; 0.25 is the
     middle of the flat optimum (0.15-0.5) on the corpus push log, where pushes from above
     topple more often than Coulomb sliding allows (docs/MODEL.md C.2)."""
+    min_stability_margin: float = bounded(1e-3, NON_NEGATIVE)
+    """m; a pose whose centre of mass projects closer than this to a base edge is marginal
+    (``stability_margin`` correction): it falls over that edge with or without a push.  1 mm
+    is ``poses.base_tolerance``, the height below which a hull vertex counts as touching."""
     max_finger_force: float = bounded(20.0, POSITIVE)
     """N, the largest finger force (magnitude) of a push (``force_limit`` correction): about
     the sustained Cartesian force of a light collaborative arm's fingertip, 8 times a 0.25 kg

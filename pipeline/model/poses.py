@@ -148,6 +148,18 @@ class PoseSet:
         return np.array([p.transform for p in self.poses])
 
 
+def stability_margin(pose: StablePose, center_mass: np.ndarray) -> tuple[float, int]:
+    """How close a pose is to falling over: the least horizontal distance (m) from the
+    centre of mass's projection to a base edge line (negative when outside), and that edge.
+
+    center_mass : (3,) float, m, object frame
+    returns : (margin in m, index into ``pose.base_edges``)
+    """
+    geometry = edge_geometry(pose.base_edges, transform_points(pose.transform, center_mass[None])[0])
+    edge = int(np.argmin(geometry.com_distance))
+    return float(geometry.com_distance[edge]), edge
+
+
 def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig()) -> PoseSet:
     """Stable poses of ``obj`` with probability >= ``config.min_probability``, plus
     every pose reachable from them by toppling over a base edge.

@@ -142,12 +142,18 @@ def reference_trial(
     corrections: frozenset = frozenset(),
     max_force: float = math.inf,
     friction_scale: float = 1.0,
+    min_margin: float = 0.0,
 ):
     """Outcome of one trial: (edge index or -1, required force in N or inf).
 
-    ``corrections`` (names of ``config.CORRECTIONS``), ``max_force`` and ``friction_scale`` are the corrected
-    variant's (docs/MODEL.md "Corrections beyond the thesis"); empty, it is the thesis's trial.
+    ``corrections`` (names of ``config.CORRECTIONS``), ``max_force``, ``friction_scale`` and
+    ``min_margin`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
+    empty, it is the thesis's trial.
     """
+    if "stability_margin" in corrections:
+        edge = marginal_edge(scene, min_margin)
+        if edge is not None:  # C.3: a marginal pose falls over that edge, push or not
+            return edge, 0.0
     push = _unit(_add(draw.direction, draw.direction_offset))  # u0 (8.2)
     if robust:  # (8.2)-(8.3): re-find the noisy contact with the rotated finger ray
         c = scene.center_mass
@@ -183,6 +189,18 @@ def reference_trial(
         if force < best_force:  # (7.10): the least-force passing edge; the first on a tie, as argmin
             best_edge, best_force = index, force
     return best_edge, best_force
+
+
+def marginal_edge(scene: Scene, min_margin: float):
+    """The edge a marginal pose falls over (C.3): the one the centre of mass is nearest to, if
+    nearer than ``min_margin`` (m); None for a pose that stands."""
+    best, best_distance = None, math.inf
+    for index, (y0, y1) in enumerate(scene.edges):
+        e = _unit(_sub(y1, y0))
+        distance = -_dot(_sub(scene.center_mass, y0), (e[1], -e[0], 0.0))
+        if distance < best_distance:  # the first on a tie, as argmin
+            best, best_distance = index, distance
+    return best if best_distance < min_margin else None
 
 
 def sliding_force(contact: Vec, normal: Vec, push: Vec, mu_table: float, mu_finger: float, e: Vec, y0: Vec, y1: Vec, com: Vec, weight: float, com_distance: float):

@@ -53,6 +53,7 @@ from .config import ToppleConfig
 from .edges import EdgeGeometry, edge_geometry
 from .mesh import ObjectModel
 from .outcomes import Actions, StablePose, ToppleTable
+from .poses import stability_margin
 
 MIN_PUSH_TORQUE = 1e-12
 """m (torque per newton of push), (7.4): a push rotates the object outward over an edge
@@ -381,6 +382,14 @@ def evaluate_pose(
         )  # (n,)
         outcomes[chunk] = edge.reshape(len(chunk), trials)  # (n,) -> (a, T), undoing the action-major flattening
         forces[chunk] = force.reshape(len(chunk), trials)
+
+    if "stability_margin" in config.applied_corrections:
+        margin, falls_over = stability_margin(pose, obj.center_mass)
+        if margin < config.min_stability_margin:
+            # A marginal pose (MODEL.md C.3) falls over its nearest edge whatever the push,
+            # with no force: every trial of every ok action has that outcome.
+            outcomes[ok] = falls_over
+            forces[ok] = 0.0
 
     # (9.1) via (10.7): pose landed in per (ok action, trial), counted per (action, pose) cell.
     next_pose = np.full((n_actions, n_poses), np.nan)  # (A, P)
