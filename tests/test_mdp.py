@@ -8,6 +8,7 @@ import pytest
 
 from pipeline.model.config import MDPConfig
 from pipeline.model.mdp import (
+    IMPROVEMENT,
     greedy_policy,
     greedy_values,
     is_selected,
@@ -165,6 +166,28 @@ def test_nan_rows_are_ignored():
     assert np.isnan(q_nan[2]).all()
 
 
+def test_rarely_toppling_pushes_converge_in_a_few_sweeps():
+    # Plain value iteration contracts by 0.99 gamma per sweep here (hundreds of sweeps to 1e-12);
+    # evaluating each sweep's greedy policy exactly lands on the fixed point within a few.
+    one = [[[0.99, 0.01]], np.zeros((0, 2))]
+    v, _ = solve(one, [0.0, 1.0], max_iterations=3)
+    np.testing.assert_allclose(v, [0.01 * GAMMA / (1 - 0.99 * GAMMA), 1.0], atol=1e-12)
+    # A chain 0 -> 1 -> 2 where pose 1 can also fall back to 0: two poses act, coupled.
+    chain = [[[0.95, 0.05, 0.0]], [[0.05, 0.9, 0.05]], np.zeros((0, 3))]
+    v_s = [0.0, 0.1, 1.0]
+    exact, _ = solve(chain, v_s, tolerance=0.0, max_iterations=10_000)
+    fast, _ = solve(chain, v_s, max_iterations=4)
+    np.testing.assert_allclose(fast, exact, atol=1e-12)
+    np.testing.assert_allclose(exact, reference_values(chain, v_s, GAMMA, sweeps=2000), atol=1e-10)
+
+
+def test_an_object_without_poses_has_no_values():
+    v, q = solve([], np.zeros(0))
+    assert v.shape == (0,) and q == []
+    assert greedy_values([], np.zeros(0)) == []
+    assert pose_values([], np.zeros(0), []) == []
+
+
 # ----------------------------------------------------------------------------- greedy values and policies
 
 
@@ -241,6 +264,39 @@ def test_pose_values_ties_it_together():
     assert values[0].policies["max_height"].action == 1
     assert values[2].policies["max_height"].action == NO_OP
     assert values[3].policies["max_height"].action == 0  # 0.4 < 1.0: pushes though it cannot help
+
+
+def test_max_height_action_outside_the_pose_table_is_a_no_op():
+    # An action index past the pose's actions (a stale or mismatched table) is no push, not an IndexError.
+    v_s = np.array([0.2, 0.9])
+    greedy = np.array([0.3, 0.5])
+    for action in (2, 3):
+        assert max_height_policy(0, v_s, action, greedy) == max_height_policy(0, v_s, -1, greedy)
+        assert max_height_policy(0, v_s, action, greedy).action == NO_OP
+    assert max_height_policy(0, v_s, 1, greedy).action == 1  # the last real action still counts
+
+
+@pytest.mark.parametrize("excess", [0.0, 1e-15, IMPROVEMENT])
+def test_policies_need_more_than_rounding_to_leave_a_pose(excess):
+    # Rows summing to 1 only up to rounding can make "push and stay here" look better by a
+    # hair; an improvement of at most IMPROVEMENT is no improvement.
+    v_s = np.array([0.5, 0.1])
+    at_threshold = np.array([v_s[0] + excess])
+    assert greedy_policy(0, v_s, at_threshold) == greedy_policy(0, v_s, np.zeros(0))
+    assert value_iteration_policy(0, v_s, at_threshold, 1.0).action == NO_OP
+    assert value_iteration_policy(0, v_s, at_threshold / GAMMA, GAMMA).action == NO_OP
+    clearly_better = at_threshold + 1e-9
+    assert greedy_policy(0, v_s, clearly_better).action == 0
+    assert value_iteration_policy(0, v_s, clearly_better, 1.0).action == 0
+
+
+def test_pose_values_greedy_acts_where_a_push_raises_the_grasp_quality():
+    next_pose, v_s = figure_4_6()
+    values = pose_values(next_pose, v_s, [1, 0, -1, 0], MDPConfig(gamma=GAMMA, tolerance=1e-12))
+    # Pose 1: its push reaches the perfect pose 2 with 0.9, so Greedy pushes it.
+    greedy = values[1].policies["greedy"]
+    assert greedy.action == 0 and greedy.value == pytest.approx(0.1 * 0.4 + 0.9 * 1.0)
+    assert values[1].policies["value_iteration"].action == 0
 
 
 # ----------------------------------------------------------------------------- object selection

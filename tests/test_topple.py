@@ -149,11 +149,14 @@ def test_mean_force_is_the_mean_over_the_trials_that_topple(box):
     obj, pose_set, standing = box
     config = Config()
     heights = [0.07, 0.1, 0.14]  # the lowest is near the friction height: only some trials topple
-    result = evaluate(obj, pose_set, standing, points=_side_pushes(heights), n_trials=60, seed=5)
+    # Then the other three faces, high up, so that every base edge is toppled over.
+    points = np.vstack([_side_pushes(heights), [[-0.025, 0.0, 0.14], [0.0, 0.04, 0.14], [0.0, -0.04, 0.14]]])
+    result = evaluate(obj, pose_set, standing, points=points, n_trials=60, seed=5)
     topple = config.topple
-    noise = sample_noise(stream(5, obj.name, standing, "trials"), len(heights), replace(topple, n_trials=60))
+    noise = sample_noise(stream(5, obj.name, standing, "trials"), len(points), replace(topple, n_trials=60))
     scene = scene_from_pose(obj, pose_set.poses[standing], topple.gravity)
-    for action in range(len(heights)):
+    assert set(result.table.outcomes.ravel()) >= {0, 1, 2, 3}
+    for action in range(len(points)):
         toppled = result.table.outcomes[action] >= 0
         forces = []
         for trial in np.flatnonzero(toppled):
@@ -164,3 +167,45 @@ def test_mean_force_is_the_mean_over_the_trials_that_topple(box):
         assert len(forces) >= 10 and np.ptp(forces) > 0.01 * np.mean(forces), "the forces should vary over trials"
         assert result.table.mean_force[action] == pytest.approx(np.mean(forces), rel=1e-6)
     assert 0 < result.table.p_topple[0] < 1
+
+
+def test_noise_draws_follow_the_configured_distributions():
+    topple = replace(Config().topple, n_trials=200)
+    noise = sample_noise(np.random.default_rng(9), 50, topple)
+    n = 50 * 200
+    for field, mean, std in [
+        (noise.mu_table, topple.mu_table_mean, topple.mu_table_std),
+        (noise.mu_finger, topple.mu_finger_mean, topple.mu_finger_std),  # 4.9 std above 0: clipping is negligible
+        (noise.rotation_angle, 0.0, topple.rotation_std),
+    ]:
+        assert field.shape == (50, 200)
+        assert field.mean() == pytest.approx(mean, abs=4 * std / np.sqrt(n))
+        assert field.std() == pytest.approx(std, rel=0.05)
+    for field, std in [(noise.contact_offset, topple.contact_std), (noise.direction_offset, topple.direction_std)]:
+        assert field.shape == (50, 200, 3)
+        np.testing.assert_allclose(field.mean(axis=(0, 1)), 0.0, atol=4 * std / np.sqrt(n))
+        np.testing.assert_allclose(field.std(axis=(0, 1)), std, rtol=0.05)  # isotropic
+    assert noise.rotation_axis.shape == (50, 200, 3)
+    np.testing.assert_allclose(np.linalg.norm(noise.rotation_axis, axis=-1), 1.0)
+    np.testing.assert_allclose(noise.rotation_axis.mean(axis=(0, 1)), 0.0, atol=4 / np.sqrt(3 * n))  # uniform on the sphere
+
+    # Finger friction cannot be negative: draws below 0 are clipped to exactly 0, and only those.
+    slippery = sample_noise(np.random.default_rng(9), 50, replace(topple, mu_finger_mean=0.1, mu_finger_std=0.2))
+    clipped = np.mean(slippery.mu_finger == 0.0)
+    assert slippery.mu_finger.min() == 0.0 and clipped == pytest.approx(0.3085, abs=0.02)  # P(N(0.1, 0.2) < 0)
+    assert np.median(slippery.mu_finger) == pytest.approx(0.1, abs=0.01)
+
+
+@pytest.mark.parametrize("variant", ["baseline", "rotations"])
+def test_noise_free_variants_draw_nothing(variant):
+    topple = replace(Config().topple, variant=variant)
+    rng = np.random.default_rng(1)
+    noise = sample_noise(rng, 4, topple)
+    assert rng.random() == np.random.default_rng(1).random(), "the stream is left untouched"
+    np.testing.assert_array_equal(noise.mu_table, np.full((4, 1), topple.mu_table_mean))
+    np.testing.assert_array_equal(noise.mu_finger, np.full((4, 1), topple.mu_finger_mean))
+    np.testing.assert_array_equal(noise.contact_offset, np.zeros((4, 1, 3)))
+    np.testing.assert_array_equal(noise.direction_offset, np.zeros((4, 1, 3)))
+    np.testing.assert_array_equal(noise.rotation_angle, np.zeros((4, 1)))
+    assert noise.rotation_axis.shape == (4, 1, 3)
+    np.testing.assert_allclose(np.linalg.norm(noise.rotation_axis, axis=-1), 1.0)
