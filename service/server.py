@@ -25,6 +25,7 @@ from .settings import ENV_PREFIX, Settings
 DEFAULT_LIMIT_CONCURRENCY = 256
 DEFAULT_KEEP_ALIVE = 5
 DEFAULT_REQUEST_TIMEOUT = 10.0
+REQUEST_TIMEOUT_ENV = "TOPPLEDB_REQUEST_TIMEOUT"
 
 log = logging.getLogger("service")
 
@@ -34,7 +35,9 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
     the first byte of a request) to the request's last byte at most ``request_timeout`` s;
     else the connection is closed."""
 
-    request_timeout = DEFAULT_REQUEST_TIMEOUT
+    # A class attribute read from the environment: uvicorn's workers are spawned processes
+    # that import this module afresh and receive the class by reference.
+    request_timeout = float(os.environ.get(REQUEST_TIMEOUT_ENV, DEFAULT_REQUEST_TIMEOUT))
 
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
@@ -65,10 +68,6 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
             self.transport.close()
 
 
-def protocol_class(request_timeout: float) -> type:
-    return type("GuardedHttpToolsProtocol", (GuardedHttpToolsProtocol,), {"request_timeout": request_timeout})
-
-
 def export_settings(settings: Settings) -> None:
     """Put the settings into ``TOPPLEDB_*`` variables, so that workers started by uvicorn
     (``service.app:create_app`` as a factory) read the same ones."""
@@ -96,11 +95,13 @@ def run(
     from .lane import tune_interpreter
 
     tune_interpreter()
+    os.environ[REQUEST_TIMEOUT_ENV] = str(request_timeout)  # for spawned workers
+    GuardedHttpToolsProtocol.request_timeout = request_timeout
     has_httptools = importlib.util.find_spec("httptools") is not None
     options = {
         "host": host, "port": port, "log_level": log_level, "access_log": access_log, "limit_concurrency": limit_concurrency,
         "timeout_keep_alive": timeout_keep_alive, "loop": "uvloop" if importlib.util.find_spec("uvloop") else "asyncio",
-        "http": protocol_class(request_timeout) if has_httptools else "h11",
+        "http": GuardedHttpToolsProtocol if has_httptools else "h11",
         "h11_max_incomplete_event_size": 16 * 1024, "server_header": False,
     }
     if not has_httptools:

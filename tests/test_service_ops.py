@@ -143,10 +143,11 @@ def test_server_closes_unfinished_requests_reloads_on_sighup_and_logs_no_access_
 
 
 @pytest.mark.slow
-def test_the_factory_runs_under_uvicorn_workers(dataset):
+def test_two_workers_serve_through_the_app_factory(dataset):
+    # python -m service --workers 2 starts uvicorn's workers on service.app:create_app (the
+    # factory gunicorn uses too), the settings passed as TOPPLEDB_* variables.
     process, url = start(
-        [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--workers", "2", "--no-access-log"],
-        env={"TOPPLEDB_DATASET": str(dataset), "TOPPLEDB_WATCH_SECONDS": "0"},
+        [sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0", "--request-timeout", "3"]
     )
     try:
         assert httpx.get(f"{url}/health").json()["counts"]["objects"] == 3
