@@ -7,7 +7,6 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import trimesh
-from shapes import pose_with_down
 
 from pipeline.build.atomic import file_sha256
 from pipeline.model.config import VARIANTS, Config
@@ -16,6 +15,7 @@ from pipeline.studies.scoring import Scorer
 from pipeline.studies.synthetic_log import planar
 from pipeline.studies.validation import (
     average_precision,
+    bootstrap_difference,
     bootstrap_intervals,
     expected_calibration_error,
     main,
@@ -101,6 +101,18 @@ def test_bootstrap_interval_contains_the_estimate_and_shrinks_with_more_objects(
     assert again == ci
 
 
+def test_paired_bootstrap_of_a_difference():
+    from pipeline.studies.scoring import Scores
+
+    rng = np.random.default_rng(2)
+    tv, predicted, observed, objects = _object_level_data(30, 10, rng)
+    same = bootstrap_difference(Scores(tv, predicted), Scores(tv, predicted), observed, objects, n_resamples=100)
+    assert same["tv_all"] == {"difference": 0.0, "ci": [0.0, 0.0]}
+    better = bootstrap_difference(Scores(tv * 0.8, predicted), Scores(tv, predicted), observed, objects, n_resamples=100)
+    assert better["tv_all"]["difference"] == pytest.approx(-0.2 * tv.mean())
+    assert better["tv_all"]["ci"][1] < 0 and better["tv_informative"]["ci"][1] < 0
+
+
 # ---------------------------------------------------------------- hand-made logs
 
 
@@ -141,21 +153,39 @@ def _replace(table, name, values):
 
 @pytest.fixture(scope="module")
 def box_poses(box_file):
-    from pipeline.model.mesh import load_mesh
-    from pipeline.model.poses import stable_poses
+    """(pose set, standing pose, pose a topple over the standing pose's -x edge reaches, mesh file).
 
-    poses = stable_poses(load_mesh(box_file, mass=0.25))
-    return poses, pose_with_down(poses, [0, 0, -1]), pose_with_down(poses, [-1, 0, 0])
+    Found from the geometry, not from a down vector: a symmetric box may list either end as "standing".
+    """
+    from pipeline.model.mesh import load_mesh
+    from pipeline.model.poses import face_below, stable_poses
+
+    obj = load_mesh(box_file, mass=0.25)
+    poses = stable_poses(obj)
+    standing = int(poses.face_pose[face_below(obj.hull, obj.center_mass, np.array([[0.0, 0.0, -1.0]]))[0]])
+    pose = poses.poses[standing]
+    minus_x = int(np.argmin(pose.base_edges[:, :, 0].mean(axis=1)))
+    return poses, standing, int(pose.edge_final_pose[minus_x]), box_file
+
+
+def _object_frame(pose, point, direction):
+    """A push given in a pose's frame, in the object frame (what a log holds)."""
+    to_object = np.linalg.inv(pose.transform)
+    return (to_object[:3, :3] @ point + to_object[:3, 3]).tolist(), (to_object[:3, :3] @ direction).tolist()
+
+
+HIGH_PUSH = (np.array([BOX[0] / 2, 0.0, 0.13]), np.array([-1.0, 0.0, 0.0]))
+"""Pose frame of the standing box: the +x face 13 cm up, pushed towards -x (topples over the -x edge)."""
 
 
 def test_high_push_known_outcomes_give_known_tv(box_file, box_poses, tmp_path):
     """A push the noise-free model says topples onto -x, observed toppling in 1 of 4 repeats: TV 0.75."""
-    poses, standing, lying = box_poses
+    poses, standing, lying, _ = box_poses
     stand, lie = poses.poses[standing].transform, poses.poses[lying].transform
     start = planar(0.3, 0.1, -0.05) @ stand
     finals = [planar(1.0, 0.2, 0.0) @ lie] + [planar(0.1 * k, 0.0, 0.0) @ stand for k in range(3)]
-    # +x face at 13 cm height, pushed towards -x; object frame == standing pose frame here.
-    log_table = _rows(box_file, [(0, start, [0.025, 0.0, 0.13], [-1.0, 0.0, 0.0], finals)])
+    point, direction = _object_frame(poses.poses[standing], *HIGH_PUSH)
+    log_table = _rows(box_file, [(0, start, point, direction, finals)])
     pq.write_table(log_table, tmp_path / "log.parquet")
     log = read_log([tmp_path], Config())
     assert log.rejected == {} and len(log.pushes) == 1
@@ -169,14 +199,14 @@ def test_high_push_known_outcomes_give_known_tv(box_file, box_poses, tmp_path):
 
 
 def test_bad_rows_are_counted_by_reason_never_dropped_silently(box_file, box_poses, tmp_path):
-    poses, standing, lying = box_poses
+    poses, standing, lying, _ = box_poses
     stand, lie = poses.poses[standing].transform, poses.poses[lying].transform
     tilted = trimesh.transformations.rotation_matrix(np.radians(40), [1, 0, 0]) @ stand
     nan = stand.copy()
     nan[0, 0] = np.nan
     stretched = stand.copy()
     stretched[:3, :3] *= 2.0
-    point, direction = [0.025, 0.0, 0.13], [-1.0, 0.0, 0.0]
+    point, direction = _object_frame(poses.poses[standing], *HIGH_PUSH)
     good = _rows(box_file, [(0, stand, point, direction, [lie, stand])])
     bad = _rows(box_file, [
         (1, tilted, point, direction, [lie]),
@@ -209,6 +239,30 @@ def test_bad_rows_are_counted_by_reason_never_dropped_silently(box_file, box_pos
     assert reasons["start_pose column disagrees with the pose start_transform matches"] == 1
     assert all(len(v) >= 1 for v in log.examples.values())
     assert log.counts()["rows_rejected"] == table.num_rows - 2
+
+
+def test_vectorised_pose_matching_agrees_with_match_pose_and_settle(box_poses):
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.model.mesh import load_mesh
+    from pipeline.model.poses import face_below, settle
+    from pipeline.studies.logreader import match_downs, object_downs
+    from schema.frames import match_pose
+
+    poses = box_poses[0]
+    obj = load_mesh(box_poses[3], mass=0.25)
+    transforms = np.tile(np.eye(4), (200, 1, 1))
+    transforms[:100, :3, :3] = Rotation.random(100, random_state=0).as_matrix()
+    # Half near a stable pose (within a few degrees), so that both branches of the tolerance occur.
+    near = Rotation.from_rotvec(np.random.default_rng(1).normal(0, 0.1, (100, 3))).as_matrix()
+    transforms[100:] = [p.transform for p in poses.poses for _ in range(100 // len(poses.poses) + 1)][:100]
+    transforms[100:, :3, :3] = near @ transforms[100:, :3, :3]
+    tolerance = Config().poses.same_pose_angle
+    matched, _ = match_downs(object_downs(transforms), poses.downs, tolerance)
+    expected = [match_pose(t, poses.downs, poses.transforms, tolerance).pose for t in transforms]
+    assert matched.tolist() == expected and (matched >= 0).sum() > 50 and (matched < 0).sum() > 20
+    faces = face_below(obj.hull, obj.center_mass, object_downs(transforms))
+    assert poses.face_pose[faces].tolist() == [settle(poses, obj, t[:3, :3]) for t in transforms]
 
 
 def test_unreadable_logs_are_one_line_errors(tmp_path, capsys):

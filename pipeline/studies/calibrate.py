@@ -43,8 +43,8 @@ from scipy.stats import qmc
 
 from ..model.config import VARIANTS, Config, ToppleConfig
 from .logreader import LogError, PushLog, read_log
-from .scoring import Scorer
-from .validation import NOISE_KEYS, informative, observed_topple_rate, push_metrics, report, to_json
+from .scoring import Scorer, Scores
+from .validation import NOISE_KEYS, bootstrap_difference, informative, observed_topple_rate, push_metrics, report, to_json
 
 
 @dataclass(frozen=True)
@@ -339,6 +339,11 @@ def calibrate(
             "held_out": held_out,
         })
     everything = np.arange(len(scorer))
+    # Calibrated minus base on the held-out folds, paired over the same resampled objects.
+    difference = {
+        v: bootstrap_difference(Scores(pooled_tv[v], pooled_p[v]), Scores(*base_scores[v]), observed, scorer.object_index, seed=seed)
+        for v in VARIANTS
+    }
     pooled = {
         v: {
             "calibrated": push_metrics(pooled_tv[v], pooled_p[v], observed, scorer.object_index),
@@ -360,6 +365,7 @@ def calibrate(
         "base_objective": train_score(shared[0], everything),
         "folds": fold_reports,
         "cross_validated": pooled,
+        "cross_validated_difference": difference,
         "settings": {"per_problem": len(problems[-1].candidates), "scored": len(values), "sobol": n_sobol,
                      "refine_rounds": list(rounds), "variant_scorings": len(items)},
         "seed": seed,
@@ -404,6 +410,15 @@ def format_calibration(result: dict) -> str:
             lines.append(f"{variant:<11} {setting:<10} {cell(x['tv_informative']):>10} {cell(x['tv_all']):>7} "
                          f"{cell(x['ap']):>6} {cell(x['map']):>6} {cell(x['ece']):>6}")
     lines.append("chosen (all objects): " + ", ".join(f"{k}={val:.4g}" for k, val in result["chosen"].items()))
+    return "\n".join(lines)
+
+
+def format_difference(label: str, difference: dict) -> str:
+    """Calibrated minus base, per variant, with the paired bootstrap interval (negative: calibrated is better)."""
+    lines = [f"calibrated - base, {label} (95 % paired bootstrap over objects; negative is better):"]
+    for variant, d in difference.items():
+        parts = [f"{key} {d[key]['difference']:+.3f} [{d[key]['ci'][0]:+.3f}, {d[key]['ci'][1]:+.3f}]" for key in ("tv_informative", "tv_all")]
+        lines.append(f"  {variant:<11} " + "   ".join(parts))
     return "\n".join(lines)
 
 
@@ -503,15 +518,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(format_calibration(result))
+    print(format_difference("held-out folds", result["cross_validated_difference"]))
     calibrated = calibrated_config(config, result["chosen"])
     if heldout is not None:
         rate = observed_topple_rate(log)
         result["heldout"] = {}
+        held_scorer = Scorer(heldout, config.seed)
         for name, cfg in (("base", config), ("calibrated", calibrated)):
-            r = report(heldout, cfg, VARIANTS, rate=rate, rate_source="calibration log", n_resamples=args.bootstrap, seed=args.seed)
+            r = report(heldout, cfg, VARIANTS, rate=rate, rate_source="calibration log", n_resamples=args.bootstrap,
+                       seed=args.seed, scorer=held_scorer)
             result["heldout"][name] = {k: r[k] for k in ("counts", "variants", "references", "worst_objects", "topple")}
             print(f"held-out log, {name} setting:")
             print(format_report(r))
+        result["heldout"]["difference"] = {
+            v: bootstrap_difference(held_scorer.score_variant(calibrated.topple, v), held_scorer.score_variant(config.topple, v),
+                                    held_scorer.empirical_topple, held_scorer.object_index, seed=args.seed)
+            for v in VARIANTS
+        }
+        print(format_difference("held-out log", result["heldout"]["difference"]))
     result["wall_s"] = round(time.perf_counter() - started, 1)
     comments = [
         "toppledb calibrate: noise parameters chosen on push logs (docs/VALIDATION.md, Calibration)",

@@ -3,9 +3,9 @@
 A log row is one executed push.  To compare it with the toppling model the reader
 loads each logged object's mesh (after checking its SHA-256), computes its stable
 poses with the same ``config.poses`` the dataset uses, matches the observed start
-transform to a stable pose (``schema.frames.match_pose``) and settles the observed
-final transform into one (``pipeline.model.poses.settle``; a rest pose outside the
-pose set is its own bucket).  Repeats of one push (same object and ``push_id``)
+transform to a stable pose (``schema.frames.match_pose``'s rule, vectorised) and settles
+the observed final transform into one (``pipeline.model.poses.settle``'s rule; a rest pose
+outside the pose set is its own bucket).  Repeats of one push (same object and ``push_id``)
 become one empirical next-pose distribution.
 
 Nothing is dropped silently and nothing crashes: every row that cannot be used is
@@ -28,19 +28,21 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from schema.frames import match_pose, transform_points, unit
+from schema.frames import DOWN, transform_points, unit
 from schema.pushlog import PUSHLOG, row_problems
 
 from ..build.atomic import file_sha256
 from ..build.corpus import PYBULLET_SOURCE, Corpus, CorpusError, pybullet_data_dir
 from ..model.config import Config
 from ..model.mesh import MeshError, ObjectModel, load_mesh
-from ..model.poses import PoseSet, settle, stable_poses
+from ..model.poses import PoseSet, face_below, stable_poses
 
 OUTSIDE = -1
 """Final pose outside the model's pose set: the last bucket of every distribution."""
 SAME_PUSH_TOLERANCE = 1e-6
 """m (points) and unit-vector components (directions): repeats of one push must agree this closely."""
+START_TILTED, START_MERGED_COPY = -1, -2
+"""Start pose codes of rows that match no stable pose."""
 EXAMPLES_PER_REASON = 5
 """Rejected rows kept as examples per reason (all are counted)."""
 
@@ -267,19 +269,36 @@ def read_log(
     directions = unit(_vectors(table, "direction"))
     start_index = np.full(n, -1)
     final_index = np.full(n, OUTSIDE)
+    object_of_row = np.array(columns["object_id"], dtype=object)
+    for object_id, obj in loaded.items():
+        rows = np.flatnonzero(usable & (object_of_row == object_id))
+        if len(rows) == 0:
+            continue
+        # match_pose and settle, vectorised over the object's rows.
+        downs = object_downs(start[rows])
+        matched, _ = match_downs(downs, obj.poses.downs, config.poses.same_pose_angle)
+        unmatched = np.flatnonzero(matched < 0)
+        if len(unmatched):
+            # Why not: tilted, or at rest on a facet merged into a pose whose down vector is another
+            # (a symmetric object's copy of the pose: the push would need that symmetry to be mapped).
+            hull = obj.model.hull
+            face = face_below(hull, obj.model.center_mass, downs[unmatched])
+            tilt = np.arccos(np.clip(np.einsum("ij,ij->i", downs[unmatched], hull.face_normals[face]), -1.0, 1.0))
+            resting = (tilt <= config.poses.same_pose_angle) & (obj.poses.face_pose[face] >= 0)
+            matched[unmatched] = np.where(resting, START_MERGED_COPY, START_TILTED)
+        face = face_below(obj.model.hull, obj.model.center_mass, object_downs(final[rows]))
+        start_index[rows] = matched
+        final_index[rows] = obj.poses.face_pose[face]
     for i in np.flatnonzero(usable):
-        obj = loaded[columns["object_id"][i]]
-        match = match_pose(start[i], obj.poses.downs, obj.poses.transforms, config.poses.same_pose_angle)
-        if not match.matched:
+        if start_index[i] == START_TILTED:
             reject(i, "start pose matches no stable pose (tilted beyond poses.same_pose_angle)")
             usable[i] = False
-            continue
-        if start_pose[i] is not None and start_pose[i] != match.pose:
+        elif start_index[i] == START_MERGED_COPY:
+            reject(i, "start pose rests on a copy of a stable pose merged into it (symmetry), not the pose's own orientation")
+            usable[i] = False
+        elif start_pose[i] is not None and start_pose[i] != start_index[i]:
             reject(i, "start_pose column disagrees with the pose start_transform matches")
             usable[i] = False
-            continue
-        start_index[i] = match.pose
-        final_index[i] = settle(obj.poses, obj.model, final[i][:3, :3])
 
     # Pushes: repeats of one (object, push_id) must describe the same push.
     groups: dict[tuple[str, int], list[int]] = {}
@@ -357,9 +376,30 @@ def _load_object(key: tuple, config: Config, corpus: Corpus | None, corpus_only:
     return None
 
 
+def object_downs(transforms: np.ndarray) -> np.ndarray:
+    """World down (0, 0, -1) in the object frame of each object -> world transform: (n, 4, 4) -> (n, 3)."""
+    return np.einsum("nji,j->ni", transforms[:, :3, :3], DOWN)
+
+
+def match_downs(downs: np.ndarray, pose_downs: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """``schema.frames.match_pose``'s pose choice for many observations: the stable pose with the
+    nearest down vector, -1 beyond ``tolerance``.
+
+    downs : (n, 3) float, unit, object frame;  pose_downs : (P, 3) float;  tolerance : rad
+    returns : pose (n,) int, angle_error (n,) float, rad
+    """
+    angles = np.arccos(np.clip(downs @ pose_downs.T, -1.0, 1.0))
+    best = np.argmin(angles, axis=1)
+    error = angles[np.arange(len(downs)), best]
+    return np.where(error <= tolerance, best, -1), error
+
+
 def _matrices(table: pa.Table, name: str) -> np.ndarray:
     """(n, 4, 4) float; rows with a missing matrix are NaN (row_problems has rejected them)."""
-    values = table.column(name).to_pylist()
+    column = table.column(name).combine_chunks()
+    if column.null_count == 0:
+        return np.asarray(column.flatten().to_numpy(zero_copy_only=False), dtype=float).reshape(-1, 4, 4)
+    values = column.to_pylist()
     return np.array([np.full(16, math.nan) if v is None else v for v in values], dtype=float).reshape(-1, 4, 4)
 
 

@@ -206,6 +206,49 @@ def bootstrap_intervals(
     return out
 
 
+def bootstrap_difference(
+    first: Scores,
+    second: Scores,
+    observed: np.ndarray,
+    objects: np.ndarray,
+    n_resamples: int = BOOTSTRAP,
+    seed: int = 0,
+    confidence: float = CONFIDENCE,
+) -> dict[str, dict]:
+    """Paired bootstrap over objects of ``first - second`` for the mean sup-TV over all and over
+    informative pushes: both predictors see the same resampled objects, so the interval is
+    that of the difference, much narrower than the two intervals side by side.
+
+    returns : {"tv_all": {"difference", "ci": [low, high]}, "tv_informative": {...}}
+    """
+    rng = np.random.default_rng(seed)
+    names, which = np.unique(objects, return_inverse=True)
+    k = len(names)
+
+    def sums(scores: Scores) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        useful = informative(scores.p_topple, observed)
+        return (np.bincount(which, weights=scores.tv, minlength=k), np.bincount(which, weights=scores.tv * useful, minlength=k),
+                np.bincount(which, weights=useful.astype(float), minlength=k))
+
+    pushes = np.bincount(which, minlength=k).astype(float)
+    (a_all, a_useful, a_n), (b_all, b_useful, b_n) = sums(first), sums(second)
+
+    def metrics(times: np.ndarray) -> tuple[float, float]:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return ((times @ a_all - times @ b_all) / (times @ pushes),
+                    times @ a_useful / (times @ a_n) - times @ b_useful / (times @ b_n))
+
+    point = metrics(np.ones(k))
+    draws = np.array([metrics(np.bincount(rng.integers(k, size=k), minlength=k).astype(float)) for _ in range(n_resamples)])
+    tail = 100 * (1 - confidence) / 2
+    out = {}
+    for i, key in enumerate(("tv_all", "tv_informative")):
+        values = draws[:, i][~np.isnan(draws[:, i])]
+        ci = [float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))] if len(values) else [math.nan, math.nan]
+        out[key] = {"difference": float(point[i]), "ci": ci}
+    return out
+
+
 # ---------------------------------------------------------------- the report
 
 
@@ -359,7 +402,7 @@ def plot(result: dict, path: str | Path) -> None:
         err = np.abs(np.vstack([values - ci[:, 0], ci[:, 1] - values]))
         colors = ["tab:blue"] * len(result["variants"]) + ["tab:grey"] * len(result["references"])
         ax.bar(x, values, color=colors, yerr=np.nan_to_num(err), capsize=3)
-        ax.set_xticks(x, [name.replace("_", "\n") for name, _ in rows], fontsize=8)
+        ax.set_xticks(x, [name.replace("_", " ") for name, _ in rows], fontsize=8, rotation=30, ha="right")
         ax.set_ylim(0, 1)
         ax.set_title(title, fontsize=10)
     c = result["counts"]
