@@ -54,7 +54,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(11, obj.name, pose.index, "trials"))
         noise = sample_noise(stream(11, obj.name, pose.index, "trials"), len(actions.status), topple)
         scene = scene_from_pose(obj, pose, topple.gravity)
-        for action in np.flatnonzero(actions.status == STATUS_OK)[:25]:
+        # 25 actions per pose with noise; every ok action of a noise-free variant (one trial each).
+        for action in np.flatnonzero(actions.status == STATUS_OK)[: 25 if topple.trials > 1 else None]:
             for trial in range(topple.trials):
                 edge, force = reference_trial(
                     scene,
@@ -75,7 +76,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                     capped += free[0] >= 0 and edge < 0
     # Embree casts in float32, the reference in float64: allow a rare flip at a boundary.
     print(f"{name} {variant}: {compared} trials, {compared - agreed} disagree, {toppled} topple")
-    assert compared >= 150
+    assert compared >= 120
     assert agreed >= compared - max(1, compared // 500), f"{compared - agreed} of {compared} trials disagree"
     if name != "random_002":
         assert toppled > 0, "the comparison should include trials that topple"

@@ -289,34 +289,38 @@ def sliding_contact(
     returns : force (n, E) float, N (finger force magnitude); passes (n, E) bool
     """
     u, normal, contact = trials.push, np.nan_to_num(trials.normal), np.nan_to_num(trials.contact)  # (n, 3) each
-    offset = contact[:, None, :] - edges.start[None, :, :]  # (n, 1, 3) - (1, E, 3) -> (n, E, 3), p - y0
-    velocity = np.cross(edges.direction[None, :, :], offset)  # (n, E, 3), v_e = e x (p - y0), m per rad
-    face_speed = np.einsum("nek,nk->ne", velocity, normal)  # (n, E), v_e . n
+    e, y0 = edges.direction, edges.start  # (E, 3) each, horizontal and on the table (e_z = y0_z = 0, section 5)
+    col = lambda a, k: a[:, k : k + 1]  # noqa: E731, (n, 1) column k of an (n, 3) array
+    # v_e = e x (p - y0) per component, with e_z = y0_z = 0: (n, 1) x (E,) outer products, no (n, E, 3) array.
+    vx = col(contact, 2) * e[:, 1]  # (n, E), e_y p_z
+    vy = -col(contact, 2) * e[:, 0]  # (n, E), -e_x p_z
+    vz = (col(contact, 1) * e[:, 0] - col(contact, 0) * e[:, 1]) - (e[:, 0] * y0[:, 1] - e[:, 1] * y0[:, 0])  # (n, E)
+    face_speed = vx * col(normal, 0) + vy * col(normal, 1) + vz * col(normal, 2)  # (n, E), v_e . n
     approach = np.einsum("nk,nk->n", u, normal)[:, None]  # (n, 1), u . n < 0: the finger moves into the face
     # The face recedes from the advancing finger (MIN_PUSH_TORQUE: v_e . n is also the
     # frictionless torque per newton, so the same cut as (7.4)).
     follows = (approach < 0.0) & (face_speed < -MIN_PUSH_TORQUE)  # (n, E)
     advance = np.where(follows, face_speed / np.where(approach < 0.0, approach, -1.0), 0.0)  # (n, E), s_e >= 0
-    relative = velocity - advance[:, :, None] * u[:, None, :]  # (n, E, 3), v_rel, tangent to the face
-    slide = np.linalg.norm(relative, axis=2)  # (n, E), m per rad
+    rx, ry, rz = vx - advance * col(u, 0), vy - advance * col(u, 1), vz - advance * col(u, 2)  # (n, E) each, v_rel
+    slide = np.sqrt(rx * rx + ry * ry + rz * rz)  # (n, E), |v_rel|, m per rad
     # No sliding (v_e along u): the contact sticks and friction does no work; take t = 0.
     sliding = slide > MIN_PUSH_TORQUE
-    tangent = -relative / np.where(sliding, slide, 1.0)[:, :, None] * sliding[:, :, None]  # (n, E, 3), t
-    mu = friction_scale * trials.mu_finger  # (n,), k mu_f
-    direction = mu[:, None, None] * tangent - normal[:, None, :]  # (n, E, 3), f_hat = -n + k mu_f t
-    torque = np.einsum("nek,nek->ne", direction, velocity)  # (n, E), tau_e = f_hat . v_e, m
+    mu = (friction_scale * trials.mu_finger)[:, None]  # (n, 1), k mu_f
+    friction = -np.where(sliding, mu / np.where(sliding, slide, 1.0), 0.0)  # (n, E): f_hat = -n + friction v_rel
+    fx, fy, fz = friction * rx - col(normal, 0), friction * ry - col(normal, 1), friction * rz - col(normal, 2)  # f_hat
+    torque = fx * vx + fy * vy + fz * vz  # (n, E), tau_e = f_hat . v_e, m
     rotates = follows & (torque > MIN_PUSH_TORQUE) & (edges.com_distance > 0.0)  # (n, E)
     weight = mass * gravity
     normal_force = np.where(rotates, weight * edges.com_distance / np.where(rotates, torque, 1.0), 0.0)  # (n, E), F_n*
-    push = normal_force[:, :, None] * direction  # (n, E, 3), f, N
-    table = weight - push[:, :, 2]  # (n, E), the edge's normal force, N
-    lever = contact[:, None, :2] - edges.origin[None, :, :2]  # (n, E, 2), (p - O_e)_xy
-    tau_z = lever[:, :, 0] * push[:, :, 1] - lever[:, :, 1] * push[:, :, 0]  # (n, E), ((p - O_e) x f)_z
-    load = push[:, :, 0] ** 2 + push[:, :, 1] ** 2 + (tau_z / edges.half_span) ** 2  # (n, E), N^2
+    fx, fy, fz = normal_force * fx, normal_force * fy, normal_force * fz  # (n, E) each, f, N
+    table = weight - fz  # (n, E), the edge's normal force, N
+    # ((p - O_e) x f)_z with (p - O_e)_xy as (n, 1) - (E,) columns.
+    tau_z = (col(contact, 0) - edges.origin[:, 0]) * fy - (col(contact, 1) - edges.origin[:, 1]) * fx  # (n, E)
+    load = fx * fx + fy * fy + (tau_z / edges.half_span) ** 2  # (n, E), N^2
     mu_t = trials.mu_table[:, None]  # (n, 1)
     holds = (table > 0.0) & (mu_t > 0.0) & (load <= (mu_t * table) ** 2)  # (n, E), (7.9) with the whole f
     passes = rotates & holds & trials.valid[:, None]  # (n, E)
-    force = np.where(rotates, normal_force * np.linalg.norm(direction, axis=2), np.inf)  # (n, E), |f|, N
+    force = np.where(rotates, np.sqrt(fx * fx + fy * fy + fz * fz), np.inf)  # (n, E), |f|, N
     return force, passes
 
 
