@@ -249,3 +249,12 @@ def test_play_command_rejects_bad_input(capsys, tmp_path):
     assert "--eps" in capsys.readouterr().err
     assert playlog.main(["--out", str(tmp_path / "x"), "--set", "topple.nope=1", "--no-progress"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_an_object_that_leaves_its_pose_before_the_push_is_noticed():
+    tolerance = Config().poses.same_pose_angle
+    tipped = np.eye(4)
+    tipped[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]  # a quarter turn about x
+    assert not playlog.left_pose(np.eye(4), np.array([0.0, 0.0, -1.0]), tolerance)
+    assert playlog.left_pose(tipped, np.array([0.0, 0.0, -1.0]), tolerance)
+    assert not playlog.left_pose(tipped, tipped[:3, :3].T @ [0.0, 0.0, -1.0], tolerance)

@@ -262,7 +262,7 @@ def experiment(
             failures[object_id] = results["failure"]
             continue
         runs.update(results)
-        if log is not None:
+        if log is not None and object_log.table.num_rows:  # no file for an object no policy pushed
             write_part(Path(log), object_log)
 
     predicted = {p: predicted_values(tables, p, max_pushes) for p in POLICIES}
