@@ -2,9 +2,14 @@
 
     python -m service --dataset data/dataset            # http://127.0.0.1:8000/docs
 
-``create_app(dataset_dir)`` loads the dataset once (``service.store``) and returns the
-app.  The service imports numpy, pyarrow and FastAPI only, never the geometry stack
-(trimesh, fcl, embreex, scipy), so it starts in about a second plus the load.
+``create_app(dataset_dir)`` loads the dataset (``store``) and returns the app; the contract
+for callers is docs/SERVICE.md.  Modules: ``app`` (factory, health, metrics, docs, OpenAPI),
+``routers`` (thin routes), ``planning`` (plans from observed poses), ``batches`` and ``lane``
+(batch bodies off the event loop), ``guard`` (token, body limits, content type, metrics),
+``store`` (the dataset in memory, hot swap), ``settings``, ``server`` (uvicorn with
+connection limits), ``client`` (typed Python client), ``bench`` (make bench-service).
+The service imports numpy, pyarrow and FastAPI only, never the geometry stack (trimesh,
+fcl, embreex, scipy).
 """
 
 from .app import create_app

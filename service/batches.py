@@ -15,7 +15,11 @@ from .errors import ServiceError
 
 
 class BatchInvalid(Exception):
+    """A malformed batch: ``errors`` as FastAPI's validation errors (type, loc, msg only, so that
+    it crosses a process boundary)."""
+
     def __init__(self, errors: list[dict]):
+        super().__init__(errors)
         self.errors = errors
 
 
@@ -35,7 +39,9 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
     try:
         parsed = request_model.model_validate(data)
     except ValidationError as err:
-        raise BatchInvalid([{**e, "loc": ("body", *e["loc"])} for e in err.errors(include_url=False)]) from None
+        raise BatchInvalid(
+            [{"type": e["type"], "loc": ("body", *e["loc"]), "msg": e["msg"]} for e in err.errors(include_url=False)]
+        ) from None
     results = []
     for request in parsed.items:
         try:
@@ -45,10 +51,28 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
     return results_model(results=results).model_dump_json().encode()
 
 
-async def run(lane, *args) -> bytes:
-    """``answer(*args)`` in the lane; a malformed batch raises RequestValidationError (422)."""
+def answer_kind(kind: str, body: bytes, store, settings) -> bytes:
+    """The answer to a ``plan`` or ``transitions`` batch body (what the lane runs)."""
+    from functools import partial
+
+    from schema.api import PlanBatch, PlanResult, PlanResults, TransitionBatch, TransitionResult, TransitionResults
+
+    from .planning import plan
+    from .routers.objects import action_detail
+
+    if kind == "plan":
+        return answer(body, PlanBatch, partial(plan, store, settings=settings), PlanResults, PlanResult)
+
+    def transition(item):
+        return action_detail(store.object(item.object_id), item.pose, item.action)
+
+    return answer(body, TransitionBatch, transition, TransitionResults, TransitionResult)
+
+
+async def run(lane, kind: str, body: bytes, store, settings) -> bytes:
+    """``answer_kind`` in the lane; a malformed batch raises RequestValidationError (422)."""
     try:
-        return await lane.run(answer, *args)
+        return await lane.run(kind, body, store, settings)
     except BatchInvalid as err:
         raise RequestValidationError(err.errors) from None
 

@@ -11,7 +11,8 @@ at random yaws and positions (seeded).  Every phase is bounded in time (``--seco
 
 Phases and keys of the JSON line:
 - start-up: ``startup_s`` from launching ``python -m service`` to the first answered /health;
-  ``rss_mb_per_worker`` resident memory of each serving process after the load.
+  ``memory``: resident and proportional memory of the serving processes after the load
+  (each worker, and its batch process, which shares the dataset copy-on-write).
 - throughput: ``connections`` clients send POST /plan back to back: ``plan_rps``,
   ``plan_p50_ms``, ``plan_p99_ms``, ``plan_errors`` (non-200 or transport errors), and
   ``plan_server_cpu_us_per_request`` (the server's CPU time over requests served: the
@@ -242,13 +243,17 @@ def ensure_dataset(dataset: Path | None) -> Path:
     return SMALL_DATASET
 
 
-def rss_mb(pid: int) -> list[float]:
-    """Resident MB of every serving process: the server, or each uvicorn worker under it."""
+def memory_mb(pid: int) -> dict:
+    """Resident and proportional (PSS: shared pages split between sharers) MB of the server's
+    processes over 50 MB: the worker(s), and each worker's forked batch process, which shares
+    the dataset's pages copy-on-write (so their RSS double-counts; their PSS does not)."""
     import psutil
 
     parent = psutil.Process(pid)
-    workers = [c for c in parent.children(recursive=True) if c.memory_info().rss > 50e6]  # not the resource tracker
-    return [round(p.memory_info().rss / 1e6, 1) for p in (workers or [parent])]
+    processes = [p for p in [parent, *parent.children(recursive=True)] if p.memory_info().rss > 50e6]
+    info = [p.memory_full_info() for p in processes]
+    return {"rss_mb": [round(i.rss / 1e6, 1) for i in info], "pss_mb": [round(i.pss / 1e6, 1) for i in info],
+            "pss_mb_total": round(sum(i.pss for i in info) / 1e6, 1)}
 
 
 def cpu_seconds(pid: int) -> float:
@@ -306,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
         import uvloop
 
         result = uvloop.run(run_load("127.0.0.1", args.port, args.seconds, args.connections, args.attach))
-        print(json.dumps({"attached": args.attach, **result, "rss_mb_per_worker": rss_mb(args.attach),
+        print(json.dumps({"attached": args.attach, **result, "memory": memory_mb(args.attach),
                           "load_average": round(os.getloadavg()[0], 2)}))
         return 0
     dataset = ensure_dataset(args.dataset)
@@ -327,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
         except ImportError:
             runner = asyncio.run
         result = runner(run_load("127.0.0.1", port, args.seconds, args.connections, server.pid))
-        rss = rss_mb(server.pid)
+        memory = memory_mb(server.pid)
     finally:
         server.terminate()
         try:
@@ -335,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
         except subprocess.TimeoutExpired:
             server.kill()
     line = {"dataset": str(dataset), "workers": args.workers, "startup_s": round(startup, 3), **result,
-            "rss_mb_per_worker": rss, "load_average": round(load_average, 2)}
+            "memory": memory, "load_average": round(load_average, 2)}
     print(json.dumps(line))
     return 0 if result["errors"] == 0 else 1
 

@@ -154,3 +154,31 @@ def test_two_workers_serve_through_the_app_factory(dataset):
         assert httpx.get(f"{url}/objects/random_001").status_code == 200
     finally:
         stop(process)
+
+
+def test_batch_lanes_agree_and_the_process_lane_follows_a_swap(dataset):
+    from schema.vocabulary import NO_OP
+    from service.lane import Lane
+
+    item = None
+    answers = {}
+    for kind in ("process", "thread"):
+        app = create_app(dataset, settings=Settings(watch_seconds=0))
+        app.state.lane = Lane(kind)
+        store = app.state.live.store
+        if item is None:
+            obj = next(o for o in store.objects.values() if (o.policy_action["value_iteration"] != NO_OP).any())
+            pose = int((obj.policy_action["value_iteration"] != NO_OP).argmax())
+            item = {"object_id": obj.object_id, "pose": obj.transforms[pose].tolist()}
+        with TestClient(app) as client:
+            answers[kind] = client.post("/batch/plan", json={"items": [item]}).json()
+            assert answers[kind]["results"][0]["result"] == client.post("/plan", json=item).json()
+            # A swapped store (here: one value changed) is what the next batch answers from.
+            fresh = Store.load(dataset)
+            changed = fresh.objects[item["object_id"]]
+            changed.v_s = changed.v_s.copy()
+            changed.v_s[:] = 0.125
+            app.state.live.store = fresh
+            after = client.post("/batch/plan", json={"items": [item]}).json()["results"][0]["result"]
+            assert after["v_s"] == 0.125
+    assert answers["process"] == answers["thread"]

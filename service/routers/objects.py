@@ -26,8 +26,6 @@ from schema.api import (
     RankBy,
     RankedAction,
     TransitionBatch,
-    TransitionQuery,
-    TransitionResult,
     TransitionResults,
     ValidationErrorBody,
 )
@@ -36,7 +34,7 @@ from schema.vocabulary import NO_OP, POLICIES
 from .. import batches
 from ..dependencies import StoreDep
 from ..planning import next_poses
-from ..store import ObjectData, Store, optional, widen
+from ..store import ObjectData, optional, widen
 
 ERRORS = {404: {"model": ErrorBody, "description": "Unknown object, pose or action"},
           422: {"model": ValidationErrorBody, "description": "Malformed request"}}
@@ -197,10 +195,6 @@ async def get_q(
     )
 
 
-def _transition(store: Store, item: TransitionQuery) -> ActionDetail:
-    return action_detail(store.object(item.object_id), item.pose, item.action)
-
-
 @batch.post(
     "/transitions",
     response_model=TransitionResults,
@@ -213,7 +207,5 @@ def _transition(store: Store, item: TransitionQuery) -> ActionDetail:
 )
 async def batch_transitions(request: Request, store: StoreDep) -> Response:
     body = await request.body()
-    answer = await batches.run(
-        request.app.state.lane, body, TransitionBatch, lambda item: _transition(store, item), TransitionResults, TransitionResult
-    )
+    answer = await batches.run(request.app.state.lane, "transitions", body, store, request.app.state.settings)
     return Response(answer, media_type="application/json")

@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-from functools import partial
-
 from fastapi import APIRouter, Request
 from fastapi.responses import Response
 
@@ -15,7 +13,6 @@ from schema.api import (
     PlanBatch,
     PlanRequest,
     PlanResponse,
-    PlanResult,
     PlanResults,
     ValidationErrorBody,
 )
@@ -59,11 +56,11 @@ async def post_plan(request: PlanRequest, store: StoreDep, settings: SettingsDep
     "an unknown object, 409 for no matching stable pose or off the table, 422 for a ROS pose in an unknown frame, "
     "and a `detail`); one such item does not fail the batch. A malformed body (any item's NaN, non-rotation, "
     "unknown policy, ...) or more than 1000 items fails the whole batch with 422. Batches run in their own "
-    "lane, one at a time per worker, so they do not delay POST /plan.",
+    "lane (a child process per worker), one at a time, so they do not delay POST /plan.",
     responses={422: {"model": ValidationErrorBody, "description": "Malformed request"}},
     openapi_extra=batches.request_body(PlanBatch),
 )
 async def batch_plan(request: Request, store: StoreDep, settings: SettingsDep) -> Response:
     body = await request.body()
-    answer = await batches.run(request.app.state.lane, body, PlanBatch, partial(plan, store, settings=settings), PlanResults, PlanResult)
+    answer = await batches.run(request.app.state.lane, "plan", body, store, settings)
     return Response(answer, media_type="application/json")
