@@ -4,6 +4,7 @@ whatever the number of workers, resumable, and held-out objects really held out.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -207,6 +208,9 @@ def test_a_stopped_run_resumes_and_gives_the_same_log(reference_log, specs, tmp_
     again = playlog.play(specs, PARAMS, out, workers=1)
     assert again.reused == 1
     assert playlog.read_log(out).equals(playlog.read_log(reference_log))
+    # Parameters no log depends on (here a chunk size of the model) do not invalidate it.
+    unrelated = replace(PARAMS, config=TINY.with_overrides({"topple.chunk_actions": 7}))
+    assert playlog.play(specs, unrelated, out, workers=1).reused == 2
     # Other parameters never mix into the same directory.
     other = playlog.PlayParams(actions=1, repeats=1, eps=0.05, max_poses=1, seed=5, config=TINY)
     with pytest.raises(playlog.PlayError, match="other parameters"):

@@ -194,7 +194,7 @@ def play_object(spec: ObjectSpec, params: PlayParams) -> ObjectLog:
         obj = load_object(spec, config)
         pose_set = stable_poses(obj, config.poses)
     except MeshError as err:
-        return ObjectLog(spec.object_id, empty_log(), key, {"failure": str(err), "pushes": 0})
+        return ObjectLog(spec.object_id, empty_log(), key, {"failure": str(err), "pushes": 0, "moved_before": 0})
     body = body_model(obj)
     source, path = mesh_location(spec)
     columns: dict[str, list] = {f.name: [] for f in PUSHLOG}
@@ -302,6 +302,30 @@ def read_part_record(path: Path) -> dict | None:
         return None
 
 
+MODEL_FIELDS = {
+    "seed": None,
+    "mesh": None,
+    "poses": None,
+    "contacts": None,
+    "topple": ("n_trials", "gravity", "mu_table_mean", "mu_table_std", "mu_finger_mean", "mu_finger_std",
+               "contact_std", "direction_std", "rotation_std", "ray_offset"),
+}
+"""The config a log depends on: loading, stable poses, candidate pushes, and of ``topple`` what
+the thesis's robust model (which chooses the pushes) and the player's noise read.  Other
+fields (variants, corrections, chunk sizes) never change a log, so a part file made before
+they were added or changed is still reused.  None: the whole section."""
+
+
+def relevant(key: dict) -> dict:
+    """The part of a part file's key that decides its rows (``MODEL_FIELDS`` of its config)."""
+    config = key.get("config", {})
+    kept = {}
+    for name, names in MODEL_FIELDS.items():
+        value = config.get(name)
+        kept[name] = value if names is None or not isinstance(value, dict) else {n: value.get(n) for n in names}
+    return {**{k: v for k, v in key.items() if k != "config"}, "config": kept}
+
+
 def _canonical(value):
     """JSON round trip, so that a key compares equal to the key read back from a file."""
     return json.loads(json.dumps(value, sort_keys=True))
@@ -319,21 +343,24 @@ class PlaySummary:
     toppled: int = 0
     outside: int = 0
     at_rest: int = 0
-    moved_before: int = 0
+    moved_before: int | None = 0
+    """None once a reused part file predates the count."""
     wall_s: float = 0.0
 
     def add(self, summary: dict) -> None:
         self.objects += 1
-        for name in ("poses", "pushes", "toppled", "outside", "at_rest", "moved_before"):
+        for name in ("poses", "pushes", "toppled", "outside", "at_rest"):
             setattr(self, name, getattr(self, name) + int(summary.get(name, 0)))
+        known = self.moved_before is not None and "moved_before" in summary
+        self.moved_before = self.moved_before + int(summary["moved_before"]) if known else None
 
     def text(self) -> str:
         rate = self.toppled / self.pushes if self.pushes else float("nan")
         return (
             f"{self.objects} objects ({self.reused} reused, {len(self.failed)} failed to load), {self.poses} poses, "
             f"{self.pushes} pushes: {self.toppled} toppled ({rate:.3f}), {self.outside} into poses outside the set, "
-            f"{self.pushes - self.at_rest} still moving at the time cap, {self.moved_before} left their start pose "
-            f"before the push; {self.wall_s:.1f} s"
+            f"{self.pushes - self.at_rest} still moving at the time cap, "
+            f"{'?' if self.moved_before is None else self.moved_before} left their start pose before the push; {self.wall_s:.1f} s"
         )
 
 
@@ -370,7 +397,7 @@ def play(
     for spec in specs:
         path = part_path(out, spec.object_id)
         record = read_part_record(path) if path.exists() else None
-        if record is not None and record["key"] == _canonical(params.key(spec)):
+        if record is not None and relevant(record["key"]) == relevant(_canonical(params.key(spec))):
             summary.add(record["summary"])
             summary.reused += 1
             if "failure" in record["summary"]:
