@@ -7,8 +7,9 @@ never reaches the JSON parser on the event loop.  Order, outermost first:
 1. metrics: every response counted and timed per route (``service.metrics``);
 2. token: ``Authorization: Bearer <token>`` on every path except /health, when set (401);
 3. body: a request with a body must say ``content-type: application/json`` (415) and be at
-   most ``max_body_bytes`` (413, from content-length before reading, or while reading a
-   chunked body); the body is read here once and handed on.
+   most ``max_body_bytes`` for /batch/* and ``SINGLE_BODY_BYTES`` for the others (413, from
+   content-length before reading, or while reading a chunked body); the body is read here
+   once and handed on.
 """
 
 from __future__ import annotations
@@ -24,6 +25,11 @@ OPEN_PATHS = frozenset({"/health"})
 """Paths answered without the bearer token (liveness probes carry no secrets)."""
 
 BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
+
+SINGLE_BODY_BYTES = 64 * 1024
+"""Largest body of a request that is not a batch (a /plan body is under 2 kB): such bodies are
+parsed on the event loop, so they stay small; only /batch/* bodies may reach max_body_bytes."""
+BATCH_PREFIX = "/batch/"
 
 
 def _error(status: int, detail: str, headers: list[tuple[bytes, bytes]] = ()) -> tuple[dict, dict]:
@@ -81,10 +87,11 @@ class Guard:
         if scope["method"] not in BODY_METHODS:
             await self.app(scope, receive, send)
             return
+        limit = self.max_body_bytes if scope["path"].startswith(BATCH_PREFIX) else min(self.max_body_bytes, SINGLE_BODY_BYTES)
         length = headers.get(b"content-length")
-        if length is not None and (not length.isdigit() or int(length) > self.max_body_bytes):
+        if length is not None and (not length.isdigit() or int(length) > limit):
             # connection: close, so the server does not go on reading (and discarding) the rest.
-            await self._reply(send, 413, f"request body of {length.decode('latin-1')[:20]} bytes; at most {self.max_body_bytes}",
+            await self._reply(send, 413, f"request body of {length.decode('latin-1')[:20]} bytes; at most {limit}",
                               [(b"connection", b"close")])
             return
         if not is_json(headers.get(b"content-type", b"")):
@@ -98,8 +105,8 @@ class Guard:
                 return
             chunk = message.get("body", b"")
             size += len(chunk)
-            if size > self.max_body_bytes:
-                await self._reply(send, 413, f"request body over {self.max_body_bytes} bytes", [(b"connection", b"close")])
+            if size > limit:
+                await self._reply(send, 413, f"request body over {limit} bytes", [(b"connection", b"close")])
                 return
             chunks.append(chunk)
             if not message.get("more_body", False):

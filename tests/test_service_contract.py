@@ -219,6 +219,16 @@ def test_wrong_content_type_is_415_and_malformed_json_422(client, path):
     assert response.status_code == 422 and response.json()["detail"] == "body: Field required"
 
 
+def test_single_requests_have_a_small_body_limit_batches_a_large_one(client):
+    from service.guard import SINGLE_BODY_BYTES
+
+    padded = b'{"object_id": "x", "pose": [' + b" " * SINGLE_BODY_BYTES + b"]}"
+    response = client.post("/plan", content=padded, headers=JSON)
+    assert response.status_code == 413 and f"at most {SINGLE_BODY_BYTES}" in response.json()["detail"]
+    batch = b'{"items": [' + b" " * SINGLE_BODY_BYTES + b"]}"
+    assert client.post("/batch/plan", content=batch, headers=JSON).status_code == 200
+
+
 @pytest.mark.parametrize("path", ["/plan", "/batch/plan"])
 def test_oversized_bodies_are_413_before_parsing(dataset, path):
     with TestClient(create_app(dataset, settings=Settings(max_body_bytes=4096))) as c:
