@@ -6,7 +6,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 ARGS   ?=
 
-.PHONY: venv dataset test bench bench-service corpus serve clean
+.PHONY: venv dataset test bench bench-service corpus serve logs clean
 
 venv: $(VENV)/.installed
 
@@ -36,6 +36,12 @@ corpus: venv
 
 serve: venv
 	$(PY) -m pipeline serve --dataset data/dataset $(ARGS)
+
+# Push-outcome logs played in pybullet (docs/VALIDATION.md): corpus objects to calibrate on,
+# objects outside the corpus to report on. About 5,000 pushes each; resumable.
+logs: venv
+	$(PY) -m pipeline play --objects corpus --count 42 --out data/logs/corpus $(ARGS)
+	$(PY) -m pipeline play --objects heldout --count 50 --out data/logs/heldout $(ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
