@@ -327,3 +327,12 @@ def test_report_outcomes_outside_the_pose_set_are_their_own_bucket(model_logs):
     assert push.empirical(n_poses)[-1] == 1.0 and push.topple_rate == 1.0
     result = report(log, Config(), ("baseline",), n_resamples=0)
     assert result["variants"]["baseline"]["tv_all"] > 0
+
+
+def test_an_empty_log_file_reads_as_no_rows(tmp_path):
+    """A player that loaded no pushes for an object writes a 0-row part; readers take it as nothing."""
+    from pipeline.studies.logreader import read_tables
+
+    pq.write_table(PUSHLOG.empty_table(), tmp_path / "empty.parquet")
+    table = read_tables([tmp_path / "empty.parquet"])
+    assert table.num_rows == 0 and {"_file", "_row"} <= set(table.column_names)

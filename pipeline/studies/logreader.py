@@ -179,7 +179,7 @@ def read_tables(files: list[Path]) -> pa.Table:
         except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as err:
             raise LogError(f"{file}: columns do not have the push-log types ({str(err).splitlines()[0]})") from None
         n = table.num_rows
-        table = table.append_column("_file", pa.array([str(file)] * n)).append_column("_row", pa.array(np.arange(n)))
+        table = table.append_column("_file", pa.array([str(file)] * n, type=pa.string())).append_column("_row", pa.array(np.arange(n), type=pa.int64()))
         tables.append(table)
     return pa.concat_tables(tables)
 
