@@ -40,6 +40,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import orjson
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL_DATASET = ROOT / "build" / "bench-service-dataset"
@@ -273,8 +274,8 @@ async def run_load(host: str, port: int, seconds: float, connections: int, pid: 
     conn = await Connection(host, port).open()
     requests = await observations(conn, 2000, rng)
     conn.close()
-    plan_bodies = [post("/plan", json.dumps(r).encode()) for r in requests]
-    batch_body = post("/batch/plan", json.dumps({"items": requests[:BATCH_ITEMS]}).encode())
+    plan_bodies = [post("/plan", orjson.dumps(r)) for r in requests]
+    batch_body = post("/batch/plan", orjson.dumps({"items": requests[:BATCH_ITEMS]}))
 
     cpu_before = cpu_seconds(pid)
     throughput = await hammer(host, port, plan_bodies, seconds, connections)
