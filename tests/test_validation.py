@@ -333,6 +333,10 @@ def test_an_empty_log_file_reads_as_no_rows(tmp_path):
     """A player that loaded no pushes for an object writes a 0-row part; readers take it as nothing."""
     from pipeline.studies.logreader import read_tables
 
-    pq.write_table(PUSHLOG.empty_table(), tmp_path / "empty.parquet")
-    table = read_tables([tmp_path / "empty.parquet"])
-    assert table.num_rows == 0 and {"_file", "_row"} <= set(table.column_names)
+    zero = {pa.string(): "", pa.float64(): 0.0, pa.int64(): 0, pa.int32(): 0}
+    one_row = {f.name: None if f.nullable else zero.get(f.type) for f in PUSHLOG}
+    one_row.update(object_id="a", start_transform=np.eye(4).ravel().tolist(), final_transform=np.eye(4).ravel().tolist())
+    pq.write_table(PUSHLOG.empty_table(), tmp_path / "a.parquet")
+    pq.write_table(pa.Table.from_pylist([one_row], schema=PUSHLOG), tmp_path / "b.parquet")
+    table = read_tables([tmp_path / "a.parquet", tmp_path / "b.parquet"])
+    assert table.num_rows == 1 and table.column("_file").to_pylist() == [str(tmp_path / "b.parquet")]
