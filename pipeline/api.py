@@ -51,7 +51,7 @@ def match_pose(observed, poses, transforms=None, tolerance=None, *, table_height
     if transforms is not None:
         tolerance = config.poses.same_pose_angle if tolerance is None else tolerance
         return frames.match_pose(np.asarray(observed, dtype=float), np.asarray(poses), np.asarray(transforms), tolerance)
-    stable = poses.poses if isinstance(poses, (PoseSet, ObjectResult)) else poses
+    stable = poses.poses if isinstance(poses, ObjectResult) else poses
     return observe(observed, stable, tolerance, table_height, config)
 
 

@@ -147,3 +147,67 @@ def test_settle_is_consistent_with_canonical_transforms():
     pose_set = stable_poses(obj)
     for pose in pose_set.poses:
         assert settle(pose_set, obj, pose.transform[:3, :3]) == pose.index
+
+
+def _cylinder(sections=32):
+    from pipeline.model.mesh import model_from_mesh
+
+    return model_from_mesh(trimesh.creation.cylinder(radius=0.03, height=0.1, sections=sections), name="can")
+
+
+def test_symmetric_cylinder_merges_into_two_poses_that_match_any_roll():
+    import pipeline as toppledb
+
+    obj = _cylinder()
+    assert len(stable_poses(obj).poses) == 34, "one pose per hull face without merging"
+    merged = stable_poses(obj, merge_symmetric=True)
+    assert len(merged.poses) == 2
+    side, end = merged.poses
+    assert np.isclose(side.com_height, 0.03 * np.cos(np.pi / 32)) and np.isclose(end.com_height, 0.05)
+    assert np.isclose(side.probability + end.probability, 1.0) and side.probability > end.probability
+    assert [len(e) for e in merged.equivalents] == [32, 2]
+    assert np.all((side.edge_final_pose >= 0) & (side.edge_final_pose < 2))
+    assert set(end.edge_final_pose.tolist()) == {0}, "an end topples onto the side"
+    # Every merged orientation puts the hull exactly where the pose's own transform does.
+    reference = np.sort(transform_points(side.transform, obj.hull.vertices).round(9), axis=0)
+    for transform in merged.equivalents[0]:
+        np.testing.assert_allclose(np.sort(transform_points(transform, obj.hull.vertices).round(9), axis=0), reference, atol=1e-8)
+
+    # Lying rolled by five facets and turned, upside down on its other end: both still match.
+    roll = trimesh.transformations.rotation_matrix(5 * 2 * np.pi / 32, [0, 0, 1])  # about the cylinder's axis
+    observed = trimesh.transformations.rotation_matrix(0.4, [0, 0, 1]) @ side.transform @ roll
+    match = toppledb.match_pose(observed, merged)
+    assert match.pose == 0 and match.angle_error < 1e-9 and abs(match.z_offset) < 1e-9
+    flipped = end.transform @ trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0])
+    assert toppledb.match_pose(flipped, merged).pose == 1
+    assert toppledb.match_pose(observed, merged.poses).pose == -1, "without the equivalents it would not match"
+
+
+def test_box_merges_opposite_faces_only_when_asked():
+    obj = box_object((0.05, 0.08, 0.15))
+    merged = stable_poses(obj, merge_symmetric=True)
+    assert len(merged.poses) == 3 and [len(e) for e in merged.equivalents] == [2, 2, 2]
+    plain = stable_poses(obj)
+    assert np.allclose(sorted(p.probability for p in merged.poses),
+                       sorted(np.add.reduceat(sorted(p.probability for p in plain.poses), [0, 2, 4])))
+
+
+def test_congruent_yaw_finds_the_turn_or_none():
+    from pipeline.model.poses import congruent_yaw
+
+    square = trimesh.creation.box([0.04, 0.04, 0.1]).vertices
+    turned = square @ trimesh.transformations.rotation_matrix(0.3, [0, 0, 1])[:3, :3].T
+    yaw = congruent_yaw(square, turned, 1e-9)
+    assert yaw is not None and np.isclose(np.mod(yaw - 0.3, np.pi / 2), 0, atol=1e-9) | np.isclose(np.mod(yaw - 0.3, np.pi / 2), np.pi / 2)
+    oblong = trimesh.creation.box([0.04, 0.05, 0.1]).vertices
+    assert congruent_yaw(square, oblong, 1e-6) is None
+
+
+def test_a_sphere_has_no_stable_pose_worth_pushing():
+    from pipeline.model.mesh import MeshError, model_from_mesh
+
+    for mesh in (trimesh.creation.uv_sphere(radius=0.05), trimesh.creation.icosphere(subdivisions=2, radius=0.05)):
+        with pytest.raises(MeshError, match="ball: no stable pose worth pushing: nearly a sphere"):
+            stable_poses(model_from_mesh(mesh, name="ball"))
+    assert len(stable_poses(_cylinder(12)).poses) == 14, "a can is not a ball"
+    assert len(stable_poses(box_object((0.1, 0.1, 0.1)), merge_symmetric=True).poses) == 1, "a cube is one pose"

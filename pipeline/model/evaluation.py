@@ -226,13 +226,14 @@ class ObservedPose(PoseMatch):
 
 def observe(
     observed: np.ndarray,
-    poses: list[StablePose],
+    poses: list[StablePose] | PoseSet,
     tolerance: float | None = None,
     table_height: float = 0.0,
     config: Config = Config(),
 ) -> ObservedPose:
     """Match an observed 4x4 pose (object -> world, z up) to the nearest stable pose.
 
+    poses : the stable poses, or a ``PoseSet`` (whose merged symmetric orientations also match)
     tolerance : rad, largest angle between down vectors (default ``config.poses.same_pose_angle``, 10 deg)
     table_height : m, the table's z in the world frame; ``z_offset`` is measured from it
     """
@@ -240,12 +241,15 @@ def observe(
     if observed.shape != (4, 4) or not np.all(np.isfinite(observed)):
         raise ValueError("observed must be a finite (4, 4) object-to-world transform")
     tolerance = config.poses.same_pose_angle if tolerance is None else tolerance
-    downs = np.array([p.down for p in poses])
-    transforms = np.array([p.transform for p in poses])
+    if isinstance(poses, PoseSet):
+        downs, transforms, owner = poses.match_arrays()
+    else:
+        downs, transforms = np.array([p.down for p in poses]), np.array([p.transform for p in poses])
+        owner = np.arange(len(poses))
     match = match_pose(observed, downs, transforms, np.inf)  # the nearest pose, whatever its angle
     pose_to_world = observed @ np.linalg.inv(transforms[match.pose])
     return ObservedPose(
-        pose=match.pose if match.angle_error <= tolerance else -1,
+        pose=int(owner[match.pose]) if match.angle_error <= tolerance else -1,
         angle_error=match.angle_error,
         yaw=match.yaw,
         translation=match.translation,

@@ -9,6 +9,15 @@ from the centre of mass, of the faces that drain into it.
 
 One graph serves the pose list, the topple outcomes and settling from an
 arbitrary orientation, so every pose a topple can reach is a pose of the list.
+
+Rotationally symmetric objects (a cylinder, a can, a prism) have many sinks that
+are the same resting pose turned about the centre of mass: their hulls, seen in
+their canonical pose frames, coincide after a yaw about the vertical.  With
+``merge_symmetric`` such poses are merged into one (``congruent_yaw``;
+docs/MODEL.md, "Symmetric objects"), so a 32-sided cylinder has two poses, not 34,
+and ``PoseSet.equivalents`` keeps every merged orientation for matching.  A nearly
+spherical object has no stable pose worth pushing (it rolls) and is rejected with
+that reason.
 ``tests/test_poses.py`` holds it against ``trimesh.poses.compute_stable_poses``.
 """
 
@@ -18,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from schema.frames import canonical_transform, transform_points, unit
 
@@ -138,6 +148,19 @@ class PoseSet:
 
     poses: list[StablePose]
     face_pose: np.ndarray
+    equivalents: list[np.ndarray] | None = None
+    """With ``merge_symmetric``: per pose, (k, 4, 4) transforms object -> this pose's frame,
+    one per merged orientation (its own ``transform`` first); None when nothing was merged."""
+
+    def match_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(downs (M, 3), transforms (M, 4, 4), pose of each (M,)) over every orientation
+        that is a pose, merged equivalents included: what ``match_pose`` searches."""
+        if self.equivalents is None:
+            return self.downs, self.transforms, np.arange(len(self.poses))
+        transforms = np.concatenate(self.equivalents)
+        downs = np.einsum("mji,j->mi", transforms[:, :3, :3], [0.0, 0.0, -1.0])
+        owner = np.concatenate([np.full(len(e), i) for i, e in enumerate(self.equivalents)])
+        return downs, transforms, owner
 
     @property
     def downs(self) -> np.ndarray:
@@ -160,14 +183,82 @@ def stability_margin(pose: StablePose, center_mass: np.ndarray) -> tuple[float, 
     return float(geometry.com_distance[edge]), edge
 
 
-def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig()) -> PoseSet:
+SYMMETRY_TOLERANCE = 1e-6
+"""Relative to the hull's size: two poses are one when their hulls coincide, after a yaw,
+to this fraction of the bounding-box diagonal (CAD-exact symmetry; scans rarely qualify)."""
+SPHERE_RADIUS_RATIO = 0.95
+"""Nearly a sphere: every hull face's plane at least this fraction of the farthest hull
+vertex's distance from the centre of mass.  Such an object rolls on any push."""
+
+
+def congruent_yaw(a: np.ndarray, b: np.ndarray, tolerance: float) -> float | None:
+    """A yaw (rad) that turns point set ``a`` onto ``b`` about the z axis, or None.
+
+    a, b : (n, 3) float, m, hull vertices in two pose frames (z up, centre of mass on the z axis)
+    tolerance : m, largest distance from a turned point of ``a`` to its nearest in ``b``
+    """
+    if len(a) != len(b):
+        return None
+    tree = cKDTree(b)
+    radius_a, radius_b = np.hypot(a[:, 0], a[:, 1]), np.hypot(b[:, 0], b[:, 1])
+    anchor = int(np.argmax(radius_a))  # the farthest from the axis has a well-defined azimuth
+    candidates = np.flatnonzero(
+        (np.abs(radius_b - radius_a[anchor]) <= tolerance) & (np.abs(b[:, 2] - a[anchor, 2]) <= tolerance)
+    )
+    for k in candidates:
+        yaw = np.arctan2(b[k, 1], b[k, 0]) - np.arctan2(a[anchor, 1], a[anchor, 0])
+        c, s = np.cos(yaw), np.sin(yaw)
+        turned = a @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        distance, _ = tree.query(turned, distance_upper_bound=2 * tolerance)
+        if np.all(distance <= tolerance):
+            return float(yaw)
+    return None
+
+
+def symmetric_groups(vertices: list[np.ndarray], com_heights: np.ndarray, order: np.ndarray, tolerance: float) -> np.ndarray:
+    """Representative of each candidate pose: the first in ``order`` whose hull it matches.
+
+    vertices : per candidate (n, 3) float, hull vertices in its pose frame
+    com_heights : (C,) float, m;  order : candidates, most probable first
+    returns : (C,) int, index of each candidate's representative (itself when unique)
+    """
+    representative = np.arange(len(vertices))
+    representatives: list[int] = []
+    for i in order.tolist():
+        for r in representatives:
+            if abs(com_heights[i] - com_heights[r]) <= tolerance and congruent_yaw(vertices[i], vertices[r], tolerance) is not None:
+                representative[i] = r
+                break
+        else:
+            representatives.append(i)
+    return representative
+
+
+def check_not_spherical(obj: ObjectModel) -> None:
+    """Reject an object that rolls in every pose (``SPHERE_RADIUS_RATIO``): the centre of
+    mass is nearly as far from every hull face's plane (its height resting on that face)
+    as from the farthest hull vertex."""
+    hull = obj.hull
+    heights = np.einsum("ij,ij->i", hull.triangles[:, 0] - obj.center_mass, hull.face_normals)
+    radius = float(np.linalg.norm(np.asarray(hull.vertices) - obj.center_mass, axis=1).max())
+    if heights.min() >= SPHERE_RADIUS_RATIO * radius:
+        raise MeshError(
+            f"{obj.name}: no stable pose worth pushing: nearly a sphere (resting on any face, its centre of "
+            f"mass is within {100 * (1 - SPHERE_RADIUS_RATIO):.0f}% of its farthest point's distance), so it rolls"
+        )
+
+
+def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symmetric: bool = False) -> PoseSet:
     """Stable poses of ``obj`` with probability >= ``config.min_probability``, plus
     every pose reachable from them by toppling over a base edge.
 
     Sink facets whose down vectors lie within ``config.same_pose_angle`` merge into
-    one pose (the more probable facet gives the down vector).
+    one pose (the more probable facet gives the down vector).  ``merge_symmetric``
+    also merges poses that are the same resting pose turned (``symmetric_groups``).
+    Raises ``MeshError`` for a nearly spherical object (``check_not_spherical``).
     """
     hull, com = obj.hull, obj.center_mass
+    check_not_spherical(obj)
     try:
         sink = sink_faces(topple_graph(hull, com))
     except ValueError as err:
@@ -195,8 +286,28 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig()) -> PoseSet
 
     geometry = [_pose_geometry(obj, down, face_candidate, i, config) for i, down in enumerate(downs)]
 
+    # Symmetric objects: candidates whose hulls coincide after a yaw are one pose.
+    representative = np.arange(len(downs))
+    if merge_symmetric:
+        tolerance = SYMMETRY_TOLERANCE * float(np.linalg.norm(hull.extents))
+        representative = symmetric_groups(
+            [transform_points(g["transform"], hull.vertices) for g in geometry],
+            np.array([g["com_height"] for g in geometry]),
+            np.argsort(-candidate_probability, kind="stable"),
+            tolerance,
+        )
+    merged = bool(np.any(representative != np.arange(len(downs))))
+    if merged:
+        candidate_probability = np.bincount(representative, weights=candidate_probability, minlength=len(downs))
+        face_candidate = representative[face_candidate]
+        for g in geometry:
+            g["edge_final_pose"] = representative[g["edge_final_pose"]]
+        candidate_probability[representative != np.arange(len(downs))] = -1.0  # never kept
+
     # Keep probable poses and close the set under toppling.
-    keep = set(np.flatnonzero(candidate_probability >= config.min_probability).tolist()) or {0}
+    keep = set(np.flatnonzero(candidate_probability >= config.min_probability).tolist()) or {
+        int(np.argmax(candidate_probability))
+    }
     frontier = list(keep)
     while frontier:
         for target in geometry[frontier.pop()]["edge_final_pose"].tolist():
@@ -224,7 +335,24 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig()) -> PoseSet
                 apex_angle=g["apex_angle"],
             )
         )
-    return PoseSet(poses=poses, face_pose=new_index[face_candidate])
+    equivalents = None
+    if merged:
+        equivalents = []
+        for old in kept:
+            members = [old] + [j for j in np.flatnonzero(representative == old).tolist() if j != old]
+            equivalents.append(np.array([_aligned(obj, geometry[j]["transform"], geometry[old]["transform"], tolerance)
+                                         for j in members]))
+    return PoseSet(poses=poses, face_pose=new_index[face_candidate], equivalents=equivalents)
+
+
+def _aligned(obj: ObjectModel, transform: np.ndarray, reference: np.ndarray, tolerance: float) -> np.ndarray:
+    """``transform`` turned about z so that the hull lands where ``reference`` puts it."""
+    yaw = congruent_yaw(
+        transform_points(transform, obj.hull.vertices), transform_points(reference, obj.hull.vertices), tolerance
+    )
+    turn = np.eye(4)
+    turn[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    return turn @ transform
 
 
 def _pose_geometry(obj: ObjectModel, down: np.ndarray, face_pose: np.ndarray, index: int, config: PoseConfig) -> dict:
