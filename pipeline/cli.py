@@ -32,6 +32,7 @@ DELEGATED = {
     "report": ("pipeline.studies.validation", "score the model variants against push logs (validation report)"),
     "calibrate": ("pipeline.studies.calibrate", "search the noise parameters on push logs, write a config TOML"),
     "serve": ("service.__main__", "serve a finished dataset over HTTP (make serve)"),
+    "figures": ("pipeline.studies.figures", "draw thesis figures 4.5 and 4.6 for a mesh (PNG) and a 3D view (GLB)"),
     "play": ("pipeline.studies.playlog", "play pushes in pybullet and write a push-outcome log"),
     "policies-physics": ("pipeline.studies.policies_physics", "play each policy's pushes in pybullet from dropped poses"),
 }

@@ -1,0 +1,61 @@
+"""Pictures of one object (thesis figures 4.5 and 4.6): the images hold what they claim."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from shapes import random_object
+
+import pipeline as toppledb
+from pipeline.studies import figures
+from schema.vocabulary import STATUS_NAMES
+
+CONFIG = toppledb.Config().with_overrides({
+    "contacts.n_contacts": 40, "topple.n_trials": 5, "suction.n_candidates": 20, "suction.n_samples": 5,
+})
+
+
+@pytest.fixture(scope="module")
+def evaluated():
+    obj = random_object(1)
+    return obj, toppledb.evaluate_object(obj, CONFIG)
+
+
+def _image(path):
+    import matplotlib.image
+
+    image = matplotlib.image.imread(path)
+    assert image.ndim == 3 and image.shape[0] >= 400 and image.shape[1] >= 400
+    assert image[..., :3].std() > 0.05, "not blank"
+    return image[..., :3]
+
+
+def test_graph_figure_has_one_node_per_pose(evaluated, tmp_path):
+    from scipy import ndimage
+
+    _, result = evaluated
+    drawn = figures.graph_figure(result, tmp_path / "graph.png")
+    image = _image(tmp_path / "graph.png")
+    magenta = (image[..., 0] > 0.9) & (image[..., 1] < 0.15) & (image[..., 2] > 0.9)
+    labels, count = ndimage.label(magenta)
+    sizes = np.bincount(labels.ravel())[1:]
+    assert drawn["nodes"] == len(result.poses) == int(np.sum(sizes > 20)), "one outlined node per pose"
+    edges = figures.topple_edges(result)
+    assert drawn["edges"] == len(edges) > 0
+    assert all(0 < p <= 1 and a != b for (a, b), p in edges.items())
+
+
+def test_pushes_figure_and_3d_scene(evaluated, tmp_path):
+    import trimesh
+
+    obj, result = evaluated
+    drawn = figures.pushes_figure(obj, result, 0, tmp_path / "pushes.png")
+    image = _image(tmp_path / "pushes.png")
+    colourful = np.ptp(image, axis=2) > 0.3  # the viridis contacts and the colour bar, not greys
+    assert colourful.mean() > 0.005
+    ok = list(STATUS_NAMES).index("ok")
+    assert drawn["contacts"] == int(np.sum(result.actions[0].status == ok)) > 0
+    figures.scene_file(obj, result, 0, tmp_path / "object.glb")
+    scene = trimesh.load(tmp_path / "object.glb")
+    clouds = [g for g in scene.geometry.values() if isinstance(g, trimesh.PointCloud)]
+    assert len(clouds) == 1 and len(clouds[0].vertices) == drawn["contacts"]
