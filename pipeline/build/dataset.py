@@ -460,6 +460,17 @@ def add_object(
     specs = [ObjectSpec(**o.model_dump()) for o in current.corpus.objects]
     if any(s.object_id == spec.object_id for s in specs):
         raise OutputError(f"{root} already has an object {spec.object_id!r}; choose another --id")
+    if specs and current.shards:
+        # Code that added or changed parameters since the build cannot extend it consistently.
+        first = next(iter(current.shards))
+        record = shards.read_record(root, first) or {}
+        expected = shards.shard_inputs(next(s for s in specs if s.object_id == first), config)
+        if record.get("fingerprint") != shards.fingerprint(expected):
+            differences = shards.input_differences(record.get("inputs") or {}, expected)
+            raise BuildError(
+                f"{root} was built with parameters this code no longer gives it ({'; '.join(differences[:3]) or 'schema'}); "
+                "`add` needs the code that built it: rebuild the dataset with this code (toppledb dataset --force) first"
+            )
     previous = {
         f.object_id: Failure(f.object_id, f.reason, f.kind, f.detail) for f in current.failures
     }
