@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -322,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
     server = subprocess.Popen(
         [sys.executable, "-m", "service", "--dataset", str(dataset), "--port", str(port), "--workers", str(args.workers),
          "--log-level", "warning", "--watch-seconds", "0"],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
     )
     try:
         startup = _wait_for_health(port, server, launched)
@@ -335,15 +336,27 @@ def main(argv: list[str] | None = None) -> int:
         result = runner(run_load("127.0.0.1", port, args.seconds, args.connections, server.pid))
         memory = memory_mb(server.pid)
     finally:
-        server.terminate()
-        try:
-            server.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_group(server)
     line = {"dataset": str(dataset), "workers": args.workers, "startup_s": round(startup, 3), **result,
             "memory": memory, "load_average": round(load_average, 2)}
     print(json.dumps(line))
     return 0 if result["errors"] == 0 else 1
+
+
+def stop_group(server: subprocess.Popen) -> None:
+    """SIGTERM the server's whole process group (workers, batch processes), SIGKILL what is left."""
+    import signal
+
+    try:
+        os.killpg(server.pid, signal.SIGTERM)
+        server.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        pass
+    except ProcessLookupError:
+        return
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(server.pid, signal.SIGKILL)
+    server.wait()
 
 
 def _wait_for_health(port: int, server: subprocess.Popen, launched: float, timeout: float = 120.0) -> float:

@@ -21,8 +21,11 @@ worker, beyond which a batch is refused at once with 503.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import ctypes
 import multiprocessing
 import os
+import signal
 import sys
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -37,6 +40,8 @@ SWITCH_INTERVAL = 0.0005
 thread holds the interpreter lock before the event loop may run."""
 
 LANE_ENV = "TOPPLEDB_BATCH_LANE"
+PR_SET_PDEATHSIG = 1
+"""Linux prctl option: a signal the kernel sends this process when its parent exits."""
 
 _forked: tuple | None = None
 """(store, settings) the process lane's child answers from: set just before it is forked."""
@@ -44,6 +49,20 @@ _forked: tuple | None = None
 
 class LaneBusy(ServiceError):
     status_code = 503
+
+
+def _child_init(parent: int) -> None:
+    """In the forked batch process: die with the worker, and leave signals to the worker.
+
+    The fork inherits the server's signal handlers, which would keep the child alive on
+    SIGTERM; and a worker killed outright must not leave its child behind."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group; the worker decides
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:  # the worker died before prctl took effect
+        os._exit(0)
 
 
 def _child_answer(kind: str, body: bytes) -> bytes:
@@ -75,9 +94,11 @@ class Lane:
         if self._executor is None or self._store is not store:
             global _forked
             if self._executor is not None:
-                self._executor.shutdown(wait=False)  # its running batch finishes on the old build
+                self._executor.shutdown(wait=False)  # its running batch finishes on the old build, then it exits
             _forked = (store, settings)
-            self._executor = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("fork"))
+            self._executor = ProcessPoolExecutor(
+                max_workers=1, mp_context=multiprocessing.get_context("fork"), initializer=_child_init, initargs=(os.getpid(),)
+            )
             self._store = store
         return self._executor
 
@@ -101,7 +122,10 @@ class Lane:
             self.waiting -= 1
 
     def close(self) -> None:
+        """Stop the lane; a batch process is terminated (it holds no state worth waiting for)."""
         if self._executor is not None:
+            for process in list(getattr(self._executor, "_processes", {}).values()):
+                process.terminate()
             self._executor.shutdown(wait=False, cancel_futures=True)
             self._executor = None
 

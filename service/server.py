@@ -26,6 +26,8 @@ DEFAULT_LIMIT_CONCURRENCY = 256
 DEFAULT_KEEP_ALIVE = 5
 DEFAULT_REQUEST_TIMEOUT = 10.0
 REQUEST_TIMEOUT_ENV = "TOPPLEDB_REQUEST_TIMEOUT"
+WORKER_STARTUP_TIMEOUT = 300
+"""s a uvicorn worker may take to load the dataset and answer its first health check."""
 
 log = logging.getLogger("service")
 
@@ -108,6 +110,9 @@ def run(
         log.warning("httptools is not installed: h11 parser, no request timeout for incomplete requests")
     if workers > 1:
         export_settings(settings)
-        uvicorn.run("service.app:create_app", factory=True, workers=workers, **options)
+        # A worker answers uvicorn's health check only once it has loaded the dataset (seconds for
+        # the full one on a busy machine); uvicorn's 5 s default would kill and restart it forever.
+        uvicorn.run("service.app:create_app", factory=True, workers=workers, timeout_worker_healthcheck=WORKER_STARTUP_TIMEOUT,
+                    **options)
     else:
         uvicorn.run(app, **options)

@@ -5,6 +5,7 @@ app factory under uvicorn's workers (the tiny dataset of tests/test_service.py).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -16,6 +17,7 @@ import time
 from pathlib import Path
 
 import httpx
+import psutil
 import pytest
 from fastapi.testclient import TestClient
 
@@ -92,7 +94,7 @@ def start(args: list[str], env: dict | None = None) -> tuple[subprocess.Popen, s
     port = free_port()
     process = subprocess.Popen(
         [*args, "--port", str(port)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+        env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}, start_new_session=True,
     )
     url = f"http://127.0.0.1:{port}"
 
@@ -103,16 +105,22 @@ def start(args: list[str], env: dict | None = None) -> tuple[subprocess.Popen, s
         except httpx.TransportError:
             return False
 
-    wait_for(up, "the server to answer /health")
+    try:
+        wait_for(up, "the server to answer /health")
+    except BaseException:
+        stop(process)
+        raise
     return process, url
 
 
 def stop(process: subprocess.Popen) -> tuple[str, str]:
+    """SIGINT the server; then SIGKILL its whole process group (workers too) if it lingers."""
     process.send_signal(signal.SIGINT)
     try:
         out, err = process.communicate(timeout=20)
     except subprocess.TimeoutExpired:
-        process.kill()
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)  # the server and its workers
         out, err = process.communicate()
     return out.decode(), err.decode()
 
@@ -137,9 +145,17 @@ def test_server_closes_unfinished_requests_reloads_on_sighup_and_logs_no_access_
         process.send_signal(signal.SIGHUP)
         wait_for(lambda: httpx.get(f"{url}/health").json()["reloads"] == 1, "SIGHUP to reload")
         assert httpx.get(f"{url}/health").json()["dataset"]["created"].startswith("2032")
+        item = {"object_id": "random_001", "pose": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}
+        assert httpx.post(f"{url}/batch/plan", json={"items": [item]}).status_code == 200  # forks the batch process
+        children = psutil.Process(process.pid).children(recursive=True)
+        assert children, "the batch lane runs in a child process"
     finally:
         out, err = stop(process)
     assert "GET /objects" not in out + err, "no access log line per request by default"
+    _, alive = psutil.wait_procs(children, timeout=DEADLINE)
+    for leftover in alive:
+        leftover.kill()
+    assert not alive, "the batch process must not outlive its server"
 
 
 @pytest.mark.slow
