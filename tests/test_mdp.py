@@ -200,7 +200,7 @@ def test_greedy_values_are_expected_next_grasp_quality():
 
 def test_figure_4_6_greedy_no_ops_while_value_iteration_acts():
     next_pose, v_s = figure_4_6()
-    v, q = solve(next_pose, v_s)
+    _, q = solve(next_pose, v_s)
     greedy = greedy_values(next_pose, v_s)
     g = greedy_policy(0, v_s, greedy[0])
     assert (g.action, g.value) == (NO_OP, pytest.approx(0.4))

@@ -1,5 +1,6 @@
 """The toppling model: analytic cases and invariants (thesis 4.2, docs/MODEL.md 7)."""
 
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -209,3 +210,14 @@ def test_noise_free_variants_draw_nothing(variant):
     np.testing.assert_array_equal(noise.rotation_angle, np.zeros((4, 1)))
     assert noise.rotation_axis.shape == (4, 1, 3)
     np.testing.assert_allclose(np.linalg.norm(noise.rotation_axis, axis=-1), 1.0)
+
+
+def test_pushes_that_never_topple_give_nan_force_without_warnings(box):
+    # No toppling trial: mean_force is NaN (not 0, not a RuntimeWarning in the job's log).
+    obj, pose_set, standing = box
+    away = np.tile([1.0, 0.0, 0.0], (2, 1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        table = evaluate(obj, pose_set, standing, points=_side_pushes([0.05, 0.14]), directions=away, n_trials=20).table
+    assert np.all(table.p_topple == 0) and np.all(np.isnan(table.mean_force))
+    assert table.outcomes.dtype == np.int16  # the HDF5 layout's dtype (schema/hdf5.py)
