@@ -38,10 +38,11 @@ serve: venv
 	$(PY) -m pipeline serve --dataset data/dataset $(ARGS)
 
 # Push-outcome logs played in pybullet (docs/VALIDATION.md): corpus objects to calibrate on,
-# objects outside the corpus to report on. About 5,000 pushes each; resumable.
+# objects outside the corpus to report on. About 5,000 pushes each; resumable. The player's
+# noise and push sampling are the thesis's, so the simulated world stays put when the model is tuned.
 logs: venv
-	$(PY) -m pipeline play --objects corpus --count 42 --out data/logs/corpus $(ARGS)
-	$(PY) -m pipeline play --objects heldout --count 50 --out data/logs/heldout $(ARGS)
+	$(PY) -m pipeline play --config thesis --objects corpus --count 42 --out data/logs/corpus $(ARGS)
+	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --out data/logs/heldout $(ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

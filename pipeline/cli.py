@@ -23,7 +23,7 @@ import sys
 import tomllib
 from pathlib import Path
 
-from .model.config import VARIANTS, Config
+from .model.config import PRESETS, VARIANTS, Config
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -197,10 +197,14 @@ def _add_execution(command: argparse.ArgumentParser) -> None:
 def make_config(args: argparse.Namespace) -> Config:
     """Defaults, then --config, then --set, then the dedicated flags."""
     if args.config is not None:
-        if not args.config.is_file():
-            raise UsageError(f"config file not found: {args.config}")
+        path = Path(args.config)
+        if not path.is_file() and (PRESETS / f"{args.config}.toml").is_file():
+            path = PRESETS / f"{args.config}.toml"  # a preset name, e.g. --config thesis
+        if not path.is_file():
+            presets = ", ".join(sorted(p.stem for p in PRESETS.glob("*.toml")))
+            raise UsageError(f"config file not found: {args.config} (presets: {presets})")
         try:
-            config = Config.from_toml(args.config)
+            config = Config.from_toml(path)
         except tomllib.TOMLDecodeError as err:
             raise UsageError(f"{args.config}: not valid TOML ({err})") from None
         except ValueError as err:
@@ -292,11 +296,12 @@ def run_corpus(args: argparse.Namespace) -> int:
 
 
 def run_add(args: argparse.Namespace) -> int:
+    from schema.layout import check_object_id
+    from schema.manifest import ManifestError, read_manifest
+
     from .build.atomic import file_sha256
     from .build.corpus import ObjectSpec, mass_from_density, object_id_from_name
     from .build.dataset import add_object
-    from schema.layout import check_object_id
-    from schema.manifest import ManifestError, read_manifest
 
     units = corpus_units(args)
     mesh = args.mesh.resolve()
@@ -328,9 +333,9 @@ def run_add(args: argparse.Namespace) -> int:
 def run_policies(args: argparse.Namespace) -> int:
     import json
 
-    from .studies.policy_experiment import experiment, plot, summary
-
     from schema.reader import Dataset, DatasetUnreadable
+
+    from .studies.policy_experiment import experiment, plot, summary
 
     try:
         Dataset.open(args.directory)

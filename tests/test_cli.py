@@ -27,7 +27,7 @@ def test_parameters_come_from_defaults_toml_set_then_flags(tmp_path):
     assert config.topple.n_trials == 20, "--set overrides the TOML file"
     assert config.mdp.gamma == 0.9
     assert config.contacts.n_contacts == 30, "dedicated flags override everything"
-    assert config.topple.variant == "robust"
+    assert config.topple.variant == "corrected", "the default variant"
 
 
 @pytest.mark.parametrize(

@@ -5,16 +5,32 @@ import re
 
 import pytest
 
-from pipeline.model.config import Config, ContactConfig, Range, field_range, parameter_table
+from pipeline.model.config import PRESETS, Config, ContactConfig, Range, field_range, parameter_table
 
 
-def test_defaults_are_the_thesis_values():
+def test_defaults_are_the_calibrated_corrected_model_and_the_thesis_preset_is_the_thesis():
     config = Config()
-    assert config.topple.mu_table_mean == 0.43 and config.topple.mu_finger_mean == 0.98
+    assert config.topple.variant == "corrected" and config.topple.applied_corrections == {"finger_friction", "force_limit"}
     assert config.topple.n_trials == 100 and config.contacts.n_contacts == 1000
-    assert config.topple.rotation_std == 0.22 and config.topple.contact_std == 5.05e-4
     assert config.mdp.gamma == 0.95
     assert math.isclose(config.poses.same_pose_angle, math.radians(10))
+    thesis = Config.from_toml(PRESETS / "thesis.toml")
+    assert thesis.topple.variant == "robust" and thesis.topple.applied_corrections == frozenset()
+    assert thesis.topple.mu_table_mean == 0.43 and thesis.topple.mu_finger_mean == 0.98
+    assert thesis.topple.rotation_std == 0.22 and thesis.topple.contact_std == 5.05e-4
+    assert (thesis.topple.mu_table_std, thesis.topple.mu_finger_std, thesis.topple.direction_std) == (0.1, 0.2, 0.055)
+    # Only the model's noise and variant differ: everything else is the same config.
+    assert thesis.with_overrides({"topple.variant": "corrected"}).contacts == config.contacts
+
+
+def test_the_calibrated_defaults_are_the_shipped_calibration_rounded():
+    """config.py's noise defaults are reports/calibrated_corrected.toml to three significant digits."""
+    import tomllib
+    from pathlib import Path
+
+    calibrated = tomllib.loads((Path(__file__).parents[1] / "reports" / "calibrated_corrected.toml").read_text())["topple"]
+    for key, value in calibrated.items():
+        assert math.isclose(getattr(Config().topple, key), float(f"{value:.3g}")), key
 
 
 def test_round_trip_and_overrides(tmp_path):
@@ -67,3 +83,12 @@ def test_ranges_live_on_the_fields_and_accept_the_defaults():
     assert Config.from_dict(Config().to_dict()) == Config(), "the defaults pass their own checks"
     assert field_range(ContactConfig, "n_contacts") == Range(1, None)
     assert Range(0.0, 1.0, lo_open=True).contains(1.0) and not Range(0.0, 1.0, lo_open=True).contains(0.0)
+
+
+def test_config_accepts_a_preset_name_and_lists_the_presets_when_it_is_neither():
+    from pipeline.cli import UsageError, make_config, parser
+
+    config = make_config(parser().parse_args(["dataset", "--config", "thesis"]))
+    assert config.topple.variant == "robust" and config.topple.mu_finger_mean == 0.98
+    with pytest.raises(UsageError, match=r"config file not found: nothing \(presets: thesis\)"):
+        make_config(parser().parse_args(["dataset", "--config", "nothing"]))
