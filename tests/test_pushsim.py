@@ -262,3 +262,24 @@ def test_an_object_that_leaves_its_pose_before_the_push_is_noticed():
     assert not playlog.left_pose(np.eye(4), np.array([0.0, 0.0, -1.0]), tolerance)
     assert playlog.left_pose(tipped, np.array([0.0, 0.0, -1.0]), tolerance)
     assert not playlog.left_pose(tipped, tipped[:3, :3].T @ [0.0, 0.0, -1.0], tolerance)
+
+
+def test_repeats_of_one_push_are_played_with_their_own_noise(reference_log):
+    """Validation means something only if the simulated world varies: every repeat of a push
+    draws its own friction (and contact and direction), from the configured spreads."""
+    rows = playlog.read_log(reference_log).to_pylist()
+    frictions: dict[tuple, list[float]] = {}
+    for row in rows:
+        frictions.setdefault((row["object_id"], row["push_id"]), []).append((row["mu_table"], row["mu_finger"]))
+    assert all(len(set(draws)) == len(draws) for draws in frictions.values())
+
+
+def test_push_noise_follows_the_configured_distributions():
+    topple = TINY.topple
+    draws = [draw_noise(TINY, np.random.default_rng(seed), True) for seed in range(2000)]
+    mu_table = np.array([d.mu_table for d in draws])
+    assert abs(np.median(mu_table) - topple.mu_table_mean) < 4 * topple.mu_table_std / np.sqrt(2000) * 1.26
+    contact = np.array([d.contact_offset for d in draws])
+    assert np.allclose(contact.std(axis=0), topple.contact_std, rtol=0.1)
+    direction = np.array([d.direction_offset for d in draws])
+    assert np.allclose(direction.std(axis=0), topple.direction_std, rtol=0.1)
