@@ -48,6 +48,24 @@ def _stage(timings: dict[str, float], name: str) -> Iterator[None]:
         timings[name] = timings.get(name, 0.0) + time.process_time() - start
 
 
+class _PoseClock:
+    """Wall-clock seconds of each timed step, appended per name; does nothing without a dict."""
+
+    def __init__(self, seconds: dict[str, list[float]] | None):
+        self.seconds = seconds
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        if self.seconds is None:
+            yield
+            return
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds.setdefault(name, []).append(time.perf_counter() - start)
+
+
 def load_object(spec: Spec, config: Config) -> ObjectModel:
     """The spec's mesh, validated; raises ``MeshError`` with a one-line reason."""
     return load_mesh(spec.path, scale=spec.scale, mass=spec.mass, name=spec.object_id, config=config.mesh)
@@ -76,6 +94,7 @@ def evaluate_object(
     *,
     object_id: str | None = None,
     timings: dict[str, float] | None = None,
+    pose_seconds: dict[str, list[float]] | None = None,
 ) -> ObjectResult:
     """One loaded object end to end, exactly as the dataset job computes it: stable
     poses, each pose's candidate pushes and toppling table, V_s and best grasp, value
@@ -83,23 +102,33 @@ def evaluate_object(
 
     object_id : the id in the result (default ``obj.name``); random streams use ``obj.name``
     timings : dict to add CPU seconds per stage to
+    pose_seconds : if given, wall seconds per pose are appended under ``actions``, ``topple``
+      and ``suction``, and per object under ``shared_contacts`` and ``mdp`` (``make bench``)
     """
     timings = {} if timings is None else timings
+    clock = _PoseClock(pose_seconds)
     with _stage(timings, "poses"):
         pose_set = stable_poses(obj, config.poses)
     poses = pose_set.poses
     with _stage(timings, "contacts"):
-        points, normals = object_contacts(obj, config.contacts, config.seed)
-        mesh_collision = collision_object(obj.mesh)
-        actions = [pose_actions(points, normals, obj.mesh, mesh_collision, p.transform, config.contacts) for p in poses]
+        with clock("shared_contacts"):
+            points, normals = object_contacts(obj, config.contacts, config.seed)
+            mesh_collision = collision_object(obj.mesh)
+        actions = []
+        for p in poses:
+            with clock("actions"):
+                actions.append(pose_actions(points, normals, obj.mesh, mesh_collision, p.transform, config.contacts))
     with _stage(timings, "topple"):
-        tables = [
-            evaluate_pose(obj, p, len(poses), a, config.topple, stream(config.seed, obj.name, p.index, "trials"))
-            for p, a in zip(poses, actions)
-        ]
+        tables = []
+        for p, a in zip(poses, actions):
+            with clock("topple"):
+                tables.append(evaluate_pose(obj, p, len(poses), a, config.topple, stream(config.seed, obj.name, p.index, "trials")))
     with _stage(timings, "suction"):
-        suction = [pose_suction(obj, p, config) for p in poses]
-    with _stage(timings, "mdp"):
+        suction = []
+        for p in poses:
+            with clock("suction"):
+                suction.append(pose_suction(obj, p, config))
+    with _stage(timings, "mdp"), clock("mdp"):
         values = pose_values(
             [t.next_pose for t in tables],
             np.array([s.quality for s in suction]),

@@ -24,15 +24,11 @@ import numpy as np  # noqa: E402
 
 from schema.vocabulary import STATUS_OK  # noqa: E402
 
-from ..model.collision import collision_object  # noqa: E402
 from ..model.config import Config  # noqa: E402
-from ..model.contacts import object_contacts, pose_actions  # noqa: E402
-from ..model.evaluation import load_object, pose_suction  # noqa: E402
-from ..model.mdp import pose_values  # noqa: E402
-from ..model.poses import stable_poses  # noqa: E402
+from ..model.evaluation import evaluate_object, load_object  # noqa: E402
 from ..model.reference import draw_of, reference_trial, scene_from_pose  # noqa: E402
 from ..model.rng import stream  # noqa: E402
-from ..model.topple import evaluate_pose, sample_noise  # noqa: E402
+from ..model.topple import sample_noise  # noqa: E402
 
 THESIS_SECONDS_PER_POSE = 40.47
 
@@ -55,32 +51,27 @@ def pin_to_one_core() -> int:
 
 
 def run(n_objects: int, reference_trials: int, config: Config) -> dict:
+    """Time ``evaluate_object`` (the dataset job's own per-object evaluation) on each object,
+    per pose, and re-run a subsample of its trials in the scalar reference."""
     pose_seconds, suction_seconds, vi_seconds = [], [], []
     engine_seconds = engine_trials = 0.0
     reference_seconds, reference_count = 0.0, 0
     per_object_reference = max(1, reference_trials // n_objects)
+    topple = config.topple
     for spec in bench_specs(n_objects):
         obj = load_object(spec, config)
-        poses = stable_poses(obj, config.poses).poses
-        start = time.perf_counter()
-        points, normals = object_contacts(obj, config.contacts, config.seed)
-        mesh_collision = collision_object(obj.mesh)
-        shared = (time.perf_counter() - start) / len(poses)
-        tables, all_actions, v_s = [], [], []
-        for pose in poses:
-            start = time.perf_counter()
-            actions = pose_actions(points, normals, obj.mesh, mesh_collision, pose.transform, config.contacts)
-            table = evaluate_pose(obj, pose, len(poses), actions, config.topple, stream(config.seed, obj.name, pose.index, "trials"))
-            elapsed = time.perf_counter() - start + shared
-            pose_seconds.append(elapsed)
-            engine_seconds += elapsed
-            engine_trials += int((actions.status == STATUS_OK).sum()) * config.topple.trials
-            tables.append(table)
-            all_actions.append(actions)
-
-            start = time.perf_counter()
-            v_s.append(pose_suction(obj, pose, config).quality)
-            suction_seconds.append(time.perf_counter() - start)
+        seconds: dict[str, list[float]] = {}
+        result = evaluate_object(obj, config, pose_seconds=seconds)
+        poses, tables, all_actions = result.poses, result.topple, result.actions
+        # A pose's model time: its candidate pushes, its toppling table, and its share of the
+        # contacts every pose shares.
+        shared = seconds["shared_contacts"][0] / len(poses)
+        per_pose = np.array(seconds["actions"]) + np.array(seconds["topple"]) + shared
+        pose_seconds += per_pose.tolist()
+        engine_seconds += float(per_pose.sum())
+        engine_trials += sum(int((a.status == STATUS_OK).sum()) for a in all_actions) * topple.trials
+        suction_seconds += seconds["suction"]
+        vi_seconds += seconds["mdp"]
 
         # The reference on a subsample of the very same trials.
         rng = np.random.default_rng(0)
@@ -91,21 +82,18 @@ def run(n_objects: int, reference_trials: int, config: Config) -> dict:
             if len(ok) == 0:
                 continue
             pose = poses[pose_index]
-            noise = sample_noise(stream(config.seed, obj.name, pose_index, "trials"), len(actions.status), config.topple)
-            scene = scene_from_pose(obj, pose, config.topple.gravity)
-            action, trial = int(rng.choice(ok)), int(rng.integers(config.topple.trials))
+            noise = sample_noise(stream(config.seed, obj.name, pose_index, "trials"), len(actions.status), topple)
+            scene = scene_from_pose(obj, pose, topple.gravity)
+            action, trial = int(rng.choice(ok)), int(rng.integers(topple.trials))
             start = time.perf_counter()
             edge, _ = reference_trial(
-                scene, draw_of(actions, noise, action, trial), config.topple.robust, config.topple.predicts_rotations, config.topple.ray_offset
+                scene, draw_of(actions, noise, action, trial), topple.robust, topple.predicts_rotations, topple.ray_offset,
+                topple.applied_corrections, topple.max_finger_force, topple.finger_friction_scale, topple.min_stability_margin,
             )
             reference_seconds += time.perf_counter() - start
             reference_count += 1
             if edge != tables[pose_index].outcomes[action, trial]:
                 raise AssertionError(f"engine and reference disagree on {obj.name} pose {pose_index} action {action} trial {trial}")
-
-        start = time.perf_counter()
-        pose_values([t.next_pose for t in tables], np.array(v_s), [a.max_height for a in all_actions], config.mdp)
-        vi_seconds.append(time.perf_counter() - start)
 
     median = float(np.median(pose_seconds))
     engine_per_trial = engine_seconds / max(engine_trials, 1)
