@@ -42,7 +42,7 @@ Further off, the object is not resting on the table (stacked, held, or a percept
 
 FINGER_FORCE_LIMIT = 20.0
 """N, default largest push force the finger may apply, used when the manifest has no
-``parameters.contacts.finger_force_limit``.  An assumed budget for a thin finger on a
+``parameters.topple.max_finger_force``.  An assumed budget for a thin finger on a
 collaborative arm, not a measured one: set it for your robot (``--finger-force-limit`` or
 ``TOPPLEDB_FINGER_FORCE_LIMIT`` overrides both)."""
 

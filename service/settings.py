@@ -8,7 +8,7 @@ as ``python -m service``:
     TOPPLEDB_TOKEN              bearer token required on every endpoint except /health (unset: none)
     TOPPLEDB_MAX_BODY_BYTES     largest request body, else 413 (default 2 MiB: a full 1000-item plan batch is ~0.5 MB)
     TOPPLEDB_HEIGHT_TOLERANCE   m, largest |z_offset| of an observed pose, else 409 off_table (default schema.api.HEIGHT_TOLERANCE)
-    TOPPLEDB_FINGER_FORCE_LIMIT N, overrides the manifest's contacts.finger_force_limit (default schema.api.FINGER_FORCE_LIMIT)
+    TOPPLEDB_FINGER_FORCE_LIMIT N, overrides the manifest's topple.max_finger_force (default schema.api.FINGER_FORCE_LIMIT)
     TOPPLEDB_FRAME_ID           name of the table frame a ROS pose must be given in (default world)
     TOPPLEDB_WATCH_SECONDS      s between checks of manifest.json for a rebuilt dataset (default 2; 0: only on SIGHUP)
 """
@@ -35,7 +35,7 @@ class Settings:
     max_body_bytes: int = DEFAULT_MAX_BODY_BYTES
     height_tolerance: float = HEIGHT_TOLERANCE
     finger_force_limit: float | None = None
-    """N; None: the manifest's contacts.finger_force_limit, else schema.api.FINGER_FORCE_LIMIT."""
+    """N; None: the manifest's topple.max_finger_force, else schema.api.FINGER_FORCE_LIMIT."""
     frame_id: str = DEFAULT_FRAME_ID
     watch_seconds: float = DEFAULT_WATCH_SECONDS
 

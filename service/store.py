@@ -181,9 +181,9 @@ class Store:
         ).hexdigest()
         code = manifest.code_version
         self.code_version = code.package + (f"+g{code.git_commit[:12]}" if code.git_commit else "")
-        manifest_limit = (parameters.contacts.model_extra or {}).get("finger_force_limit")
+        manifest_limit = (parameters.topple.model_extra or {}).get("max_finger_force")
         self.manifest_finger_force_limit: float | None = float(manifest_limit) if manifest_limit is not None else None
-        """N, the manifest's contacts.finger_force_limit when the build recorded one."""
+        """N, the build's topple.max_finger_force (the limit its corrected model applied), when it recorded one."""
         self.schema_version: str = manifest.schema_version
         self.tolerance = parameters.poses.same_pose_angle
         """rad, largest angle between down vectors of one stable pose (pose matching)."""

@@ -127,7 +127,7 @@ def test_a_manifest_finger_force_limit_is_used(dataset, tables, tmp_path):
     copy = tmp_path / "dataset"
     shutil.copytree(dataset, copy)
     manifest = json.loads((copy / "manifest.json").read_text())
-    manifest["parameters"]["contacts"]["finger_force_limit"] = 0.001
+    manifest["parameters"]["topple"]["max_finger_force"] = 0.001
     (copy / "manifest.json").write_text(json.dumps(manifest))
     object_id, pose, _ = pushing_poses(tables)[0]
     with TestClient(create_app(copy, settings=Settings())) as c:
