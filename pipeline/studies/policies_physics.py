@@ -170,8 +170,13 @@ class PolicyRun:
     toppled: list[bool] = field(default_factory=list)
 
 
-def play_trials(plan: ObjectPlan, trials: list[tuple[int, int]], config: Config, seed: int, max_pushes: int) -> tuple[str, dict, ObjectLog]:
+def play_trials(
+    plan: ObjectPlan, trials: list[tuple[int, int]], config: Config, seed: int, max_pushes: int, world: Config | None = None
+) -> tuple[str, dict, ObjectLog]:
     """Play every policy from each (trial, start pose) of one object (runs in a worker).
+
+    config : the dataset's parameters (poses, pushes); world : whose noise the simulated
+    pushes draw (default ``config``'s)
 
     returns : (object id, {trial: {policy: PolicyRun}} or {"failure": reason}, the pushes as a log)
     """
@@ -196,7 +201,7 @@ def play_trials(plan: ObjectPlan, trials: list[tuple[int, int]], config: Config,
     results: dict[int, dict[str, PolicyRun]] = {}
     for trial, start in trials:
         rng = stream(seed, f"{spec.object_id}/trial/{trial}", start, PURPOSE)
-        noises = [draw_noise(config, rng, noise=True) for _ in range(max_pushes)]  # shared by the policies
+        noises = [draw_noise(world or config, rng, noise=True) for _ in range(max_pushes)]  # shared by the policies
         results[trial] = {}
         for policy_index, policy in enumerate(POLICIES):
             run = PolicyRun([start])
@@ -235,8 +240,14 @@ def experiment(
     workers: int | None = 1,
     log: str | Path | None = None,
     progress: bool = False,
+    world: Config | None = None,
 ) -> dict:
-    """Run every policy in physics from ``n_trials`` dropped starts; the report as a dict (JSON-ready)."""
+    """Run every policy in physics from ``n_trials`` dropped starts; the report as a dict (JSON-ready).
+
+    world : the simulated world's noise (friction, contact, direction); default the
+      dataset's own.  The CLI passes the thesis preset, as ``make logs`` does, so the world
+      does not change when the model's noise is calibrated.
+    """
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
@@ -256,7 +267,7 @@ def experiment(
 
     runs: dict[int, dict[str, PolicyRun]] = {}
     failures: dict[str, str] = {}
-    tasks = [(plans[o], by_object[o], config, seed, max_pushes) for o in sorted(by_object)]
+    tasks = [(plans[o], by_object[o], config, seed, max_pushes, world) for o in sorted(by_object)]
     for object_id, results, object_log in map_unordered(play_trials, tasks, workers, description="objects", progress=progress):
         if "failure" in results:
             failures[object_id] = results["failure"]
@@ -366,6 +377,18 @@ def text(report: dict) -> str:
     return "\n".join(lines)
 
 
+def world_config(name: str) -> Config:
+    """A preset name or a TOML file, through the dataset command's rules (one-line errors)."""
+    import argparse
+
+    from ..cli import UsageError, make_config
+
+    try:
+        return make_config(argparse.Namespace(config=name, overrides=[], seed=None))
+    except UsageError as err:
+        raise ExperimentError(str(err)) from None
+
+
 def main(argv: list[str] | None = None) -> int:
     """``toppledb policies-physics DATASET --trials N``: the report as a table, then one JSON line."""
     from ..cli import positive_int
@@ -379,10 +402,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--log", type=Path, metavar="DIR", help="also write every push played to this push-log directory")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the report to this JSON file")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--world", default="thesis", metavar="PRESET|FILE.toml",
+                        help="config whose noise the simulated pushes draw (default: %(default)s, as make logs)")
     args = parser.parse_args(argv)
     try:
         report = experiment(args.dataset, args.trials, max_pushes=args.max_pushes, seed=args.seed, workers=args.workers,
-                            log=args.log, progress=not args.no_progress)
+                            log=args.log, progress=not args.no_progress, world=world_config(args.world))
     except ExperimentError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
