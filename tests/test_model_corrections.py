@@ -21,6 +21,8 @@ from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose
 
 MU_TABLE = 0.43
+MU_FINGER = 0.98
+"""The thesis's friction means: the analytic cases below are worked out for them."""
 STEP = 1e-3
 """m, pushes are placed this far below and above the closed-form threshold."""
 
@@ -33,6 +35,7 @@ def _noise_free(variant="corrected", **fields):
         n_trials=1,
         mu_table_mean=MU_TABLE,
         mu_table_std=0.0,
+        mu_finger_mean=MU_FINGER,
         mu_finger_std=0.0,
         contact_std=0.0,
         direction_std=0.0,

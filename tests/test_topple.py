@@ -8,7 +8,7 @@ import pytest
 from shapes import boot_object, pose_with_down, random_object, standing_box
 
 from pipeline.api import evaluate
-from pipeline.model.config import Config
+from pipeline.model.config import PRESETS, Config
 from pipeline.model.poses import stable_poses
 from pipeline.model.reference import draw_of, reference_trial, scene_from_pose
 from pipeline.model.rng import stream
@@ -148,11 +148,11 @@ def test_mean_force_is_the_mean_over_the_trials_that_topple(box):
     # Under noise each trial needs its own force (contact height, direction and the
     # object's tilt change the torques); the table keeps their mean over toppling trials.
     obj, pose_set, standing = box
-    config = Config()
+    config = Config.from_toml(PRESETS / "thesis.toml")  # the thesis's robust trial, the reference without corrections
     heights = [0.07, 0.1, 0.14]  # the lowest is near the friction height: only some trials topple
     # Then the other three faces, high up, so that every base edge is toppled over.
     points = np.vstack([_side_pushes(heights), [[-0.025, 0.0, 0.14], [0.0, 0.04, 0.14], [0.0, -0.04, 0.14]]])
-    result = evaluate(obj, pose_set, standing, points=points, n_trials=60, seed=5)
+    result = evaluate(obj, pose_set, standing, points=points, n_trials=60, seed=5, config=config)
     topple = config.topple
     noise = sample_noise(stream(5, obj.name, standing, "trials"), len(points), replace(topple, n_trials=60))
     scene = scene_from_pose(obj, pose_set.poses[standing], topple.gravity)
