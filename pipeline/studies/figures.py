@@ -9,7 +9,7 @@
 - ``object.glb``: an interactive 3D view (the mesh in the pose and the contacts as
   coloured points), for any glTF viewer.
 
-Everything is computed for the mesh on the spot with ``pipeline.api.evaluate_object``
+Everything is computed for the mesh on the spot with ``pipeline.model.evaluation.evaluate_object``
 (no dataset needed); the defaults are light (200 pushes, 20 trials) so that it takes
 seconds.
 """
@@ -113,6 +113,7 @@ def scene_file(obj, result, pose: int, path: str | Path) -> None:
     """The object in ``pose`` and its ``ok`` contacts (colour = P(topple)) as a GLB file."""
     import matplotlib
     import trimesh
+
     from schema.vocabulary import STATUS_NAMES
 
     mesh = obj.mesh.copy()
@@ -125,7 +126,9 @@ def scene_file(obj, result, pose: int, path: str | Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..api import Config, MeshError, evaluate_object, load_mesh
+    from ..model.config import Config
+    from ..model.evaluation import evaluate_object
+    from ..model.mesh import MeshError, load_mesh
 
     parser = argparse.ArgumentParser(prog="toppledb figures", description=__doc__.split("\n\n")[0])
     parser.add_argument("mesh", type=Path, help="OBJ, STL or PLY file")
