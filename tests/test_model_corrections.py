@@ -18,7 +18,7 @@ from shapes import random_object, standing_box
 from pipeline.model.config import CORRECTIONS, Config
 from pipeline.model.contacts import explicit_actions
 from pipeline.model.rng import stream
-from pipeline.model.topple import evaluate_pose
+from pipeline.model.topple import evaluate_pose, landed_poses
 
 MU_TABLE = 0.43
 MU_FINGER = 0.98
@@ -167,3 +167,78 @@ def test_a_marginal_pose_falls_over_its_nearest_edge_whatever_the_push():
     table = evaluate_pose(obj, pose, len(pose_set.poses), actions, stands, stream(0, "m", pose.index, "trials"))
     assert table.p_topple[2] == 0.0  # pushed down onto the top, inside the base: it stays
 
+
+
+@pytest.fixture(scope="module")
+def elliptic_prism():
+    """A 12-sided cylinder stretched 3:1 across its axis, lying on a facet next to its lowest
+    vertex, and that pose's blocked edge: the neighbouring facet slopes by ~11 degrees, far less
+    than the ~40 degrees that would bring the centre of mass above the edge (MODEL.md C.6)."""
+    import trimesh
+
+    from pipeline.model.mesh import model_from_mesh
+    from pipeline.model.poses import stable_poses
+
+    mesh = trimesh.creation.cylinder(radius=0.02, height=0.12, sections=12)
+    mesh.apply_scale([3.0, 1.0, 1.0])
+    obj = model_from_mesh(mesh, mass=0.2, name="ellipse")
+    pose_set = stable_poses(obj)
+    # The lying pose on the low facet on the +x side of the lowest vertex (down ~ (0.09, -1, 0)).
+    index = next(p.index for p in pose_set.poses if p.down[0] > 0.05 and p.down[1] < -0.9)
+    return obj, pose_set, index
+
+
+def test_a_blocked_topple_rolls_on_to_the_far_side_with_rolling(elliptic_prism):
+    """By the prism's mirror symmetry about its major axis, rolling over the +x end ends on the
+    facet mirroring the start (down (x, -y) -> (x, y)); without the correction, and in the
+    thesis's variants, the same push returns to the start pose."""
+    obj, pose_set, index = elliptic_prism
+    pose = pose_set.poses[index]
+    blocked = np.flatnonzero(pose.edge_blocked)
+    assert len(blocked) == 1
+    edge = int(blocked[0])
+    assert pose.edge_final_pose[edge] == index
+    rolled = pose.edge_rolled_pose[edge]
+    np.testing.assert_allclose(pose_set.poses[rolled].down, pose.down * [1, -1, 1], atol=1e-6)
+    unblocked = ~pose.edge_blocked
+    np.testing.assert_array_equal(pose.edge_rolled_pose[unblocked], pose.edge_final_pose[unblocked])
+
+    # Push along the blocked edge's outward direction, low on the far side (the ellipse's -x end).
+    y0, y1 = pose.base_edges[edge]
+    outward = np.cross(y1 - y0, [0.0, 0.0, 1.0])
+    outward /= np.linalg.norm(outward)
+    center = pose.transform[:3, :3] @ obj.center_mass + pose.transform[:3, 3]
+    point = center * [1.0, 1.0, 0.0] - 0.07 * outward + [0.0, 0.0, 0.002]  # snapped onto the mesh
+    actions = explicit_actions(obj, pose.transform, point[None], outward[None])
+    for corrections, lands in [("finger_friction,force_limit,rolling", rolled), ("finger_friction,force_limit", index)]:
+        topple = _noise_free(corrections=corrections)
+        table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, "e", index, "trials"))
+        assert table.outcomes[0, 0] == edge, corrections
+        assert table.next_pose[0, lands] == 1.0, corrections
+    # The thesis's variants ignore every correction: their topples over an edge land as in 4.2.4.
+    for variant in ("baseline", "rotations", "robustness", "robust"):
+        applied = _noise_free(variant, corrections="all").applied_corrections
+        np.testing.assert_array_equal(landed_poses(pose, applied), pose.edge_final_pose)
+
+
+def test_the_boot_rolls_over_its_toe_with_rolling():
+    """Standing, the boot's topple over the toe's edge is blocked (the toe meets the table at 10
+    degrees, the apex is ~18): the thesis returns it to standing; with ``rolling`` the finger
+    turns it on over the toe's tip onto a pose tipped towards +x (the toe's side), and every
+    unblocked edge keeps its thesis outcome."""
+    from shapes import boot_object, pose_with_down
+
+    from pipeline.model.poses import stable_poses
+
+    pose_set = stable_poses(boot_object())
+    standing = pose_with_down(pose_set, [0, 0, -1])
+    pose = pose_set.poses[standing]
+    edge = int(np.flatnonzero(pose.edge_blocked)[0])
+    assert pose.edge_final_pose[edge] == standing
+    rolled = pose.edge_rolled_pose[edge]
+    assert rolled != standing
+    assert pose_set.poses[rolled].down[0] > 0.5  # turned well past 30 degrees towards the toe
+    for p in pose_set.poses:
+        same = ~p.edge_blocked
+        np.testing.assert_array_equal(p.edge_rolled_pose[same], p.edge_final_pose[same])
+    assert replace(Config().topple, variant="robust", corrections="rolling").applied_corrections == frozenset()

@@ -10,7 +10,7 @@ from pipeline.model.collision import collision_object
 from pipeline.model.config import Config
 from pipeline.model.contacts import object_contacts, pose_actions
 from pipeline.model.poses import stable_poses
-from pipeline.model.reference import draw_of, reference_trial, scene_from_pose
+from pipeline.model.reference import draw_of, landed_pose, reference_trial, scene_from_pose
 from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose, sample_noise
 from schema.vocabulary import STATUS_OK
@@ -26,6 +26,7 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_009", "corrected:finger_friction"),
     ("box", "corrected:force_limit"),  # with a limit low enough to bite (LOW_LIMIT)
     ("random_031", "corrected:stability_margin,finger_friction"),  # its pose 6 is marginal (0.03 mm)
+    ("random_001", "corrected:finger_friction,rolling"),  # 21 blocked edges roll on (C.6)
 ]
 
 LOW_LIMIT = 1.0
@@ -48,7 +49,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
     points, normals = object_contacts(obj, contacts, seed=11)
     mesh_collision = collision_object(obj.mesh)
     pose_set = stable_poses(obj)
-    compared = agreed = toppled = capped = 0
+    compared = agreed = toppled = capped = rolled = 0
     for pose in pose_set.poses:
         actions = pose_actions(points, normals, obj.mesh, mesh_collision, pose.transform, contacts)
         table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(11, obj.name, pose.index, "trials"))
@@ -56,6 +57,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         scene = scene_from_pose(obj, pose, topple.gravity)
         # 25 actions per pose with noise; every ok action of a noise-free variant (one trial each).
         for action in np.flatnonzero(actions.status == STATUS_OK)[: 25 if topple.trials > 1 else None]:
+            landed = np.zeros(len(pose_set.poses))  # (P,), the reference's trials per landed pose
             for trial in range(topple.trials):
                 edge, force = reference_trial(
                     scene,
@@ -70,16 +72,23 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                 )
                 compared += 1
                 agreed += edge == table.outcomes[action, trial]
+                landed[landed_pose(pose, edge, topple.applied_corrections)] += 1
+                rolled += edge >= 0 and pose.edge_final_pose[edge] != landed_pose(pose, edge, topple.applied_corrections)
                 toppled += edge >= 0
                 if corrections == "force_limit":  # trials the limit stops: the uncapped model topples them
                     free = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset)
                     capped += free[0] >= 0 and edge < 0
+            if agreed == compared:
+                # Same edges, so the same landed poses: the engine's P(x'|x,u) row is the reference's.
+                np.testing.assert_allclose(table.next_pose[action], landed / topple.trials)
     # Embree casts in float32, the reference in float64: allow a rare flip at a boundary.
     print(f"{name} {variant}: {compared} trials, {compared - agreed} disagree, {toppled} topple")
     assert compared >= 120
     assert agreed >= compared - max(1, compared // 500), f"{compared - agreed} of {compared} trials disagree"
     if name != "random_002":
         assert toppled > 0, "the comparison should include trials that topple"
+    if "rolling" in corrections:
+        assert rolled > 0, "the comparison should include trials that roll on past a blocked edge"
     if corrections == "force_limit":
         assert capped > 0, "the force limit should stop some trials that would topple"
 

@@ -126,3 +126,45 @@ def landing_down(geometry: EdgeGeometry, angles: np.ndarray) -> np.ndarray:
     """
     back = axis_angle_matrices(geometry.direction, -angles)  # (E, 3, 3)
     return back @ DOWN  # (E, 3, 3) @ (3,) -> (E, 3)
+
+
+def rolled_down(
+    vertices: np.ndarray, center_mass: np.ndarray, start: np.ndarray, direction: np.ndarray, tolerance: float
+) -> np.ndarray | None:
+    """Down direction after the finger rolls the object on over a blocked edge (MODEL.md C.6).
+
+    The object turns about +e (``direction``) through ``start``; each time another part of the
+    hull meets the table before the centre of mass has passed the pivot (a blocked topple,
+    4.2.4), the finger keeps turning it the same way about the landed point farthest outward
+    (a line parallel to e), until the centre of mass passes a pivot before the next landing:
+    from there gravity finishes the topple.  Quasi-static, the finger stroke assumed long enough.
+
+    vertices : (n, 3) float, m, pose frame hull vertices;  center_mass : (3,) float, m, pose frame
+    start : (3,) float, m, a point of the edge on the table;  direction : (3,) unit, horizontal
+    tolerance : float, m, base tolerance
+    returns : (3,) float, unit, down in the pose frame before the topple, where the object lands
+      after passing the last pivot; None when the roll makes no progress (no landed point
+      lies outward of the pivot) or does not end within n steps
+    """
+    outward = np.array([direction[1], -direction[0], 0.0])  # o = e x z
+    points, com, pivot = vertices.astype(float), np.asarray(center_mass, float), np.asarray(start, float)
+    turned = np.eye(3)  # rotation applied so far, pose frame before -> now
+    for _ in range(len(vertices)):
+        offset = (points - pivot) @ outward  # (n,), u per vertex
+        raised = points[:, 2] >= tolerance
+        if not raised.any():
+            return None
+        landing = float(np.arctan2(points[raised, 2], offset[raised]).min())  # rad, first vertex down
+        apex = float(np.arctan2(-(com - pivot) @ outward, com[2]))  # rad, the COM above the pivot
+        step = axis_angle_matrices(direction[None], np.array([landing]))[0]  # (3, 3)
+        points = (points - pivot) @ step.T + pivot
+        com = step @ (com - pivot) + pivot
+        turned = step @ turned
+        if landing >= apex:
+            return turned.T @ DOWN  # the world's down seen in the pose frame before the topple
+        touching = points[:, 2] < tolerance
+        ahead = (points[touching] - pivot) @ outward  # (m,), landed points' outward offsets
+        if ahead.max() <= tolerance:
+            return None
+        pivot = points[touching][np.argmax(ahead)] * np.array([1.0, 1.0, 0.0])
+    return None

@@ -28,6 +28,8 @@ class StablePose:
       (this pose's own index when the topple is blocked)
     edge_blocked : (E,) bool, another part of the hull meets the table before the apex
     apex_angle : (E,) float, rad, rotation about the edge that brings the COM above it
+    edge_rolled_pose : (E,) int, pose reached with the ``rolling`` correction (MODEL.md C.6):
+      as ``edge_final_pose``, but a blocked topple rolls on while the finger pushes
     """
 
     index: int
@@ -40,6 +42,7 @@ class StablePose:
     edge_final_pose: np.ndarray
     edge_blocked: np.ndarray
     apex_angle: np.ndarray
+    edge_rolled_pose: np.ndarray | None = None
 
 
 @dataclass

@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 from schema.frames import canonical_transform, transform_points, unit
 
 from .config import PoseConfig
-from .edges import base_edges, base_polygon, edge_geometry, landing_angles, landing_down
+from .edges import base_edges, base_polygon, edge_geometry, landing_angles, landing_down, rolled_down
 from .mesh import MeshError, ObjectModel
 from .outcomes import StablePose
 
@@ -302,6 +302,7 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
         face_candidate = representative[face_candidate]
         for g in geometry:
             g["edge_final_pose"] = representative[g["edge_final_pose"]]
+            g["edge_rolled_pose"] = representative[g["edge_rolled_pose"]]
         candidate_probability[representative != np.arange(len(downs))] = -1.0  # never kept
 
     # Keep probable poses and close the set under toppling.
@@ -333,6 +334,11 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
                 edge_final_pose=new_index[g["edge_final_pose"]],
                 edge_blocked=g["edge_blocked"],
                 apex_angle=g["apex_angle"],
+                # A rolled-into pose outside the kept set (the set is closed under the thesis's
+                # topples only, so C.6 never changes it) falls back to the thesis's outcome.
+                edge_rolled_pose=np.where(
+                    new_index[g["edge_rolled_pose"]] >= 0, new_index[g["edge_rolled_pose"]], new_index[g["edge_final_pose"]]
+                ),
             )
         )
     equivalents = None
@@ -372,6 +378,13 @@ def _pose_geometry(obj: ObjectModel, down: np.ndarray, face_pose: np.ndarray, in
     downs_object = landing_down(geometry, landing) @ transform[:3, :3]
     landing_face = np.argmax(unit(downs_object) @ hull.face_normals.T, axis=1)
     final = np.where(blocked, index, face_pose[landing_face])
+    # C.6 (``rolling``): a blocked topple rolls on while the finger pushes (the thesis's outcome where it cannot).
+    rolled = final.copy()
+    for e in np.flatnonzero(blocked):
+        down = rolled_down(vertices, com_pose, geometry.start[e], geometry.direction[e], config.base_tolerance)
+        if down is not None:
+            face = int(np.argmax(hull.face_normals @ unit(down @ transform[:3, :3])))
+            rolled[e] = face_pose[face]
     return {
         "transform": transform,
         "height": float(vertices[:, 2].max()),
@@ -379,6 +392,7 @@ def _pose_geometry(obj: ObjectModel, down: np.ndarray, face_pose: np.ndarray, in
         "base_edges": edges,
         "edge_final_pose": final,
         "edge_blocked": blocked,
+        "edge_rolled_pose": rolled,
         "apex_angle": geometry.apex_angle,
     }
 

@@ -191,6 +191,16 @@ def reference_trial(
     return best_edge, best_force
 
 
+def landed_pose(pose, edge: int, corrections: frozenset = frozenset()) -> int:
+    """Pose one trial ends in (``StablePose``, its edge or -1): the thesis's per-edge final pose,
+    or with ``rolling`` (MODEL.md C.6) the rolled-on one; the same per-(pose, edge) tables
+    the engine reads, looked up one trial at a time."""
+    if edge < 0:
+        return int(pose.index)
+    rolls = "rolling" in corrections and pose.edge_rolled_pose is not None
+    return int((pose.edge_rolled_pose if rolls else pose.edge_final_pose)[edge])
+
+
 def marginal_edge(scene: Scene, min_margin: float):
     """The edge a marginal pose falls over (C.3): the one the centre of mass is nearest to, if
     nearer than ``min_margin`` (m); None for a pose that stands."""

@@ -336,6 +336,15 @@ def _inside_cone(cos: np.ndarray, mu: np.ndarray) -> np.ndarray:
     return (cos > 0.0) & (sin <= mu * cos)
 
 
+def landed_poses(pose: StablePose, corrections: frozenset[str]) -> np.ndarray:
+    """Pose reached by toppling over each base edge (E,) int: the thesis's ``edge_final_pose``,
+    or with the ``rolling`` correction (MODEL.md C.6) ``edge_rolled_pose``, where a blocked
+    topple rolls on.  A per-(pose, edge) table, so the correction costs no per-trial work."""
+    if "rolling" in corrections and pose.edge_rolled_pose is not None:
+        return pose.edge_rolled_pose
+    return pose.edge_final_pose
+
+
 def evaluate_pose(
     obj: ObjectModel,
     pose: StablePose,
@@ -354,7 +363,7 @@ def evaluate_pose(
     noise = sample_noise(rng, n_actions, config)  # (A, T), (A, T, 3) fields
     center_mass = transform_points(pose.transform, obj.center_mass[None])[0]  # (3,), pose frame
     edges = edge_geometry(pose.base_edges, center_mass)  # (E, ...) fields
-    final_pose = np.append(pose.edge_final_pose, pose.index)  # (E + 1,); index -1 (OUTCOME_NO_EDGE): stays
+    final_pose = np.append(landed_poses(pose, config.applied_corrections), pose.index)  # (E + 1,); -1: stays
 
     outcomes = np.full((n_actions, trials), OUTCOME_NOT_EVALUATED, dtype=np.int16)  # (A, T)
     forces = np.full((n_actions, trials), np.inf)  # (A, T), N
