@@ -28,7 +28,6 @@ duplicate ids) raises ``CorpusError`` with a one-line message.
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 import os
 import re
@@ -275,6 +274,18 @@ def _unique(ids: list[str]) -> list[str]:
     return out
 
 
+def _check_ids(ids: list[str], where: str) -> None:
+    """Every id safe as a file name (``schema.layout.check_object_id``) and unique."""
+    for object_id in ids:
+        try:
+            check_object_id(object_id)
+        except ValueError as err:
+            raise CorpusError(f"{where}: {err}") from None
+    duplicates = sorted({i for i in ids if ids.count(i) > 1})
+    if duplicates:
+        raise CorpusError(f"{where}: duplicate object ids {duplicates[:5]}")
+
+
 def _check_files(specs: list[ObjectSpec], expected_sha: dict[str, str]) -> dict[str, str]:
     problems = {}
     for spec in specs:
@@ -313,14 +324,7 @@ def scan_directory(directory: str | Path, default_mass: float, units: Units | No
     chosen = [entries.get(r, Units()).over(base) for r in relative]
     derived = _unique([object_id_from_name(p.stem) for p in files])
     ids = [c.object_id or auto for c, auto in zip(chosen, derived)]
-    for object_id in ids:
-        try:
-            check_object_id(object_id)
-        except ValueError as err:
-            raise CorpusError(f"{directory}: {err}") from None
-    duplicates = sorted({i for i in ids if ids.count(i) > 1})
-    if duplicates:
-        raise CorpusError(f"{directory}: duplicate object ids {duplicates[:5]}")
+    _check_ids(ids, str(directory))
     specs = []
     for object_id, p, c in zip(ids, files, chosen):
         scale = c.scale if c.scale is not None else 1.0
@@ -369,14 +373,7 @@ def read_list(path: str | Path, default_mass: float, name: str | None = None) ->
 
     derived = _unique([object_id_from_name(Path(r[1]).stem) for r in rows])
     ids = [given or auto for (given, *_), auto in zip(rows, derived)]
-    for object_id in ids:
-        try:
-            check_object_id(object_id)
-        except ValueError as err:
-            raise CorpusError(f"{path.name}: {err}") from None
-    duplicates = sorted({i for i in ids if ids.count(i) > 1})
-    if duplicates:
-        raise CorpusError(f"{path.name}: duplicate object ids {duplicates[:5]}")
+    _check_ids(ids, path.name)
 
     specs = [
         ObjectSpec(object_id, mesh, scale, mass, source, file_sha256(mesh))
