@@ -45,6 +45,7 @@ from ..build.atomic import write_atomic, write_text_atomic
 from ..build.corpus import DEFAULT_LIST, PYBULLET_SOURCE, CorpusError, ObjectSpec, candidate_specs, pybullet_data_dir, read_list
 from ..model.config import Config
 from ..model.rng import stream
+from .logreader import LogError, log_files, read_tables
 from .pushsim import FINGER_SPEED, PlayedPush, body_model, draw_noise, play_push, player_parameters
 
 OBJECT_MODES = ("corpus", "heldout")
@@ -428,9 +429,12 @@ def play(
 
 
 def read_log(out: str | Path) -> pa.Table:
-    """Every row of a log directory (its part files, in object order)."""
-    parts = sorted(Path(out).glob("*.parquet"))
-    return pa.concat_tables([pq.read_table(p, schema=PUSHLOG) for p in parts]) if parts else empty_log()
+    """Every row of a log directory (its part files, in object order), as ``logreader.read_tables`` reads them."""
+    try:
+        files = log_files([out])
+    except LogError:  # no part file yet
+        return empty_log()
+    return read_tables(files).drop_columns(["_file", "_row"])
 
 
 # ---------------------------------------------------------------- command line
