@@ -104,6 +104,34 @@ def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ transform[:3, :3].T + transform[:3, 3]
 
 
+def place_push(
+    pose_to_world: np.ndarray,
+    point: np.ndarray,
+    normal: np.ndarray,
+    direction: np.ndarray,
+    approach_offset: float,
+    push_depth: float,
+) -> dict[str, np.ndarray]:
+    """A push stored in the pose frame, placed in the world.
+
+    pose_to_world : (4, 4) float, pose frame -> world (as observed)
+    point, normal, direction : (3,) float, pose frame: contact point, outward unit normal, push direction
+    approach_offset, push_depth : m, the finger's line starts this far out along the normal
+      and ends this far in
+    returns : world (3,) float arrays ``point``, ``normal``, ``direction``, ``start``, ``end``
+    """
+    rotation = pose_to_world[:3, :3]
+    point = rotation @ point + pose_to_world[:3, 3]
+    normal = rotation @ normal
+    return {
+        "point": point,
+        "normal": normal,
+        "direction": rotation @ direction,
+        "start": point + approach_offset * normal,
+        "end": point - push_depth * normal,
+    }
+
+
 @dataclass
 class PoseMatch:
     """An observed orientation matched to a stable pose.

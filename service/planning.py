@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from schema.api import Grasp, NextPose, PlanRequest, PlanResponse, PoseMatch, WorldPush
-from schema.frames import match_pose
+from schema.frames import match_pose, place_push
 from schema.vocabulary import NO_OP
 
 from .errors import NoStablePose, OffTable, UnknownFrame
@@ -97,19 +97,11 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> PlanResponse
         row = obj.row(pose, action)
         # One widen for all float32 values of the row: (3, 3) pose-frame point, normal, direction, then the scalars.
         values = widen(np.concatenate([obj.points[row], obj.normals[row], obj.directions[row], [obj.mean_force[row], obj.p_topple[row]]]))
-        local = values[:9].reshape(3, 3)
-        rotation = pose_to_world[:3, :3]
-        point = rotation @ local[0] + pose_to_world[:3, 3]
-        normal = rotation @ local[1]
-        direction = rotation @ local[2]
+        world = place_push(pose_to_world, *values[:9].reshape(3, 3), store.approach_offset, store.push_depth)
         force = optional(values[9])
         limit = store.finger_force_limit(settings.finger_force_limit)
         push = WorldPush.model_construct(
-            point=point.tolist(),
-            normal=normal.tolist(),
-            direction=direction.tolist(),
-            start=(point + store.approach_offset * normal).tolist(),
-            end=(point - store.push_depth * normal).tolist(),
+            **{name: vector.tolist() for name, vector in world.items()},
             approach_offset=store.approach_offset,
             push_depth=store.push_depth,
             required_force=force,

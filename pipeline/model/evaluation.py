@@ -15,7 +15,7 @@ from typing import Iterator, Protocol
 
 import numpy as np
 
-from schema.frames import PoseMatch, match_pose, transform_points
+from schema.frames import PoseMatch, match_pose, place_push, transform_points
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES
 
 from .collision import collision_object
@@ -352,15 +352,10 @@ def plan(
         return Plan(match, policy, None, float(choice.value), None, None, [], grasp)
     actions, table = result.actions[pose], result.topple[pose]
     a = int(choice.action)
-    point = rotation @ actions.points[a] + origin
-    normal = rotation @ actions.normals[a]
-    push = {
-        "point": point,
-        "normal": normal,
-        "direction": rotation @ actions.directions[a],
-        "start": point + config.contacts.approach_offset * normal,
-        "end": point - config.contacts.push_depth * normal,
-    }
+    push = place_push(
+        match.pose_to_world, actions.points[a], actions.normals[a], actions.directions[a],
+        config.contacts.approach_offset, config.contacts.push_depth,
+    )
     distribution = np.nan_to_num(np.asarray(table.next_pose[a], dtype=float))
     order = np.argsort(-distribution, kind="stable")
     next_poses = [(int(x), float(distribution[x])) for x in order if distribution[x] > 0]
