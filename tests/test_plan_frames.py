@@ -10,51 +10,25 @@ service) that it does not.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
 
-from pipeline.build.corpus import read_list
-from pipeline.build.dataset import build_dataset
-from pipeline.model.config import Config
 from schema.frames import match_pose
 from service import create_app
+from tests.test_service import dataset, planar_transform  # noqa: F401 (fixture)
 
 OBJECT = "random_001"
 LIFTS = [0.0, 0.012, -0.004, 0.25]  # m
 PLAN_LIFTS = [0.0, 0.003, -0.002]  # m, small enough to count as resting on the table (a few mm of sensor error)
 
 
-def planar_transform(yaw: float, x: float, y: float) -> np.ndarray:
-    planar = np.eye(4)
-    planar[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
-    planar[:2, 3] = [x, y]
-    return planar
-
-
 def lift(dz: float) -> np.ndarray:
     up = np.eye(4)
     up[2, 3] = dz
     return up
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    directory = tmp_path_factory.mktemp("plan_frames")
-    corpus = directory / "corpus.csv"
-    corpus.write_text(
-        "object_id,source,path,scale,mass\n"
-        f"{OBJECT},pybullet_data/random_urdfs,random_urdfs/{OBJECT[-3:]}/{OBJECT[-3:]}.obj,0.015,0.1\n"
-    )
-    config = Config().with_overrides(
-        {"contacts.n_contacts": 12, "topple.n_trials": 3, "suction.n_candidates": 8, "suction.n_samples": 3}
-    )
-    out = directory / "dataset"
-    build_dataset(read_list(corpus, default_mass=0.25), config, out, workers=1, progress=False, log=lambda _: None)
-    return out
 
 
 @pytest.fixture(scope="module")
