@@ -19,11 +19,11 @@ from pipeline.build.corpus import DEFAULT_LIST, ObjectSpec, read_list
 from pipeline.model.config import Config
 from pipeline.model.poses import stable_poses
 from pipeline.studies import playlog
+from pipeline.studies.logreader import empirical_distribution
 from pipeline.studies.pushsim import (
     FINGER_SPEED,
     body_model,
     draw_noise,
-    empirical_distribution,
     link_pose,
     object_transform,
     play_push,

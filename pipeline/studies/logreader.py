@@ -47,6 +47,16 @@ EXAMPLES_PER_REASON = 5
 """Rejected rows kept as examples per reason (all are counted)."""
 
 
+def empirical_distribution(outcomes: np.ndarray, n_poses: int) -> np.ndarray:
+    """Next-pose frequencies of observed outcomes.
+
+    outcomes : (R,) int, pose indices or ``OUTSIDE``
+    returns : (n_poses + 1,) float, the last bucket is ``OUTSIDE``; sums to 1
+    """
+    buckets = np.where(np.asarray(outcomes) < 0, n_poses, outcomes)
+    return np.bincount(buckets, minlength=n_poses + 1) / len(outcomes)
+
+
 class LogError(ValueError):
     """A log that cannot be read at all (missing file, not Parquet, wrong columns); one line."""
 
@@ -84,7 +94,7 @@ class Push:
 
     def empirical(self, n_poses: int) -> np.ndarray:
         """(n_poses + 1,) float: frequency of each final pose, the last entry for ``OUTSIDE``."""
-        return np.bincount(np.where(self.outcomes == OUTSIDE, n_poses, self.outcomes), minlength=n_poses + 1) / len(self.outcomes)
+        return empirical_distribution(self.outcomes, n_poses)
 
     @property
     def topple_rate(self) -> float:

@@ -69,8 +69,6 @@ REST_STEPS = 24
 """Steps in a row below both speeds that count as at rest (0.1 s)."""
 MIN_FRICTION = 0.05
 """Noisy friction coefficients are clipped here: Bullet treats 0 as frictionless, a noisy draw below 0 as nonsense."""
-OUTSIDE = -1
-"""Next-pose bucket for a rest pose outside the pose set (``settle`` returned -1)."""
 PLAYER_VERSION = "2"
 """Bumped whenever the player's physics changes, so that push logs made before are not resumed into."""
 
@@ -373,7 +371,7 @@ def simulate_push(
     direction : (3,) float, push direction, pose frame (normalised here)
     rng : draws the noise when ``noise`` is True
     body : ``body_model(obj)``, to reuse across pushes of one object
-    returns : int, index into ``pose_set.poses``, or ``OUTSIDE`` (-1) for a rest pose left
+    returns : int, index into ``pose_set.poses``, or ``logreader.OUTSIDE`` (-1) for a rest pose left
       out of the set (settled with the hull's topple graph if still moving at the time cap)
     """
     transform = pose_set.poses[pose_index].transform
@@ -388,12 +386,3 @@ def simulate_push(
     )
     return settle(pose_set, obj, played.final_transform[:3, :3])
 
-
-def empirical_distribution(outcomes: np.ndarray, n_poses: int) -> np.ndarray:
-    """Next-pose frequencies from simulated outcomes.
-
-    outcomes : (R,) int, pose indices or ``OUTSIDE``
-    returns : (n_poses + 1,) float, the last bucket is ``OUTSIDE``; sums to 1
-    """
-    buckets = np.where(np.asarray(outcomes) < 0, n_poses, outcomes)
-    return np.bincount(buckets, minlength=n_poses + 1) / len(outcomes)
