@@ -229,10 +229,9 @@ def build_dataset(
         if strict and failures:
             first = next(iter(failures.values()))
             raise BuildError(f"--strict: {_named(first)}")
-        for object_id, failure in (previous_failures or {}).items():
-            if any(spec.object_id == object_id for spec in todo):
-                todo = [spec for spec in todo if spec.object_id != object_id]
-                failures[object_id] = failure
+        previous = previous_failures or {}
+        failures.update({spec.object_id: previous[spec.object_id] for spec in todo if spec.object_id in previous})
+        todo = [spec for spec in todo if spec.object_id not in previous]
 
         current = _current_manifest(out)
         if not todo and not staged and not force and _up_to_date(current, config, corpus, records, failures):
@@ -241,16 +240,15 @@ def build_dataset(
         if reused:
             log(f"resuming: {reused} of {len(corpus.specs)} objects already complete in {out}")
 
+        _make_directory(staging, "staging directory")
         repairs: dict[str, list[str]] = {}
         if todo:
-            _make_directory(staging, "staging directory")
             staged.update(
                 _compute(todo, config, process, staging, inputs, failures, workers, scheduler, strict, progress, reused, repairs)
             )
 
         order = [spec.object_id for spec in corpus.specs if spec.object_id in records or spec.object_id in staged]
         sources = {object_id: (staging if object_id in staged else out) for object_id in order}
-        _make_directory(staging, "staging directory")
         consolidated = manifest.consolidate(staging, order, sources)
         wall = time.perf_counter() - started
         paths = {spec.object_id: spec.path for spec in corpus.specs}
@@ -274,7 +272,7 @@ def build_dataset(
         }
         written = manifest.make_manifest(config, corpus, {**records, **staged}, consolidated, failure_list, run)
         manifest.write_manifest(staging, written)
-        commit(out, staging, sorted(staged), keep=set(order))
+        commit(out, staging, staged, keep=set(order))
     order_repairs = {s.object_id: repairs[s.object_id] for s in corpus.specs if s.object_id in repairs}
     return Summary(written, computed=len(todo), reused=reused, wall_s=wall, repairs=order_repairs)
 
@@ -342,13 +340,11 @@ def staging_dir(out: str | Path) -> Path:
     return out.with_name(f".{out.name}.staging")
 
 
-def commit(out: Path, staging: Path, object_ids: list[str], keep: set[str]) -> None:
-    """Move the staged shards of ``object_ids``, the consolidated tables and the manifest
-    from ``staging`` into ``out``; remove shards of objects not in ``keep``."""
-    moves = []
-    for object_id in object_ids:
-        record = shards.read_record(staging, object_id)
-        moves += [relative for relative in record["files"]]
+def commit(out: Path, staging: Path, staged: dict[str, dict], keep: set[str]) -> None:
+    """Move the staged shards (object id -> completion record), the consolidated tables
+    and the manifest from ``staging`` into ``out``; remove shards of objects not in ``keep``."""
+    object_ids = sorted(staged)
+    moves = [relative for object_id in object_ids for relative in staged[object_id]["files"]]
     moves += [layout.completion_record(object_id) for object_id in object_ids]  # records after their files
     moves += [layout.OBJECTS_FILE, layout.POSES_FILE, layout.MANIFEST]  # the manifest last
     plan = {"moves": moves, "keep": sorted(keep)}
