@@ -11,7 +11,7 @@ import trimesh
 from pipeline.build.atomic import file_sha256
 from pipeline.model.config import VARIANTS, Config
 from pipeline.studies.logreader import OUTSIDE, LogError, read_log
-from pipeline.studies.scoring import Scorer
+from pipeline.studies.scoring import Scorer, sup_tv
 from pipeline.studies.synthetic_log import planar
 from pipeline.studies.validation import (
     average_precision,
@@ -22,7 +22,6 @@ from pipeline.studies.validation import (
     push_metrics,
     reliability,
     report,
-    total_variation,
 )
 from schema.pushlog import PUSHLOG
 
@@ -33,11 +32,11 @@ BOX = (0.05, 0.08, 0.15)
 
 
 def test_total_variation_sup_form():
-    p = np.array([0.2, 0.3, 0.5])
-    assert total_variation(p, p) == 0.0
-    assert total_variation([1.0, 0.0, 0.0], [0.0, 0.5, 0.5]) == 1.0
-    assert total_variation([0.5, 0.5], [0.25, 0.75]) == pytest.approx(0.25)
-    assert total_variation([0.7, 0.1, 0.2], [0.4, 0.5, 0.1]) == pytest.approx(0.4)
+    p = np.array([[0.2, 0.3, 0.5]])
+    assert sup_tv(p, p)[0] == 0.0
+    assert sup_tv(np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.5, 0.5]]))[0] == 1.0
+    assert sup_tv(np.array([[0.5, 0.5]]), np.array([[0.25, 0.75]]))[0] == pytest.approx(0.25)
+    assert sup_tv(np.array([[0.7, 0.1, 0.2]]), np.array([[0.4, 0.5, 0.1]]))[0] == pytest.approx(0.4)
 
 
 def test_average_precision_on_hand_made_rankings():

@@ -58,15 +58,6 @@ WORST = 5
 # ---------------------------------------------------------------- metrics
 
 
-def total_variation(predicted: np.ndarray, empirical: np.ndarray) -> float:
-    """The thesis's sup form: max over next poses of |P_hat(x') - P(x')|.
-
-    predicted, empirical : (P,) float, distributions over the same buckets
-    returns : float in [0, 1]
-    """
-    return float(np.max(np.abs(np.asarray(predicted, dtype=float) - np.asarray(empirical, dtype=float))))
-
-
 def average_precision(scores: np.ndarray, labels: np.ndarray) -> float:
     """Average precision of ranking by ``scores`` against binary ``labels``.
 
