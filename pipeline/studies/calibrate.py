@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import qmc
 
+from ..build.atomic import write_text_atomic
 from ..model.config import VARIANTS, Config, ToppleConfig
 from .logreader import LogError, PushLog, read_log
 from .scoring import Scorer, Scores
@@ -385,8 +386,7 @@ def write_toml(path: str | Path, chosen: dict[str, float], comments: list[str]) 
     """A config TOML holding only the calibrated ``[topple]`` keys (everything else stays default)."""
     lines = [f"# {c}" for c in comments] + ["", "[topple]"]
     lines += [f"{key} = {float(value)!r}" for key, value in chosen.items()]
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 def format_calibration(result: dict) -> str:
@@ -552,8 +552,7 @@ def main(argv: list[str] | None = None) -> int:
             c=result["heldout"]["calibrated"]["variants"][args.variant]["tv_informative"]))
     write_toml(args.out, result["chosen"], comments)
     Config.from_toml(args.out)  # what `toppledb dataset --config` will do with it
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
+    write_text_atomic(args.json, json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
     print(f"config: {args.out}\nrecord: {args.json} ({result['wall_s']} s)")
     return 0
 

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..build.atomic import write_text_atomic
 from ..model.config import VARIANTS, Config
 from .logreader import LogError, PushLog, read_log
 from .scoring import Scorer, Scores
@@ -470,8 +471,7 @@ def main(argv: list[str] | None = None) -> int:
                     n_resamples=args.bootstrap, seed=config.seed)
     result["wall_s"] = round(time.perf_counter() - started, 1)
     print(format_report(result))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
+    write_text_atomic(args.out, json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
     print(f"report: {args.out} ({result['wall_s']} s)")
     if args.plot:
         plot(result, args.plot)
