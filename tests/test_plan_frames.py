@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (pytest fixture imported from tests/test_service.py)
 """Frames of POST /plan when the observed object is not on the table plane z = 0.
 
 The observed pose is ``lift(dz) @ planar @ T_p``: a stable pose p, moved in the plane,
