@@ -10,14 +10,10 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
@@ -29,7 +25,7 @@ from pipeline.build.dataset import build_dataset
 from pipeline.model.config import Config
 from schema import SCHEMA_VERSION
 from service import DatasetError, create_app
-from service.__main__ import DEFAULT_HOST, build_parser, main
+from service.__main__ import main
 from service.store import widen
 
 OBJECTS = ["random_000", "random_001", "random_002"]
@@ -434,32 +430,3 @@ def test_the_service_does_not_import_the_geometry_stack(dataset):
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "[]"
-
-
-def test_default_host_is_localhost_and_the_server_answers(dataset):
-    assert DEFAULT_HOST == "127.0.0.1" and build_parser().parse_args([]).host == "127.0.0.1"
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    process = subprocess.Popen(
-        [sys.executable, "-m", "service", "--dataset", str(dataset), "--port", str(port), "--log-level", "warning"],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                health = httpx.get(f"http://127.0.0.1:{port}/health", timeout=1)
-                break
-            except httpx.TransportError:
-                assert process.poll() is None and time.monotonic() < deadline, process.stderr.read().decode()
-                time.sleep(0.1)
-        assert health.status_code == 200 and health.json()["counts"]["objects"] == 3
-        import psutil
-
-        listening = {c.laddr.ip for c in psutil.Process(process.pid).net_connections() if c.status == psutil.CONN_LISTEN}
-        assert listening == {"127.0.0.1"}
-    finally:
-        process.terminate()
-        process.wait(timeout=10)
-        process.stderr.close()

@@ -22,6 +22,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service import create_app
+from service.__main__ import DEFAULT_HOST, build_parser
 from service.settings import Settings
 from service.store import LiveStore, Store
 from tests.test_service import ROOT, dataset  # noqa: F401 (fixture)
@@ -123,6 +124,18 @@ def stop(process: subprocess.Popen) -> tuple[str, str]:
             os.killpg(process.pid, signal.SIGKILL)  # the server and its workers
         out, err = process.communicate()
     return out.decode(), err.decode()
+
+
+def test_default_host_is_localhost_and_the_server_answers(dataset):
+    assert DEFAULT_HOST == "127.0.0.1" and build_parser().parse_args([]).host == "127.0.0.1"
+    process, url = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--log-level", "warning"])
+    try:
+        health = httpx.get(f"{url}/health", timeout=1)
+        assert health.status_code == 200 and health.json()["counts"]["objects"] == 3
+        listening = {c.laddr.ip for c in psutil.Process(process.pid).net_connections() if c.status == psutil.CONN_LISTEN}
+        assert listening == {"127.0.0.1"}
+    finally:
+        stop(process)
 
 
 def test_server_closes_unfinished_requests_reloads_on_sighup_logs_no_access_lines_and_leaves_no_child(dataset, tmp_path):
