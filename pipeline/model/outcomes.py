@@ -42,7 +42,7 @@ class StablePose:
     edge_final_pose: np.ndarray
     edge_blocked: np.ndarray
     apex_angle: np.ndarray
-    edge_rolled_pose: np.ndarray | None = None
+    edge_rolled_pose: np.ndarray
 
 
 @dataclass

@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
-from .topple import MIN_PUSH_TORQUE
+from .topple import MIN_PUSH_TORQUE, landed_poses
 
 Vec = tuple[float, float, float]
 
@@ -194,11 +194,10 @@ def reference_trial(
 def landed_pose(pose, edge: int, corrections: frozenset = frozenset()) -> int:
     """Pose one trial ends in (``StablePose``, its edge or -1): the thesis's per-edge final pose,
     or with ``rolling`` (MODEL.md C.6) the rolled-on one; the same per-(pose, edge) tables
-    the engine reads, looked up one trial at a time."""
+    the engine reads (``topple.landed_poses``), looked up one trial at a time."""
     if edge < 0:
         return int(pose.index)
-    rolls = "rolling" in corrections and pose.edge_rolled_pose is not None
-    return int((pose.edge_rolled_pose if rolls else pose.edge_final_pose)[edge])
+    return int(landed_poses(pose, corrections)[edge])
 
 
 def marginal_edge(scene: Scene, min_margin: float):

@@ -340,7 +340,7 @@ def landed_poses(pose: StablePose, corrections: frozenset[str]) -> np.ndarray:
     """Pose reached by toppling over each base edge (E,) int: the thesis's ``edge_final_pose``,
     or with the ``rolling`` correction (MODEL.md C.6) ``edge_rolled_pose``, where a blocked
     topple rolls on.  A per-(pose, edge) table, so the correction costs no per-trial work."""
-    if "rolling" in corrections and pose.edge_rolled_pose is not None:
+    if "rolling" in corrections:
         return pose.edge_rolled_pose
     return pose.edge_final_pose
 
