@@ -20,6 +20,7 @@ import numpy as np
 
 from schema import frames
 
+from . import _PUBLIC
 from .model.config import Config
 from .model.evaluation import (
     NotResting,
@@ -55,23 +56,4 @@ def match_pose(observed, poses, transforms=None, tolerance=None, *, table_height
     return observe(observed, stable, tolerance, table_height, config)
 
 
-__all__ = [
-    "Config",
-    "MeshError",
-    "NotResting",
-    "ObjectModel",
-    "ObjectResult",
-    "ObservedPose",
-    "Plan",
-    "PoseEvaluation",
-    "PoseSet",
-    "evaluate",
-    "evaluate_object",
-    "grasp_quality",
-    "load_mesh",
-    "match_pose",
-    "plan",
-    "settle",
-    "solve",
-    "stable_poses",
-]
+__all__ = list(_PUBLIC)
