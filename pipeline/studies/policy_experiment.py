@@ -66,16 +66,14 @@ def load_tables(root: str | Path | Dataset) -> PolicyTables:
     row_of = lambda objects, pose: first[np.searchsorted(object_ids, objects)] + pose  # noqa: E731
     actions = {p: poses[f"{p}_action"].to_numpy() for p in POLICIES}
 
-    chosen = set()
-    for policy_actions in actions.values():
-        for row in np.flatnonzero(policy_actions != NO_OP):
-            chosen.add((row, int(policy_actions[row])))
+    # Keys of every policy's chosen pushes (row * ACTION_SPAN + action).
+    chosen = np.concatenate([np.flatnonzero(a != NO_OP).astype(np.int64) * ACTION_SPAN + a[a != NO_OP] for a in actions.values()])
     table = dataset.partitioned("transitions", columns=["object_id", "pose", "action", "next_pose", "probability"])
     objects = table["object_id"].to_numpy(zero_copy_only=False)
     rows = row_of(objects, table["pose"].to_numpy())
     action = table["action"].to_numpy()
     keys = rows.astype(np.int64) * ACTION_SPAN + action
-    wanted = np.isin(keys, np.array([r * ACTION_SPAN + a for r, a in chosen], dtype=np.int64))
+    wanted = np.isin(keys, chosen)
     order = np.argsort(keys[wanted], kind="stable")
     keys = keys[wanted][order]
     next_row = row_of(objects, table["next_pose"].to_numpy())[wanted][order]
