@@ -92,11 +92,11 @@ def check_rigid(matrix: list[list[float]]) -> list[list[float]]:
     return matrix
 
 
-MatrixEntry = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 """A finite JSON number; strict, so that true or "1" is an error rather than 1.0."""
 
 RigidTransform = Annotated[
-    list[Annotated[list[MatrixEntry], Field(min_length=4, max_length=4)]],
+    list[Annotated[list[Finite], Field(min_length=4, max_length=4)]],
     Field(min_length=4, max_length=4),
     AfterValidator(check_rigid),
 ]
@@ -107,9 +107,6 @@ class Model(BaseModel):
     """Base of every API model: unknown request fields are an error, not silently ignored."""
 
     model_config = ConfigDict(extra="forbid")
-
-
-Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 
 
 class Point(Model):
