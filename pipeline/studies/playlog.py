@@ -45,7 +45,7 @@ from ..build.atomic import write_atomic, write_text_atomic
 from ..build.corpus import DEFAULT_LIST, PYBULLET_SOURCE, CorpusError, ObjectSpec, candidate_specs, pybullet_data_dir, read_list
 from ..model.config import Config
 from ..model.rng import stream
-from .logreader import LogError, log_files, read_tables
+from .logreader import LogError, log_files, match_downs, object_downs, read_tables
 from .pushsim import FINGER_SPEED, PlayedPush, body_model, draw_noise, play_push, player_parameters
 
 OBJECT_MODES = ("corpus", "heldout")
@@ -233,8 +233,8 @@ def left_pose(start_transform: np.ndarray, down: np.ndarray, tolerance: float) -
     counts them as not matching their start pose.
     start_transform : (4, 4) observed;  down : (3,) unit, the pose's down vector, object frame;  tolerance : rad
     """
-    observed = start_transform[:3, :3].T @ np.array([0.0, 0.0, -1.0])
-    return bool(np.arccos(np.clip(observed @ down, -1.0, 1.0)) > tolerance)
+    matched, _ = match_downs(object_downs(start_transform[None]), down[None], tolerance)
+    return bool(matched[0] < 0)
 
 
 def append_row(columns, spec, source, path, push_id, repeat, pose, action, point, direction, played: PlayedPush, config, seed) -> None:
