@@ -54,12 +54,6 @@ def positive_int(text: str) -> int:
     return value
 
 
-def _cores() -> int:
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
 def positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -180,7 +174,9 @@ exit status: 0 done, 1 build failed (or every object failed), 2 bad arguments or
 
 
 def _add_execution(command: argparse.ArgumentParser) -> None:
-    command.add_argument("--workers", type=positive_int, help="local worker processes (default: all cores, here %s)" % _cores())
+    from .build.fanout import default_workers
+
+    command.add_argument("--workers", type=positive_int, help="local worker processes (default: all cores, here %s)" % default_workers())
     command.add_argument("--scheduler", metavar="ADDRESS", help="run on this dask.distributed scheduler, e.g. tcp://host:8786")
     command.add_argument("--config", type=Path, metavar="FILE.toml", help="parameters from a TOML file")
     command.add_argument(
