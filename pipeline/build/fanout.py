@@ -108,8 +108,8 @@ class Progress:
     """Progress bar of a dataset build: objects done of total, poses done, failures,
     rate and ETA (tqdm's, over objects computed in this run)."""
 
-    def __init__(self, total: int, already_done: int = 0, already_poses: int = 0, enabled: bool = True):
-        self.poses = already_poses
+    def __init__(self, total: int, already_done: int = 0, enabled: bool = True):
+        self.poses = 0
         self.new_poses = 0
         self.failures = 0
         self.started = time.perf_counter()
