@@ -87,6 +87,15 @@ def planar_transform(yaw: float, x: float, y: float) -> np.ndarray:
     return planar
 
 
+def rotation_about(axis, angle: float) -> np.ndarray:
+    """(4, 4) rotation by ``angle`` rad about ``axis`` (Rodrigues)."""
+    axis = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    out = np.eye(4)
+    out[:3, :3] = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+    return out
+
+
 def stored_transform(tables, object_id: str, pose: int) -> np.ndarray:
     return np.array(tables["poses"][(object_id, pose)]["transform"]).reshape(4, 4)
 
@@ -256,11 +265,7 @@ def tilted(tables, object_id: str, pose: int, angle: float) -> tuple[np.ndarray,
     downs = np.array([xyz(r, "down") for (o, _), r in sorted(tables["poses"].items()) if o == object_id])
     base = planar_transform(0.3, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
     for heading in np.linspace(0, 2 * math.pi, 24, endpoint=False):
-        axis = np.array([math.cos(heading), math.sin(heading), 0.0])
-        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        tilt = np.eye(4)
-        tilt[:3, :3] = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
-        observed = tilt @ base
+        observed = rotation_about([math.cos(heading), math.sin(heading), 0.0], angle) @ base
         nearest = float(np.arccos(np.clip(downs @ (observed[:3, :3].T @ [0, 0, -1.0]), -1, 1)).min())
         if nearest > tolerance + 0.01:
             return observed, nearest

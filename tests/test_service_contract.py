@@ -18,18 +18,19 @@ from schema.api import FINGER_FORCE_LIMIT, HEIGHT_TOLERANCE, RosPose
 from schema.vocabulary import NO_OP
 from service import create_app
 from service.settings import Settings
-from tests.test_service import client, dataset, planar_transform, stored_transform, tables, tilted, xyz  # noqa: F401 (fixtures)
+from tests.test_service import (  # noqa: F401 (fixtures)
+    client,
+    dataset,
+    planar_transform,
+    rotation_about,
+    stored_transform,
+    tables,
+    tilted,
+    xyz,
+)
 
 JSON = {"content-type": "application/json"}
 TOKEN = "s3cret-token-for-tests"
-
-
-def rotation_about(axis, angle: float) -> np.ndarray:
-    axis = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    out = np.eye(4)
-    out[:3, :3] = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
-    return out
 
 
 def pushing_poses(tables, policy: str = "value_iteration") -> list[tuple[str, int, dict]]:
