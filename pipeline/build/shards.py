@@ -86,12 +86,10 @@ def write_shard(root: str | Path, shard: ShardData, inputs: dict[str, Any]) -> d
     record_path = root / layout.completion_record(object_id)
     record_path.unlink(missing_ok=True)
 
+    parquet = [(layout.partition_file(table, object_id), table) for table in tables.PARTITIONED]
+    parquet += [(layout.shard_rows_file(table, object_id), table) for table in ("objects", "poses")]
     files = {}
-    for table in tables.PARTITIONED:
-        relative = layout.partition_file(table, object_id)
-        files[relative] = write_atomic(root / relative, _parquet_writer(shard.rows[table]), _parquet_reader(shard.rows[table]))
-    for table in ("objects", "poses"):
-        relative = layout.shard_rows_file(table, object_id)
+    for relative, table in parquet:
         files[relative] = write_atomic(root / relative, _parquet_writer(shard.rows[table]), _parquet_reader(shard.rows[table]))
     relative = layout.arrays_file(object_id)
     files[relative] = write_atomic(root / relative, lambda path: _write_hdf5(path, shard), lambda path: _check_hdf5(path, shard))
