@@ -42,6 +42,8 @@ def test_parameters_come_from_defaults_toml_set_then_flags(tmp_path):
         (["dataset", "--set", "contacts.n_contacts=0"], "config key 'contacts.n_contacts' must be >= 1, got '0'"),
         (["dataset", "--set", "topple.mu_table_mean=-3"], "config key 'topple.mu_table_mean' must be >= 0"),
         (["dataset", "--seed", "-2"], "config key 'seed' must be >= 0"),
+        (["dataset", "--contacts", "0"], "config key 'contacts.n_contacts' must be >= 1, got 0"),
+        (["dataset", "--trials", "0"], "config key 'topple.n_trials' must be >= 1, got 0"),
         (["dataset", "--out", "{tmp}/a_file/out"], "cannot create output directory {tmp}/a_file/out: Not a directory"),
         (["dataset", "--out", "{tmp}/a_file"], "cannot create output directory {tmp}/a_file: File exists"),
         (["dataset", "--corpus", "default", "--units", "mm", "--out", "{tmp}/out"], "apply to a directory of meshes"),
