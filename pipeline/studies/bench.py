@@ -120,9 +120,12 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="toppledb bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--objects", type=int, default=20, help="random corpus objects to time (default 20)")
     parser.add_argument("--reference-trials", type=int, default=400, help="trials re-run by the scalar reference")
+    parser.add_argument("--config", metavar="PRESET|FILE.toml", help="model parameters, e.g. thesis (default: the dataset's defaults)")
     args = parser.parse_args(argv)
+    from ..cli import make_config
+
+    config = make_config(argparse.Namespace(config=args.config, overrides=[], seed=None))
     cpu = pin_to_one_core()
-    config = Config()
     print(f"toppledb bench: {args.objects} pybullet random objects, all stable poses, "
           f"{config.contacts.n_contacts} contacts x {config.topple.trials} trials, variant {config.topple.variant}, CPU {cpu} only")
     result = run(args.objects, args.reference_trials, config)
