@@ -55,7 +55,9 @@ class SimConfig:
     distribution; [ours] the range brackets Dex-Net's mean 0.5 [DN2]."""
     finger_radius: float = 0.01
     """m, radius of the pushing finger, a vertical cylinder (a closed parallel-jaw gripper
-    is about 2 cm across; [thesis] pushes with the closed YuMi gripper) [ours]."""
+    is about 2 cm across; [thesis] pushes with the closed YuMi gripper) [ours].  The experiment
+    plans with the same radius (``clutter.policies.PushConfig.finger_radius``); the push length
+    and approach are the planner's (``PushConfig``)."""
     finger_height: float = 0.10
     """m, length of the finger cylinder above its tip [ours]."""
     finger_speed: float = 0.2
@@ -63,9 +65,6 @@ class SimConfig:
     pushed object does not fly; the thesis's robot pushes at a similar pace]."""
     finger_max_force: float = 100.0
     """N, strength of the constraint that drags the finger [ours]."""
-    push_length: float = 0.10
-    """m, the fixed push length of the policies [thesis: "push for a fixed length"; ours: 10 cm,
-    about one object width of the default corpus]."""
     max_object_extent: float = 0.20
     """m, objects larger than this are not dropped (none of the default corpus is) [ours]."""
 
@@ -133,10 +132,13 @@ class HeapConfig:
     """[DN3] cup, seal, wrench and perturbation model, reused from the toppling model; 200
     candidates over the whole surface (object frame, once per object; about half face up in
     any pose) instead of 100 over one pose's upward faces."""
-    grasp_threshold: float = 0.5
+    grasp_threshold: float = 0.9
     """A heap is hard (thesis 3.3.1) when neither gripper's best accessible grasp reaches this
-    confidence [ours: the thesis's grasping policy "has confidence below a threshold" without
-    giving it; 0.5 = the grasp fails at least as often as it succeeds]."""
+    confidence.  [thesis] its grasping policy "has confidence below a threshold", not given.
+    [ours, measured on the default corpus] an object alone reaches a parallel-jaw robust quality
+    of 0.9-1.0 and keeps it in a loose heap, so below 0.9 its better grasps are blocked or it is
+    a poor object; at 0.5 grasping out goes on until one poor object is left (8 of 30 heaps hard,
+    all with one object), which leaves the multi-object policies nothing to push apart."""
     max_removals: int = 10
     """Most objects picked out while searching for the hard state (= max_objects) [ours]."""
     seed: int = 0
