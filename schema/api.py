@@ -489,3 +489,94 @@ class PlanResult(Model):
 
 class PlanResults(Model):
     results: list[PlanResult]
+
+
+# --- heap planning (thesis chapter 3) ------------------------------------------------
+
+HeapPolicy = Literal["quasi_random", "boundary_shear", "free_space", "max_clearance", "cluster_diffusion"]
+"""The planar push policies of thesis 3.2 (``clutter.policies.POLICIES``, the same names in its order)."""
+
+MAX_HEAP_OBJECTS = 100
+"""Most objects in one heap request; more is a 422."""
+
+MAX_BIN_SIZE = 5.0
+"""m, largest bin length, width or height accepted (a bound on the planner's floor grid)."""
+
+BIN_TOLERANCE = 0.005
+"""m, how far an object's hull may reach past a wall of the bin or below its floor and still count
+as in the bin (perception error, as ``HEIGHT_TOLERANCE``); further is a 409."""
+
+BinLength = Annotated[float, Field(gt=0, le=MAX_BIN_SIZE, strict=True, allow_inf_nan=False)]
+
+
+class HeapBin(Model):
+    """The bin (an open box), world frame: inner floor centred on the origin, z up, floor at z = 0,
+    x along its length.  The defaults are ``clutter.state.Bin``'s, a common picking tote."""
+
+    length: BinLength = Field(0.50, description="m, inner floor length, along world x")
+    width: BinLength = Field(0.40, description="m, inner floor width, along world y")
+    height: BinLength = Field(0.15, description="m, wall height")
+    wall: BinLength = Field(0.01, description="m, wall thickness")
+
+
+class HeapObject(Model):
+    """One object of the heap: exactly one of ``pose`` and ``ros_pose`` (as in PlanRequest)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"oneOf": [{"required": ["pose"]}, {"required": ["ros_pose"]}]})
+
+    object_id: str = Field(description="Dataset object id (its hull and centre of mass come from the dataset)")
+    pose: RigidTransform = Field(None, description="Object frame -> world frame (the bin frame), 4x4 row-major; give this or ros_pose")
+    ros_pose: RosPose = Field(None, description="The same as ROS sends it (position, orientation x, y, z, w, frame_id); give this or pose")
+
+    @model_validator(mode="after")
+    def _one_pose(self) -> HeapObject:
+        if (self.pose is None) == (self.ros_pose is None):
+            raise ValueError("give exactly one of pose (a 4x4 matrix) and ros_pose (position, orientation, frame_id)")
+        return self
+
+    def observed(self) -> np.ndarray:
+        """(4, 4) float, object frame -> world frame, from whichever form was given."""
+        return np.asarray(self.pose, dtype=np.float64) if self.pose is not None else self.ros_pose.matrix()
+
+
+class HeapPlanRequest(Model):
+    """A heap of objects in a bin and the push policy to plan with."""
+
+    bin: HeapBin = Field(default_factory=HeapBin, description="The bin; omitted: the default tote")
+    objects: list[HeapObject] = Field(min_length=1, max_length=MAX_HEAP_OBJECTS, description="The objects in the bin (an id may repeat)")
+    policy: HeapPolicy = Field("boundary_shear", description="Push policy (thesis 3.2); boundary_shear ran on the physical robot (3.3.2)")
+    seed: StrictInt = Field(0, ge=0, le=2**63 - 1, description="Seed of quasi_random's draws (the same seed, the same push)")
+
+
+class HeapPush(Model):
+    """A straight finger stroke, world frame: the finger comes down at ``start`` and moves to ``end``."""
+
+    target: int = Field(description="Index of the pushed object in the request's objects")
+    object_id: str
+    start: Vector3 = Field(description="m, where the finger's axis starts (a finger radius clear of every object)")
+    end: Vector3 = Field(description="m, where it stops")
+    direction: Vector3 = Field(description="unit, start -> end (horizontal)")
+    length: float = Field(description="m, |end - start|")
+
+
+class HeapPlanResponse(Model):
+    """The policy's push, or ``push`` null when it finds no collision-free one (thesis 3.4)."""
+
+    policy: HeapPolicy
+    frame_id: str = Field(description="Frame of start and end (the service's world frame: the bin's, z up, floor z = 0)")
+    found: bool = Field(description="Whether the policy found a collision-free push")
+    reason: str = Field(description="One sentence: what was pushed and why, or why nothing is")
+    push: HeapPush | None = Field(description="The push; null when found is false")
+    finger_radius: float = Field(description="m, finger radius the push was planned for")
+    push_length: float = Field(description="m, how far the finger goes on past the object's footprint (before clipping to the bin)")
+    approach_offset: float = Field(description="m, how far outside the object's footprint the finger starts")
+
+
+class OutsideBinBody(ErrorBody):
+    """409: an object reaches past a wall of the bin or below its floor by more than the tolerance."""
+
+    reason: Literal["outside_bin", "below_floor"]
+    index: int = Field(description="Index of the object in the request's objects")
+    object_id: str
+    distance: float = Field(description="m, how far its hull reaches past the wall (outside_bin) or below z = 0 (below_floor)")
+    tolerance: float = Field(description="m, the largest distance accepted (BIN_TOLERANCE)")

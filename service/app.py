@@ -36,7 +36,7 @@ from .dependencies import LiveDep
 from .guard import OPEN_PATHS, Guard
 from .lane import Lane
 from .metrics import CONTENT_TYPE, Metrics
-from .routers import objects, plan
+from .routers import heaps, objects, plan
 from .settings import Settings
 from .store import LiveStore, Store
 
@@ -116,6 +116,7 @@ def create_app(dataset_dir: str | Path | None = None, settings: Settings | None 
     app.include_router(objects.router)
     app.include_router(objects.batch)
     app.include_router(plan.batch)
+    app.include_router(heaps.router)
     app.add_middleware(Guard, metrics=metrics, token=settings.token, max_body_bytes=settings.max_body_bytes)
 
     @app.get("/health", response_model=Health, tags=["service"], summary="Liveness and which build is served")
