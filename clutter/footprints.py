@@ -36,6 +36,13 @@ def convex_hull_2d(points: np.ndarray) -> np.ndarray:
     vertices of a projected hull a plain-float loop is faster than any numpy formulation.
     """
     points = np.asarray(points, dtype=np.float64)
+    if len(points) > 16:
+        points = points[~strictly_inside_octagon(points)]
+    return monotone_chain(points)
+
+
+def monotone_chain(points: np.ndarray) -> np.ndarray:
+    """(k, 2): ``convex_hull_2d`` without the octagon filter (for points already filtered)."""
     order = np.lexsort((points[:, 1], points[:, 0]))  # by x, then y
     ordered = points[order]
     keep = np.ones(len(ordered), dtype=bool)
@@ -60,10 +67,38 @@ def convex_hull_2d(points: np.ndarray) -> np.ndarray:
     return np.array(lower[:-1] + upper[:-1], dtype=np.float64)
 
 
+OCTAGON = np.stack([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)], axis=1)
+
+
+def strictly_inside_octagon(points: np.ndarray) -> np.ndarray:
+    """(..., m) bool: ``points`` (..., m, 2) strictly inside the polygon of their extreme points
+    in eight directions, so none of them is a hull vertex (Akl-Toussaint: the scan then sees
+    a third of a projected hull's points).  Batched over leading dimensions."""
+    extreme = np.argmax(points @ OCTAGON.T, axis=-2)  # (..., 8), counter-clockwise around the hull
+    corners = np.take_along_axis(points, extreme[..., None], axis=-2)
+    normals, offsets = edge_normals(corners)
+    slack = normals[..., None, :, 0] * points[..., :, None, 0] + normals[..., None, :, 1] * points[..., :, None, 1]
+    slack = slack - offsets[..., None, :]
+    # Repeated corners make zero-length edges, which constrain nothing.
+    slack = np.where(np.any(normals != 0.0, axis=-1)[..., None, :], slack, -np.inf)
+    return slack.max(axis=-1) < -TOLERANCE
+
+
 def footprint(vertices: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """(k, 2) float, m: the footprint of an object with hull ``vertices`` (V, 3, object frame)
     at ``pose`` (4, 4, object -> world), counter-clockwise."""
     return convex_hull_2d(world_points(vertices, pose)[:, :2])
+
+
+def footprints(hulls: Sequence[np.ndarray], poses: np.ndarray) -> list[np.ndarray]:
+    """The footprints (k_i, 2) of a heap: hulls n arrays (V_i, 3) object frame, poses (n, 4, 4).
+    As ``footprint`` per object, with the interior points dropped for all objects in one
+    batch (numpy's per-call cost is most of the time on a few tens of points)."""
+    sizes = [len(h) for h in hulls]
+    padded = np.stack([np.concatenate([h, np.repeat(h[:1], max(sizes) - len(h), axis=0)]) for h in hulls])
+    world = (np.einsum("nij,nvj->nvi", poses[:, :2, :3], padded) + poses[:, None, :2, 3])  # (n, V, 2)
+    inside = strictly_inside_octagon(world)
+    return [monotone_chain(world[i, :size][~inside[i, :size]]) for i, size in enumerate(sizes)]
 
 
 def pad_polygons(polygons: Sequence[np.ndarray]) -> np.ndarray:

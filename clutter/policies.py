@@ -146,15 +146,15 @@ def scene(state: HeapState, hulls: Sequence[np.ndarray], centers_mass: np.ndarra
     if not np.isfinite(centers_mass).all():
         bad = int(np.flatnonzero(~np.isfinite(centers_mass).all(axis=1))[0])
         raise ValueError(f"object {bad} ('{state.object_ids[bad]}'): its centre of mass is not finite")
-    polygons = []
+    arrays = []
     for i, hull in enumerate(hulls):
         hull = np.asarray(hull, dtype=np.float64)
         if hull.ndim != 2 or hull.shape[1] != 3 or len(hull) < 3:
             raise ValueError(f"object {i} ('{state.object_ids[i]}'): hull vertices must be (V >= 3, 3), got {hull.shape}")
         if not np.isfinite(hull).all():
             raise ValueError(f"object {i} ('{state.object_ids[i]}'): its hull vertices are not all finite")
-        polygons.append(fp.footprint(hull, state.poses[i]))
-    padded = fp.pad_polygons(polygons)
+        arrays.append(hull)
+    padded = fp.pad_polygons(fp.footprints(arrays, state.poses))
     flat = fp.polygon_areas(padded) < FLAT_AREA
     if flat.any():
         bad = int(np.flatnonzero(flat)[0])
@@ -224,18 +224,30 @@ def to_push(sc: Scene, policy: str, s: Strokes, index: int) -> Push:
     return Push(policy, int(s.target[index]), np.array([*s.start[index], z]), np.array([*s.end[index], z]))
 
 
-def best_feasible(s: Strokes, score: np.ndarray) -> int | None:
-    """Index of the feasible candidate of highest ``score`` (ties: the first); None if none is feasible."""
-    if not s.feasible.any():
-        return None
-    return int(np.argmax(np.where(s.feasible, score, -np.inf)))
+CHUNK = 16
+"""Candidates checked at a time, best first: the checks are most of a plan's time, and the
+best few candidates usually include a feasible one."""
+
+
+def best_stroke(sc: Scene, policy: str, targets: np.ndarray, directions: np.ndarray, score: np.ndarray,
+                **checks) -> Push | None:
+    """The feasible candidate (targets (m,), unit directions (m, 2)) of highest ``score`` (m,)
+    (ties: the earlier one) as a Push; None when none is feasible.  ``checks`` go to ``strokes``."""
+    order = np.argsort(-np.asarray(score, dtype=np.float64), kind="stable")
+    for first in range(0, len(order), CHUNK):
+        pick = order[first:first + CHUNK]
+        s = strokes(sc, targets[pick], directions[pick], **checks)
+        if s.feasible.any():
+            return to_push(sc, policy, s, int(np.argmax(s.feasible)))
+    return None
 
 
 # --- free space, pairs, clusters -------------------------------------------------------
 
 
-BLOCK = 4
-"""Grid cells per side of the coarse blocks in which ``free_space_points`` first looks."""
+TOP_BLOCK = 8
+"""Cells per side of the coarsest blocks in which ``free_space_points`` starts looking (a power of two)."""
+CHILDREN = np.array([[0, 0], [0, 1], [1, 0], [1, 1]])
 
 
 def floor_grid(half_extents: np.ndarray, config: PushConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -263,31 +275,34 @@ def room(points: np.ndarray, sc: Scene) -> np.ndarray:
     return np.minimum(walls, others)
 
 
-def free_space_points(sc: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """Each object's free space point p_i (n, 2) m, the grid cell centre of most ``room`` (ties:
-    nearest c_i), and its direction of most free space (n, 2) (unit; zero when p_i is within
-    half a cell of c_i).
+def free_space_points(sc: Scene, objects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The free space points p (m, 2) m of ``objects`` (m,) int: the grid cell centre of most
+    ``room`` (ties: nearest the object's c), and their directions of most free space (m, 2)
+    (unit; zero when p is within half a cell of c).
 
     Branch and bound, exact on the grid: ``room`` changes by at most the distance moved, so
-    it is computed on the centres of BLOCK x BLOCK blocks of cells first, and then on every
-    cell of the blocks that can hold a maximum.
+    it is computed on the centres of blocks of TOP_BLOCK x TOP_BLOCK cells, then on the
+    quarters of the blocks that can hold a maximum, and so on down to single cells.
     """
+    objects = np.asarray(objects, dtype=np.int64)
     size, counts = floor_grid(sc.half_extents, sc.config)
-    blocks = -(-counts // BLOCK)
-    bx, by = (a.ravel() for a in np.meshgrid(np.arange(blocks[0]), np.arange(blocks[1]), indexing="ij"))
-    centres = (np.stack([bx, by], axis=1) * BLOCK + BLOCK / 2) * size - sc.half_extents
-    coarse = room(centres, sc)  # (B, n)
-    reach = (BLOCK - 1) / 2 * float(np.linalg.norm(size))  # from a block's centre to its farthest cell centre
-    keep = np.any(coarse >= coarse.max(axis=0) - 2 * reach - fp.TOLERANCE, axis=1)
-    offsets = np.stack([a.ravel() for a in np.meshgrid(np.arange(BLOCK), np.arange(BLOCK), indexing="ij")], axis=1)
-    cells = (np.stack([bx[keep], by[keep]], axis=1)[:, None] * BLOCK + offsets[None]).reshape(-1, 2)
-    cells = cells[np.all(cells < counts, axis=1)]
-    points = (cells + 0.5) * size - sc.half_extents
-    fine = room(points, sc)  # (G, n)
-    near = np.linalg.norm(points[:, None] - sc.centers[None], axis=2)
-    best = fine >= fine.max(axis=0) - fp.TOLERANCE
-    free = points[np.argmin(np.where(best, near, np.inf), axis=0)]
-    offset = free - sc.centers
+    block = TOP_BLOCK
+    blocks = np.stack([a.ravel() for a in np.meshgrid(*(np.arange(-(-c // block)) for c in counts), indexing="ij")], axis=1)
+    while True:
+        centres = (blocks * block + block / 2) * size - sc.half_extents
+        value = room(centres, sc)[:, objects]  # (B, m)
+        if block == 1:
+            break
+        # Every block has a cell within ``reach`` of its centre, and no cell further.
+        reach = (block - 1) / 2 * float(np.linalg.norm(size))
+        keep = np.any(value + reach >= value.max(axis=0) - reach - fp.TOLERANCE, axis=1)
+        block //= 2
+        blocks = (blocks[keep][:, None] * 2 + CHILDREN[None]).reshape(-1, 2)
+        blocks = blocks[np.all(blocks * block < counts, axis=1)]
+    near = np.linalg.norm(centres[:, None] - sc.centers[objects][None], axis=2)
+    best = value >= value.max(axis=0) - fp.TOLERANCE
+    free = centres[np.argmin(np.where(best, near, np.inf), axis=0)]
+    offset = free - sc.centers[objects]
     length = np.linalg.norm(offset, axis=1, keepdims=True)
     direction = np.divide(offset, length, out=np.zeros_like(offset), where=length > float(size.min()) / 2)
     return free, direction
@@ -334,10 +349,7 @@ def quasi_random(sc: Scene, rng: np.random.Generator) -> Push | None:
     attempts = sc.config.random_attempts
     targets = rng.integers(len(sc), size=attempts)
     angles = rng.uniform(0.0, 2 * np.pi, size=attempts)
-    s = strokes(sc, targets, unit(angles), check_approach=False, clip_start=True)
-    if not s.feasible.any():
-        return None
-    return to_push(sc, "quasi_random", s, int(np.argmax(s.feasible)))
+    return best_stroke(sc, "quasi_random", targets, unit(angles), -np.arange(attempts), check_approach=False, clip_start=True)
 
 
 def boundary_shear(sc: Scene) -> Push | None:
@@ -353,10 +365,8 @@ def boundary_shear(sc: Scene) -> Push | None:
     boundary = np.array([-across[1], across[0]]) / np.linalg.norm(across)
     targets = np.array([i, i, j, j])
     directions = np.stack([boundary, -boundary, boundary, -boundary])
-    s = strokes(sc, targets, directions)
-    _, free = free_space_points(sc)
-    index = best_feasible(s, cosine(directions, free[targets]))
-    return None if index is None else to_push(sc, "boundary_shear", s, index)
+    _, free = free_space_points(sc, np.array([i, j]))
+    return best_stroke(sc, "boundary_shear", targets, directions, cosine(directions, free[[0, 0, 1, 1]]))
 
 
 def free_space(sc: Scene) -> Push | None:
@@ -366,22 +376,19 @@ def free_space(sc: Scene) -> Push | None:
     if len(sc) < 2:
         return None
     pair = np.array(closest_pair(sc))
-    points, free = free_space_points(sc)
-    usable = pair[np.linalg.norm(free[pair], axis=1) > 0]
-    if not len(usable):
+    points, free = free_space_points(sc, pair)
+    usable = np.linalg.norm(free, axis=1) > 0
+    pair, points, free = pair[usable], points[usable], free[usable]
+    if not len(pair):
         return None
     count = sc.config.directions
     steps = np.array([0] + [s * k for k in range(1, count // 2) for s in (1, -1)] + [count // 2])  # nearest first
-    ideal = np.arctan2(free[usable, 1], free[usable, 0])
+    ideal = np.arctan2(free[:, 1], free[:, 0])
     angles = ideal[:, None] + steps[None] * (2 * np.pi / count)  # (2, D)
-    targets = np.repeat(usable, len(steps))
-    s = strokes(sc, targets, unit(angles.ravel()))
-    feasible = s.feasible.reshape(len(usable), len(steps))
-    choices = [(float(np.linalg.norm(points[t] - sc.centers[t])), row * len(steps) + int(np.argmax(feasible[row])))
-               for row, t in enumerate(usable) if feasible[row].any()]
-    if not choices:
-        return None
-    return to_push(sc, "free_space", s, min(choices)[1])
+    pushes = [best_stroke(sc, "free_space", np.full(len(steps), t), unit(angles[row]), -np.arange(len(steps)))
+              for row, t in enumerate(pair)]
+    choices = [(float(np.linalg.norm(points[row] - sc.centers[t])), row) for row, t in enumerate(pair) if pushes[row] is not None]
+    return pushes[min(choices)[1]] if choices else None
 
 
 def clearance_ratios(sc: Scene) -> tuple[np.ndarray, np.ndarray]:
@@ -401,9 +408,7 @@ def max_clearance(sc: Scene) -> Push | None:
     behind the footprint; the collision-free push of largest forward/backward ratio."""
     ratios, directions = clearance_ratios(sc)
     n, count = ratios.shape
-    s = strokes(sc, np.repeat(np.arange(n), count), np.tile(directions, (n, 1)))
-    index = best_feasible(s, ratios.ravel())
-    return None if index is None else to_push(sc, "max_clearance", s, index)
+    return best_stroke(sc, "max_clearance", np.repeat(np.arange(n), count), np.tile(directions, (n, 1)), ratios.ravel())
 
 
 def cluster_diffusion(sc: Scene) -> Push | None:
@@ -421,10 +426,8 @@ def cluster_diffusion(sc: Scene) -> Push | None:
     if not len(members):
         return None
     directions = away / np.linalg.norm(away, axis=1, keepdims=True)
-    s = strokes(sc, members, directions)
-    _, free = free_space_points(sc)
-    index = best_feasible(s, cosine(directions, free[members]))
-    return None if index is None else to_push(sc, "cluster_diffusion", s, index)
+    _, free = free_space_points(sc, members)
+    return best_stroke(sc, "cluster_diffusion", members, directions, cosine(directions, free))
 
 
 DEFAULT = PushConfig()

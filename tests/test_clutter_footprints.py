@@ -55,6 +55,31 @@ def test_the_hull_drops_interior_and_collinear_points_and_runs_counter_clockwise
     assert fp.polygon_areas(hull) == pytest.approx(1.0)
 
 
+def test_the_hull_is_scipys_on_point_clouds_of_every_size():
+    spatial = pytest.importorskip("scipy.spatial")
+    rng = np.random.default_rng(9)
+    for count in (3, 10, 17, 60, 400):  # below and above the octagon filter's threshold
+        points = rng.normal(size=(count, 2)) * [1.0, 0.3]
+        hull = fp.convex_hull_2d(points)
+        reference = points[spatial.ConvexHull(points).vertices]  # counter-clockwise too
+        start = int(np.argmin(np.linalg.norm(reference - hull[0], axis=1)))
+        assert np.array_equal(np.roll(reference, -start, axis=0), hull)
+
+
+def test_a_heaps_footprints_are_its_objects_footprints():
+    rng = np.random.default_rng(10)
+    hulls = [rng.normal(size=(v, 3)) * 0.05 for v in (8, 65, 30)]
+    poses = np.stack([np.eye(4)] * 3)
+    for k, pose in enumerate(poses):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        pose[:3, :3] = np.eye(3) + math.sin(k + 1.0) * skew + (1 - math.cos(k + 1.0)) * skew @ skew
+        pose[:3, 3] = rng.normal(size=3) * 0.1
+    for together, alone in zip(fp.footprints(hulls, poses), (fp.footprint(h, p) for h, p in zip(hulls, poses))):
+        assert together.shape == alone.shape and np.allclose(together, alone, rtol=0, atol=1e-15)
+
+
 def test_a_footprint_follows_the_pose():
     hull = box_hull(0.05, 0.02, 0.03)
     pose = turn(math.pi / 2)

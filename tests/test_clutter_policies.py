@@ -16,8 +16,10 @@ from clutter.policies import (
     PushConfig,
     clearance_ratios,
     clusters,
+    floor_grid,
     free_space_points,
     plan_push,
+    room,
     scene,
     strokes,
 )
@@ -99,18 +101,36 @@ def test_free_space_pushes_an_object_away_from_its_one_neighbour_towards_its_fre
     away = state.poses[push.target, :2, 3] - state.poses[other, :2, 3]
     assert direction(push) @ away > 0
     # Nothing stands in the way here, so it is the ideal direction c -> p itself.
-    _, free = free_space_points(scene(state, hulls, com, CONFIG))
-    assert np.allclose(direction(push), free[push.target], atol=1e-9)
+    _, free = free_space_points(scene(state, hulls, com, CONFIG), np.array([push.target]))
+    assert np.allclose(direction(push), free[0], atol=1e-9)
     check_push(push, state, hulls, com)
 
 
 def test_the_free_space_point_of_a_lone_object_is_the_bins_middle():
     state, hulls, com = heap([(-0.15, 0.05)])
     sc = scene(state, hulls, com, CONFIG)
-    points, free = free_space_points(sc)
+    points, free = free_space_points(sc, np.array([0]))
     # Alone, the room is the distance to the walls: largest on the bin's midline |x| <= 0.05 (0.5 x 0.4 m).
     assert points[0, 1] == pytest.approx(0.0, abs=CONFIG.grid_resolution) and points[0, 0] == pytest.approx(-0.05, abs=CONFIG.grid_resolution)
     assert free[0] @ [1.0, -1.0] > 0
+
+
+def test_the_free_space_search_finds_the_best_grid_cell():
+    rng = np.random.default_rng(8)
+    for n in (2, 5, 9):
+        state, hulls, com = random_heap(rng, n)
+        sc = scene(state, hulls, com, CONFIG)
+        size, counts = floor_grid(sc.half_extents, CONFIG)
+        cells = np.stack([a.ravel() for a in np.meshgrid(np.arange(counts[0]), np.arange(counts[1]), indexing="ij")], axis=1)
+        centres = (cells + 0.5) * size - sc.half_extents
+        value = room(centres, sc)  # every cell, every object
+        points, _ = free_space_points(sc, np.arange(n))
+        for i in range(n):
+            at = np.flatnonzero(np.all(np.abs(centres - points[i]) < 1e-12, axis=1))
+            assert len(at) == 1 and value[at[0], i] == pytest.approx(value[:, i].max(), abs=1e-12)
+            # Among the best cells, the one nearest the object's centre of mass.
+            best = value[:, i] >= value[:, i].max() - 1e-9
+            assert np.linalg.norm(points[i] - sc.centers[i]) == pytest.approx(np.linalg.norm(centres[best] - sc.centers[i], axis=1).min())
 
 
 def test_max_clearance_pushes_towards_the_room():
