@@ -17,8 +17,10 @@ from .grasps import heap_confidence, jaw_candidates, suction_candidates
 from .seeds import heap_stream
 from .world import drop_heap, execute_push, heap_friction, library_for, remove_object
 
+DEFAULT = HeapConfig()
 
-def bench(n: int = 20, config: HeapConfig = HeapConfig()) -> dict[str, float]:
+
+def bench(n: int = 20, config: HeapConfig = DEFAULT) -> dict[str, float]:
     """Median ms of each piece over ``n`` heaps (and the mean object cache build)."""
     from clutter.policies import PushConfig, plan_push
 

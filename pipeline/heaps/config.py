@@ -12,7 +12,7 @@ Units: metres, kilograms, seconds, radians.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 
 from clutter.state import Bin
 
@@ -154,9 +154,6 @@ class HeapConfig:
             raise ValueError(f"grasp_threshold must be in [0, 1], got {self.grasp_threshold}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
-
-    def with_seed(self, seed: int) -> "HeapConfig":
-        return replace(self, seed=seed)
 
 
 def to_dict(config: HeapConfig) -> dict:

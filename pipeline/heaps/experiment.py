@@ -33,7 +33,6 @@ import math
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -226,7 +225,7 @@ def summary_stats(pushes) -> dict:
         for policy, group in pushes.groupby("policy", sort=False):
             gains = group[f"{g}_gain"].to_numpy()
             sem = float(gains.std(ddof=1) / np.sqrt(len(gains))) if len(gains) > 1 else None
-            result[g][policy] = {"n": int(len(gains)), "mean": float(gains.mean()) if len(gains) else None, "sem": sem}
+            result[g][policy] = {"n": len(gains), "mean": float(gains.mean()) if len(gains) else None, "sem": sem}
     return result
 
 
@@ -236,24 +235,23 @@ def regression(pushes, gripper: str) -> dict:
 
     returns : {"n_obs", "n_heaps", "effects": {policy: {"coef", "se", "p"}}} or {"error": why}
     """
+    import pandas as pd
     import statsmodels.api as sm
 
     data = pushes[["heap", "policy", f"{gripper}_gain"]].dropna()
     others = [p for p in data["policy"].unique() if p != BASELINE]
     if data["heap"].nunique() < 2 or BASELINE not in set(data["policy"]) or not others:
-        return {"error": "too few heaps or policies for a regression", "n_obs": int(len(data))}
+        return {"error": "too few heaps or policies for a regression", "n_obs": len(data)}
     design = {"const": np.ones(len(data))}
     for policy in others:
         design[policy] = (data["policy"] == policy).to_numpy(float)
     heaps = sorted(data["heap"].unique())
     for h in heaps[1:]:
         design[f"heap_{h}"] = (data["heap"] == h).to_numpy(float)
-    import pandas as pd
-
     x = pd.DataFrame(design)
     y = data[f"{gripper}_gain"].to_numpy(float)
     if np.allclose(y, y[0]):
-        return {"error": "every gain is the same; nothing to regress", "n_obs": int(len(y))}
+        return {"error": "every gain is the same; nothing to regress", "n_obs": len(y)}
     robust = sm.RLM(y, x, M=sm.robust.norms.HuberT()).fit()
     # Most gains are exactly 0, so the residuals' median absolute deviation (RLM's scale) can be
     # 0 and then every non-zero gain is an outlier; OLS with heteroscedasticity-robust (HC3)
@@ -264,7 +262,7 @@ def regression(pushes, gripper: str) -> dict:
         return {p: {"coef": float(fit.params[p]), "se": float(fit.bse[p]), "p": float(fit.pvalues[p])} for p in others}
 
     return {
-        "n_obs": int(len(y)), "n_heaps": len(heaps), "rlm_scale": float(robust.scale),
+        "n_obs": len(y), "n_heaps": len(heaps), "rlm_scale": float(robust.scale),
         "effects": effects(robust), "ols_hc3": effects(ols),
     }
 
@@ -298,7 +296,7 @@ def analyse(tabs: dict) -> dict:
     improvable = pushes[pushes["improvable"]]
     planned = improvable[improvable["planned"]]
     return {
-        "heaps_dropped": int(len(heaps)),
+        "heaps_dropped": len(heaps),
         "hard_heaps": int(heaps["hard"].sum()),
         "improvable_heaps": int(improvable["heap"].nunique()),
         "objects_per_hard_heap": heaps.loc[heaps["hard"], "n_objects"].value_counts().sort_index().to_dict(),

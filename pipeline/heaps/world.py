@@ -156,7 +156,7 @@ def settle(world: World, max_time: float, config: HeapConfig) -> tuple[bool, int
     """
     pb, client, sim = world.pb, world.client, config.sim
     still, steps = 0, 0
-    for steps in range(1, int(round(max_time / sim.time_step)) + 1):
+    for steps in range(1, round(max_time / sim.time_step) + 1):
         pb.stepSimulation(physicsClientId=client)
         moving = False
         for body in world.bodies:
