@@ -163,6 +163,22 @@ def scene(state: HeapState, hulls: Sequence[np.ndarray], centers_mass: np.ndarra
     return Scene(state.bin.half_extents, padded, world_com[:, :2], world_com[:, 2], config)
 
 
+def outside_bin(state: HeapState, hulls: Sequence[np.ndarray], tolerance: float) -> tuple[int, str, float] | None:
+    """The first object whose hull (V_i, 3, object frame) reaches more than ``tolerance`` m past a
+    wall of the bin or below its floor: (index, "outside_bin" or "below_floor", how far, m);
+    None when every object is in the bin."""
+    half = state.bin.half_extents
+    for index, hull in enumerate(hulls):
+        world = fp.world_points(np.asarray(hull, dtype=np.float64), state.poses[index])
+        past = float(fp.overhang(world[:, :2], half))
+        if past > tolerance:
+            return index, "outside_bin", past
+        below = float(-world[:, 2].min())
+        if below > tolerance:
+            return index, "below_floor", below
+    return None
+
+
 # --- strokes -------------------------------------------------------------------------
 
 

@@ -22,8 +22,8 @@ from importlib import import_module
 from schema.version import CODE_VERSION as __version__
 
 _PUBLIC = ("Config", "MeshError", "NotResting", "ObjectModel", "ObjectResult", "ObservedPose", "Plan", "PoseEvaluation",
-           "PoseSet", "evaluate", "evaluate_object", "grasp_quality", "load_mesh", "match_pose", "plan", "settle", "solve",
-           "stable_poses")
+           "PoseSet", "evaluate", "evaluate_object", "grasp_quality", "load_mesh", "match_pose", "plan", "plan_heap", "settle",
+           "solve", "stable_poses")
 """The names of ``pipeline.api`` (its ``__all__``), listed here so that they resolve without importing it."""
 
 __all__ = sorted(_PUBLIC) + ["__version__"]

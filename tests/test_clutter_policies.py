@@ -18,6 +18,7 @@ from clutter.policies import (
     clusters,
     floor_grid,
     free_space_points,
+    outside_bin,
     plan_push,
     room,
     scene,
@@ -235,6 +236,18 @@ def test_an_empty_heap_has_no_push():
     assert plan_push("boundary_shear", state, [], np.zeros((0, 3))) is None
 
 
+def test_outside_bin_names_the_first_object_past_a_wall_or_below_the_floor():
+    state, hulls, _ = heap([(0.0, 0.0), (0.23, 0.0), (0.0, 0.19)])
+    # The second box reaches 0.23 + 0.03 - 0.25 = 1 cm past the right wall, the third 2 cm past the top.
+    assert outside_bin(state, hulls, tolerance=0.011) == (2, "outside_bin", pytest.approx(0.02))
+    assert outside_bin(state, hulls, tolerance=0.005) == (1, "outside_bin", pytest.approx(0.01))
+    assert outside_bin(state, hulls, tolerance=0.03) is None
+    poses = state.poses.copy()
+    poses[0, 2, 3] = -0.004
+    sunk = HeapState(state.bin, state.object_ids, poses)
+    assert outside_bin(sunk, hulls, tolerance=0.003) == (0, "below_floor", pytest.approx(0.004))
+
+
 # --- errors ------------------------------------------------------------------------
 
 
@@ -273,3 +286,16 @@ def test_bad_input_is_a_one_line_value_error():
 def test_a_bad_config_says_which_field(change, message):
     with pytest.raises(ValueError, match=message):
         PushConfig(**change)
+
+
+def test_plan_heap_takes_meshes():
+    shapes = pytest.importorskip("tests.shapes")  # the geometry stack (pipeline extra)
+    import pipeline as toppledb
+
+    box_model = shapes.box_object(size=(0.06, 0.06, 0.04))
+    state, hulls, _ = heap([(-0.031, -0.1), (0.031, -0.1)], hulls=[np.asarray(box_model.hull.vertices)] * 2)
+    push = toppledb.plan_heap(state.object_ids, state.poses, {"box0": box_model, "box1": box_model}, "boundary_shear")
+    expected = plan_push("boundary_shear", state, hulls, np.tile(box_model.center_mass, (2, 1)))
+    assert push.target == expected.target and np.allclose(push.end, expected.end) and direction(push)[1] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="no mesh given for 'box1'"):
+        toppledb.plan_heap(state.object_ids, state.poses, {"box0": box_model})

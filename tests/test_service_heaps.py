@@ -251,3 +251,32 @@ def test_malformed_heap_requests_are_422_with_a_message(client, body, message):
 def test_openapi_documents_the_heap_planner(client):
     operation = client.get("/openapi.json").json()["paths"]["/heaps/plan"]["post"]
     assert {"200", "404", "409", "422"} <= set(operation["responses"])
+
+
+# --- the Python API gives the service's push -------------------------------------------------
+
+
+@pytest.mark.parametrize("policy", ["boundary_shear", "quasi_random"])
+def test_plan_heap_from_the_dataset_is_the_services_push(client, dataset, store, tables, policy):
+    import pipeline as toppledb
+
+    objects = side_by_side(store, tables) + [{"object_id": "random_002", "pose": resting(tables, "random_002", 0.12, 0.1, 0.5).tolist()}]
+    served = post(client, objects, policy, seed=11).json()["push"]
+    push = toppledb.plan_heap([o["object_id"] for o in objects], [o["pose"] for o in objects], dataset, policy, seed=11)
+    assert push.target == served["target"]
+    np.testing.assert_allclose(push.start, served["start"], atol=1e-12)
+    np.testing.assert_allclose(push.end, served["end"], atol=1e-12)
+
+
+def test_plan_heap_refuses_what_the_service_refuses(dataset, store, tables):
+    import pipeline as toppledb
+
+    objects = side_by_side(store, tables)
+    poses = [np.array(o["pose"]) for o in objects]
+    with pytest.raises(ValueError, match="no object 'nothing' in the dataset"):
+        toppledb.plan_heap(["random_000", "nothing"], poses, dataset)
+    poses[1][2, 3] -= 0.02
+    with pytest.raises(ValueError, match=r"object 1 \('random_001'\) reaches .* below the bin's floor"):
+        toppledb.plan_heap(["random_000", "random_001"], poses, dataset)
+    with pytest.raises(ValueError, match="unknown push policy"):
+        toppledb.plan_heap(["random_000"], poses[:1], dataset, "shove")

@@ -12,8 +12,7 @@ import numpy as np
 from fastapi import APIRouter
 from fastapi.responses import Response
 
-from clutter import footprints as fp
-from clutter.policies import PushConfig, plan_push
+from clutter.policies import PushConfig, outside_bin, plan_push
 from clutter.state import Bin, HeapState, Push
 from schema.api import (
     BIN_TOLERANCE,
@@ -87,25 +86,19 @@ def heap_inputs(store: Store, request: HeapPlanRequest, settings: Settings) -> t
 def check_in_bin(state: HeapState, hulls: list[np.ndarray]) -> None:
     """OutsideBin for the first object whose hull reaches more than BIN_TOLERANCE past a wall or
     below the floor."""
-    half = state.bin.half_extents
-    for index, hull in enumerate(hulls):
-        world = fp.world_points(hull, state.poses[index])
-        past = float(fp.overhang(world[:, :2], half))
-        below = float(-world[:, 2].min())
-        object_id = state.object_ids[index]
-        if past > BIN_TOLERANCE:
-            raise OutsideBin(
-                f"objects[{index}] ('{object_id}') reaches {past * 1000:.1f} mm past a wall of the {state.bin.length:g} x "
-                f"{state.bin.width:g} m bin (tolerance {BIN_TOLERANCE * 1000:g} mm): is the pose in the bin's frame "
-                "(origin at the centre of its floor)?",
-                "outside_bin", index=index, object_id=object_id, distance=past, tolerance=BIN_TOLERANCE,
-            )
-        if below > BIN_TOLERANCE:
-            raise OutsideBin(
-                f"objects[{index}] ('{object_id}') reaches {below * 1000:.1f} mm below the bin's floor z = 0 "
-                f"(tolerance {BIN_TOLERANCE * 1000:g} mm): is the world frame z up with the floor at z = 0?",
-                "below_floor", index=index, object_id=object_id, distance=below, tolerance=BIN_TOLERANCE,
-            )
+    found = outside_bin(state, hulls, BIN_TOLERANCE)
+    if found is None:
+        return
+    index, reason, distance = found
+    object_id = state.object_ids[index]
+    if reason == "outside_bin":
+        detail = (f"objects[{index}] ('{object_id}') reaches {distance * 1000:.1f} mm past a wall of the {state.bin.length:g} x "
+                  f"{state.bin.width:g} m bin (tolerance {BIN_TOLERANCE * 1000:g} mm): is the pose in the bin's frame "
+                  "(origin at the centre of its floor)?")
+    else:
+        detail = (f"objects[{index}] ('{object_id}') reaches {distance * 1000:.1f} mm below the bin's floor z = 0 "
+                  f"(tolerance {BIN_TOLERANCE * 1000:g} mm): is the world frame z up with the floor at z = 0?")
+    raise OutsideBin(detail, reason, index=index, object_id=object_id, distance=distance, tolerance=BIN_TOLERANCE)
 
 
 def describe(policy: str, push: Push | None, state: HeapState) -> str:
