@@ -155,7 +155,8 @@ class PoseMatch:
 
 
 def match_pose(
-    observed: np.ndarray, pose_downs: np.ndarray, pose_transforms: np.ndarray, tolerance: float
+    observed: np.ndarray, pose_downs: np.ndarray, pose_transforms: np.ndarray, tolerance: float,
+    pose_inverses: np.ndarray | None = None,
 ) -> PoseMatch:
     """Match an observed object pose to the nearest stable pose.
 
@@ -163,6 +164,7 @@ def match_pose(
     pose_downs : (P, 3) float, unit down vectors of the stable poses, object frame
     pose_transforms : (P, 4, 4) float, object -> canonical frame of each pose
     tolerance : float, rad, largest angle between down vectors that still matches
+    pose_inverses : (P, 4, 4) float, the transforms' inverses when the caller keeps them
 
     The observed pose is ``planar @ pose_transforms[pose]`` up to the angle error.
     """
@@ -171,7 +173,8 @@ def match_pose(
     angles = np.arccos(np.clip(pose_downs @ down, -1.0, 1.0))
     best = int(np.argmin(angles))
     error = float(angles[best])
-    relative = observed @ np.linalg.inv(pose_transforms[best])
+    inverse = np.linalg.inv(pose_transforms[best]) if pose_inverses is None else pose_inverses[best]
+    relative = observed @ inverse
     r = relative[:3, :3]
     yaw = float(np.arctan2(r[1, 0] - r[0, 1], r[0, 0] + r[1, 1]))
     planar = np.eye(4)

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pyarrow as pa
-import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from schema import layout, tables
@@ -60,6 +59,8 @@ class Dataset:
         """Every object's rows of a partitioned table, with ``object_id`` from the partition directories."""
         if name not in tables.PARTITIONED:
             raise ValueError(f"{name!r} is not partitioned; partitioned tables: {tables.PARTITIONED}")
+        import pyarrow.dataset as ds  # here: it imports pandas, which a server starting up does not need
+
         try:
             dataset = ds.dataset(self.root / name, format="parquet", partitioning="hive")
             return dataset.to_table(columns=columns)

@@ -59,6 +59,12 @@ OBJECTS = pa.schema(
         column("n_poses", pa.int32(), "Number of stable poses"),
         column("n_hull_vertices", pa.int32(), "Vertices of the convex hull"),
         column("n_faces", pa.int32(), "Faces (triangles) of the convex hull"),
+        column(
+            "hull_vertices",
+            pa.list_(pa.list_(pa.float64(), 3)),
+            "Convex hull vertices, object frame, [x, y, z] each (the heap planner's footprints come from them)",
+            "m",
+        ),
         column("repairs", pa.list_(pa.string()), "Repairs made when loading the mesh, one sentence each"),
     ],
     metadata={"table": "objects", "description": "One row per object that was evaluated successfully"},
@@ -76,6 +82,14 @@ POSES = pa.schema(
             "m (translation)",
         ),
         *xyz("down", "Unit vector in the object frame pointing down onto the table"),
+        column(
+            "equivalent_transforms",
+            pa.list_(pa.list_(pa.float64(), 16)),
+            "Every orientation that is this pose, object frame -> pose frame, 4x4 row-major each, this row's "
+            "transform first; more than one only for a rotationally symmetric object whose turned copies of the "
+            "pose were merged into it (a pose matcher searches them all)",
+            "m (translation)",
+        ),
         column("height", pa.float64(), "Top of the object above the table", "m"),
         column("com_height", pa.float64(), "Centre of mass above the table", "m"),
         column("n_base_edges", pa.int32(), "Edges of the support polygon"),

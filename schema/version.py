@@ -2,8 +2,11 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-SCHEMA_VERSION = "1.0"
-"""Changes whenever a table, the HDF5 layout or the dataset layout changes."""
+SCHEMA_VERSION = "1.1"
+"""Changes whenever a table, the HDF5 layout or the dataset layout changes.
+
+1.1: objects.hull_vertices, poses.equivalent_transforms (symmetric poses merged), and
+the served tables (``served/*.arrow``, memory-mapped by the service)."""
 
 try:
     CODE_VERSION = version("toppledb")

@@ -3,6 +3,8 @@ on the table, look up the policy's action, and place the push and the grasp in t
 
 Frames: the observed pose ``O`` (object -> world) is ``pose_to_world @ T_p`` where ``T_p``
 (object -> pose frame) is stable pose p's transform, so ``pose_to_world = O @ T_p^-1``.
+A symmetric object's pose has several such transforms (its merged turns, the served
+``matches``); the nearest one is ``T_p`` here, so a can lying at any roll gets its push.
 For an exact observation that is ``planar`` (a yaw about z and an x, y translation,
 ``schema.frames.match_pose``); a real one adds a small tilt (within the pose tolerance)
 and a small height (within ``height_tolerance``).  Pushes and grasps are mapped through
@@ -62,20 +64,21 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> PlanResponse
     """
     obj = store.object(request.object_id)
     observed = observed_pose(request, settings)
-    # An infinite tolerance always names the nearest pose, which the 409 message reports.
-    match = match_pose(observed, obj.downs, obj.transforms, tolerance=np.inf)
+    # Every orientation that is a pose (a symmetric object's merged turns too); an infinite
+    # tolerance always names the nearest, which the 409 message reports.
+    match = match_pose(observed, obj.match_downs, obj.match_transforms, np.inf, obj.match_inverses)
+    pose = int(obj.match_pose[match.pose])
     if match.angle_error > store.tolerance:
         raise NoStablePose(
-            f"the observed orientation of '{obj.object_id}' is no stable pose: the nearest, pose {match.pose}, "
+            f"the observed orientation of '{obj.object_id}' is no stable pose: the nearest, pose {pose}, "
             f"is {np.degrees(match.angle_error):.1f} deg away (tolerance {np.degrees(store.tolerance):.1f} deg); "
             "is the object resting on the table, and is the world frame z up?",
             object_id=obj.object_id,
-            nearest_pose=match.pose,
+            nearest_pose=pose,
             angle_error=match.angle_error,
             tolerance=store.tolerance,
         )
-    pose = match.pose
-    pose_to_world = observed @ obj.inverse_transforms[pose]
+    pose_to_world = observed @ obj.match_inverses[match.pose]
     z_offset = float(pose_to_world[2, 3])
     if not abs(z_offset) <= settings.height_tolerance:
         raise OffTable(

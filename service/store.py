@@ -1,4 +1,4 @@
-"""The dataset in memory: loaded once at start, read-only afterwards.
+"""The dataset in memory: mapped once at start, read-only afterwards.
 
 Per object, pose data are arrays over its P poses and action data are arrays over
 all its N candidate pushes, pose after pose in action order: the actions of pose
@@ -7,13 +7,13 @@ all its N candidate pushes, pose after pose in action order: the actions of pose
 distribution of row ``i`` is ``next_pose[k]``, ``probability[k]`` for ``k`` in
 ``transition_offsets[i] : transition_offsets[i + 1]``, empty unless the push is ``ok``.
 
-Storage types trade precision the model does not have for memory: geometry,
-``p_topple``, ``mean_force`` and transition probabilities are float32 (the contact
-noise alone is 0.5 mm); ``q`` and ``greedy`` stay float64 so that ranking them agrees
-with the pipeline's.  Values leave as float64 through ``widen``, which serves the
-float32 0.6 as 0.6.  The default dataset (2.2 M pushes, 2.1 M transitions) takes
-about 160 MB of arrays; ``python -m service`` holds about 400 MB resident (130 MB of it
-the interpreter, FastAPI and pyarrow themselves).
+Every array is a numpy view into the served tables (``schema.served``): Arrow IPC
+files the pipeline writes beside the Parquet tables and this module memory-maps, so a
+worker starts in milliseconds and every worker on the machine shares one copy of the
+pages in the file cache.  Their storage types trade precision the model does not have
+for memory (float32 geometry and probabilities, float64 ``q`` and ``greedy`` so that
+ranking them agrees with the pipeline's); values leave as float64 through ``widen``,
+which serves the float32 0.6 as 0.6.
 
 Imports numpy and pyarrow only: never the geometry stack.
 """
@@ -27,23 +27,20 @@ import logging
 import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
-from schema import layout
+from schema import layout, served
 from schema.api import FINGER_FORCE_LIMIT
-from schema.manifest import Manifest
+from schema.manifest import Manifest, ManifestError, read_manifest
 from schema.reader import Dataset, DatasetUnreadable
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .errors import NotFound
 
-STATUS_CODES = pa.array(STATUS_NAMES)
 log = logging.getLogger("service")
 
 
@@ -69,22 +66,26 @@ def optional(value: float) -> float | None:
 class ObjectData:
     """Everything the service serves about one object.
 
-    Poses (P of them), from poses.parquet:
+    Poses (P of them), from served/poses.arrow:
       probability (P,), height (P,) m, com_height (P,) m, v_s (P,), v_t (P,): float64
       transforms (P, 4, 4) float64, object frame -> pose frame; inverse_transforms likewise
       downs (P, 3) float64, unit, object frame
       grasp_point, grasp_axis (P, 3) float64, pose frame, NaN when the pose has no grasp
       n_actions, n_ok_actions (P,) int32
       policy_action, policy_value: per policy name, (P,) int32 (-1 no push) and float64
-    Actions (N = sum of n_actions), from actions/object_id=<id>/:
+    Orientations that match a pose (M >= P: a symmetric object's merged turns), from matches:
+      match_pose (M,) int32, the pose each is; match_downs (M, 3) float64, unit, object frame;
+      match_transforms, match_inverses (M, 4, 4) float64, object -> pose frame and back
+    Actions (N = sum of n_actions), from served/actions.arrow:
       action_offsets (P + 1,) int64
       status (N,) int8, index into schema.vocabulary.STATUS_NAMES
       points, normals, directions (N, 3) float32, pose frame (m; unit; unit)
       is_max_height (N,) bool
       p_topple, mean_force (N,) float32 (N for the force), NaN unless ok / when none
       q, greedy (N,) float64, NaN unless ok
-    Transitions (M nonzero entries), from transitions/object_id=<id>/:
-      transition_offsets (N + 1,) int32; next_pose (M,) int32; probability (M,) float32
+    Transitions (K nonzero entries), from served/transitions.arrow:
+      transition_offsets (N + 1,) int64; next_pose (K,) int32; transition_probability (K,) float32
+    Hull: hull_vertices (V, 3) float64, m, object frame
     """
 
     object_id: str
@@ -107,6 +108,10 @@ class ObjectData:
     n_ok_actions: np.ndarray
     policy_action: dict[str, np.ndarray]
     policy_value: dict[str, np.ndarray]
+    match_pose: np.ndarray
+    match_downs: np.ndarray
+    match_transforms: np.ndarray
+    match_inverses: np.ndarray
     action_offsets: np.ndarray
     status: np.ndarray
     points: np.ndarray
@@ -120,6 +125,7 @@ class ObjectData:
     transition_offsets: np.ndarray
     next_pose: np.ndarray
     transition_probability: np.ndarray
+    hull_vertices: np.ndarray
 
     @property
     def n_poses(self) -> int:
@@ -230,31 +236,32 @@ class Store:
             raise NotFound(f"unknown object '{object_id}' ({len(self.objects)} objects; GET /objects lists them)") from None
 
     @classmethod
-    def load(cls, root: str | Path, threads: int | None = None) -> Store:
-        """Read a finished dataset directory; DatasetError if it is not one this service reads."""
+    def load(cls, root: str | Path) -> Store:
+        """Map a finished dataset's served tables (``schema.served``); DatasetError if it is
+        not a dataset this service reads.  A dataset without them (or whose served files do
+        not match its manifest) is served from its Parquet tables, converted in memory:
+        seconds instead of milliseconds, and a copy per worker."""
         started = time.perf_counter()
         root = Path(root)
         try:
             manifest_sha256 = hashlib.sha256((root / layout.MANIFEST).read_bytes()).hexdigest()
         except OSError:
-            manifest_sha256 = ""  # Dataset.open below says what is wrong
+            manifest_sha256 = ""  # read_manifest below says what is wrong
         try:
-            dataset = Dataset.open(root)
-            objects_table = dataset.table("objects")
-            poses_table = dataset.table("poses")
-        except DatasetUnreadable as err:
+            manifest = read_manifest(root)
+        except ManifestError as err:
             raise DatasetError(str(err)) from None
-        manifest = dataset.manifest
-        pose_rows = _group_rows(poses_table.column("object_id").to_pylist())
-        ids = objects_table.column("object_id").to_pylist()
-        objects_rows = objects_table.to_pylist()
-        # pyarrow releases the GIL while decoding, so threads overlap the per-object reads;
-        # two take 25% off the load time, more only fragment memory (+100 MB RSS at 8).
-        with ThreadPoolExecutor(threads or min(2, os.cpu_count() or 1)) as pool:
-            loaded = list(
-                pool.map(lambda i: _load_object(dataset, objects_rows[i], poses_table, pose_rows.get(ids[i], [])), range(len(ids)))
-            )
-        store = cls(root, manifest, {o.object_id: o for o in loaded}, time.perf_counter() - started, manifest_sha256)
+        try:
+            tables = served.read_served(root)
+            _check_rows(tables, manifest)
+        except served.ServedError as err:
+            log.warning("%s; reading the Parquet tables instead (slower start, memory not shared between workers)", err)
+            try:
+                tables = served.served_from_parquet(Dataset(root, manifest))
+            except (served.ServedError, DatasetUnreadable) as err:
+                raise DatasetError(f"{root}: {err}") from None
+        objects = _objects(tables)
+        store = cls(root, manifest, objects, time.perf_counter() - started, manifest_sha256)
         expected = {k: getattr(manifest.counts, k) for k in store.counts}
         if expected != store.counts:
             raise DatasetError(
@@ -264,111 +271,74 @@ class Store:
         return store
 
 
-def _group_rows(ids: list[str]) -> dict[str, list[int]]:
-    groups: dict[str, list[int]] = {}
-    for index, object_id in enumerate(ids):
-        groups.setdefault(object_id, []).append(index)
-    return groups
+def _check_rows(tables: dict[str, pa.Table], manifest: Manifest) -> None:
+    """The served files are the ones this manifest's build wrote (rows as recorded)."""
+    for name, relative in served.FILES.items():
+        entry = manifest.tables.get(relative)
+        if entry is None:
+            raise served.ServedError(f"manifest.json records no {relative} (built by an older toppledb)")
+        if entry.rows != tables[name].num_rows:
+            raise served.ServedError(f"{relative} holds {tables[name].num_rows} rows, manifest.json says {entry.rows}")
 
 
-def _floats(table: pa.Table, name: str, dtype=np.float64) -> np.ndarray:
-    """A numeric column as numpy, nulls as NaN."""
-    return table.column(name).to_numpy(zero_copy_only=False).astype(dtype, copy=False)
-
-
-def _vectors(table: pa.Table, prefix: str, dtype=np.float64) -> np.ndarray:
-    """Columns ``<prefix>_x, _y, _z`` as one (n, 3) array."""
-    return np.stack([_floats(table, f"{prefix}_{axis}", dtype) for axis in "xyz"], axis=1)
-
-
-ACTION_COLUMNS = [
-    "pose", "action", "status", "is_max_height", "p_topple", "mean_force", "q", "greedy",
-    *(f"{v}_{a}" for v in ("point", "normal", "direction") for a in "xyz"),
-]
-
-
-def _load_object(dataset: Dataset, row: dict, poses_table: pa.Table, pose_indices: list[int]) -> ObjectData:
-    object_id = row["object_id"]
-    poses = poses_table.take(pa.array(pose_indices, pa.int64())).sort_by("pose")
-    n_poses = int(row["n_poses"])
-    if poses.num_rows != n_poses or poses.column("pose").to_pylist() != list(range(n_poses)):
-        raise DatasetError(f"{object_id}: poses.parquet holds poses {poses.column('pose').to_pylist()}, expected 0..{n_poses - 1}")
-    n_actions = poses.column("n_actions").to_numpy().astype(np.int32)
-    offsets = np.concatenate([[0], np.cumsum(n_actions, dtype=np.int64)])
-
-    try:
-        actions = dataset.object_rows("actions", object_id, ACTION_COLUMNS)
-        transitions = dataset.object_rows("transitions", object_id, ["pose", "action", "next_pose", "probability"])
-    except DatasetUnreadable as err:
-        raise DatasetError(str(err)) from None
-    keys = _sorted_keys(actions, ["pose", "action"])
-    actions = actions.take(keys)
-    pose_of = actions.column("pose").to_numpy()
-    expected_action = np.arange(len(pose_of)) - offsets[np.clip(pose_of, 0, n_poses - 1)]
-    if len(pose_of) != offsets[-1] or not np.array_equal(actions.column("action").to_numpy(), expected_action):
-        raise DatasetError(f"{object_id}: the actions partition does not hold actions 0..n_actions - 1 of every pose")
-    status = pc.index_in(actions.column("status"), value_set=STATUS_CODES)
-    if status.null_count:
-        raise DatasetError(f"{object_id}: unknown action status; known: {', '.join(STATUS_NAMES)}")
-
-    transitions = transitions.take(_sorted_keys(transitions, ["pose", "action", "next_pose"]))
-    t_pose = transitions.column("pose").to_numpy().astype(np.int64)
-    t_action = transitions.column("action").to_numpy().astype(np.int64)
-    next_pose = transitions.column("next_pose").to_numpy().astype(np.int32)
-    if len(t_pose) and (
-        t_pose.min() < 0 or t_pose.max() >= n_poses or next_pose.min() < 0 or next_pose.max() >= n_poses
-        or (t_action < 0).any() or (t_action >= n_actions[t_pose]).any()
-    ):
-        raise DatasetError(f"{object_id}: transitions refer to poses or actions that do not exist")
-    per_row = np.bincount(offsets[t_pose] + t_action, minlength=int(offsets[-1]))
-    transforms = _transforms(poses)
-
-    return ObjectData(
-        object_id=object_id,
-        source=row["source"],
-        sha256=row["sha256"],
-        mass=float(row["mass"]),
-        scale=float(row["scale"]),
-        center_mass=np.array([row["com_x"], row["com_y"], row["com_z"]], dtype=np.float64),
-        probability=_floats(poses, "probability"),
-        transforms=transforms,
-        inverse_transforms=np.linalg.inv(transforms),
-        downs=_vectors(poses, "down"),
-        height=_floats(poses, "height"),
-        com_height=_floats(poses, "com_height"),
-        v_s=_floats(poses, "v_s"),
-        v_t=_floats(poses, "v_t"),
-        grasp_point=_vectors(poses, "grasp_point"),
-        grasp_axis=_vectors(poses, "grasp_axis"),
-        n_actions=n_actions,
-        n_ok_actions=poses.column("n_ok_actions").to_numpy().astype(np.int32),
-        policy_action={p: poses.column(f"{p}_action").to_numpy().astype(np.int32) for p in POLICIES},
-        policy_value={p: _floats(poses, f"{p}_value") for p in POLICIES},
-        action_offsets=offsets,
-        status=status.to_numpy().astype(np.int8),
-        points=_vectors(actions, "point", np.float32),
-        normals=_vectors(actions, "normal", np.float32),
-        directions=_vectors(actions, "direction", np.float32),
-        is_max_height=actions.column("is_max_height").to_numpy(zero_copy_only=False).astype(bool),
-        p_topple=_floats(actions, "p_topple", np.float32),
-        mean_force=_floats(actions, "mean_force", np.float32),
-        q=_floats(actions, "q"),
-        greedy=_floats(actions, "greedy"),
-        transition_offsets=np.concatenate([[0], np.cumsum(per_row)]).astype(np.int32),
-        next_pose=next_pose,
-        transition_probability=_floats(transitions, "probability", np.float32),
-    )
-
-
-def _sorted_keys(table: pa.Table, keys: list[str]) -> pa.Array:
-    """Indices that sort ``table`` by ``keys`` (the pipeline writes them sorted; this makes sure)."""
-    return pc.sort_indices(table, sort_keys=[(k, "ascending") for k in keys])
-
-
-def _transforms(poses: pa.Table) -> np.ndarray:
-    """The fixed-size-list ``transform`` column as (P, 4, 4) float64."""
-    column = poses.column("transform").combine_chunks()
-    return column.flatten().to_numpy().astype(np.float64).reshape(-1, 4, 4)
+def _objects(tables: dict[str, pa.Table]) -> dict[str, ObjectData]:
+    """ObjectData of every object: views into the served tables' columns (no copies but
+    two small offset arrays per object)."""
+    col = {name: {f.name: served.column(table, f.name) for f in table.schema if name != "objects"}
+           for name, table in tables.items()}
+    objects_table = tables["objects"]
+    rows = objects_table.select(["object_id", "source", "sha256"]).to_pylist()
+    numbers = {f.name: served.column(objects_table, f.name) for f in objects_table.schema if f.name not in rows[0]} if rows else {}
+    poses, matches, actions, transitions = col["poses"], col["matches"], col["actions"], col["transitions"]
+    out = {}
+    for i, row in enumerate(rows):
+        p = slice(int(numbers["pose_start"][i]), int(numbers["pose_start"][i] + numbers["n_poses"][i]))
+        m = slice(int(numbers["match_start"][i]), int(numbers["match_start"][i] + numbers["n_matches"][i]))
+        a = slice(int(numbers["action_start"][i]), int(numbers["action_start"][i] + numbers["n_actions"][i]))
+        t = slice(int(numbers["transition_start"][i]), int(numbers["transition_start"][i] + numbers["n_transitions"][i]))
+        h = slice(int(numbers["hull_start"][i]), int(numbers["hull_start"][i] + numbers["n_hull_vertices"][i]))
+        n_actions, n_transitions = a.stop - a.start, t.stop - t.start
+        out[row["object_id"]] = ObjectData(
+            object_id=row["object_id"],
+            source=row["source"],
+            sha256=row["sha256"],
+            mass=float(numbers["mass"][i]),
+            scale=float(numbers["scale"][i]),
+            center_mass=numbers["com"][i],
+            probability=poses["probability"][p],
+            transforms=poses["transform"][p].reshape(-1, 4, 4),
+            inverse_transforms=poses["inverse"][p].reshape(-1, 4, 4),
+            downs=poses["down"][p],
+            height=poses["height"][p],
+            com_height=poses["com_height"][p],
+            v_s=poses["v_s"][p],
+            v_t=poses["v_t"][p],
+            grasp_point=poses["grasp_point"][p],
+            grasp_axis=poses["grasp_axis"][p],
+            n_actions=poses["n_actions"][p],
+            n_ok_actions=poses["n_ok_actions"][p],
+            policy_action={name: poses[f"{name}_action"][p] for name in POLICIES},
+            policy_value={name: poses[f"{name}_value"][p] for name in POLICIES},
+            match_pose=matches["pose"][m],
+            match_downs=matches["down"][m],
+            match_transforms=matches["transform"][m].reshape(-1, 4, 4),
+            match_inverses=matches["inverse"][m].reshape(-1, 4, 4),
+            action_offsets=np.append(poses["action_start"][p], n_actions),
+            status=actions["status"][a],
+            points=actions["point"][a],
+            normals=actions["normal"][a],
+            directions=actions["direction"][a],
+            is_max_height=actions["is_max_height"][a].view(bool),
+            p_topple=actions["p_topple"][a],
+            mean_force=actions["mean_force"][a],
+            q=actions["q"][a],
+            greedy=actions["greedy"][a],
+            transition_offsets=np.append(actions["transition_start"][a], n_transitions),
+            next_pose=transitions["next_pose"][t],
+            transition_probability=transitions["probability"][t],
+            hull_vertices=col["hulls"]["vertex"][h],
+        )
+    return out
 
 
 def manifest_stamp(root: Path) -> tuple | None:

@@ -21,6 +21,8 @@ from pipeline.studies.calibrate import (
     sobol_settings,
     write_toml,
 )
+from pipeline.model.mesh import load_mesh
+from pipeline.model.poses import stable_poses
 from pipeline.studies.logreader import read_log
 from pipeline.studies.synthetic_log import MeshSpec, model_log
 
@@ -64,7 +66,9 @@ def boxes(tmp_path_factory):
         mesh.export(root / f"box{i}.stl")
         specs.append(MeshSpec(f"box{i}", str(root / f"box{i}.stl"), 1.0, 0.25))
     truth = Config().with_overrides({"topple.mu_table_mean": TRUE_MU_TABLE})
-    pq.write_table(model_log(specs, truth, pushes_per_pose=12, repeats=8, seed=5), root / "log.parquet")
+    # A box's opposite faces are one pose (merged by symmetry): 3 poses of 24 pushes each, 72 per box.
+    assert len(stable_poses(load_mesh(specs[0].path, scale=1.0, mass=0.25), truth.poses).poses) == 3
+    pq.write_table(model_log(specs, truth, pushes_per_pose=24, repeats=8, seed=5), root / "log.parquet")
     return root, specs
 
 

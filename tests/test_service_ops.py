@@ -213,3 +213,39 @@ def test_batch_lanes_agree_and_the_process_lane_follows_a_swap(dataset):
             after = client.post("/batch/plan", json={"items": [item]}).json()["results"][0]["result"]
             assert after["v_s"] == 0.125
     assert answers["process"] == answers["thread"]
+
+
+def test_a_running_server_picks_up_an_added_symmetric_object_and_plans_for_it_at_any_roll(dataset, tmp_path):
+    """`toppledb add` on a served dataset: the server swaps the build in without a restart;
+    the can's turned copies of one pose are one pose (merged by symmetry), and an observation
+    at any roll about its axis matches it, with the push placed on the can as observed."""
+    import numpy as np
+    import trimesh
+
+    from pipeline.cli import main as toppledb
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    can = trimesh.creation.cylinder(radius=0.03, height=0.1, sections=16)
+    can.export(tmp_path / "can.stl")
+    process, url = start([sys.executable, "-m", "service", "--dataset", str(copy), "--watch-seconds", "0.1"])
+    try:
+        assert httpx.get(f"{url}/objects/can").status_code == 404
+        assert toppledb(["add", str(copy), str(tmp_path / "can.stl"), "--id", "can", "--mass", "0.2", "--no-progress"]) == 0
+        detail = wait_for(lambda: (r := httpx.get(f"{url}/objects/can")).status_code == 200 and r.json(),
+                          "the server to serve the added object")
+        assert detail["n_poses"] == 2, "16 sides and 2 ends: one side pose and one end pose"
+        side = np.array(httpx.get(f"{url}/objects/can/poses/0").json()["transform"])
+        for facets in (0, 3, 7):
+            roll = trimesh.transformations.rotation_matrix(facets * 2 * np.pi / 16, [0, 0, 1])  # about the can's axis
+            observed = trimesh.transformations.rotation_matrix(0.7, [0, 0, 1]) @ side @ roll
+            observed[:2, 3] = [0.3, -0.1]
+            body = httpx.post(f"{url}/plan", json={"object_id": "can", "pose": observed.tolist(), "policy": "max_height"}).json()
+            assert body["match"]["pose"] == 0 and body["match"]["angle_error"] < 1e-6, body
+            assert abs(body["match"]["z_offset"]) < 1e-9
+            point = np.linalg.inv(observed) @ [*body["push"]["point"], 1.0]  # back into the can's own frame
+            assert abs(can.nearest.signed_distance([point[:3]])[0]) < 1e-5, "the push lies on the observed can"
+        health = httpx.get(f"{url}/health").json()
+        assert health["reloads"] == 1 and health["counts"]["objects"] == 4
+    finally:
+        stop(process)

@@ -39,11 +39,12 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from schema import layout, tables
+from schema import layout, served, tables
 from schema.manifest import Manifest, ManifestError, read_manifest
 
 from . import fanout, manifest, rows, shards
 from .atomic import fsync_directory, write_text_atomic
+from .served import write_served
 from ..model.config import Config
 from .corpus import Corpus, ObjectSpec
 from ..model.outcomes import ObjectResult
@@ -250,6 +251,7 @@ def build_dataset(
         order = [spec.object_id for spec in corpus.specs if spec.object_id in records or spec.object_id in staged]
         sources = {object_id: (staging if object_id in staged else out) for object_id in order}
         consolidated = manifest.consolidate(staging, order, sources)
+        consolidated.update(write_served(staging, order, sources))
         wall = time.perf_counter() - started
         paths = {spec.object_id: spec.path for spec in corpus.specs}
         failure_list = [
@@ -328,6 +330,8 @@ def _compute(
 
 # --- staging and commit ---------------------------------------------------------------------
 
+CONSOLIDATED_FILES = (layout.OBJECTS_FILE, layout.POSES_FILE, *served.FILES.values())
+"""Made from every shard at the end of a build, moved in just before the manifest."""
 COMMIT_PLAN = "commit.json"
 """In the staging directory: written when everything is staged; its presence means
 the commit has begun and must be finished (rolled forward)."""
@@ -346,7 +350,7 @@ def commit(out: Path, staging: Path, staged: dict[str, dict], keep: set[str]) ->
     object_ids = sorted(staged)
     moves = [relative for object_id in object_ids for relative in staged[object_id]["files"]]
     moves += [layout.completion_record(object_id) for object_id in object_ids]  # records after their files
-    moves += [layout.OBJECTS_FILE, layout.POSES_FILE, layout.MANIFEST]  # the manifest last
+    moves += [*CONSOLIDATED_FILES, layout.MANIFEST]  # the manifest last
     plan = {"moves": moves, "keep": sorted(keep)}
     write_text_atomic(staging / COMMIT_PLAN, json.dumps(plan, indent=1))  # the commit point
     _apply(out, staging, plan)
@@ -374,7 +378,7 @@ def _apply(out: Path, staging: Path, plan: dict) -> None:
     for object_id in _shard_ids_on_disk(out) - keep:
         _remove_object_files(out, object_id)
     for relative in plan["moves"]:
-        if relative.endswith("complete.json") or relative in (layout.OBJECTS_FILE, layout.POSES_FILE, layout.MANIFEST):
+        if relative.endswith("complete.json") or relative in (*CONSOLIDATED_FILES, layout.MANIFEST):
             _move(staging / relative, out / relative)
     for directory in {(out / relative).parent for relative in plan["moves"]}:
         if directory.is_dir():

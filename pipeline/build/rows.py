@@ -80,7 +80,8 @@ def build_shard(spec: ObjectSpec, result: ObjectResult, n_trials: int) -> ShardD
         ok = np.asarray(actions.status) == STATUS_OK
         action_parts.append(_action_columns(i, actions, topple, values))
         transition_parts.append(_transition_columns(i, topple.next_pose, ok))
-        pose_rows.append(_pose_row(spec.object_id, pose, len(actions.status), int(ok.sum()), suction, values))
+        equivalents = pose.transform[None] if result.equivalent_transforms is None else result.equivalent_transforms[i]
+        pose_rows.append(_pose_row(spec.object_id, pose, equivalents, len(actions.status), int(ok.sum()), suction, values))
         pose_arrays.append(
             {
                 "transform": pose.transform,
@@ -182,13 +183,14 @@ def _vector_or_none(vector) -> list[float | None]:
     return [None if not np.isfinite(x) else float(x) for x in np.asarray(vector, dtype=np.float64).reshape(3)]
 
 
-def _pose_row(object_id: str, pose, n_actions: int, n_ok: int, suction, values) -> dict[str, Any]:
+def _pose_row(object_id: str, pose, equivalents, n_actions: int, n_ok: int, suction, values) -> dict[str, Any]:
     row = {
         "object_id": object_id,
         "pose": int(pose.index),
         "probability": float(pose.probability),
         "transform": np.asarray(pose.transform, dtype=np.float64).reshape(16).tolist(),
         **{f"down_{a}": float(x) for a, x in zip("xyz", np.asarray(pose.down).reshape(3))},
+        "equivalent_transforms": np.asarray(equivalents, dtype=np.float64).reshape(-1, 16).tolist(),
         "height": float(pose.height),
         "com_height": float(pose.com_height),
         "n_base_edges": int(len(pose.base_edges)),
@@ -217,5 +219,6 @@ def _object_row(spec: ObjectSpec, result: ObjectResult) -> dict[str, Any]:
         "n_poses": len(result.poses),
         "n_hull_vertices": int(len(result.hull_vertices)),
         "n_faces": int(len(result.hull_faces)),
+        "hull_vertices": np.asarray(result.hull_vertices, dtype=np.float64).reshape(-1, 3).tolist(),
         "repairs": [str(r) for r in result.repairs],
     }

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from schema import layout, tables
+from schema import layout, served, tables
 from schema.manifest import ManifestError, Shard, read_manifest
 
 from .atomic import file_sha256
@@ -56,8 +56,35 @@ def verify_dataset(root: str | Path) -> list[str]:
         else:
             problems += shards.parquet_problems(root / name, name, tables.TABLES[table], rows)
 
+    problems += _served_problems(root, manifest)
     problems += _unexpected_files(root, set(entries))
     return problems
+
+
+def _served_problems(root: Path, manifest) -> list[str]:
+    """The served tables: recorded in the manifest, same bytes, readable, rows as recorded."""
+    problems = []
+    for relative in served.FILES.values():
+        entry = manifest.tables.get(relative)
+        if entry is None:
+            problems.append(f"manifest: no entry for {relative}")
+            continue
+        actual = file_sha256(root / relative)
+        if not actual:
+            problems.append(f"{relative}: missing")
+        elif actual != entry.sha256:
+            problems.append(f"{relative}: sha256 {actual[:12]}... differs from the manifest's {entry.sha256[:12]}...")
+    if problems:
+        return problems
+    try:
+        tables = served.read_served(root)
+    except served.ServedError as err:
+        return [str(err)]
+    return [
+        f"{relative}: {tables[name].num_rows} rows, the manifest says {manifest.tables[relative].rows}"
+        for name, relative in served.FILES.items()
+        if tables[name].num_rows != manifest.tables[relative].rows
+    ]
 
 
 def _shard_problems(root: Path, object_id: str, entry: Shard) -> list[str]:

@@ -109,6 +109,9 @@ class PoseConfig:
     """rad; two orientations are the same stable pose when their down vectors differ by at most this."""
     base_tolerance: float = bounded(1e-3, POSITIVE)
     """m; hull vertices this close to the table form the base (docs/MODEL.md 5)."""
+    merge_symmetric: bool = True
+    """Merge stable poses that are one resting pose turned about the vertical (a cylinder, a
+    can, a prism: docs/MODEL.md "Symmetric objects"); the thesis did not (presets/thesis.toml)."""
 
 
 @dataclass(frozen=True)

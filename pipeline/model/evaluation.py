@@ -148,6 +148,7 @@ def evaluate_object(
         suction=suction,
         values=values,
         timings=timings,
+        equivalent_transforms=pose_set.equivalents,
     )
 
 

@@ -135,3 +135,6 @@ class ObjectResult:
     suction: list[SuctionResult]
     values: list[PoseValues]
     timings: dict[str, float] = field(default_factory=dict)
+    equivalent_transforms: list[np.ndarray] | None = None
+    """Per pose, (k, 4, 4) float: every orientation that is the pose (``PoseSet.equivalents``),
+    its own transform first; None when no symmetric poses were merged."""

@@ -248,13 +248,14 @@ def check_not_spherical(obj: ObjectModel) -> None:
         )
 
 
-def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symmetric: bool = False) -> PoseSet:
+def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symmetric: bool | None = None) -> PoseSet:
     """Stable poses of ``obj`` with probability >= ``config.min_probability``, plus
     every pose reachable from them by toppling over a base edge.
 
     Sink facets whose down vectors lie within ``config.same_pose_angle`` merge into
     one pose (the more probable facet gives the down vector).  ``merge_symmetric``
-    also merges poses that are the same resting pose turned (``symmetric_groups``).
+    also merges poses that are the same resting pose turned (``symmetric_groups``);
+    None takes ``config.merge_symmetric``.
     Raises ``MeshError`` for a nearly spherical object (``check_not_spherical``).
     """
     hull, com = obj.hull, obj.center_mass
@@ -288,7 +289,7 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
 
     # Symmetric objects: candidates whose hulls coincide after a yaw are one pose.
     representative = np.arange(len(downs))
-    if merge_symmetric:
+    if config.merge_symmetric if merge_symmetric is None else merge_symmetric:
         tolerance = SYMMETRY_TOLERANCE * float(np.linalg.norm(hull.extents))
         representative = symmetric_groups(
             [transform_points(g["transform"], hull.vertices) for g in geometry],

@@ -278,6 +278,7 @@ def read_log(
     points = _vectors(table, "point")
     directions = unit(_vectors(table, "direction"))
     start_index = np.full(n, -1)
+    orientation = np.full(n, -1)  # index into the object's PoseSet.match_arrays()
     final_index = np.full(n, OUTSIDE)
     object_of_row = np.array(columns["object_id"], dtype=object)
     for object_id, obj in loaded.items():
@@ -286,7 +287,11 @@ def read_log(
             continue
         # match_pose and settle, vectorised over the object's rows.
         downs = object_downs(start[rows])
-        matched, _ = match_downs(downs, obj.poses.downs, config.poses.same_pose_angle)
+        # Every orientation that is a pose, a symmetric object's merged turns included.
+        match_down, match_transform, match_owner = obj.poses.match_arrays()
+        oriented, _ = match_downs(downs, match_down, config.poses.same_pose_angle)
+        matched = np.where(oriented >= 0, match_owner[np.maximum(oriented, 0)], -1)
+        orientation[rows] = oriented
         unmatched = np.flatnonzero(matched < 0)
         if len(unmatched):
             # Why not: tilted, or at rest on a facet merged into a pose whose down vector is another
@@ -324,6 +329,7 @@ def read_log(
         rows = rows[np.sort(first_of_repeat)]
         same = (
             np.all(start_index[rows] == start_index[rows[0]])
+            and np.all(orientation[rows] == orientation[rows[0]])
             and np.abs(points[rows] - points[rows[0]]).max() <= SAME_PUSH_TOLERANCE
             and np.abs(directions[rows] - directions[rows[0]]).max() <= SAME_PUSH_TOLERANCE
         )
@@ -333,13 +339,14 @@ def read_log(
             continue
         obj = loaded[object_id]
         pose = obj.poses.poses[int(start_index[rows[0]])]
+        to_pose = obj.poses.match_arrays()[1][int(orientation[rows[0]])]  # the pose's transform, or its merged turn's
         pushes.append(
             Push(
                 object_id=object_id,
                 push_id=pid,
                 pose=pose.index,
-                point=transform_points(pose.transform, points[rows[0]][None])[0],
-                direction=directions[rows[0]] @ pose.transform[:3, :3].T,
+                point=transform_points(to_pose, points[rows[0]][None])[0],
+                direction=directions[rows[0]] @ to_pose[:3, :3].T,
                 outcomes=final_index[rows],
             )
         )

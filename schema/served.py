@@ -1,0 +1,304 @@
+"""The served tables: the dataset laid out as the service reads it, memory-mapped.
+
+The Parquet tables are for analysts (compressed, nulls, one partition per object).  A
+server process instead wants every array it answers from ready in memory at once, and
+several workers on one machine want to share one copy.  So the pipeline also writes
+``served/*.arrow``: Arrow IPC files, uncompressed, one record batch each, which
+``read_served`` maps into memory without decoding anything (``pyarrow.memory_map``):
+start-up takes milliseconds, and the pages are the operating system's file cache,
+shared by every worker and loaded only where requests touch them.
+
+Rows are in corpus order (objects), then pose, then action, so each object's rows are
+one contiguous slice (the ``objects`` table's ``*_start`` and ``n_*`` columns).  Missing
+values are NaN (never nulls: a column with a validity bitmap cannot be viewed as numpy
+without a copy).  Vectors are fixed-size lists: ``(n, 3)`` or ``(n, 16)`` views.
+
+=============  =====================================================================
+table          one row per
+=============  =====================================================================
+objects        object: id, source, sha256, mass, scale, com (3), and where its rows
+               start in the other tables (``pose_start``, ``action_start``,
+               ``transition_start``, ``match_start``, ``hull_start``) with their counts
+poses          stable pose: probability, transform (16), inverse (16), down (3), height,
+               com_height, v_s, v_t, grasp_point (3), grasp_axis (3), n_actions,
+               n_ok_actions, ``action_start`` (object-local), ``<policy>_action`` and
+               ``<policy>_value`` per policy
+matches        orientation that is a pose (``poses.equivalent_transforms``): pose
+               (object-local), down (3), transform (16), inverse (16)
+actions        candidate push: status (int8, index into ``STATUS_NAMES``), is_max_height
+               (int8), p_topple, mean_force (float32), q, greedy (float64), point,
+               normal, direction (3 x float32), ``transition_start`` (object-local)
+transitions    nonzero P(next | pose, action): next_pose (int32), probability (float32)
+hulls          convex hull vertex, object frame: vertex (3), m
+=============  =====================================================================
+
+float32 where the model has no more precision (geometry: the contact noise alone is
+0.5 mm; probabilities); float64 for ``q`` and ``greedy`` so that ranking them agrees
+with the pipeline's.  ``served_tables`` builds them from the Parquet tables (the
+pipeline, and the service when a dataset has no served files), checking as it goes
+that the tables fit together; the manifest records each file's SHA-256 and rows.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from schema.vocabulary import POLICIES, STATUS_NAMES
+
+SERVED_DIR = "served"
+NAMES = ("objects", "poses", "matches", "actions", "transitions", "hulls")
+FILES = {name: f"{SERVED_DIR}/{name}.arrow" for name in NAMES}
+"""Table name -> path relative to the dataset root."""
+
+
+class ServedError(ValueError):
+    """The tables do not fit together, or a served file is missing or not what the manifest says."""
+
+
+def _vec(size: int, value=pa.float64()) -> pa.DataType:
+    return pa.list_(value, size)
+
+
+SCHEMAS = {
+    "objects": pa.schema([
+        ("object_id", pa.string()), ("source", pa.string()), ("sha256", pa.string()),
+        ("mass", pa.float64()), ("scale", pa.float64()), ("com", _vec(3)),
+        ("pose_start", pa.int64()), ("n_poses", pa.int64()),
+        ("action_start", pa.int64()), ("n_actions", pa.int64()),
+        ("transition_start", pa.int64()), ("n_transitions", pa.int64()),
+        ("match_start", pa.int64()), ("n_matches", pa.int64()),
+        ("hull_start", pa.int64()), ("n_hull_vertices", pa.int64()),
+    ]),
+    "poses": pa.schema([
+        ("probability", pa.float64()), ("transform", _vec(16)), ("inverse", _vec(16)), ("down", _vec(3)),
+        ("height", pa.float64()), ("com_height", pa.float64()), ("v_s", pa.float64()), ("v_t", pa.float64()),
+        ("grasp_point", _vec(3)), ("grasp_axis", _vec(3)),
+        ("n_actions", pa.int32()), ("n_ok_actions", pa.int32()), ("action_start", pa.int64()),
+        *[(f"{p}_{kind}", t) for p in POLICIES for kind, t in (("action", pa.int32()), ("value", pa.float64()))],
+    ]),
+    "matches": pa.schema([("pose", pa.int32()), ("down", _vec(3)), ("transform", _vec(16)), ("inverse", _vec(16))]),
+    "actions": pa.schema([
+        ("status", pa.int8()), ("is_max_height", pa.int8()), ("p_topple", pa.float32()), ("mean_force", pa.float32()),
+        ("q", pa.float64()), ("greedy", pa.float64()),
+        ("point", _vec(3, pa.float32())), ("normal", _vec(3, pa.float32())), ("direction", _vec(3, pa.float32())),
+        ("transition_start", pa.int64()),
+    ]),
+    "transitions": pa.schema([("next_pose", pa.int32()), ("probability", pa.float32())]),
+    "hulls": pa.schema([("vertex", _vec(3))]),
+}
+
+ACTION_COLUMNS = [
+    "pose", "action", "status", "is_max_height", "p_topple", "mean_force", "q", "greedy",
+    *(f"{v}_{a}" for v in ("point", "normal", "direction") for a in "xyz"),
+]
+TRANSITION_COLUMNS = ["pose", "action", "next_pose", "probability"]
+DOWN = np.array([0.0, 0.0, -1.0])
+
+
+# --- reading --------------------------------------------------------------------------------
+
+
+def read_served(root: str | Path) -> dict[str, pa.Table]:
+    """Every served table of the dataset at ``root``, memory-mapped (no copy, no decoding).
+
+    ServedError when a file is missing or unreadable (the caller falls back to the Parquet
+    tables, or rebuilds)."""
+    out = {}
+    for name, relative in FILES.items():
+        path = Path(root) / relative
+        try:
+            with pa.memory_map(str(path)) as source:
+                table = pa.ipc.open_file(source).read_all()
+        except FileNotFoundError:
+            raise ServedError(f"{path}: missing") from None
+        except (OSError, pa.ArrowException) as err:
+            raise ServedError(f"{path}: unreadable: {' '.join(str(err).split())[:200]}") from None
+        if not table.schema.equals(SCHEMAS[name]):
+            raise ServedError(f"{path}: not the served {name} table of this code (schema differs)")
+        out[name] = table
+    return out
+
+
+def column(table: pa.Table, name: str) -> np.ndarray:
+    """A served column as a read-only numpy view of its buffer: (n,) for scalars, (n, k)
+    for fixed-size lists.  (``np.frombuffer``: pyarrow's ``to_numpy`` imports pandas, a
+    second or so of a server's start-up.)"""
+    chunked = table.column(name)
+    array = chunked.chunk(0) if chunked.num_chunks == 1 else chunked.combine_chunks()
+    size = 1
+    if pa.types.is_fixed_size_list(array.type):
+        size = array.type.list_size
+        offset, length, array = array.offset * size, len(array) * size, array.values
+    else:
+        offset, length = 0, len(array)
+    if array.null_count:
+        raise ServedError(f"served column {name} has nulls (served tables use NaN)")
+    dtype = np.dtype(array.type.to_pandas_dtype()) if not pa.types.is_boolean(array.type) else None
+    if dtype is None:
+        raise ServedError(f"served column {name}: bit-packed booleans cannot be viewed; the served tables use int8")
+    values = np.frombuffer(array.buffers()[1], dtype=dtype, count=array.offset + offset + length)[array.offset + offset:]
+    return values.reshape(-1, size) if size > 1 else values
+
+
+# --- writing --------------------------------------------------------------------------------
+
+
+def write_table(path: Path, table: pa.Table) -> None:
+    """One served table as an uncompressed Arrow IPC file of one record batch."""
+    with pa.OSFile(str(path), "wb") as sink, pa.ipc.new_file(sink, table.schema) as writer:
+        writer.write_table(table.combine_chunks(), max_chunksize=max(table.num_rows, 1))
+
+
+def _fixed(values: np.ndarray, dtype=np.float64) -> pa.Array:
+    values = np.ascontiguousarray(values, dtype=dtype)
+    return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
+
+
+def _nan(column_: pa.ChunkedArray | pa.Array, dtype) -> np.ndarray:
+    """A numeric column as numpy with nulls as NaN."""
+    return column_.to_numpy(zero_copy_only=False).astype(dtype, copy=False) if column_.null_count == 0 else \
+        pc.fill_null(column_.cast(pa.float64()), np.nan).to_numpy(zero_copy_only=False).astype(dtype)
+
+
+def _xyz(table: pa.Table, prefix: str, dtype=np.float64) -> np.ndarray:
+    return np.stack([_nan(table.column(f"{prefix}_{a}"), dtype) for a in "xyz"], axis=1)
+
+
+def _matrices(column_: pa.ChunkedArray) -> np.ndarray:
+    """A fixed-size-list<16> column as (n, 4, 4)."""
+    return column_.combine_chunks().flatten().to_numpy().astype(np.float64).reshape(-1, 4, 4)
+
+
+def served_tables(objects: pa.Table, poses: pa.Table, actions: list[pa.Table], transitions: list[pa.Table]) -> dict[str, pa.Table]:
+    """The served tables from the Parquet ones.
+
+    objects, poses : the consolidated tables (``schema.tables`` OBJECTS, POSES)
+    actions, transitions : per object, in ``objects`` order, its partition's rows
+      (columns ``ACTION_COLUMNS`` / ``TRANSITION_COLUMNS`` at least)
+    Raises ServedError when they do not fit together (rows missing, out of order, unknown
+    status, transitions to poses or actions that do not exist).
+    """
+    ids = objects.column("object_id").to_pylist()
+    if len(actions) != len(ids) or len(transitions) != len(ids):
+        raise ServedError(f"{len(ids)} objects but {len(actions)} action and {len(transitions)} transition tables")
+    pose_ids = poses.column("object_id").to_pylist()
+    pose_rows: dict[str, list[int]] = {}
+    for index, object_id in enumerate(pose_ids):
+        pose_rows.setdefault(object_id, []).append(index)
+    status_codes = pa.array(STATUS_NAMES)
+
+    parts: dict[str, list] = {name: [] for name in ("poses", "matches", "actions", "transitions")}
+    starts = {k: 0 for k in ("pose", "action", "transition", "match", "hull")}
+    object_rows = []
+    for i, object_id in enumerate(ids):
+        n_poses = int(objects.column("n_poses")[i].as_py())
+        own = poses.take(pa.array(pose_rows.get(object_id, []), pa.int64())).sort_by("pose")
+        if own.num_rows != n_poses or own.column("pose").to_pylist() != list(range(n_poses)):
+            raise ServedError(f"{object_id}: poses.parquet holds poses {own.column('pose').to_pylist()}, expected 0..{n_poses - 1}")
+        n_actions = own.column("n_actions").to_numpy().astype(np.int64)
+        action_start = np.concatenate([[0], np.cumsum(n_actions)])
+
+        acts = actions[i].sort_by([("pose", "ascending"), ("action", "ascending")])
+        pose_of = acts.column("pose").to_numpy()
+        expected_action = np.arange(len(pose_of)) - action_start[np.clip(pose_of, 0, n_poses - 1)]
+        if len(pose_of) != action_start[-1] or not np.array_equal(acts.column("action").to_numpy(), expected_action):
+            raise ServedError(f"{object_id}: the actions partition does not hold actions 0..n_actions - 1 of every pose")
+        status = pc.index_in(acts.column("status"), value_set=status_codes)
+        if status.null_count:
+            raise ServedError(f"{object_id}: unknown action status; known: {', '.join(STATUS_NAMES)}")
+
+        trans = transitions[i].sort_by([("pose", "ascending"), ("action", "ascending"), ("next_pose", "ascending")])
+        t_pose = trans.column("pose").to_numpy().astype(np.int64)
+        t_action = trans.column("action").to_numpy().astype(np.int64)
+        next_pose = trans.column("next_pose").to_numpy().astype(np.int32)
+        if len(t_pose) and (
+            t_pose.min() < 0 or t_pose.max() >= n_poses or next_pose.min() < 0 or next_pose.max() >= n_poses
+            or (t_action < 0).any() or (t_action >= n_actions[t_pose]).any()
+        ):
+            raise ServedError(f"{object_id}: transitions refer to poses or actions that do not exist")
+        per_action = np.bincount(action_start[t_pose] + t_action, minlength=int(action_start[-1]))
+        transition_start = np.concatenate([[0], np.cumsum(per_action)[:-1]]) if len(per_action) else np.zeros(0, np.int64)
+
+        transforms = _matrices(own.column("transform"))
+        equivalents = [np.asarray(e, dtype=np.float64).reshape(-1, 4, 4) for e in own.column("equivalent_transforms").to_pylist()]
+        if any(len(e) == 0 for e in equivalents):
+            raise ServedError(f"{object_id}: a pose without equivalent_transforms (its own transform comes first)")
+        match_transforms = np.concatenate(equivalents)
+        match_pose = np.concatenate([np.full(len(e), p, dtype=np.int32) for p, e in enumerate(equivalents)])
+        hull = np.asarray(objects.column("hull_vertices")[i].as_py(), dtype=np.float64).reshape(-1, 3)
+
+        parts["poses"].append({
+            "probability": _nan(own.column("probability"), np.float64),
+            "transform": transforms.reshape(-1, 16),
+            "inverse": np.linalg.inv(transforms).reshape(-1, 16),
+            "down": _xyz(own, "down"),
+            **{name: _nan(own.column(name), np.float64) for name in ("height", "com_height", "v_s", "v_t")},
+            "grasp_point": _xyz(own, "grasp_point"),
+            "grasp_axis": _xyz(own, "grasp_axis"),
+            "n_actions": n_actions.astype(np.int32),
+            "n_ok_actions": own.column("n_ok_actions").to_numpy().astype(np.int32),
+            "action_start": action_start[:-1],
+            **{f"{p}_action": own.column(f"{p}_action").to_numpy().astype(np.int32) for p in POLICIES},
+            **{f"{p}_value": _nan(own.column(f"{p}_value"), np.float64) for p in POLICIES},
+        })
+        parts["matches"].append({
+            "pose": match_pose,
+            "down": np.einsum("mji,j->mi", match_transforms[:, :3, :3], DOWN),
+            "transform": match_transforms.reshape(-1, 16),
+            "inverse": np.linalg.inv(match_transforms).reshape(-1, 16),
+        })
+        parts["actions"].append({
+            "status": status.to_numpy(zero_copy_only=False).astype(np.int8),
+            "is_max_height": acts.column("is_max_height").to_numpy(zero_copy_only=False).astype(np.int8),
+            "p_topple": _nan(acts.column("p_topple"), np.float32),
+            "mean_force": _nan(acts.column("mean_force"), np.float32),
+            "q": _nan(acts.column("q"), np.float64),
+            "greedy": _nan(acts.column("greedy"), np.float64),
+            **{v: _xyz(acts, v, np.float32) for v in ("point", "normal", "direction")},
+            "transition_start": transition_start.astype(np.int64),
+        })
+        parts["transitions"].append({
+            "next_pose": next_pose,
+            "probability": _nan(trans.column("probability"), np.float32),
+        })
+        parts.setdefault("hulls", []).append({"vertex": hull})
+        row = {key: objects.column(key)[i].as_py() for key in ("object_id", "source", "sha256", "mass", "scale")}
+        row["com"] = [objects.column(f"com_{a}")[i].as_py() for a in "xyz"]
+        counts = {"pose": n_poses, "action": len(pose_of), "transition": len(next_pose), "match": len(match_pose), "hull": len(hull)}
+        for key, count in counts.items():
+            row[f"{key}_start"] = starts[key]
+            starts[key] += count
+        row.update(n_poses=n_poses, n_actions=len(pose_of), n_transitions=len(next_pose), n_matches=len(match_pose),
+                   n_hull_vertices=len(hull))
+        object_rows.append(row)
+
+    out = {"objects": pa.Table.from_pylist(object_rows, schema=SCHEMAS["objects"])}
+    for name in ("poses", "matches", "actions", "transitions", "hulls"):
+        schema = SCHEMAS[name]
+        chunks = parts.get(name, [])
+        arrays = []
+        for field in schema:
+            values = np.concatenate([c[field.name] for c in chunks]) if chunks else np.zeros(
+                (0, field.type.list_size) if pa.types.is_fixed_size_list(field.type) else 0)
+            if pa.types.is_fixed_size_list(field.type):
+                arrays.append(_fixed(values, field.type.value_type.to_pandas_dtype()))
+            else:
+                arrays.append(pa.array(np.asarray(values, dtype=field.type.to_pandas_dtype())))
+        out[name] = pa.Table.from_arrays(arrays, schema=schema)
+    return out
+
+
+def served_from_parquet(dataset) -> dict[str, pa.Table]:
+    """``served_tables`` of a finished dataset read through ``schema.reader.Dataset``."""
+    objects = dataset.table("objects")
+    ids = objects.column("object_id").to_pylist()
+    return served_tables(
+        objects,
+        dataset.table("poses"),
+        [dataset.object_rows("actions", i, ACTION_COLUMNS) for i in ids],
+        [dataset.object_rows("transitions", i, TRANSITION_COLUMNS) for i in ids],
+    )
