@@ -33,6 +33,7 @@ from schema.version import CODE_VERSION
 
 from . import errors
 from .dependencies import LiveDep
+from .fastplan import FastPlan
 from .guard import OPEN_PATHS, Guard
 from .lane import Lane
 from .metrics import CONTENT_TYPE, Metrics
@@ -117,6 +118,7 @@ def create_app(dataset_dir: str | Path | None = None, settings: Settings | None 
     app.include_router(objects.batch)
     app.include_router(plan.batch)
     app.include_router(heaps.router)
+    app.add_middleware(FastPlan, live=live, settings=settings)  # inside the guard: after its checks
     app.add_middleware(Guard, metrics=metrics, token=settings.token, max_body_bytes=settings.max_body_bytes)
 
     @app.get("/health", response_model=Health, tags=["service"], summary="Liveness and which build is served")

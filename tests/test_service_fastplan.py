@@ -1,0 +1,90 @@
+"""POST /plan's direct ASGI path (service.fastplan) answers exactly what the FastAPI route does.
+
+Each request is sent twice to one app: once as is (the fast path answers a valid /plan), and
+once with the fast path pointed elsewhere (``fastplan.PATH`` patched), so the FastAPI route
+answers.  The bytes must be the same, for pushes, grasps, tilted and lifted observations,
+ROS poses, unknown objects and malformed bodies alike.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service import create_app, fastplan
+from tests.test_service import JSON, dataset, planar_transform, rotation_about, stored_transform, tables  # noqa: F401 (fixtures)
+
+
+def both_paths(client, monkeypatch, body: bytes):
+    """(fast path response, FastAPI route response) to POST /plan with ``body``."""
+    fast = client.post("/plan", content=body, headers=JSON)
+    with monkeypatch.context() as patch:
+        patch.setattr(fastplan, "PATH", "/not-the-fast-path")
+        slow = client.post("/plan", content=body, headers=JSON)
+    return fast, slow
+
+
+def quaternion(rotation: np.ndarray) -> list[float]:
+    """(x, y, z, w) of a rotation matrix (w > 0 branch; fine for the test's rotations)."""
+    w = math.sqrt(max(1.0 + np.trace(rotation), 1e-12)) / 2
+    return [(rotation[2, 1] - rotation[1, 2]) / (4 * w), (rotation[0, 2] - rotation[2, 0]) / (4 * w),
+            (rotation[1, 0] - rotation[0, 1]) / (4 * w), w]
+
+
+def requests(tables) -> list[bytes]:
+    import json
+
+    rng = np.random.default_rng(11)
+    bodies = []
+    for object_id, pose in tables["poses"]:
+        observed = planar_transform(rng.uniform(-math.pi, math.pi), *rng.uniform(-0.4, 0.4, 2)) @ stored_transform(
+            tables, object_id, pose)
+        tilt = observed.copy()
+        tilt = rotation_about([1.0, 0.3, 0.0], math.radians(3)) @ observed
+        lifted = observed.copy()
+        lifted[2, 3] += 0.2
+        for policy in ("value_iteration", "greedy", "max_height"):
+            for matrix in (observed, tilt, lifted):
+                bodies.append(json.dumps({"object_id": object_id, "pose": matrix.tolist(), "policy": policy}).encode())
+        rotation = observed[:3, :3]
+        if np.trace(rotation) > -0.9:
+            x, y, z, w = quaternion(rotation)
+            bodies.append(json.dumps({"object_id": object_id, "ros_pose": {
+                "position": dict(zip("xyz", observed[:3, 3].tolist())), "orientation": {"x": x, "y": y, "z": z, "w": w},
+                "frame_id": "world"}}).encode())
+    identity = np.eye(4).tolist()
+    bodies += [
+        json.dumps({"object_id": "no_such_object", "pose": identity}).encode(),
+        json.dumps({"object_id": next(iter(tables["poses"]))[0], "pose": identity, "policy": "telepathy"}).encode(),
+        b'{"object_id": "random_000", "pose": [[NaN, 0, 0, 0]]}',
+        b'{"object_id": ',
+        b"[]",
+        json.dumps({"object_id": "random_000", "pose": identity, "unexpected": 1}).encode(),
+    ]
+    return bodies
+
+
+def test_fast_path_answers_byte_for_byte_what_the_route_answers(dataset, tables, monkeypatch):
+    statuses = set()
+    with TestClient(create_app(dataset)) as client:
+        for body in requests(tables):
+            fast, slow = both_paths(client, monkeypatch, body)
+            assert (fast.status_code, fast.content) == (slow.status_code, slow.content), body[:120]
+            assert fast.headers["content-type"] == slow.headers["content-type"]
+            statuses.add(fast.status_code)
+    assert {200, 404, 409, 422} <= statuses, "the requests should reach every kind of answer"
+
+
+def test_fast_path_requests_are_counted_under_the_plan_route(dataset, tables):
+    object_id, pose = next(iter(tables["poses"]))
+    body = {"object_id": object_id, "pose": stored_transform(tables, object_id, pose).tolist()}
+    with TestClient(create_app(dataset)) as client:
+        for _ in range(3):
+            assert client.post("/plan", json=body).status_code == 200
+        metrics = client.get("/metrics").text
+    counted = [line for line in metrics.splitlines() if line.startswith("toppledb_requests_total") and 'route="/plan"' in line
+               and 'status="200"' in line]
+    assert counted and float(counted[0].rsplit(" ", 1)[1]) == 3.0, counted
