@@ -34,13 +34,13 @@ def test_the_regression_finds_a_planted_policy_effect_despite_heap_offsets():
     assert result["n_obs"] == 180 and result["n_heaps"] == 60
     assert shear["coef"] == pytest.approx(0.1, abs=0.03) and shear["p"] < 1e-6
     assert abs(free["coef"]) < 0.03 and free["p"] > 0.01
-    assert result["ols_hc3"]["boundary_shear"]["coef"] == pytest.approx(0.1, abs=0.03)
+    assert result["ols_cluster"]["boundary_shear"]["coef"] == pytest.approx(0.1, abs=0.03)
 
 
 def test_the_regression_says_why_it_cannot_run():
     one_heap = synthetic_pushes(0.1, heaps=1)
     assert "error" in experiment.regression(one_heap, "parallel_jaw")
-    flat = synthetic_pushes(0.0).assign(parallel_jaw_gain=0.0)
+    flat = synthetic_pushes(0.0).assign(parallel_jaw_gain=lambda d: d["heap"] * 0.01)  # heap effects only
     assert "error" in experiment.regression(flat, "parallel_jaw")
 
 
