@@ -34,7 +34,7 @@ from pipeline.model.config import Config
 
 ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
-PACKAGES = ("pipeline", "schema", "service")
+PACKAGES = ("pipeline", "schema", "clutter", "service")
 """Top-level packages of the distribution (pyproject ``packages.find``)."""
 GEOMETRY_STACK = ("trimesh", "fcl", "embreex", "scipy", "h5py", "pybullet", "dask", "joblib")
 """Import names of the ``pipeline`` extra that a service-only install must not have."""
