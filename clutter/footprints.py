@@ -288,17 +288,26 @@ def translation_clearance(polygons: np.ndarray, directions: np.ndarray) -> np.nd
     """
     n = len(polygons)
     diff = minkowski_difference(polygons[:, None], polygons[None, :])  # (n, n, 2K, 2): i moving, j obstacle
-    t_in, t_out = ray_interval(np.zeros((n, n, 1, 2)), np.broadcast_to(directions, (n, n, *directions.shape)), diff[:, :, None])
-    hits = (t_out - t_in > TOLERANCE) & (t_out > TOLERANCE)  # a slide that only grazes does not collide
-    clear = np.where(hits, np.maximum(t_in, 0.0), np.inf)
+    normals, offsets = edge_normals(diff)  # the origin is inside edge k's half-plane when offsets[k] >= 0
+    real = np.any(normals != 0.0, axis=-1)
+    # Cyrus-Beck clipping of the rays t * d from the origin, every pair and direction at once
+    # (ray_interval, with the edges shared by all directions).
+    along = normals @ directions.T  # (n, n, 2K, D)
+    parallel = np.abs(along) <= TOLERANCE
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = offsets[..., None] / along
+    t_in = np.where(~parallel & (along < 0), t, -np.inf).max(axis=-2)
+    t_out = np.where(~parallel & (along > 0), t, np.inf).min(axis=-2)
+    blocked = np.any(parallel & (real & (offsets <= TOLERANCE))[..., None], axis=-2)
+    hits = ~blocked & (t_out - t_in > TOLERANCE) & (t_out > TOLERANCE)  # a slide that only grazes does not collide
+    clear = np.where(hits, np.maximum(t_in, 0.0), np.inf)  # (n, n, D)
     # Overlapping pairs: the origin is inside diff; its nearest edge's outward normal is the
     # shortest way out.
-    normals, offsets = edge_normals(diff)
-    depth = _depth(diff)
-    real = np.any(normals != 0.0, axis=-1)
-    nearest = np.argmin(np.where(real, offsets, np.inf), axis=-1)
+    inner = np.where(real, offsets, np.inf)
+    nearest = np.argmin(inner, axis=-1)
+    depth = np.take_along_axis(inner, nearest[..., None], axis=-1)[..., 0]
     escape = np.take_along_axis(normals, nearest[..., None, None], axis=-2)[..., 0, :]  # (n, n, 2)
-    separating = np.einsum("ijc,dc->ijd", escape, directions) > TOLERANCE
+    separating = escape @ directions.T > TOLERANCE
     overlapping = (depth > TOLERANCE)[..., None]
     clear = np.where(overlapping, np.where(separating, np.inf, 0.0), clear)
     clear[np.arange(n), np.arange(n)] = np.inf

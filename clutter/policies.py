@@ -296,28 +296,31 @@ def free_space_points(sc: Scene, objects: np.ndarray) -> tuple[np.ndarray, np.nd
     ``room`` (ties: nearest the object's c), and their directions of most free space (m, 2)
     (unit; zero when p is within half a cell of c).
 
-    Branch and bound, exact on the grid: ``room`` changes by at most the distance moved, so
-    it is computed on the centres of blocks of TOP_BLOCK x TOP_BLOCK cells, then on the
-    quarters of the blocks that can hold a maximum, and so on down to single cells.
+    Branch and bound, exact on the grid: ``room`` changes by at most the distance moved, so a
+    block of cells holds nothing better than its middle cell's room plus the distance from that
+    cell to its farthest one.  The search starts with blocks of TOP_BLOCK x TOP_BLOCK cells and
+    quarters the blocks that may hold a maximum (for any of ``objects``) down to single cells.
     """
     objects = np.asarray(objects, dtype=np.int64)
     size, counts = floor_grid(sc.half_extents, sc.config)
     block = TOP_BLOCK
     blocks = np.stack([a.ravel() for a in np.meshgrid(*(np.arange(-(-c // block)) for c in counts), indexing="ij")], axis=1)
     while True:
-        centres = (blocks * block + block / 2) * size - sc.half_extents
-        value = room(centres, sc)[:, objects]  # (B, m)
+        first = blocks * block
+        last = np.minimum(first + block, counts) - 1  # blocks at the far walls may be cut short
+        middle = (first + last) // 2
+        points = (middle + 0.5) * size - sc.half_extents
+        value = room(points, sc)[:, objects]  # (B, m), exact at real cells
         if block == 1:
             break
-        # Every block has a cell within ``reach`` of its centre, and no cell further.
-        reach = (block - 1) / 2 * float(np.linalg.norm(size))
-        keep = np.any(value + reach >= value.max(axis=0) - reach - fp.TOLERANCE, axis=1)
+        reach = np.linalg.norm(np.maximum(middle - first, last - middle) * size, axis=1)  # (B,)
+        keep = np.any(value + reach[:, None] >= value.max(axis=0) - fp.TOLERANCE, axis=1)
         block //= 2
         blocks = (blocks[keep][:, None] * 2 + CHILDREN[None]).reshape(-1, 2)
         blocks = blocks[np.all(blocks * block < counts, axis=1)]
-    near = np.linalg.norm(centres[:, None] - sc.centers[objects][None], axis=2)
+    near = np.linalg.norm(points[:, None] - sc.centers[objects][None], axis=2)
     best = value >= value.max(axis=0) - fp.TOLERANCE
-    free = centres[np.argmin(np.where(best, near, np.inf), axis=0)]
+    free = points[np.argmin(np.where(best, near, np.inf), axis=0)]
     offset = free - sc.centers[objects]
     length = np.linalg.norm(offset, axis=1, keepdims=True)
     direction = np.divide(offset, length, out=np.zeros_like(offset), where=length > float(size.min()) / 2)
