@@ -4,7 +4,7 @@ FastAPI spends about as much CPU per /plan request on routing, dependency resolu
 request-object plumbing as the planning itself.  This middleware sits just inside the guard
 (which has already checked the token, the size and the content type, and read the body)
 and answers a valid POST /plan directly: validate the body with the same pydantic model,
-plan with the same ``service.planning.plan``, serialise the same response model.
+plan with the same ``service.planning.plan``, serialise with the same ``answer_json``.
 
 Anything else — another route, a body that does not validate, an unknown object, a pose
 that matches nothing, a bug — goes on to the FastAPI route, which answers it exactly as it
@@ -19,7 +19,7 @@ from types import SimpleNamespace
 
 from schema.api import PlanRequest
 
-from .planning import plan
+from .planning import answer_json, plan
 from .settings import Settings
 from .store import LiveStore
 
@@ -48,7 +48,7 @@ class FastPlan:
             return
         try:
             request = PlanRequest.model_validate_json(body)
-            answer = plan(self.live.store, request, self.settings).model_dump_json().encode()
+            answer = answer_json(plan(self.live.store, request, self.settings))
         except Exception:  # noqa: BLE001 (every failure is the FastAPI route's to answer, bugs included)
             await self.app(scope, _replay(message, receive), send)
             return

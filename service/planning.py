@@ -11,10 +11,13 @@ and a small height (within ``height_tolerance``).  Pushes and grasps are mapped 
 ``pose_to_world`` itself, so they lie on the object's surface as observed: mapping through
 ``planar`` alone would leave a tilted object's contact point millimetres off its surface.
 
-The response models are built with ``model_construct`` (no validation): every value is a
-Python int, float, str, bool or list made here from the validated request and the loaded
-store, and validating them again would cost as much as the planning; tests/test_service_fuzz.py
-checks the served answers against the OpenAPI schema.
+The answer is a plain dict with the fields of ``schema.api.PlanResponse`` in its order,
+serialised by orjson (``answer_json``): every value is a Python int, float, str, bool,
+None or list made here from the validated request and the loaded store.  Building the
+pydantic models, even with ``model_construct``, cost as much as the planning itself.
+tests/test_service_fastplan.py holds the dicts to the models (same fields, same bytes as
+``PlanResponse.model_validate(answer).model_dump_json()``); tests/test_service_fuzz.py checks
+the served answers against the OpenAPI schema.
 
 Imports numpy and schema only (the service never loads the geometry stack).
 """
@@ -22,8 +25,9 @@ Imports numpy and schema only (the service never loads the geometry stack).
 from __future__ import annotations
 
 import numpy as np
+import orjson
 
-from schema.api import Grasp, NextPose, PlanRequest, PlanResponse, PoseMatch, WorldPush
+from schema.api import PlanRequest
 from schema.frames import match_pose, place_push
 from schema.vocabulary import NO_OP
 
@@ -32,18 +36,24 @@ from .settings import Settings
 from .store import ObjectData, Store, optional, widen
 
 
-def next_poses(obj: ObjectData, row: int) -> list[NextPose]:
+def next_poses(obj: ObjectData, row: int) -> list[dict]:
+    """``NextPose`` fields of one action row's next-pose distribution."""
     poses, probabilities = obj.transitions(row)
-    return [NextPose.model_construct(next_pose=int(p), probability=float(q)) for p, q in zip(poses, probabilities)]
+    return [{"next_pose": p, "probability": q} for p, q in zip(poses.tolist(), probabilities.tolist())]
 
 
-def world_grasp(obj: ObjectData, pose: int, pose_to_world: np.ndarray) -> Grasp | None:
-    """The pose's best grasp mapped to the world; None when the pose has none (NaN)."""
+def world_grasp(obj: ObjectData, pose: int, pose_to_world: np.ndarray) -> dict | None:
+    """``Grasp`` fields of the pose's best grasp mapped to the world; None when it has none (NaN)."""
     point, axis = obj.grasp_point[pose], obj.grasp_axis[pose]
     if np.isnan(point).any() or np.isnan(axis).any():
         return None
     rotation = pose_to_world[:3, :3]
-    return Grasp.model_construct(point=(rotation @ point + pose_to_world[:3, 3]).tolist(), axis=(rotation @ axis).tolist())
+    return {"point": (rotation @ point + pose_to_world[:3, 3]).tolist(), "axis": (rotation @ axis).tolist()}
+
+
+def answer_json(answer: dict) -> bytes:
+    """A plan's JSON bytes (what POST /plan sends)."""
+    return orjson.dumps(answer)
 
 
 def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
@@ -56,7 +66,7 @@ def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
     return request.observed()
 
 
-def plan(store: Store, request: PlanRequest, settings: Settings) -> PlanResponse:
+def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
     """The policy's decision for an object observed at the request's pose.
 
     NotFound (unknown object), NoStablePose (orientation within tolerance of no stable pose),
@@ -95,7 +105,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> PlanResponse
     v_s = float(obj.v_s[pose])
     action = int(obj.policy_action[request.policy][pose])
     push = p_topple = q_value = after = None
-    outcomes: list[NextPose] = []
+    outcomes: list[dict] = []
     if action != NO_OP:
         row = obj.row(pose, action)
         # One widen for all float32 values of the row: (3, 3) pose-frame point, normal, direction, then the scalars.
@@ -103,56 +113,56 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> PlanResponse
         world = place_push(pose_to_world, *values[:9].reshape(3, 3), store.approach_offset, store.push_depth)
         force = optional(values[9])
         limit = store.finger_force_limit(settings.finger_force_limit)
-        push = WorldPush.model_construct(
-            **{name: vector.tolist() for name, vector in world.items()},
-            approach_offset=store.approach_offset,
-            push_depth=store.push_depth,
-            required_force=force,
-            finger_force_limit=limit,
-            within_force_limit=None if force is None else bool(force <= limit),
-        )
+        push = {
+            **{name: world[name].tolist() for name in ("point", "normal", "direction", "start", "end")},
+            "approach_offset": store.approach_offset,
+            "push_depth": store.push_depth,
+            "required_force": force,
+            "finger_force_limit": limit,
+            "within_force_limit": None if force is None else bool(force <= limit),
+        }
         p_topple = optional(values[10])
         q_value = optional(obj.q[row])
         after = optional(obj.greedy[row])
         outcomes = next_poses(obj, row)
 
     decision, reason = _decision(request.policy, action, v_s, grasp, p_topple, after, push)
-    return PlanResponse.model_construct(
-        object_id=obj.object_id,
-        policy=request.policy,
-        frame_id=settings.frame_id,
-        match=PoseMatch.model_construct(
-            pose=pose,
-            angle_error=match.angle_error,
-            tolerance=store.tolerance,
-            yaw=match.yaw,
-            translation=match.translation.tolist(),
-            z_offset=z_offset,
-            height_tolerance=settings.height_tolerance,
-            planar=match.planar.tolist(),
-            pose_to_world=pose_to_world.tolist(),
-        ),
-        decision=decision,
-        reason=reason,
-        action=None if action == NO_OP else action,
-        v_s=v_s,
-        v_t=float(obj.v_t[pose]),
-        q_value=q_value,
-        expected_v_s_after=after,
-        p_topple=p_topple,
-        push=push,
-        next_poses=outcomes,
-        grasp=grasp,
-    )
+    return {
+        "object_id": obj.object_id,
+        "policy": request.policy,
+        "frame_id": settings.frame_id,
+        "match": {
+            "pose": pose,
+            "angle_error": match.angle_error,
+            "tolerance": store.tolerance,
+            "yaw": match.yaw,
+            "translation": match.translation.tolist(),
+            "z_offset": z_offset,
+            "height_tolerance": settings.height_tolerance,
+            "planar": match.planar.tolist(),
+            "pose_to_world": pose_to_world.tolist(),
+        },
+        "decision": decision,
+        "reason": reason,
+        "action": None if action == NO_OP else action,
+        "v_s": v_s,
+        "v_t": float(obj.v_t[pose]),
+        "q_value": q_value,
+        "expected_v_s_after": after,
+        "p_topple": p_topple,
+        "push": push,
+        "next_poses": outcomes,
+        "grasp": grasp,
+    }
 
 
 def _decision(policy, action, v_s, grasp, p_topple, after, push) -> tuple[str, str]:
     """(decision, one-sentence reason) for the response."""
     if action != NO_OP:
         force = ""
-        if push is not None and push.within_force_limit is False:
-            force = (f"; it needs {push.required_force:.3g} N, more than the finger's limit of "
-                     f"{push.finger_force_limit:.3g} N: do not execute it with this finger")
+        if push is not None and push["within_force_limit"] is False:
+            force = (f"; it needs {push['required_force']:.3g} N, more than the finger's limit of "
+                     f"{push['finger_force_limit']:.3g} N: do not execute it with this finger")
         return "push", (f"{policy} pushes: P(topple) {_g(p_topple)}, expected V_s after the push {_g(after)} "
                         f"vs V_s {v_s:.3g} now{force}")
     if grasp is None or v_s <= 0.0:

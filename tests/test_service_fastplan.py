@@ -88,3 +88,28 @@ def test_fast_path_requests_are_counted_under_the_plan_route(dataset, tables):
     counted = [line for line in metrics.splitlines() if line.startswith("toppledb_requests_total") and 'route="/plan"' in line
                and 'status="200"' in line]
     assert counted and float(counted[0].rsplit(" ", 1)[1]) == 3.0, counted
+
+
+def test_plan_answers_are_the_response_model_exactly(dataset, tables):
+    """planning.plan builds plain dicts for speed: they must be PlanResponse, field for field
+    and byte for byte as the model would serialise them."""
+    import json
+
+    from schema.api import PlanRequest, PlanResponse
+    from service.planning import answer_json, plan
+    from service.settings import Settings
+    from service.store import Store
+
+    store, settings = Store.load(dataset), Settings()
+    kinds = set()
+    for body in requests(tables):
+        try:
+            request = PlanRequest.model_validate_json(body)
+            answer = plan(store, request, settings)
+        except Exception:  # noqa: BLE001 (malformed and unanswerable requests are the route's; see above)
+            continue
+        model = PlanResponse.model_validate(answer)
+        assert answer_json(answer) == model.model_dump_json().encode()
+        assert json.loads(answer_json(answer)) == model.model_dump(mode="json")
+        kinds.add(answer["decision"])
+    assert {"push", "grasp"} <= kinds
