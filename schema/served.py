@@ -45,7 +45,6 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from schema.vocabulary import POLICIES, STATUS_NAMES
 
@@ -59,8 +58,9 @@ class ServedError(ValueError):
     """The tables do not fit together, or a served file is missing or not what the manifest says."""
 
 
-def _vec(size: int, value=pa.float64()) -> pa.DataType:
-    return pa.list_(value, size)
+def _vec(size: int, value: pa.DataType | None = None) -> pa.DataType:
+    """A fixed-size list of ``size`` values (float64 unless given)."""
+    return pa.list_(value or pa.float64(), size)
 
 
 SCHEMAS = {
@@ -160,6 +160,8 @@ def _fixed(values: np.ndarray, dtype=np.float64) -> pa.Array:
 
 def _nan(column_: pa.ChunkedArray | pa.Array, dtype) -> np.ndarray:
     """A numeric column as numpy with nulls as NaN."""
+    import pyarrow.compute as pc  # here: a server that maps served files never needs it (80 ms of start-up)
+
     return column_.to_numpy(zero_copy_only=False).astype(dtype, copy=False) if column_.null_count == 0 else \
         pc.fill_null(column_.cast(pa.float64()), np.nan).to_numpy(zero_copy_only=False).astype(dtype)
 
@@ -182,6 +184,8 @@ def served_tables(objects: pa.Table, poses: pa.Table, actions: list[pa.Table], t
     Raises ServedError when they do not fit together (rows missing, out of order, unknown
     status, transitions to poses or actions that do not exist).
     """
+    import pyarrow.compute as pc
+
     ids = objects.column("object_id").to_pylist()
     if len(actions) != len(ids) or len(transitions) != len(ids):
         raise ServedError(f"{len(ids)} objects but {len(actions)} action and {len(transitions)} transition tables")

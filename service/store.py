@@ -36,7 +36,6 @@ import pyarrow as pa
 from schema import layout, served
 from schema.api import FINGER_FORCE_LIMIT
 from schema.manifest import Manifest, ManifestError, read_manifest
-from schema.reader import Dataset, DatasetUnreadable
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .errors import NotFound
@@ -256,6 +255,8 @@ class Store:
             _check_rows(tables, manifest)
         except served.ServedError as err:
             log.warning("%s; reading the Parquet tables instead (slower start, memory not shared between workers)", err)
+            from schema.reader import Dataset, DatasetUnreadable  # pyarrow.parquet: only on this path
+
             try:
                 tables = served.served_from_parquet(Dataset(root, manifest))
             except (served.ServedError, DatasetUnreadable) as err:
