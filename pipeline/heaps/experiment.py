@@ -65,10 +65,19 @@ def policies():
     return POLICIES, PushConfig, plan_push
 
 
+def push_config(config: HeapConfig):
+    """The planner's parameters, with the simulation's finger radius."""
+    return policies()[1](finger_radius=config.sim.finger_radius)
+
+
 def fingerprint(config: HeapConfig) -> str:
-    """Short hash of every parameter (and the record version): records are resumed only into
-    a run with the same one."""
-    text = json.dumps({"version": RECORD_VERSION, "config": to_dict(config)}, sort_keys=True, default=str)
+    """Short hash of every parameter, the planner's included (and the record version): records
+    are resumed only into a run with the same one.  (Not of the code: after changing a policy
+    or the simulation, bump ``RECORD_VERSION`` or use a new directory.)"""
+    text = json.dumps(
+        {"version": RECORD_VERSION, "config": to_dict(config), "push": repr(push_config(config))},
+        sort_keys=True, default=str,
+    )
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -89,7 +98,7 @@ def confidences(c: HeapConfidence) -> dict[str, float]:
 def run_heap(heap: int, config: HeapConfig, library: ObjectLibrary | None = None) -> dict:
     """Hard-heap search and every policy's rollout for heap number ``heap``; a JSON-able record
     holding its rows of the three tables."""
-    names, PushConfig, plan_push = policies()
+    names, _, plan_push = policies()
     library = library_for(config, library)
     started = time.process_time()
     seed = config.seed
@@ -109,10 +118,10 @@ def run_heap(heap: int, config: HeapConfig, library: ObjectLibrary | None = None
         objects += state_rows(heap, seed, "hard", state)
         hulls = [library[k].model.hull.vertices for k in state.object_ids]
         coms = np.array([library[k].model.center_mass for k in state.object_ids])
-        push_config = PushConfig(finger_radius=config.sim.finger_radius)
+        planner = push_config(config)
         for policy in names:
             rng = heap_stream(seed, heap, "policy", policy)
-            push = plan_push(policy, state, hulls, coms, rng=rng, config=push_config)
+            push = plan_push(policy, state, hulls, coms, rng=rng, config=planner)
             if push is None:
                 after_state, after = state, before
             else:
