@@ -54,6 +54,7 @@ from .edges import EdgeGeometry, edge_geometry
 from .mesh import ObjectModel
 from .outcomes import Actions, StablePose, ToppleTable
 from .poses import stability_margin
+from .recalibration import recalibrate_rows
 
 MIN_PUSH_TORQUE = 1e-12
 """m (torque per newton of push), (7.4): a push rotates the object outward over an edge
@@ -410,8 +411,9 @@ def evaluate_pose(
     cells = np.repeat(np.arange(len(ok)), trials) * n_poses + landed.ravel()  # (n_ok T,), row * P + pose
     counts = np.bincount(cells, minlength=len(ok) * n_poses).reshape(len(ok), n_poses)  # (n_ok, P)
     next_pose[ok] = counts / trials
-    p_topple = np.full(n_actions, np.nan)  # (A,), (9.2)
-    p_topple[ok] = 1.0 - next_pose[ok, pose.index]
+    # MODEL.md C.7: P(topple) through the fitted monotone map g, the row rescaled to stay a
+    # distribution; no knots (the default, and every thesis variant) leave the table as counted.
+    next_pose, p_topple = recalibrate_rows(next_pose, pose.index, *config.applied_recalibration)  # (A, P), (A,), (9.2)
     toppled = outcomes >= 0  # (A, T), toppled over some edge (blocked ones included, section 9)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_force = np.where(toppled, forces, 0.0).sum(axis=1) / toppled.sum(axis=1)  # (A,), (9.3), N

@@ -29,6 +29,7 @@ import json
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -241,6 +242,44 @@ def bootstrap_difference(
     return out
 
 
+def bootstrap_metric_difference(
+    first: Scores,
+    second: Scores,
+    observed: np.ndarray,
+    objects: np.ndarray,
+    n_resamples: int = BOOTSTRAP,
+    seed: int = 0,
+    confidence: float = CONFIDENCE,
+) -> dict[str, dict]:
+    """Paired bootstrap over objects of ``first - second`` for every metric of ``push_metrics``
+    (ECE, AP and mAP included): both predictors are scored on the same resampled objects, each
+    drawn copy of an object counting as its own object.
+
+    returns : metric -> {"difference": point estimate, "ci": [low, high]}
+    """
+    rng = np.random.default_rng(seed)
+    names, which = np.unique(objects, return_inverse=True)
+    rows = [np.flatnonzero(which == i) for i in range(len(names))]
+
+    def difference(draw: np.ndarray) -> dict[str, float]:
+        index = np.concatenate([rows[d] for d in draw])
+        copies = np.repeat(np.arange(len(draw)), [len(rows[d]) for d in draw])
+        a = push_metrics(first.tv[index], first.p_topple[index], observed[index], copies)
+        b = push_metrics(second.tv[index], second.p_topple[index], observed[index], copies)
+        return {key: a[key] - b[key] for key in a}
+
+    point = difference(np.arange(len(names)))
+    draws = [difference(rng.integers(len(names), size=len(names))) for _ in range(n_resamples)]
+    tail = 100 * (1 - confidence) / 2
+    out = {}
+    for key, value in point.items():
+        values = np.array([d[key] for d in draws], dtype=float)
+        values = values[~np.isnan(values)]
+        ci = [float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))] if len(values) else [math.nan, math.nan]
+        out[key] = {"difference": float(value), "ci": ci}
+    return out
+
+
 # ---------------------------------------------------------------- the report
 
 
@@ -303,6 +342,20 @@ def report(
         results[variant] = predictor_summary(scores, scorer, n_resamples=n_resamples, seed=seed)
         if variant == main_variant:
             objects = per_object(scores, scorer)
+    recalibration = None
+    x, y = replace(config.topple, variant=main_variant).applied_recalibration
+    if len(x) and main_variant in variants:
+        # The configured variant without its recalibration (docs/MODEL.md C.7), and the paired
+        # difference: recalibrated minus raw, on the same resampled objects.
+        raw_topple = replace(config.topple, recalibration_x=(), recalibration_y=())
+        raw = scorer.score_variant(raw_topple, main_variant)
+        recalibration = {
+            "x": list(x), "y": list(y), "raw": f"{main_variant}_raw",
+            "raw_metrics": predictor_summary(raw, scorer, n_resamples=n_resamples, seed=seed),
+            "difference": bootstrap_metric_difference(
+                scorer.score_variant(config.topple, main_variant), raw, scorer.empirical_topple, scorer.object_index,
+                n_resamples, seed),
+        }
     references = {"never_topples": predictor_summary(scorer.never_topples(), scorer, n_resamples=n_resamples, seed=seed)}
     if rate is not None:
         references["constant_rate"] = predictor_summary(scorer.constant_rate(rate), scorer, n_resamples=n_resamples, seed=seed)
@@ -324,6 +377,7 @@ def report(
         "worst_objects": worst_objects(objects),
         "bootstrap": {"resamples": n_resamples, "confidence": CONFIDENCE, "seed": seed, "over": "objects"},
         "thesis_table_4_3": THESIS_TABLE_4_3,
+        **({"recalibration": recalibration} if recalibration else {}),
     }
 
 
@@ -356,14 +410,25 @@ def format_report(result: dict) -> str:
     for reason, count in c["rejected_by_reason"].items():
         lines.append(f"  rejected {count} rows: {reason}")
     lines.append(f"{'predictor':<15} {'TV inform.':>26} {'TV all':>8} {'AP':>26} {'mAP':>7} {'ECE':>7} {'inform.':>8}")
-    rows = list(result["variants"].items()) + list(result["references"].items())
+    rows = _rows(result)
     for name, m in rows:
         lines.append(
             f"{name:<15} {cell(m['tv_informative']) + ci(m, 'tv_informative'):>26} {cell(m['tv_all']):>8} "
             f"{cell(m['ap']) + ci(m, 'ap'):>26} {cell(m['map']):>7} {cell(m['ece']):>7} {cell(m['informative']):>8}"
         )
     lines.append(f"worst objects ({result['main_variant']}, informative TV): {', '.join(result['worst_objects'])}")
+    if "recalibration" in result:
+        parts = [f"{key} {d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]"
+                 for key, d in result["recalibration"]["difference"].items() if key != "informative"]
+        lines.append(f"recalibrated - {result['recalibration']['raw']} (paired bootstrap over objects): " + ", ".join(parts))
     return "\n".join(lines)
+
+
+def _rows(result: dict) -> list[tuple[str, dict]]:
+    """(name, metrics) of every predictor of a report: the variants, the configured variant
+    without its recalibration when it has one (``<variant>_raw``), then the references."""
+    raw = [(result["recalibration"]["raw"], result["recalibration"]["raw_metrics"])] if "recalibration" in result else []
+    return list(result["variants"].items()) + raw + list(result["references"].items())
 
 
 def plot(result: dict, path: str | Path) -> None:
@@ -376,7 +441,7 @@ def plot(result: dict, path: str | Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(14, 4.2))
     ax = axes[0]
     ax.plot([0, 1], [0, 1], color="grey", lw=1, ls="--")
-    for name, m in result["variants"].items():
+    for name, m in _rows(result)[: len(_rows(result)) - len(result["references"])]:
         bins = [b for b in m["reliability"] if b["count"]]
         ax.plot([b["predicted"] for b in bins], [b["observed"] for b in bins], marker="o", label=f"{name} (ECE {m['ece']:.3f})")
     ax.set_xlabel("predicted P(topple)")
@@ -385,14 +450,14 @@ def plot(result: dict, path: str | Path) -> None:
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1)
     ax.legend(fontsize=8)
-    rows = list(result["variants"].items()) + list(result["references"].items())
+    rows = _rows(result)
     x = np.arange(len(rows))
     for ax, key, title in ((axes[1], "tv_informative", "sup-TV, informative pushes (lower is better)"),
                            (axes[2], "ap", "AP of 'it topples' (higher is better)")):
         values = np.array([np.nan if m[key] is None else m[key] for _, m in rows], dtype=float)
         ci = np.array([m.get("ci", {}).get(key, [np.nan, np.nan]) for _, m in rows], dtype=float)
         err = np.abs(np.vstack([values - ci[:, 0], ci[:, 1] - values]))
-        colors = ["tab:blue"] * len(result["variants"]) + ["tab:grey"] * len(result["references"])
+        colors = ["tab:blue"] * (len(rows) - len(result["references"])) + ["tab:grey"] * len(result["references"])
         ax.bar(x, values, color=colors, yerr=np.nan_to_num(err), capsize=3)
         ax.set_xticks(x, [name.replace("_", " ") for name, _ in rows], fontsize=8, rotation=30, ha="right")
         ax.set_ylim(0, 1)

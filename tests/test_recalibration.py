@@ -1,0 +1,177 @@
+"""Probability recalibration of P(topple) (docs/MODEL.md C.7): fitters, the engine's tables, config checks."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from shapes import random_object
+
+from pipeline.api import evaluate
+from pipeline.model.config import Config
+from pipeline.model.poses import stable_poses
+from pipeline.model.recalibration import (
+    Knots,
+    apply_map,
+    fit,
+    fit_isotonic,
+    fit_logistic,
+    logistic_knots,
+    pool_adjacent_violators,
+    predict,
+    recalibrate_rows,
+)
+from pipeline.studies.recalibrate import cross_validate
+from schema.vocabulary import STATUS_OK
+
+RAW = replace(Config().topple, recalibration_x=(), recalibration_y=())
+# A steep, clearly non-identity map: lifts small probabilities, as the corpus fit does.
+LIFT = Knots((0.0, 0.2, 1.0), (0.0, 0.5, 0.9))
+
+
+def _config(topple):
+    return replace(Config(), topple=topple)
+
+
+# ---------------------------------------------------------------- fitters
+
+
+def test_pool_adjacent_violators_pools_violating_neighbours_by_weight():
+    fitted, block = pool_adjacent_violators(np.array([1.0, 3.0, 2.0, 4.0, 0.0]), np.array([1.0, 1.0, 3.0, 1.0, 1.0]))
+    # 3 then 2 (weight 3) pool to 2.25; 4 then 0 pool to 2, which violates 2.25 and pools again:
+    # (3 + 2 x 3 + 4 + 0) / 6.
+    assert np.allclose(fitted, [1.0, 13 / 6, 13 / 6, 13 / 6, 13 / 6])
+    assert list(block) == [0, 1, 1, 1, 1]
+
+
+def test_isotonic_fit_is_monotone_and_recovers_a_monotone_map():
+    rng = np.random.default_rng(0)
+    p = rng.choice(np.arange(1, 100) / 100, 400)
+    def truth(q):  # a known increasing map
+        return 0.1 + 0.8 * q**2
+
+    knots = fit_isotonic(p, truth(p), np.full(len(p), 10.0))
+    assert np.all(np.diff(knots.x) > 0) and np.all(np.diff(knots.y) >= 0)
+    assert knots.x[0] == 0.0 and knots.x[-1] == 1.0
+    assert np.allclose(apply_map(p, knots.x, knots.y), truth(p))
+    # Noisy observations of the same map: still monotone, and close to it on average.
+    noisy = rng.binomial(10, truth(p)) / 10
+    knots = fit_isotonic(p, noisy, np.full(len(p), 10.0))
+    assert np.all(np.diff(knots.y) >= 0)
+    assert np.mean(np.abs(apply_map(p, knots.x, knots.y) - truth(p))) < 0.05
+
+
+def test_logistic_fit_recovers_known_parameters_and_is_strictly_increasing():
+    p = np.arange(1, 100) / 100
+    a, b = 0.6, 0.4
+    observed = 1 / (1 + np.exp(-(a * np.log(p / (1 - p)) + b)))
+    fitted = fit_logistic(p, observed, np.full(len(p), 10.0))
+    assert np.allclose(fitted, (a, b), atol=1e-6)
+    knots = logistic_knots(*fitted)
+    assert np.all(np.diff(knots.y[1:]) > 0) and knots.y[0] == 0.0
+    # A strictly increasing map keeps the order of distinct probabilities: ranking (AP) is unchanged.
+    assert np.array_equal(np.argsort(predict(p, knots)), np.argsort(p))
+
+
+def test_fit_ignores_pushes_the_engine_never_moves():
+    p = np.array([0.0, 0.0, 0.5, 0.5])
+    observed = np.array([1.0, 1.0, 0.2, 0.2])
+    knots = fit("isotonic", p, observed, np.ones(4))
+    assert np.isclose(apply_map(0.5, knots.x, knots.y), 0.2)
+    assert np.array_equal(predict(p, knots)[:2], [0.0, 0.0])
+
+
+def test_cross_validation_is_grouped_by_object_and_scores_every_method():
+    rng = np.random.default_rng(1)
+    objects = np.repeat(np.arange(12), 20)
+    p = rng.uniform(0.01, 1, len(objects))
+    observed = np.clip(p * 0.6 + 0.2, 0, 1)
+    cv = cross_validate(p, observed, np.full(len(p), 10.0), objects, [f"o{i}" for i in range(12)], 4, 0)
+    assert sorted(name for fold in cv["folds"] for name in fold) == sorted(f"o{i}" for i in range(12))
+    for method in ("isotonic", "logistic"):
+        assert cv["methods"][method]["ece"] < cv["identity"]["ece"]
+
+
+# ---------------------------------------------------------------- transition rows
+
+
+def test_recalibrated_rows_stay_distributions_and_match_the_map():
+    rows = np.array([
+        [0.6, 0.3, 0.1],  # p = 0.4
+        [1.0, 0.0, 0.0],  # never topples: left alone
+        [np.nan, np.nan, np.nan],  # not ok
+        [0.0, 0.25, 0.75],  # always topples
+    ])
+    out, p = recalibrate_rows(rows, 0, LIFT.x, LIFT.y)
+    ok = ~np.isnan(rows).any(axis=1)
+    assert np.allclose(out[ok].sum(axis=1), 1.0) and np.all(out[ok] >= 0)
+    assert np.allclose(p[ok], 1 - out[ok, 0])
+    assert np.allclose(p[ok], [apply_map(0.4, LIFT.x, LIFT.y), 0.0, 0.9])
+    assert np.array_equal(out[1], rows[1]) and np.all(np.isnan(out[2])) and np.isnan(p[2])
+    # The toppled mass keeps its split between next poses: (0.3, 0.1) -> 3:1, (0.25, 0.75) -> 1:3.
+    assert np.isclose(out[0, 1] / out[0, 2], 3.0) and np.isclose(out[3, 2] / out[3, 1], 3.0)
+    unchanged, p_unchanged = recalibrate_rows(rows, 0, (), ())
+    assert np.array_equal(unchanged, rows, equal_nan=True)
+    assert np.array_equal(p_unchanged, 1 - rows[:, 0], equal_nan=True)
+
+
+@pytest.fixture(scope="module")
+def random_pose():
+    obj = random_object(3)
+    return obj, stable_poses(obj)
+
+
+def test_engine_without_knots_gives_the_counted_table(random_pose):
+    obj, pose_set = random_pose
+    result = evaluate(obj, pose_set, 0, n_contacts=60, n_trials=40, seed=3, config=_config(RAW))
+    table, ok = result.table, result.actions.status == STATUS_OK
+    landed = np.append(pose_set.poses[0].edge_final_pose, 0)[table.outcomes[ok]]  # (n_ok, T), -1 reads "stays"
+    counted = np.stack([np.bincount(row, minlength=len(pose_set.poses)) for row in landed]) / 40
+    assert np.array_equal(table.next_pose[ok], counted)
+    # The thesis's variants never apply the knots, whatever the config says.
+    robust_raw = evaluate(obj, pose_set, 0, n_contacts=60, n_trials=40, seed=3, variant="robust", config=_config(RAW))
+    robust_knots = evaluate(obj, pose_set, 0, n_contacts=60, n_trials=40, seed=3, variant="robust",
+                            config=_config(replace(RAW, recalibration_x=LIFT.x, recalibration_y=LIFT.y)))
+    assert np.array_equal(robust_raw.table.next_pose, robust_knots.table.next_pose, equal_nan=True)
+
+
+def test_engine_applies_the_map_consistently(random_pose):
+    obj, pose_set = random_pose
+    raw = evaluate(obj, pose_set, 0, n_contacts=60, n_trials=40, seed=3, config=_config(RAW)).table
+    lifted = evaluate(obj, pose_set, 0, n_contacts=60, n_trials=40, seed=3,
+                      config=_config(replace(RAW, recalibration_x=LIFT.x, recalibration_y=LIFT.y))).table
+    ok = ~np.isnan(raw.p_topple)
+    assert np.allclose(lifted.next_pose[ok].sum(axis=1), 1.0)
+    assert np.allclose(lifted.p_topple[ok], 1 - lifted.next_pose[ok, 0])
+    assert np.allclose(lifted.p_topple[ok], predict(raw.p_topple[ok], LIFT))
+    assert (raw.p_topple[ok] > 0).any() and (lifted.p_topple[ok] > raw.p_topple[ok]).any()
+    assert np.array_equal(lifted.outcomes, raw.outcomes)  # the trials themselves are untouched
+
+
+# ---------------------------------------------------------------- config checks
+
+
+@pytest.mark.parametrize(
+    "x, y, message",
+    [
+        ("0,0.5,1", "0,0.6,0.4", "non-decreasing"),
+        ("0,0.5,0.4", "0,0.1,0.2", "strictly increasing"),
+        ("0,1.5", "0,1", "must be in [0, 1]"),
+        ("0,1", "-0.1,1", "must be in [0, 1]"),
+        ("0,1", "0", "as many values"),
+        ("0.5", "0.5", "at least 2 knots"),
+        ("0,a", "0,1", "list of numbers"),
+    ],
+)
+def test_bad_knots_are_refused_with_a_clear_error(x, y, message):
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        Config().with_overrides({"topple.recalibration_x": x, "topple.recalibration_y": y})
+
+
+def test_knots_round_trip_through_dict_and_toml(tmp_path):
+    config = Config().with_overrides({"topple.recalibration_x": [0, 0.5, 1], "topple.recalibration_y": "0,0.7,0.9"})
+    assert config.topple.recalibration_y == (0.0, 0.7, 0.9)
+    assert Config.from_dict(config.to_dict()) == config
+    path = tmp_path / "knots.toml"
+    path.write_text("[topple]\nrecalibration_x = [0.0, 0.5, 1.0]\nrecalibration_y = [0.0, 0.7, 0.9]\n")
+    assert Config.from_toml(path) == config
+    assert isinstance(config.to_dict()["topple"]["recalibration_x"], list)  # as JSON reads it back (manifest)
