@@ -10,7 +10,8 @@ Bodies are real observations: each object's stable poses (GET /objects/{id}/pose
 at random yaws and positions (seeded).  Every phase is bounded in time (``--seconds``).
 
 Phases and keys of the JSON line:
-- start-up: ``startup_s`` from launching ``python -m service`` to the first answered /health;
+- start-up: ``startup_s`` from launching ``python -m service`` to the first answered /health,
+  ``ready_s`` until every worker has started (the server's processes idle); the load starts then;
   ``memory``: resident and proportional memory of the serving processes after the load
   (each worker, and its batch process, which shares the dataset copy-on-write).
 - throughput: ``connections`` clients send POST /plan back to back: ``plan_rps``,
@@ -327,6 +328,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         startup = _wait_for_health(port, server, launched)
+        ready = _wait_until_idle(server.pid, launched)  # the other workers may still be starting
         try:
             import uvloop
 
@@ -337,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
         memory = memory_mb(server.pid)
     finally:
         stop_group(server)
-    line = {"dataset": str(dataset), "workers": args.workers, "startup_s": round(startup, 3), **result,
+    line = {"dataset": str(dataset), "workers": args.workers, "startup_s": round(startup, 3), "ready_s": round(ready, 3), **result,
             "memory": memory, "load_average": round(load_average, 2)}
     print(json.dumps(line))
     return 0 if result["errors"] == 0 else 1
@@ -357,6 +359,37 @@ def stop_group(server: subprocess.Popen) -> None:
     with contextlib.suppress(ProcessLookupError):
         os.killpg(server.pid, signal.SIGKILL)
     server.wait()
+
+
+IDLE_CPU = 0.1
+"""Share of one core below which the server's processes count as idle (every worker loaded)."""
+
+
+def _wait_until_idle(pid: int, launched: float, window: float = 0.3, timeout: float = 60.0) -> float:
+    """s from launch until the server's process group uses less than ``IDLE_CPU`` of a core over
+    ``window`` s: with several workers, the first answers /health while the others still import
+    and map the dataset, and load phases started then would measure their start-up."""
+    import psutil
+
+    def cpu() -> float:
+        total = 0.0
+        with contextlib.suppress(psutil.Error):
+            parent = psutil.Process(pid)
+            for process in [parent, *parent.children(recursive=True)]:
+                with contextlib.suppress(psutil.Error):
+                    times = process.cpu_times()
+                    total += times.user + times.system
+        return total
+
+    deadline = time.perf_counter() + timeout
+    before = cpu()
+    while time.perf_counter() < deadline:
+        time.sleep(window)
+        now = cpu()
+        if now - before < IDLE_CPU * window:
+            return time.perf_counter() - window - launched
+        before = now
+    return time.perf_counter() - launched
 
 
 def _wait_for_health(port: int, server: subprocess.Popen, launched: float, timeout: float = 120.0) -> float:

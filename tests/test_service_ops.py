@@ -249,3 +249,42 @@ def test_a_running_server_picks_up_an_added_symmetric_object_and_plans_for_it_at
         assert health["reloads"] == 1 and health["counts"]["objects"] == 4
     finally:
         stop(process)
+
+
+def test_a_response_written_in_two_parts_leaves_in_one_send_and_a_close_sends_what_is_held():
+    import asyncio
+
+    from service.server import CoalescingTransport
+
+    class Recording:
+        def __init__(self):
+            self.sent, self.closed = [], False
+
+        def write(self, data):
+            assert not self.closed, "written after close"
+            self.sent.append(bytes(data))
+
+        def is_closing(self):
+            return self.closed
+
+        def close(self):
+            self.closed = True
+
+        def get_extra_info(self, name, default=None):
+            return f"extra:{name}"
+
+    async def scenario():
+        raw = Recording()
+        transport = CoalescingTransport(raw, asyncio.get_running_loop())
+        transport.write(b"HTTP/1.1 200 OK\r\ncontent-length: 2\r\n\r\n")
+        transport.write(b"{}")
+        assert raw.sent == [], "held until the loop's next turn"
+        await asyncio.sleep(0)
+        assert raw.sent == [b"HTTP/1.1 200 OK\r\ncontent-length: 2\r\n\r\n{}"]
+        transport.write(b"last")
+        transport.close()  # before the next turn: the held bytes go first
+        await asyncio.sleep(0)
+        assert raw.sent[1:] == [b"last"] and raw.closed
+        assert transport.get_extra_info("socket") == "extra:socket"
+
+    asyncio.run(scenario())
