@@ -21,7 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--dataset", default=None, help="dataset directory (default: $TOPPLEDB_DATASET or data/dataset)")
     parser.add_argument("--host", default=DEFAULT_HOST, help="address to bind (default: %(default)s, this machine only)")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port (default: %(default)s)")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes, each with its own copy of the dataset")
+    parser.add_argument("--workers", type=int, default=1, help="worker processes, forked after the dataset is mapped (they share it)")
     parser.add_argument("--token", default=None, help="bearer token for every endpoint except /health (better: $TOPPLEDB_TOKEN)")
     parser.add_argument("--max-body-bytes", type=int, default=None, help="largest request body, else 413")
     parser.add_argument("--height-tolerance", type=float, default=None, help="m, largest |z_offset| of an observed pose")
@@ -53,24 +53,16 @@ def main(argv: list[str] | None = None) -> int:
             dataset=args.dataset, token=args.token, max_body_bytes=args.max_body_bytes, height_tolerance=args.height_tolerance,
             finger_force_limit=args.finger_force_limit, frame_id=args.frame_id, watch_seconds=args.watch_seconds,
         )
-        app = create_app(settings=settings) if args.workers == 1 else None
-        if app is None:  # check the manifest once, before starting workers that would each fail
-            from schema.reader import Dataset, DatasetUnreadable
-
-            try:
-                Dataset.open(settings.dataset)
-            except DatasetUnreadable as err:
-                raise DatasetError(str(err)) from None
+        app = create_app(settings=settings)  # once: several workers are forked from this process
     except (DatasetError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    if app is not None:
-        store = app.state.live.store
-        print(
-            f"toppledb: {store.counts['objects']} objects, {store.counts['poses']} poses, "
-            f"{store.counts['actions']} actions loaded from {settings.dataset} in {store.load_seconds:.1f} s",
-            file=sys.stderr,
-        )
+    store = app.state.live.store
+    print(
+        f"toppledb: {store.counts['objects']} objects, {store.counts['poses']} poses, "
+        f"{store.counts['actions']} actions loaded from {settings.dataset} in {store.load_seconds:.2f} s",
+        file=sys.stderr,
+    )
     run(
         settings, args.host, args.port, workers=args.workers, log_level=args.log_level, access_log=args.access_log,
         limit_concurrency=args.limit_concurrency, timeout_keep_alive=args.timeout_keep_alive,

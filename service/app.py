@@ -87,6 +87,8 @@ def create_app(dataset_dir: str | Path | None = None, settings: Settings | None 
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
+        # Per worker: forked workers (service.server.serve_forked) report their own pid.
+        metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
         watcher = asyncio.create_task(_watch(app)) if settings.watch_seconds > 0 else None
         loop = asyncio.get_running_loop()
         hup = False

@@ -16,20 +16,19 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import logging
 import os
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from .settings import ENV_PREFIX, Settings
+from .settings import Settings
 
 DEFAULT_LIMIT_CONCURRENCY = 256
 DEFAULT_KEEP_ALIVE = 5
 DEFAULT_REQUEST_TIMEOUT = 10.0
 REQUEST_TIMEOUT_ENV = "TOPPLEDB_REQUEST_TIMEOUT"
-WORKER_STARTUP_TIMEOUT = 300
-"""s a uvicorn worker may take to load the dataset and answer its first health check."""
 
 log = logging.getLogger("service")
 
@@ -115,14 +114,6 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
             self.transport.close()
 
 
-def export_settings(settings: Settings) -> None:
-    """Put the settings into ``TOPPLEDB_*`` variables, so that workers started by uvicorn
-    (``service.app:create_app`` as a factory) read the same ones."""
-    for name, value in settings.__dict__.items():
-        if value is not None:
-            os.environ[ENV_PREFIX + name.upper()] = str(value)
-
-
 def run(
     settings: Settings,
     host: str,
@@ -135,29 +126,91 @@ def run(
     request_timeout: float = DEFAULT_REQUEST_TIMEOUT,
     app=None,
 ) -> None:
-    """Serve until interrupted.  ``app`` (already loaded) is used with one worker; several
-    workers each load the dataset through the factory."""
+    """Serve ``app`` (default: ``create_app(settings=settings)``) until interrupted, in
+    ``workers`` processes forked from this one (``serve_forked``)."""
     import uvicorn
 
     from .lane import tune_interpreter
 
     tune_interpreter()
-    os.environ[REQUEST_TIMEOUT_ENV] = str(request_timeout)  # for spawned workers
     GuardedHttpToolsProtocol.request_timeout = request_timeout
     has_httptools = importlib.util.find_spec("httptools") is not None
-    options = {
-        "host": host, "port": port, "log_level": log_level, "access_log": access_log, "limit_concurrency": limit_concurrency,
-        "timeout_keep_alive": timeout_keep_alive, "loop": "uvloop" if importlib.util.find_spec("uvloop") else "asyncio",
-        "http": GuardedHttpToolsProtocol if has_httptools else "h11",
-        "h11_max_incomplete_event_size": 16 * 1024, "server_header": False,
-    }
     if not has_httptools:
         log.warning("httptools is not installed: h11 parser, no request timeout for incomplete requests")
-    if workers > 1:
-        export_settings(settings)
-        # A worker answers uvicorn's health check only once it has loaded the dataset (seconds for
-        # the full one on a busy machine); uvicorn's 5 s default would kill and restart it forever.
-        uvicorn.run("service.app:create_app", factory=True, workers=workers, timeout_worker_healthcheck=WORKER_STARTUP_TIMEOUT,
-                    **options)
+    if app is None:
+        from .app import create_app
+
+        app = create_app(settings=settings)
+    config = uvicorn.Config(
+        app, host=host, port=port, log_level=log_level, access_log=access_log, limit_concurrency=limit_concurrency,
+        timeout_keep_alive=timeout_keep_alive, loop="uvloop" if importlib.util.find_spec("uvloop") else "asyncio",
+        http=GuardedHttpToolsProtocol if has_httptools else "h11", h11_max_incomplete_event_size=16 * 1024,
+        server_header=False,
+    )
+    if workers == 1:
+        uvicorn.Server(config).run()
     else:
-        uvicorn.run(app, **options)
+        serve_forked(config, workers)
+
+
+RESTART_PAUSE = 1.0
+"""s between restarts of a worker that died: a worker that dies at once must not spin."""
+
+
+def serve_forked(config, workers: int) -> None:
+    """Pre-fork: bind the socket here, then fork ``workers`` processes that each serve the
+    already loaded app on it.
+
+    The dataset is mapped and the code imported once, before the fork, so every worker starts
+    at once (uvicorn's own ``--workers`` spawns fresh interpreters that import and load again:
+    seconds each) and shares those pages.  The kernel spreads connections over the workers
+    accepting on the one socket.  SIGINT and SIGTERM stop the workers, SIGHUP reaches each
+    (each reloads its dataset); a worker that dies otherwise is replaced.
+    """
+    import signal
+    import time
+
+    import uvicorn
+
+    sock = config.bind_socket()
+    children: set[int] = set()
+    stopping = False
+
+    def fork_worker() -> None:
+        pid = os.fork()
+        if pid == 0:  # the worker
+            for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+                signal.signal(signum, signal.SIG_DFL)  # uvicorn installs its own when it starts serving
+            code = 1
+            try:
+                uvicorn.Server(config).run(sockets=[sock])
+                code = 0
+            finally:
+                os._exit(code)
+        children.add(pid)
+
+    def forward(signum, frame) -> None:
+        nonlocal stopping
+        stopping = stopping or signum in (signal.SIGINT, signal.SIGTERM)
+        for pid in list(children):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signum)
+
+    for _ in range(workers):
+        fork_worker()
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, forward)
+    log.info("serving on %s:%d with %d forked workers %s", config.host, config.port, workers, sorted(children))
+    while children:
+        try:
+            pid, status = os.wait()
+        except ChildProcessError:
+            break
+        if pid not in children:
+            continue  # not a worker (a batch lane child is its worker's)
+        children.discard(pid)
+        if not stopping:
+            log.warning("worker %d exited (status %d); starting another", pid, status)
+            time.sleep(RESTART_PAUSE)
+            fork_worker()
+    sock.close()

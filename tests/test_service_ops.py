@@ -174,17 +174,28 @@ def test_server_closes_unfinished_requests_reloads_on_sighup_logs_no_access_line
 
 
 @pytest.mark.slow
-def test_two_workers_serve_through_the_app_factory(dataset):
-    # python -m service --workers 2 starts uvicorn's workers on service.app:create_app (the
-    # factory gunicorn uses too), the settings passed as TOPPLEDB_* variables.
+def test_two_forked_workers_serve_and_a_dead_one_is_replaced(dataset):
+    # python -m service --workers 2 loads the dataset once and forks the workers from it.
     process, url = start(
         [sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0", "--request-timeout", "3"]
     )
     try:
+        workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
         assert httpx.get(f"{url}/health").json()["counts"]["objects"] == 3
-        assert httpx.get(f"{url}/objects/random_001").status_code == 200
+        pids = set()
+        for _ in range(40):  # a new connection each time: the kernel spreads them over the workers
+            with httpx.Client() as client:
+                assert client.get(f"{url}/objects/random_001").status_code == 200
+                metrics = client.get(f"{url}/metrics").text
+            pids |= {line.split('pid="')[1].split('"')[0] for line in metrics.splitlines() if line.startswith("toppledb_dataset_info{")}
+        assert pids <= {str(w.pid) for w in workers} and pids, "each worker reports its own pid"
+        workers[0].kill()
+        wait_for(lambda: len(c := psutil.Process(process.pid).children()) == 2 and workers[0].pid not in {w.pid for w in c},
+                 "a replacement worker")
+        assert wait_for(lambda: httpx.get(f"{url}/health").status_code == 200, "an answer after the replacement")
     finally:
-        stop(process)
+        out, err = stop(process)
+    assert psutil.pid_exists(workers[1].pid) is False or psutil.Process(workers[1].pid).status() == psutil.STATUS_ZOMBIE
 
 
 def test_batch_lanes_agree_and_the_process_lane_follows_a_swap(dataset):
