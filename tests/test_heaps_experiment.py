@@ -53,18 +53,22 @@ def test_summary_stats_are_the_mean_and_standard_error_per_policy():
     assert stats["suction"]["free_space"] == {"n": 60, "mean": 0.0, "sem": 0.0}
 
 
+TEST_HEAPS = 20
+"""The issue's test run: --heaps 20 (about 20 s on 2 cores)."""
+
+
 @pytest.mark.slow
 def test_a_small_run_writes_the_tables_and_resumes(tmp_path, monkeypatch):
     out = tmp_path / "heaps"
-    assert experiment.main(["--heaps", "3", "--out", str(out), "--no-progress"]) == experiment.EXIT_OK
+    assert experiment.main(["--heaps", str(TEST_HEAPS), "--out", str(out), "--no-progress"]) == experiment.EXIT_OK
     heaps = pq.read_table(out / "heaps.parquet")
     pushes = pq.read_table(out / "pushes.parquet")
     objects = pq.read_table(out / "heap_objects.parquet")
     assert heaps.schema.equals(HEAPS) and pushes.schema.equals(PUSHES) and objects.schema.equals(HEAP_OBJECTS)
     heaps, pushes = heaps.to_pandas(), pushes.to_pandas()
-    assert heaps["hard"].sum() == 3 and heaps["hard"].iloc[-1]  # stops at the third hard heap
+    assert heaps["hard"].sum() == TEST_HEAPS and heaps["hard"].iloc[-1]  # stops at the last hard heap
     names = experiment.policies()[0]
-    assert len(pushes) == 3 * len(names) and set(pushes["policy"]) == set(names)
+    assert len(pushes) == TEST_HEAPS * len(names) and set(pushes["policy"]) == set(names)
     # A push's gain is after minus before, and a policy without a push changes nothing.
     for g in ("suction", "parallel_jaw", "overall"):
         np.testing.assert_allclose(pushes[f"{g}_gain"], pushes[f"{g}_after"] - pushes[f"{g}_before"])
@@ -72,16 +76,16 @@ def test_a_small_run_writes_the_tables_and_resumes(tmp_path, monkeypatch):
     hard = heaps[heaps["hard"]]
     assert (hard["overall_confidence"] < experiment.HeapConfig().grasp_threshold).all()
     report = json.loads((out / "report.json").read_text())
-    assert report["hard_heaps"] == 3 and report["heaps_dropped"] == len(heaps)
+    assert report["hard_heaps"] == TEST_HEAPS and report["heaps_dropped"] == len(heaps)
 
     # Rerun: every heap comes from its record, none is computed again.
     def no_compute(*args):
         raise AssertionError("a finished heap was computed again")
 
     monkeypatch.setattr(experiment, "run_heap", no_compute)
-    assert experiment.main(["--heaps", "3", "--out", str(out), "--no-progress"]) == experiment.EXIT_OK
+    assert experiment.main(["--heaps", str(TEST_HEAPS), "--out", str(out), "--no-progress"]) == experiment.EXIT_OK
     # Records made with other parameters are refused with a one-line error.
-    assert experiment.main(["--heaps", "3", "--out", str(out), "--seed", "1", "--no-progress"]) == experiment.EXIT_USAGE
+    assert experiment.main(["--heaps", str(TEST_HEAPS), "--out", str(out), "--seed", "1", "--no-progress"]) == experiment.EXIT_USAGE
 
 
 def test_bad_arguments_are_a_usage_error(tmp_path, capsys):
