@@ -38,11 +38,19 @@ class Metrics:
             "toppledb_dataset_info", "The served build (value 1)", ["manifest_sha256", "created", "pid"], registry=self.registry
         )
         self.reloads = Counter("toppledb_dataset_reloads", "Rebuilt datasets swapped in", registry=self.registry)
+        self._children: dict[tuple, tuple] = {}
+        """(method, route, status) -> (counter, histogram) children: ``labels()`` looks them up
+        under a lock on every call, a few microseconds of every request."""
 
     def observe(self, method: str, route: str | None, status: int, seconds: float) -> None:
-        route = route or "unmatched"
-        self.requests.labels(method, route, str(status)).inc()
-        self.latency.labels(method, route).observe(seconds)
+        key = (method, route, status)
+        children = self._children.get(key)
+        if children is None:  # bounded: routes are templates, statuses and methods few
+            label = route or "unmatched"
+            children = self._children[key] = (self.requests.labels(method, label, str(status)),
+                                              self.latency.labels(method, label))
+        children[0].inc()
+        children[1].observe(seconds)
 
     def serving(self, manifest_sha256: str, created: str) -> None:
         self.dataset.clear()
