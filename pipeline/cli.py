@@ -171,6 +171,8 @@ exit status: 0 done, 1 build failed (or every object failed), 2 bad arguments or
     keys = ["--set keys (SECTION.KEY=VALUE; default, accepted range):"]
     for key, value, accepted in parameter_table(defaults):
         shown = f"{value:.6g}" if isinstance(value, float) else str(value)
+        if isinstance(value, tuple):  # knots: a list, comma-separated with --set
+            shown, accepted = f"{len(value)} values", f"each {accepted}" if accepted else accepted
         keys.append(f"  {key:34s} {shown:>10s}  {accepted}")
     return "\n\n".join([examples, SIDECAR_HELP, "\n".join(keys)])
 

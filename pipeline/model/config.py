@@ -262,6 +262,11 @@ class ToppleConfig:
             return (), ()
         return self.recalibration_x, self.recalibration_y
 
+    def without_recalibration(self) -> "ToppleConfig":
+        """This model with the identity map: the Monte Carlo counts of MODEL.md (9.1)-(9.2),
+        what the noise calibration searches and the recalibration is fitted on."""
+        return dataclasses.replace(self, recalibration_x=(), recalibration_y=())
+
     @property
     def trials(self) -> int:
         """Trials actually run per action: one noise-free trial for the non-robust variants."""

@@ -245,7 +245,9 @@ def calibrate(
     started = time.perf_counter()
     scorer = Scorer(log, config.seed)
     timings["prepare_s"] = time.perf_counter() - started
-    base = replace(config.topple, variant=variant)
+    # The noise is searched on the counted probabilities: the recalibration (MODEL.md C.7) is
+    # fitted afterwards on the chosen noise (`toppledb recalibrate`), never the other way round.
+    base = replace(config.topple.without_recalibration(), variant=variant)
     observed = scorer.empirical_topple
     pushes_per_object = {name: int(np.sum(scorer.object_index == i)) for i, name in enumerate(scorer.object_ids)}
     fold_objects = grouped_folds(pushes_per_object, folds, seed)
@@ -499,6 +501,9 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         config = config_from_args(args)
+        # As in ``calibrate``: the base, the chosen setting and the held-out report are the
+        # model without its recalibration (MODEL.md C.7), which is fitted after the noise.
+        config = replace(config, topple=config.topple.without_recalibration())
         if args.bench:
             print(json.dumps(bench(args.logs, config, args.bench_pushes, 10, args.seed)))
             return 0

@@ -19,7 +19,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -92,7 +91,7 @@ def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, s
     config = config or Config()
     started = time.perf_counter()
     scorer = Scorer(log, config.seed)
-    raw = replace(config.topple, recalibration_x=(), recalibration_y=())
+    raw = config.topple.without_recalibration()
     p = scorer.score(raw).p_topple
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
     cv = cross_validate(p, observed, weight, objects, scorer.object_ids, folds, seed)

@@ -347,8 +347,7 @@ def report(
     if len(x) and main_variant in variants:
         # The configured variant without its recalibration (docs/MODEL.md C.7), and the paired
         # difference: recalibrated minus raw, on the same resampled objects.
-        raw_topple = replace(config.topple, recalibration_x=(), recalibration_y=())
-        raw = scorer.score_variant(raw_topple, main_variant)
+        raw = scorer.score_variant(config.topple.without_recalibration(), main_variant)
         recalibration = {
             "x": list(x), "y": list(y), "raw": f"{main_variant}_raw",
             "raw_metrics": predictor_summary(raw, scorer, n_resamples=n_resamples, seed=seed),
