@@ -194,32 +194,14 @@ class ToppleConfig:
     """N, the largest finger force (magnitude) of a push (``force_limit`` correction): about
     the sustained Cartesian force of a light collaborative arm's fingertip, 8 times a 0.25 kg
     object's weight; docs/MODEL.md "Corrections beyond the thesis" gives the reasoning."""
-    # The recalibration below was fitted on data/logs/corpus by `toppledb recalibrate data/logs/corpus
-    # --folds 6 --seed 0 --out reports/recalibrated_corrected.toml` (logistic g(p) = sigmoid(a logit p + b),
-    # chosen over isotonic by 6-fold CV grouped by object; docs/MODEL.md C.7, docs/VALIDATION.md).
-    recalibration_x: tuple[float, ...] = bounded((
-        0.0, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08, 0.09, 0.1, 0.11, 0.12, 0.13, 0.14, 0.15, 0.16, 0.17,
-        0.18, 0.19, 0.2, 0.21, 0.22, 0.23, 0.24, 0.25, 0.26, 0.27, 0.28, 0.29, 0.3, 0.31, 0.32, 0.33, 0.34,
-        0.35, 0.36, 0.37, 0.38, 0.39, 0.4, 0.41, 0.42, 0.43, 0.44, 0.45, 0.46, 0.47, 0.48, 0.49, 0.5, 0.51,
-        0.52, 0.53, 0.54, 0.55, 0.56, 0.57, 0.58, 0.59, 0.6, 0.61, 0.62, 0.63, 0.64, 0.65, 0.66, 0.67, 0.68,
-        0.69, 0.7, 0.71, 0.72, 0.73, 0.74, 0.75, 0.76, 0.77, 0.78, 0.79, 0.8, 0.81, 0.82, 0.83, 0.84, 0.85,
-        0.86, 0.87, 0.88, 0.89, 0.9, 0.91, 0.92, 0.93, 0.94, 0.95, 0.96, 0.97, 0.98, 0.99, 1.0,
-    ), FRACTION)
+    recalibration_x: tuple[float, ...] = bounded((), FRACTION)
     """Knots x_k of the monotone map g of P(topple) (docs/MODEL.md C.7), strictly increasing in
-    [0, 1]; empty is the identity.  Only the ``corrected`` variant applies it (the thesis's
-    variants, ``--config thesis`` included, never do).  A list in TOML, comma-separated with ``--set``."""
-    recalibration_y: tuple[float, ...] = bounded((
-        0.0, 0.0942438, 0.135247, 0.165973, 0.191277, 0.213097, 0.232441, 0.249917, 0.265922, 0.280734, 0.294554,
-        0.307536, 0.319799, 0.331438, 0.342528, 0.353134, 0.363308, 0.373095, 0.382531, 0.391651, 0.400482,
-        0.40905, 0.417376, 0.425479, 0.433378, 0.441087, 0.448621, 0.455991, 0.46321, 0.470289, 0.477235,
-        0.48406, 0.49077, 0.497373, 0.503876, 0.510286, 0.516608, 0.522849, 0.529014, 0.535107, 0.541134,
-        0.547099, 0.553007, 0.558861, 0.564665, 0.570424, 0.576141, 0.581819, 0.587462, 0.593073, 0.598655,
-        0.604212, 0.609747, 0.615262, 0.620761, 0.626247, 0.631722, 0.63719, 0.642654, 0.648117, 0.653582,
-        0.659052, 0.66453, 0.670019, 0.675523, 0.681046, 0.68659, 0.692161, 0.69776, 0.703394, 0.709066,
-        0.714781, 0.720543, 0.726358, 0.732232, 0.738171, 0.744181, 0.750269, 0.756445, 0.762715, 0.769091,
-        0.775583, 0.782203, 0.788964, 0.795884, 0.802979, 0.810272, 0.817786, 0.825552, 0.833605, 0.841989,
-        0.850758, 0.859982, 0.869754, 0.880198, 0.891494, 0.903912, 0.917902, 0.934323, 0.955324, 0.996786,
-    ), FRACTION)
+    [0, 1]; empty (the default) is the identity.  reports/recalibrated_corrected.toml holds the
+    map fitted on data/logs/corpus (``--config reports/recalibrated_corrected.toml``); it is not
+    the default because it widened the over-confidence of the pushes the policies choose
+    (docs/VALIDATION.md, "Probability recalibration").  Only the ``corrected`` variant applies
+    it (the thesis's variants never do).  A list in TOML, comma-separated with ``--set``."""
+    recalibration_y: tuple[float, ...] = bounded((), FRACTION)
     """Knots g(x_k), non-decreasing in [0, 1], as many as ``recalibration_x``."""
 
     def __post_init__(self) -> None:
