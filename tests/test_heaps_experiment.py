@@ -91,3 +91,17 @@ def test_a_small_run_writes_the_tables_and_resumes(tmp_path, monkeypatch):
 def test_bad_arguments_are_a_usage_error(tmp_path, capsys):
     assert experiment.main(["--heaps", "0", "--out", str(tmp_path)]) == experiment.EXIT_USAGE
     assert "at least 1" in capsys.readouterr().err
+
+
+def test_the_run_goes_to_a_dask_scheduler_and_says_when_it_cannot_reach_one(tmp_path, capsys):
+    from distributed import LocalCluster
+
+    unreachable = ["--heaps", "1", "--out", str(tmp_path / "none"), "--scheduler", "tcp://127.0.0.1:1", "--no-progress"]
+    assert experiment.main(unreachable) == experiment.EXIT_USAGE
+    assert "cannot connect to the dask scheduler at tcp://127.0.0.1:1" in capsys.readouterr().err
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        local = ["--heaps", "1", "--no-progress", "--max-drops", "2"]
+        assert experiment.main([*local, "--out", str(tmp_path / "dask"), "--scheduler", cluster.scheduler_address]) == 0
+    assert experiment.main([*local, "--out", str(tmp_path / "local")]) == 0
+    dask, local_run = (pq.read_table(tmp_path / d / "pushes.parquet") for d in ("dask", "local"))
+    assert dask.num_rows > 0 and dask.equals(local_run), "the scheduler changes where heaps run, not what they give"

@@ -40,7 +40,7 @@ import numpy as np
 from schema.heaps import GRIPPERS, HEAP_OBJECTS, HEAPS, PUSHES
 
 from ..build.atomic import write_atomic, write_text_atomic
-from ..build.fanout import map_unordered
+from ..build.fanout import SchedulerError, map_unordered
 from .config import HeapConfig, to_dict
 from .grasps import HeapConfidence, heap_confidence
 from .hard import hard_heap
@@ -173,8 +173,10 @@ def load_record(out: Path, heap: int, config: HeapConfig) -> dict | None:
 # ---------------------------------------------------------------- many heaps
 
 
-def collect(config: HeapConfig, out: Path, n_hard: int, max_drops: int, workers: int, progress: bool) -> list[dict]:
-    """Records of heaps 0, 1, ... until the first ``n_hard`` hard ones (or ``max_drops`` drops)."""
+def collect(config: HeapConfig, out: Path, n_hard: int, max_drops: int, workers: int, progress: bool,
+            scheduler: str | None = None) -> list[dict]:
+    """Records of heaps 0, 1, ... until the first ``n_hard`` hard ones (or ``max_drops`` drops);
+    on ``scheduler`` (a dask.distributed address) instead of local workers when given."""
     records: dict[int, dict] = {}
     next_heap = 0
 
@@ -199,7 +201,7 @@ def collect(config: HeapConfig, out: Path, n_hard: int, max_drops: int, workers:
                 records[k] = record
         next_heap += batch
         for record in map_unordered(
-            compute_and_save, [(k, config, out) for k in todo], workers=workers,
+            compute_and_save, [(k, config, out) for k in todo], workers=workers, scheduler=scheduler,
             description="heaps", progress=progress,
         ):
             records[record["heap"]] = record
@@ -349,6 +351,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--heaps", type=int, default=20, metavar="N", help="hard heaps (pushing scenarios) to collect (default 20)")
     p.add_argument("--out", type=Path, required=True, help="output directory (tables, report.json, gains.png)")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="run on this dask.distributed scheduler, e.g. tcp://host:8786")
     p.add_argument("--seed", type=int, default=0, help="experiment seed (default 0)")
     p.add_argument("--max-drops", type=int, default=None, metavar="M", help="most heaps dropped (default 20 x --heaps)")
     p.add_argument("--threshold", type=float, default=None, help="hard-heap grasp confidence threshold (default 0.9)")
@@ -369,8 +372,9 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     started = time.perf_counter()
     try:
-        records = collect(config, args.out, args.heaps, args.max_drops or 20 * args.heaps, args.workers, args.progress)
-    except ResumeError as err:
+        records = collect(config, args.out, args.heaps, args.max_drops or 20 * args.heaps, args.workers, args.progress,
+                          args.scheduler)
+    except (ResumeError, SchedulerError) as err:
         print(f"toppledb heaps: {err}", file=sys.stderr)
         return EXIT_USAGE
     report = write_outputs(args.out, records, config, time.perf_counter() - started, args.workers)
