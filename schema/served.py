@@ -184,116 +184,134 @@ def served_tables(objects: pa.Table, poses: pa.Table, actions: list[pa.Table], t
     Raises ServedError when they do not fit together (rows missing, out of order, unknown
     status, transitions to poses or actions that do not exist).
     """
-    import pyarrow.compute as pc
-
     ids = objects.column("object_id").to_pylist()
     if len(actions) != len(ids) or len(transitions) != len(ids):
         raise ServedError(f"{len(ids)} objects but {len(actions)} action and {len(transitions)} transition tables")
-    pose_ids = poses.column("object_id").to_pylist()
     pose_rows: dict[str, list[int]] = {}
-    for index, object_id in enumerate(pose_ids):
+    for index, object_id in enumerate(poses.column("object_id").to_pylist()):
         pose_rows.setdefault(object_id, []).append(index)
-    status_codes = pa.array(STATUS_NAMES)
 
-    parts: dict[str, list] = {name: [] for name in ("poses", "matches", "actions", "transitions")}
-    starts = {k: 0 for k in ("pose", "action", "transition", "match", "hull")}
+    parts: dict[str, list[dict]] = {name: [] for name in NAMES if name != "objects"}
+    starts = {name: 0 for name in parts}
     object_rows = []
     for i, object_id in enumerate(ids):
-        n_poses = int(objects.column("n_poses")[i].as_py())
-        own = poses.take(pa.array(pose_rows.get(object_id, []), pa.int64())).sort_by("pose")
-        if own.num_rows != n_poses or own.column("pose").to_pylist() != list(range(n_poses)):
-            raise ServedError(f"{object_id}: poses.parquet holds poses {own.column('pose').to_pylist()}, expected 0..{n_poses - 1}")
-        n_actions = own.column("n_actions").to_numpy().astype(np.int64)
-        action_start = np.concatenate([[0], np.cumsum(n_actions)])
-
-        acts = actions[i].sort_by([("pose", "ascending"), ("action", "ascending")])
-        pose_of = acts.column("pose").to_numpy()
-        expected_action = np.arange(len(pose_of)) - action_start[np.clip(pose_of, 0, n_poses - 1)]
-        if len(pose_of) != action_start[-1] or not np.array_equal(acts.column("action").to_numpy(), expected_action):
-            raise ServedError(f"{object_id}: the actions partition does not hold actions 0..n_actions - 1 of every pose")
-        status = pc.index_in(acts.column("status"), value_set=status_codes)
-        if status.null_count:
-            raise ServedError(f"{object_id}: unknown action status; known: {', '.join(STATUS_NAMES)}")
-
-        trans = transitions[i].sort_by([("pose", "ascending"), ("action", "ascending"), ("next_pose", "ascending")])
-        t_pose = trans.column("pose").to_numpy().astype(np.int64)
-        t_action = trans.column("action").to_numpy().astype(np.int64)
-        next_pose = trans.column("next_pose").to_numpy().astype(np.int32)
-        if len(t_pose) and (
-            t_pose.min() < 0 or t_pose.max() >= n_poses or next_pose.min() < 0 or next_pose.max() >= n_poses
-            or (t_action < 0).any() or (t_action >= n_actions[t_pose]).any()
-        ):
-            raise ServedError(f"{object_id}: transitions refer to poses or actions that do not exist")
-        per_action = np.bincount(action_start[t_pose] + t_action, minlength=int(action_start[-1]))
-        transition_start = np.concatenate([[0], np.cumsum(per_action)[:-1]]) if len(per_action) else np.zeros(0, np.int64)
-
-        transforms = _matrices(own.column("transform"))
-        equivalents = [np.asarray(e, dtype=np.float64).reshape(-1, 4, 4) for e in own.column("equivalent_transforms").to_pylist()]
-        if any(len(e) == 0 for e in equivalents):
-            raise ServedError(f"{object_id}: a pose without equivalent_transforms (its own transform comes first)")
-        match_transforms = np.concatenate(equivalents)
-        match_pose = np.concatenate([np.full(len(e), p, dtype=np.int32) for p, e in enumerate(equivalents)])
+        own = _object_poses(object_id, int(objects.column("n_poses")[i].as_py()), poses, pose_rows.get(object_id, []))
         hull = np.asarray(objects.column("hull_vertices")[i].as_py(), dtype=np.float64).reshape(-1, 3)
-
-        parts["poses"].append({
-            "probability": _nan(own.column("probability"), np.float64),
-            "transform": transforms.reshape(-1, 16),
-            "inverse": np.linalg.inv(transforms).reshape(-1, 16),
-            "down": _xyz(own, "down"),
-            **{name: _nan(own.column(name), np.float64) for name in ("height", "com_height", "v_s", "v_t")},
-            "grasp_point": _xyz(own, "grasp_point"),
-            "grasp_axis": _xyz(own, "grasp_axis"),
-            "n_actions": n_actions.astype(np.int32),
-            "n_ok_actions": own.column("n_ok_actions").to_numpy().astype(np.int32),
-            "action_start": action_start[:-1],
-            **{f"{p}_action": own.column(f"{p}_action").to_numpy().astype(np.int32) for p in POLICIES},
-            **{f"{p}_value": _nan(own.column(f"{p}_value"), np.float64) for p in POLICIES},
-        })
-        parts["matches"].append({
-            "pose": match_pose,
-            "down": np.einsum("mji,j->mi", match_transforms[:, :3, :3], DOWN),
-            "transform": match_transforms.reshape(-1, 16),
-            "inverse": np.linalg.inv(match_transforms).reshape(-1, 16),
-        })
-        parts["actions"].append({
-            "status": status.to_numpy(zero_copy_only=False).astype(np.int8),
-            "is_max_height": acts.column("is_max_height").to_numpy(zero_copy_only=False).astype(np.int8),
-            "p_topple": _nan(acts.column("p_topple"), np.float32),
-            "mean_force": _nan(acts.column("mean_force"), np.float32),
-            "q": _nan(acts.column("q"), np.float64),
-            "greedy": _nan(acts.column("greedy"), np.float64),
-            **{v: _xyz(acts, v, np.float32) for v in ("point", "normal", "direction")},
-            "transition_start": transition_start.astype(np.int64),
-        })
-        parts["transitions"].append({
-            "next_pose": next_pose,
-            "probability": _nan(trans.column("probability"), np.float32),
-        })
-        parts.setdefault("hulls", []).append({"vertex": hull})
+        part = {
+            "poses": _pose_columns(own),
+            "matches": _match_columns(object_id, own),
+            **_action_and_transition_columns(object_id, own, actions[i], transitions[i]),
+            "hulls": {"vertex": hull},
+        }
         row = {key: objects.column(key)[i].as_py() for key in ("object_id", "source", "sha256", "mass", "scale")}
         row["com"] = [objects.column(f"com_{a}")[i].as_py() for a in "xyz"]
-        counts = {"pose": n_poses, "action": len(pose_of), "transition": len(next_pose), "match": len(match_pose), "hull": len(hull)}
-        for key, count in counts.items():
-            row[f"{key}_start"] = starts[key]
-            starts[key] += count
-        row.update(n_poses=n_poses, n_actions=len(pose_of), n_transitions=len(next_pose), n_matches=len(match_pose),
-                   n_hull_vertices=len(hull))
+        for name, columns in part.items():
+            parts[name].append(columns)
+            rows = len(next(iter(columns.values())))
+            row[f"{_SINGULAR[name]}_start"], row[f"n_{_COUNTED[name]}"] = starts[name], rows
+            starts[name] += rows
         object_rows.append(row)
 
     out = {"objects": pa.Table.from_pylist(object_rows, schema=SCHEMAS["objects"])}
-    for name in ("poses", "matches", "actions", "transitions", "hulls"):
-        schema = SCHEMAS[name]
-        chunks = parts.get(name, [])
+    for name, chunks in parts.items():
         arrays = []
-        for field in schema:
+        for field in SCHEMAS[name]:
+            fixed = pa.types.is_fixed_size_list(field.type)
             values = np.concatenate([c[field.name] for c in chunks]) if chunks else np.zeros(
-                (0, field.type.list_size) if pa.types.is_fixed_size_list(field.type) else 0)
-            if pa.types.is_fixed_size_list(field.type):
-                arrays.append(_fixed(values, field.type.value_type.to_pandas_dtype()))
-            else:
-                arrays.append(pa.array(np.asarray(values, dtype=field.type.to_pandas_dtype())))
-        out[name] = pa.Table.from_arrays(arrays, schema=schema)
+                (0, field.type.list_size) if fixed else 0)
+            arrays.append(_fixed(values, field.type.value_type.to_pandas_dtype()) if fixed
+                          else pa.array(np.asarray(values, dtype=field.type.to_pandas_dtype())))
+        out[name] = pa.Table.from_arrays(arrays, schema=SCHEMAS[name])
     return out
+
+
+_SINGULAR = {"poses": "pose", "matches": "match", "actions": "action", "transitions": "transition", "hulls": "hull"}
+_COUNTED = {"poses": "poses", "matches": "matches", "actions": "actions", "transitions": "transitions", "hulls": "hull_vertices"}
+"""Per served table, the names of its ``<x>_start`` and ``n_<y>`` columns in ``objects``."""
+
+
+def _object_poses(object_id: str, n_poses: int, poses: pa.Table, rows: list[int]) -> pa.Table:
+    """The object's rows of poses.parquet, by pose; ServedError unless they are 0..n_poses - 1."""
+    own = poses.take(pa.array(rows, pa.int64())).sort_by("pose")
+    if own.num_rows != n_poses or own.column("pose").to_pylist() != list(range(n_poses)):
+        raise ServedError(f"{object_id}: poses.parquet holds poses {own.column('pose').to_pylist()}, expected 0..{n_poses - 1}")
+    return own
+
+
+def _pose_columns(own: pa.Table) -> dict[str, np.ndarray]:
+    transforms = _matrices(own.column("transform"))
+    n_actions = own.column("n_actions").to_numpy().astype(np.int64)
+    return {
+        "probability": _nan(own.column("probability"), np.float64),
+        "transform": transforms.reshape(-1, 16),
+        "inverse": np.linalg.inv(transforms).reshape(-1, 16),
+        "down": _xyz(own, "down"),
+        **{name: _nan(own.column(name), np.float64) for name in ("height", "com_height", "v_s", "v_t")},
+        "grasp_point": _xyz(own, "grasp_point"),
+        "grasp_axis": _xyz(own, "grasp_axis"),
+        "n_actions": n_actions.astype(np.int32),
+        "n_ok_actions": own.column("n_ok_actions").to_numpy().astype(np.int32),
+        "action_start": np.concatenate([[0], np.cumsum(n_actions)[:-1]]).astype(np.int64),
+        **{f"{p}_action": own.column(f"{p}_action").to_numpy().astype(np.int32) for p in POLICIES},
+        **{f"{p}_value": _nan(own.column(f"{p}_value"), np.float64) for p in POLICIES},
+    }
+
+
+def _match_columns(object_id: str, own: pa.Table) -> dict[str, np.ndarray]:
+    """Every orientation that is a pose (``equivalent_transforms``, the pose's own first)."""
+    equivalents = [np.asarray(e, dtype=np.float64).reshape(-1, 4, 4) for e in own.column("equivalent_transforms").to_pylist()]
+    if any(len(e) == 0 for e in equivalents):
+        raise ServedError(f"{object_id}: a pose without equivalent_transforms (its own transform comes first)")
+    transforms = np.concatenate(equivalents)
+    return {
+        "pose": np.concatenate([np.full(len(e), p, dtype=np.int32) for p, e in enumerate(equivalents)]),
+        "down": np.einsum("mji,j->mi", transforms[:, :3, :3], DOWN),
+        "transform": transforms.reshape(-1, 16),
+        "inverse": np.linalg.inv(transforms).reshape(-1, 16),
+    }
+
+
+def _action_and_transition_columns(object_id: str, own: pa.Table, actions: pa.Table, transitions: pa.Table) -> dict[str, dict]:
+    """The object's actions in (pose, action) order and its transitions as CSR over them;
+    ServedError when they do not fit its poses."""
+    import pyarrow.compute as pc  # here: a server that maps served files never needs it
+
+    n_poses = own.num_rows
+    n_actions = own.column("n_actions").to_numpy().astype(np.int64)
+    action_start = np.concatenate([[0], np.cumsum(n_actions)])
+
+    actions = actions.sort_by([("pose", "ascending"), ("action", "ascending")])
+    pose_of = actions.column("pose").to_numpy()
+    expected_action = np.arange(len(pose_of)) - action_start[np.clip(pose_of, 0, n_poses - 1)]
+    if len(pose_of) != action_start[-1] or not np.array_equal(actions.column("action").to_numpy(), expected_action):
+        raise ServedError(f"{object_id}: the actions partition does not hold actions 0..n_actions - 1 of every pose")
+    status = pc.index_in(actions.column("status"), value_set=pa.array(STATUS_NAMES))
+    if status.null_count:
+        raise ServedError(f"{object_id}: unknown action status; known: {', '.join(STATUS_NAMES)}")
+
+    transitions = transitions.sort_by([("pose", "ascending"), ("action", "ascending"), ("next_pose", "ascending")])
+    t_pose = transitions.column("pose").to_numpy().astype(np.int64)
+    t_action = transitions.column("action").to_numpy().astype(np.int64)
+    next_pose = transitions.column("next_pose").to_numpy().astype(np.int32)
+    if len(t_pose) and (
+        t_pose.min() < 0 or t_pose.max() >= n_poses or next_pose.min() < 0 or next_pose.max() >= n_poses
+        or (t_action < 0).any() or (t_action >= n_actions[t_pose]).any()
+    ):
+        raise ServedError(f"{object_id}: transitions refer to poses or actions that do not exist")
+    per_action = np.bincount(action_start[t_pose] + t_action, minlength=int(action_start[-1]))
+    return {
+        "actions": {
+            "status": status.to_numpy(zero_copy_only=False).astype(np.int8),
+            "is_max_height": actions.column("is_max_height").to_numpy(zero_copy_only=False).astype(np.int8),
+            "p_topple": _nan(actions.column("p_topple"), np.float32),
+            "mean_force": _nan(actions.column("mean_force"), np.float32),
+            "q": _nan(actions.column("q"), np.float64),
+            "greedy": _nan(actions.column("greedy"), np.float64),
+            **{v: _xyz(actions, v, np.float32) for v in ("point", "normal", "direction")},
+            "transition_start": np.concatenate([[0], np.cumsum(per_action)[:-1]]).astype(np.int64),
+        },
+        "transitions": {"next_pose": next_pose, "probability": _nan(transitions.column("probability"), np.float32)},
+    }
 
 
 def served_from_parquet(dataset) -> dict[str, pa.Table]:

@@ -1,0 +1,123 @@
+"""The served tables (schema/served.py): what the build writes is what the Parquet tables say,
+the service maps them without copying, and anything stale, missing or inconsistent is either
+served from Parquet instead or refused with a message naming the problem."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shutil
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.build.verify import verify_dataset
+from schema import served
+from schema.reader import Dataset
+from service.store import DatasetError, Store
+from tests.test_service import dataset  # noqa: F401 (fixture)
+
+
+def same_objects(a: Store, b: Store) -> None:
+    assert list(a.objects) == list(b.objects)
+    for object_id, one in a.objects.items():
+        other = b.objects[object_id]
+        for field in dataclasses.fields(one):
+            x, y = getattr(one, field.name), getattr(other, field.name)
+            if isinstance(x, dict):
+                assert x.keys() == y.keys() and all(np.array_equal(x[k], y[k]) for k in x), field.name
+            elif isinstance(x, np.ndarray):
+                assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), (object_id, field.name)
+            else:
+                assert x == y, field.name
+
+
+def test_mapped_tables_are_views_and_equal_the_parquet_tables_converted(dataset, tmp_path, caplog):
+    mapped = Store.load(dataset)
+    obj = next(iter(mapped.objects.values()))
+    assert not obj.points.flags.writeable and not obj.q.flags.owndata, "a view into the mapped file, not a copy"
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    shutil.rmtree(copy / served.SERVED_DIR)
+    with caplog.at_level(logging.WARNING, logger="service"):
+        converted = Store.load(copy)
+    assert "served/objects.arrow: missing" in caplog.text and "reading the Parquet tables instead" in caplog.text
+    same_objects(mapped, converted)
+    # Every object's served rows hold what the analysts' tables hold (so an offset into the
+    # shared columns cannot be wrong the same way on both paths).
+    reader = Dataset.open(dataset)
+    poses = reader.table("poses")
+    for object_id, obj in mapped.objects.items():
+        by = [("pose", "ascending"), ("action", "ascending")]
+        actions = reader.object_rows("actions", object_id, ["pose", "action", "q", "point_x"]).sort_by(by)
+        np.testing.assert_array_equal(obj.q, actions.column("q").to_numpy(zero_copy_only=False))
+        np.testing.assert_array_equal(obj.points[:, 0], actions.column("point_x").to_numpy().astype(np.float32))
+        transitions = reader.object_rows("transitions", object_id).sort_by([*by, ("next_pose", "ascending")])
+        np.testing.assert_array_equal(obj.next_pose, transitions.column("next_pose").to_numpy())
+        own = poses.filter(pa.compute.equal(poses.column("object_id"), object_id)).sort_by("pose")
+        np.testing.assert_array_equal(obj.v_s, own.column("v_s").to_numpy())
+        np.testing.assert_array_equal(obj.transforms.reshape(-1, 16), np.stack(own.column("transform").to_pylist()))
+
+
+def test_served_files_of_another_build_are_not_used(dataset, tmp_path, caplog):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["tables"]["served/actions.arrow"]["rows"] += 1  # as if the manifest described another build
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    with caplog.at_level(logging.WARNING, logger="service"):
+        store = Store.load(copy)
+    assert "served/actions.arrow holds" in caplog.text and store.counts["objects"] == 3
+    assert any("served/actions.arrow" in problem for problem in verify_dataset(copy))
+
+
+def test_a_tampered_served_file_fails_verify(dataset, tmp_path):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    with open(copy / "served" / "poses.arrow", "ab") as handle:
+        handle.write(b"x")
+    assert any(p.startswith("served/poses.arrow: sha256") for p in verify_dataset(copy))
+
+
+@pytest.fixture(scope="module")
+def parquet(dataset):
+    table = Dataset.open(dataset)
+    ids = table.table("objects").column("object_id").to_pylist()
+    return (table.table("objects"), table.table("poses"),
+            [table.object_rows("actions", i, served.ACTION_COLUMNS) for i in ids],
+            [table.object_rows("transitions", i, served.TRANSITION_COLUMNS) for i in ids])
+
+
+def test_tables_that_do_not_fit_together_are_refused_by_name(parquet):
+    objects, poses, actions, transitions = parquet
+    served.served_tables(objects, poses, actions, transitions)  # the real ones fit
+
+    def refused(match, **changed):
+        args = {"objects": objects, "poses": poses, "actions": list(actions), "transitions": list(transitions), **changed}
+        with pytest.raises(served.ServedError, match=match):
+            served.served_tables(**args)
+
+    refused("actions partition does not hold", actions=[actions[0].slice(1), *actions[1:]])
+    status = actions[0].column("status").to_pylist()
+    refused("unknown action status", actions=[actions[0].set_column(
+        actions[0].schema.get_field_index("status"), "status", pa.array(["teleported", *status[1:]])), *actions[1:]])
+    far = transitions[0].set_column(transitions[0].schema.get_field_index("next_pose"), "next_pose",
+                                    pa.array([99] * transitions[0].num_rows, pa.int32()))
+    refused("transitions refer to poses or actions that do not exist", transitions=[far, *transitions[1:]])
+    refused("poses.parquet holds poses", poses=poses.slice(1))
+    refused("3 objects but 2 action", actions=actions[:2])
+
+
+def test_a_dataset_whose_tables_do_not_fit_is_not_served(dataset, tmp_path):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    shutil.rmtree(copy / served.SERVED_DIR)
+    ids = pq.read_table(copy / "objects.parquet").column("object_id").to_pylist()
+    part = copy / "actions" / f"object_id={ids[0]}" / "part-0.parquet"
+    pq.write_table(pq.read_table(part).slice(1), part)
+    with pytest.raises(DatasetError, match="actions partition does not hold"):
+        Store.load(copy)
