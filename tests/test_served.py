@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (pytest fixture imported from tests/test_service.py)
 """The served tables (schema/served.py): what the build writes is what the Parquet tables say,
 the service maps them without copying, and anything stale, missing or inconsistent is either
 served from Parquet instead or refused with a message naming the problem."""
