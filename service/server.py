@@ -192,9 +192,12 @@ def serve_forked(config, workers: int) -> None:
     def forward(signum, frame) -> None:
         nonlocal stopping
         stopping = stopping or signum in (signal.SIGINT, signal.SIGTERM)
+        # A terminal's Ctrl-C reaches the workers too; a second SIGINT would make uvicorn skip its
+        # graceful shutdown, a SIGTERM does not.
+        forwarded = signal.SIGTERM if signum == signal.SIGINT else signum
         for pid in list(children):
             with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signum)
+                os.kill(pid, forwarded)
 
     for _ in range(workers):
         fork_worker()
