@@ -128,11 +128,6 @@ def edge_normals(polygons: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # --- points, segments and polygons -----------------------------------------------------
 
 
-def cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(...,) z component of a x b for (..., 2) vectors."""
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
 def segment_sq_distance(px, py, ax, ay, bx, by) -> np.ndarray:
     """Squared distance, m^2, from points (px, py) to segments (ax, ay) -> (bx, by): x and y
     components as separate broadcastable arrays (numpy is several times faster on them than
@@ -154,11 +149,6 @@ def segment_sq_distance(px, py, ax, ay, bx, by) -> np.ndarray:
     dy *= dy
     dx += dy
     return dx
-
-
-def point_segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(...,) m: distance from ``points`` (..., 2) to the segments a -> b (..., 2), broadcast."""
-    return np.sqrt(segment_sq_distance(points[..., 0], points[..., 1], a[..., 0], a[..., 1], b[..., 0], b[..., 1]))
 
 
 def edge_slack(points: np.ndarray, polygons: np.ndarray) -> np.ndarray:
