@@ -215,5 +215,6 @@ def serve_forked(config, workers: int) -> None:
         if not stopping:
             log.warning("worker %d exited (status %d); starting another", pid, status)
             time.sleep(RESTART_PAUSE)
-            fork_worker()
+            if not stopping:  # a SIGINT or SIGTERM during the pause: no worker left to signal it later
+                fork_worker()
     sock.close()

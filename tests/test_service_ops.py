@@ -299,3 +299,18 @@ def test_a_response_written_in_two_parts_leaves_in_one_send_and_a_close_sends_wh
         assert transport.get_extra_info("socket") == "extra:socket"
 
     asyncio.run(scenario())
+
+
+@pytest.mark.slow
+def test_a_stop_during_a_workers_restart_pause_starts_no_new_worker(dataset):
+    # A worker dies; while the server waits RESTART_PAUSE before replacing it, a SIGTERM arrives:
+    # the server must stop (not fork a worker that nobody will signal, and wait for it forever).
+    process, url = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0"])
+    try:
+        workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+        workers[0].kill()
+        wait_for(lambda: workers[0].pid not in {c.pid for c in psutil.Process(process.pid).children()}, "the dead worker reaped")
+        process.send_signal(signal.SIGTERM)  # within the restart pause
+        process.wait(timeout=DEADLINE)  # it stops (it used to fork a replacement after the pause and wait for it)
+    finally:
+        stop(process)
