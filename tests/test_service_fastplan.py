@@ -1,3 +1,4 @@
+# ruff: noqa: F811  (pytest fixtures imported from tests/test_service.py)
 """POST /plan's direct ASGI path (service.fastplan) answers exactly what the FastAPI route does.
 
 Each request is sent twice to one app: once as is (the fast path answers a valid /plan), and
@@ -11,7 +12,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 from fastapi.testclient import TestClient
 
 from service import create_app, fastplan
@@ -106,7 +106,7 @@ def test_plan_answers_are_the_response_model_exactly(dataset, tables):
         try:
             request = PlanRequest.model_validate_json(body)
             answer = plan(store, request, settings)
-        except Exception:  # noqa: BLE001 (malformed and unanswerable requests are the route's; see above)
+        except Exception:  # noqa: BLE001, S112 (malformed and unanswerable requests are the route's; see above)
             continue
         model = PlanResponse.model_validate(answer)
         assert answer_json(answer) == model.model_dump_json().encode()

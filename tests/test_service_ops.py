@@ -1,7 +1,7 @@
 # ruff: noqa: F811  (pytest fixture imported from tests/test_service.py)
 """Operating the service: swapping to a rebuilt dataset without failing a request, SIGHUP,
 closing connections that never finish their request, no access log by default, and the
-app factory under uvicorn's workers (the tiny dataset of tests/test_service.py)."""
+forked workers of ``--workers N`` (the tiny dataset of tests/test_service.py)."""
 
 from __future__ import annotations
 
@@ -194,7 +194,7 @@ def test_two_forked_workers_serve_and_a_dead_one_is_replaced(dataset):
                  "a replacement worker")
         assert wait_for(lambda: httpx.get(f"{url}/health").status_code == 200, "an answer after the replacement")
     finally:
-        out, err = stop(process)
+        stop(process)
     assert psutil.pid_exists(workers[1].pid) is False or psutil.Process(workers[1].pid).status() == psutil.STATUS_ZOMBIE
 
 
@@ -305,7 +305,7 @@ def test_a_response_written_in_two_parts_leaves_in_one_send_and_a_close_sends_wh
 def test_a_stop_during_a_workers_restart_pause_starts_no_new_worker(dataset):
     # A worker dies; while the server waits RESTART_PAUSE before replacing it, a SIGTERM arrives:
     # the server must stop (not fork a worker that nobody will signal, and wait for it forever).
-    process, url = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0"])
+    process, _ = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0"])
     try:
         workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
         workers[0].kill()
