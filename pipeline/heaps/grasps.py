@@ -31,7 +31,7 @@ import numpy as np
 import trimesh
 
 from clutter.state import HeapState
-from schema.frames import tangent_frames, unit, z_to_axes
+from schema.frames import tangent_frames, transform_points, unit, z_to_axes
 
 from ..model.config import SuctionConfig
 from ..model.suction import perturb, sample_candidates, seal_contacts, table_collisions, wrench_resisted
@@ -286,7 +286,7 @@ def build_scene(state: HeapState, heap_objects: list[HeapObject]) -> Scene:
     for k, (obj, pose) in enumerate(zip(heap_objects, state.poses)):
         objects.append(fcl.CollisionObject(obj.collision_geometry, fcl.Transform(pose[:3, :3], pose[:3, 3])))
         owners.append(k)
-        hull = obj.model.hull.vertices @ pose[:3, :3].T + pose[:3, 3]
+        hull = transform_points(pose, obj.model.hull.vertices)
         lower.append(hull.min(axis=0))
         upper.append(hull.max(axis=0))
     return Scene(objects, np.array(owners), np.array(lower).reshape(-1, 3), np.array(upper).reshape(-1, 3))
@@ -343,14 +343,14 @@ def suction_options(
         if not up.any():
             continue
         s_axes = cand.sample_axes[up] @ rotation.T
-        contacts = cand.contacts[up] @ rotation.T + shift
+        contacts = transform_points(pose, cand.contacts[up])
         com = rotation @ obj.model.center_mass + shift
         held = wrench_resisted(contacts, s_axes, com, cand.mass[up], cand.friction[up], sc, GRAVITY)
         ok = cand.sealed[up] & held & ~table_collisions(contacts, s_axes, sc)
         quality = ok.mean(axis=1)
         owners.append(np.full(int(up.sum()), k))
         qualities.append(quality)
-        points.append(cand.points[up] @ rotation.T + shift)
+        points.append(transform_points(pose, cand.points[up]))
         axes.append(world_axes[up])
     if not owners:
         return np.zeros(0, int), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))
@@ -402,7 +402,7 @@ def jaw_options(
         level = np.abs(world_axes[:, 2]) <= np.sin(jc.max_axis_tilt)
         owners.append(np.full(int(level.sum()), k))
         qualities.append(cand.quality[level])
-        centres.append(cand.centres[level] @ pose[:3, :3].T + pose[:3, 3])
+        centres.append(transform_points(pose, cand.centres[level]))
         axes.append(world_axes[level])
         widths.append(cand.widths[level])
     if not owners:
