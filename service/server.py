@@ -28,7 +28,6 @@ from .settings import Settings
 DEFAULT_LIMIT_CONCURRENCY = 256
 DEFAULT_KEEP_ALIVE = 5
 DEFAULT_REQUEST_TIMEOUT = 10.0
-REQUEST_TIMEOUT_ENV = "TOPPLEDB_REQUEST_TIMEOUT"
 
 log = logging.getLogger("service")
 
@@ -81,9 +80,9 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
     the first byte of a request) to the request's last byte at most ``request_timeout`` s;
     else the connection is closed."""
 
-    # A class attribute read from the environment: uvicorn's workers are spawned processes
-    # that import this module afresh and receive the class by reference.
-    request_timeout = float(os.environ.get(REQUEST_TIMEOUT_ENV, DEFAULT_REQUEST_TIMEOUT))
+    # A class attribute: uvicorn receives the class, not an instance; ``run`` sets it before
+    # forking the workers, which inherit it.
+    request_timeout = DEFAULT_REQUEST_TIMEOUT
 
     def connection_made(self, transport) -> None:
         super().connection_made(CoalescingTransport(transport, self.loop))
