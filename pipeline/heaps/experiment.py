@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schema.heaps import GRIPPERS, HEAP_OBJECTS, HEAPS, PUSHES
+from schema.heaps import GRIPPERS, TABLES
 
 from ..build.atomic import write_atomic, write_text_atomic
 from ..build.fanout import SchedulerError, map_unordered
@@ -84,6 +84,13 @@ def fingerprint(config: HeapConfig) -> str:
 # ---------------------------------------------------------------- one heap
 
 
+def planner_geometry(state, library: ObjectLibrary) -> tuple[list[np.ndarray], np.ndarray]:
+    """What ``plan_push`` needs of the heap's objects: hull vertices (V_i, 3) and centres of mass
+    (n, 3), object frame, m."""
+    hulls = [library[k].model.hull.vertices for k in state.object_ids]
+    return hulls, np.array([library[k].model.center_mass for k in state.object_ids])
+
+
 def state_rows(heap: int, seed: int, stage: str, state) -> list[dict]:
     return [
         {"heap": heap, "seed": seed, "stage": stage, "slot": i, "object_id": oid, "transform": pose.reshape(-1).tolist()}
@@ -116,8 +123,7 @@ def run_heap(heap: int, config: HeapConfig, library: ObjectLibrary | None = None
         before = confidences(found.confidence)
         summary.update({f"{g}_confidence": before[g] for g in GRIPPERS})
         objects += state_rows(heap, seed, "hard", state)
-        hulls = [library[k].model.hull.vertices for k in state.object_ids]
-        coms = np.array([library[k].model.center_mass for k in state.object_ids])
+        hulls, coms = planner_geometry(state, library)
         planner = push_config(config)
         for policy in names:
             rng = heap_stream(seed, heap, "policy", policy)
@@ -219,7 +225,7 @@ def tables(records: Sequence[dict]):
     import pyarrow as pa
 
     out = {}
-    for name, schema in (("heaps", HEAPS), ("heap_objects", HEAP_OBJECTS), ("pushes", PUSHES)):
+    for name, schema in TABLES.items():
         rows = [row for record in records for row in record[name]]
         out[name] = pa.Table.from_pylist(rows, schema=schema)
     return out
