@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from .config import HeapConfig
+from .experiment import planner_geometry, push_config
 from .grasps import heap_confidence, jaw_candidates, suction_candidates
 from .seeds import heap_stream
 from .world import drop_heap, execute_push, heap_friction, library_for, remove_object
@@ -22,9 +23,10 @@ DEFAULT = HeapConfig()
 
 def bench(n: int = 20, config: HeapConfig = DEFAULT) -> dict[str, float]:
     """Median ms of each piece over ``n`` heaps (and the mean object cache build)."""
-    from clutter.policies import PushConfig, plan_push
+    from clutter.policies import plan_push
 
     library = library_for(config, None)
+    planner = push_config(config)
     times: dict[str, list[float]] = {"drop_settle": [], "object_cache": [], "confidence": [], "push_settle": [], "remove_settle": []}
     objects_seen = set()
     for heap in range(n):
@@ -41,10 +43,9 @@ def bench(n: int = 20, config: HeapConfig = DEFAULT) -> dict[str, float]:
         heap_confidence(state, config, library)
         times["confidence"].append(time.process_time() - t)
         friction = heap_friction(config.seed, heap, config)
-        hulls = [library[k].model.hull.vertices for k in state.object_ids]
-        coms = np.array([library[k].model.center_mass for k in state.object_ids])
+        hulls, coms = planner_geometry(state, library)
         push = plan_push("quasi_random", state, hulls, coms, rng=heap_stream(config.seed, heap, "policy", "quasi_random"),
-                         config=PushConfig(finger_radius=config.sim.finger_radius))
+                         config=planner)
         if push is not None:
             t = time.process_time()
             execute_push(state, push, config, friction, library)
