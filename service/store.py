@@ -67,7 +67,7 @@ class ObjectData:
 
     Poses (P of them), from served/poses.arrow:
       probability (P,), height (P,) m, com_height (P,) m, v_s (P,), v_t (P,): float64
-      transforms (P, 4, 4) float64, object frame -> pose frame; inverse_transforms likewise
+      transforms (P, 4, 4) float64, object frame -> pose frame
       downs (P, 3) float64, unit, object frame
       grasp_point, grasp_axis (P, 3) float64, pose frame, NaN when the pose has no grasp
       n_actions, n_ok_actions (P,) int32
@@ -95,7 +95,6 @@ class ObjectData:
     center_mass: np.ndarray
     probability: np.ndarray
     transforms: np.ndarray
-    inverse_transforms: np.ndarray
     downs: np.ndarray
     height: np.ndarray
     com_height: np.ndarray
@@ -308,7 +307,6 @@ def _objects(tables: dict[str, pa.Table]) -> dict[str, ObjectData]:
             center_mass=numbers["com"][i],
             probability=poses["probability"][p],
             transforms=poses["transform"][p].reshape(-1, 4, 4),
-            inverse_transforms=poses["inverse"][p].reshape(-1, 4, 4),
             downs=poses["down"][p],
             height=poses["height"][p],
             com_height=poses["com_height"][p],
