@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from clutter import footprints as fp
 from clutter.policies import POLICIES, PushConfig, plan_push
@@ -119,21 +120,8 @@ def test_quasi_random_follows_the_seed(client, store, tables):
 
 
 def quaternion(rotation: np.ndarray) -> dict:
-    """x, y, z, w of a rotation matrix (3, 3) (Shepperd: from its largest diagonal combination)."""
-    r = rotation
-    trace = np.trace(r)
-    k = int(np.argmax([trace, r[0, 0], r[1, 1], r[2, 2]]))
-    if k == 0:
-        w = math.sqrt(1 + trace) / 2
-        q = [(r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w), w]
-    else:
-        i, j, m = k - 1, k % 3, (k + 1) % 3
-        v = [0.0, 0.0, 0.0]
-        v[i] = math.sqrt(1 + r[i, i] - r[j, j] - r[m, m]) / 2
-        v[j] = (r[j, i] + r[i, j]) / (4 * v[i])
-        v[m] = (r[m, i] + r[i, m]) / (4 * v[i])
-        q = [*v, (r[m, j] - r[j, m]) / (4 * v[i])]
-    return dict(zip("xyzw", q))
+    """x, y, z, w of a rotation matrix (3, 3)."""
+    return dict(zip("xyzw", Rotation.from_matrix(rotation).as_quat().tolist()))
 
 
 def test_a_ros_pose_gives_the_same_push_as_its_matrix(client, store, tables):
