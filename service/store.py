@@ -238,7 +238,8 @@ class Store:
         """Map a finished dataset's served tables (``schema.served``); DatasetError if it is
         not a dataset this service reads.  A dataset without them (or whose served files do
         not match its manifest) is served from its Parquet tables, converted in memory:
-        seconds instead of milliseconds, and a copy per worker."""
+        seconds instead of milliseconds, and in this process's memory, not the file cache
+        (workers forked afterwards share it; a reload converts again in each)."""
         started = time.perf_counter()
         root = Path(root)
         try:
@@ -253,7 +254,7 @@ class Store:
             tables = served.read_served(root)
             _check_rows(tables, manifest)
         except served.ServedError as err:
-            log.warning("%s; reading the Parquet tables instead (slower start, memory not shared between workers)", err)
+            log.warning("%s; reading the Parquet tables instead (slower start, a copy in memory)", err)
             from schema.reader import Dataset, DatasetUnreadable  # pyarrow.parquet: only on this path
 
             try:
@@ -284,19 +285,20 @@ def _check_rows(tables: dict[str, pa.Table], manifest: Manifest) -> None:
 def _objects(tables: dict[str, pa.Table]) -> dict[str, ObjectData]:
     """ObjectData of every object: views into the served tables' columns (no copies but
     two small offset arrays per object)."""
-    col = {name: {f.name: served.column(table, f.name) for f in table.schema if name != "objects"}
+    col = {name: {f.name: served.column(table, f.name) for f in table.schema if not pa.types.is_string(f.type)}
            for name, table in tables.items()}
-    objects_table = tables["objects"]
-    rows = objects_table.select(["object_id", "source", "sha256"]).to_pylist()
-    numbers = {f.name: served.column(objects_table, f.name) for f in objects_table.schema if f.name not in rows[0]} if rows else {}
-    poses, matches, actions, transitions = col["poses"], col["matches"], col["actions"], col["transitions"]
+    numbers, poses, matches, actions, transitions, hulls = (col[name] for name in served.NAMES)
+
+    def rows(i: int, start: str, count: str) -> slice:
+        """Object ``i``'s rows of a table: ``objects.<start>`` onwards, ``objects.<count>`` of them."""
+        first = int(numbers[start][i])
+        return slice(first, first + int(numbers[count][i]))
+
     out = {}
-    for i, row in enumerate(rows):
-        p = slice(int(numbers["pose_start"][i]), int(numbers["pose_start"][i] + numbers["n_poses"][i]))
-        m = slice(int(numbers["match_start"][i]), int(numbers["match_start"][i] + numbers["n_matches"][i]))
-        a = slice(int(numbers["action_start"][i]), int(numbers["action_start"][i] + numbers["n_actions"][i]))
-        t = slice(int(numbers["transition_start"][i]), int(numbers["transition_start"][i] + numbers["n_transitions"][i]))
-        h = slice(int(numbers["hull_start"][i]), int(numbers["hull_start"][i] + numbers["n_hull_vertices"][i]))
+    for i, row in enumerate(tables["objects"].select(["object_id", "source", "sha256"]).to_pylist()):
+        p, m = rows(i, "pose_start", "n_poses"), rows(i, "match_start", "n_matches")
+        a, t = rows(i, "action_start", "n_actions"), rows(i, "transition_start", "n_transitions")
+        h = rows(i, "hull_start", "n_hull_vertices")
         n_actions, n_transitions = a.stop - a.start, t.stop - t.start
         out[row["object_id"]] = ObjectData(
             object_id=row["object_id"],
@@ -335,7 +337,7 @@ def _objects(tables: dict[str, pa.Table]) -> dict[str, ObjectData]:
             transition_offsets=np.append(actions["transition_start"][a], n_transitions),
             next_pose=transitions["next_pose"][t],
             transition_probability=transitions["probability"][t],
-            hull_vertices=col["hulls"]["vertex"][h],
+            hull_vertices=hulls["vertex"][h],
         )
     return out
 
