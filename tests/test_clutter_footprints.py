@@ -9,19 +9,9 @@ import numpy as np
 import pytest
 
 from clutter import footprints as fp
+from tests.test_clutter_policies import box, placed
 
 SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
-
-
-def turn(yaw: float) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
-    return pose
-
-
-def box_hull(a: float, b: float, c: float) -> np.ndarray:
-    """(8, 3) vertices of a box 2a x 2b x c standing on z = 0, object frame."""
-    return np.array([[x, y, z] for x in (-a, a) for y in (-b, b) for z in (0.0, c)])
 
 
 def random_polygon(rng, centre, radius=1.0, count=12) -> np.ndarray:
@@ -81,9 +71,8 @@ def test_a_heaps_footprints_are_its_objects_footprints():
 
 
 def test_a_footprint_follows_the_pose():
-    hull = box_hull(0.05, 0.02, 0.03)
-    pose = turn(math.pi / 2)
-    pose[:3, 3] = [0.1, -0.05, 0.0]
+    hull = box(0.05, 0.02, 0.03)
+    pose = placed(0.1, -0.05, math.pi / 2)
     poly = fp.footprint(hull, pose)
     assert np.allclose(poly.min(axis=0), [0.1 - 0.02, -0.05 - 0.05]) and np.allclose(poly.max(axis=0), [0.12, 0.0])
     # Lying on its side (90 deg about x): the footprint is 2a x c.
