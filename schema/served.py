@@ -184,9 +184,10 @@ def served_tables(objects: pa.Table, poses: pa.Table, actions: list[pa.Table], t
     Raises ServedError when they do not fit together (rows missing, out of order, unknown
     status, transitions to poses or actions that do not exist).
     """
-    ids = objects.column("object_id").to_pylist()
-    if len(actions) != len(ids) or len(transitions) != len(ids):
-        raise ServedError(f"{len(ids)} objects but {len(actions)} action and {len(transitions)} transition tables")
+    given = objects.select(["object_id", "source", "sha256", "mass", "scale", "com_x", "com_y", "com_z", "n_poses",
+                            "hull_vertices"]).to_pylist()
+    if len(actions) != len(given) or len(transitions) != len(given):
+        raise ServedError(f"{len(given)} objects but {len(actions)} action and {len(transitions)} transition tables")
     pose_rows: dict[str, list[int]] = {}
     for index, object_id in enumerate(poses.column("object_id").to_pylist()):
         pose_rows.setdefault(object_id, []).append(index)
@@ -194,17 +195,18 @@ def served_tables(objects: pa.Table, poses: pa.Table, actions: list[pa.Table], t
     parts: dict[str, list[dict]] = {name: [] for name in NAMES if name != "objects"}
     starts = {name: 0 for name in parts}
     object_rows = []
-    for i, object_id in enumerate(ids):
-        own = _object_poses(object_id, int(objects.column("n_poses")[i].as_py()), poses, pose_rows.get(object_id, []))
-        hull = np.asarray(objects.column("hull_vertices")[i].as_py(), dtype=np.float64).reshape(-1, 3)
+    for i, obj in enumerate(given):
+        object_id = obj["object_id"]
+        own = _object_poses(object_id, int(obj["n_poses"]), poses, pose_rows.get(object_id, []))
+        pose_columns = _pose_columns(own)
         part = {
-            "poses": _pose_columns(own),
+            "poses": pose_columns,
             "matches": _match_columns(object_id, own),
-            **_action_and_transition_columns(object_id, own, actions[i], transitions[i]),
-            "hulls": {"vertex": hull},
+            **_action_and_transition_columns(object_id, pose_columns["n_actions"], actions[i], transitions[i]),
+            "hulls": {"vertex": np.asarray(obj["hull_vertices"], dtype=np.float64).reshape(-1, 3)},
         }
-        row = {key: objects.column(key)[i].as_py() for key in ("object_id", "source", "sha256", "mass", "scale")}
-        row["com"] = [objects.column(f"com_{a}")[i].as_py() for a in "xyz"]
+        row = {key: obj[key] for key in ("object_id", "source", "sha256", "mass", "scale")}
+        row["com"] = [obj[f"com_{a}"] for a in "xyz"]
         for name, columns in part.items():
             parts[name].append(columns)
             rows = len(next(iter(columns.values())))
@@ -271,14 +273,13 @@ def _match_columns(object_id: str, own: pa.Table) -> dict[str, np.ndarray]:
     }
 
 
-def _action_and_transition_columns(object_id: str, own: pa.Table, actions: pa.Table, transitions: pa.Table) -> dict[str, dict]:
+def _action_and_transition_columns(object_id: str, n_actions: np.ndarray, actions: pa.Table, transitions: pa.Table) -> dict[str, dict]:
     """The object's actions in (pose, action) order and its transitions as CSR over them;
-    ServedError when they do not fit its poses."""
+    ServedError when they do not fit its poses (``n_actions`` per pose)."""
     import pyarrow.compute as pc  # here: a server that maps served files never needs it
 
-    n_poses = own.num_rows
-    n_actions = own.column("n_actions").to_numpy().astype(np.int64)
-    action_start = np.concatenate([[0], np.cumsum(n_actions)])
+    n_poses = len(n_actions)
+    action_start = np.concatenate([[0], np.cumsum(n_actions, dtype=np.int64)])
 
     actions = actions.sort_by([("pose", "ascending"), ("action", "ascending")])
     pose_of = actions.column("pose").to_numpy()
