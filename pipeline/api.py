@@ -24,7 +24,7 @@ import numpy as np
 
 from clutter.policies import PushConfig, outside_bin, plan_push
 from clutter.state import Bin, HeapState, Push
-from schema import frames, layout
+from schema import frames
 from schema.api import BIN_TOLERANCE
 from schema.reader import Dataset
 
@@ -72,7 +72,7 @@ def plan_heap(object_ids: Sequence[str], poses, objects: Mapping[str, ObjectMode
     object_ids : n dataset or mesh ids (an id may repeat)
     poses : (n, 4, 4) object -> world (the bin's frame: origin at the centre of its floor, z up)
     objects : {object_id: ObjectModel} (``load_mesh``: hull and centre of mass), or a dataset
-        directory (hull vertices from arrays/<id>.h5, centre of mass from objects.parquet)
+        directory (hull vertices and centre of mass from its objects table, as the service serves them)
     policy : one of ``clutter.policies.POLICIES``
     bin : default ``Bin()``, the tote the service assumes too; seed : quasi_random's draws (the
         same seed gives the service's push); config : the planner's numbers (``PushConfig()``)
@@ -102,19 +102,16 @@ def plan_heap(object_ids: Sequence[str], poses, objects: Mapping[str, ObjectMode
 
 
 def _dataset_geometry(root: Path, ids: tuple[str, ...]) -> tuple[list[np.ndarray], np.ndarray]:
-    """Hull vertices (V_i, 3) and centres of mass (n, 3), object frame, m, of ``ids`` from a dataset."""
-    import h5py
-
-    table = Dataset.open(root).table("objects", ["object_id", "com_x", "com_y", "com_z"]).to_pylist()
-    com = {r["object_id"]: [r["com_x"], r["com_y"], r["com_z"]] for r in table}
-    missing = sorted(set(ids) - set(com))
+    """Hull vertices (V_i, 3) and centres of mass (n, 3), object frame, m, of ``ids`` from a
+    dataset's objects table (the rows the service's served hulls are made of)."""
+    table = Dataset.open(root).table("objects", ["object_id", "com_x", "com_y", "com_z", "hull_vertices"]).to_pylist()
+    rows = {r["object_id"]: r for r in table}
+    missing = sorted(set(ids) - set(rows))
     if missing:
         raise ValueError(f"{root}: no object {', '.join(map(repr, missing))} in the dataset")
-    hulls = {}
-    for object_id in set(ids):
-        with h5py.File(root / layout.arrays_file(object_id), "r") as f:
-            hulls[object_id] = np.asarray(f["hull/vertices"], dtype=np.float64)
-    return [hulls[i] for i in ids], np.array([com[i] for i in ids], dtype=np.float64)
+    hulls = {i: np.asarray(rows[i]["hull_vertices"], dtype=np.float64).reshape(-1, 3) for i in set(ids)}
+    centres = [[rows[i]["com_x"], rows[i]["com_y"], rows[i]["com_z"]] for i in ids]
+    return [hulls[i] for i in ids], np.array(centres, dtype=np.float64)
 
 
 __all__ = list(_PUBLIC)
