@@ -64,9 +64,9 @@ def main(argv: list[str] | None = None) -> int:
         file=sys.stderr,
     )
     run(
-        settings, args.host, args.port, workers=args.workers, log_level=args.log_level, access_log=args.access_log,
+        app, args.host, args.port, workers=args.workers, log_level=args.log_level, access_log=args.access_log,
         limit_concurrency=args.limit_concurrency, timeout_keep_alive=args.timeout_keep_alive,
-        request_timeout=args.request_timeout, app=app,
+        request_timeout=args.request_timeout,
     )
     return 0
 

@@ -23,8 +23,6 @@ import os
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from .settings import Settings
-
 DEFAULT_LIMIT_CONCURRENCY = 256
 DEFAULT_KEEP_ALIVE = 5
 DEFAULT_REQUEST_TIMEOUT = 10.0
@@ -114,7 +112,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
 
 
 def run(
-    settings: Settings,
+    app,
     host: str,
     port: int,
     workers: int = 1,
@@ -123,10 +121,9 @@ def run(
     limit_concurrency: int = DEFAULT_LIMIT_CONCURRENCY,
     timeout_keep_alive: int = DEFAULT_KEEP_ALIVE,
     request_timeout: float = DEFAULT_REQUEST_TIMEOUT,
-    app=None,
 ) -> None:
-    """Serve ``app`` (default: ``create_app(settings=settings)``) until interrupted, in
-    ``workers`` processes forked from this one (``serve_forked``)."""
+    """Serve ``app`` (``service.app.create_app``, its dataset already mapped) until interrupted,
+    in ``workers`` processes forked from this one (``serve_forked``)."""
     import uvicorn
 
     from .lane import tune_interpreter
@@ -136,10 +133,6 @@ def run(
     has_httptools = importlib.util.find_spec("httptools") is not None
     if not has_httptools:
         log.warning("httptools is not installed: h11 parser, no request timeout for incomplete requests")
-    if app is None:
-        from .app import create_app
-
-        app = create_app(settings=settings)
     config = uvicorn.Config(
         app, host=host, port=port, log_level=log_level, access_log=access_log, limit_concurrency=limit_concurrency,
         timeout_keep_alive=timeout_keep_alive, loop="uvloop" if importlib.util.find_spec("uvloop") else "asyncio",
