@@ -18,6 +18,9 @@ from clutter.state import Bin
 
 from ..model.config import SuctionConfig
 
+GRAVITY = 9.81
+"""m/s^2: the simulation's gravity and the one suction grasps must hold against (one number)."""
+
 
 @dataclass(frozen=True)
 class SimConfig:

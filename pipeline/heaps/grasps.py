@@ -35,7 +35,7 @@ from schema.frames import tangent_frames, transform_points, unit, z_to_axes
 
 from ..model.config import SuctionConfig
 from ..model.suction import perturb, sample_candidates, seal_contacts, table_collisions, wrench_resisted
-from .config import HeapConfig, JawConfig
+from .config import GRAVITY, HeapConfig, JawConfig
 from .objects import HeapObject, ObjectLibrary
 from .seeds import heap_stream
 from .world import bin_boxes, library_for
@@ -44,7 +44,6 @@ GRIPPERS = ("suction", "parallel_jaw")
 ALL_FACES = np.pi
 """An approach-angle limit that keeps every face: candidates are sampled over the whole surface
 in the object frame, and the pose decides which face up."""
-GRAVITY = 9.81
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from clutter.state import Bin, HeapState, Push
 
 from ..studies.pushsim import _client, link_pose, object_transform
-from .config import HeapConfig
+from .config import GRAVITY, HeapConfig
 from .objects import HeapObject, ObjectLibrary, default_library
 from .seeds import heap_stream
 
@@ -86,7 +86,7 @@ def build_world(
     pb, client = _client()
     sim = config.sim
     pb.resetSimulation(physicsClientId=client)
-    pb.setGravity(0, 0, -9.81, physicsClientId=client)
+    pb.setGravity(0, 0, -GRAVITY, physicsClientId=client)
     pb.setPhysicsEngineParameter(
         fixedTimeStep=sim.time_step, numSolverIterations=sim.solver_iterations, physicsClientId=client
     )
