@@ -95,15 +95,15 @@ def footprints(hulls: Sequence[np.ndarray], poses: np.ndarray) -> list[np.ndarra
     As ``footprint`` per object, with the interior points dropped for all objects in one
     batch (numpy's per-call cost is most of the time on a few tens of points)."""
     sizes = [len(h) for h in hulls]
-    padded = np.stack([np.concatenate([h, np.repeat(h[:1], max(sizes) - len(h), axis=0)]) for h in hulls])
+    padded = pad_polygons(hulls)
     world = (np.einsum("nij,nvj->nvi", poses[:, :2, :3], padded) + poses[:, None, :2, 3])  # (n, V, 2)
     inside = strictly_inside_octagon(world)
     return [monotone_chain(world[i, :size][~inside[i, :size]]) for i, size in enumerate(sizes)]
 
 
 def pad_polygons(polygons: Sequence[np.ndarray]) -> np.ndarray:
-    """(n, K, 2) float: the polygons (k_i, 2) stacked, K = max k_i, each padded by repeating its
-    last vertex."""
+    """(n, K, d) float: the polygons (k_i, d) stacked, K = max k_i, each padded by repeating its
+    last vertex (a heap's footprints, d = 2, or its hull vertices, d = 3)."""
     size = max(len(p) for p in polygons)
     return np.stack([np.concatenate([p, np.repeat(p[-1:], size - len(p), axis=0)]) for p in polygons])
 
