@@ -17,7 +17,6 @@ import trimesh
 from ..build.corpus import Corpus, load_corpus
 from ..model.config import MeshConfig
 from ..model.mesh import ObjectModel, load_mesh
-from ..studies.pushsim import BodyModel, body_model
 
 
 @dataclass
@@ -25,13 +24,16 @@ class HeapObject:
     """One object, ready for heaps.
 
     model : the mesh (object frame, m), hull, mass (kg), centre of mass (object frame, m)
-    body : what pybullet needs (``pipeline.studies.pushsim.BodyModel``): hull vertices in the link
-      frame (principal axes at the centre of mass), principal moments, rotation object -> link
+    hull_link : (V, 3) float, m, hull vertices in the link frame (principal axes at the centre of mass)
+    inertia : (3,) float, kg m^2, principal moments of the uniform-density solid scaled to the mass
+    link_from_object : (3, 3) float, rotation object frame -> link frame
     radius : float, m, largest distance of a hull vertex from the centre of mass
     """
 
     model: ObjectModel
-    body: BodyModel
+    hull_link: np.ndarray
+    inertia: np.ndarray
+    link_from_object: np.ndarray
     radius: float
     _fcl: fcl.CollisionGeometry | None = field(default=None, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
@@ -55,11 +57,19 @@ class HeapObject:
 
 
 def heap_object(model: ObjectModel) -> HeapObject:
-    """Mass properties and the hull in the principal frame, as the push player computes them for
-    one pushed object (``pushsim.body_model``: uniform density, scaled to the mass, moved to the
-    model's centre of mass)."""
-    body = body_model(model)
-    return HeapObject(model, body, float(np.linalg.norm(body.vertices, axis=1).max()))
+    """Mass properties and the hull in the principal frame (as ``pipeline.studies.pushsim`` does
+    for one pushed object: uniform density, scaled to the mass, moved to the model's centre of mass)."""
+    solid = model.mesh if model.mesh.is_volume and model.mesh.volume > 0 else model.hull
+    scale = model.mass / solid.mass
+    offset = model.center_mass - solid.center_mass
+    inertia = solid.moment_inertia * scale + model.mass * (np.dot(offset, offset) * np.eye(3) - np.outer(offset, offset))
+    moments, axes = np.linalg.eigh(inertia)
+    if np.linalg.det(axes) < 0:  # a proper rotation: the link frame is right-handed
+        axes[:, 2] *= -1
+    link_from_object = axes.T
+    hull_link = (model.hull.vertices - model.center_mass) @ link_from_object.T
+    radius = float(np.linalg.norm(hull_link, axis=1).max())
+    return HeapObject(model, hull_link, np.maximum(moments, 1e-12), link_from_object, radius)
 
 
 class ObjectLibrary:

@@ -20,6 +20,7 @@ Simulation choices, and why (docs/HEAPS.md has more):
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +28,6 @@ from scipy.spatial.transform import Rotation
 
 from clutter.state import Bin, HeapState, Push
 
-from ..studies.pushsim import _client, link_pose, object_transform
 from .config import GRAVITY, HeapConfig
 from .objects import HeapObject, ObjectLibrary, default_library
 from .seeds import heap_stream
@@ -49,7 +49,42 @@ def heap_friction(seed: int, heap: int, config: HeapConfig) -> float:
     return float(heap_stream(seed, heap, "friction").uniform(low, high))
 
 
+# ---------------------------------------------------------------- frames
+
+
+def link_pose(obj: HeapObject, transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """pybullet base (link frame at the centre of mass) for an object transform.
+
+    transform : (4, 4) float, object -> world
+    returns : position (3,) m; rotation (3, 3), link -> world
+    """
+    position = transform[:3, :3] @ obj.model.center_mass + transform[:3, 3]
+    return position, transform[:3, :3] @ obj.link_from_object.T
+
+
+def object_transform(obj: HeapObject, position: np.ndarray, world_from_link: np.ndarray) -> np.ndarray:
+    """(4, 4) object -> world from pybullet's base position (m) and rotation (3, 3)."""
+    rotation = world_from_link @ obj.link_from_object
+    transform = np.eye(4)
+    transform[:3, :3] = rotation
+    transform[:3, 3] = np.asarray(position) - rotation @ obj.model.center_mass
+    return transform
+
+
 # ---------------------------------------------------------------- the pybullet world
+
+
+_CLIENTS: dict[int, int] = {}
+
+
+def _client():
+    """pybullet and this process's DIRECT client (a forked worker gets its own)."""
+    import pybullet as pb
+
+    pid = os.getpid()
+    if pid not in _CLIENTS or not pb.isConnected(_CLIENTS[pid]):
+        _CLIENTS[pid] = pb.connect(pb.DIRECT)
+    return pb, _CLIENTS[pid]
 
 
 @dataclass
@@ -100,14 +135,14 @@ def build_world(
             floor = body
     bodies = []
     for obj, transform in zip(objects, transforms):
-        position, rotation = link_pose(obj.body, transform)
-        shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=obj.body.vertices.tolist(), physicsClientId=client)
+        position, rotation = link_pose(obj, transform)
+        shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=obj.hull_link.tolist(), physicsClientId=client)
         body = pb.createMultiBody(
             obj.model.mass, shape, basePosition=position.tolist(),
             baseOrientation=Rotation.from_matrix(rotation).as_quat().tolist(), physicsClientId=client,
         )
         pb.changeDynamics(
-            body, -1, lateralFriction=friction, localInertiaDiagonal=obj.body.inertia.tolist(),
+            body, -1, lateralFriction=friction, localInertiaDiagonal=obj.inertia.tolist(),
             collisionMargin=sim.collision_margin, physicsClientId=client,
         )
         bodies.append(body)
@@ -148,7 +183,7 @@ def observe(world: World, ids: tuple[str, ...], bin: Bin) -> HeapState:
             continue
         rotation = np.array(pb.getMatrixFromQuaternion(quaternion)).reshape(3, 3)
         keep.append(k)
-        poses.append(object_transform(obj.body, np.array(position), rotation))
+        poses.append(object_transform(obj, np.array(position), rotation))
     return HeapState(bin, tuple(ids[k] for k in keep), np.array(poses).reshape(len(keep), 4, 4))
 
 
