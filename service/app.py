@@ -89,6 +89,8 @@ def create_app(dataset_dir: str | Path | None = None, settings: Settings | None 
     async def lifespan(app: FastAPI):
         # Per worker: forked workers (service.server.serve_forked) report their own pid.
         metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
+        if live.changed():  # forked to replace a dead worker after the others swapped in a rebuild
+            await reload_dataset(app)
         watcher = asyncio.create_task(_watch(app)) if settings.watch_seconds > 0 else None
         loop = asyncio.get_running_loop()
         hup = False

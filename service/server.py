@@ -157,7 +157,8 @@ def serve_forked(config, workers: int) -> None:
     at once (uvicorn's own ``--workers`` spawns fresh interpreters that import and load again:
     seconds each) and shares those pages.  The kernel spreads connections over the workers
     accepting on the one socket.  SIGINT and SIGTERM stop the workers, SIGHUP reaches each
-    (each reloads its dataset); a worker that dies otherwise is replaced.
+    (each reloads its dataset); a worker that dies otherwise is replaced (starting from this
+    process's load, it swaps in a rebuild the others have at once: ``create_app``'s lifespan).
     """
     import signal
     import time

@@ -314,3 +314,36 @@ def test_a_stop_during_a_workers_restart_pause_starts_no_new_worker(dataset):
         process.wait(timeout=DEADLINE)  # it stops (it used to fork a replacement after the pause and wait for it)
     finally:
         stop(process)
+
+
+@pytest.mark.slow
+def test_a_replacement_worker_serves_the_build_the_others_reloaded(dataset, tmp_path):
+    # The workers reload a rebuilt dataset on SIGHUP; the server process itself keeps the build it
+    # loaded at start.  A worker forked later to replace a dead one must not serve that old build.
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    process, url = start([sys.executable, "-m", "service", "--dataset", str(copy), "--workers", "2", "--watch-seconds", "0"])
+
+    def serving() -> dict[str, str]:
+        """pid -> created of the worker that answers a new connection."""
+        with httpx.Client() as client:
+            lines = client.get(f"{url}/metrics").text.splitlines()
+        info = next(line for line in lines if line.startswith("toppledb_dataset_info{"))
+        return {info.split('pid="')[1].split('"')[0]: info.split('created="')[1].split('"')[0]}
+
+    try:
+        workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+        rebuilt(copy, "2033-01-01T00:00:00+00:00")
+        process.send_signal(signal.SIGHUP)
+        seen: dict[str, str] = {}
+        wait_for(lambda: seen.update(serving()) or (len(seen) == 2 and all(c.startswith("2033") for c in seen.values())),
+                 "both workers to reload")
+        workers[0].kill()
+        old = {w.pid for w in workers}
+        replacement = wait_for(lambda: [w for w in psutil.Process(process.pid).children() if w.pid not in old],
+                               "a replacement worker")[0]
+        seen.clear()
+        created = wait_for(lambda: seen.update(serving()) or seen.get(str(replacement.pid)), "an answer from the replacement")
+        assert created.startswith("2033"), f"the replacement serves the build of {created}"
+    finally:
+        stop(process)
