@@ -42,7 +42,7 @@ Vectorisation identities (numbered as in docs/MODEL.md section 10):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -212,20 +212,23 @@ def trial_outcomes(
     returns : edge (n,) int (``OUTCOME_NO_EDGE`` when none), required_force (n,) float, N (inf when none)
 
     Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
-    per-edge rows (E,) into (n, E).  Invalid trials' NaN contacts are zeroed so the
-    arithmetic stays finite; ``valid`` removes them at the end.  The rows run in tiles of
-    about ``TILE_ELEMENTS`` (trial, edge) entries (every operation is row-wise, so the
-    tiling never changes a result).
+    per-edge rows (E,) into (n, E).  Invalid trials' NaN contacts and normals are zeroed
+    here, once per block, so the arithmetic stays finite; ``valid`` removes them at the end.
+    The rows run in ceil(n E / ``TILE_ELEMENTS``) nearly equal tiles (every operation is
+    row-wise, so the tiling never changes a result; a tile has at least min(n, 2) rows, so
+    a matrix product never degenerates to a vector product the whole block would not use).
     """
     n = len(trials.mu_table)
-    rows = max(1, TILE_ELEMENTS // max(1, len(edges.com_distance)))  # trials per tile
+    finite = replace(trials, contact=np.nan_to_num(trials.contact), normal=np.nan_to_num(trials.normal))  # (n, 3) each
+    n_tiles = max(1, -(-n * len(edges.com_distance) // TILE_ELEMENTS))  # ceil(n E / TILE_ELEMENTS)
+    bounds = [n * i // n_tiles for i in range(n_tiles + 1)]  # nearly equal row ranges, as np.array_split
     tiles = [
         _tile_outcomes(
-            Trials(*(getattr(trials, f)[start : start + rows] for f in Trials.__dataclass_fields__)),
+            Trials(*(getattr(finite, f)[start:stop] for f in Trials.__dataclass_fields__)),
             edges, mass, gravity, predicts_rotations, corrections, max_force, friction_scale,
         )
-        for start in range(0, max(n, 1), rows)
-    ]  # (edge (r,), required (r,)) per tile of r <= rows trials
+        for start, stop in zip(bounds[:-1], bounds[1:])
+    ]  # (edge (r,), required (r,)) per tile of r trials
     return np.concatenate([t[0] for t in tiles]), np.concatenate([t[1] for t in tiles])
 
 
@@ -239,7 +242,8 @@ def _tile_outcomes(
     max_force: float,
     friction_scale: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``trial_outcomes`` on one tile of r trials: edge (r,) int, required_force (r,) float, N."""
+    """``trial_outcomes`` on one tile of r trials (contact and normal finite): edge (r,) int,
+    required_force (r,) float, N."""
     if "finger_friction" in corrections:
         force, passes = sliding_contact(trials, edges, mass, gravity, friction_scale)  # (n, E) each
     else:
@@ -259,10 +263,12 @@ def _tile_outcomes(
 def _thesis_conditions(
     trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, predicts_rotations: bool
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Thesis 4.2.1-4.2.3 (MODEL.md section 7): F*_e (n, E) float, N, and pass_e (n, E) bool."""
+    """Thesis 4.2.1-4.2.3 (MODEL.md section 7): F*_e (n, E) float, N, and pass_e (n, E) bool.
+
+    trials : contact and normal finite (``trial_outcomes`` zeroes the misses' NaN)
+    """
     n = trials.contact.shape[0]
-    u, normal, contact = trials.push, trials.normal, np.nan_to_num(trials.contact)  # (n, 3) each
-    normal = np.nan_to_num(normal)
+    u, normal, contact = trials.push, trials.normal, trials.contact  # (n, 3) each
     mu_f = trials.mu_finger[:, None]  # (n, 1)
 
     # 1. Contact slip (7.1)-(7.2), at the start and with the normal rotated to each edge's apex.
@@ -275,7 +281,7 @@ def _thesis_conditions(
     # 2. Minimum push force (7.3)-(7.5).  Torque identity (10.2):
     #    e . ((p - y0) x u) = e . (p x u) - u . (e x y0), so p x u is crossed once per trial
     #    and e x y0 once per edge, instead of (p - y0) x u once per (trial, edge).
-    p_cross_u = np.cross(contact, u)  # (n, 3), batched cross product
+    p_cross_u = _cross_rows(contact, u)  # (n, 3), batched cross product
     torque = p_cross_u @ edges.direction.T - u @ np.cross(edges.direction, edges.start).T  # (n, E), tau_e, m
     rotates = torque > MIN_PUSH_TORQUE  # (n, E), (7.4)
     gravity_torque = mass * gravity * edges.com_distance  # (E,), m g d_e, N m
@@ -285,16 +291,20 @@ def _thesis_conditions(
 
     # 3. Workspace slip on the friction limit surface (7.6)-(7.9), divided through by F*^2 (10.4):
     #    tangential: F*|u_xy| <= mu_T F_n;  F_n = m g + F* max(0, -u_z)
+    # In-place steps below are the same operations in the same order, minus the temporaries.
     with np.errstate(divide="ignore", invalid="ignore"):
-        normal_per_newton = mass * gravity / force + np.maximum(0.0, -u[:, 2:3])  # (n, E), F_n / F*
-    limit = (trials.mu_table[:, None] * normal_per_newton) ** 2  # (n, 1) * (n, E) -> (n, E)
-    load = (u[:, 0:1] ** 2 + u[:, 1:2] ** 2) * np.ones_like(force)  # (n, 1) -> (n, E), |u_xy|^2
+        limit = np.divide(mass * gravity, force)  # (n, E), m g / F*
+    limit += np.maximum(0.0, -u[:, 2:3])  # (n, E), F_n / F*
+    limit *= trials.mu_table[:, None]  # (n, 1) broadcast: mu_T F_n / F*
+    np.square(limit, out=limit)  # (n, E)
+    load = u[:, 0:1] ** 2 + u[:, 1:2] ** 2  # (n, 1), |u_xy|^2, compared broadcast against (n, E)
     if predicts_rotations:
         # tau_z per newton about the COM's projection on the edge (10.3): (p x u)_z - (O x u)_z,
         # with (O x u)_z = u . (-O_y, O_x, 0).
         origin_cross = np.column_stack([-edges.origin[:, 1], edges.origin[:, 0], np.zeros(len(edges.origin))])  # (E, 3)
         tau = p_cross_u[:, 2:3] - u @ origin_cross.T  # (n, 1) - (n, 3) @ (3, E) -> (n, E), m
-        load = load + (tau / edges.half_span) ** 2  # (n, E) / (E,)
+        tau /= edges.half_span  # (n, E) / (E,)
+        load = load + np.square(tau, out=tau)  # (n, 1) + (n, E) -> (n, E)
     # mu_T <= 0 (a draw of (8.1) below zero) holds nothing; exact, not a tolerance.
     holds = (load <= limit) & (trials.mu_table[:, None] > 0.0)  # (n, E)
 
@@ -322,39 +332,71 @@ def sliding_contact(
 
     returns : force (n, E) float, N (finger force magnitude); passes (n, E) bool
     """
-    u, normal, contact = trials.push, np.nan_to_num(trials.normal), np.nan_to_num(trials.contact)  # (n, 3) each
+    u, normal, contact = trials.push, trials.normal, trials.contact  # (n, 3) each, finite (``trial_outcomes``)
     e, y0 = edges.direction, edges.start  # (E, 3) each, horizontal and on the table (e_z = y0_z = 0, section 5)
     col = lambda a, k: a[:, k : k + 1]  # noqa: E731, (n, 1) column k of an (n, 3) array
+    # In-place steps (+=, out=) are the same operations in the same order as the formulas in
+    # the comments, without the temporaries.
     # v_e = e x (p - y0) per component, with e_z = y0_z = 0: (n, 1) x (E,) outer products, no (n, E, 3) array.
     vx = col(contact, 2) * e[:, 1]  # (n, E), e_y p_z
     vy = -col(contact, 2) * e[:, 0]  # (n, E), -e_x p_z
-    vz = (col(contact, 1) * e[:, 0] - col(contact, 0) * e[:, 1]) - (e[:, 0] * y0[:, 1] - e[:, 1] * y0[:, 0])  # (n, E)
-    face_speed = vx * col(normal, 0) + vy * col(normal, 1) + vz * col(normal, 2)  # (n, E), v_e . n
+    vz = col(contact, 1) * e[:, 0]
+    vz -= col(contact, 0) * e[:, 1]
+    vz -= e[:, 0] * y0[:, 1] - e[:, 1] * y0[:, 0]  # (n, E), (p_y e_x - p_x e_y) - (e x y0)_z
+    face_speed = vx * col(normal, 0)
+    face_speed += vy * col(normal, 1)
+    face_speed += vz * col(normal, 2)  # (n, E), v_e . n
     approach = np.einsum("nk,nk->n", u, normal)[:, None]  # (n, 1), u . n < 0: the finger moves into the face
+    into = approach < 0.0  # (n, 1)
     # The face recedes from the advancing finger (MIN_PUSH_TORQUE: v_e . n is also the
     # frictionless torque per newton, so the same cut as (7.4)).
-    follows = (approach < 0.0) & (face_speed < -MIN_PUSH_TORQUE)  # (n, E)
-    advance = np.where(follows, face_speed / np.where(approach < 0.0, approach, -1.0), 0.0)  # (n, E), s_e >= 0
-    rx, ry, rz = vx - advance * col(u, 0), vy - advance * col(u, 1), vz - advance * col(u, 2)  # (n, E) each, v_rel
-    slide = np.sqrt(rx * rx + ry * ry + rz * rz)  # (n, E), |v_rel|, m per rad
+    follows = into & (face_speed < -MIN_PUSH_TORQUE)  # (n, E)
+    advance = np.where(follows, face_speed / np.where(into, approach, -1.0), 0.0)  # (n, E), s_e >= 0
+    # v_rel = v_e - s_e u, one component at a time into fresh (n, E) arrays.
+    rx = vx - advance * col(u, 0)
+    ry = np.multiply(advance, col(u, 1), out=face_speed)  # face_speed is not needed any more
+    np.subtract(vy, ry, out=ry)
+    rz = np.multiply(advance, col(u, 2), out=advance)
+    np.subtract(vz, rz, out=rz)  # (n, E) each, v_rel
+    slide = rx * rx
+    slide += ry * ry
+    slide += rz * rz
+    np.sqrt(slide, out=slide)  # (n, E), |v_rel|, m per rad
     # No sliding (v_e along u): the contact sticks and friction does no work; take t = 0.
     sliding = slide > MIN_PUSH_TORQUE
     mu = (friction_scale * trials.mu_finger)[:, None]  # (n, 1), k mu_f
-    friction = -np.where(sliding, mu / np.where(sliding, slide, 1.0), 0.0)  # (n, E): f_hat = -n + friction v_rel
-    fx, fy, fz = friction * rx - col(normal, 0), friction * ry - col(normal, 1), friction * rz - col(normal, 2)  # f_hat
-    torque = fx * vx + fy * vy + fz * vz  # (n, E), tau_e = f_hat . v_e, m
+    friction = np.where(sliding, slide, 1.0)
+    np.divide(mu, friction, out=friction)
+    friction = np.where(sliding, friction, 0.0)
+    np.negative(friction, out=friction)  # (n, E): f_hat = -n + friction v_rel
+    fx = np.multiply(friction, rx, out=rx)
+    fx -= col(normal, 0)
+    fy = np.multiply(friction, ry, out=ry)
+    fy -= col(normal, 1)
+    fz = np.multiply(friction, rz, out=rz)
+    fz -= col(normal, 2)  # (n, E) each, f_hat = friction v_rel - n
+    torque = fx * vx
+    torque += fy * vy
+    torque += fz * vz  # (n, E), tau_e = f_hat . v_e, m
     rotates = follows & (torque > MIN_PUSH_TORQUE) & (edges.com_distance > 0.0)  # (n, E)
     weight = mass * gravity
     normal_force = np.where(rotates, weight * edges.com_distance / np.where(rotates, torque, 1.0), 0.0)  # (n, E), F_n*
-    fx, fy, fz = normal_force * fx, normal_force * fy, normal_force * fz  # (n, E) each, f, N
+    fx *= normal_force
+    fy *= normal_force
+    fz *= normal_force  # (n, E) each, f, N
     table = weight - fz  # (n, E), the edge's normal force, N
     # ((p - O_e) x f)_z with (p - O_e)_xy as (n, 1) - (E,) columns.
-    tau_z = (col(contact, 0) - edges.origin[:, 0]) * fy - (col(contact, 1) - edges.origin[:, 1]) * fx  # (n, E)
-    load = fx * fx + fy * fy + (tau_z / edges.half_span) ** 2  # (n, E), N^2
+    tau_z = (col(contact, 0) - edges.origin[:, 0]) * fy
+    tau_z -= (col(contact, 1) - edges.origin[:, 1]) * fx  # (n, E)
+    tau_z /= edges.half_span
+    force_xy = fx * fx
+    force_xy += fy * fy  # (n, E), |f_xy|^2, shared by load and |f|
+    load = force_xy + np.square(tau_z, out=tau_z)  # (n, E), |f_xy|^2 + (tau_z / h_e)^2, N^2
     mu_t = trials.mu_table[:, None]  # (n, 1)
     holds = (table > 0.0) & (mu_t > 0.0) & (load <= (mu_t * table) ** 2)  # (n, E), (7.9) with the whole f
     passes = rotates & holds & trials.valid[:, None]  # (n, E)
-    force = np.where(rotates, np.sqrt(fx * fx + fy * fy + fz * fz), np.inf)  # (n, E), |f|, N
+    force_xy += fz * fz
+    force = np.where(rotates, np.sqrt(force_xy, out=force_xy), np.inf)  # (n, E), |f|, N
     return force, passes
 
 
@@ -366,8 +408,24 @@ def _inside_cone(cos: np.ndarray, mu: np.ndarray) -> np.ndarray:
     only absorbs rounding of |cos| slightly above 1.  cos > 0 is exact: a push
     perpendicular to the normal is outside every cone (tan = inf).
     """
-    sin = np.sqrt(np.maximum(0.0, 1.0 - cos * cos))
+    sin = cos * cos
+    np.subtract(1.0, sin, out=sin)
+    np.maximum(0.0, sin, out=sin)
+    np.sqrt(sin, out=sin)  # sqrt(max(0, 1 - cos^2)), in place
     return (cos > 0.0) & (sin <= mu * cos)
+
+
+def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a_i x b_i for (n, 3) rows: ``np.cross``'s products and differences, without its
+    per-call reshaping (it is called once per tile).  returns : (n, 3) float"""
+    out = np.empty(a.shape)
+    np.multiply(a[:, 1], b[:, 2], out=out[:, 0])
+    out[:, 0] -= a[:, 2] * b[:, 1]
+    np.multiply(a[:, 2], b[:, 0], out=out[:, 1])
+    out[:, 1] -= a[:, 0] * b[:, 2]
+    np.multiply(a[:, 0], b[:, 1], out=out[:, 2])
+    out[:, 2] -= a[:, 1] * b[:, 0]
+    return out
 
 
 def landed_poses(pose: StablePose, corrections: frozenset[str]) -> np.ndarray:
