@@ -1,0 +1,107 @@
+"""The robust (neighbourhood-smoothed) push choice on hand-made candidate tables."""
+
+import numpy as np
+import pytest
+
+from pipeline.studies.robust_policy import (
+    PoseCandidates,
+    Smoothing,
+    neighbour_mean,
+    pose_scores,
+    robust_actions,
+    smoothed_choice,
+)
+from schema.vocabulary import NO_OP
+
+X = np.array([1.0, 0.0, 0.0])
+Y = np.array([0.0, 1.0, 0.0])
+
+
+def line_of_pushes(n: int, spacing: float, direction=X) -> tuple[np.ndarray, np.ndarray]:
+    """n contacts on a line along y, ``spacing`` m apart, all pushing along ``direction``."""
+    points = np.stack([np.zeros(n), spacing * np.arange(n), np.zeros(n)], axis=1)
+    return points, np.tile(direction, (n, 1))
+
+
+def test_neighbour_mean_averages_only_near_finite_candidates():
+    points, directions = line_of_pushes(4, 0.004)
+    values = np.array([0.2, 0.4, np.nan, 1.0])
+    mean, count = neighbour_mean(points, directions, values, Smoothing(radius=0.005, max_angle=0.1))
+    # 0 sees 1; 1 sees 0 (2 is NaN); 2 is NaN; 3 sees only itself (2 is NaN, 1 is 8 mm away).
+    np.testing.assert_allclose(mean[[0, 1, 3]], [0.3, 0.3, 1.0])
+    assert np.isnan(mean[2])
+    np.testing.assert_array_equal(count, [2, 2, 0, 1])
+
+
+def test_direction_limit_separates_pushes_at_the_same_contact():
+    points = np.zeros((2, 3))
+    directions = np.stack([X, Y])
+    mean, count = neighbour_mean(points, directions, np.array([0.0, 1.0]), Smoothing(radius=0.01, max_angle=0.5))
+    np.testing.assert_array_equal(count, [1, 1])
+    np.testing.assert_allclose(mean, [0.0, 1.0])
+    mean, count = neighbour_mean(points, directions, np.array([0.0, 1.0]), Smoothing(radius=0.01, max_angle=np.pi / 2))
+    np.testing.assert_allclose(mean, [0.5, 0.5])
+
+
+def test_zero_radius_is_the_raw_value():
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(50, 3))
+    directions = rng.normal(size=(50, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    values = rng.random(50)
+    mean, count = neighbour_mean(points, directions, values, Smoothing(radius=0.0, max_angle=0.0, min_neighbours=1))
+    np.testing.assert_allclose(mean, values)
+    np.testing.assert_array_equal(count, 1)
+
+
+def test_isolated_spike_loses_to_a_robust_plateau():
+    # A lone push with the highest Q among poor neighbours, and a plateau of good pushes far away.
+    spike, _ = line_of_pushes(5, 0.003)
+    plateau = spike + [0.0, 0.1, 0.0]
+    points = np.concatenate([spike, plateau])
+    directions = np.tile(X, (10, 1))
+    q = np.array([0.1, 0.1, 0.95, 0.1, 0.1, 0.7, 0.72, 0.71, 0.7, 0.69])
+    smoothing = Smoothing(radius=0.0065, max_angle=0.2, min_neighbours=3)
+    smoothed, count = neighbour_mean(points, directions, q, smoothing)
+    assert int(np.nanargmax(q)) == 2  # the raw argmax is the spike
+    assert smoothed_choice(0.2, smoothed, count, gamma=0.95, min_neighbours=3) in range(5, 10)  # the plateau
+    assert smoothed_choice(0.2, smoothed, count, gamma=0.95, min_neighbours=3) == int(np.nanargmax(smoothed))
+
+
+def test_no_push_unless_the_smoothed_value_beats_grasping_here():
+    points, directions = line_of_pushes(3, 0.002)
+    q = np.array([0.5, 0.6, 0.5])
+    smoothed, count = neighbour_mean(points, directions, q, Smoothing(radius=0.01))
+    assert smoothed_choice(0.9, smoothed, count, gamma=0.95, min_neighbours=1) == NO_OP
+    assert smoothed_choice(0.3, smoothed, count, gamma=0.95, min_neighbours=1) != NO_OP
+    # Too few neighbours: nothing is eligible.
+    assert smoothed_choice(0.3, smoothed, count, gamma=0.95, min_neighbours=4) == NO_OP
+    assert smoothed_choice(0.3, np.full(3, np.nan), np.zeros(3, int), gamma=0.95, min_neighbours=1) == NO_OP
+
+
+def test_robust_actions_are_deterministic_and_per_pose():
+    rng = np.random.default_rng(7)
+    poses = []
+    for _ in range(3):
+        points = rng.uniform(-0.03, 0.03, size=(200, 3))
+        directions = np.tile(X, (200, 1))
+        q = rng.random(200)
+        q[rng.random(200) < 0.3] = np.nan
+        poses.append(PoseCandidates(points, directions, q, q.copy(), np.full(200, 5.0)))
+    smoothing = Smoothing(radius=0.01, max_angle=0.3, min_neighbours=2)
+    v_s = np.array([0.1, 0.99, 0.2])
+    first = robust_actions(v_s, [pose_scores(c, smoothing) for c in poses], 0.95, smoothing)
+    again = robust_actions(v_s, [pose_scores(c, smoothing) for c in poses], 0.95, smoothing)
+    np.testing.assert_array_equal(first, again)
+    assert first[1] == NO_OP  # nothing reaches V_s = 0.99
+    for x in (0, 2):
+        scores = pose_scores(poses[x], smoothing)
+        assert np.isfinite(poses[x].q[first[x]]) and scores.count[first[x]] >= 2
+        assert scores.smoothed_q[first[x]] == np.nanmax(np.where(scores.count >= 2, scores.smoothed_q, np.nan))
+
+
+def test_bad_smoothing_is_a_clear_error():
+    with pytest.raises(ValueError, match="min_neighbours"):
+        Smoothing(radius=0.01, max_angle=0.3, min_neighbours=0)
+    with pytest.raises(ValueError, match="radius"):
+        Smoothing(radius=-1.0)
