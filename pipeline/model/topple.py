@@ -66,12 +66,13 @@ lever arm is 1e-6 m) and far above rounding.  ``pipeline.model.reference`` uses 
 same constant so both models cut at the same place."""
 
 TILE_ELEMENTS = 8192
-"""(trial, edge) entries per tile of ``trial_outcomes``.  The model's conditions are a few
-dozen elementwise passes over (trials, E) float64 arrays; a whole block (n ~ 25 000 trials
-x E ~ 7 edges, ~1.4 MB per array) streams every pass through memory, while a tile of
-8192 entries (64 kB per array) keeps its temporaries in a core's L2 cache (1 MB on the
-bench machine): about 2-3x faster per block.  Every operation is row-wise, so the tile
-size never changes a result; it is not a model parameter."""
+"""Entries per row tile: (trial, edge) entries in ``trial_outcomes``, (trial, xyz) entries
+in ``noisy_trials``' rotations.  The model's conditions are a few dozen elementwise passes
+over (trials, E) float64 arrays; a whole block (n ~ 25 000 trials x E ~ 7 edges, ~1.4 MB
+per array) streams every pass through memory, while a tile of 8192 entries (64 kB per
+array) keeps its temporaries in a core's L2 cache (1 MB on the bench machine): about
+2-3x faster per block.  Every operation is row-wise, so the tile size never changes a
+result; it is not a model parameter."""
 
 NO_ROTATION_AXIS = (0.0, 0.0, 1.0)
 """Rotation axis of the noise-free variants, whose rotation angle is 0: any unit axis
@@ -113,7 +114,7 @@ def sample_noise(rng: np.random.Generator, n_actions: int, config: ToppleConfig)
         mu_finger=np.maximum(rng.normal(config.mu_finger_mean, config.mu_finger_std, shape), 0.0),
         contact_offset=rng.normal(0.0, config.contact_std, shape + (3,)),
         direction_offset=rng.normal(0.0, config.direction_std, shape + (3,)),
-        rotation_axis=unit(rng.normal(size=shape + (3,))),
+        rotation_axis=_unit_rows(rng.normal(size=shape + (3,))),
         rotation_angle=rng.normal(0.0, config.rotation_std, shape),
     )
 
@@ -159,7 +160,7 @@ def noisy_trials(
     # (a, T, k) -> (n, k), n = a T, action-major: row i is action i // T, trial i % T.
     flat = lambda v: v.reshape(a * t, -1)  # noqa: E731
     # (a, 1, 3) + (a, T, 3): each action's nominal direction broadcast over its trials.
-    push = unit(directions[:, None, :] + noise.direction_offset)  # (a, T, 3), u0 of (8.2)
+    push = _unit_rows(directions[:, None, :] + noise.direction_offset)  # (a, T, 3), u0 of (8.2)
     if not config.robust:
         return Trials(
             contact=flat(np.broadcast_to(points[:, None], (a, t, 3))).copy(),
@@ -169,13 +170,20 @@ def noisy_trials(
             mu_finger=noise.mu_finger.ravel(),
             valid=np.ones(a * t, dtype=bool),
         )
-    rotation = axis_angle_matrices(flat(noise.rotation_axis), noise.rotation_angle.ravel())  # (n, 3, 3), R
-    # (a, 1, 3) + (a, T, 3) + (a, 1, 3): p + dp + ray_offset n of (8.2)
-    origin = points[:, None] + noise.contact_offset + config.ray_offset * normals[:, None]
-    # Batched R_i v_i ("nij,nj->ni"), about the centre of mass: o = c + R (. - c).
-    origin = np.einsum("nij,nj->ni", rotation, flat(origin) - center_mass) + center_mass  # (n, 3)
-    ray = np.einsum("nij,nj->ni", rotation, flat(np.broadcast_to(-normals[:, None], (a, t, 3))))  # (n, 3), R(-n)
-    push = np.einsum("nij,nj->ni", rotation, flat(push))  # (n, 3), u = R u0
+    axes, angles = flat(noise.rotation_axis), noise.rotation_angle.ravel()  # (n, 3), (n,)
+    # (a, 1, 3) + (a, T, 3) + (a, 1, 3): p + dp + ray_offset n of (8.2), then relative to the COM
+    start = flat(points[:, None] + noise.contact_offset + config.ray_offset * normals[:, None]) - center_mass  # (n, 3)
+    inward = flat(np.broadcast_to(-normals[:, None], (a, t, 3)))  # (n, 3), -n
+    nominal = flat(push)  # (n, 3), u0
+    origin, ray, push = np.empty((a * t, 3)), np.empty((a * t, 3)), np.empty((a * t, 3))
+    # Row tiles of about TILE_ELEMENTS / 3 trials keep each tile's (r, 3, 3) rotations in
+    # cache for their three products (row-wise, so the same numbers as one pass over the block).
+    for rows in _row_tiles(a * t, 3):
+        rotation = axis_angle_matrices(axes[rows], angles[rows])  # (r, 3, 3), R
+        # Batched R_i v_i ("nij,nj->ni"), about the centre of mass: o = c + R (. - c).
+        origin[rows] = np.einsum("nij,nj->ni", rotation, start[rows]) + center_mass  # (r, 3)
+        ray[rows] = np.einsum("nij,nj->ni", rotation, inward[rows])  # (r, 3), R(-n)
+        push[rows] = np.einsum("nij,nj->ni", rotation, nominal[rows])  # (r, 3), u = R u0
 
     # One embree cast per block, in the object frame (the mesh's frame).  Directions take
     # only the rotation: rows times its transpose, ``v @ M.T`` = (M v^T)^T.
@@ -186,11 +194,12 @@ def noisy_trials(
     contact = np.full((a * t, 3), np.nan)  # (n, 3), NaN where the ray missed
     normal = np.full((a * t, 3), np.nan)  # (n, 3)
     contact[rays] = transform_points(transform, hits)
-    normal[rays] = obj.mesh.face_normals[faces] @ transform[:3, :3].T
+    hit_normal = obj.mesh.face_normals[faces] @ transform[:3, :3].T  # (h, 3), pose frame
+    normal[rays] = hit_normal  # each ray hits at most once (first hits only)
     valid = np.zeros(a * t, dtype=bool)  # (n,)
     # Front face iff n' . r < 0 (8.3): an exact sign test, a grazing hit (n' . r ~ 0) is
     # as good as any other, so no tolerance.
-    valid[rays] = np.einsum("ij,ij->i", normal[rays], ray[rays]) < 0.0
+    valid[rays] = np.einsum("ij,ij->i", hit_normal, ray[rays]) < 0.0
     return Trials(contact, normal, push, noise.mu_table.ravel(), noise.mu_finger.ravel(), valid)
 
 
@@ -214,22 +223,44 @@ def trial_outcomes(
     Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
     per-edge rows (E,) into (n, E).  Invalid trials' NaN contacts and normals are zeroed
     here, once per block, so the arithmetic stays finite; ``valid`` removes them at the end.
-    The rows run in ceil(n E / ``TILE_ELEMENTS``) nearly equal tiles (every operation is
-    row-wise, so the tiling never changes a result; a tile has at least min(n, 2) rows, so
-    a matrix product never degenerates to a vector product the whole block would not use).
+    The rows run in ``_row_tiles`` of about ``TILE_ELEMENTS`` (trial, edge) entries (every
+    operation is row-wise, so the tiling never changes a result).
     """
-    n = len(trials.mu_table)
     finite = replace(trials, contact=np.nan_to_num(trials.contact), normal=np.nan_to_num(trials.normal))  # (n, 3) each
-    n_tiles = max(1, -(-n * len(edges.com_distance) // TILE_ELEMENTS))  # ceil(n E / TILE_ELEMENTS)
-    bounds = [n * i // n_tiles for i in range(n_tiles + 1)]  # nearly equal row ranges, as np.array_split
     tiles = [
         _tile_outcomes(
-            Trials(*(getattr(finite, f)[start:stop] for f in Trials.__dataclass_fields__)),
+            Trials(*(getattr(finite, f)[rows] for f in Trials.__dataclass_fields__)),
             edges, mass, gravity, predicts_rotations, corrections, max_force, friction_scale,
         )
-        for start, stop in zip(bounds[:-1], bounds[1:])
+        for rows in _row_tiles(len(trials.mu_table), len(edges.com_distance))
     ]  # (edge (r,), required (r,)) per tile of r trials
     return np.concatenate([t[0] for t in tiles]), np.concatenate([t[1] for t in tiles])
+
+
+def _row_tiles(n: int, per_row: int) -> list[slice]:
+    """ceil(n per_row / ``TILE_ELEMENTS``) nearly equal row ranges covering range(n), as
+    ``np.array_split``; one (empty) range when n = 0.  A tile has at least min(n, 2) rows
+    (so a matrix product or einsum never degenerates to a 1-row case the block would not use)."""
+    n_tiles = max(1, min(n // 2, -(-n * per_row // TILE_ELEMENTS)))  # ceil(n per_row / TILE_ELEMENTS)
+    bounds = [n * i // n_tiles for i in range(n_tiles + 1)]
+    return [slice(start, stop) for start, stop in zip(bounds[:-1], bounds[1:])]
+
+
+def _unit_rows(vectors: np.ndarray) -> np.ndarray:
+    """``schema.frames.unit`` bit for bit, without its masked division: the same norm
+    (``np.linalg.norm`` sums x^2 + y^2 + z^2 in this order), then a plain division unless
+    some vector is zero (or NaN), which goes to ``unit`` itself.
+
+    vectors : (..., 3) float;  returns : (..., 3) float
+    """
+    x, y, z = vectors[..., 0], vectors[..., 1], vectors[..., 2]
+    norm = x * x
+    norm += y * y
+    norm += z * z
+    norm = np.sqrt(norm, out=norm)[..., None]  # (..., 1)
+    if not (norm > 0.0).all():
+        return unit(vectors)
+    return vectors / norm
 
 
 def _tile_outcomes(
