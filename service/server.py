@@ -172,8 +172,11 @@ def serve_forked(config, workers: int) -> None:
     def fork_worker() -> None:
         pid = os.fork()
         if pid == 0:  # the worker
-            for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            for signum in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(signum, signal.SIG_DFL)  # uvicorn installs its own when it starts serving
+            # Until the app's lifespan installs its reload handler (a rebuild in between is swapped in
+            # there too), a SIGHUP must not end the worker as its default action would.
+            signal.signal(signal.SIGHUP, signal.SIG_IGN)
             code = 1
             try:
                 uvicorn.Server(config).run(sockets=[sock])

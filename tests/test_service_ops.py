@@ -347,3 +347,21 @@ def test_a_replacement_worker_serves_the_build_the_others_reloaded(dataset, tmp_
         assert created.startswith("2033"), f"the replacement serves the build of {created}"
     finally:
         stop(process)
+
+
+@pytest.mark.slow
+def test_a_sighup_while_a_worker_starts_does_not_kill_it(dataset):
+    # SIGHUP means "reload" to a worker once it serves; one that arrives while a replacement
+    # worker is still starting up must not terminate it (SIGHUP's default action).
+    process, _ = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0"])
+    try:
+        workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+        workers[0].kill()
+        deadline = time.monotonic() + 3.0  # the restart pause, then the replacement's start-up
+        while time.monotonic() < deadline:
+            process.send_signal(signal.SIGHUP)
+            time.sleep(0.005)
+        time.sleep(0.5)
+    finally:
+        _, err = stop(process)
+    assert err.count("starting another") == 1, err[-2000:]
