@@ -221,20 +221,25 @@ def trial_outcomes(
     returns : edge (n,) int (``OUTCOME_NO_EDGE`` when none), required_force (n,) float, N (inf when none)
 
     Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
-    per-edge rows (E,) into (n, E).  Invalid trials' NaN contacts and normals are zeroed
-    here, once per block, so the arithmetic stays finite; ``valid`` removes them at the end.
-    The rows run in ``_row_tiles`` of about ``TILE_ELEMENTS`` (trial, edge) entries (every
-    operation is row-wise, so the tiling never changes a result).
+    per-edge rows (E,) into (n, E).  An invalid trial passes no edge ((7.10) and C.2 both
+    require ``valid``), so only the valid rows are computed and the others keep "no edge"
+    at infinite force, which is exactly what the conditions give them; the valid rows'
+    contacts and normals are finite (``nan_to_num`` keeps that a guarantee).  The rows run
+    in ``_row_tiles`` of about ``TILE_ELEMENTS`` (trial, edge) entries (every operation is
+    row-wise, so neither the row selection nor the tiling changes a result).
     """
-    finite = replace(trials, contact=np.nan_to_num(trials.contact), normal=np.nan_to_num(trials.normal))  # (n, 3) each
-    tiles = [
-        _tile_outcomes(
-            Trials(*(getattr(finite, f)[rows] for f in Trials.__dataclass_fields__)),
+    n = len(trials.mu_table)
+    edge = np.full(n, OUTCOME_NO_EDGE, dtype=np.intp)  # (n,)
+    required = np.full(n, np.inf)  # (n,), N
+    live = np.flatnonzero(trials.valid)  # (m,) valid rows
+    kept = Trials(*(getattr(trials, f)[live] for f in Trials.__dataclass_fields__))  # (m, ...)
+    kept = replace(kept, contact=np.nan_to_num(kept.contact), normal=np.nan_to_num(kept.normal))  # (m, 3) each
+    for rows in _row_tiles(len(live), len(edges.com_distance)):
+        edge[live[rows]], required[live[rows]] = _tile_outcomes(
+            Trials(*(getattr(kept, f)[rows] for f in Trials.__dataclass_fields__)),
             edges, mass, gravity, predicts_rotations, corrections, max_force, friction_scale,
-        )
-        for rows in _row_tiles(len(trials.mu_table), len(edges.com_distance))
-    ]  # (edge (r,), required (r,)) per tile of r trials
-    return np.concatenate([t[0] for t in tiles]), np.concatenate([t[1] for t in tiles])
+        )  # (r,) each, for the tile's r valid trials
+    return edge, required
 
 
 def _row_tiles(n: int, per_row: int) -> list[slice]:
