@@ -105,3 +105,12 @@ def test_bad_smoothing_is_a_clear_error():
         Smoothing(radius=0.01, max_angle=0.3, min_neighbours=0)
     with pytest.raises(ValueError, match="radius"):
         Smoothing(radius=-1.0)
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    from pipeline.studies.robust_policy import main
+
+    assert main([str(tmp_path / "missing"), "--trials", "2"]) == 2
+    assert main([str(tmp_path), "--radius", "-1"]) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 2 and all(line.startswith("error: ") for line in lines)
