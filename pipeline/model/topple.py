@@ -232,6 +232,10 @@ def trial_outcomes(
     edge = np.full(n, OUTCOME_NO_EDGE, dtype=np.intp)  # (n,)
     required = np.full(n, np.inf)  # (n,), N
     live = np.flatnonzero(trials.valid)  # (m,) valid rows
+    if len(live) < 2:
+        # A lone valid row would make the tile's matrix products 1-row ones (a gemv, not the
+        # block's gemm); compute every row instead, the invalid ones fail on ``valid``.
+        live = np.arange(n)
     kept = Trials(*(getattr(trials, f)[live] for f in Trials.__dataclass_fields__))  # (m, ...)
     kept = replace(kept, contact=np.nan_to_num(kept.contact), normal=np.nan_to_num(kept.normal))  # (m, 3) each
     for rows in _row_tiles(len(live), len(edges.com_distance)):
