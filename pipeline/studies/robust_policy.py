@@ -138,12 +138,11 @@ def read_candidates(dataset: Dataset, object_id: str) -> list[PoseCandidates]:
     columns = ["pose", "action", "status", "q", "p_topple", "mean_force"] + [f"{c}_{a}" for c in ("point", "direction") for a in "xyz"]
     table = dataset.object_rows("actions", object_id, columns=columns)
 
-    def array(name):
-        return table[name].to_numpy(zero_copy_only=False).astype(float) if name not in ("pose", "action", "status") else \
-            table[name].to_numpy(zero_copy_only=False)
+    def array(name):  # nulls of float columns arrive as NaN
+        return table[name].to_numpy(zero_copy_only=False).astype(float)
 
-    pose, action = array("pose"), array("action")
-    ok = array("status") == STATUS_NAMES[STATUS_OK]
+    pose, action = (table[name].to_numpy(zero_copy_only=False) for name in ("pose", "action"))
+    ok = table["status"].to_numpy(zero_copy_only=False) == STATUS_NAMES[STATUS_OK]
     order = np.lexsort((action, pose))
     out = []
     for x in range(int(pose.max()) + 1 if len(pose) else 0):
@@ -263,8 +262,8 @@ def _mean_se(values) -> tuple[float | None, float | None]:
 
 
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
-               workers: int | None = 1, world: Config | None = None, progress: bool = False) -> dict:
-    """Play max_height, value_iteration and smoothed_vi; the report (JSON-ready) and the pushes."""
+               workers: int | None = 1, world: Config | None = None, progress: bool = False) -> tuple[dict, list[Push]]:
+    """Play max_height, value_iteration and smoothed_vi; the report (JSON-ready) and every push played."""
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
@@ -330,9 +329,8 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
             "physical_topple_rate": _mean_se([p.toppled for p in mine])[0],
             "physical_topple_rate_se": _mean_se([p.toppled for p in mine])[1],
         }
-    for policy in (ROBUST_POLICY,):
-        diff = gains[policy][useful] - gains["value_iteration"][useful]
-        report["policies"][policy]["gain_over_value_iteration"], report["policies"][policy]["gain_over_value_iteration_se"] = _mean_se(diff)
+    mean, error = _mean_se(gains[ROBUST_POLICY][useful] - gains["value_iteration"][useful])
+    report["policies"][ROBUST_POLICY].update({"gain_over_value_iteration": mean, "gain_over_value_iteration_se": error})
     return report
 
 
@@ -340,8 +338,8 @@ def text(report: dict) -> str:
     def cell(v, signed=True):
         return "    -" if v is None else (f"{v:+.3f}" if signed else f"{v:.3f}")
 
-    lines = [f"{report['played_trials']} trials on {report['objects']} objects, {report['useful_trials']} useful, "
-             f"{report['outside_trials']} outside; smoothing {report['smoothing']}; {report['wall_s']} s",
+    lines = [(f"{report['played_trials']} trials on {report['objects']} objects, {report['useful_trials']} useful, "
+              f"{report['outside_trials']} outside; smoothing {report['smoothing']}; {report['wall_s']} s"),
              f"{'policy':<16} {'gain useful':>12} {'over max_height':>18} {'pushes':>7} {'P raw':>6} {'P smooth':>8} {'physics':>8}"]
     for policy, r in report["policies"].items():
         se = r["gain_over_max_height_se"]
