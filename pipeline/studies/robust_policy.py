@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from schema import neighbourhood
 from schema.reader import Dataset, DatasetUnreadable
 from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
@@ -53,8 +54,6 @@ ROBUST_POLICY = "smoothed_vi"
 """Name of the robust policy (a fourth ``<name>_action`` column if the contract adopts it)."""
 COMPARED = ("max_height", "value_iteration", ROBUST_POLICY)
 """Policies the study plays, in push-id order."""
-COSINE_TOLERANCE = 1e-9
-"""Slack on the distance (m) and cosine limits, so that rounding does not split a boundary case."""
 
 
 @dataclass(frozen=True)
@@ -68,8 +67,8 @@ class Smoothing:
 
     # Chosen on corpus objects only, for the calibration of the chosen pushes (docs/VALIDATION.md,
     # "Robust push choice"); 5 and 10 mm gave the same V_s gain within its error.
-    radius: float = 0.02
-    max_angle: float = 0.5
+    radius: float = neighbourhood.RADIUS
+    max_angle: float = neighbourhood.MAX_ANGLE
     min_neighbours: int = 5
 
     def __post_init__(self):
@@ -78,30 +77,9 @@ class Smoothing:
 
 
 def neighbour_mean(points: np.ndarray, directions: np.ndarray, values: np.ndarray, smoothing: Smoothing) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of ``values`` over each candidate's neighbours with a finite value (itself included).
-
-    points : (A, 3) float, m;  directions : (A, 3) float, unit;  values : (A,) or (A, k) float,
-      NaN for candidates that are not ok (they are nobody's neighbour; a row is finite only
-      when all its k values are)
-    returns : mean (A,) or (A, k) float, NaN where the candidate itself is NaN; count (A,) int,
-      its finite neighbours (0 where it is NaN)
-    """
-    points, directions, values = (np.asarray(a, dtype=float) for a in (points, directions, values))
-    flat = values.ndim == 1
-    values = values[:, None] if flat else values
-    finite = np.isfinite(values).all(axis=1)
-    # |a - b|^2 by one matrix product: ~100x faster than broadcasting (A, A, 3) for A ~ 1,000.
-    square = np.einsum("ij,ij->i", points, points)
-    distance2 = square[:, None] + square[None, :] - 2.0 * points @ points.T
-    cosine = directions @ directions.T
-    limit = smoothing.radius + COSINE_TOLERANCE
-    near = (distance2 <= limit * limit) & (cosine >= np.cos(smoothing.max_angle) - COSINE_TOLERANCE)
-    np.fill_diagonal(near, True)  # a candidate is its own neighbour whatever the rounding
-    near &= finite[None, :] & finite[:, None]
-    count = near.sum(axis=1)
-    total = near.astype(float) @ np.where(finite[:, None], values, 0.0)
-    mean = np.where((count > 0)[:, None], total / np.maximum(count, 1)[:, None], np.nan)
-    return (mean[:, 0] if flat else mean), count
+    """``schema.neighbourhood.neighbour_mean`` of every candidate with ``smoothing``'s limits
+    (the service reports the same mean beside each chosen push)."""
+    return neighbourhood.neighbour_mean(points, directions, values, smoothing.radius, smoothing.max_angle)
 
 
 def smoothed_choice(v_s_pose: float, smoothed_q: np.ndarray, count: np.ndarray, gamma: float, min_neighbours: int) -> int:

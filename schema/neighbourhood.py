@@ -1,0 +1,60 @@
+"""The neighbourhood of a candidate push: how much its P(topple) can be trusted.
+
+A policy that takes the best of ~1,000 candidate pushes picks, among candidates with equal
+estimates, the ones whose estimate is most wrong (docs/VALIDATION.md, "Robust push
+choice"): value iteration's chosen pushes are predicted to topple 0.50 of the time and
+topple 0.35 in pybullet.  The mean P(topple) of the candidates around a push (contacts
+within ``RADIUS``, directions within ``MAX_ANGLE``, itself included) is an estimate that
+selection has not inflated: for those same pushes it is 0.38 on corpus objects and 0.38
+against 0.35 physical on held-out objects.  The service reports it beside every chosen
+push (``p_topple_neighbourhood``); the robust-choice study ranks by it.
+
+numpy only: the service and the pipeline's studies share it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+RADIUS = 0.02
+"""m, largest distance between two neighbours' contact points (chosen on corpus objects only)."""
+MAX_ANGLE = 0.5
+"""rad, largest angle between two neighbours' push directions (chosen with RADIUS)."""
+TOLERANCE = 1e-9
+"""Slack on the distance (m) and cosine limits, so that rounding does not split a boundary case."""
+
+
+def neighbour_mean(
+    points: np.ndarray,
+    directions: np.ndarray,
+    values: np.ndarray,
+    radius: float = RADIUS,
+    max_angle: float = MAX_ANGLE,
+    rows: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``values`` over each candidate's neighbours with a finite value (itself included).
+
+    points : (A, 3) float, m, one pose's candidate contacts;  directions : (A, 3) float, unit
+    values : (A,) or (A, k) float, NaN for candidates that are not ok (they are nobody's
+      neighbour; a row is finite only when all its k values are)
+    rows : indices of the candidates to average for (default: all), (R,) int
+    returns : mean (R,) or (R, k) float, NaN where the candidate itself is NaN;
+      count (R,) int, its finite neighbours (0 where it is NaN)
+    """
+    points, directions, values = (np.asarray(a, dtype=float) for a in (points, directions, values))
+    flat = values.ndim == 1
+    values = values[:, None] if flat else values
+    rows = np.arange(len(points)) if rows is None else np.asarray(rows, dtype=np.int64)
+    finite = np.isfinite(values).all(axis=1)
+    # |a - b|^2 by one matrix product: ~100x faster than broadcasting (R, A, 3) for A ~ 1,000.
+    square = np.einsum("ij,ij->i", points, points)
+    distance2 = square[rows, None] + square[None, :] - 2.0 * points[rows] @ points.T
+    cosine = directions[rows] @ directions.T
+    limit = radius + TOLERANCE
+    near = (distance2 <= limit * limit) & (cosine >= np.cos(max_angle) - TOLERANCE)
+    near[np.arange(len(rows)), rows] = True  # a candidate is its own neighbour whatever the rounding
+    near &= finite[None, :] & finite[rows, None]
+    count = near.sum(axis=1)
+    total = near.astype(float) @ np.where(finite[:, None], values, 0.0)
+    mean = np.where((count > 0)[:, None], total / np.maximum(count, 1)[:, None], np.nan)
+    return (mean[:, 0] if flat else mean), count
