@@ -19,10 +19,11 @@ table          one row per
 objects        object: id, source, sha256, mass, scale, com (3), and where its rows
                start in the other tables (``pose_start``, ``action_start``,
                ``transition_start``, ``match_start``, ``hull_start``) with their counts
-poses          stable pose: probability, transform (16), inverse (16), down (3), height,
-               com_height, v_s, v_t, grasp_point (3), grasp_axis (3), n_actions,
-               n_ok_actions, ``action_start`` (object-local), ``<policy>_action`` and
-               ``<policy>_value`` per policy
+poses          stable pose: probability, transform (16), down (3), height, com_height,
+               v_s, v_t, grasp_point (3), grasp_axis (3), n_actions, n_ok_actions,
+               ``action_start`` (object-local), ``<policy>_action``, ``<policy>_value``
+               and ``<policy>_p_topple_neighbourhood`` (``schema.neighbourhood``: the
+               mean P(topple) around the policy's push, NaN when it does not push)
 matches        orientation that is a pose (``poses.equivalent_transforms``): pose
                (object-local), down (3), transform (16), inverse (16)
 actions        candidate push: status (int8, index into ``STATUS_NAMES``), is_max_height
@@ -46,7 +47,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from schema.vocabulary import POLICIES, STATUS_NAMES
+from schema.neighbourhood import neighbour_mean
+from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES
 
 SERVED_DIR = "served"
 NAMES = ("objects", "poses", "matches", "actions", "transitions", "hulls")
@@ -74,11 +76,12 @@ SCHEMAS = {
         ("hull_start", pa.int64()), ("n_hull_vertices", pa.int64()),
     ]),
     "poses": pa.schema([
-        ("probability", pa.float64()), ("transform", _vec(16)), ("inverse", _vec(16)), ("down", _vec(3)),
+        ("probability", pa.float64()), ("transform", _vec(16)), ("down", _vec(3)),
         ("height", pa.float64()), ("com_height", pa.float64()), ("v_s", pa.float64()), ("v_t", pa.float64()),
         ("grasp_point", _vec(3)), ("grasp_axis", _vec(3)),
         ("n_actions", pa.int32()), ("n_ok_actions", pa.int32()), ("action_start", pa.int64()),
         *[(f"{p}_{kind}", t) for p in POLICIES for kind, t in (("action", pa.int32()), ("value", pa.float64()))],
+        *[(f"{p}_p_topple_neighbourhood", pa.float64()) for p in POLICIES],
     ]),
     "matches": pa.schema([("pose", pa.int32()), ("down", _vec(3)), ("transform", _vec(16)), ("inverse", _vec(16))]),
     "actions": pa.schema([
@@ -121,6 +124,22 @@ def read_served(root: str | Path) -> dict[str, pa.Table]:
             raise ServedError(f"{path}: not the served {name} table of this code (schema differs)")
         out[name] = table
     return out
+
+
+def read_current(root: str | Path, manifest) -> dict[str, pa.Table]:
+    """``read_served``, and ServedError unless they are the files this manifest's build wrote
+    (each recorded, with the recorded rows).
+
+    manifest : ``schema.manifest.Manifest`` of ``root``
+    """
+    tables = read_served(root)
+    for name, relative in FILES.items():
+        entry = manifest.tables.get(relative)
+        if entry is None:
+            raise ServedError(f"manifest.json records no {relative} (built by an older toppledb)")
+        if entry.rows != tables[name].num_rows:
+            raise ServedError(f"{relative} holds {tables[name].num_rows} rows, manifest.json says {entry.rows}")
+    return tables
 
 
 def column(table: pa.Table, name: str) -> np.ndarray:
@@ -205,6 +224,7 @@ def served_tables(objects: pa.Table, poses: pa.Table, actions: list[pa.Table], t
             **_action_and_transition_columns(object_id, pose_columns["n_actions"], actions[i], transitions[i]),
             "hulls": {"vertex": np.asarray(obj["hull_vertices"], dtype=np.float64).reshape(-1, 3)},
         }
+        part["poses"].update(_chosen_neighbourhood(part["poses"], part["actions"]))
         row = {key: obj[key] for key in ("object_id", "source", "sha256", "mass", "scale")}
         row["com"] = [obj[f"com_{a}"] for a in "xyz"]
         for name, columns in part.items():
@@ -240,13 +260,31 @@ def _object_poses(object_id: str, n_poses: int, poses: pa.Table, rows: list[int]
     return own
 
 
+def _chosen_neighbourhood(pose_columns: dict[str, np.ndarray], action_columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per policy, (P,) float: the mean P(topple) around each pose's chosen push
+    (``schema.neighbourhood``, from the served float32 values), NaN where it does not push.
+    Computed here once so that /plan reads one number instead of scanning ~1,000 candidates."""
+    out = {}
+    for policy in POLICIES:
+        chosen = pose_columns[f"{policy}_action"]
+        means = np.full(len(chosen), np.nan)
+        for pose, action in enumerate(chosen.tolist()):
+            if action == NO_OP:
+                continue
+            rows = slice(int(pose_columns["action_start"][pose]), int(pose_columns["action_start"][pose] + pose_columns["n_actions"][pose]))
+            mean, _ = neighbour_mean(action_columns["point"][rows], action_columns["direction"][rows],
+                                     action_columns["p_topple"][rows], rows=[action])
+            means[pose] = mean[0]
+        out[f"{policy}_p_topple_neighbourhood"] = means
+    return out
+
+
 def _pose_columns(own: pa.Table) -> dict[str, np.ndarray]:
     transforms = _matrices(own.column("transform"))
     n_actions = own.column("n_actions").to_numpy().astype(np.int64)
     return {
         "probability": _nan(own.column("probability"), np.float64),
         "transform": transforms.reshape(-1, 16),
-        "inverse": np.linalg.inv(transforms).reshape(-1, 16),
         "down": _xyz(own, "down"),
         **{name: _nan(own.column(name), np.float64) for name in ("height", "com_height", "v_s", "v_t")},
         "grasp_point": _xyz(own, "grasp_point"),

@@ -29,7 +29,6 @@ import orjson
 
 from schema.api import PlanRequest
 from schema.frames import match_pose, place_push
-from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import NO_OP
 
 from .errors import NoStablePose, OffTable, UnknownFrame
@@ -50,15 +49,6 @@ def world_grasp(obj: ObjectData, pose: int, pose_to_world: np.ndarray) -> dict |
         return None
     rotation = pose_to_world[:3, :3]
     return {"point": (rotation @ point + pose_to_world[:3, 3]).tolist(), "axis": (rotation @ axis).tolist()}
-
-
-def neighbourhood_p_topple(obj: ObjectData, pose: int, row: int) -> float | None:
-    """Mean P(topple) of the pose's ok candidates around action row ``row``
-    (``schema.neighbourhood``); None when the push is not ok."""
-    rows = obj.pose_rows(pose)
-    mean, _ = neighbour_mean(obj.points[rows], obj.directions[rows], obj.p_topple[rows], rows=[row - rows.start])
-    # float32 storage: a mean of stored 0.76s is 0.7639999986; six decimals are all it holds.
-    return optional(round(float(mean[0]), 6))
 
 
 def answer_json(answer: dict) -> bytes:
@@ -132,7 +122,8 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
             "within_force_limit": None if force is None else bool(force <= limit),
         }
         p_topple = optional(values[10])
-        p_near = neighbourhood_p_topple(obj, pose, row)
+        # float32 storage: a mean of stored 0.76s is 0.7639999986; six decimals are all it holds.
+        p_near = optional(round(float(obj.policy_p_topple_neighbourhood[request.policy][pose]), 6))
         q_value = optional(obj.q[row])
         after = optional(obj.greedy[row])
         outcomes = next_poses(obj, row)

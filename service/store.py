@@ -72,6 +72,8 @@ class ObjectData:
       grasp_point, grasp_axis (P, 3) float64, pose frame, NaN when the pose has no grasp
       n_actions, n_ok_actions (P,) int32
       policy_action, policy_value: per policy name, (P,) int32 (-1 no push) and float64
+      policy_p_topple_neighbourhood: per policy name, (P,) float64, the mean P(topple) around
+        its push (schema.neighbourhood), NaN when it does not push
     Orientations that match a pose (M >= P: a symmetric object's merged turns), from matches:
       match_pose (M,) int32, the pose each is; match_downs (M, 3) float64, unit, object frame;
       match_transforms, match_inverses (M, 4, 4) float64, object -> pose frame and back
@@ -106,6 +108,7 @@ class ObjectData:
     n_ok_actions: np.ndarray
     policy_action: dict[str, np.ndarray]
     policy_value: dict[str, np.ndarray]
+    policy_p_topple_neighbourhood: dict[str, np.ndarray]
     match_pose: np.ndarray
     match_downs: np.ndarray
     match_transforms: np.ndarray
@@ -251,8 +254,7 @@ class Store:
         except ManifestError as err:
             raise DatasetError(str(err)) from None
         try:
-            tables = served.read_served(root)
-            _check_rows(tables, manifest)
+            tables = served.read_current(root, manifest)
         except served.ServedError as err:
             log.warning("%s; reading the Parquet tables instead (slower start, a copy in memory)", err)
             from schema.reader import Dataset, DatasetUnreadable  # pyarrow.parquet: only on this path
@@ -270,16 +272,6 @@ class Store:
                 f"check it with `toppledb verify {root}`"
             )
         return store
-
-
-def _check_rows(tables: dict[str, pa.Table], manifest: Manifest) -> None:
-    """The served files are the ones this manifest's build wrote (rows as recorded)."""
-    for name, relative in served.FILES.items():
-        entry = manifest.tables.get(relative)
-        if entry is None:
-            raise served.ServedError(f"manifest.json records no {relative} (built by an older toppledb)")
-        if entry.rows != tables[name].num_rows:
-            raise served.ServedError(f"{relative} holds {tables[name].num_rows} rows, manifest.json says {entry.rows}")
 
 
 def _objects(tables: dict[str, pa.Table]) -> dict[str, ObjectData]:
@@ -320,6 +312,7 @@ def _objects(tables: dict[str, pa.Table]) -> dict[str, ObjectData]:
             n_ok_actions=poses["n_ok_actions"][p],
             policy_action={name: poses[f"{name}_action"][p] for name in POLICIES},
             policy_value={name: poses[f"{name}_value"][p] for name in POLICIES},
+            policy_p_topple_neighbourhood={name: poses[f"{name}_p_topple_neighbourhood"][p] for name in POLICIES},
             match_pose=matches["pose"][m],
             match_downs=matches["down"][m],
             match_transforms=matches["transform"][m].reshape(-1, 4, 4),

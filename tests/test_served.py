@@ -30,7 +30,8 @@ def same_objects(a: Store, b: Store) -> None:
         for field in dataclasses.fields(one):
             x, y = getattr(one, field.name), getattr(other, field.name)
             if isinstance(x, dict):
-                assert x.keys() == y.keys() and all(np.array_equal(x[k], y[k]) for k in x), field.name
+                assert x.keys() == y.keys() and all(
+                    np.array_equal(x[k], y[k], equal_nan=x[k].dtype.kind == "f") for k in x), field.name
             elif isinstance(x, np.ndarray):
                 assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), (object_id, field.name)
             else:
@@ -122,3 +123,21 @@ def test_a_dataset_whose_tables_do_not_fit_is_not_served(dataset, tmp_path):
     pq.write_table(pq.read_table(part).slice(1), part)
     with pytest.raises(DatasetError, match="actions partition does not hold"):
         Store.load(copy)
+
+
+def test_a_dataset_without_current_served_tables_gets_them_without_recomputing(dataset, tmp_path):
+    from pipeline.build.corpus import Corpus, ObjectSpec
+    from pipeline.build.dataset import build_dataset
+    from pipeline.model.config import Config
+    from schema.manifest import read_manifest
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    shutil.rmtree(copy / served.SERVED_DIR)  # as a build by older code left it
+    manifest = read_manifest(copy)
+    corpus = Corpus(manifest.corpus.name, [ObjectSpec(**o.model_dump()) for o in manifest.corpus.objects])
+    config = Config.from_dict(manifest.parameters.model_dump())
+    summary = build_dataset(corpus, config, copy, workers=1, progress=False, log=lambda _: None)
+    assert summary.computed == 0 and summary.reused == 3
+    assert verify_dataset(copy) == []
+    same_objects(Store.load(copy), Store.load(dataset))

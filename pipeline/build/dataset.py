@@ -235,7 +235,7 @@ def build_dataset(
         todo = [spec for spec in todo if spec.object_id not in previous]
 
         current = _current_manifest(out)
-        if not todo and not staged and not force and _up_to_date(current, config, corpus, records, failures):
+        if not todo and not staged and not force and _up_to_date(out, current, config, corpus, records, failures):
             log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
             return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
         if reused:
@@ -410,11 +410,15 @@ def _current_manifest(out: Path) -> Manifest | None:
 
 
 def _up_to_date(
-    current: Manifest | None, config: Config, corpus: Corpus, records: dict[str, dict], failures: dict[str, Failure]
+    out: Path, current: Manifest | None, config: Config, corpus: Corpus, records: dict[str, dict], failures: dict[str, Failure]
 ) -> bool:
     """The finished manifest already describes exactly this build (same objects, shards,
     parameters and failures): a run would rewrite the same dataset."""
     if current is None:
+        return False
+    try:
+        served.read_current(out, current)  # this code's served tables: a build by older code rewrites them
+    except served.ServedError:
         return False
     order = [spec.object_id for spec in corpus.specs if spec.object_id in records]
     return (
