@@ -9,6 +9,7 @@ from shapes import random_object
 
 import pipeline as toppledb
 from schema.frames import PoseMatch
+from schema.neighbourhood import MAX_ANGLE, RADIUS
 from schema.vocabulary import NO_OP, POLICIES
 
 CONFIG = toppledb.Config().with_overrides({
@@ -78,6 +79,30 @@ def test_plan_for_an_observed_pose_is_the_stored_decision_in_the_world(box, poli
                                    (CONFIG.contacts.approach_offset + CONFIG.contacts.push_depth) * planned.push["normal"])
         assert planned.p_topple == result.topple[pose.index].p_topple[choice.action]
         assert sum(p for _, p in planned.next_poses) == pytest.approx(1.0)
+        # The neighbourhood mean: this pose's ok candidates within RADIUS and MAX_ANGLE, by hand.
+        actions, p_topple = result.actions[pose.index], result.topple[pose.index].p_topple
+        near = ((np.linalg.norm(actions.points - local, axis=1) <= RADIUS + 1e-9)
+                & (actions.directions @ actions.directions[choice.action] >= np.cos(MAX_ANGLE) - 1e-9)
+                & np.isfinite(p_topple))
+        assert planned.p_topple_neighbourhood == pytest.approx(p_topple[near].mean(), abs=1e-12)
+
+
+def test_plan_matches_a_symmetric_object_at_any_roll():
+    import trimesh
+
+    from pipeline.model.mesh import model_from_mesh
+
+    can = model_from_mesh(trimesh.creation.cylinder(radius=0.03, height=0.1, sections=16), mass=0.2, name="can")
+    result = toppledb.evaluate_object(can, CONFIG)
+    assert len(result.poses) == 2 and [len(e) for e in result.equivalent_transforms] == [16, 2]
+    side = result.poses[0].transform
+    for facets in (0, 5):
+        roll = trimesh.transformations.rotation_matrix(facets * 2 * np.pi / 16, [0, 0, 1])  # about the can's axis
+        planned = toppledb.plan(result, world(side @ roll, 0.4), policy="max_height", config=CONFIG)
+        assert planned.match.pose == 0 and planned.match.angle_error < 1e-6  # arccos near 1: ~1e-8
+        if planned.push is not None:  # placed through the turn that matched: on the can as observed
+            local = np.linalg.inv(world(side @ roll, 0.4)) @ np.append(planned.push["point"], 1.0)
+            assert abs(can.mesh.nearest.signed_distance([local[:3]])[0]) < 1e-6
 
 
 def test_match_pose_defaults_height_offset_and_refusals(box):

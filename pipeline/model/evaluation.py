@@ -16,6 +16,7 @@ from typing import Iterator, Protocol
 import numpy as np
 
 from schema.frames import PoseMatch, match_pose, place_push, transform_points
+from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES
 
 from .collision import collision_object
@@ -301,6 +302,8 @@ class Plan:
       (``approach_offset`` out along the normal) and ``end`` (``push_depth`` in), or None
     next_poses : [(pose, probability), ...] after the push, most likely first
     grasp : (point (3,), axis (3,)) world, the best suction grasp in this pose, or None
+    p_topple_neighbourhood : float or None, the mean P(topple) of the pose's ok candidates
+      around the push (``schema.neighbourhood``; what /plan reports under the same name)
     """
 
     match: ObservedPose
@@ -311,6 +314,7 @@ class Plan:
     push: dict[str, np.ndarray] | None
     next_poses: list[tuple[int, float]]
     grasp: tuple[np.ndarray, np.ndarray] | None
+    p_topple_neighbourhood: float | None = None
 
 
 class NotResting(ValueError):
@@ -334,7 +338,10 @@ def plan(
     """
     if policy not in POLICIES:
         raise ValueError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
-    match = observe(observed, result.poses, tolerance, table_height, config)
+    # A symmetric object's merged turns of a pose match too (PoseSet.match_arrays).
+    candidates = result.poses if result.equivalent_transforms is None else PoseSet(
+        result.poses, np.empty(0, dtype=int), result.equivalent_transforms)
+    match = observe(observed, candidates, tolerance, table_height, config)
     if not match.matched:
         raise NotResting(
             f"{result.object_id}: the observed orientation is no stable pose "
@@ -360,4 +367,5 @@ def plan(
     distribution = np.nan_to_num(np.asarray(table.next_pose[a], dtype=float))
     order = np.argsort(-distribution, kind="stable")
     next_poses = [(int(x), float(distribution[x])) for x in order if distribution[x] > 0]
-    return Plan(match, policy, a, float(choice.value), float(table.p_topple[a]), push, next_poses, grasp)
+    near, _ = neighbour_mean(actions.points, actions.directions, table.p_topple, rows=[a])
+    return Plan(match, policy, a, float(choice.value), float(table.p_topple[a]), push, next_poses, grasp, float(near[0]))
