@@ -231,6 +231,24 @@ def play_trials(
 # ---------------------------------------------------------------- the experiment
 
 
+def open_trials(root: str | Path, n_trials: int, seed: int) -> tuple[Dataset, Config, PolicyTables, np.ndarray, dict]:
+    """The dataset at ``root``, its config and policy tables, ``n_trials`` dropped starts
+    (global pose rows, drawn from ``seed``) and, per object id, its (trial, pose) pairs:
+    what every physics study of the policies plays from (common random numbers)."""
+    try:
+        dataset = Dataset.open(root)
+    except DatasetUnreadable as err:
+        raise ExperimentError(str(err)) from None
+    tables = load_tables(dataset)
+    starts = draw_starts(tables, n_trials, stream(seed, "policies-physics/starts", -1, PURPOSE))
+    objects = np.searchsorted(tables.first_pose, starts, side="right") - 1
+    start_pose = starts - tables.first_pose[objects]
+    by_object: dict[str, list[tuple[int, int]]] = {}
+    for trial, (o, p) in enumerate(zip(objects, start_pose)):
+        by_object.setdefault(tables.object_ids[o], []).append((trial, int(p)))
+    return dataset, dataset_config(dataset), tables, starts, by_object
+
+
 def experiment(
     root: str | Path,
     n_trials: int,
@@ -251,18 +269,7 @@ def experiment(
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
-    try:
-        dataset = Dataset.open(root)
-    except DatasetUnreadable as err:
-        raise ExperimentError(str(err)) from None
-    config = dataset_config(dataset)
-    tables = load_tables(dataset)
-    starts = draw_starts(tables, n_trials, stream(seed, "policies-physics/starts", -1, PURPOSE))
-    objects = np.searchsorted(tables.first_pose, starts, side="right") - 1
-    start_pose = starts - tables.first_pose[objects]
-    by_object: dict[str, list[tuple[int, int]]] = {}
-    for trial, (o, p) in enumerate(zip(objects, start_pose)):
-        by_object.setdefault(tables.object_ids[o], []).append((trial, int(p)))
+    dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
     plans = object_plans(dataset, sorted(by_object))
 
     runs: dict[int, dict[str, PolicyRun]] = {}

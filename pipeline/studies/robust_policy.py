@@ -39,15 +39,15 @@ from pathlib import Path
 import numpy as np
 
 from schema import neighbourhood
-from schema.reader import Dataset, DatasetUnreadable
+from schema.reader import Dataset
 from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
 from ..model.config import Config
 from ..model.mdp import IMPROVEMENT
 from ..model.rng import stream
-from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, dataset_config, object_plans, world_config
-from .policy_experiment import best_pose_value, draw_starts, load_tables
+from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
+from .policy_experiment import best_pose_value
 from .pushsim import body_model, draw_noise, play_push
 
 ROBUST_POLICY = "smoothed_vi"
@@ -245,18 +245,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
-    try:
-        dataset = Dataset.open(root)
-    except DatasetUnreadable as err:
-        raise ExperimentError(str(err)) from None
-    config = dataset_config(dataset)
-    tables = load_tables(dataset)
-    starts = draw_starts(tables, n_trials, stream(seed, "policies-physics/starts", -1, PURPOSE))
-    objects = np.searchsorted(tables.first_pose, starts, side="right") - 1
-    start_pose = starts - tables.first_pose[objects]
-    by_object: dict[str, list[tuple[int, int]]] = {}
-    for trial, (o, p) in enumerate(zip(objects, start_pose)):
-        by_object.setdefault(tables.object_ids[o], []).append((trial, int(p)))
+    dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
     plans: dict[str, ObjectPlan] = object_plans(dataset, sorted(by_object))
     tasks = []
     for object_id in sorted(by_object):
