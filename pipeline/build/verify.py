@@ -44,36 +44,30 @@ def verify_dataset(root: str | Path) -> list[str]:
 
     expected_rows = {layout.OBJECTS_FILE: ("objects", len(entries)), layout.POSES_FILE: ("poses", counts.poses)}
     for name, (table, rows) in expected_rows.items():
-        entry = manifest.tables.get(name)
-        if entry is None:
-            problems.append(f"manifest: no entry for {name}")
-            continue
-        actual = file_sha256(root / name)
-        if not actual:
-            problems.append(f"{name}: missing")
-        elif actual != entry.sha256:
-            problems.append(f"{name}: sha256 {actual[:12]}... differs from the manifest's {entry.sha256[:12]}...")
-        else:
-            problems += shards.parquet_problems(root / name, name, tables.TABLES[table], rows)
+        problem = _checksum_problem(root, manifest, name)
+        problems += [problem] if problem else shards.parquet_problems(root / name, name, tables.TABLES[table], rows)
 
     problems += _served_problems(root, manifest)
     problems += _unexpected_files(root, set(entries))
     return problems
 
 
+def _checksum_problem(root: Path, manifest, name: str) -> str | None:
+    """Why the consolidated file ``name`` is not the one the manifest records, or None."""
+    entry = manifest.tables.get(name)
+    if entry is None:
+        return f"manifest: no entry for {name}"
+    actual = file_sha256(root / name)
+    if not actual:
+        return f"{name}: missing"
+    if actual != entry.sha256:
+        return f"{name}: sha256 {actual[:12]}... differs from the manifest's {entry.sha256[:12]}..."
+    return None
+
+
 def _served_problems(root: Path, manifest) -> list[str]:
     """The served tables: recorded in the manifest, same bytes, readable, rows as recorded."""
-    problems = []
-    for relative in served.FILES.values():
-        entry = manifest.tables.get(relative)
-        if entry is None:
-            problems.append(f"manifest: no entry for {relative}")
-            continue
-        actual = file_sha256(root / relative)
-        if not actual:
-            problems.append(f"{relative}: missing")
-        elif actual != entry.sha256:
-            problems.append(f"{relative}: sha256 {actual[:12]}... differs from the manifest's {entry.sha256[:12]}...")
+    problems = [p for p in (_checksum_problem(root, manifest, relative) for relative in served.FILES.values()) if p]
     if problems:
         return problems
     try:
