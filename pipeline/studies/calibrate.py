@@ -384,11 +384,26 @@ def calibrated_config(base: Config, chosen: dict[str, float]) -> Config:
     return base.with_overrides({f"topple.{k}": v for k, v in chosen.items()})
 
 
-def write_toml(path: str | Path, chosen: dict[str, float], comments: list[str]) -> None:
-    """A config TOML holding only the calibrated ``[topple]`` keys (everything else stays default)."""
+def write_toml(path: str | Path, topple: dict[str, float | tuple[float, ...]], comments: list[str]) -> None:
+    """A config TOML holding only the fitted ``[topple]`` keys (everything else stays default):
+    a number exactly (repr), a sequence (recalibration knots) as a list of 6 significant digits."""
+    def value(v) -> str:
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
+        return repr(float(v))
+
     lines = [f"# {c}" for c in comments] + ["", "[topple]"]
-    lines += [f"{key} = {float(value)!r}" for key, value in chosen.items()]
+    lines += [f"{key} = {value(v)}" for key, v in topple.items()]
     write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def write_outputs(out: str | Path, topple: dict, comments: list[str], record: str | Path, result: dict) -> None:
+    """The config TOML (checked by loading it, as ``toppledb dataset --config`` will) and the
+    JSON record of a calibration command; prints where they are."""
+    write_toml(out, topple, comments)
+    Config.from_toml(out)
+    write_text_atomic(record, json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
+    print(f"config: {out}\nrecord: {record} ({result['wall_s']} s)")
 
 
 def format_calibration(result: dict) -> str:
@@ -555,10 +570,7 @@ def main(argv: list[str] | None = None) -> int:
         comments.append("held-out log informative sup-TV ({v}): base {b:.3f}, calibrated {c:.3f}".format(
             v=args.variant, b=result["heldout"]["base"]["variants"][args.variant]["tv_informative"],
             c=result["heldout"]["calibrated"]["variants"][args.variant]["tv_informative"]))
-    write_toml(args.out, result["chosen"], comments)
-    Config.from_toml(args.out)  # what `toppledb dataset --config` will do with it
-    write_text_atomic(args.json, json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
-    print(f"config: {args.out}\nrecord: {args.json} ({result['wall_s']} s)")
+    write_outputs(args.out, result["chosen"], comments, args.json, result)
     return 0
 
 

@@ -16,20 +16,18 @@ log: ``toppledb report`` judges the result there.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ..build.atomic import write_text_atomic
 from ..model.config import Config
-from ..model.recalibration import METHODS, Knots, RecalibrationError, fit, fit_logistic, predict
-from .calibrate import CalibrationError, grouped_folds
+from ..model.recalibration import METHODS, RecalibrationError, fit, fit_logistic, predict
+from .calibrate import CalibrationError, grouped_folds, write_outputs
 from .logreader import LogError, PushLog, read_log
 from .scoring import Scorer
-from .validation import TOPPLES, average_precision, push_metrics, reliability, to_json
+from .validation import TOPPLES, average_precision, push_metrics, reliability
 
 SELECT_BY = "brier"
 """Held-out metric that chooses the method: the Brier score, a proper scoring rule, which
@@ -119,16 +117,6 @@ def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, s
     }
 
 
-def write_toml(path: str | Path, knots: Knots, comments: list[str]) -> None:
-    """A config TOML holding only the ``[topple]`` recalibration knots (everything else stays default)."""
-    def numbers(values) -> str:
-        return "[" + ", ".join(f"{v:.6g}" for v in values) + "]"
-
-    lines = [f"# {c}" for c in comments]
-    lines += ["", "[topple]", f"recalibration_x = {numbers(knots.x)}", f"recalibration_y = {numbers(knots.y)}"]
-    write_text_atomic(path, "\n".join(lines) + "\n")
-
-
 def format_record(result: dict) -> str:
     cv = result["cross_validated"]
     lines = [(f"{result['pushes']} pushes on {result['objects']} objects ({result['pushes_fitted']} with P(topple) > 0 are fitted); "
@@ -180,10 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     ]
     if args.config:
         comments.append(f"base model: {args.config} (its other parameters are not written here)")
-    write_toml(args.out, Knots(tuple(result["knots"]["x"]), tuple(result["knots"]["y"])), comments)
-    Config.from_toml(args.out)  # what `toppledb dataset --config` will do with it
-    write_text_atomic(args.json, json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
-    print(f"config: {args.out}\nrecord: {args.json} ({result['wall_s']} s)")
+    knots = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"])}
+    write_outputs(args.out, knots, comments, args.json, result)
     return 0
 
 
