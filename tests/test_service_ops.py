@@ -114,6 +114,11 @@ def start(args: list[str], env: dict | None = None) -> tuple[subprocess.Popen, s
     return process, url
 
 
+def two_workers(process: subprocess.Popen) -> list:
+    """The two worker processes of a ``--workers 2`` server, once both are forked (psutil)."""
+    return wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+
+
 def stop(process: subprocess.Popen) -> tuple[str, str]:
     """SIGINT the server; then SIGKILL its whole process group (workers too) if it lingers."""
     process.send_signal(signal.SIGINT)
@@ -180,7 +185,7 @@ def test_two_forked_workers_serve_and_a_dead_one_is_replaced(dataset):
         [sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0", "--request-timeout", "3"]
     )
     try:
-        workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+        workers = two_workers(process)
         assert httpx.get(f"{url}/health").json()["counts"]["objects"] == 3
         pids = set()
         for _ in range(40):  # a new connection each time: the kernel spreads them over the workers
@@ -307,7 +312,7 @@ def test_a_stop_during_a_workers_restart_pause_starts_no_new_worker(dataset):
     # the server must stop (not fork a worker that nobody will signal, and wait for it forever).
     process, _ = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0"])
     try:
-        workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+        workers = two_workers(process)
         workers[0].kill()
         wait_for(lambda: workers[0].pid not in {c.pid for c in psutil.Process(process.pid).children()}, "the dead worker reaped")
         process.send_signal(signal.SIGTERM)  # within the restart pause
@@ -332,7 +337,7 @@ def test_a_replacement_worker_serves_the_build_the_others_reloaded(dataset, tmp_
         return {info.split('pid="')[1].split('"')[0]: info.split('created="')[1].split('"')[0]}
 
     try:
-        workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+        workers = two_workers(process)
         rebuilt(copy, "2033-01-01T00:00:00+00:00")
         process.send_signal(signal.SIGHUP)
         seen: dict[str, str] = {}
@@ -355,7 +360,7 @@ def test_a_sighup_while_a_worker_starts_does_not_kill_it(dataset):
     # worker is still starting up must not terminate it (SIGHUP's default action).
     process, _ = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0"])
     try:
-        workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+        workers = two_workers(process)
         workers[0].kill()
         deadline = time.monotonic() + 3.0  # the restart pause, then the replacement's start-up
         while time.monotonic() < deadline:
