@@ -19,6 +19,7 @@ from types import SimpleNamespace
 
 from schema.api import PlanRequest
 
+from .guard import replay
 from .planning import answer_json, plan
 from .settings import Settings
 from .store import LiveStore
@@ -44,29 +45,15 @@ class FastPlan:
         message = await receive()
         body = message.get("body", b"")
         if message["type"] != "http.request" or message.get("more_body", False):
-            await self.app(scope, _replay(message, receive), send)  # the guard hands bodies over whole; this is not one
+            await self.app(scope, replay(message, receive), send)  # the guard hands bodies over whole; this is not one
             return
         try:
             request = PlanRequest.model_validate_json(body)
             answer = answer_json(plan(self.live.store, request, self.settings))
         except Exception:  # noqa: BLE001 (every failure is the FastAPI route's to answer, bugs included)
-            await self.app(scope, _replay(message, receive), send)
+            await self.app(scope, replay(message, receive), send)
             return
         scope["route"] = ROUTE
         await send({"type": "http.response.start", "status": 200,
                     "headers": [*HEADERS, (b"content-length", str(len(answer)).encode())]})
         await send({"type": "http.response.body", "body": answer})
-
-
-def _replay(message: dict, receive):
-    """A ``receive`` that first hands back ``message`` (already taken from ``receive``)."""
-    delivered = False
-
-    async def replay():
-        nonlocal delivered
-        if not delivered:
-            delivered = True
-            return message
-        return await receive()
-
-    return replay

@@ -42,6 +42,21 @@ def _error(status: int, detail: str, headers: list[tuple[bytes, bytes]] = ()) ->
     return start, {"type": "http.response.body", "body": body}
 
 
+def replay(message: dict, receive):
+    """A ``receive`` that first hands back ``message`` (a body already read), then defers to
+    ``receive`` (disconnects)."""
+    delivered = False
+
+    async def replayed():
+        nonlocal delivered
+        if not delivered:
+            delivered = True
+            return message
+        return await receive()
+
+    return replayed
+
+
 def is_json(content_type: bytes) -> bool:
     """application/json or application/<x>+json, parameters (charset) allowed."""
     media = content_type.split(b";", 1)[0].strip().lower()
@@ -111,17 +126,8 @@ class Guard:
             chunks.append(chunk)
             if not message.get("more_body", False):
                 break
-        body = b"".join(chunks)
-        delivered = False
-
-        async def replay():
-            nonlocal delivered
-            if not delivered:
-                delivered = True
-                return {"type": "http.request", "body": body, "more_body": False}
-            return await receive()
-
-        await self.app(scope, replay, send)
+        whole = {"type": "http.request", "body": b"".join(chunks), "more_body": False}
+        await self.app(scope, replay(whole, receive), send)
 
     @staticmethod
     async def _reply(send, status: int, detail: str, headers=()) -> None:
