@@ -6,13 +6,24 @@
 for callers is docs/SERVICE.md.  Modules: ``app`` (factory, health, metrics, docs, OpenAPI),
 ``routers`` (thin routes), ``planning`` (plans from observed poses), ``batches`` and ``lane``
 (batch bodies off the event loop), ``guard`` (token, body limits, content type, metrics),
-``store`` (the dataset in memory, hot swap), ``settings``, ``server`` (uvicorn with
+``store`` (the dataset in memory, hot swap), ``runtime`` (what a worker serves, its life
+and /health), ``staged`` (``python -m service``'s app: the control path first, FastAPI
+after), ``handlers`` (errors as JSON), ``settings``, ``server`` (uvicorn with
 connection limits), ``client`` (typed Python client), ``bench`` (make bench-service).
 The service imports numpy, pyarrow and FastAPI only, never the geometry stack (trimesh,
 fcl, embreex, scipy).
 """
 
-from .app import create_app
 from .store import DatasetError, Store
 
 __all__ = ["DatasetError", "Store", "create_app"]
+
+
+def __getattr__(name: str):
+    # FastAPI is imported on first use of ``create_app``, not with the package:
+    # ``python -m service`` answers /health and /plan before it has imported FastAPI.
+    if name == "create_app":
+        from .app import create_app
+
+        return create_app
+    raise AttributeError(f"module 'service' has no attribute {name!r}")

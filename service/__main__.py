@@ -43,9 +43,10 @@ def main(argv: list[str] | None = None) -> int:
     # Arrow's default pool (mimalloc) keeps ~120 MB of the load's transient buffers for
     # the life of the process; the system allocator gives them back.
     pa.set_memory_pool(pa.system_memory_pool())
-    from .app import create_app
+    from .runtime import Runtime
     from .server import run
     from .settings import Settings
+    from .staged import StagedApp
     from .store import DatasetError
 
     try:
@@ -53,18 +54,18 @@ def main(argv: list[str] | None = None) -> int:
             dataset=args.dataset, token=args.token, max_body_bytes=args.max_body_bytes, height_tolerance=args.height_tolerance,
             finger_force_limit=args.finger_force_limit, frame_id=args.frame_id, watch_seconds=args.watch_seconds,
         )
-        app = create_app(settings=settings)  # once: several workers are forked from this process
+        runtime = Runtime.open(settings)  # once: several workers are forked from this process
     except (DatasetError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    store = app.state.live.store
+    store = runtime.live.store
     print(
         f"toppledb: {store.counts['objects']} objects, {store.counts['poses']} poses, "
         f"{store.counts['actions']} actions loaded from {settings.dataset} in {store.load_seconds:.2f} s",
         file=sys.stderr,
     )
     run(
-        app, args.host, args.port, workers=args.workers, log_level=args.log_level, access_log=args.access_log,
+        StagedApp(runtime), args.host, args.port, workers=args.workers, log_level=args.log_level, access_log=args.access_log,
         limit_concurrency=args.limit_concurrency, timeout_keep_alive=args.timeout_keep_alive,
         request_timeout=args.request_timeout,
     )

@@ -13,12 +13,9 @@ Settings come from arguments, else ``TOPPLEDB_*`` environment variables
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import dataclasses
-import logging
 import math
-import signal
 from pathlib import Path
 
 import numpy as np
@@ -28,20 +25,17 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 
-from schema.api import Counts, DatasetIdentity, ErrorBody, Health, PlanBatch, TransitionBatch
+from schema.api import ErrorBody, Health, PlanBatch, TransitionBatch
 from schema.version import CODE_VERSION
 
-from . import errors
-from .dependencies import LiveDep
+from . import handlers
 from .fastplan import FastPlan
 from .guard import OPEN_PATHS, Guard
-from .lane import Lane
-from .metrics import CONTENT_TYPE, Metrics
+from .metrics import CONTENT_TYPE
 from .routers import heaps, objects, plan
+from .runtime import Runtime
 from .settings import Settings
-from .store import LiveStore, Store
-
-log = logging.getLogger("service")
+from .store import Store
 
 DESCRIPTION = """\
 Read-only queries over a toppledb dataset: objects, stable poses, candidate pushes and
@@ -81,72 +75,51 @@ def create_app(dataset_dir: str | Path | None = None, settings: Settings | None 
     settings = settings or Settings.from_env()
     if dataset_dir is not None:
         settings = dataclasses.replace(settings, dataset=Path(dataset_dir))
-    live = LiveStore(Store.load(settings.dataset))
-    metrics = Metrics()
-    lane = Lane()
+    runtime = Runtime.open(settings)
+    app = build_api(runtime)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
-        # Per worker: forked workers (service.server.serve_forked) report their own pid.
-        metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
-        if live.changed():  # forked to replace a dead worker after the others swapped in a rebuild
-            await reload_dataset(app)
-        watcher = asyncio.create_task(_watch(app)) if settings.watch_seconds > 0 else None
-        loop = asyncio.get_running_loop()
-        hup = False
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError, AttributeError):
-            loop.add_signal_handler(signal.SIGHUP, lambda: asyncio.ensure_future(reload_dataset(app, force=True)))
-            hup = True
-        try:
+        async with runtime.serving():
             yield
-        finally:
-            if watcher is not None:
-                watcher.cancel()
-            if hup:
-                loop.remove_signal_handler(signal.SIGHUP)
-            lane.close()
 
+    app.router.lifespan_context = lifespan
+    app.add_middleware(FastPlan, live=runtime.live, settings=settings)  # inside the guard: after its checks
+    app.add_middleware(Guard, metrics=runtime.metrics, token=settings.token, max_body_bytes=settings.max_body_bytes)
+    return app
+
+
+def build_api(runtime: Runtime) -> FastAPI:
+    """The FastAPI app over ``runtime``: routes, error handlers, /docs, the OpenAPI document.
+
+    Without the guard, the fast /plan path and a lifespan: ``create_app`` adds those, and
+    ``service.staged`` runs this app behind its own.
+    """
     assets = _docs_assets()
     app = FastAPI(
-        title="toppledb", version=CODE_VERSION, description=DESCRIPTION, lifespan=lifespan, docs_url=None, redoc_url=None,
+        title="toppledb", version=CODE_VERSION, description=DESCRIPTION, docs_url=None, redoc_url=None,
         # /metrics is the service's telemetry; FastAPI's OpenTelemetry hooks would check their
         # providers on every request (about 25 us of a /plan's CPU) to find nothing configured.
         telemetry={"tracing": False, "metrics": False, "logs": False},
     )
-    app.state.live = live
-    app.state.settings = settings
-    app.state.metrics = metrics
-    app.state.lane = lane
-    metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
-    errors.install(app)
+    app.state.live = runtime.live
+    app.state.settings = runtime.settings
+    app.state.metrics = runtime.metrics
+    app.state.lane = runtime.lane
+    runtime.on_swap.append(lambda: setattr(app, "openapi_schema", None))  # its examples name the served objects
+    handlers.install(app)
     # /plan first: the control path's route is matched before the others are tried.
     app.include_router(plan.router)
     app.include_router(objects.router)
     app.include_router(objects.batch)
     app.include_router(plan.batch)
     app.include_router(heaps.router)
-    app.add_middleware(FastPlan, live=live, settings=settings)  # inside the guard: after its checks
-    app.add_middleware(Guard, metrics=metrics, token=settings.token, max_body_bytes=settings.max_body_bytes)
 
     @app.get("/health", response_model=Health, tags=["service"], summary="Liveness and which build is served")
-    async def health(live: LiveDep) -> Health:
-        store = live.store
-        return Health(
-            status="ok",
-            schema_version=store.schema_version,
-            service_version=CODE_VERSION,
-            dataset=DatasetIdentity(
-                path=str(store.root),
-                manifest_sha256=store.manifest_sha256,
-                created=store.manifest.created,
-                code_version=store.code_version,
-                parameters_sha256=store.parameters_sha256,
-                loaded_at=store.loaded_at,
-            ),
-            counts=Counts(**store.counts),
-            load_seconds=round(store.load_seconds, 3),
-            reloads=live.reloads,
-        )
+    async def health() -> Response:
+        return Response(runtime.health().model_dump_json(), media_type="application/json")
+
+    metrics = runtime.metrics
 
     @app.get(
         "/metrics", tags=["service"], summary="Prometheus metrics of this worker",
@@ -177,29 +150,6 @@ def create_app(dataset_dir: str | Path | None = None, settings: Settings | None 
 
     app.openapi = lambda: _openapi(app)
     return app
-
-
-async def reload_dataset(app: FastAPI, force: bool = False) -> bool:
-    """Swap in a rebuilt dataset (in a thread: loading takes seconds); True when swapped."""
-    live: LiveStore = app.state.live
-    swapped = await asyncio.to_thread(live.reload, force)
-    if swapped:
-        app.openapi_schema = None  # its examples name the served objects
-        app.state.metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
-        app.state.metrics.reloads.inc()
-    return swapped
-
-
-async def _watch(app: FastAPI) -> None:
-    """Check manifest.json every ``watch_seconds``; reload when it changed."""
-    live: LiveStore = app.state.live
-    while True:
-        await asyncio.sleep(app.state.settings.watch_seconds)
-        try:
-            if live.changed():
-                await reload_dataset(app)
-        except Exception:
-            log.exception("dataset watcher: reload failed")
 
 
 def _example_pose(transform: np.ndarray) -> list[list[float]]:

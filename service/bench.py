@@ -10,7 +10,9 @@ Bodies are real observations: each object's stable poses (GET /objects/{id}/pose
 at random yaws and positions (seeded).  Every phase is bounded in time (``--seconds``).
 
 Phases and keys of the JSON line:
-- start-up: ``startup_s`` from launching ``python -m service`` to the first answered /health,
+- start-up: ``startup_s`` from launching ``python -m service`` to the first answered /health
+  (the control path, /health and POST /plan, is served from then on: ``service.staged``),
+  ``api_s`` to the first answered GET /objects (the whole API, once FastAPI is built),
   ``ready_s`` until every worker has started (the server's processes idle); the load starts then;
   ``memory``: resident and proportional memory of the serving processes after the load
   (each worker, and its batch process, which shares the dataset copy-on-write).
@@ -327,7 +329,8 @@ def main(argv: list[str] | None = None) -> int:
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
     )
     try:
-        startup = _wait_for_health(port, server, launched)
+        startup = _wait_for("/health", port, server, launched)
+        api = _wait_for("/objects", port, server, launched)
         ready = _wait_until_idle(server.pid, launched)  # the other workers may still be starting
         try:
             import uvloop
@@ -339,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
         memory = memory_mb(server.pid)
     finally:
         stop_group(server)
-    line = {"dataset": str(dataset), "workers": args.workers, "startup_s": round(startup, 3), "ready_s": round(ready, 3), **result,
+    line = {"dataset": str(dataset), "workers": args.workers, "startup_s": round(startup, 3), "api_s": round(api, 3), "ready_s": round(ready, 3), **result,
             "memory": memory, "load_average": round(load_average, 2)}
     print(json.dumps(line))
     return 0 if result["errors"] == 0 else 1
@@ -392,9 +395,9 @@ def _wait_until_idle(pid: int, launched: float, window: float = 0.3, timeout: fl
     return time.perf_counter() - launched
 
 
-def _wait_for_health(port: int, server: subprocess.Popen, launched: float, timeout: float = 120.0) -> float:
-    """s from launch to the first 200 on /health."""
-    raw = get("/health")
+def _wait_for(path: str, port: int, server: subprocess.Popen, launched: float, timeout: float = 120.0) -> float:
+    """s from launch to the first 200 on GET ``path``."""
+    raw = get(path)
     while time.perf_counter() - launched < timeout:
         if server.poll() is not None:
             raise SystemExit(f"bench-service: the server exited: {server.stderr.read().decode()[-2000:]}")
@@ -406,7 +409,7 @@ def _wait_for_health(port: int, server: subprocess.Popen, launched: float, timeo
         except OSError:
             pass
         time.sleep(0.01)
-    raise SystemExit("bench-service: no answer from /health in 120 s")
+    raise SystemExit(f"bench-service: no answer from {path} in {timeout:.0f} s")
 
 
 if __name__ == "__main__":

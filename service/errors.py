@@ -5,20 +5,15 @@ client needs one code path: 401 a missing or wrong bearer token, 404 unknown ids
 observed pose that is no stable pose or not on the table (``reason`` says which), 413 a body
 over the limit, 415 a body that is not JSON, 422 malformed input (with ``errors``, one entry
 per problem), 500 a bug (its traceback logged, at most ``TRACEBACKS_PER_MINUTE`` a minute).
+
+Framework-free, so the planning code and the early control path (``service.staged``) import
+it without FastAPI; ``service.handlers`` turns these errors into FastAPI's responses.
 """
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
-
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
-from starlette.exceptions import HTTPException as StarletteHTTPException
-
-log = logging.getLogger("service")
 
 
 class ServiceError(Exception):
@@ -96,7 +91,7 @@ class RateLimit:
             return False, 0
 
 
-_tracebacks = RateLimit(TRACEBACKS_PER_MINUTE)
+tracebacks = RateLimit(TRACEBACKS_PER_MINUTE)
 
 
 def validation_body(errors: list[dict]) -> dict:
@@ -115,38 +110,3 @@ def validation_body(errors: list[dict]) -> dict:
 
 def _location(loc) -> str:
     return ".".join(str(part) for part in loc)
-
-
-async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
-    return JSONResponse(exc.body(), status_code=exc.status_code)
-
-
-async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    return JSONResponse(validation_body(list(exc.errors())), status_code=422)
-
-
-FASTAPI_PARSE_ERROR = "There was an error parsing the body"
-"""FastAPI's 400 for a JSON body it cannot decode (not UTF-8); served as the 422 every other malformed JSON gets."""
-
-
-async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-    if exc.status_code == 400 and exc.detail == FASTAPI_PARSE_ERROR:
-        return JSONResponse(validation_body([{"loc": ("body",), "msg": "JSON decode error (not UTF-8 text)", "type": "json_invalid"}]),
-                            status_code=422)
-    return JSONResponse({"detail": str(exc.detail)}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
-
-
-async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
-    allowed, suppressed = _tracebacks.allow()
-    if allowed:
-        more = f" ({suppressed} more since the last one logged)" if suppressed else ""
-        log.error("unhandled error on %s %s%s", request.method, request.url.path, more, exc_info=exc)
-    return JSONResponse({"detail": "internal error (logged by the service)"}, status_code=500)
-
-
-def install(app: FastAPI) -> None:
-    """Register the JSON error handlers on ``app``."""
-    app.add_exception_handler(ServiceError, _service_error)
-    app.add_exception_handler(RequestValidationError, _validation_error)
-    app.add_exception_handler(StarletteHTTPException, _http_error)
-    app.add_exception_handler(Exception, _unexpected_error)

@@ -1,0 +1,107 @@
+"""What a worker serves, apart from the HTTP framework: the live dataset, the settings, the
+metrics and the batch lane; their life (watching for a rebuild, SIGHUP) and /health's answer.
+
+Both ways of serving stand on one ``Runtime``: ``service.app.create_app`` (the FastAPI app,
+for tests, ``uvicorn --factory`` and gunicorn) and ``service.staged`` (``python -m service``,
+whose control path answers before FastAPI is imported).  Imports no web framework.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from schema.api import Counts, DatasetIdentity, Health
+from schema.version import CODE_VERSION
+
+from .lane import Lane
+from .metrics import Metrics
+from .settings import Settings
+from .store import LiveStore, Store
+
+log = logging.getLogger("service")
+
+
+@dataclass
+class Runtime:
+    settings: Settings
+    live: LiveStore
+    metrics: Metrics
+    lane: Lane
+    on_swap: list[Callable[[], None]] = field(default_factory=list)
+    """Called after a rebuilt dataset is swapped in (the OpenAPI document names served objects)."""
+
+    @classmethod
+    def open(cls, settings: Settings) -> Runtime:
+        """Map the dataset ``settings.dataset``; raises ``service.DatasetError`` if it is not one."""
+        live = LiveStore(Store.load(settings.dataset))
+        runtime = cls(settings, live, Metrics(), Lane())
+        runtime.metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
+        return runtime
+
+    def health(self) -> Health:
+        """/health's answer: liveness and which build this worker serves."""
+        store = self.live.store
+        return Health(
+            status="ok",
+            schema_version=store.schema_version,
+            service_version=CODE_VERSION,
+            dataset=DatasetIdentity(
+                path=str(store.root),
+                manifest_sha256=store.manifest_sha256,
+                created=store.manifest.created,
+                code_version=store.code_version,
+                parameters_sha256=store.parameters_sha256,
+                loaded_at=store.loaded_at,
+            ),
+            counts=Counts(**store.counts),
+            load_seconds=round(store.load_seconds, 3),
+            reloads=self.live.reloads,
+        )
+
+    async def reload(self, force: bool = False) -> bool:
+        """Swap in a rebuilt dataset (in a thread: loading takes seconds); True when swapped."""
+        swapped = await asyncio.to_thread(self.live.reload, force)
+        if swapped:
+            for callback in self.on_swap:
+                callback()
+            self.metrics.serving(self.live.store.manifest_sha256, self.live.store.manifest.created)
+            self.metrics.reloads.inc()
+        return swapped
+
+    async def _watch(self) -> None:
+        """Check manifest.json every ``watch_seconds``; reload when it changed."""
+        while True:
+            await asyncio.sleep(self.settings.watch_seconds)
+            try:
+                if self.live.changed():
+                    await self.reload()
+            except Exception:
+                log.exception("dataset watcher: reload failed")
+
+    @contextlib.asynccontextmanager
+    async def serving(self):
+        """A worker's life on its event loop (the app's lifespan): the watcher, the SIGHUP
+        handler, and the batch lane closed at the end."""
+        # Per worker: forked workers (service.server.serve_forked) report their own pid.
+        self.metrics.serving(self.live.store.manifest_sha256, self.live.store.manifest.created)
+        if self.live.changed():  # forked to replace a dead worker after the others swapped in a rebuild
+            await self.reload()
+        watcher = asyncio.create_task(self._watch()) if self.settings.watch_seconds > 0 else None
+        loop = asyncio.get_running_loop()
+        hup = False
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError, AttributeError):
+            loop.add_signal_handler(signal.SIGHUP, lambda: asyncio.ensure_future(self.reload(force=True)))
+            hup = True
+        try:
+            yield
+        finally:
+            if watcher is not None:
+                watcher.cancel()
+            if hup:
+                loop.remove_signal_handler(signal.SIGHUP)
+            self.lane.close()
