@@ -65,7 +65,7 @@ class StagedApp:
             return
         try:
             api = self.api or await self.ready()
-        except Exception:  # logged once by _build
+        except Exception:  # noqa: BLE001 (any failure to build: logged once by _build)
             body = b'{"detail":"the service\'s API failed to start (logged by the service); only /health and /plan are served"}'
             await send({"type": "http.response.start", "status": 500,
                         "headers": [*JSON, (b"content-length", str(len(body)).encode())]})
