@@ -26,6 +26,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
+from schema.horizon import MAX_PUSHES_LEFT
 from schema.vocabulary import PolicyName, StatusName
 
 MAX_BATCH = 1000
@@ -380,11 +381,19 @@ class PlanRequest(Model):
         "give this or pose"
     )
     policy: Policy = "value_iteration"
+    pushes_left: int = Field(
+        None, ge=1, le=MAX_PUSHES_LEFT,
+        description="The most pushes the robot will still make before it grasps, this one included. Given, the push "
+        "is value iteration's for that budget (finite horizon, no discount: schema/horizon.py), which prefers a "
+        "likely topple to a long shot; only with policy value_iteration. Absent: the thesis's value iteration",
+    )
 
     @model_validator(mode="after")
     def _one_pose(self) -> PlanRequest:
         if (self.pose is None) == (self.ros_pose is None):
             raise ValueError("give exactly one of pose (a 4x4 matrix) and ros_pose (position, orientation, frame_id)")
+        if self.pushes_left is not None and self.policy != "value_iteration":
+            raise ValueError(f"pushes_left plans by value iteration for a budget; it cannot be combined with policy {self.policy}")
         return self
 
     def observed(self) -> np.ndarray:
@@ -439,6 +448,7 @@ class PlanResponse(Model):
 
     object_id: str
     policy: Policy
+    pushes_left: int | None = Field(description="The request's budget (the push is chosen for it); null when none was given")
     frame_id: str = Field(description="Frame of every world quantity here (the table frame, z up, table z = 0)")
     match: PoseMatch
     decision: Decision = Field(description="push, grasp (now, at grasp) or no_grasp (no push and no grasp: V_s = 0)")
@@ -451,6 +461,10 @@ class PlanResponse(Model):
     )
     expected_v_s_after: float | None = Field(
         description="Expected V_s of the next pose after the push, sum_x' P(x' | pose, action) V_s(x'); null when no push"
+    )
+    expected_v_s_final: float | None = Field(
+        description="With pushes_left: the expected V_s when the budget is spent, pushing as value iteration for the "
+        "budget does and grasping then; null without pushes_left or when no push"
     )
     p_topple: float | None = Field(description="P(next pose != pose) of the push; null when no push")
     p_topple_neighbourhood: float | None = Field(

@@ -103,8 +103,15 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
 
     grasp = world_grasp(obj, pose, pose_to_world)
     v_s = float(obj.v_s[pose])
-    action = int(obj.policy_action[request.policy][pose])
-    push = p_topple = p_near = q_value = after = None
+    final = None
+    if request.pushes_left is None:
+        action = int(obj.policy_action[request.policy][pose])
+        p_near = float(obj.policy_p_topple_neighbourhood[request.policy][pose])
+    else:
+        actions, values, near = obj.budget(request.pushes_left)
+        action, p_near = int(actions[pose]), float(near[pose])
+        final = None if action == NO_OP else float(values[pose])
+    push = p_topple = q_value = after = None
     outcomes: list[dict] = []
     if action != NO_OP:
         row = obj.row(pose, action)
@@ -123,15 +130,18 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         }
         p_topple = optional(values[10])
         # float32 storage: a mean of stored 0.76s is 0.7639999986; six decimals are all it holds.
-        p_near = optional(round(float(obj.policy_p_topple_neighbourhood[request.policy][pose]), 6))
+        p_near = optional(round(p_near, 6))
         q_value = optional(obj.q[row])
         after = optional(obj.greedy[row])
         outcomes = next_poses(obj, row)
 
-    decision, reason = _decision(request.policy, action, v_s, grasp, p_topple, p_near, after, push)
+    if action == NO_OP:
+        p_near = None
+    decision, reason = _decision(request.policy, request.pushes_left, action, v_s, grasp, p_topple, p_near, after, push)
     return {
         "object_id": obj.object_id,
         "policy": request.policy,
+        "pushes_left": request.pushes_left,
         "frame_id": settings.frame_id,
         "match": {
             "pose": pose,
@@ -151,6 +161,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         "v_t": float(obj.v_t[pose]),
         "q_value": q_value,
         "expected_v_s_after": after,
+        "expected_v_s_final": final,
         "p_topple": p_topple,
         "p_topple_neighbourhood": p_near,
         "push": push,
@@ -159,8 +170,10 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
     }
 
 
-def _decision(policy, action, v_s, grasp, p_topple, p_near, after, push) -> tuple[str, str]:
+def _decision(policy, pushes_left, action, v_s, grasp, p_topple, p_near, after, push) -> tuple[str, str]:
     """(decision, one-sentence reason) for the response."""
+    if pushes_left is not None:
+        policy = f"{policy} for {pushes_left} push{'es' if pushes_left > 1 else ''}"
     if action != NO_OP:
         force = ""
         if push is not None and push["within_force_limit"] is False:

@@ -11,6 +11,7 @@ more than everything else together; a robot controller waiting for the service n
   (their 404/409/422 come from the FastAPI route), /docs, /openapi.json — is passed to the
   FastAPI app (``service.app.build_api``), which a thread builds from the worker's start.
   A request that arrives before it is ready waits for it (about half a second at most).
+  Another thread then solves every object's push budgets (``Store.solve_budgets``).
 
 ``create_app`` serves the same routes with the same answers from one FastAPI app (tests,
 ``uvicorn --factory``, gunicorn); tests/test_service_staged.py holds the two to the same
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
 from types import SimpleNamespace
 
@@ -95,6 +97,8 @@ class StagedApp:
             raise
         log.info("the full API is served (FastAPI built in %.2f s)", time.perf_counter() - started)
         self.api = api
+        # Then, in a thread of its own (the waiting requests go on at once): no /plan with pushes_left pays it.
+        threading.Thread(target=self.runtime.live.store.solve_budgets, name="budgets", daemon=True).start()
         return api
 
     async def _lifespan(self, receive, send) -> None:

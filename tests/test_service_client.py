@@ -44,6 +44,9 @@ def test_typed_answers_equal_the_json(typed, client, tables):
     batch = typed.plan_batch([plan_item(object_id, pose=observed), plan_item("mug", pose=np.eye(4))])
     assert batch.results[0].result == answer and batch.results[1].error.status == 404
     assert typed.transitions([(object_id, pose, answer.action)]).results[0].result.action == answer.action
+    budget = typed.plan(object_id, pose=observed, pushes_left=2)
+    assert budget.pushes_left == 2
+    assert budget.model_dump(mode="json") == client.post("/plan", json=plan_item(object_id, pose=observed, pushes_left=2)).json()
 
 
 def test_errors_are_exceptions_by_status_and_reason(typed, tables):

@@ -49,6 +49,8 @@ def requests(tables) -> list[bytes]:
         for policy in ("value_iteration", "greedy", "max_height"):
             for matrix in (observed, tilt, lifted):
                 bodies.append(json.dumps({"object_id": object_id, "pose": matrix.tolist(), "policy": policy}).encode())
+        for budget in (1, 3):
+            bodies.append(json.dumps({"object_id": object_id, "pose": observed.tolist(), "pushes_left": budget}).encode())
         rotation = observed[:3, :3]
         if np.trace(rotation) > -0.9:
             x, y, z, w = quaternion(rotation)

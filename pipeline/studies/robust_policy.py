@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schema import neighbourhood
+from schema import horizon, neighbourhood
 from schema.reader import Dataset
 from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
@@ -52,8 +52,10 @@ from .pushsim import body_model, draw_noise, play_push
 
 ROBUST_POLICY = "smoothed_vi"
 """Name of the robust policy (a fourth ``<name>_action`` column if the contract adopts it)."""
-COMPARED = ("max_height", "value_iteration", ROBUST_POLICY)
-"""Policies the study plays, in push-id order."""
+HORIZON_POLICY = "horizon_vi"
+"""Value iteration solved for the experiment's push budget (``horizon_actions``)."""
+COMPARED = ("max_height", "value_iteration", ROBUST_POLICY, HORIZON_POLICY)
+"""Policies the study plays (common random numbers: adding one changes no other's pushes)."""
 
 
 @dataclass(frozen=True)
@@ -159,6 +161,23 @@ def robust_actions(v_s: np.ndarray, scores: list[PoseScores], gamma: float, smoo
                      for x, s in enumerate(scores)], dtype=np.int64)
 
 
+def horizon_actions(dataset: Dataset, object_id: str, v_s: np.ndarray, n_actions: list[int], pushes: int) -> np.ndarray:
+    """(pushes, P) int: ``horizon_vi``'s push per pose with ``pushes - k`` pushes left (row k).
+
+    ``schema.horizon.budget_choices`` (finite-horizon value iteration, as ``/plan`` serves it
+    for ``pushes_left``) over the object's transitions table; n_actions : each pose's count.
+    """
+    table = dataset.object_rows("transitions", object_id, columns=["pose", "action", "next_pose", "probability"])
+    pose, action, next_pose, probability = (table[name].to_numpy(zero_copy_only=False)
+                                            for name in ("pose", "action", "next_pose", "probability"))
+    action_offsets = np.concatenate([[0], np.cumsum(n_actions)])
+    rows = action_offsets[pose] + action
+    order = np.argsort(rows, kind="stable")
+    transition_offsets = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=int(action_offsets[-1])))])
+    actions, _ = horizon.budget_choices(v_s, action_offsets, transition_offsets, next_pose[order], probability[order], pushes)
+    return actions[::-1]  # row k: pushes - k left, the order the pushes are played in
+
+
 # ---------------------------------------------------------------- physics
 
 
@@ -210,8 +229,9 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
         for policy in COMPARED:
             poses = [start]
             pose, transform = start, plan.transforms[start]
+            choice = plan.actions[policy]
             for step in range(max_pushes):
-                action = int(plan.actions[policy][pose])
+                action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # horizon_vi: per pushes left
                 if action == NO_OP:
                     break
                 c, s = candidates[pose], scores[pose]
@@ -253,6 +273,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         candidates = read_candidates(dataset, object_id)
         scores = [pose_scores(c, smoothing) for c in candidates]
         plan.actions[ROBUST_POLICY] = robust_actions(plan.v_s, scores, config.mdp.gamma, smoothing)
+        plan.actions[HORIZON_POLICY] = horizon_actions(dataset, object_id, plan.v_s, [len(c.q) for c in candidates], max_pushes)
         tasks.append((plan, {"candidates": candidates, "scores": scores}, by_object[object_id], config, seed, max_pushes, world))
 
     runs: dict[int, dict[str, list[int]]] = {}
@@ -296,8 +317,9 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
             "physical_topple_rate": _mean_se([p.toppled for p in mine])[0],
             "physical_topple_rate_se": _mean_se([p.toppled for p in mine])[1],
         }
-    mean, error = _mean_se(gains[ROBUST_POLICY][useful] - gains["value_iteration"][useful])
-    report["policies"][ROBUST_POLICY].update({"gain_over_value_iteration": mean, "gain_over_value_iteration_se": error})
+    for policy in (ROBUST_POLICY, HORIZON_POLICY):
+        mean, error = _mean_se(gains[policy][useful] - gains["value_iteration"][useful])
+        report["policies"][policy].update({"gain_over_value_iteration": mean, "gain_over_value_iteration_se": error})
     return report
 
 
@@ -314,9 +336,10 @@ def text(report: dict) -> str:
                      f"{cell(r['gain_over_max_height']) + ('' if se is None else f' +/- {se:.3f}'):>18} {r['pushes']:>7} "
                      f"{cell(r['predicted_topple_rate'], False):>6} {cell(r['smoothed_topple_rate'], False):>8} "
                      f"{cell(r['physical_topple_rate'], False):>8}")
-    r = report["policies"][ROBUST_POLICY]
-    lines.append(f"{ROBUST_POLICY} - value_iteration on useful trials: {cell(r['gain_over_value_iteration'])} +/- "
-                 f"{r['gain_over_value_iteration_se'] or 0:.3f}")
+    for policy in (ROBUST_POLICY, HORIZON_POLICY):
+        r = report["policies"][policy]
+        lines.append(f"{policy} - value_iteration on useful trials: {cell(r['gain_over_value_iteration'])} +/- "
+                     f"{r['gain_over_value_iteration_se'] or 0:.3f}")
     return "\n".join(lines)
 
 

@@ -1,0 +1,85 @@
+"""Pushes for a budget (schema.horizon): hand-solved chains and a brute-force recursion."""
+
+import numpy as np
+import pytest
+
+from schema.horizon import budget_choices
+from schema.vocabulary import NO_OP
+
+
+def served_layout(next_pose: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pose (A_x, P) matrices (NaN rows: not ok) -> action_offsets, transition_offsets,
+    next_pose, probability as the service stores them (CSR over action rows, zeros dropped)."""
+    rows = np.concatenate(next_pose)
+    action_offsets = np.concatenate([[0], np.cumsum([len(m) for m in next_pose])])
+    ok = ~np.isnan(rows).any(axis=1)
+    nonzero = [np.flatnonzero(r > 0) if k else np.zeros(0, dtype=int) for r, k in zip(rows, ok)]
+    transition_offsets = np.concatenate([[0], np.cumsum([len(n) for n in nonzero])])
+    targets = np.concatenate(nonzero)
+    probability = np.concatenate([r[n] for r, n in zip(rows, nonzero)])
+    return action_offsets, transition_offsets, targets, probability.astype(np.float32)
+
+
+def choose(v_s, next_pose, budget):
+    return budget_choices(v_s, *served_layout(next_pose), budget)
+
+
+def test_one_sure_push_beats_a_long_shot_on_a_small_budget_only():
+    # Pose 0 (V_s 0): a long shot to pose 2 (V_s 1) with probability 0.3, else it stays; or a
+    # sure push to pose 1 (V_s 0.35), from which nothing helps.
+    v_s = np.array([0.0, 0.35, 1.0])
+    next_pose = [np.array([[0.7, 0.0, 0.3], [0.0, 1.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])]
+    actions, values = choose(v_s, next_pose, 10)
+    assert actions[0, 0] == 1 and values[0, 0] == pytest.approx(0.35)  # one push left: the sure 0.35 > 0.3
+    # Two left: the long shot, then the sure push if it failed: 0.3 + 0.7 x 0.35.
+    assert actions[1, 0] == 0 and values[1, 0] == pytest.approx(0.3 + 0.7 * 0.35)
+    # h left: 1 - 0.7^(h-1) x (1 - 0.35) ... the long shot every time but the last.
+    for h in range(2, 11):
+        assert actions[h - 1, 0] == 0
+        assert values[h - 1, 0] == pytest.approx(1 - 0.7 ** (h - 1) * (1 - 0.35), abs=1e-6)
+    assert (actions[:, 1] == NO_OP).all() and (actions[:, 2] == NO_OP).all()
+    assert np.allclose(values[:, 1:], [0.35, 1.0])
+
+
+def test_a_push_that_only_shuffles_between_equal_poses_is_not_chosen():
+    # float32 probabilities that sum to 1 only within rounding must not make a useless push look better.
+    v_s = np.array([0.5, 0.5])
+    next_pose = [np.array([[0.3, 0.7], [0.1, 0.9]]), np.array([[0.6, 0.4]])]
+    actions, values = choose(v_s, next_pose, 3)
+    assert (actions == NO_OP).all() and np.allclose(values, 0.5)
+
+
+def brute_force(v_s, next_pose, budget):
+    """The recursion on dense matrices, pose by pose."""
+    value = v_s.copy()
+    out = []
+    for _ in range(budget):
+        best = v_s.copy()
+        for x, m in enumerate(next_pose):
+            q = np.where(np.isnan(m).any(axis=1), -np.inf, np.nan_to_num(m) @ value)
+            if len(q) and q.max() > v_s[x] + 1e-9:
+                best[x] = q.max()
+        out.append(best)
+        value = best
+    return np.array(out)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_values_agree_with_the_recursion_and_one_push_left_is_greedy(seed):
+    rng = np.random.default_rng(seed)
+    n = 5
+    v_s = rng.random(n)
+    next_pose = []
+    for _ in range(n):
+        m = rng.dirichlet(np.full(n, 0.3), size=int(rng.integers(0, 8)))
+        m[rng.random(len(m)) < 0.3] = np.nan
+        next_pose.append(m)
+    actions, values = choose(v_s, next_pose, 6)
+    assert np.allclose(values, brute_force(v_s, [m.astype(np.float32).astype(float) for m in next_pose], 6), atol=1e-6)
+    assert (np.diff(values, axis=0) >= -1e-12).all(), "a bigger budget is never worth less"
+    for x, m in enumerate(next_pose):
+        greedy = np.where(np.isnan(m).any(axis=1), -np.inf, np.nan_to_num(m) @ v_s)
+        if actions[0, x] == NO_OP:
+            assert not len(greedy) or greedy.max() <= v_s[x] + 1e-6
+        else:
+            assert greedy[actions[0, x]] == pytest.approx(greedy.max(), abs=1e-6)

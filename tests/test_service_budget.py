@@ -1,0 +1,87 @@
+# ruff: noqa: F811  (pytest fixtures imported from tests/test_service.py)
+"""POST /plan with ``pushes_left``: value iteration for a budget (schema.horizon), served."""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from schema.horizon import MAX_PUSHES_LEFT
+from tests.test_service import JSON, client, dataset, planar_transform, stored_transform, tables  # noqa: F401 (fixtures)
+
+
+def plan(client, tables, object_id: str, pose: int, **extra) -> dict:
+    observed = planar_transform(0.7, 0.3, -0.2) @ stored_transform(tables, object_id, pose)
+    response = client.post("/plan", content=json.dumps({"object_id": object_id, "pose": observed.tolist(), **extra}), headers=JSON)
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def test_one_push_left_is_the_greedy_choice(client, tables):
+    pushed = 0
+    for (object_id, pose), row in tables["poses"].items():
+        answer = plan(client, tables, object_id, pose, pushes_left=1)
+        assert answer["pushes_left"] == 1
+        greedy = {a: r["greedy"] for (o, p, a), r in tables["actions"].items() if (o, p) == (object_id, pose) and r["greedy"] is not None}
+        best = max(greedy.values(), default=-np.inf)
+        if answer["action"] is None:
+            assert best <= row["v_s"] + 1e-6, (object_id, pose)
+            assert answer["expected_v_s_final"] is None
+        else:
+            pushed += 1
+            # float32 transitions in the service, float64 in the tables: equal up to rounding.
+            assert greedy[answer["action"]] == pytest.approx(best, abs=1e-6)
+            assert answer["expected_v_s_final"] == pytest.approx(best, abs=1e-6)
+            assert answer["expected_v_s_final"] == pytest.approx(answer["expected_v_s_after"], abs=1e-6)
+    assert pushed > 0, "the test dataset should have poses worth pushing from"
+
+
+def final_value(client, tables, object_id: str, pose: int, budget: int) -> float:
+    """V_budget of a pose as served: expected_v_s_final when it pushes, else its V_s."""
+    if budget == 0:
+        return tables["poses"][(object_id, pose)]["v_s"]
+    answer = plan(client, tables, object_id, pose, pushes_left=budget)
+    return answer["v_s"] if answer["action"] is None else answer["expected_v_s_final"]
+
+
+@pytest.mark.parametrize("budget", [2, 3])
+def test_the_final_value_is_the_next_poses_values_for_one_push_less(client, tables, budget):
+    checked = 0
+    for object_id, pose in list(tables["poses"])[:12]:
+        answer = plan(client, tables, object_id, pose, pushes_left=budget)
+        if answer["action"] is None:
+            continue
+        expected = sum(n["probability"] * final_value(client, tables, object_id, n["next_pose"], budget - 1) for n in answer["next_poses"])
+        assert answer["expected_v_s_final"] == pytest.approx(expected, abs=1e-5)
+        assert answer["expected_v_s_final"] > answer["v_s"]
+        checked += 1
+    assert checked > 0
+
+
+def test_a_bigger_budget_is_never_worth_less(client, tables):
+    for object_id, pose in list(tables["poses"])[:12]:
+        values = [final_value(client, tables, object_id, pose, h) for h in range(5)]
+        assert all(b >= a - 1e-9 for a, b in itertools.pairwise(values)), (object_id, pose, values)
+
+
+def test_without_a_budget_nothing_changes(client, tables):
+    object_id, pose = next(iter(tables["poses"]))
+    answer = plan(client, tables, object_id, pose)
+    assert answer["pushes_left"] is None and answer["expected_v_s_final"] is None
+    assert answer["action"] == (None if tables["poses"][(object_id, pose)]["value_iteration_action"] == -1
+                                else tables["poses"][(object_id, pose)]["value_iteration_action"])
+
+
+@pytest.mark.parametrize("extra", [
+    {"pushes_left": 0}, {"pushes_left": MAX_PUSHES_LEFT + 1}, {"pushes_left": None}, {"pushes_left": 1.5},
+    {"pushes_left": 2, "policy": "greedy"},
+])
+def test_bad_budgets_are_422(client, tables, extra):
+    object_id, pose = next(iter(tables["poses"]))
+    body = {"object_id": object_id, "pose": stored_transform(tables, object_id, pose).tolist(), **extra}
+    response = client.post("/plan", content=json.dumps(body), headers=JSON)
+    assert response.status_code == 422, response.text
+    assert "pushes_left" in response.json()["detail"] or "policy" in response.json()["detail"]
