@@ -20,7 +20,8 @@ Only the dataset's tables are read (``point``, ``direction``, ``status``, ``q``,
 
     python -m pipeline.studies.robust_policy DATASET --trials 600 [--radius 0.02 --max-angle 0.5 --min-neighbours 5]
 
-plays max_height, value_iteration and ``smoothed_vi`` in pybullet from the same starts and
+plays max_height, value_iteration, ``smoothed_vi`` and ``horizon_vi`` (value iteration for
+the experiment's push budget, ``schema.horizon``) in pybullet from the same starts and
 noise draws as ``toppledb policies-physics`` (common random numbers, so max_height and
 value_iteration reproduce that report's numbers), and reports each policy's V_s gain over
 max_height on useful trials, the 'never push' baseline, and predicted (raw and smoothed)
