@@ -23,7 +23,10 @@ Phases and keys of the JSON line:
 - isolation: a 50 Hz controller (one POST /plan every 20 ms on its own connection) alone
   (``controller_alone_p99_ms``), while two clients send 1,000-item /batch/plan back to back
   (``controller_batches_p99_ms``, ``controller_batches_max_ms``, ``batch_items_per_s``), and
-  while one client sends 50 MB bodies (``controller_oversized_p99_ms``; those get 413).
+  while one client sends 50 MB bodies (``controller_oversized_p99_ms``; those get 413), and
+  while two clients send 10-object POST /heaps/plan back to back (``controller_heaps_p99_ms``,
+  ``controller_heaps_max_ms``, ``heap_plans_per_s``; null when no heap of served objects fits
+  the default bin).
 - ``errors``: all unexpected answers over every phase; ``load_average``: the machine's
   1-minute load before the run (other work on the machine skews every number).
 """
@@ -51,6 +54,7 @@ SMALL_DATASET = ROOT / "build" / "bench-service-dataset"
 CONTROLLER_HZ = 50.0
 BATCH_ITEMS = 1000
 OVERSIZED_BYTES = 50 * 1024 * 1024
+HEAP_OBJECTS = 10
 SEED = 20190101
 
 
@@ -185,14 +189,15 @@ async def controller(host, port, bodies: list[bytes], seconds: float, background
             "max": round(max(latencies) * 1000, 2) if latencies else None, "errors": errors, "background": results}
 
 
-def batch_sender(host, port, raw: bytes):
+def batch_sender(host, port, raw: bytes, items_per_request: int = BATCH_ITEMS):
+    """A client sending ``raw`` back to back (a batch of ``items_per_request`` items, or one heap plan)."""
     async def run(stop: asyncio.Event) -> dict:
         conn, items, errors = Connection(host, port), 0, 0
         began = time.perf_counter()
         while not stop.is_set():
             try:
                 status, _ = await conn.request(raw)
-                items += BATCH_ITEMS if status == 200 else 0
+                items += items_per_request if status == 200 else 0
                 errors += status != 200
             except (OSError, asyncio.IncompleteReadError, ValueError):
                 errors += 1
@@ -200,6 +205,24 @@ def batch_sender(host, port, raw: bytes):
         return {"items_per_s": items / (time.perf_counter() - began), "errors": errors}
 
     return run
+
+
+async def heap_body(conn: Connection, requests: list[dict], rng: random.Random) -> bytes | None:
+    """A POST /heaps/plan of up to HEAP_OBJECTS served objects on a grid in the default bin
+    (boundary_shear, the thesis's robot policy) that the server plans; None if none fits."""
+    cells = [(x, y) for y in (-0.1, 0.1) for x in (-0.18, -0.09, 0.0, 0.09, 0.18)]
+    for _ in range(20):
+        heap = []
+        for request in rng.sample(requests, len(requests)):
+            pose = np.array(request["pose"])
+            pose[:2, 3] = cells[len(heap)]
+            candidate = post("/heaps/plan", orjson.dumps({"objects": [*heap, {"object_id": request["object_id"], "pose": pose.tolist()}]}))
+            status, _ = await conn.request(candidate)
+            if status == 200:  # it fits in its cell
+                heap.append({"object_id": request["object_id"], "pose": pose.tolist()})
+            if len(heap) == HEAP_OBJECTS:
+                return candidate
+    return None
 
 
 def oversized_sender(host, port):
@@ -277,9 +300,10 @@ async def run_load(host: str, port: int, seconds: float, connections: int, pid: 
     rng = random.Random(SEED)
     conn = await Connection(host, port).open()
     requests = await observations(conn, 2000, rng)
-    conn.close()
     plan_bodies = [post("/plan", orjson.dumps(r)) for r in requests]
     batch_body = post("/batch/plan", orjson.dumps({"items": requests[:BATCH_ITEMS]}))
+    heap = await heap_body(conn, requests, rng)
+    conn.close()
 
     cpu_before = cpu_seconds(pid)
     throughput = await hammer(host, port, plan_bodies, seconds, connections)
@@ -288,8 +312,10 @@ async def run_load(host: str, port: int, seconds: float, connections: int, pid: 
     alone = await controller(host, port, plan_bodies, seconds)
     batches = await controller(host, port, plan_bodies, seconds, [batch_sender(host, port, batch_body) for _ in range(2)])
     oversized = await controller(host, port, plan_bodies, seconds, [oversized_sender(host, port)])
-    errors = throughput["errors"] + alone["errors"] + batches["errors"] + oversized["errors"]
-    errors += sum(b["errors"] for b in batches["background"]) + sum(b["errors"] for b in oversized["background"])
+    heaps = (await controller(host, port, plan_bodies, seconds, [batch_sender(host, port, heap, 1) for _ in range(2)])
+             if heap is not None else {"p99": None, "max": None, "errors": 0, "background": []})
+    errors = throughput["errors"] + alone["errors"] + batches["errors"] + oversized["errors"] + heaps["errors"]
+    errors += sum(b["errors"] for phase in (batches, oversized, heaps) for b in phase["background"])
     return {
         "plan_rps": throughput["rps"], "plan_p50_ms": throughput["p50"], "plan_p99_ms": throughput["p99"],
         "plan_errors": throughput["errors"], "connections": connections, "plan_server_cpu_us_per_request": cpu_per_request_us,
@@ -298,6 +324,8 @@ async def run_load(host: str, port: int, seconds: float, connections: int, pid: 
         "batch_items_per_s": round(sum(b["items_per_s"] for b in batches["background"]), 1),
         "controller_oversized_p99_ms": oversized["p99"],
         "oversized_bodies_refused": sum(b["oversized_sent"] for b in oversized["background"]),
+        "controller_heaps_p99_ms": heaps["p99"], "controller_heaps_max_ms": heaps["max"],
+        "heap_plans_per_s": round(sum(b["items_per_s"] for b in heaps["background"]), 1),
         "errors": errors,
     }
 
