@@ -103,15 +103,14 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
 
     grasp = world_grasp(obj, pose, pose_to_world)
     v_s = float(obj.v_s[pose])
-    final = None
     if request.pushes_left is None:
         action = int(obj.policy_action[request.policy][pose])
-        p_near = float(obj.policy_p_topple_neighbourhood[request.policy][pose])
+        near, final = obj.policy_p_topple_neighbourhood[request.policy][pose], None
     else:
-        actions, values, near = obj.budget(request.pushes_left)
-        action, p_near = int(actions[pose]), float(near[pose])
-        final = None if action == NO_OP else float(values[pose])
-    push = p_topple = q_value = after = None
+        actions, finals, nears = obj.budget(request.pushes_left)
+        action, near = int(actions[pose]), nears[pose]
+        final = None if action == NO_OP else float(finals[pose])
+    push = p_topple = p_near = q_value = after = None
     outcomes: list[dict] = []
     if action != NO_OP:
         row = obj.row(pose, action)
@@ -130,13 +129,11 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         }
         p_topple = optional(values[10])
         # float32 storage: a mean of stored 0.76s is 0.7639999986; six decimals are all it holds.
-        p_near = optional(round(p_near, 6))
+        p_near = optional(round(float(near), 6))
         q_value = optional(obj.q[row])
         after = optional(obj.greedy[row])
         outcomes = next_poses(obj, row)
 
-    if action == NO_OP:
-        p_near = None
     decision, reason = _decision(request.policy, request.pushes_left, action, v_s, grasp, p_topple, p_near, after, push)
     return {
         "object_id": obj.object_id,
