@@ -26,15 +26,15 @@ import threading
 import time
 from types import SimpleNamespace
 
-from .fastplan import FastPlan
-from .guard import Guard
+from .fastplan import HEADERS, FastPlan
+from .guard import Guard, _error
 from .runtime import Runtime
 
 log = logging.getLogger("service")
 
 HEALTH = SimpleNamespace(path="/health")
 """What the guard's metrics read from ``scope["route"]`` (the route label)."""
-JSON = [(b"content-type", b"application/json")]
+BUILD_FAILED = "the service's API failed to start (logged by the service); only /health and /plan are served"
 
 
 class StagedApp:
@@ -62,16 +62,14 @@ class StagedApp:
             body = self.runtime.health().model_dump_json().encode()
             scope["route"] = HEALTH
             await send({"type": "http.response.start", "status": 200,
-                        "headers": [*JSON, (b"content-length", str(len(body)).encode())]})
+                        "headers": [*HEADERS, (b"content-length", str(len(body)).encode())]})
             await send({"type": "http.response.body", "body": body})
             return
         try:
             api = self.api or await self.ready()
         except Exception:  # noqa: BLE001 (any failure to build: logged once by _build)
-            body = b'{"detail":"the service\'s API failed to start (logged by the service); only /health and /plan are served"}'
-            await send({"type": "http.response.start", "status": 500,
-                        "headers": [*JSON, (b"content-length", str(len(body)).encode())]})
-            await send({"type": "http.response.body", "body": body})
+            for message in _error(500, BUILD_FAILED):
+                await send(message)
             return
         await api(scope, receive, send)
 
