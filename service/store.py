@@ -134,8 +134,8 @@ class ObjectData:
         the action (P,) int (NO_OP: grasp now), V_h (P,) float, and the neighbourhood mean
         P(topple) around the action (P,) float (NaN without a push).
 
-        Solved for every budget at the object's first such request (about a millisecond per
-        object) and kept: the store is read-only, a rebuilt dataset is a new store.
+        Solved for every budget at once, by ``Store.solve_budgets`` or else at the object's first
+        such request, and kept: the store is read-only, a rebuilt dataset is a new store.
         """
         if self._budgets is None:
             actions, values = horizon.budget_choices(self.v_s, self.action_offsets, self.transition_offsets, self.next_pose,
