@@ -114,4 +114,3 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert main([str(tmp_path), "--radius", "-1"]) == 2
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(lines) == 2 and all(line.startswith("error: ") for line in lines)
-
