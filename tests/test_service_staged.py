@@ -27,6 +27,11 @@ def staged_app(dataset) -> StagedApp:
     return StagedApp(Runtime.open(Settings.from_env(dataset=dataset)))
 
 
+def valid_plan(tables) -> bytes:
+    """A /plan body the control path answers itself."""
+    return next(body for body in plan_bodies(tables) if b'"value_iteration"' in body)
+
+
 def comparable(response) -> tuple:
     if response.request.url.path == "/health":
         body = json.loads(response.content)
@@ -62,7 +67,7 @@ def test_health_and_plan_answer_while_the_api_is_being_built(dataset, tables, mo
 
     monkeypatch.setattr(service_app, "build_api", slow_build)
     app = staged_app(dataset)
-    valid = next(body for body in plan_bodies(tables) if b'"value_iteration"' in body)
+    valid = valid_plan(tables)
     with TestClient(app) as client:
         assert client.get("/health").json()["status"] == "ok"
         assert client.post("/plan", content=valid, headers=JSON).status_code == 200
@@ -82,7 +87,7 @@ def test_a_failed_build_leaves_health_and_plan_and_answers_the_rest_with_500(dat
         raise RuntimeError("a broken install")
 
     monkeypatch.setattr(service_app, "build_api", broken)
-    valid = next(body for body in plan_bodies(tables) if b'"value_iteration"' in body)
+    valid = valid_plan(tables)
     with TestClient(staged_app(dataset)) as client:
         assert client.get("/health").status_code == 200
         assert client.post("/plan", content=valid, headers=JSON).status_code == 200
@@ -101,7 +106,7 @@ def test_the_server_entry_point_imports_no_web_framework():
 def test_the_token_guards_the_early_routes_too(dataset, tables):
     token = "a-sixteen-char-secret"
     app = StagedApp(Runtime.open(Settings.from_env(dataset=dataset, token=token)))
-    valid = next(body for body in plan_bodies(tables) if b'"value_iteration"' in body)
+    valid = valid_plan(tables)
     with TestClient(app) as client:
         assert client.get("/health").status_code == 200  # open, as with create_app
         assert client.post("/plan", content=valid, headers=JSON).status_code == 401
