@@ -1,11 +1,13 @@
 """The robust (neighbourhood-smoothed) push choice on hand-made candidate tables."""
 
 import numpy as np
+import pyarrow as pa
 import pytest
 
 from pipeline.studies.robust_policy import (
     PoseCandidates,
     Smoothing,
+    horizon_actions,
     neighbour_mean,
     pose_scores,
     robust_actions,
@@ -98,6 +100,29 @@ def test_robust_actions_are_deterministic_and_per_pose():
         scores = pose_scores(poses[x], smoothing)
         assert np.isfinite(poses[x].q[first[x]]) and scores.count[first[x]] >= 2
         assert scores.smoothed_q[first[x]] == np.nanmax(np.where(scores.count >= 2, scores.smoothed_q, np.nan))
+
+
+class TransitionsOnly:
+    """A dataset holding one object's transitions table (rows in the order given)."""
+
+    def __init__(self, rows: list[tuple[int, int, int, float]]):
+        self.table = pa.table({name: list(column) for name, column in zip(("pose", "action", "next_pose", "probability"), zip(*rows))})
+
+    def object_rows(self, name, object_id, columns=None):
+        assert name == "transitions"
+        return self.table.select(columns)
+
+
+def test_horizon_actions_are_played_most_pushes_left_first():
+    # Pose 0 (V_s 0): action 0 a long shot to pose 2 (V_s 1) at 0.3, else it stays; action 1 a
+    # sure push to pose 1 (V_s 0.35).  With one push left the sure push, with more the long shot.
+    # Pose 1 has one action that is not ok (no transitions); pose 2 none.  Rows shuffled.
+    rows = [(0, 1, 1, 1.0), (0, 0, 2, 0.3), (0, 0, 0, 0.7)]
+    actions = horizon_actions(TransitionsOnly(rows), "chain", np.array([0.0, 0.35, 1.0]), [2, 1, 0], 3)
+    assert actions.shape == (3, 3)
+    # Row k: 3 - k pushes left, the order a trial plays them in.
+    np.testing.assert_array_equal(actions[:, 0], [0, 0, 1])
+    assert (actions[:, 1:] == NO_OP).all()
 
 
 def test_bad_smoothing_is_a_clear_error():
