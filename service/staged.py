@@ -24,6 +24,7 @@ import asyncio
 import logging
 import threading
 import time
+import traceback
 from types import SimpleNamespace
 
 from .fastplan import HEADERS, FastPlan
@@ -109,10 +110,9 @@ class StagedApp:
                 await send({"type": "lifespan.startup.complete"})
                 started = True
                 await receive()  # lifespan.shutdown
-        except Exception as err:
-            if started:
-                await send({"type": "lifespan.shutdown.failed", "message": repr(err)})
-            else:
-                await send({"type": "lifespan.startup.failed", "message": repr(err)})
+        except Exception:
+            # The traceback, as Starlette sends it: the server logs this message and nothing else.
+            failed = "lifespan.shutdown.failed" if started else "lifespan.startup.failed"
+            await send({"type": failed, "message": traceback.format_exc()})
             raise
         await send({"type": "lifespan.shutdown.complete"})
