@@ -78,6 +78,8 @@ class StagedApp:
         """Start building the FastAPI app in a thread (once; needs the running loop)."""
         if self._building is None:
             self._building = asyncio.ensure_future(asyncio.to_thread(self._build))
+            # A failure is _build's to log: retrieved here, asyncio does not log it again at exit.
+            self._building.add_done_callback(lambda done: done.cancelled() or done.exception())
 
     async def ready(self):
         """The FastAPI app, waiting for it to be built."""
