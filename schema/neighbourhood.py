@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .vocabulary import NO_OP
+
 RADIUS = 0.02
 """m, largest distance between two neighbours' contact points (chosen on corpus objects only)."""
 MAX_ANGLE = 0.5
@@ -58,3 +60,30 @@ def neighbour_mean(
     total = near.astype(float) @ np.where(finite[:, None], values, 0.0)
     mean = np.where((count > 0)[:, None], total / np.maximum(count, 1)[:, None], np.nan)
     return (mean[:, 0] if flat else mean), count
+
+
+def chosen_means(
+    action_offsets: np.ndarray,
+    points: np.ndarray,
+    directions: np.ndarray,
+    p_topple: np.ndarray,
+    chosen: np.ndarray,
+    radius: float = RADIUS,
+    max_angle: float = MAX_ANGLE,
+) -> np.ndarray:
+    """``neighbour_mean`` of P(topple) around the chosen pushes of each pose of one object.
+
+    action_offsets : (P + 1,) int, pose x's candidates are rows action_offsets[x] : action_offsets[x + 1]
+      of points, directions (N, 3) and p_topple (N,) (NaN unless ok)
+    chosen : (P, k) int, k choices per pose (policies, budgets): action index within the pose, or NO_OP
+    returns : (P, k) float, NaN where the choice is NO_OP
+    """
+    chosen = np.asarray(chosen)
+    means = np.full(chosen.shape, np.nan)
+    for x, actions in enumerate(chosen):
+        pushing = np.flatnonzero(actions != NO_OP)
+        if len(pushing):
+            rows = slice(int(action_offsets[x]), int(action_offsets[x + 1]))
+            means[x, pushing], _ = neighbour_mean(points[rows], directions[rows], p_topple[rows], radius, max_angle,
+                                                  rows=actions[pushing])
+    return means

@@ -81,6 +81,7 @@ def create_app(dataset_dir: str | Path | None = None, settings: Settings | None 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
         async with runtime.serving():
+            runtime.solve_budgets()
             yield
 
     app.router.lifespan_context = lifespan

@@ -11,11 +11,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from .settings import Settings
-from .store import LiveStore, Store
-
-
-async def get_live(request: Request) -> LiveStore:
-    return request.app.state.live
+from .store import Store
 
 
 async def get_store(request: Request) -> Store:
@@ -28,6 +24,5 @@ async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-LiveDep = Annotated[LiveStore, Depends(get_live)]
 StoreDep = Annotated[Store, Depends(get_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]

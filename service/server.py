@@ -122,8 +122,9 @@ def run(
     timeout_keep_alive: int = DEFAULT_KEEP_ALIVE,
     request_timeout: float = DEFAULT_REQUEST_TIMEOUT,
 ) -> None:
-    """Serve ``app`` (``service.app.create_app``, its dataset already mapped) until interrupted,
-    in ``workers`` processes forked from this one (``serve_forked``)."""
+    """Serve ``app`` (an ASGI app whose dataset is already mapped: ``service.staged.StagedApp``
+    for ``python -m service``, or ``service.app.create_app``'s) until interrupted, in
+    ``workers`` processes forked from this one (``serve_forked``)."""
     import uvicorn
 
     from .lane import tune_interpreter
@@ -158,7 +159,7 @@ def serve_forked(config, workers: int) -> None:
     seconds each) and shares those pages.  The kernel spreads connections over the workers
     accepting on the one socket.  SIGINT and SIGTERM stop the workers, SIGHUP reaches each
     (each reloads its dataset); a worker that dies otherwise is replaced (starting from this
-    process's load, it swaps in a rebuild the others have at once: ``create_app``'s lifespan).
+    process's load, it swaps in a rebuild the others have at once: ``Runtime.serving``, both apps' lifespan).
     """
     import signal
     import time

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import threading
 import time
 import traceback
 from types import SimpleNamespace
@@ -98,8 +97,7 @@ class StagedApp:
             raise
         log.info("the full API is served (FastAPI built in %.2f s)", time.perf_counter() - started)
         self.api = api
-        # Then, in a thread of its own (the waiting requests go on at once): no /plan with pushes_left pays it.
-        threading.Thread(target=self.runtime.live.store.solve_budgets, name="budgets", daemon=True).start()
+        self.runtime.solve_budgets()  # after the build, not beside it: one thread at a time beside the event loop
         return api
 
     async def _lifespan(self, receive, send) -> None:

@@ -140,14 +140,7 @@ class ObjectData:
         if self._budgets is None:
             actions, values = horizon.budget_choices(self.v_s, self.action_offsets, self.transition_offsets, self.next_pose,
                                                      self.transition_probability, horizon.MAX_PUSHES_LEFT)
-            near = np.full(actions.shape, np.nan)
-            for x in range(self.n_poses):
-                pushing = actions[:, x] != NO_OP
-                if pushing.any():
-                    rows = self.pose_rows(x)
-                    mean, _ = neighbourhood.neighbour_mean(self.points[rows], self.directions[rows], self.p_topple[rows],
-                                                           rows=actions[pushing, x])
-                    near[pushing, x] = mean
+            near = neighbourhood.chosen_means(self.action_offsets, self.points, self.directions, self.p_topple, actions.T).T
             self._budgets = (actions, values, near)  # one assignment: a concurrent first request computes the same
         actions, values, near = self._budgets
         return actions[pushes_left - 1], values[pushes_left - 1], near[pushes_left - 1]
