@@ -73,3 +73,19 @@ def budget_choices(
                     actions[h, x], best[x] = u, q[start + u]
         values[h] = value = best
     return actions, values
+
+
+def csr_from_rows(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One object's per-pose matrices of P(x' | x, u) -> ``budget_choices``' layout.
+
+    rows : P arrays (A_x, P) float, NaN rows for pushes that are not ok
+    returns : action_offsets (P + 1,), transition_offsets (N + 1,), next_pose (K,) int,
+      probability (K,) float: the nonzero entries, row by row
+    """
+    n_poses = len(rows)
+    stacked = np.concatenate(rows) if rows else np.zeros((0, n_poses))
+    action_offsets = np.concatenate([[0], np.cumsum([len(r) for r in rows], dtype=np.int64)])
+    values = np.where(np.isnan(stacked).any(axis=1)[:, None], 0.0, stacked)
+    row, column = np.nonzero(values > 0)  # row-major: sorted by row
+    transition_offsets = np.concatenate([[0], np.cumsum(np.bincount(row, minlength=len(stacked)))])
+    return action_offsets, transition_offsets, column, values[row, column]

@@ -3,25 +3,23 @@
 import numpy as np
 import pytest
 
-from schema.horizon import budget_choices
+from schema.horizon import budget_choices, csr_from_rows
 from schema.vocabulary import NO_OP
 
 
-def served_layout(next_pose: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-pose (A_x, P) matrices (NaN rows: not ok) -> action_offsets, transition_offsets,
-    next_pose, probability as the service stores them (CSR over action rows, zeros dropped)."""
-    rows = np.concatenate(next_pose)
-    action_offsets = np.concatenate([[0], np.cumsum([len(m) for m in next_pose])])
-    ok = ~np.isnan(rows).any(axis=1)
-    nonzero = [np.flatnonzero(r > 0) if k else np.zeros(0, dtype=int) for r, k in zip(rows, ok)]
-    transition_offsets = np.concatenate([[0], np.cumsum([len(n) for n in nonzero])])
-    targets = np.concatenate(nonzero)
-    probability = np.concatenate([r[n] for r, n in zip(rows, nonzero)])
-    return action_offsets, transition_offsets, targets, probability.astype(np.float32)
-
-
 def choose(v_s, next_pose, budget):
-    return budget_choices(v_s, *served_layout(next_pose), budget)
+    # float32, as the service stores them
+    action_offsets, transition_offsets, targets, probability = csr_from_rows(next_pose)
+    return budget_choices(v_s, action_offsets, transition_offsets, targets, probability.astype(np.float32), budget)
+
+
+def test_csr_from_rows_keeps_the_nonzero_entries_row_by_row():
+    rows = [np.array([[0.25, 0.0, 0.75], [np.nan, np.nan, np.nan]]), np.zeros((0, 3)), np.array([[0.0, 1.0, 0.0]])]
+    action_offsets, transition_offsets, targets, probability = csr_from_rows(rows)
+    np.testing.assert_array_equal(action_offsets, [0, 2, 2, 3])
+    np.testing.assert_array_equal(transition_offsets, [0, 2, 2, 3])  # the NaN row: no transitions (not ok)
+    np.testing.assert_array_equal(targets, [0, 2, 1])
+    np.testing.assert_array_equal(probability, [0.25, 0.75, 1.0])
 
 
 def test_one_sure_push_beats_a_long_shot_on_a_small_budget_only():

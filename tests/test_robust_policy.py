@@ -9,9 +9,11 @@ from pipeline.studies.robust_policy import (
     Smoothing,
     horizon_actions,
     neighbour_mean,
+    next_pose_rows,
     pose_scores,
     robust_actions,
     smoothed_choice,
+    smoothed_rows,
 )
 from schema.vocabulary import NO_OP
 
@@ -117,8 +119,10 @@ def test_horizon_actions_are_played_most_pushes_left_first():
     # Pose 0 (V_s 0): action 0 a long shot to pose 2 (V_s 1) at 0.3, else it stays; action 1 a
     # sure push to pose 1 (V_s 0.35).  With one push left the sure push, with more the long shot.
     # Pose 1 has one action that is not ok (no transitions); pose 2 none.  Rows shuffled.
-    rows = [(0, 1, 1, 1.0), (0, 0, 2, 0.3), (0, 0, 0, 0.7)]
-    actions = horizon_actions(TransitionsOnly(rows), "chain", np.array([0.0, 0.35, 1.0]), [2, 1, 0], 3)
+    rows = next_pose_rows(TransitionsOnly([(0, 1, 1, 1.0), (0, 0, 2, 0.3), (0, 0, 0, 0.7)]), "chain", [2, 1, 0])
+    np.testing.assert_array_equal(rows[0], [[0.7, 0.0, 0.3], [0.0, 1.0, 0.0]])
+    assert rows[1].shape == (1, 3) and np.isnan(rows[1]).all() and rows[2].shape == (0, 3)
+    actions = horizon_actions(np.array([0.0, 0.35, 1.0]), rows, 3)
     assert actions.shape == (3, 3)
     # Row k: 3 - k pushes left, the order a trial plays them in.
     np.testing.assert_array_equal(actions[:, 0], [0, 0, 1])
@@ -139,3 +143,15 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert main([str(tmp_path), "--radius", "-1"]) == 2
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(lines) == 2 and all(line.startswith("error: ") for line in lines)
+
+
+def test_smoothed_rows_average_neighbours_and_drop_lonely_candidates():
+    # Three pushes 5 mm apart along y, all along x, and one far away; rows over two poses.
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 0.005, 0.0], [0.0, 0.010, 0.0], [0.0, 0.2, 0.0]])
+    candidates = [PoseCandidates(points, np.tile(X, (4, 1)), np.zeros(4), np.zeros(4), np.zeros(4))]
+    rows = [np.array([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0], [0.2, 0.8]])]
+    smoothed = smoothed_rows(candidates, rows, Smoothing(radius=0.006, max_angle=0.1, min_neighbours=2))[0]
+    np.testing.assert_allclose(smoothed[0], [0.75, 0.25])  # itself and its one neighbour
+    np.testing.assert_allclose(smoothed[1], [0.5, 0.5])  # the mean of all three
+    assert np.isnan(smoothed[3]).all()  # alone: fewer than 2
+    np.testing.assert_allclose(smoothed[:3].sum(axis=1), 1.0)

@@ -55,7 +55,9 @@ ROBUST_POLICY = "smoothed_vi"
 """Name of the robust policy (a fourth ``<name>_action`` column if the contract adopts it)."""
 HORIZON_POLICY = "horizon_vi"
 """Value iteration solved for the experiment's push budget (``horizon_actions``)."""
-COMPARED = ("max_height", "value_iteration", ROBUST_POLICY, HORIZON_POLICY)
+SMOOTHED_HORIZON_POLICY = "smoothed_horizon_vi"
+"""``horizon_vi`` over the neighbourhood-smoothed transitions (``smoothed_rows``)."""
+COMPARED = ("max_height", "value_iteration", ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY)
 """Policies the study plays (common random numbers: adding one changes no other's pushes)."""
 
 
@@ -162,24 +164,44 @@ def robust_actions(v_s: np.ndarray, scores: list[PoseScores], gamma: float, smoo
                      for x, s in enumerate(scores)], dtype=np.int64)
 
 
-def horizon_actions(dataset: Dataset, object_id: str, v_s: np.ndarray, n_actions: list[int], pushes: int) -> np.ndarray:
-    """(pushes, P) int: ``horizon_vi``'s push per pose with ``pushes - k`` pushes left (row k).
-
-    ``schema.horizon.budget_choices`` (finite-horizon value iteration, as ``/plan`` serves it
-    for ``pushes_left``) over the object's transitions table; n_actions : each pose's count.
-    The table's probabilities are float64, the service's float32: where two pushes' values
-    differ by less than that rounding (~1e-8; 13 of 2,709 pose-budgets of the default
-    dataset's first 80 objects, 3 pushes) the two may pick different pushes of equal value.
-    """
+def next_pose_rows(dataset: Dataset, object_id: str, n_actions: list[int]) -> list[np.ndarray]:
+    """Each pose's (A_x, P) matrix of P(x' | x, u) from the transitions table; NaN rows unless ok."""
     table = dataset.object_rows("transitions", object_id, columns=["pose", "action", "next_pose", "probability"])
     pose, action, next_pose, probability = (table[name].to_numpy(zero_copy_only=False)
                                             for name in ("pose", "action", "next_pose", "probability"))
-    action_offsets = np.concatenate([[0], np.cumsum(n_actions)])
-    rows = action_offsets[pose] + action
-    order = np.argsort(rows, kind="stable")
-    transition_offsets = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=int(action_offsets[-1])))])
-    actions, _ = horizon.budget_choices(v_s, action_offsets, transition_offsets, next_pose[order], probability[order], pushes)
+    rows = []
+    for x, count in enumerate(n_actions):
+        matrix = np.zeros((count, len(n_actions)))
+        mine = pose == x
+        matrix[action[mine], next_pose[mine]] = probability[mine]
+        matrix[np.bincount(action[mine], minlength=count) == 0] = np.nan  # no transitions: not ok
+        rows.append(matrix)
+    return rows
+
+
+def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int) -> np.ndarray:
+    """(pushes, P) int: ``horizon_vi``'s push per pose with ``pushes - k`` pushes left (row k).
+
+    ``schema.horizon.budget_choices`` (finite-horizon value iteration, as ``/plan`` serves it
+    for ``pushes_left``) over ``next_pose_rows``.  The table's probabilities are float64, the
+    service's float32: where two pushes' values differ by less than that rounding (~1e-8; 13
+    of 2,709 pose-budgets of the default dataset's first 80 objects, 3 pushes) the two may
+    pick different pushes of equal value.
+    """
+    actions, _ = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes)
     return actions[::-1]  # row k: pushes - k left, the order the pushes are played in
+
+
+def smoothed_rows(candidates: list[PoseCandidates], rows: list[np.ndarray], smoothing: Smoothing) -> list[np.ndarray]:
+    """Each candidate's next-pose row replaced by the mean row of its neighbours (``neighbour_mean``
+    with ``smoothing``'s limits): the transitions under an extra contact and direction error of
+    that size.  Candidates with fewer than ``min_neighbours`` ok neighbours get a NaN row."""
+    out = []
+    for c, matrix in zip(candidates, rows):
+        mean, count = neighbour_mean(c.points, c.directions, matrix, smoothing)
+        mean[count < smoothing.min_neighbours] = np.nan
+        out.append(mean)
+    return out
 
 
 # ---------------------------------------------------------------- physics
@@ -277,7 +299,9 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         candidates = read_candidates(dataset, object_id)
         scores = [pose_scores(c, smoothing) for c in candidates]
         plan.actions[ROBUST_POLICY] = robust_actions(plan.v_s, scores, config.mdp.gamma, smoothing)
-        plan.actions[HORIZON_POLICY] = horizon_actions(dataset, object_id, plan.v_s, [len(c.q) for c in candidates], max_pushes)
+        rows = next_pose_rows(dataset, object_id, [len(c.q) for c in candidates])
+        plan.actions[HORIZON_POLICY] = horizon_actions(plan.v_s, rows, max_pushes)
+        plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, smoothed_rows(candidates, rows, smoothing), max_pushes)
         tasks.append((plan, {"candidates": candidates, "scores": scores}, by_object[object_id], config, seed, max_pushes, world))
 
     runs: dict[int, dict[str, list[int]]] = {}
@@ -321,7 +345,7 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
             "physical_topple_rate": _mean_se([p.toppled for p in mine])[0],
             "physical_topple_rate_se": _mean_se([p.toppled for p in mine])[1],
         }
-    for policy in (ROBUST_POLICY, HORIZON_POLICY):
+    for policy in (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY):
         mean, error = _mean_se(gains[policy][useful] - gains["value_iteration"][useful])
         report["policies"][policy].update({"gain_over_value_iteration": mean, "gain_over_value_iteration_se": error})
     return report
@@ -340,7 +364,7 @@ def text(report: dict) -> str:
                      f"{cell(r['gain_over_max_height']) + ('' if se is None else f' +/- {se:.3f}'):>18} {r['pushes']:>7} "
                      f"{cell(r['predicted_topple_rate'], False):>6} {cell(r['smoothed_topple_rate'], False):>8} "
                      f"{cell(r['physical_topple_rate'], False):>8}")
-    for policy in (ROBUST_POLICY, HORIZON_POLICY):
+    for policy in (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY):
         r = report["policies"][policy]
         lines.append(f"{policy} - value_iteration on useful trials: {cell(r['gain_over_value_iteration'])} +/- "
                      f"{r['gain_over_value_iteration_se'] or 0:.3f}")
