@@ -87,6 +87,28 @@ def test_plan_for_an_observed_pose_is_the_stored_decision_in_the_world(box, poli
         assert planned.p_topple_neighbourhood == pytest.approx(p_topple[near].mean(), abs=1e-12)
 
 
+def test_plan_for_a_budget_is_greedy_with_one_push_left_and_never_worth_less_with_more(box):
+    _, _, _, result = box
+    v_s = np.array([s.quality for s in result.suction])
+    pushed = 0
+    for pose in result.poses:
+        observed = world(pose.transform, 0.3)
+        greedy = result.values[pose.index].greedy
+        one = toppledb.plan(result, observed, pushes_left=1, config=CONFIG)
+        pushed += one.action is not None
+        if one.action is None:
+            assert np.nanmax(greedy, initial=-np.inf) <= v_s[pose.index] + 1e-9 and one.value == v_s[pose.index]
+        else:
+            assert greedy[one.action] == pytest.approx(np.nanmax(greedy), abs=1e-12) and one.value == pytest.approx(greedy[one.action])
+        values = [toppledb.plan(result, observed, pushes_left=h, config=CONFIG).value for h in (1, 2, 3)]
+        assert values[0] <= values[1] + 1e-12 <= values[2] + 2e-12
+    assert pushed > 0, "some pose should be worth a push"
+    with pytest.raises(ValueError, match="pushes_left"):
+        toppledb.plan(result, world(result.poses[0].transform, 0.0), policy="greedy", pushes_left=2, config=CONFIG)
+    with pytest.raises(ValueError, match="pushes_left"):
+        toppledb.plan(result, world(result.poses[0].transform, 0.0), pushes_left=0, config=CONFIG)
+
+
 def test_plan_matches_a_symmetric_object_at_any_roll():
     import trimesh
 

@@ -15,6 +15,7 @@ from typing import Iterator, Protocol
 
 import numpy as np
 
+from schema import horizon
 from schema.frames import PoseMatch, match_pose, place_push, transform_points
 from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES
@@ -24,7 +25,7 @@ from .config import Config
 from .contacts import explicit_actions, object_contacts, pose_actions
 from .mdp import pose_values
 from .mesh import ObjectModel, load_mesh
-from .outcomes import Actions, ObjectResult, PoseValues, StablePose, SuctionResult, ToppleTable
+from .outcomes import Actions, ObjectResult, PolicyChoice, PoseValues, StablePose, SuctionResult, ToppleTable
 from .poses import PoseSet, stable_poses
 from .rng import stream
 from .suction import suction_quality
@@ -329,15 +330,22 @@ def plan(
     table_height: float = 0.0,
     height_tolerance: float = DEFAULT_HEIGHT_TOLERANCE,
     config: Config = Config(),
+    pushes_left: int | None = None,
 ) -> Plan:
     """What ``policy`` (``max_height``, ``greedy``, ``value_iteration``) does for the object
     of ``result`` observed at ``observed`` (4x4, object -> world, z up, table at ``table_height``).
+    With ``pushes_left`` (1 to ``schema.horizon.MAX_PUSHES_LEFT``, value_iteration only), value
+    iteration's push for that budget (``schema.horizon``, as /plan's ``pushes_left``); the
+    plan's ``value`` is then the expected V_s when the budget is spent.
 
     Raises ``NotResting`` when the orientation is within ``tolerance`` of no stable pose
     or the pose's support plane is more than ``height_tolerance`` from the table.
     """
     if policy not in POLICIES:
         raise ValueError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
+    if pushes_left is not None and (policy != "value_iteration" or not 1 <= pushes_left <= horizon.MAX_PUSHES_LEFT):
+        raise ValueError(f"pushes_left must be 1..{horizon.MAX_PUSHES_LEFT} with policy value_iteration, "
+                         f"got {pushes_left!r} with {policy}")
     # A symmetric object's merged turns of a pose match too (PoseSet.match_arrays).
     candidates = result.poses if result.equivalent_transforms is None else PoseSet(
         result.poses, np.empty(0, dtype=int), result.equivalent_transforms)
@@ -356,6 +364,11 @@ def plan(
     if np.all(np.isfinite(suction.point)):
         grasp = (rotation @ suction.point + origin, rotation @ suction.axis)
     choice = result.values[pose].policies[policy]
+    if pushes_left is not None:
+        v_s = np.array([s.quality for s in result.suction], dtype=float)
+        rows = [np.asarray(t.next_pose, dtype=float) for t in result.topple]
+        actions, values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes_left)
+        choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
     if choice.action == NO_OP:
         return Plan(match, policy, None, float(choice.value), None, None, [], grasp)
     actions, table = result.actions[pose], result.topple[pose]
