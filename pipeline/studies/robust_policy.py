@@ -357,10 +357,10 @@ def text(report: dict) -> str:
 
     lines = [(f"{report['played_trials']} trials on {report['objects']} objects, {report['useful_trials']} useful, "
               f"{report['outside_trials']} outside; smoothing {report['smoothing']}; {report['wall_s']} s"),
-             f"{'policy':<16} {'gain useful':>12} {'over max_height':>18} {'pushes':>7} {'P raw':>6} {'P smooth':>8} {'physics':>8}"]
+             f"{'policy':<20} {'gain useful':>12} {'over max_height':>18} {'pushes':>7} {'P raw':>6} {'P smooth':>8} {'physics':>8}"]
     for policy, r in report["policies"].items():
         se = r["gain_over_max_height_se"]
-        lines.append(f"{policy:<16} {cell(r['physical_gain_useful']):>12} "
+        lines.append(f"{policy:<20} {cell(r['physical_gain_useful']):>12} "
                      f"{cell(r['gain_over_max_height']) + ('' if se is None else f' +/- {se:.3f}'):>18} {r['pushes']:>7} "
                      f"{cell(r['predicted_topple_rate'], False):>6} {cell(r['smoothed_topple_rate'], False):>8} "
                      f"{cell(r['physical_topple_rate'], False):>8}")
