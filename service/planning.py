@@ -107,8 +107,9 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         action = int(obj.policy_action[request.policy][pose])
         near, final = obj.policy_p_topple_neighbourhood[request.policy][pose], None
     else:
-        actions, finals, nears = obj.budget(request.pushes_left)
-        action, near = int(actions[pose]), nears[pose]
+        actions, finals = obj.budget(request.pushes_left)
+        action = int(actions[pose])
+        near = np.nan if action == NO_OP else obj.neighbourhood_p(pose, action)
         final = None if action == NO_OP else float(finals[pose])
     push = p_topple = p_near = q_value = after = None
     outcomes: list[dict] = []

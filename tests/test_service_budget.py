@@ -67,6 +67,23 @@ def test_a_bigger_budget_is_never_worth_less(client, tables):
         assert all(b >= a - 1e-9 for a, b in itertools.pairwise(values)), (object_id, pose, values)
 
 
+def test_a_budget_push_reports_its_neighbourhood_as_the_served_policies_do(client, tables):
+    # Where the budget's push is value iteration's, the per-request mean must equal the served column's.
+    same = 0
+    for object_id, pose in tables["poses"]:
+        stationary = plan(client, tables, object_id, pose)
+        for budget in (1, 2, 3, MAX_PUSHES_LEFT):
+            answer = plan(client, tables, object_id, pose, pushes_left=budget)
+            if answer["action"] is None:
+                assert answer["p_topple_neighbourhood"] is None
+            elif answer["action"] == stationary["action"]:
+                assert answer["p_topple_neighbourhood"] == stationary["p_topple_neighbourhood"]
+                same += 1
+            else:
+                assert 0.0 <= answer["p_topple_neighbourhood"] <= 1.0
+    assert same > 0
+
+
 def test_without_a_budget_nothing_changes(client, tables):
     object_id, pose = next(iter(tables["poses"]))
     answer = plan(client, tables, object_id, pose)
