@@ -38,7 +38,7 @@ PLANNER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="heap-planner")
 """The thread heap plans run in, one per worker process (its thread starts with the first plan,
 so a forked worker gets its own).  A 10-object plan is 5-15 ms of Python and numpy; on the
 event loop it held /plan up for as long (a 50 Hz controller's p99 27 ms behind two clients
-planning heaps back to back); in one thread, with the server's short switch interval, 4-6 ms."""
+planning heaps back to back); in one thread, with the server's short switch interval, 4-9 ms."""
 
 CONFIG = PushConfig()
 """The planner's numbers (clutter.policies.PushConfig defaults; the pybullet heaps plan with them too)."""
