@@ -32,7 +32,7 @@ parsed on the event loop, so they stay small; only /batch/* bodies may reach max
 BATCH_PREFIX = "/batch/"
 
 
-def _error(status: int, detail: str, headers: list[tuple[bytes, bytes]] = ()) -> tuple[dict, dict]:
+def error_messages(status: int, detail: str, headers: list[tuple[bytes, bytes]] = ()) -> tuple[dict, dict]:
     body = orjson.dumps({"detail": detail})
     start = {
         "type": "http.response.start",
@@ -131,6 +131,6 @@ class Guard:
 
     @staticmethod
     async def _reply(send, status: int, detail: str, headers=()) -> None:
-        start, body = _error(status, detail, list(headers))
+        start, body = error_messages(status, detail, list(headers))
         await send(start)
         await send(body)

@@ -27,7 +27,7 @@ import traceback
 from types import SimpleNamespace
 
 from .fastplan import HEADERS, FastPlan
-from .guard import Guard, _error
+from .guard import Guard, error_messages
 from .runtime import Runtime
 
 log = logging.getLogger("service")
@@ -68,7 +68,7 @@ class StagedApp:
         try:
             api = self.api or await self.ready()
         except Exception:  # noqa: BLE001 (any failure to build: logged once by _build)
-            for message in _error(500, BUILD_FAILED):
+            for message in error_messages(500, BUILD_FAILED):
                 await send(message)
             return
         await api(scope, receive, send)
