@@ -33,6 +33,7 @@ BATCH_PREFIX = "/batch/"
 
 
 def error_messages(status: int, detail: str, headers: list[tuple[bytes, bytes]] = ()) -> tuple[dict, dict]:
+    """The two ASGI messages (start, body) of a JSON error ``{"detail": detail}`` with ``status``."""
     body = orjson.dumps({"detail": detail})
     start = {
         "type": "http.response.start",
