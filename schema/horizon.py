@@ -10,9 +10,9 @@ and then grasp wants the push that maximises the expected V_s when the budget is
     V_h(x) = max(V_s(x), max_u Q_h(x, u))
 
 With one push left this is the greedy policy (``greedy`` column); as the budget grows it
-approaches value iteration without discount.  Played in pybullet with 3 pushes, it gained
-+0.019 +/- 0.012 V_s over value iteration on corpus objects and +0.012 +/- 0.008 on held-out
-objects (docs/VALIDATION.md, "Pushes for a budget").
+approaches value iteration without discount.  Played in pybullet with 3 pushes, it ended
+-0.001 to +0.039 V_s above value iteration (two seeds, corpus and held-out objects; on
+average +0.017; docs/VALIDATION.md, "Pushes for a budget").
 
 Inputs are one object's arrays in the served layout (``service.store.ObjectData``): actions
 pose after pose (``action_offsets``), transitions as CSR over action rows
