@@ -11,12 +11,13 @@ import trimesh
 from pipeline.build.atomic import file_sha256
 from pipeline.model.config import VARIANTS, Config
 from pipeline.studies.logreader import OUTSIDE, LogError, read_log
-from pipeline.studies.scoring import Scorer, sup_tv
+from pipeline.studies.scoring import Scorer, Scores, sup_tv
 from pipeline.studies.synthetic_log import planar
 from pipeline.studies.validation import (
     average_precision,
     bootstrap_difference,
     bootstrap_intervals,
+    by_direction,
     expected_calibration_error,
     main,
     push_metrics,
@@ -98,6 +99,23 @@ def test_bootstrap_interval_contains_the_estimate_and_shrinks_with_more_objects(
     # Seeded: the same seed gives the same interval.
     again = bootstrap_intervals(tv, predicted, observed, objects, n_resamples=200, seed=1)
     assert again == ci
+
+
+def test_by_direction_groups_pushes_by_their_vertical_component_and_predicted_band():
+    from types import SimpleNamespace
+
+    directions = [(0, 0, -1), (0.6, 0, -0.8), (1, 0, 0), (1, 0, 0), (0.8, 0, 0.6), (0, 0.6, -0.8)]
+    log = SimpleNamespace(pushes=[SimpleNamespace(direction=np.array(d, dtype=float)) for d in directions])
+    scorer = SimpleNamespace(log=log, empirical_topple=np.array([0.5, 0.9, 0.1, 0.3, 1.0, 0.0]))
+    scores = Scores(np.zeros(6), np.array([0.1, 0.2, 0.0, 0.0, 1.0, 0.5]))
+    cells = {(c["direction"], c["band"]): (c["pushes"], c["predicted_topple"], c["observed_topple"])
+             for c in by_direction(scores, scorer)}
+    assert cells == {
+        ("from above", "0 < P < 0.25"): (2, pytest.approx(0.15), pytest.approx(0.7)),  # u_z -1 and -0.8
+        ("from above", "0.25 <= P < 0.75"): (1, 0.5, 0.0),
+        ("side", "P = 0"): (2, 0.0, pytest.approx(0.2)),
+        ("from below", "P >= 0.75"): (1, 1.0, 1.0),  # P = 1 and u_z 0.6 fall in the top cells
+    }
 
 
 def test_paired_bootstrap_of_a_difference():

@@ -310,6 +310,34 @@ def per_object(scores: Scores, scorer: Scorer) -> list[dict]:
     return out
 
 
+DIRECTIONS = (("from above", -1.0, -0.7), ("oblique", -0.7, -0.3), ("side", -0.3, 0.3), ("from below", 0.3, 1.0))
+"""Push directions by their vertical component u_z in the pose frame (z up): name, lowest, highest."""
+BANDS = (("P = 0", 0.0, 0.0), ("0 < P < 0.25", 0.0, 0.25), ("0.25 <= P < 0.75", 0.25, 0.75), ("P >= 0.75", 0.75, 1.0))
+"""Bands of predicted P(topple): name, lowest, highest (the first band is exactly 0)."""
+
+
+def _within(values: np.ndarray, low: float, high: float) -> np.ndarray:
+    """low <= values < high, the top closed at 1 (the largest value a direction or a P takes)."""
+    return (values >= low) & ((values < high) | (high >= 1.0))
+
+
+def by_direction(scores: Scores, scorer: Scorer) -> list[dict]:
+    """Where the predictor is right or wrong: per push direction (``DIRECTIONS``) and band of
+    predicted P(topple) (``BANDS``), the pushes, their mean predicted and mean observed topple
+    rate.  Empty cells are left out."""
+    u_z = np.array([p.direction[2] for p in scorer.log.pushes])
+    predicted, observed = scores.p_topple, scorer.empirical_topple
+    out = []
+    for direction, low_z, high_z in DIRECTIONS:
+        for band, low, high in BANDS:
+            in_band = (predicted == 0.0) if high == 0.0 else _within(predicted, low, high) & (predicted > 0.0)
+            rows = _within(u_z, low_z, high_z) & in_band
+            if rows.any():
+                out.append({"direction": direction, "band": band, "pushes": int(rows.sum()),
+                            "predicted_topple": float(predicted[rows].mean()), "observed_topple": float(observed[rows].mean())})
+    return out
+
+
 def worst_objects(objects: list[dict], n: int = WORST) -> list[str]:
     """Objects with the highest informative TV (ties: more pushes first)."""
     ranked = [o for o in objects if not math.isnan(o["tv_informative"])]
@@ -337,11 +365,13 @@ def report(
     main_variant = config.topple.variant if config.topple.variant in variants else variants[-1]
     results: dict[str, dict] = {}
     objects: list[dict] = []
+    directions: list[dict] = []
     for variant in variants:
         scores = scorer.score_variant(config.topple, variant)
         results[variant] = predictor_summary(scores, scorer, n_resamples=n_resamples, seed=seed)
         if variant == main_variant:
             objects = per_object(scores, scorer)
+            directions = by_direction(scores, scorer)
     recalibration = None
     x, y = replace(config.topple, variant=main_variant).applied_recalibration
     if len(x) and main_variant in variants:
@@ -374,6 +404,7 @@ def report(
         "main_variant": main_variant,
         "objects": objects,
         "worst_objects": worst_objects(objects),
+        "by_direction": directions,
         "bootstrap": {"resamples": n_resamples, "confidence": CONFIDENCE, "seed": seed, "over": "objects"},
         "thesis_table_4_3": THESIS_TABLE_4_3,
         **({"recalibration": recalibration} if recalibration else {}),
@@ -416,6 +447,10 @@ def format_report(result: dict) -> str:
             f"{cell(m['ap']) + ci(m, 'ap'):>26} {cell(m['map']):>7} {cell(m['ece']):>7} {cell(m['informative']):>8}"
         )
     lines.append(f"worst objects ({result['main_variant']}, informative TV): {', '.join(result['worst_objects'])}")
+    if result.get("by_direction"):
+        lines.append(f"{result['main_variant']} by push direction and predicted P(topple): pushes, predicted, observed")
+        lines += [f"  {d['direction']:<11} {d['band']:<17} {d['pushes']:5d} {d['predicted_topple']:.3f} {d['observed_topple']:.3f}"
+                  for d in result["by_direction"]]
     if "recalibration" in result:
         parts = [f"{key} {d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]"
                  for key, d in result["recalibration"]["difference"].items() if key != "informative"]
