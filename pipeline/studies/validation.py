@@ -190,13 +190,19 @@ def bootstrap_intervals(
         with np.errstate(invalid="ignore", divide="ignore"):
             gap = np.abs(times @ bin_predicted - times @ bin_observed) / count
         samples["ece"].append(float(np.sum(np.where(count > 0, count * gap, 0.0)) / n))
+    # A metric undefined in most resamples (NaN) gets no interval.
+    return {key: percentile_interval(values, confidence, fewest=int(n_resamples // 2) + 1) for key, values in samples.items()}
+
+
+def percentile_interval(values, confidence: float = CONFIDENCE, fewest: int = 1) -> list[float]:
+    """[low, high], the central ``confidence`` of the bootstrap draws ``values`` that are not NaN;
+    NaN bounds when fewer than ``fewest`` are."""
+    values = np.asarray(values, dtype=float)
+    values = values[~np.isnan(values)]
+    if len(values) < max(fewest, 1):
+        return [math.nan, math.nan]
     tail = 100 * (1 - confidence) / 2
-    out = {}
-    for key, values in samples.items():
-        values = np.array(values, dtype=float)
-        values = values[~np.isnan(values)]
-        out[key] = [float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))] if len(values) > n_resamples / 2 else [math.nan, math.nan]
-    return out
+    return [float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))]
 
 
 def bootstrap_difference(
@@ -233,13 +239,8 @@ def bootstrap_difference(
 
     point = metrics(np.ones(k))
     draws = np.array([metrics(np.bincount(rng.integers(k, size=k), minlength=k).astype(float)) for _ in range(n_resamples)])
-    tail = 100 * (1 - confidence) / 2
-    out = {}
-    for i, key in enumerate(("tv_all", "tv_informative")):
-        values = draws[:, i][~np.isnan(draws[:, i])]
-        ci = [float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))] if len(values) else [math.nan, math.nan]
-        out[key] = {"difference": float(point[i]), "ci": ci}
-    return out
+    return {key: {"difference": float(point[i]), "ci": percentile_interval(draws[:, i], confidence)}
+            for i, key in enumerate(("tv_all", "tv_informative"))}
 
 
 def bootstrap_metric_difference(
@@ -270,14 +271,8 @@ def bootstrap_metric_difference(
 
     point = difference(np.arange(len(names)))
     draws = [difference(rng.integers(len(names), size=len(names))) for _ in range(n_resamples)]
-    tail = 100 * (1 - confidence) / 2
-    out = {}
-    for key, value in point.items():
-        values = np.array([d[key] for d in draws], dtype=float)
-        values = values[~np.isnan(values)]
-        ci = [float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))] if len(values) else [math.nan, math.nan]
-        out[key] = {"difference": float(value), "ci": ci}
-    return out
+    return {key: {"difference": float(value), "ci": percentile_interval([d[key] for d in draws], confidence)}
+            for key, value in point.items()}
 
 
 # ---------------------------------------------------------------- the report
