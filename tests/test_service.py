@@ -308,13 +308,18 @@ MALFORMED = [
 ]
 
 
-@pytest.mark.parametrize("body,message", MALFORMED)
-def test_malformed_plan_requests_are_422_with_a_message(client, body, message):
-    response = client.post("/plan", content=body, headers=JSON)
+def assert_malformed(client, path: str, body: str, message: str) -> None:
+    """POST ``body`` to ``path``: a 422 whose one-line ``detail`` contains ``message``, with ``errors``."""
+    response = client.post(path, content=body, headers=JSON)
     assert response.status_code == 422, response.text
     detail = response.json()["detail"]
     assert isinstance(detail, str) and message in detail, detail
     assert response.json()["errors"]
+
+
+@pytest.mark.parametrize("body,message", MALFORMED)
+def test_malformed_plan_requests_are_422_with_a_message(client, body, message):
+    assert_malformed(client, "/plan", body, message)
 
 
 @pytest.mark.parametrize(

@@ -18,14 +18,14 @@ from clutter.policies import POLICIES, PushConfig, plan_push
 from clutter.state import Bin, HeapState
 from schema.api import BIN_TOLERANCE, HeapBin, HeapPolicy, RosPose
 from tests.test_service import (  # noqa: F401 (fixtures)
+    JSON,
+    assert_malformed,
     client,
     dataset,
     planar_transform,
     stored_transform,
     tables,
 )
-
-JSON = {"content-type": "application/json"}
 
 
 @pytest.fixture(scope="module")
@@ -229,11 +229,7 @@ MALFORMED = [
 
 @pytest.mark.parametrize("body, message", MALFORMED)
 def test_malformed_heap_requests_are_422_with_a_message(client, body, message):
-    response = client.post("/heaps/plan", content=body, headers=JSON)
-    assert response.status_code == 422, response.text
-    detail = response.json()["detail"]
-    assert isinstance(detail, str) and message in detail, detail
-    assert response.json()["errors"]
+    assert_malformed(client, "/heaps/plan", body, message)
 
 
 def test_openapi_documents_the_heap_planner(client):
