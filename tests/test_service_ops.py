@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import httpx
 import psutil
@@ -114,9 +115,17 @@ def start(args: list[str], env: dict | None = None) -> tuple[subprocess.Popen, s
     return process, url
 
 
-def two_workers(process: subprocess.Popen) -> list:
-    """The two worker processes of a ``--workers 2`` server, once both are forked (psutil)."""
-    return wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+@contextlib.contextmanager
+def two_worker_server(dataset, *extra: str):
+    """A ``--workers 2`` server on ``dataset`` (no watcher), both workers forked: a namespace with
+    ``process``, ``url``, ``workers``; after the block it is stopped and ``out``, ``err`` hold its output."""
+    process, url = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0", *extra])
+    server = SimpleNamespace(process=process, url=url, workers=None, out="", err="")
+    try:
+        server.workers = wait_for(lambda: len(w := psutil.Process(process.pid).children()) == 2 and w, "two workers")
+        yield server
+    finally:
+        server.out, server.err = stop(process)
 
 
 def stop(process: subprocess.Popen) -> tuple[str, str]:
@@ -181,11 +190,8 @@ def test_server_closes_unfinished_requests_reloads_on_sighup_logs_no_access_line
 @pytest.mark.slow
 def test_two_forked_workers_serve_and_a_dead_one_is_replaced(dataset):
     # python -m service --workers 2 loads the dataset once and forks the workers from it.
-    process, url = start(
-        [sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0", "--request-timeout", "3"]
-    )
-    try:
-        workers = two_workers(process)
+    with two_worker_server(dataset, "--request-timeout", "3") as server:
+        process, url, workers = server.process, server.url, server.workers
         assert httpx.get(f"{url}/health").json()["counts"]["objects"] == 3
         pids = set()
         for _ in range(40):  # a new connection each time: the kernel spreads them over the workers
@@ -198,8 +204,6 @@ def test_two_forked_workers_serve_and_a_dead_one_is_replaced(dataset):
         wait_for(lambda: len(c := psutil.Process(process.pid).children()) == 2 and workers[0].pid not in {w.pid for w in c},
                  "a replacement worker")
         assert wait_for(lambda: httpx.get(f"{url}/health").status_code == 200, "an answer after the replacement")
-    finally:
-        stop(process)
     assert psutil.pid_exists(workers[1].pid) is False or psutil.Process(workers[1].pid).status() == psutil.STATUS_ZOMBIE
 
 
@@ -310,15 +314,12 @@ def test_a_response_written_in_two_parts_leaves_in_one_send_and_a_close_sends_wh
 def test_a_stop_during_a_workers_restart_pause_starts_no_new_worker(dataset):
     # A worker dies; while the server waits RESTART_PAUSE before replacing it, a SIGTERM arrives:
     # the server must stop (not fork a worker that nobody will signal, and wait for it forever).
-    process, _ = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0"])
-    try:
-        workers = two_workers(process)
+    with two_worker_server(dataset) as server:
+        process, workers = server.process, server.workers
         workers[0].kill()
         wait_for(lambda: workers[0].pid not in {c.pid for c in psutil.Process(process.pid).children()}, "the dead worker reaped")
         process.send_signal(signal.SIGTERM)  # within the restart pause
         process.wait(timeout=DEADLINE)  # it stops (it used to fork a replacement after the pause and wait for it)
-    finally:
-        stop(process)
 
 
 @pytest.mark.slow
@@ -327,46 +328,39 @@ def test_a_replacement_worker_serves_the_build_the_others_reloaded(dataset, tmp_
     # loaded at start.  A worker forked later to replace a dead one must not serve that old build.
     copy = tmp_path / "dataset"
     shutil.copytree(dataset, copy)
-    process, url = start([sys.executable, "-m", "service", "--dataset", str(copy), "--workers", "2", "--watch-seconds", "0"])
 
-    def serving() -> dict[str, str]:
+    def serving(url: str) -> dict[str, str]:
         """pid -> created of the worker that answers a new connection."""
         with httpx.Client() as client:
             lines = client.get(f"{url}/metrics").text.splitlines()
         info = next(line for line in lines if line.startswith("toppledb_dataset_info{"))
         return {info.split('pid="')[1].split('"')[0]: info.split('created="')[1].split('"')[0]}
 
-    try:
-        workers = two_workers(process)
+    with two_worker_server(copy) as server:
+        process, url, workers = server.process, server.url, server.workers
         rebuilt(copy, "2033-01-01T00:00:00+00:00")
         process.send_signal(signal.SIGHUP)
         seen: dict[str, str] = {}
-        wait_for(lambda: seen.update(serving()) or (len(seen) == 2 and all(c.startswith("2033") for c in seen.values())),
+        wait_for(lambda: seen.update(serving(url)) or (len(seen) == 2 and all(c.startswith("2033") for c in seen.values())),
                  "both workers to reload")
         workers[0].kill()
         old = {w.pid for w in workers}
         replacement = wait_for(lambda: [w for w in psutil.Process(process.pid).children() if w.pid not in old],
                                "a replacement worker")[0]
         seen.clear()
-        created = wait_for(lambda: seen.update(serving()) or seen.get(str(replacement.pid)), "an answer from the replacement")
+        created = wait_for(lambda: seen.update(serving(url)) or seen.get(str(replacement.pid)), "an answer from the replacement")
         assert created.startswith("2033"), f"the replacement serves the build of {created}"
-    finally:
-        stop(process)
 
 
 @pytest.mark.slow
 def test_a_sighup_while_a_worker_starts_does_not_kill_it(dataset):
     # SIGHUP means "reload" to a worker once it serves; one that arrives while a replacement
     # worker is still starting up must not terminate it (SIGHUP's default action).
-    process, _ = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--workers", "2", "--watch-seconds", "0"])
-    try:
-        workers = two_workers(process)
-        workers[0].kill()
+    with two_worker_server(dataset) as server:
+        server.workers[0].kill()
         deadline = time.monotonic() + 3.0  # the restart pause, then the replacement's start-up
         while time.monotonic() < deadline:
-            process.send_signal(signal.SIGHUP)
+            server.process.send_signal(signal.SIGHUP)
             time.sleep(0.005)
         time.sleep(0.5)
-    finally:
-        _, err = stop(process)
-    assert err.count("starting another") == 1, err[-2000:]
+    assert server.err.count("starting another") == 1, server.err[-2000:]
