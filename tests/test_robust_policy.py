@@ -13,7 +13,6 @@ from pipeline.studies.robust_policy import (
     pose_scores,
     robust_actions,
     smoothed_choice,
-    smoothed_rows,
 )
 from schema.vocabulary import NO_OP
 
@@ -145,12 +144,12 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert len(lines) == 2 and all(line.startswith("error: ") for line in lines)
 
 
-def test_smoothed_rows_average_neighbours_and_drop_lonely_candidates():
+def test_pose_scores_smooth_rows_over_neighbours_and_drop_lonely_candidates():
     # Three pushes 5 mm apart along y, all along x, and one far away; rows over two poses.
     points = np.array([[0.0, 0.0, 0.0], [0.0, 0.005, 0.0], [0.0, 0.010, 0.0], [0.0, 0.2, 0.0]])
     candidates = [PoseCandidates(points, np.tile(X, (4, 1)), np.zeros(4), np.zeros(4), np.zeros(4))]
     rows = [np.array([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0], [0.2, 0.8]])]
-    smoothed = smoothed_rows(candidates, rows, Smoothing(radius=0.006, max_angle=0.1, min_neighbours=2))[0]
+    smoothed = pose_scores(candidates[0], Smoothing(radius=0.006, max_angle=0.1, min_neighbours=2), rows[0]).smoothed_rows
     np.testing.assert_allclose(smoothed[0], [0.75, 0.25])  # itself and its one neighbour
     np.testing.assert_allclose(smoothed[1], [0.5, 0.5])  # the mean of all three
     assert np.isnan(smoothed[3]).all()  # alone: fewer than 2

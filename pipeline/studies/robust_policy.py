@@ -56,8 +56,10 @@ ROBUST_POLICY = "smoothed_vi"
 HORIZON_POLICY = "horizon_vi"
 """Value iteration solved for the experiment's push budget (``horizon_actions``)."""
 SMOOTHED_HORIZON_POLICY = "smoothed_horizon_vi"
-"""``horizon_vi`` over the neighbourhood-smoothed transitions (``smoothed_rows``)."""
-COMPARED = ("max_height", "value_iteration", ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY)
+"""``horizon_vi`` over the neighbourhood-smoothed transitions (``PoseScores.smoothed_rows``)."""
+CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY)
+"""The policies each compared with value iteration, paired."""
+COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
 """Policies the study plays (common random numbers: adding one changes no other's pushes)."""
 
 
@@ -144,18 +146,28 @@ def read_candidates(dataset: Dataset, object_id: str) -> list[PoseCandidates]:
 
 @dataclass
 class PoseScores:
-    """Per-candidate scores of one pose.  smoothed_q, smoothed_p : (A,) float;  count : (A,) int."""
+    """Per-candidate scores of one pose.  smoothed_q, smoothed_p : (A,) float;  count : (A,) int;
+    smoothed_rows : (A, P) float, each candidate's mean next-pose row over its neighbours (NaN
+    with fewer than ``min_neighbours``), when the rows were given."""
 
     smoothed_q: np.ndarray
     smoothed_p: np.ndarray
     count: np.ndarray
+    smoothed_rows: np.ndarray | None = None
 
 
-def pose_scores(candidates: PoseCandidates, smoothing: Smoothing) -> PoseScores:
-    """Neighbourhood means of Q_T and of P(topple) for every candidate of a pose."""
-    # q and p_topple are finite on the same (ok) candidates, so one pass smooths both.
-    both, count = neighbour_mean(candidates.points, candidates.directions, np.stack([candidates.q, candidates.p_topple], axis=1), smoothing)
-    return PoseScores(both[:, 0], both[:, 1], count)
+def pose_scores(candidates: PoseCandidates, smoothing: Smoothing, rows: np.ndarray | None = None) -> PoseScores:
+    """Neighbourhood means of Q_T and of P(topple) for every candidate of a pose, and of its
+    next-pose rows ``rows`` ((A, P), NaN unless ok) when given: the transitions under an extra
+    contact and direction error of ``smoothing``'s size (``smoothed_horizon_vi``)."""
+    # q, p_topple and the rows are finite on the same (ok) candidates, so one pass smooths them all.
+    values = [candidates.q[:, None], candidates.p_topple[:, None], *([] if rows is None else [rows])]
+    means, count = neighbour_mean(candidates.points, candidates.directions, np.hstack(values), smoothing)
+    smoothed_rows = None
+    if rows is not None:
+        smoothed_rows = means[:, 2:]
+        smoothed_rows[count < smoothing.min_neighbours] = np.nan
+    return PoseScores(means[:, 0], means[:, 1], count, smoothed_rows)
 
 
 def robust_actions(v_s: np.ndarray, scores: list[PoseScores], gamma: float, smoothing: Smoothing) -> np.ndarray:
@@ -190,18 +202,6 @@ def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int) -> np.
     """
     actions, _ = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes)
     return actions[::-1]  # row k: pushes - k left, the order the pushes are played in
-
-
-def smoothed_rows(candidates: list[PoseCandidates], rows: list[np.ndarray], smoothing: Smoothing) -> list[np.ndarray]:
-    """Each candidate's next-pose row replaced by the mean row of its neighbours (``neighbour_mean``
-    with ``smoothing``'s limits): the transitions under an extra contact and direction error of
-    that size.  Candidates with fewer than ``min_neighbours`` ok neighbours get a NaN row."""
-    out = []
-    for c, matrix in zip(candidates, rows):
-        mean, count = neighbour_mean(c.points, c.directions, matrix, smoothing)
-        mean[count < smoothing.min_neighbours] = np.nan
-        out.append(mean)
-    return out
 
 
 # ---------------------------------------------------------------- physics
@@ -297,11 +297,11 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     for object_id in sorted(by_object):
         plan = plans[object_id]
         candidates = read_candidates(dataset, object_id)
-        scores = [pose_scores(c, smoothing) for c in candidates]
-        plan.actions[ROBUST_POLICY] = robust_actions(plan.v_s, scores, config.mdp.gamma, smoothing)
         rows = next_pose_rows(dataset, object_id, [len(c.q) for c in candidates])
+        scores = [pose_scores(c, smoothing, r) for c, r in zip(candidates, rows)]
+        plan.actions[ROBUST_POLICY] = robust_actions(plan.v_s, scores, config.mdp.gamma, smoothing)
         plan.actions[HORIZON_POLICY] = horizon_actions(plan.v_s, rows, max_pushes)
-        plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, smoothed_rows(candidates, rows, smoothing), max_pushes)
+        plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, [s.smoothed_rows for s in scores], max_pushes)
         tasks.append((plan, {"candidates": candidates, "scores": scores}, by_object[object_id], config, seed, max_pushes, world))
 
     runs: dict[int, dict[str, list[int]]] = {}
@@ -345,7 +345,7 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
             "physical_topple_rate": _mean_se([p.toppled for p in mine])[0],
             "physical_topple_rate_se": _mean_se([p.toppled for p in mine])[1],
         }
-    for policy in (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY):
+    for policy in CHALLENGERS:
         mean, error = _mean_se(gains[policy][useful] - gains["value_iteration"][useful])
         report["policies"][policy].update({"gain_over_value_iteration": mean, "gain_over_value_iteration_se": error})
     return report
@@ -364,7 +364,7 @@ def text(report: dict) -> str:
                      f"{cell(r['gain_over_max_height']) + ('' if se is None else f' +/- {se:.3f}'):>18} {r['pushes']:>7} "
                      f"{cell(r['predicted_topple_rate'], False):>6} {cell(r['smoothed_topple_rate'], False):>8} "
                      f"{cell(r['physical_topple_rate'], False):>8}")
-    for policy in (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY):
+    for policy in CHALLENGERS:
         r = report["policies"][policy]
         lines.append(f"{policy} - value_iteration on useful trials: {cell(r['gain_over_value_iteration'])} +/- "
                      f"{r['gain_over_value_iteration_se'] or 0:.3f}")
