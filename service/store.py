@@ -147,7 +147,7 @@ class ObjectData:
 
     def neighbourhood_p(self, pose: int, action: int) -> float:
         """The mean P(topple) around one push of a pose (``schema.neighbourhood``; the served
-        tables hold it for each policy's push, this is for any other, ~50 us)."""
+        tables hold it for each policy's push, this is for any other, about 80 us)."""
         rows = self.pose_rows(pose)
         mean, _ = neighbourhood.neighbour_mean(self.points[rows], self.directions[rows], self.p_topple[rows], rows=[action])
         return float(mean[0])
