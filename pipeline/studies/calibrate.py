@@ -63,8 +63,10 @@ BOUNDS: dict[str, Bound] = {
     "contact_std": Bound(0.0, 0.005, "m; 0 to 5 mm of finger placement error, 10x the thesis's 0.5 mm"),
     "direction_std": Bound(0.0, 0.3, "0 to about 17 degrees of push-direction error (thesis 0.055)"),
     "rotation_std": Bound(0.0, 0.4, "rad; 0 to 23 degrees of object orientation error (thesis 0.22)"),
+    "finger_friction_scale": Bound(0.0, 1.0, "corrected variant only: no finger friction in the tipping balance (0) to Coulomb's law (1)"),
 }
-"""Search range of every noise parameter; docs/VALIDATION.md gives the reasons."""
+"""Search range of every searchable parameter (the noise, and the corrected model's k, which
+``--params`` must name); docs/VALIDATION.md gives the reasons."""
 SOBOL_SHARE = 0.64
 """Share of the settings drawn quasi-randomly; the rest refine locally."""
 REFINE_RADII = (0.10, 0.04)
@@ -498,7 +500,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--folds", type=int, default=6, help="cross-validation folds, grouped by object (default: %(default)s)")
     parser.add_argument("--settings", type=int, default=100, help="candidate settings per selection problem (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the search, the folds and the model's trials (default: %(default)s)")
-    parser.add_argument("--params", nargs="+", choices=list(BOUNDS), default=list(NOISE_KEYS), help="parameters to search (default: all)")
+    parser.add_argument("--params", nargs="+", choices=list(BOUNDS), default=list(NOISE_KEYS),
+                        help="parameters to search (default: the seven noise parameters)")
     parser.add_argument("--variant", choices=VARIANTS, default="robust", help="variant whose objective is minimised (default: %(default)s)")
     parser.add_argument("--objective", choices=OBJECTIVES, default="informative", help="pushes the mean TV is over (default: %(default)s)")
     parser.add_argument("--corpus", default="default", help="calibrate only on this corpus's objects ('none': any object; default: %(default)s)")

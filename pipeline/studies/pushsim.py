@@ -23,6 +23,12 @@ Simulation choices, and why:
   principal frame so the inertia is diagonal.
 * Friction: Bullet multiplies the two bodies' coefficients, so the plane has 1, the object
   mu_T and the finger mu_f / mu_T; the object-table pair then has mu_T, the finger-object pair mu_f.
+* Finger strength: the constraint that drags the finger is limited to
+  ``topple.max_finger_force``, the force the model allows a push (docs/MODEL.md C.1).
+  With a 200 N finger, pushes from above onto a face the object cannot move away from
+  pressed 0.25 kg objects with 100-150 N until they slipped out over an edge (traced on
+  corpus-log pushes the model gives P = 0): a push no arm of the model's class makes,
+  and one the model, bounded at the same force, calls a failure (docs/VALIDATION.md).
 * Noise: friction coefficients, contact point and push direction, with ``config.topple``'s
   distributions.  The model's object-rotation noise is not applied: a rotated object
   is not at rest, and the engine observes its own pose exactly.
@@ -53,9 +59,7 @@ TABLE_HALF_SIZE = 1.0
 FINGER_SPEED = 0.05
 """m/s; slow enough to be close to quasi-static."""
 FINGER_MASS = 0.05
-"""kg; the finger is dynamic but held by a constraint far stronger than any push."""
-FINGER_MAX_FORCE = 200.0
-"""N, strength of the constraint that drags the finger along its path."""
+"""kg; the finger is dynamic, dragged along its path by a constraint of ``topple.max_finger_force``."""
 REST_BEFORE = 0.2
 """s the object is left on the table before the finger appears, so that its contacts have formed."""
 SETTLE_TIME = 1.5
@@ -69,7 +73,7 @@ REST_STEPS = 24
 """Steps in a row below both speeds that count as at rest (0.1 s)."""
 MIN_FRICTION = 0.05
 """Noisy friction coefficients are clipped here: Bullet treats 0 as frictionless, a noisy draw below 0 as nonsense."""
-PLAYER_VERSION = "2"
+PLAYER_VERSION = "3"
 """Bumped whenever the player's physics changes, so that push logs made before are not resumed into."""
 
 
@@ -83,7 +87,6 @@ def player_parameters() -> dict:
         "table_half_size": TABLE_HALF_SIZE,
         "finger_speed": FINGER_SPEED,
         "finger_mass": FINGER_MASS,
-        "finger_max_force": FINGER_MAX_FORCE,
         "rest_before": REST_BEFORE,
         "settle_time": SETTLE_TIME,
         "rest_speed": REST_SPEED,
@@ -221,6 +224,8 @@ class PlayedPush:
     at_rest : bool, the object came to rest before ``SETTLE_TIME`` ran out
     point, direction : (3,) float, world frame, the push as executed (noise included)
     noise : the draws it was played with
+    peak_force : float, N, the largest normal force the finger pressed on the object with
+      (summed over its contact points, per simulation step)
     """
 
     start_transform: np.ndarray
@@ -229,6 +234,7 @@ class PlayedPush:
     point: np.ndarray
     direction: np.ndarray
     noise: PushNoise
+    peak_force: float = 0.0
 
 
 def play_push(
@@ -263,9 +269,12 @@ def play_push(
     pb.changeDynamics(finger, -1, lateralFriction=noise.mu_finger / noise.mu_table, physicsClientId=client)
     pb.setCollisionFilterPair(finger, table, -1, -1, 0, physicsClientId=client)
     grip = pb.createConstraint(finger, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], path[0].tolist(), physicsClientId=client)
+    peak_force = 0.0
     for target in path:
-        pb.changeConstraint(grip, target.tolist(), maxForce=FINGER_MAX_FORCE, physicsClientId=client)
+        pb.changeConstraint(grip, target.tolist(), maxForce=config.topple.max_finger_force, physicsClientId=client)
         pb.stepSimulation(physicsClientId=client)
+        contacts = pb.getContactPoints(finger, obj_id, physicsClientId=client)
+        peak_force = max(peak_force, sum(c[9] for c in contacts))
 
     # Withdraw the finger so it neither props the object up nor pushes it further.
     pb.removeConstraint(grip, physicsClientId=client)
@@ -278,7 +287,7 @@ def play_push(
         if still >= REST_STEPS:
             break
     final = _observe(pb, client, obj_id, body)
-    return PlayedPush(start, final, still >= REST_STEPS, world_point, world_direction, noise)
+    return PlayedPush(start, final, still >= REST_STEPS, world_point, world_direction, noise, peak_force)
 
 
 def rest_on_table(body: BodyModel, transform: np.ndarray, config: Config = DEFAULT_CONFIG, duration: float = REST_BEFORE) -> np.ndarray:
