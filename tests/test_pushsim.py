@@ -17,12 +17,15 @@ from pipeline.api import evaluate
 from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import DEFAULT_LIST, ObjectSpec, read_list
 from pipeline.model.config import PRESETS, Config
+from pipeline.model.mesh import model_from_mesh
 from pipeline.model.poses import stable_poses
 from pipeline.studies import playlog
 from pipeline.studies.logreader import empirical_distribution
 from pipeline.studies.pushsim import (
     FINGER_SPEED,
+    _client,
     body_model,
+    clip_to_hull,
     draw_noise,
     link_pose,
     object_transform,
@@ -98,6 +101,37 @@ def test_box_pushed_low_slides_along_the_push_and_stays_standing(box):
     assert moved[0] == pytest.approx(-Config().contacts.push_depth, abs=0.005)
     assert abs(moved[1]) < 0.002 and abs(moved[2]) < 1e-3
     assert simulate_push(obj, pose_set, standing, np.array([0.025, 0.0, low]), PUSH["direction"], Config(), noise=False) == standing
+
+
+def _l_shape():
+    """A 10 cm slab (2 cm thick) with a 10 cm tower on its -x end: concave, resting on the slab."""
+    slab = trimesh.creation.box([0.10, 0.04, 0.02])
+    slab.apply_translation([0.05, 0.0, 0.01])
+    tower = trimesh.creation.box([0.02, 0.036, 0.10])  # inset in y: both shells stay closed
+    tower.apply_translation([0.01, 0.0, 0.07])
+    return model_from_mesh(trimesh.util.concatenate([slab, tower]), mass=0.2, name="l_shape")
+
+
+def test_a_concave_object_collides_as_its_surface_not_its_hull():
+    """A finger moving towards the tower's inner face (x = 2 cm) at 6 cm height must reach it:
+    the hull's sloping face (slab edge to tower top) would stop it at x = 6.8 cm."""
+    import pybullet as pb
+
+    obj = _l_shape()
+    body = body_model(obj)
+    assert body.parts, "the L shape is concave"
+    rested = rest_on_table(body, np.eye(4))
+    np.testing.assert_allclose(rested[:3, :3], np.eye(3), atol=1e-3)  # it rests on its slab, as on its hull
+    hit = pb.rayTest([0.09, 0.0, 0.06], [-0.05, 0.0, 0.06], physicsClientId=_client()[1])[0]
+    assert hit[0] >= 0 and abs(hit[3][0] - 0.02) < 0.003, hit[3]
+
+
+def test_clip_to_hull_is_the_intersection_of_two_convex_bodies():
+    cube = np.array([[x, y, z] for x in (0, 2) for y in (0, 2) for z in (0, 2)], dtype=float)
+    clipped = clip_to_hull(cube, cube + 1.0)
+    np.testing.assert_allclose(np.sort(np.unique(clipped.round(9), axis=0), axis=0),
+                               np.sort(np.array([[x, y, z] for x in (1, 2) for y in (1, 2) for z in (1, 2)], dtype=float), axis=0))
+    assert clip_to_hull(cube, cube + 5.0) is None  # disjoint: nothing left
 
 
 def _player_threshold(box, mu_finger: float) -> float:
