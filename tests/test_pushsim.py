@@ -117,10 +117,14 @@ def test_a_concave_object_collides_as_its_surface_not_its_hull():
     the hull's sloping face (slab edge to tower top) would stop it at x = 6.8 cm."""
     import pybullet as pb
 
+    import tempfile
+
     obj = _l_shape()
     body = body_model(obj)
     assert body.parts, "the L shape is concave"
+    before = set(Path(tempfile.gettempdir()).glob("toppledb-parts-*"))
     rested = rest_on_table(body, np.eye(4))
+    assert set(Path(tempfile.gettempdir()).glob("toppledb-parts-*")) == before  # the shape's file is gone again
     np.testing.assert_allclose(rested[:3, :3], np.eye(3), atol=1e-3)  # it rests on its slab, as on its hull
     hit = pb.rayTest([0.09, 0.0, 0.06], [-0.05, 0.0, 0.06], physicsClientId=_client()[1])[0]
     assert hit[0] >= 0 and abs(hit[3][0] - 0.02) < 0.003, hit[3]

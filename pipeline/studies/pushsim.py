@@ -439,7 +439,7 @@ def _place(pb, client, body: BodyModel, transform: np.ndarray, mu_table: float, 
 
     position, world_from_link = link_pose(body, transform)
     if body.parts:
-        shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=_parts_file(body.parts), physicsClientId=client)
+        shape = _parts_shape(pb, client, body.parts)
     else:
         shape = pb.createCollisionShape(pb.GEOM_MESH, vertices=body.vertices.tolist(), physicsClientId=client)
     obj_id = pb.createMultiBody(
@@ -460,23 +460,22 @@ def _place(pb, client, body: BodyModel, transform: np.ndarray, mu_table: float, 
     return table, obj_id
 
 
-_PARTS_FILES: dict[str, str] = {}
-"""This process's OBJ files of convex parts, by their text (pybullet loads compound shapes from files)."""
+def _parts_shape(pb, client, parts: str) -> int:
+    """pybullet's compound collision shape of ``parts`` (OBJ text; ``convex_parts``).
 
-
-def _parts_file(parts: str) -> str:
-    """A file holding ``parts`` (written once per process and text), for ``createCollisionShape``."""
-    import hashlib
+    pybullet loads a compound only from a file: it is written, loaded and removed again, so
+    that no file outlives the call whatever ends the process later.
+    """
     import os
     import tempfile
 
-    key = hashlib.sha256(parts.encode()).hexdigest()
-    if key not in _PARTS_FILES or not os.path.exists(_PARTS_FILES[key]):
-        handle, path = tempfile.mkstemp(suffix=".obj", prefix="toppledb-parts-")
+    handle, path = tempfile.mkstemp(suffix=".obj", prefix="toppledb-parts-")
+    try:
         with os.fdopen(handle, "w") as f:
             f.write(parts)
-        _PARTS_FILES[key] = path
-    return _PARTS_FILES[key]
+        return pb.createCollisionShape(pb.GEOM_MESH, fileName=path, physicsClientId=client)
+    finally:
+        os.unlink(path)
 
 
 def _observe(pb, client, obj_id: int, body: BodyModel) -> np.ndarray:
