@@ -150,14 +150,14 @@ def body_model(obj: ObjectModel) -> BodyModel:
     vertices = (obj.hull.vertices - obj.center_mass) @ link_from_object.T
     parts = ""
     if obj.mesh.is_volume and obj.mesh.volume < CONVEX_VOLUME_SHARE * obj.hull.volume:
-        parts = convex_parts((obj.mesh.vertices - obj.center_mass) @ link_from_object.T, obj.mesh.faces)
+        parts = convex_parts((obj.mesh.vertices - obj.center_mass) @ link_from_object.T, obj.mesh.faces, vertices)
     return BodyModel(vertices, np.maximum(moments, 1e-12), link_from_object, obj.center_mass.copy(), float(obj.mass), parts)
 
 
-def convex_parts(vertices: np.ndarray, faces: np.ndarray) -> str:
+def convex_parts(vertices: np.ndarray, faces: np.ndarray, hull_vertices: np.ndarray) -> str:
     """Approximate convex decomposition of a closed mesh, as OBJ text for pybullet.
 
-    vertices : (V, 3) float, m;  faces : (F, 3) int
+    vertices : (V, 3) float, m;  faces : (F, 3) int;  hull_vertices : (H, 3) float, m, its convex hull's
     returns : one ``o`` group (a convex polyhedron) per part; pybullet loads them as one compound shape
 
     A finger pushing into a concavity must meet the surface the model pushes; the hull
@@ -186,8 +186,7 @@ def convex_parts(vertices: np.ndarray, faces: np.ndarray) -> str:
                 os.close(stdout)
         with open(target) as f:
             parts = _obj_groups(f.read())
-    hull = trimesh.convex.convex_hull(vertices)
-    clipped = [clip_to_hull(part, hull.vertices) for part in parts]
+    clipped = [clip_to_hull(part, hull_vertices) for part in parts]
     return _obj_text([part for part in clipped if part is not None])
 
 
