@@ -6,9 +6,13 @@ import numpy as np
 import pybullet_data
 import trimesh
 
+from pipeline.model.config import PRESETS, Config
 from pipeline.model.mesh import load_mesh, model_from_mesh
 
 DATA = pybullet_data.getDataPath()
+THESIS = Config.from_toml(PRESETS / "thesis.toml")
+"""The thesis's model, friction and noise (`--config thesis`): for tests of the thesis's variants,
+and of the push player, which `make logs` plays with them (the default noise is calibrated)."""
 
 
 def box_object(size=(0.05, 0.08, 0.15), mass=0.25):

@@ -11,12 +11,12 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import trimesh
-from shapes import DATA, box_object, pose_with_down, random_object, standing_box
+from shapes import DATA, THESIS, box_object, pose_with_down, random_object, standing_box
 
 from pipeline.api import evaluate
 from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import DEFAULT_LIST, ObjectSpec, read_list
-from pipeline.model.config import PRESETS, Config
+from pipeline.model.config import Config
 from pipeline.model.mesh import model_from_mesh
 from pipeline.model.poses import stable_poses
 from pipeline.studies import playlog
@@ -36,8 +36,6 @@ from pipeline.studies.pushsim import (
 from schema.frames import transform_points
 from schema.pushlog import PUSHLOG, row_problems
 
-THESIS = Config.from_toml(PRESETS / "thesis.toml")
-"""The thesis's friction and noise: what ``make logs`` plays pushes with (the default noise is calibrated)."""
 MU_TABLE = Config().topple.mu_table_mean
 FLOAT_TOLERANCE = 2e-4
 """m; a resting hull's lowest vertex must be this close to the table (Bullet's default margin lifts it ~1 mm)."""
@@ -115,9 +113,9 @@ def _l_shape():
 def test_a_concave_object_collides_as_its_surface_not_its_hull():
     """A finger moving towards the tower's inner face (x = 2 cm) at 6 cm height must reach it:
     the hull's sloping face (slab edge to tower top) would stop it at x = 6.8 cm."""
-    import pybullet as pb
-
     import tempfile
+
+    import pybullet as pb
 
     obj = _l_shape()
     body = body_model(obj)

@@ -4,10 +4,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from shapes import box_object, random_object
+from shapes import THESIS, box_object, random_object
 
 from pipeline.model.collision import collision_object
-from pipeline.model.config import PRESETS, Config
+from pipeline.model.config import Config
 from pipeline.model.contacts import object_contacts, pose_actions
 from pipeline.model.poses import stable_poses
 from pipeline.model.reference import draw_of, landed_pose, reference_trial, scene_from_pose
@@ -42,7 +42,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
     obj = _object(name)
     variant, _, corrections = variant.partition(":")
     # The thesis's variants with the thesis's noise (the default noise is calibrated for corrected).
-    config = Config() if variant == "corrected" else Config.from_toml(PRESETS / "thesis.toml")
+    config = Config() if variant == "corrected" else THESIS
     # The reference counts trials; the recalibration after the count (MODEL.md C.7) is tested on its own.
     topple = replace(config.topple, variant=variant, n_trials=8, corrections=corrections or "all", recalibration_x=(), recalibration_y=())
     if corrections == "force_limit":
@@ -102,7 +102,7 @@ def test_reference_required_force_matches_engine_on_box():
     from pipeline.model.contacts import explicit_actions
 
     actions = explicit_actions(obj, pose.transform, np.array([[0.025, 0.01, 0.1], [0.025, -0.02, 0.13]]), None)
-    topple = replace(Config.from_toml(PRESETS / "thesis.toml").topple, variant="rotations")  # the thesis's friction
+    topple = replace(THESIS.topple, variant="rotations")  # the thesis's friction
     table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, "box", pose.index, "trials"))
     noise = sample_noise(stream(0, "box", pose.index, "trials"), 2, topple)
     scene = scene_from_pose(obj, pose, topple.gravity)

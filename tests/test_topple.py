@@ -5,10 +5,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from shapes import boot_object, pose_with_down, random_object, standing_box
+from shapes import THESIS, boot_object, pose_with_down, random_object, standing_box
 
 from pipeline.api import evaluate
-from pipeline.model.config import PRESETS, Config
+from pipeline.model.config import Config
 from pipeline.model.poses import stable_poses
 from pipeline.model.reference import draw_of, reference_trial, scene_from_pose
 from pipeline.model.rng import stream
@@ -16,8 +16,6 @@ from pipeline.model.topple import sample_noise
 from schema.frames import transform_points
 from schema.vocabulary import OUTCOME_NOT_EVALUATED, STATUS_OK
 
-THESIS = Config.from_toml(PRESETS / "thesis.toml")
-"""The thesis's friction and noise, for the thesis's variants (the default noise is calibrated for ``corrected``)."""
 MU_TABLE = THESIS.topple.mu_table_mean
 
 
@@ -150,7 +148,7 @@ def test_mean_force_is_the_mean_over_the_trials_that_topple(box):
     # Under noise each trial needs its own force (contact height, direction and the
     # object's tilt change the torques); the table keeps their mean over toppling trials.
     obj, pose_set, standing = box
-    config = Config.from_toml(PRESETS / "thesis.toml")  # the thesis's robust trial, the reference without corrections
+    config = THESIS  # the thesis's robust trial, the reference without corrections
     heights = [0.07, 0.1, 0.14]  # the lowest is near the friction height: only some trials topple
     # Then the other three faces, high up, so that every base edge is toppled over.
     points = np.vstack([_side_pushes(heights), [[-0.025, 0.0, 0.14], [0.0, 0.04, 0.14], [0.0, -0.04, 0.14]]])

@@ -7,9 +7,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import trimesh
+from shapes import THESIS
 
 from pipeline.build.atomic import file_sha256
-from pipeline.model.config import PRESETS, VARIANTS, Config
+from pipeline.model.config import VARIANTS, Config
 from pipeline.studies.logreader import OUTSIDE, LogError, read_log
 from pipeline.studies.scoring import Scorer, Scores, sup_tv
 from pipeline.studies.synthetic_log import planar
@@ -209,8 +210,7 @@ def test_high_push_known_outcomes_give_known_tv(box_file, box_poses, tmp_path):
     push = log.pushes[0]
     assert push.pose == standing and sorted(push.outcomes.tolist()) == sorted([lying, standing, standing, standing])
     assert push.topple_rate == pytest.approx(0.25)
-    thesis = Config.from_toml(PRESETS / "thesis.toml").topple  # the thesis's friction: the push is inside mu_f's cone
-    scores = Scorer(log).score_variant(thesis, "baseline")
+    scores = Scorer(log).score_variant(THESIS.topple, "baseline")  # the thesis's friction: the push is inside mu_f's cone
     assert scores.p_topple[0] == 1.0 and scores.tv[0] == pytest.approx(0.75)
     never = Scorer(log).never_topples()
     assert never.p_topple[0] == 0.0 and never.tv[0] == pytest.approx(0.25)
