@@ -36,6 +36,7 @@ DELEGATED = {
     "figures": ("pipeline.studies.figures", "draw thesis figures 4.5 and 4.6 for a mesh (PNG) and a 3D view (GLB)"),
     "play": ("pipeline.studies.playlog", "play pushes in pybullet and write a push-outcome log"),
     "policies-physics": ("pipeline.studies.policies_physics", "play each policy's pushes in pybullet from dropped poses"),
+    "landing": ("pipeline.studies.landing", "release every topple at its apex in pybullet; score where the model says it lands"),
     "heaps": ("pipeline.heaps.experiment", "pushing in clutter: hard heaps, five push policies, confidence gains (thesis ch. 3)"),
 }
 """Commands with parsers of their own: ``toppledb NAME ARGS`` runs ``MODULE.main(ARGS)``."""

@@ -27,6 +27,7 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("box", "corrected:force_limit"),  # with a limit low enough to bite (LOW_LIMIT)
     ("random_031", "corrected:stability_margin,finger_friction"),  # its pose 6 is marginal (0.03 mm)
     ("random_001", "corrected:finger_friction,rolling"),  # 21 blocked edges roll on (C.6)
+    ("random_044", "corrected:finger_friction,force_limit,momentum"),  # falls that roll on past shallow poses (C.8)
 ]
 
 LOW_LIMIT = 1.0
@@ -91,6 +92,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         assert toppled > 0, "the comparison should include trials that topple"
     if "rolling" in corrections:
         assert rolled > 0, "the comparison should include trials that roll on past a blocked edge"
+    if "momentum" in corrections:
+        assert rolled > 0, "the comparison should include trials whose fall rolls on past the landing pose"
     if corrections == "force_limit":
         assert capped > 0, "the force limit should stop some trials that would topple"
 

@@ -30,6 +30,8 @@ class StablePose:
     apex_angle : (E,) float, rad, rotation about the edge that brings the COM above it
     edge_rolled_pose : (E,) int, pose reached with the ``rolling`` correction (MODEL.md C.6):
       as ``edge_final_pose``, but a blocked topple rolls on while the finger pushes
+    edge_momentum_pose : (E,) int, pose reached with the ``momentum`` correction (MODEL.md C.8):
+      as ``edge_final_pose``, but the energy of the fall may roll the object on past shallow poses
     """
 
     index: int
@@ -43,6 +45,7 @@ class StablePose:
     edge_blocked: np.ndarray
     apex_angle: np.ndarray
     edge_rolled_pose: np.ndarray
+    edge_momentum_pose: np.ndarray
 
 
 @dataclass

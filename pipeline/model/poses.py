@@ -34,6 +34,7 @@ from schema.frames import canonical_transform, transform_points, unit
 from .config import PoseConfig
 from .edges import base_edges, base_polygon, edge_geometry, landing_angles, landing_down, rolled_down
 from .mesh import MeshError, ObjectModel
+from .momentum import inertia_per_mass, momentum_poses
 from .outcomes import StablePose
 
 
@@ -286,6 +287,18 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
     face_candidate = pose_of_sink[drain]
 
     geometry = [_pose_geometry(obj, down, face_candidate, i, config) for i, down in enumerate(downs)]
+    # C.8 (``momentum``) on every candidate, before symmetric ones merge: a roll-on chain needs
+    # each landing orientation's own frame.
+    rolled_on = momentum_poses(
+        np.array([g["transform"] for g in geometry]),
+        [g["base_edges"] for g in geometry],
+        [g["edge_final_pose"] for g in geometry],
+        [g["edge_blocked"] for g in geometry],
+        com,
+        inertia_per_mass(obj.mesh, hull, com),
+    )
+    for g, poses_after in zip(geometry, rolled_on):
+        g["edge_momentum_pose"] = poses_after
 
     # Symmetric objects: candidates whose hulls coincide after a yaw are one pose.
     representative = np.arange(len(downs))
@@ -304,6 +317,7 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
         for g in geometry:
             g["edge_final_pose"] = representative[g["edge_final_pose"]]
             g["edge_rolled_pose"] = representative[g["edge_rolled_pose"]]
+            g["edge_momentum_pose"] = representative[g["edge_momentum_pose"]]
         candidate_probability[representative != np.arange(len(downs))] = -1.0  # never kept
 
     # Keep probable poses and close the set under toppling.
@@ -339,6 +353,10 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
                 # topples only, so C.6 never changes it) falls back to the thesis's outcome.
                 edge_rolled_pose=np.where(
                     new_index[g["edge_rolled_pose"]] >= 0, new_index[g["edge_rolled_pose"]], new_index[g["edge_final_pose"]]
+                ),
+                # Likewise for C.8: a pose the fall rolls on into but the set left out.
+                edge_momentum_pose=np.where(
+                    new_index[g["edge_momentum_pose"]] >= 0, new_index[g["edge_momentum_pose"]], new_index[g["edge_final_pose"]]
                 ),
             )
         )

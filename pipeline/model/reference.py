@@ -193,7 +193,7 @@ def reference_trial(
 
 def landed_pose(pose, edge: int, corrections: frozenset = frozenset()) -> int:
     """Pose one trial ends in (``StablePose``, its edge or -1): the thesis's per-edge final pose,
-    or with ``rolling`` (MODEL.md C.6) the rolled-on one; the same per-(pose, edge) tables
+    or with ``rolling`` (MODEL.md C.6) or ``momentum`` (C.8) the rolled-on one; the same per-(pose, edge) tables
     the engine reads (``topple.landed_poses``), looked up one trial at a time."""
     if edge < 0:
         return int(pose.index)

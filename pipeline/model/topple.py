@@ -469,12 +469,16 @@ def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def landed_poses(pose: StablePose, corrections: frozenset[str]) -> np.ndarray:
-    """Pose reached by toppling over each base edge (E,) int: the thesis's ``edge_final_pose``,
-    or with the ``rolling`` correction (MODEL.md C.6) ``edge_rolled_pose``, where a blocked
-    topple rolls on.  A per-(pose, edge) table, so the correction costs no per-trial work."""
+    """Pose reached by toppling over each base edge (E,) int: the thesis's ``edge_final_pose``;
+    with the ``rolling`` correction (MODEL.md C.6) a blocked edge's ``edge_rolled_pose``; with
+    ``momentum`` (C.8) an unblocked edge's ``edge_momentum_pose``.  Per-(pose, edge) tables,
+    so the corrections cost no per-trial work."""
+    landed = pose.edge_final_pose
+    if "momentum" in corrections:
+        landed = np.where(pose.edge_blocked, landed, pose.edge_momentum_pose)
     if "rolling" in corrections:
-        return pose.edge_rolled_pose
-    return pose.edge_final_pose
+        landed = np.where(pose.edge_blocked, pose.edge_rolled_pose, landed)
+    return landed
 
 
 def evaluate_pose(
