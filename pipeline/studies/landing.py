@@ -66,11 +66,9 @@ def land_object(object_id: str, obj, pose_set, config: Config, scales: tuple[flo
 
     poses = pose_set.poses
     body = body_model(obj)
-    tables = [
-        momentum_poses(np.array([p.transform for p in poses]), [p.base_edges for p in poses], [p.edge_final_pose for p in poses],
-                       [p.edge_blocked for p in poses], obj.center_mass, inertia_per_mass(obj.mesh, obj.hull, obj.center_mass), scale)
-        for scale in scales
-    ]
+    pose_tables = (np.array([p.transform for p in poses]), [p.base_edges for p in poses], [p.edge_final_pose for p in poses],
+                   [p.edge_blocked for p in poses], obj.center_mass, inertia_per_mass(obj.mesh, obj.hull, obj.center_mass))
+    tables = [momentum_poses(*pose_tables, energy_scale=scale) for scale in scales]
     rows = []
     for pose in poses:
         for edge in np.flatnonzero(~pose.edge_blocked & (pose.edge_final_pose != pose.index)).tolist():
