@@ -138,9 +138,8 @@ def _land_spec(spec, config: Config) -> tuple[str, list[dict], str | None]:
 
 def main(argv: list[str] | None = None) -> int:
     """``toppledb landing``: release every topple at its apex in pybullet and score the landing tables."""
-    from joblib import Parallel, delayed
-
     from ..build.corpus import CorpusError
+    from ..build.fanout import map_unordered
     from ..cli import UsageError, make_config, positive_int
     from ..build.atomic import write_text_atomic
     from .playlog import OBJECT_MODES, PlayError, select_objects
@@ -161,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     except (UsageError, PlayError, CorpusError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    results = Parallel(n_jobs=args.workers or -1)(delayed(_land_spec)(spec, config) for spec in specs)
+    order = {spec.object_id: i for i, spec in enumerate(specs)}
+    results = sorted(map_unordered(_land_spec, [(spec, config) for spec in specs], args.workers), key=lambda r: order[r[0]])
     rows = [row for _, object_rows, _ in results for row in object_rows]
     failed = {object_id: reason for object_id, _, reason in results if reason}
     summary = {**summarise(rows), "objects_mode": args.objects, "count": args.count, "seed": args.seed,
