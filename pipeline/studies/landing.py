@@ -130,7 +130,9 @@ def _land_spec(spec, config: Config) -> tuple[str, list[dict], str | None]:
 
     try:
         obj = load_object(spec, config)
-        pose_set = stable_poses(obj, config.poses)
+        # Unmerged: momentum_poses follows a roll-on chain in each landing orientation's own
+        # frame (as stable_poses does); merged symmetric poses would lend it a representative's.
+        pose_set = stable_poses(obj, config.poses, merge_symmetric=False)
     except MeshError as err:
         return spec.object_id, [], str(err)
     return spec.object_id, land_object(spec.object_id, obj, pose_set, config), None
