@@ -117,36 +117,50 @@ def momentum_poses(
     geometry = [edge_geometry(edges, c) for edges, c in zip(base_edges, com)]
     apex_height = [np.hypot(g.com_distance, c[2]) for g, c in zip(geometry, com)]  # per pose (E_p,), m
     to_object = np.linalg.inv(transforms)
+
+    def roll_on(pose: int, pivot: np.ndarray, energy: float) -> int:
+        """Pose a fall ends in that lands in ``pose`` turning about ``pivot`` ((2, 3), object
+        frame) with ``energy`` (m) to spare.
+
+        It stays in the pose it has reached when the centre of mass lies right over the pivot
+        line there (no travel, so no edge ahead), when ``exit_edge`` finds none (-1; a closed
+        base polygon always has one, so a guard), when the edge ahead is blocked or its topple
+        returns to the pose, or when what the impact keeps is not enough to rise over that edge.
+        An impact keeps at most the energy it had, so energy plus the centre of mass's height
+        never grows and a chain could go round only through lossless impacts; the bound of P
+        rolls guards against that, and a chain that reaches it ends where it is.
+        """
+        for _ in range(len(final_pose)):
+            pose_edges = geometry[pose]
+            rotation = transforms[pose, :3, :3]
+            old = transform_points(transforms[pose], pivot)  # (2, 3), pose frame
+            old_axis = unit(old[1] - old[0])
+            travel = com[pose] - old[0]
+            travel = travel - (travel @ old_axis) * old_axis  # away from the pivot line, horizontal
+            travel[2] = 0.0
+            if travel @ travel < 1e-18:
+                return pose
+            ahead = exit_edge(pose_edges.outward, pose_edges.com_distance, unit(travel))
+            if ahead < 0 or blocked[pose][ahead] or final_pose[pose][ahead] == pose:
+                return pose
+            kept = energy * min(1.0, energy_scale * impact_energy_ratio(
+                rotation @ inertia @ rotation.T, com[pose], old[0], old_axis, pose_edges.start[ahead], pose_edges.direction[ahead]
+            ))
+            rise = apex_height[pose][ahead] - com[pose][2]
+            if kept <= rise:
+                return pose
+            following = int(final_pose[pose][ahead])
+            energy = kept - rise + apex_height[pose][ahead] - com[following][2]
+            pivot = transform_points(to_object[pose], base_edges[pose][ahead])
+            pose = following
+        return pose
+
     result = []
     for start, finals in enumerate(final_pose):
         ended = finals.copy()
         for edge in np.flatnonzero(~blocked[start] & (finals != start)):
+            landing = int(finals[edge])
             pivot = transform_points(to_object[start], base_edges[start][edge])  # (2, 3), object frame
-            pose = int(finals[edge])
-            energy = apex_height[start][edge] - com[pose][2]
-            for _ in range(len(final_pose)):  # each roll lowers the centre of mass, so this bounds it
-                pose_edges = geometry[pose]
-                rotation = transforms[pose, :3, :3]
-                old = transform_points(transforms[pose], pivot)  # (2, 3), pose frame
-                old_axis = unit(old[1] - old[0])
-                travel = com[pose] - old[0]
-                travel = travel - (travel @ old_axis) * old_axis
-                travel[2] = 0.0
-                if travel @ travel < 1e-18:
-                    break
-                ahead = exit_edge(pose_edges.outward, pose_edges.com_distance, unit(travel))
-                if ahead < 0 or blocked[pose][ahead] or final_pose[pose][ahead] == pose:
-                    break
-                kept = energy * min(1.0, energy_scale * impact_energy_ratio(
-                    rotation @ inertia @ rotation.T, com[pose], old[0], old_axis, pose_edges.start[ahead], pose_edges.direction[ahead]
-                ))
-                rise = apex_height[pose][ahead] - com[pose][2]
-                if kept <= rise:
-                    break
-                following = int(final_pose[pose][ahead])
-                energy = kept - rise + apex_height[pose][ahead] - com[following][2]
-                pivot = transform_points(to_object[pose], base_edges[pose][ahead])
-                pose = following
-            ended[edge] = pose
+            ended[edge] = roll_on(landing, pivot, apex_height[start][edge] - com[landing][2])
         result.append(ended)
     return result
