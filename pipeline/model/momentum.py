@@ -34,18 +34,19 @@ from schema.frames import transform_points, unit
 from .edges import edge_geometry
 
 
-def inertia_per_mass(mesh: trimesh.Trimesh, hull: trimesh.Trimesh, center_mass: np.ndarray) -> np.ndarray:
-    """Inertia tensor about ``center_mass`` per unit mass, object frame.
+def inertia_per_mass(mesh: trimesh.Trimesh, hull: trimesh.Trimesh, center_mass: np.ndarray, mass: float = 1.0) -> np.ndarray:
+    """Inertia tensor about ``center_mass`` per unit mass (or of a body of ``mass``), object frame.
 
-    Uniform density over the mesh (its hull when the mesh encloses no volume),
-    moved to ``center_mass`` by the parallel axis theorem.
+    Uniform density over the mesh (its hull when the mesh encloses no volume), scaled to
+    ``mass`` and moved to ``center_mass`` by the parallel axis theorem.  ``pushsim.body_model``
+    takes the object's mass and inertia from here too.
 
-    center_mass : (3,) float, m
-    returns : (3, 3) float, m^2
+    center_mass : (3,) float, m;  mass : float, kg (1: per unit mass)
+    returns : (3, 3) float, m^2 (kg m^2 with ``mass``)
     """
     solid = mesh if mesh.is_volume and mesh.volume > 0 else hull
     offset = np.asarray(center_mass, float) - solid.center_mass
-    return solid.moment_inertia / solid.mass + (offset @ offset) * np.eye(3) - np.outer(offset, offset)
+    return solid.moment_inertia * (mass / solid.mass) + mass * (np.dot(offset, offset) * np.eye(3) - np.outer(offset, offset))
 
 
 def impact_energy_ratio(

@@ -48,6 +48,7 @@ from schema.frames import transform_points, unit
 
 from ..model.config import Config
 from ..model.mesh import ObjectModel
+from ..model.momentum import inertia_per_mass
 from ..model.poses import PoseSet, settle
 
 DEFAULT_CONFIG = Config()
@@ -139,10 +140,7 @@ def body_model(obj: ObjectModel) -> BodyModel:
     Inertia is that of the uniform-density mesh (the hull if the mesh has no positive volume),
     scaled to ``obj.mass`` and moved to ``obj.center_mass`` by the parallel axis theorem.
     """
-    solid = obj.mesh if obj.mesh.is_volume and obj.mesh.volume > 0 else obj.hull
-    scale = obj.mass / solid.mass
-    offset = obj.center_mass - solid.center_mass
-    inertia = solid.moment_inertia * scale + obj.mass * (np.dot(offset, offset) * np.eye(3) - np.outer(offset, offset))
+    inertia = inertia_per_mass(obj.mesh, obj.hull, obj.center_mass, obj.mass)
     moments, axes = np.linalg.eigh(inertia)
     if np.linalg.det(axes) < 0:  # a proper rotation, so the link frame is right-handed
         axes[:, 2] *= -1
