@@ -79,6 +79,21 @@ def test_standing_box_threshold_and_force_match_the_closed_form(box, mu_finger, 
     np.testing.assert_allclose(table.mean_force[1:], expected, rtol=1e-9)
 
 
+@pytest.mark.parametrize("mu_finger", [0.0, 0.98])
+def test_an_off_centre_push_tips_the_box_at_the_centred_threshold_with_edge_spin(box, mu_finger):
+    """Pushed y = 3 cm off the face's centre line, the moment about the vertical |tau_z| = y N
+    enters (C.2.5): N c <= mu_T (m g + mu N), c = sqrt(1 + (y / h_e)^2) with h_e the far edge's
+    half-length, so h* = d c / mu_T + mu (w - d).  With ``edge_spin`` (C.9) that moment turns
+    the box without stopping the topple: the centred threshold (C.2.3) holds at any offset."""
+    d, w, y, half_span = 0.025, 0.05, 0.03, 0.04
+    c = np.hypot(1.0, y / half_span)
+    for corrections, threshold in (("finger_friction", d * c / MU_TABLE + mu_finger * (w - d)),
+                                   ("finger_friction,edge_spin", d / MU_TABLE + mu_finger * (w - d))):
+        points = [[-d, y, threshold - STEP], [-d, y, threshold + STEP]]
+        table = _push(box, points, [1.0, 0.0, 0.0], _noise_free(corrections=corrections, mu_finger_mean=mu_finger))
+        assert table.p_topple.tolist() == [0.0, 1.0], corrections
+
+
 def test_thesis_model_ignores_finger_friction_in_the_moment_balance(box):
     """The thesis's threshold is d / mu_T whatever mu_f (the ``rotations`` variant, noise-free)."""
     d = 0.025

@@ -28,6 +28,7 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_031", "corrected:stability_margin,finger_friction"),  # its pose 6 is marginal (0.03 mm)
     ("random_001", "corrected:finger_friction,rolling"),  # 21 blocked edges roll on (C.6)
     ("random_044", "corrected:finger_friction,force_limit,momentum"),  # falls that roll on past shallow poses (C.8)
+    ("random_009", "corrected:finger_friction,edge_spin"),  # the table check without its moment term (C.9)
 ]
 
 LOW_LIMIT = 1.0

@@ -78,7 +78,7 @@ VARIANTS = THESIS_VARIANTS + ("corrected",)
 """Every selectable variant: the thesis's four, and ``corrected`` (the robust model with the
 corrections of docs/MODEL.md "Corrections beyond the thesis" named in ``topple.corrections``)."""
 
-CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum")
+CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum", "edge_spin")
 """Corrections the ``corrected`` variant can apply (docs/MODEL.md, "Corrections beyond the thesis"):
 ``finger_friction``: the finger's force follows Coulomb sliding at the contact while the object
 tips (friction in the moment balance, pushes from above, faces the finger wedges under);
@@ -86,7 +86,8 @@ tips (friction in the moment balance, pushes from above, faces the finger wedges
 ``stability_margin``: a pose whose centre of mass is within ``min_stability_margin`` of a
 base edge falls over that edge whatever the push;
 ``rolling``: a blocked topple rolls on while the finger pushes;
-``momentum``: the energy of a topple's fall may roll the object on past the pose it lands in."""
+``momentum``: the energy of a topple's fall may roll the object on past the pose it lands in;
+``edge_spin``: a push's moment about the vertical turns the object without stopping the topple."""
 
 
 @dataclass(frozen=True)
@@ -183,7 +184,8 @@ class ToppleConfig:
     """Comma-separated corrections the ``corrected`` variant applies (``CORRECTIONS``), or
     ``all`` or ``none``; the thesis's variants apply none, whatever this says.  The default
     leaves out ``stability_margin``, which physics does not support as a rule (docs/MODEL.md C.3),
-    and ``rolling``, which did not help (C.6)."""
+    ``rolling``, which did not help (C.6), and ``edge_spin``, which makes the pushes the
+    policies choose overconfident in physics (C.9)."""
     finger_friction_scale: float = bounded(1.0, FRACTION)
     """Share of the finger's Coulomb friction that resists tipping (``finger_friction``
     correction): 1 is Coulomb's law, which the standing box in pybullet follows, and what the

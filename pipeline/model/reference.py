@@ -173,15 +173,17 @@ def reference_trial(
 
     weight = scene.mass * scene.gravity
     com = scene.center_mass
+    spin_stops = predicts_rotations and "edge_spin" not in corrections  # C.9: a turn does not stop the topple
     best_edge, best_force = -1, math.inf
     for index, (y0, y1) in enumerate(scene.edges):
         e = _unit(_sub(y1, y0))
         outward = (e[1], -e[0], 0.0)
         com_distance = -_dot(_sub(com, y0), outward)
         if "finger_friction" in corrections:
-            force = sliding_force(contact, normal, push, draw.mu_table, friction_scale * draw.mu_finger, e, y0, y1, com, weight, com_distance)
+            force = sliding_force(contact, normal, push, draw.mu_table, friction_scale * draw.mu_finger, e, y0, y1, com, weight,
+                                  com_distance, spin_stops)
         else:
-            force = _thesis_force(contact, normal, push, draw, e, y0, y1, com, weight, com_distance, predicts_rotations)
+            force = _thesis_force(contact, normal, push, draw, e, y0, y1, com, weight, com_distance, spin_stops)
         if force is None:
             continue
         if "force_limit" in corrections and not 0.0 < force <= max_force:  # C.1: a finger pushes, and only so hard
@@ -212,10 +214,12 @@ def marginal_edge(scene: Scene, min_margin: float):
     return best if best_distance < min_margin else None
 
 
-def sliding_force(contact: Vec, normal: Vec, push: Vec, mu_table: float, mu_finger: float, e: Vec, y0: Vec, y1: Vec, com: Vec, weight: float, com_distance: float):
+def sliding_force(contact: Vec, normal: Vec, push: Vec, mu_table: float, mu_finger: float, e: Vec, y0: Vec, y1: Vec, com: Vec, weight: float,
+                  com_distance: float, spin_stops: bool = True):
     """Finger force (N) to topple over edge (y0, y1) with the finger sliding on the face (C.2), or None.
 
     mu_finger : the friction that resists tipping (the trial's mu_f times ``finger_friction_scale``)
+    spin_stops : False with ``edge_spin`` (C.9): the check (7.9) without its moment term
     """
     velocity = _cross(e, _sub(contact, y0))  # the contact point's velocity per unit tipping rate
     face_speed = _dot(velocity, normal)
@@ -236,7 +240,7 @@ def sliding_force(contact: Vec, normal: Vec, push: Vec, mu_table: float, mu_fing
         return None
     origin_on_edge = _add(y0, _scale(e, _dot(_sub(com, y0), e)))
     half_span = (abs(_dot(_sub(y0, origin_on_edge), e)) + abs(_dot(_sub(y1, origin_on_edge), e))) / 2.0
-    tau_z = _cross(_sub(contact, origin_on_edge), f)[2]
+    tau_z = _cross(_sub(contact, origin_on_edge), f)[2] if spin_stops else 0.0
     # (7.9) with the whole finger force: |f_xy|^2 + (tau_z / h_e)^2 <= (mu_T F_table)^2
     if f[0] ** 2 + f[1] ** 2 + (tau_z / half_span) ** 2 > (mu_table * table) ** 2:
         return None

@@ -284,10 +284,13 @@ def _tile_outcomes(
 ) -> tuple[np.ndarray, np.ndarray]:
     """``trial_outcomes`` on one tile of r trials (contact and normal finite): edge (r,) int,
     required_force (r,) float, N."""
+    # C.9 (``edge_spin``): a moment about the vertical turns the object without stopping the
+    # topple, so the limit surface (7.9) keeps only its force term.
+    spin_stops = predicts_rotations and "edge_spin" not in corrections
     if "finger_friction" in corrections:
-        force, passes = sliding_contact(trials, edges, mass, gravity, friction_scale)  # (n, E) each
+        force, passes = sliding_contact(trials, edges, mass, gravity, friction_scale, spin_stops)  # (n, E) each
     else:
-        force, passes = _thesis_conditions(trials, edges, mass, gravity, predicts_rotations)
+        force, passes = _thesis_conditions(trials, edges, mass, gravity, spin_stops)
     if "force_limit" in corrections:
         # A finger pushes (F* > 0: a negative F* means the centre of mass is already past
         # the edge, not a push) and no harder than the arm can (MODEL.md C.1).
@@ -353,7 +356,7 @@ def _thesis_conditions(
 
 
 def sliding_contact(
-    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, friction_scale: float = 1.0
+    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, friction_scale: float = 1.0, spin_stops: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """The ``finger_friction`` correction (MODEL.md C.2): the finger's force while the object tips.
 
@@ -366,7 +369,8 @@ def sliding_contact(
     torque about the edge per newton of normal force is tau_e = f_hat . v_e (triple product),
     so F_n* = m g d_e / tau_e and the finger force is F_n* |f_hat|.  The table takes the
     weight minus the push's vertical part (m g - f_z, which must stay positive) and the
-    limit-surface check (7.9) uses the whole force f with tau_z about O_e.  Replaces
+    limit-surface check (7.9) uses the whole force f with tau_z about O_e (without tau_z when
+    not ``spin_stops``: the ``edge_spin`` correction, MODEL.md C.9).  Replaces
     conditions 1-3 of section 7; the thesis's friction-cone checks have no role once the
     sliding is modelled.
 
@@ -425,13 +429,16 @@ def sliding_contact(
     fy *= normal_force
     fz *= normal_force  # (n, E) each, f, N
     table = weight - fz  # (n, E), the edge's normal force, N
-    # ((p - O_e) x f)_z with (p - O_e)_xy as (n, 1) - (E,) columns.
-    tau_z = (col(contact, 0) - edges.origin[:, 0]) * fy
-    tau_z -= (col(contact, 1) - edges.origin[:, 1]) * fx  # (n, E)
-    tau_z /= edges.half_span
     force_xy = fx * fx
     force_xy += fy * fy  # (n, E), |f_xy|^2, shared by load and |f|
-    load = force_xy + np.square(tau_z, out=tau_z)  # (n, E), |f_xy|^2 + (tau_z / h_e)^2, N^2
+    if spin_stops:
+        # ((p - O_e) x f)_z with (p - O_e)_xy as (n, 1) - (E,) columns.
+        tau_z = (col(contact, 0) - edges.origin[:, 0]) * fy
+        tau_z -= (col(contact, 1) - edges.origin[:, 1]) * fx  # (n, E)
+        tau_z /= edges.half_span
+        load = force_xy + np.square(tau_z, out=tau_z)  # (n, E), |f_xy|^2 + (tau_z / h_e)^2, N^2
+    else:
+        load = force_xy.copy()  # (n, E), |f_xy|^2, N^2: force_xy goes on to become |f|
     mu_t = trials.mu_table[:, None]  # (n, 1)
     holds = (table > 0.0) & (mu_t > 0.0) & (load <= (mu_t * table) ** 2)  # (n, E), (7.9) with the whole f
     passes = rotates & holds & trials.valid[:, None]  # (n, E)
