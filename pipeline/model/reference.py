@@ -247,8 +247,9 @@ def sliding_force(contact: Vec, normal: Vec, push: Vec, mu_table: float, mu_fing
     return normal_force * _norm(direction)
 
 
-def _thesis_force(contact, normal, push, draw, e, y0, y1, com, weight, com_distance, predicts_rotations):
-    """Thesis 4.2.1-4.2.3 for one edge: F*_e in N if the edge passes, else None."""
+def _thesis_force(contact, normal, push, draw, e, y0, y1, com, weight, com_distance, spin_stops):
+    """Thesis 4.2.1-4.2.3 for one edge: F*_e in N if the edge passes, else None (``spin_stops``:
+    the slip check counts the moment about the vertical, as ``topple._thesis_conditions``)."""
     # The tipping point: rotate about the edge until the COM is above it.
     apex = math.atan2(com_distance, com[2])
     if not in_friction_cone(push, normal, draw.mu_finger):  # (7.2), at the start
@@ -272,7 +273,7 @@ def _thesis_force(contact, normal, push, draw, e, y0, y1, com, weight, com_dista
     tau_max = draw.mu_table * normal_force / 2.0 * (
         abs(_dot(_sub(y0, origin_on_edge), e)) + abs(_dot(_sub(y1, origin_on_edge), e))
     )
-    tau_z = _cross(_sub(contact, origin_on_edge), f)[2] if predicts_rotations else 0.0
+    tau_z = _cross(_sub(contact, origin_on_edge), f)[2] if spin_stops else 0.0
     ellipse = (tangential / (draw.mu_table * normal_force)) ** 2 + (tau_z / tau_max) ** 2
     if ellipse > 1.0:  # outside the unit ellipse (7.9): the base slides or spins
         return None

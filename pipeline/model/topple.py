@@ -304,11 +304,13 @@ def _tile_outcomes(
 
 
 def _thesis_conditions(
-    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, predicts_rotations: bool
+    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, spin_stops: bool
 ) -> tuple[np.ndarray, np.ndarray]:
     """Thesis 4.2.1-4.2.3 (MODEL.md section 7): F*_e (n, E) float, N, and pass_e (n, E) bool.
 
     trials : contact and normal finite (``trial_outcomes`` zeroes the misses' NaN)
+    spin_stops : the slip check (7.9) counts the moment about the vertical: the variants that
+      predict rotations, unless ``edge_spin`` (MODEL.md C.9)
     """
     n = trials.contact.shape[0]
     u, normal, contact = trials.push, trials.normal, trials.contact  # (n, 3) each
@@ -341,7 +343,7 @@ def _thesis_conditions(
     limit *= trials.mu_table[:, None]  # (n, 1) broadcast: mu_T F_n / F*
     np.square(limit, out=limit)  # (n, E)
     load = u[:, 0:1] ** 2 + u[:, 1:2] ** 2  # (n, 1), |u_xy|^2, compared broadcast against (n, E)
-    if predicts_rotations:
+    if spin_stops:
         # tau_z per newton about the COM's projection on the edge (10.3): (p x u)_z - (O x u)_z,
         # with (O x u)_z = u . (-O_y, O_x, 0).
         origin_cross = np.column_stack([-edges.origin[:, 1], edges.origin[:, 0], np.zeros(len(edges.origin))])  # (E, 3)
