@@ -470,8 +470,8 @@ class PlanResponse(Model):
     p_topple_neighbourhood: float | None = Field(
         description="Mean p_topple of this pose's ok candidate pushes within 2 cm (contact) and 0.5 rad (direction) of "
         "the push, itself included: a cautious estimate that choosing the best of ~1,000 candidates cannot inflate. "
-        "In simulated physics on held-out objects it ran 0.06-0.09 below the topple rate of value iteration's "
-        "pushes, and p_topple 0.03-0.07 above it (docs/VALIDATION.md, 'Pushes for a budget'); null when no push"
+        "In simulated physics on held-out objects it ran 0.07-0.10 below the topple rate of value iteration's "
+        "pushes, and p_topple 0.02-0.06 above it (docs/VALIDATION.md, 'Pushes for a budget'); null when no push"
     )
     push: WorldPush | None = Field(description="The push in world coordinates; null when no push")
     next_poses: list[NextPose] = Field(description="Where the push leads; empty when no push")
