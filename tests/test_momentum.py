@@ -111,7 +111,7 @@ def test_inertia_per_mass_of_a_box_is_the_closed_form():
 
 def test_the_edge_ahead_is_the_one_the_centre_of_mass_heads_for():
     """A unit square base around the centre of mass: heading +x meets the +x edge, heading
-    mostly -y the -y edge; a direction along an edge line meets the edge it points at."""
+    mostly -y the -y edge; no travel meets none (-1)."""
     outward = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
     inside = np.array([0.5, 0.2, 0.5, 0.8])  # the centre of mass is 0.2 from the +x edge
     assert exit_edge(outward, inside, np.array([1.0, 0.0, 0.0])) == 1
