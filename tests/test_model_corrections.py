@@ -17,8 +17,10 @@ from shapes import random_object, standing_box
 
 from pipeline.model.config import CORRECTIONS, Config
 from pipeline.model.contacts import explicit_actions
+from pipeline.model.edges import edge_geometry
 from pipeline.model.rng import stream
-from pipeline.model.topple import evaluate_pose, landed_poses
+from pipeline.model.topple import Trials, evaluate_pose, finger_travel, landed_poses
+from schema.frames import transform_points
 
 MU_TABLE = 0.43
 MU_FINGER = 0.98
@@ -92,6 +94,52 @@ def test_an_off_centre_push_tips_the_box_at_the_centred_threshold_with_edge_spin
         points = [[-d, y, threshold - STEP], [-d, y, threshold + STEP]]
         table = _push(box, points, [1.0, 0.0, 0.0], _noise_free(corrections=corrections, mu_finger_mean=mu_finger))
         assert table.p_topple.tolist() == [0.0, 1.0], corrections
+
+
+def stroke_to_apex(height, d=0.04, w=0.08, com_height=0.075):
+    """Finger travel (m) that tips the standing box to its apex, pushed horizontally at ``height``
+    on a side face w from the far edge (C.10): the face turns by theta_a = atan(d / com_height)
+    about that edge, and a point finger at that height meets it h tan(theta_a) - w (sec(theta_a) - 1)
+    past the contact."""
+    apex = np.arctan2(d, com_height)
+    return height * np.tan(apex) - w * (1.0 / np.cos(apex) - 1.0)
+
+
+@pytest.mark.parametrize("height", [0.135, 0.145])
+def test_a_topple_needs_the_stroke_to_reach_the_apex(box, height):
+    """Across its 8 cm side the box topples from 13.2 cm (C.2.3 at mu_f 0.98) but needs 6.1-6.7 cm
+    of finger travel to reach the apex: with ``stroke`` (C.10) a shorter stroke leaves it standing."""
+    travel = stroke_to_apex(height)
+    point, direction = [[0.0, -0.04, height]], [0.0, 1.0, 0.0]
+    for stroke, toppled in ((travel - STEP, 0.0), (travel + STEP, 1.0)):
+        table = _push(box, point, direction, _noise_free(corrections="finger_friction,stroke", stroke=stroke))
+        assert table.p_topple.tolist() == [toppled], stroke
+    endless = _push(box, point, direction, _noise_free(corrections="finger_friction", stroke=travel - STEP))
+    assert endless.p_topple.tolist() == [1.0]  # the stroke is only read by the correction
+
+
+def test_finger_travel_is_the_closed_form_and_infinite_once_the_face_turns_away(box):
+    obj, pose_set, index = box
+    pose = pose_set.poses[index]
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
+    edges = edge_geometry(pose.base_edges, center_mass)
+    far = next(e for e in range(len(edges.start)) if abs(edges.direction[e, 0]) > 0.9 and edges.start[e, 1] > 0)  # y = +4 cm
+    heights = np.array([0.05, 0.1, 0.135])
+    contact = np.column_stack([np.zeros(3), np.full(3, -0.04), heights])
+    normal = np.tile([0.0, -1.0, 0.0], (3, 1))
+    trials = Trials(contact, normal, np.tile([0.0, 1.0, 0.0], (3, 1)), np.ones(3), np.ones(3), np.ones(3, bool))
+    np.testing.assert_allclose(finger_travel(trials, edges, np.full(3, far)), stroke_to_apex(heights), rtol=1e-12)
+    # Pushed steeply upward, the face (its normal turning up by 28 degrees on the way to the apex)
+    # comes to face along the push before the apex: the finger cannot carry it there.
+    steep = Trials(contact, normal, np.tile([0.0, 0.3, 0.95], (3, 1)) / np.hypot(0.3, 0.95), np.ones(3), np.ones(3),
+                   np.ones(3, bool))
+    assert np.isinf(finger_travel(steep, edges, np.full(3, far))).all()
+
+
+def test_stroke_must_equal_the_executed_push_depth():
+    with pytest.raises(ValueError, match="push_depth"):
+        Config().with_overrides({"topple.stroke": 0.06})
+    assert Config().with_overrides({"topple.stroke": 0.06, "contacts.push_depth": 0.06}).topple.stroke == 0.06
 
 
 def test_thesis_model_ignores_finger_friction_in_the_moment_balance(box):

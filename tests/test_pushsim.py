@@ -161,6 +161,24 @@ def test_the_standing_box_topples_in_physics_where_the_default_model_says(box, m
     assert _player_threshold(box, mu_finger) == pytest.approx(model, abs=0.005)
 
 
+def test_the_standing_box_needs_the_stroke_the_model_says_to_reach_its_apex(box):
+    """C.10 in physics: pushed across its 8 cm side at 13.5 cm (above the height C.2.3 gives),
+    the box needs a stroke of h tan(theta_a) - w (sec(theta_a) - 1) = 6.13 cm to reach its apex.
+    The player's 5 cm/s finger leaves the box turning, which carries it about 5 mm of travel
+    further (measured by bisection: 5.67 cm), so physics topples it with that stroke and leaves
+    it standing 8 mm short of it."""
+    obj, pose_set, standing = box
+    height, d, w = 0.135, 0.04, 0.08
+    apex = np.arctan2(d, 0.075)
+    travel = height * np.tan(apex) - w * (1.0 / np.cos(apex) - 1.0)
+    body = body_model(obj)
+    for stroke, toppled in ((travel - 0.008, False), (travel, True)):
+        config = THESIS.with_overrides({"contacts.push_depth": stroke, "topple.stroke": stroke})
+        final = simulate_push(obj, pose_set, standing, np.array([0.0, -d, height]), np.array([0.0, 1.0, 0.0]), config,
+                              noise=False, body=body)
+        assert (final != standing) == toppled, stroke
+
+
 @pytest.mark.parametrize("limit", [10.0, 40.0])
 def test_the_finger_presses_no_harder_than_the_models_force_limit(box, limit):
     """Pressing straight down on the standing box's top: the finger cannot advance, so it presses

@@ -29,10 +29,13 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_001", "corrected:finger_friction,rolling"),  # 21 blocked edges roll on (C.6)
     ("random_044", "corrected:finger_friction,force_limit,momentum"),  # falls that roll on past shallow poses (C.8)
     ("random_009", "corrected:finger_friction,edge_spin"),  # the table check without its moment term (C.9)
+    ("random_004", "corrected:finger_friction,force_limit,stroke"),  # with a stroke short enough to bite (SHORT_STROKE)
 ]
 
 LOW_LIMIT = 1.0
 """N, a finger force limit below many of the box's required forces, so the cut is exercised."""
+SHORT_STROKE = 0.01
+"""m, a stroke shorter than many of random_004's topples need (C.10), so the cut is exercised."""
 
 
 def _object(name):
@@ -49,6 +52,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
     topple = replace(config.topple, variant=variant, n_trials=8, corrections=corrections or "all", recalibration_x=(), recalibration_y=())
     if corrections == "force_limit":
         topple = replace(topple, max_finger_force=LOW_LIMIT)
+    if "stroke" in corrections.split(","):
+        topple = replace(topple, stroke=SHORT_STROKE)
     contacts = replace(config.contacts, n_contacts=60)
     points, normals = object_contacts(obj, contacts, seed=11)
     mesh_collision = collision_object(obj.mesh)
@@ -73,6 +78,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                     topple.max_finger_force,
                     topple.finger_friction_scale,
                     topple.min_stability_margin,
+                    topple.stroke,
                 )
                 compared += 1
                 agreed += edge == table.outcomes[action, trial]
@@ -82,6 +88,10 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                 if corrections == "force_limit":  # trials the limit stops: the uncapped model topples them
                     free = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset)
                     capped += free[0] >= 0 and edge < 0
+                if topple.stroke == SHORT_STROKE:  # trials the stroke stops: with an endless one they topple
+                    endless = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
+                                              topple.applied_corrections, topple.max_finger_force)
+                    capped += endless[0] >= 0 and edge < 0
             if agreed == compared:
                 # Same edges, so the same landed poses: the engine's P(x'|x,u) row is the reference's.
                 np.testing.assert_allclose(table.next_pose[action], landed / topple.trials)
@@ -97,6 +107,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         assert rolled > 0, "the comparison should include trials whose fall rolls on past the landing pose"
     if corrections == "force_limit":
         assert capped > 0, "the force limit should stop some trials that would topple"
+    if topple.stroke == SHORT_STROKE:
+        assert capped > 0, "the short stroke should stop some trials that would topple"
 
 
 def test_reference_required_force_matches_engine_on_box():

@@ -78,7 +78,7 @@ VARIANTS = THESIS_VARIANTS + ("corrected",)
 """Every selectable variant: the thesis's four, and ``corrected`` (the robust model with the
 corrections of docs/MODEL.md "Corrections beyond the thesis" named in ``topple.corrections``)."""
 
-CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum", "edge_spin")
+CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum", "edge_spin", "stroke")
 """Corrections the ``corrected`` variant can apply (docs/MODEL.md, "Corrections beyond the thesis"):
 ``finger_friction``: the finger's force follows Coulomb sliding at the contact while the object
 tips (friction in the moment balance, pushes from above, faces the finger wedges under);
@@ -87,7 +87,8 @@ tips (friction in the moment balance, pushes from above, faces the finger wedges
 base edge falls over that edge whatever the push;
 ``rolling``: a blocked topple rolls on while the finger pushes;
 ``momentum``: the energy of a topple's fall may roll the object on past the pose it lands in;
-``edge_spin``: a push's moment about the vertical turns the object without stopping the topple."""
+``edge_spin``: a push's moment about the vertical turns the object without stopping the topple;
+``stroke``: a topple needs the finger to reach its apex within ``stroke`` of the contact."""
 
 
 @dataclass(frozen=True)
@@ -198,6 +199,9 @@ class ToppleConfig:
     """N, the largest finger force (magnitude) of a push (``force_limit`` correction): about
     the sustained Cartesian force of a light collaborative arm's fingertip, 8 times a 0.25 kg
     object's weight; docs/MODEL.md "Corrections beyond the thesis" gives the reasoning."""
+    stroke: float = bounded(0.04, POSITIVE)
+    """m, how far past the contact the finger travels (``stroke`` correction, docs/MODEL.md
+    C.10): the executed push's ``contacts.push_depth``, which it must equal (``Config`` checks)."""
     recalibration_x: tuple[float, ...] = bounded((), FRACTION)
     """Knots x_k of the monotone map g of P(topple) (docs/MODEL.md C.7), strictly increasing in
     [0, 1]; empty (the default) is the identity.  reports/recalibrated_corrected.toml holds the
@@ -323,6 +327,15 @@ class Config:
     topple: ToppleConfig = field(default_factory=ToppleConfig)
     suction: SuctionConfig = field(default_factory=SuctionConfig)
     mdp: MDPConfig = field(default_factory=MDPConfig)
+
+    def __post_init__(self) -> None:
+        # The model's stroke is the executed push's depth; two values would predict one push
+        # and execute another.
+        if self.topple.stroke != self.contacts.push_depth:
+            raise ValueError(
+                f"topple.stroke ({self.topple.stroke:g} m) must equal contacts.push_depth "
+                f"({self.contacts.push_depth:g} m): the model predicts the push the robot executes; set both"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         """Every parameter as plain JSON types (tuples of knots as lists, as JSON reads them back)."""

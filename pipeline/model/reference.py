@@ -143,11 +143,12 @@ def reference_trial(
     max_force: float = math.inf,
     friction_scale: float = 1.0,
     min_margin: float = 0.0,
+    stroke: float = math.inf,
 ):
     """Outcome of one trial: (edge index or -1, required force in N or inf).
 
-    ``corrections`` (names of ``config.CORRECTIONS``), ``max_force``, ``friction_scale`` and
-    ``min_margin`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
+    ``corrections`` (names of ``config.CORRECTIONS``), ``max_force``, ``friction_scale``,
+    ``min_margin`` and ``stroke`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
     empty, it is the thesis's trial.
     """
     if "stability_margin" in corrections:
@@ -190,7 +191,24 @@ def reference_trial(
             continue
         if force < best_force:  # (7.10): the least-force passing edge; the first on a tie, as argmin
             best_edge, best_force = index, force
+    if "stroke" in corrections and best_edge >= 0:
+        y0, y1 = scene.edges[best_edge]
+        if not finger_travel(contact, normal, push, y0, y1, com) <= stroke:  # C.10: falls back short of the apex
+            return -1, math.inf
     return best_edge, best_force
+
+
+def finger_travel(contact: Vec, normal: Vec, push: Vec, y0: Vec, y1: Vec, com: Vec) -> float:
+    """C.10: how far past the contact the finger advances to bring the face to the apex of the
+    topple over the edge y0 -> y1 (m; inf if the face turns away from the finger first)."""
+    e = _unit(_sub(y1, y0))
+    com_distance = -_dot(_sub(com, y0), (e[1], -e[0], 0.0))
+    apex_normal = _rotate(normal, e, math.atan2(com_distance, com[2]))
+    approach = _dot(apex_normal, push)
+    if approach >= 0.0:
+        return math.inf
+    offset = _sub(contact, y0)
+    return (_dot(normal, offset) - _dot(apex_normal, offset)) / approach
 
 
 def landed_pose(pose, edge: int, corrections: frozenset = frozenset()) -> int:

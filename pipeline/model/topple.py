@@ -212,12 +212,14 @@ def trial_outcomes(
     corrections: frozenset[str] = frozenset(),
     max_force: float = np.inf,
     friction_scale: float = 1.0,
+    stroke: float = np.inf,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Edge each trial topples over, and the force it takes.
 
     corrections : names from ``config.CORRECTIONS`` (empty: the thesis's model, section 7)
     max_force : N, the finger force limit of the ``force_limit`` correction
     friction_scale : share of the finger friction resisting tipping (``finger_friction``)
+    stroke : m, how far past the contact the finger travels (``stroke`` correction)
     returns : edge (n,) int (``OUTCOME_NO_EDGE`` when none), required_force (n,) float, N (inf when none)
 
     Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
@@ -241,7 +243,7 @@ def trial_outcomes(
     for rows in _row_tiles(len(live), len(edges.com_distance)):
         edge[live[rows]], required[live[rows]] = _tile_outcomes(
             Trials(*(getattr(kept, f)[rows] for f in Trials.__dataclass_fields__)),
-            edges, mass, gravity, predicts_rotations, corrections, max_force, friction_scale,
+            edges, mass, gravity, predicts_rotations, corrections, max_force, friction_scale, stroke,
         )  # (r,) each, for the tile's r valid trials
     return edge, required
 
@@ -281,6 +283,7 @@ def _tile_outcomes(
     corrections: frozenset[str],
     max_force: float,
     friction_scale: float,
+    stroke: float = np.inf,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``trial_outcomes`` on one tile of r trials (contact and normal finite): edge (r,) int,
     required_force (r,) float, N."""
@@ -300,7 +303,37 @@ def _tile_outcomes(
     # (10.6): the least-force passing edge; a row of all inf means no edge passes.
     edge = np.argmin(candidate, axis=1)  # (n,)
     required = candidate[np.arange(n), edge]  # (n,), N
+    if "stroke" in corrections:
+        # C.10: the object tips over the least-force edge, and falls back unless the finger's
+        # stroke carries it to that edge's apex.  Only the chosen edge is checked.
+        short = ~(finger_travel(trials, edges, edge) <= stroke)  # (n,); NaN or inf: out of reach
+        required[short] = np.inf
     return np.where(np.isfinite(required), edge, OUTCOME_NO_EDGE), required
+
+
+def finger_travel(trials: Trials, edges: EdgeGeometry, edge: np.ndarray) -> np.ndarray:
+    """How far past the contact the finger must advance to tip the object to the apex of ``edge``.
+
+    The model's finger is a point on the contacted face, taken as a plane (as in C.2).  The
+    face turns with the object about the edge line (through y0) and keeps its offset from
+    it, so at the apex it is the plane n_a . (x - y0) = n . (p - y0) with n_a = Rot_e n, and
+    the finger p + s u meets it at
+
+        s = (n . (p - y0) - n_a . (p - y0)) / (n_a . u)        (MODEL.md C.10)
+
+    if n_a . u < 0; otherwise the face has turned away from the finger before the apex,
+    which it cannot push there (inf).
+
+    trials : r trials;  edge : (r,) int, an edge index per trial (any index where none passed)
+    returns : (r,) float, m
+    """
+    p, n, u = trials.contact, trials.normal, trials.push  # (r, 3) each
+    offset = p - edges.start[edge]  # (r, 3), p - y0 of each row's edge
+    apex_normal = np.einsum("rij,rj->ri", edges.tip_rotation[edge], n)  # (r, 3), n_a
+    approach = np.einsum("rk,rk->r", apex_normal, u)  # (r,), n_a . u
+    gap = np.einsum("rk,rk->r", n - apex_normal, offset)  # (r,), (n - n_a) . (p - y0)
+    toward = approach < 0.0
+    return np.where(toward, gap / np.where(toward, approach, -1.0), np.inf)
 
 
 def _thesis_conditions(
@@ -537,6 +570,7 @@ def evaluate_pose(
             config.applied_corrections,
             config.max_finger_force,
             config.finger_friction_scale,
+            config.stroke,
         )  # (n,)
         outcomes[chunk] = edge.reshape(len(chunk), trials)  # (n,) -> (a, T), undoing the action-major flattening
         forces[chunk] = force.reshape(len(chunk), trials)

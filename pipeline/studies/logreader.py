@@ -57,6 +57,10 @@ def empirical_distribution(outcomes: np.ndarray, n_poses: int) -> np.ndarray:
     return np.bincount(buckets, minlength=n_poses + 1) / len(outcomes)
 
 
+STROKE_TOLERANCE = 1e-6
+"""m; a row's push_depth within this of ``topple.stroke`` is the model's push (float32 logs round)."""
+
+
 class LogError(ValueError):
     """A log that cannot be read at all (missing file, not Parquet, wrong columns); one line."""
 
@@ -244,6 +248,15 @@ def read_log(
     row_number = table.column("_row").to_numpy(zero_copy_only=False)
     start_pose = table.column("start_pose").to_pylist()
     problems = row_problems(table)
+    if "stroke" in config.topple.applied_corrections:
+        # The model predicts a push of its own stroke (MODEL.md C.10): a row pushed deeper or
+        # shallower is another push, which it would score wrongly.
+        depth = table.column("push_depth").to_numpy(zero_copy_only=False).astype(float)
+        for i in np.flatnonzero(~(np.abs(depth - config.topple.stroke) <= STROKE_TOLERANCE)):
+            problems[i] = problems[i] or (
+                f"push_depth {depth[i]:g} m is not the model's stroke (topple.stroke {config.topple.stroke:g} m); "
+                "score it with a configuration of that stroke"
+            )
     rejections = _Rejections()
 
     def reject(i: int, reason: str) -> None:
