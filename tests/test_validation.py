@@ -1,6 +1,7 @@
 """The validation report: metrics on hand-made cases, the log reader's per-row checks, the report end to end."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pyarrow as pa
@@ -12,9 +13,10 @@ from shapes import THESIS
 from pipeline.build.atomic import file_sha256
 from pipeline.model.config import VARIANTS, Config
 from pipeline.studies.logreader import OUTSIDE, LogError, read_log
-from pipeline.studies.scoring import Scorer, Scores, sup_tv
+from pipeline.studies.scoring import Scorer, Scores, sup_tv, topple_spread
 from pipeline.studies.synthetic_log import planar
 from pipeline.studies.validation import (
+    SPREAD_SHARE,
     average_precision,
     bootstrap_difference,
     bootstrap_intervals,
@@ -259,6 +261,22 @@ def test_bad_rows_are_counted_by_reason_never_dropped_silently(box_file, box_pos
     assert log.counts()["rows_rejected"] == table.num_rows - 2
 
 
+def test_rows_pushed_with_another_stroke_are_rejected_when_the_model_reads_the_stroke(box_file, box_poses, tmp_path):
+    """With the ``stroke`` correction (MODEL.md C.10) the model predicts a push of its own depth:
+    a row pushed 6 cm deep is another push, counted with its reason; without it the row is read."""
+    poses, standing, lying, _ = box_poses
+    stand, lie = poses.poses[standing].transform, poses.poses[lying].transform
+    point, direction = _object_frame(poses.poses[standing], *HIGH_PUSH)
+    rows = _rows(box_file, [(0, stand, point, direction, [lie]), (1, stand, point, direction, [stand])])
+    rows = _replace(rows, "push_depth", [0.04, 0.06])
+    pq.write_table(rows, tmp_path / "log.parquet")
+    with_stroke = read_log([tmp_path], Config().with_overrides({"topple.corrections": "finger_friction,stroke"}))
+    assert len(with_stroke.pushes) == 1 and with_stroke.pushes[0].push_id == 0
+    assert with_stroke.rejected == {"push_depth 0.06 m is not the model's stroke (topple.stroke 0.04 m); "
+                                    "score it with a configuration of that stroke": 1}
+    assert read_log([tmp_path], Config()).rejected == {}
+
+
 def test_vectorised_pose_matching_agrees_with_match_pose_and_settle(box_poses):
     from scipy.spatial.transform import Rotation
 
@@ -322,7 +340,11 @@ def test_report_writes_json_with_variants_references_and_counts(model_logs, tmp_
     assert code == 0 and png.stat().st_size > 0
     result = json.loads(out.read_text())
     assert set(result["variants"]) == set(VARIANTS)
-    assert set(result["references"]) == {"never_topples", "constant_rate"}
+    assert set(result["references"]) == {"never_topples", "constant_rate", "spread_1pct"}
+    spread = result["references"]["spread_1pct"]
+    assert spread["of"] == result["main_variant"] and spread["share"] == SPREAD_SHARE
+    # Moving 1 % of every push to a topple makes more pushes informative, never fewer.
+    assert spread["informative"] >= result["variants"][result["main_variant"]]["informative"]
     calibration_rate = np.mean([p.topple_rate for p in read_log([model_logs / "calibration.parquet"]).pushes])
     reported_rate = np.mean([p.topple_rate for p in read_log([model_logs / "reported.parquet"]).pushes])
     # The constant-rate reference uses the calibration data's rate, not the reported log's.
@@ -335,6 +357,23 @@ def test_report_writes_json_with_variants_references_and_counts(model_logs, tmp_
         assert sum(b["count"] for b in m["reliability"]) == result["counts"]["pushes"]
     # A log made by the robust model is predicted better by it than by "never topples".
     assert result["variants"]["robust"]["tv_informative"] < result["references"]["never_topples"]["tv_informative"]
+
+
+def test_spread_share_mixes_the_models_distribution_with_the_geometric_topple(model_logs):
+    """score(spread_share=s) is (1 - s) model + s ``topple_spread``: P(topple) and TV follow."""
+    log = read_log([model_logs / "reported.parquet"])
+    scorer = Scorer(log)
+    topple = replace(Config().topple, n_trials=10)
+    model, mixed = scorer.score(topple), scorer.score(topple, spread_share=0.2)
+    np.testing.assert_array_equal(scorer.score(topple, spread_share=0.0).tv, model.tv)
+    for group in scorer.groups:
+        spread = topple_spread(group)
+        assert spread.sum() == pytest.approx(1.0) and spread[-1] == 0.0
+        expected = 0.8 * model.p_topple[group.rows] + 0.2 * (1.0 - spread[group.pose.index])
+        np.testing.assert_allclose(mixed.p_topple[group.rows], expected, rtol=0, atol=1e-12)
+        # The rate-r constant predictor is the same spread mixed into "it stays".
+        constant = scorer.constant_rate(0.3).p_topple[group.rows]
+        np.testing.assert_allclose(constant, 0.3 * (1.0 - spread[group.pose.index]), atol=1e-12)
 
 
 def test_report_outcomes_outside_the_pose_set_are_their_own_bucket(model_logs):

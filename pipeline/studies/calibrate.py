@@ -506,7 +506,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--objective", choices=OBJECTIVES, default="informative", help="pushes the mean TV is over (default: %(default)s)")
     parser.add_argument("--corpus", default="default", help="calibrate only on this corpus's objects ('none': any object; default: %(default)s)")
     parser.add_argument("--heldout", nargs="+", metavar="LOG", help="score the chosen setting once more on this log (objects outside the corpus)")
-    parser.add_argument("--config", type=Path, metavar="FILE.toml", help="base parameters (default: the thesis defaults)")
+    parser.add_argument("--config", type=Path, metavar="FILE.toml", help="base parameters (default: the dataset's defaults; --config thesis for the thesis's)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes scoring settings (default: all cores)")
     parser.add_argument("--out", type=Path, default=Path("reports/calibrated.toml"), help="config TOML to write (default: %(default)s)")

@@ -97,17 +97,27 @@ class Scorer:
     def __len__(self) -> int:
         return len(self.log.pushes)
 
-    def score(self, topple: ToppleConfig) -> Scores:
-        """The toppling model with these parameters against every push."""
+    def score(self, topple: ToppleConfig, spread_share: float = 0.0) -> Scores:
+        """The toppling model with these parameters against every push.
+
+        spread_share : share of every push's probability moved from the model's prediction to
+          ``topple_spread`` (0: the model as it is); the report's check of what informative TV
+          rewards (docs/VALIDATION.md "Reading informative TV")
+        """
         tv = np.empty(len(self))
         p_topple = np.empty(len(self))
         for group in self.groups:
             obj = self.log.objects[group.object_id].model
             rng = stream(self.seed, obj.name, group.pose.index, "trials")
             table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng)
-            predicted = np.hstack([table.next_pose, np.zeros((len(group.rows), 1))])
+            predicted = np.hstack([table.next_pose, np.zeros((len(group.rows), 1))])  # (pushes, P + 1)
+            p = table.p_topple  # (pushes,)
+            if spread_share:
+                spread = topple_spread(group)  # (P + 1,)
+                predicted = (1.0 - spread_share) * predicted + spread_share * spread
+                p = (1.0 - spread_share) * p + spread_share * (1.0 - spread[group.pose.index])
             tv[group.rows] = sup_tv(predicted, group.empirical)
-            p_topple[group.rows] = table.p_topple
+            p_topple[group.rows] = p
         return Scores(tv, p_topple)
 
     def score_variant(self, topple: ToppleConfig, variant: str) -> Scores:
@@ -127,17 +137,26 @@ class Scorer:
         tv = np.empty(len(self))
         p_topple = np.empty(len(self))
         for group in self.groups:
-            predicted = np.zeros(group.n_poses + 1)
-            targets = group.pose.edge_final_pose[~group.pose.edge_blocked]
-            targets = targets[targets != group.pose.index]
-            if len(targets) and rate > 0:
-                np.add.at(predicted, targets, rate / len(targets))
-                predicted[group.pose.index] = 1.0 - rate
-            else:
-                predicted[group.pose.index] = 1.0
+            stays = np.zeros(group.n_poses + 1)
+            stays[group.pose.index] = 1.0
+            predicted = (1.0 - rate) * stays + rate * topple_spread(group)  # (P + 1,)
             tv[group.rows] = sup_tv(predicted[None], group.empirical)
             p_topple[group.rows] = 1.0 - predicted[group.pose.index]
         return Scores(tv, p_topple)
+
+
+def topple_spread(group: Group) -> np.ndarray:
+    """A topple that knows nothing about the push: mass 1 spread evenly over the poses the start
+    pose's unblocked base edges lead to, or all on the start pose when there is none (geometry
+    only, nothing learnt from a log).  returns : (P + 1,) float, the last bucket (unknown) 0"""
+    spread = np.zeros(group.n_poses + 1)
+    targets = group.pose.edge_final_pose[~group.pose.edge_blocked]
+    targets = targets[targets != group.pose.index]
+    if len(targets):
+        np.add.at(spread, targets, 1.0 / len(targets))
+    else:
+        spread[group.pose.index] = 1.0
+    return spread
 
 
 def sup_tv(predicted: np.ndarray, empirical: np.ndarray) -> np.ndarray:

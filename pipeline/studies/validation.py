@@ -56,6 +56,11 @@ BOOTSTRAP = 1000
 CONFIDENCE = 0.95
 WORST = 5
 """Objects named as the worst in a report."""
+SPREAD_SHARE = 0.01
+"""Share of every push's probability the ``spread_1pct`` reference moves from the main
+variant's prediction to a topple that knows nothing about the push (``scoring.topple_spread``):
+it makes nearly every push informative, and shows how much of a model's informative TV a
+change that adds no knowledge can buy."""
 
 # ---------------------------------------------------------------- metrics
 
@@ -385,6 +390,12 @@ def report(
         references["constant_rate"] = predictor_summary(scorer.constant_rate(rate), scorer, n_resamples=n_resamples, seed=seed)
         references["constant_rate"]["rate"] = rate
         references["constant_rate"]["rate_from"] = rate_source
+    if main_variant in variants:
+        # What informative TV is worth: the same model with 1 % of every push moved to a topple
+        # that knows nothing about the push (docs/VALIDATION.md "Reading informative TV").
+        spread = scorer.score(replace(config.topple, variant=main_variant), spread_share=SPREAD_SHARE)
+        references["spread_1pct"] = predictor_summary(spread, scorer, n_resamples=n_resamples, seed=seed)
+        references["spread_1pct"].update(share=SPREAD_SHARE, of=main_variant)
     counts = log.counts()
     counts["objects_in_corpus"] = sum(1 for o in log.objects.values() if o.in_corpus)
     return {
@@ -531,7 +542,7 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog="toppledb report", description=__doc__.split("\n\n")[0])
     parser.add_argument("logs", nargs="+", help="push-log Parquet files or directories")
-    parser.add_argument("--config", type=Path, metavar="FILE.toml", help="model parameters (default: the thesis defaults)")
+    parser.add_argument("--config", type=Path, metavar="FILE.toml", help="model parameters (default: the dataset's defaults; --config thesis for the thesis's)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     parser.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS), help="variants to score (default: all)")
     rate = parser.add_mutually_exclusive_group()
