@@ -13,7 +13,7 @@ from shapes import THESIS
 from pipeline.build.atomic import file_sha256
 from pipeline.model.config import VARIANTS, Config
 from pipeline.studies.logreader import OUTSIDE, LogError, read_log
-from pipeline.studies.scoring import Scorer, Scores, sup_tv, topple_spread
+from pipeline.studies.scoring import Scorer, Scores, brier_score, sup_tv, topple_spread
 from pipeline.studies.synthetic_log import planar
 from pipeline.studies.validation import (
     SPREAD_SHARE,
@@ -357,6 +357,33 @@ def test_report_writes_json_with_variants_references_and_counts(model_logs, tmp_
         assert sum(b["count"] for b in m["reliability"]) == result["counts"]["pushes"]
     # A log made by the robust model is predicted better by it than by "never topples".
     assert result["variants"]["robust"]["tv_informative"] < result["references"]["never_topples"]["tv_informative"]
+
+
+def test_brier_score_is_the_squared_distance_and_least_for_the_true_distribution():
+    empirical = np.array([[0.5, 0.5, 0.0], [0.0, 0.0, 1.0]])
+    assert brier_score(np.array([[1.0, 0.0, 0.0]]), empirical).tolist() == [0.5, 2.0]
+    # Proper: for outcomes drawn from q, the expected score of p is |p - q|^2 + the
+    # outcomes' own spread, so no p beats q; sup-TV's expectation, by contrast, is least
+    # at the sharp prediction of the likelier outcome.
+    q = np.array([0.7, 0.3])
+    outcomes = np.eye(2)  # each outcome as a one-hot empirical distribution
+    def expected(score, p):
+        return q @ score(np.array([p]), outcomes)
+    assert expected(brier_score, q) < min(expected(brier_score, p) for p in ([1.0, 0.0], [0.6, 0.4], [0.8, 0.2]))
+    assert expected(sup_tv, [1.0, 0.0]) < expected(sup_tv, q)
+
+
+def test_scores_carry_the_brier_score_of_every_push(model_logs):
+    log = read_log([model_logs / "reported.parquet"])
+    scorer = Scorer(log)
+    for scores in (scorer.score(replace(Config().topple, n_trials=10)), scorer.constant_rate(0.3), scorer.never_topples()):
+        assert scores.brier.shape == scores.tv.shape
+        assert np.all(scores.brier >= scores.tv ** 2 - 1e-12)  # the largest bucket's square is part of the sum
+        assert np.all(scores.brier <= 2.0 + 1e-12)
+    never = scorer.never_topples()
+    for group in scorer.groups:  # all mass on the start pose: 1 - 2 e_start + sum e^2
+        e = group.empirical
+        np.testing.assert_allclose(never.brier[group.rows], 1.0 - 2.0 * e[:, group.pose.index] + (e ** 2).sum(axis=1))
 
 
 def test_spread_share_mixes_the_models_distribution_with_the_geometric_topple(model_logs):

@@ -73,7 +73,13 @@ REFINE_RADII = (0.10, 0.04)
 """Step standard deviation of each refinement round, as a fraction of each parameter's range."""
 REFINE_CENTRES = 4
 """Best candidates of a selection problem that a refinement round steps around."""
-OBJECTIVES = ("informative", "all")
+OBJECTIVE_NAMES = {"informative": "mean sup-TV over informative pushes", "all": "mean sup-TV over all pushes",
+                   "brier": "mean multi-class Brier score over all pushes"}
+"""What a setting is chosen by: mean sup-TV over informative pushes (the thesis's form, which
+rewards small probabilities on pushes that stay: docs/VALIDATION.md "Reading informative TV"),
+over all pushes (which rewards sharp predictions), or the mean multi-class Brier score (a
+proper score: least for the true probabilities)."""
+OBJECTIVES = tuple(OBJECTIVE_NAMES)
 
 
 class CalibrationError(ValueError):
@@ -136,8 +142,13 @@ def with_values(topple: ToppleConfig, params: tuple[str, ...], values: np.ndarra
     return replace(topple, **{p: float(v) for p, v in zip(params, values)})
 
 
-def objective(tv: np.ndarray, predicted: np.ndarray, observed: np.ndarray, kind: str = "informative") -> float:
-    """Mean sup-TV over informative pushes (``kind='informative'``) or all pushes (``'all'``)."""
+def objective(
+    tv: np.ndarray, predicted: np.ndarray, observed: np.ndarray, kind: str = "informative", brier: np.ndarray | None = None
+) -> float:
+    """Mean sup-TV over informative pushes (``kind='informative'``) or all pushes (``'all'``), or
+    the mean Brier score (``'brier'``, which needs ``brier``: (n,) float per push)."""
+    if kind == "brier":
+        return float(np.mean(brier))
     if kind == "all":
         return float(np.mean(tv))
     useful = informative(predicted, observed)
@@ -150,7 +161,7 @@ _WORKER_SCORERS: dict[str, Scorer] = {}
 """Per worker process: prepared logs by pickle path, loaded on a worker's first task."""
 
 
-def _score_items(scorer: Scorer | str, base: ToppleConfig, params: tuple[str, ...], items) -> list[tuple[np.ndarray, np.ndarray]]:
+def _score_items(scorer: Scorer | str, base: ToppleConfig, params: tuple[str, ...], items) -> list[Scores]:
     if isinstance(scorer, str):
         if scorer not in _WORKER_SCORERS:
             with open(scorer, "rb") as f:
@@ -158,8 +169,7 @@ def _score_items(scorer: Scorer | str, base: ToppleConfig, params: tuple[str, ..
         scorer = _WORKER_SCORERS[scorer]
     out = []
     for variant, values in items:
-        scores = scorer.score(replace(with_values(base, params, values), variant=variant))
-        out.append((scores.tv, scores.p_topple))
+        out.append(scorer.score(replace(with_values(base, params, values), variant=variant)))
     return out
 
 
@@ -182,7 +192,7 @@ class Evaluator:
         if self._dir is not None:
             self._dir.cleanup()
 
-    def __call__(self, items: list[tuple[str, np.ndarray]], label: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    def __call__(self, items: list[tuple[str, np.ndarray]], label: str) -> list[Scores]:
         from tqdm import tqdm
 
         bar = tqdm(total=len(items), desc=label, unit="setting", disable=not self.progress, file=sys.stderr, leave=True)
@@ -261,8 +271,7 @@ def calibrate(
     n_sobol, rounds = settings_plan(settings)
     rng = np.random.default_rng([seed, 1])
     values: list[np.ndarray] = []
-    tv: list[np.ndarray] = []
-    p_topple: list[np.ndarray] = []
+    scored: list[Scores] = []  # per setting, every push
     evaluator = Evaluator(scorer, base, params, workers, progress)
     try:
         def run(batch: np.ndarray, label: str) -> list[int]:
@@ -270,10 +279,9 @@ def calibrate(
             out = evaluator([(variant, v) for v in batch], label)
             timings[f"{label}_s"] = time.perf_counter() - t
             first = len(values)
-            for v, (t_, p_) in zip(batch, out):
+            for v, scores in zip(batch, out):
                 values.append(np.asarray(v, dtype=float))
-                tv.append(t_)
-                p_topple.append(p_)
+                scored.append(scores)
             return list(range(first, len(values)))
 
         defaults = np.array([getattr(base, p) for p in params])
@@ -282,7 +290,8 @@ def calibrate(
         problems.append(Problem("all", np.arange(len(scorer)), list(shared)))
 
         def train_score(c: int, rows: np.ndarray) -> float:
-            return objective(tv[c][rows], p_topple[c][rows], observed[rows], kind)
+            s = scored[c]
+            return objective(s.tv[rows], s.p_topple[rows], observed[rows], kind, s.brier[rows])
 
         for r, (n_new, radius) in enumerate(zip(rounds, REFINE_RADII)):
             if n_new == 0:
@@ -314,24 +323,25 @@ def calibrate(
     fold_scores = {}
     position = len(VARIANTS)
     for problem in problems[:-1]:
-        fold_scores[problem.name] = {variant: (tv[chosen[problem.name]], p_topple[chosen[problem.name]])}
+        fold_scores[problem.name] = {variant: scored[chosen[problem.name]]}
         for v in other:
             fold_scores[problem.name][v] = extra[position]
             position += 1
 
     fold_reports = []
-    pooled_tv = {v: np.empty(len(scorer)) for v in VARIANTS}
-    pooled_p = {v: np.empty(len(scorer)) for v in VARIANTS}
+    pooled = {v: Scores(np.empty(len(scorer)), np.empty(len(scorer)), np.empty(len(scorer))) for v in VARIANTS}
+
+    def metrics_on(scores: Scores, rows: np.ndarray) -> dict[str, float]:
+        return push_metrics(scores.tv[rows], scores.p_topple[rows], observed[rows], scorer.object_index[rows], scores.brier[rows])
+
     for f, problem in enumerate(problems[:-1]):
         test = np.flatnonzero(fold_of_push == f)
         held_out = {}
         for v in VARIANTS:
-            t_, p_ = fold_scores[problem.name][v]
-            pooled_tv[v][test], pooled_p[v][test] = t_[test], p_[test]
-            held_out[v] = {
-                "calibrated": push_metrics(t_[test], p_[test], observed[test], scorer.object_index[test]),
-                "base": push_metrics(base_scores[v][0][test], base_scores[v][1][test], observed[test], scorer.object_index[test]),
-            }
+            fold = fold_scores[problem.name][v]
+            for name in ("tv", "p_topple", "brier"):
+                getattr(pooled[v], name)[test] = getattr(fold, name)[test]
+            held_out[v] = {"calibrated": metrics_on(fold, test), "base": metrics_on(base_scores[v], test)}
         c = chosen[problem.name]
         fold_reports.append({
             "fold": f,
@@ -346,20 +356,15 @@ def calibrate(
     everything = np.arange(len(scorer))
     # Calibrated minus base on the held-out folds, paired over the same resampled objects.
     difference = {
-        v: bootstrap_difference(Scores(pooled_tv[v], pooled_p[v]), Scores(*base_scores[v]), observed, scorer.object_index, seed=seed)
-        for v in VARIANTS
+        v: bootstrap_difference(pooled[v], base_scores[v], observed, scorer.object_index, seed=seed) for v in VARIANTS
     }
-    pooled = {
-        v: {
-            "calibrated": push_metrics(pooled_tv[v], pooled_p[v], observed, scorer.object_index),
-            "base": push_metrics(base_scores[v][0], base_scores[v][1], observed, scorer.object_index),
-        }
-        for v in VARIANTS
+    cross_validated = {
+        v: {"calibrated": metrics_on(pooled[v], everything), "base": metrics_on(base_scores[v], everything)} for v in VARIANTS
     }
     final = chosen["all"]
     timings["total_s"] = time.perf_counter() - started
     return {
-        "objective": f"mean sup-TV over {'informative' if kind == 'informative' else 'all'} pushes, variant {variant}",
+        "objective": f"{OBJECTIVE_NAMES[kind]}, variant {variant}",
         "objective_kind": kind,
         "variant": variant,
         "params": list(params),
@@ -369,7 +374,7 @@ def calibrate(
         "chosen_objective": train_score(final, everything),
         "base_objective": train_score(shared[0], everything),
         "folds": fold_reports,
-        "cross_validated": pooled,
+        "cross_validated": cross_validated,
         "cross_validated_difference": difference,
         "settings": {"per_problem": len(problems[-1].candidates), "scored": len(values), "sobol": n_sobol,
                      "refine_rounds": list(rounds), "variant_scorings": len(items)},
@@ -422,21 +427,28 @@ def format_calibration(result: dict) -> str:
         lines.append(f"{fold['fold']:<6} {len(fold['objects']):>7} {fold['pushes']:>6} {cell(fold['train_objective_base']):>10} "
                      f"{cell(fold['train_objective']):>9} {cell(ho['base']['tv_informative']):>17} {cell(ho['calibrated']['tv_informative']):>16}")
     lines.append("cross-validated (held-out folds pooled):")
-    lines.append(f"{'variant':<11} {'setting':<10} {'TV inform.':>10} {'TV all':>7} {'AP':>6} {'mAP':>6} {'ECE':>6}")
+    lines.append(f"{'variant':<11} {'setting':<10} {'TV inform.':>10} {'TV all':>7} {'Brier':>6} {'AP':>6} {'mAP':>6} {'ECE':>6}")
     for variant, m in result["cross_validated"].items():
         for setting in ("base", "calibrated"):
             x = m[setting]
             lines.append(f"{variant:<11} {setting:<10} {cell(x['tv_informative']):>10} {cell(x['tv_all']):>7} "
-                         f"{cell(x['ap']):>6} {cell(x['map']):>6} {cell(x['ece']):>6}")
+                         f"{cell(x.get('brier')):>6} {cell(x['ap']):>6} {cell(x['map']):>6} {cell(x['ece']):>6}")
     lines.append("chosen (all objects): " + ", ".join(f"{k}={val:.4g}" for k, val in result["chosen"].items()))
     return "\n".join(lines)
+
+
+def _changes(base: dict, calibrated: dict) -> str:
+    """'informative sup-TV 0.333 -> 0.320, ...' for the TOML's comments."""
+    names = (("tv_informative", "informative sup-TV"), ("tv_all", "sup-TV over all pushes"), ("brier", "Brier"))
+    return ", ".join(f"{label} {base[key]:.3f} -> {calibrated[key]:.3f}" for key, label in names if key in base and key in calibrated)
 
 
 def format_difference(label: str, difference: dict) -> str:
     """Calibrated minus base, per variant, with the paired bootstrap interval (negative: calibrated is better)."""
     lines = [f"calibrated - base, {label} (95 % paired bootstrap over objects; negative is better):"]
     for variant, d in difference.items():
-        parts = [f"{key} {d[key]['difference']:+.3f} [{d[key]['ci'][0]:+.3f}, {d[key]['ci'][1]:+.3f}]" for key in ("tv_informative", "tv_all")]
+        parts = [f"{key} {d[key]['difference']:+.3f} [{d[key]['ci'][0]:+.3f}, {d[key]['ci'][1]:+.3f}]"
+                 for key in ("tv_informative", "tv_all", "brier") if key in d]
         lines.append(f"  {variant:<11} " + "   ".join(parts))
     return "\n".join(lines)
 
@@ -565,14 +577,14 @@ def main(argv: list[str] | None = None) -> int:
         f"logs: {' '.join(args.logs)}; {result['counts']['pushes']} pushes on {result['counts']['objects']} objects",
         (f"objective: {result['objective']}; {args.folds}-fold CV grouped by object, "
          f"{result['settings']['per_problem']} settings per fold, seed {args.seed}"),
-        "cross-validated {v} informative sup-TV: base {b:.3f}, calibrated {c:.3f}".format(
-            v=args.variant, b=result["cross_validated"][args.variant]["base"]["tv_informative"],
-            c=result["cross_validated"][args.variant]["calibrated"]["tv_informative"]),
+        "cross-validated {v}, base -> calibrated: {m}".format(
+            v=args.variant, m=_changes(result["cross_validated"][args.variant]["base"],
+                                       result["cross_validated"][args.variant]["calibrated"])),
     ]
     if heldout is not None:
-        comments.append("held-out log informative sup-TV ({v}): base {b:.3f}, calibrated {c:.3f}".format(
-            v=args.variant, b=result["heldout"]["base"]["variants"][args.variant]["tv_informative"],
-            c=result["heldout"]["calibrated"]["variants"][args.variant]["tv_informative"]))
+        comments.append("held-out log ({v}), base -> calibrated: {m}".format(
+            v=args.variant, m=_changes(result["heldout"]["base"]["variants"][args.variant],
+                                       result["heldout"]["calibrated"]["variants"][args.variant])))
     write_outputs(args.out, result["chosen"], comments, args.json, result)
     return 0
 

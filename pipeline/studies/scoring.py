@@ -50,10 +50,14 @@ class Scores:
 
     tv : (n,) float, sup-form total variation between predicted and empirical next-pose distributions
     p_topple : (n,) float, predicted P(topple) (1 - P(start pose))
+    brier : (n,) float or None, multi-class Brier score: sum over next poses (and the outside
+      bucket) of (predicted - empirical)^2.  A proper score: its expectation is least for the
+      true probabilities, so neither sharpening nor spreading a prediction can lower it
     """
 
     tv: np.ndarray
     p_topple: np.ndarray
+    brier: np.ndarray | None = None
 
 
 class Scorer:
@@ -104,8 +108,7 @@ class Scorer:
           ``topple_spread`` (0: the model as it is); the report's check of what informative TV
           rewards (docs/VALIDATION.md "Reading informative TV")
         """
-        tv = np.empty(len(self))
-        p_topple = np.empty(len(self))
+        tv, p_topple, brier = np.empty(len(self)), np.empty(len(self)), np.empty(len(self))
         for group in self.groups:
             obj = self.log.objects[group.object_id].model
             rng = stream(self.seed, obj.name, group.pose.index, "trials")
@@ -117,8 +120,9 @@ class Scorer:
                 predicted = (1.0 - spread_share) * predicted + spread_share * spread
                 p = (1.0 - spread_share) * p + spread_share * (1.0 - spread[group.pose.index])
             tv[group.rows] = sup_tv(predicted, group.empirical)
+            brier[group.rows] = brier_score(predicted, group.empirical)
             p_topple[group.rows] = p
-        return Scores(tv, p_topple)
+        return Scores(tv, p_topple, brier)
 
     def score_variant(self, topple: ToppleConfig, variant: str) -> Scores:
         return self.score(replace(topple, variant=variant))
@@ -134,15 +138,15 @@ class Scorer:
         blocked, onto the pose each one leads to (geometry only, nothing learnt from the log);
         a pose without such an edge keeps all its mass.
         """
-        tv = np.empty(len(self))
-        p_topple = np.empty(len(self))
+        tv, p_topple, brier = np.empty(len(self)), np.empty(len(self)), np.empty(len(self))
         for group in self.groups:
             stays = np.zeros(group.n_poses + 1)
             stays[group.pose.index] = 1.0
             predicted = (1.0 - rate) * stays + rate * topple_spread(group)  # (P + 1,)
             tv[group.rows] = sup_tv(predicted[None], group.empirical)
+            brier[group.rows] = brier_score(predicted[None], group.empirical)
             p_topple[group.rows] = 1.0 - predicted[group.pose.index]
-        return Scores(tv, p_topple)
+        return Scores(tv, p_topple, brier)
 
 
 def topple_spread(group: Group) -> np.ndarray:
@@ -157,6 +161,15 @@ def topple_spread(group: Group) -> np.ndarray:
     else:
         spread[group.pose.index] = 1.0
     return spread
+
+
+def brier_score(predicted: np.ndarray, empirical: np.ndarray) -> np.ndarray:
+    """Row-wise multi-class Brier score, sum over buckets of (predicted - empirical)^2.
+
+    predicted : (n, B) or (1, B) float;  empirical : (n, B) float
+    returns : (n,) float in [0, 2]
+    """
+    return np.square(predicted - empirical).sum(axis=1)
 
 
 def sup_tv(predicted: np.ndarray, empirical: np.ndarray) -> np.ndarray:

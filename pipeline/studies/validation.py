@@ -122,12 +122,16 @@ def informative(predicted_topple: np.ndarray, observed_topple: np.ndarray) -> np
     return (np.asarray(predicted_topple) > 0) | (np.asarray(observed_topple) > 0)
 
 
-def push_metrics(tv: np.ndarray, predicted: np.ndarray, observed: np.ndarray, groups: np.ndarray) -> dict[str, float]:
+def push_metrics(
+    tv: np.ndarray, predicted: np.ndarray, observed: np.ndarray, groups: np.ndarray, brier: np.ndarray | None = None
+) -> dict[str, float]:
     """The headline metrics of one predictor on a set of pushes.
 
     tv : (n,) float, sup-form TV per push;  predicted, observed : (n,) float, P(topple)
     groups : (n,) int, object of each push (for the per-object mAP)
-    returns : tv_all, tv_informative, informative (fraction of pushes), ap, map, ece
+    brier : (n,) float, multi-class Brier score per push (``scoring.Scores.brier``), or None
+    returns : tv_all, tv_informative, informative (fraction of pushes), ap, map, ece, and
+      brier (the mean) when given
     """
     useful = informative(predicted, observed)
     labels = observed > TOPPLES
@@ -140,6 +144,7 @@ def push_metrics(tv: np.ndarray, predicted: np.ndarray, observed: np.ndarray, gr
         "ap": average_precision(predicted, labels),
         "map": float(np.mean(per_object)) if per_object else float("nan"),
         "ece": expected_calibration_error(predicted, observed),
+        **({"brier": float(np.mean(brier)) if len(brier) else float("nan")} if brier is not None else {}),
     }
 
 
@@ -151,6 +156,7 @@ def bootstrap_intervals(
     n_resamples: int = BOOTSTRAP,
     seed: int = 0,
     confidence: float = CONFIDENCE,
+    brier: np.ndarray | None = None,
 ) -> dict[str, list[float]]:
     """Percentile bootstrap over objects: resample objects with replacement (each drawn copy
     counts as its own object) and recompute the metrics of ``push_metrics``.
@@ -179,12 +185,16 @@ def bootstrap_intervals(
     object_ap = np.array([average_precision(predicted[which == i], labels[which == i]) for i in range(k)])
     rows = [np.flatnonzero(which == i) for i in range(k)]
 
-    samples: dict[str, list[float]] = {key: [] for key in ("tv_all", "tv_informative", "informative", "ap", "map", "ece")}
+    keys = ("tv_all", "tv_informative", "informative", "ap", "map", "ece") + (("brier",) if brier is not None else ())
+    samples: dict[str, list[float]] = {key: [] for key in keys}
+    brier_sum = per_object(brier) if brier is not None else None
     for _ in range(n_resamples):
         draw = rng.integers(k, size=k)
         times = np.bincount(draw, minlength=k).astype(float)
         n = times @ pushes
         samples["tv_all"].append(times @ tv_sum / n)
+        if brier_sum is not None:
+            samples["brier"].append(times @ brier_sum / n)
         samples["tv_informative"].append(times @ tv_useful / (times @ n_useful) if times @ n_useful else math.nan)
         samples["informative"].append(times @ n_useful / n)
         index = np.concatenate([rows[d] for d in draw])
@@ -220,10 +230,11 @@ def bootstrap_difference(
     confidence: float = CONFIDENCE,
 ) -> dict[str, dict]:
     """Paired bootstrap over objects of ``first - second`` for the mean sup-TV over all and over
-    informative pushes: both predictors see the same resampled objects, so the interval is
-    that of the difference, much narrower than the two intervals side by side.
+    informative pushes, and the mean Brier score when both have one: both predictors see the
+    same resampled objects, so the interval is that of the difference, much narrower than the
+    two intervals side by side.
 
-    returns : {"tv_all": {"difference", "ci": [low, high]}, "tv_informative": {...}}
+    returns : {"tv_all": {"difference", "ci": [low, high]}, "tv_informative": {...}[, "brier": {...}]}
     """
     rng = np.random.default_rng(seed)
     names, which = np.unique(objects, return_inverse=True)
@@ -236,16 +247,19 @@ def bootstrap_difference(
 
     pushes = np.bincount(which, minlength=k).astype(float)
     (a_all, a_useful, a_n), (b_all, b_useful, b_n) = sums(first), sums(second)
+    with_brier = first.brier is not None and second.brier is not None
+    brier_gap = np.bincount(which, weights=first.brier - second.brier, minlength=k) if with_brier else np.zeros(k)
 
-    def metrics(times: np.ndarray) -> tuple[float, float]:
+    def metrics(times: np.ndarray) -> tuple[float, float, float]:
         with np.errstate(invalid="ignore", divide="ignore"):
             return ((times @ a_all - times @ b_all) / (times @ pushes),
-                    times @ a_useful / (times @ a_n) - times @ b_useful / (times @ b_n))
+                    times @ a_useful / (times @ a_n) - times @ b_useful / (times @ b_n),
+                    times @ brier_gap / (times @ pushes))
 
     point = metrics(np.ones(k))
     draws = np.array([metrics(np.bincount(rng.integers(k, size=k), minlength=k).astype(float)) for _ in range(n_resamples)])
-    return {key: {"difference": float(point[i]), "ci": percentile_interval(draws[:, i], confidence)}
-            for i, key in enumerate(("tv_all", "tv_informative"))}
+    keys = ("tv_all", "tv_informative") + (("brier",) if with_brier else ())
+    return {key: {"difference": float(point[i]), "ci": percentile_interval(draws[:, i], confidence)} for i, key in enumerate(keys)}
 
 
 def bootstrap_metric_difference(
@@ -270,8 +284,11 @@ def bootstrap_metric_difference(
     def difference(draw: np.ndarray) -> dict[str, float]:
         index = np.concatenate([rows[d] for d in draw])
         copies = np.repeat(np.arange(len(draw)), [len(rows[d]) for d in draw])
-        a = push_metrics(first.tv[index], first.p_topple[index], observed[index], copies)
-        b = push_metrics(second.tv[index], second.p_topple[index], observed[index], copies)
+        with_brier = first.brier is not None and second.brier is not None
+        a = push_metrics(first.tv[index], first.p_topple[index], observed[index], copies,
+                         first.brier[index] if with_brier else None)
+        b = push_metrics(second.tv[index], second.p_topple[index], observed[index], copies,
+                         second.brier[index] if with_brier else None)
         return {key: a[key] - b[key] for key in a}
 
     point = difference(np.arange(len(names)))
@@ -288,8 +305,9 @@ def predictor_summary(scores: Scores, scorer: Scorer, *, n_resamples: int, seed:
     rows = np.arange(len(scorer)) if rows is None else rows
     tv, predicted, observed = scores.tv[rows], scores.p_topple[rows], scorer.empirical_topple[rows]
     objects = scorer.object_index[rows]
-    out = push_metrics(tv, predicted, observed, objects)
-    out["ci"] = bootstrap_intervals(tv, predicted, observed, objects, n_resamples, seed) if n_resamples else {}
+    brier = scores.brier[rows] if scores.brier is not None else None
+    out = push_metrics(tv, predicted, observed, objects, brier)
+    out["ci"] = bootstrap_intervals(tv, predicted, observed, objects, n_resamples, seed, brier=brier) if n_resamples else {}
     out["reliability"] = reliability(predicted, observed)["bins"]
     return out
 
@@ -445,12 +463,13 @@ def format_report(result: dict) -> str:
     ]
     for reason, count in c["rejected_by_reason"].items():
         lines.append(f"  rejected {count} rows: {reason}")
-    lines.append(f"{'predictor':<15} {'TV inform.':>26} {'TV all':>8} {'AP':>26} {'mAP':>7} {'ECE':>7} {'inform.':>8}")
+    lines.append(f"{'predictor':<15} {'TV inform.':>26} {'TV all':>8} {'Brier':>7} {'AP':>26} {'mAP':>7} {'ECE':>7} {'inform.':>8}")
     rows = _rows(result)
     for name, m in rows:
         lines.append(
             f"{name:<15} {cell(m['tv_informative']) + ci(m, 'tv_informative'):>26} {cell(m['tv_all']):>8} "
-            f"{cell(m['ap']) + ci(m, 'ap'):>26} {cell(m['map']):>7} {cell(m['ece']):>7} {cell(m['informative']):>8}"
+            f"{cell(m.get('brier')):>7} {cell(m['ap']) + ci(m, 'ap'):>26} {cell(m['map']):>7} {cell(m['ece']):>7} "
+            f"{cell(m['informative']):>8}"
         )
     lines.append(f"worst objects ({result['main_variant']}, informative TV): {', '.join(result['worst_objects'])}")
     if result.get("by_direction"):
