@@ -58,3 +58,16 @@ def standing_box():
     obj = box_object((0.05, 0.08, 0.15))
     pose_set = stable_poses(obj)
     return obj, pose_set, pose_with_down(pose_set, [0, 0, -1])
+
+
+def overhanging_frustum():
+    """(object, pose set, index of the pose on its small face) for a square frustum standing
+    upside down: a 4 x 4 cm base, an 8 x 8 cm top 6 cm up, 0.2 kg.  Its top face overhangs every
+    base edge by up to 2 cm, so a push down onto it beyond an edge can tip it over that edge."""
+    from pipeline.model.poses import stable_poses
+
+    a, b, h = 0.02, 0.04, 0.06
+    corners = [[x * a, y * a, 0.0] for x in (-1, 1) for y in (-1, 1)] + [[x * b, y * b, h] for x in (-1, 1) for y in (-1, 1)]
+    obj = model_from_mesh(trimesh.convex.convex_hull(np.array(corners)), mass=0.2, name="frustum")
+    pose_set = stable_poses(obj)
+    return obj, pose_set, pose_with_down(pose_set, [0, 0, -1], atol=1e-3)

@@ -13,7 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from shapes import random_object, standing_box
+from shapes import overhanging_frustum, random_object, standing_box
 
 from pipeline.model.config import CORRECTIONS, Config
 from pipeline.model.contacts import explicit_actions
@@ -140,6 +140,65 @@ def test_stroke_must_equal_the_executed_push_depth():
     with pytest.raises(ValueError, match="push_depth"):
         Config().with_overrides({"topple.stroke": 0.06})
     assert Config().with_overrides({"topple.stroke": 0.06, "contacts.push_depth": 0.06}).topple.stroke == 0.06
+
+
+@pytest.fixture(scope="module")
+def frustum():
+    return overhanging_frustum()
+
+
+FRUSTUM_BASE, FRUSTUM_HEIGHT = 0.02, 0.06
+"""m, the frustum's base half-width (its centre of mass is that far inside each base edge) and height."""
+
+
+@pytest.mark.parametrize("x", [0.025, 0.03, 0.035])
+def test_a_push_down_onto_an_overhang_tips_it_with_the_stuck_finger(frustum, x):
+    """C.11 on the upside-down frustum: pushed 30 degrees below horizontal onto its top face
+    x beyond the +x base edge, the finger-friction model (C.2) says it cannot tip (the face
+    would slide under the finger, whose friction then holds it back); with ``stuck_finger`` it
+    tips over that edge with the force along u whose moment matches gravity's,
+    F = m g a / (h u_x + (x - a) |u_z|).  The push player topples it (test_pushsim)."""
+    obj, pose_set, index = frustum
+    direction = np.array([0.87, 0.0, -0.5]) / np.hypot(0.87, 0.5)
+    point = [[x, 0.0, FRUSTUM_HEIGHT]]
+    sliding = _push(frustum, point, direction, _noise_free(corrections="finger_friction"))
+    stuck = _push(frustum, point, direction, _noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=1.0))
+    assert sliding.p_topple.tolist() == [0.0] and stuck.p_topple.tolist() == [1.0]
+    lever = FRUSTUM_HEIGHT * direction[0] + (x - FRUSTUM_BASE) * -direction[2]
+    assert stuck.mean_force[0] == pytest.approx(obj.mass * 9.81 * FRUSTUM_BASE / lever, rel=1e-9)
+    landed = pose_set.poses[index].edge_final_pose[stuck.outcomes[0, 0]]
+    # Onto a side face (the four are one pose, merged by symmetry), tilted atan(2 / 6) from it.
+    assert landed != index and pose_set.poses[landed].down[2] == pytest.approx(-np.sin(np.arctan2(0.02, 0.06)), abs=1e-3)
+
+
+@pytest.mark.parametrize("direction", [[0.0, 0.0, -1.0], [0.26, 0.0, -0.97], [-0.5, 0.0, -0.87], [0.87, 0.0, 0.5]])
+def test_the_stuck_finger_leaves_steep_inward_and_upward_pushes_alone(frustum, direction):
+    """Too steep to drag the base (|u_xy| <= mu_T |u_z|: the player leaves the frustum standing
+    under both), pointing inward (no outward moment) or upward, the same overhang is not
+    tipped by ``stuck_finger``."""
+    direction = np.array(direction) / np.linalg.norm(direction)
+    table = _push(frustum, [[0.035, 0.0, FRUSTUM_HEIGHT]], direction, _noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=1.0))
+    assert table.p_topple.tolist() == [0.0]
+
+
+def test_the_stuck_finger_never_tips_a_box_pushed_from_above(box):
+    """A box's top face lies inside its base: no base edge is overhung, nothing changes."""
+    points = [[0.015, 0.0, 0.15], [0.02, 0.03, 0.15], [-0.02, -0.03, 0.15]]
+    for direction in ([0.45, 0.0, -1.0], [0.0, 0.6, -0.8], [-0.8, 0.0, -0.6]):
+        direction = np.array(direction) / np.linalg.norm(direction)
+        with_stuck = _push(box, points, direction, _noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=1.0))
+        without = _push(box, points, direction, _noise_free(corrections="finger_friction"))
+        assert with_stuck.p_topple.tolist() == without.p_topple.tolist()
+
+
+def test_the_stuck_finger_share_is_the_fraction_of_qualifying_trials_that_topple(frustum):
+    """Noise-free (every spread 0; the variant still draws per trial), a share q of 400
+    qualifying trials topples: 0.3 +- 3.5 standard deviations of the binomial."""
+    direction = np.array([0.87, 0.0, -0.5]) / np.hypot(0.87, 0.5)
+    point = [[0.03, 0.0, FRUSTUM_HEIGHT]]
+    for share, low, high in ((0.0, 0.0, 0.0), (0.3, 0.23, 0.37), (1.0, 1.0, 1.0)):
+        topple = _noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=share, n_trials=400)
+        assert low <= _push(frustum, point, direction, topple).p_topple[0] <= high, share
 
 
 def test_thesis_model_ignores_finger_friction_in_the_moment_balance(box):

@@ -11,14 +11,17 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import trimesh
-from shapes import DATA, THESIS, box_object, pose_with_down, random_object, standing_box
+from shapes import DATA, THESIS, box_object, overhanging_frustum, pose_with_down, random_object, standing_box
 
 from pipeline.api import evaluate
 from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import DEFAULT_LIST, ObjectSpec, read_list
 from pipeline.model.config import Config
+from pipeline.model.contacts import explicit_actions
 from pipeline.model.mesh import model_from_mesh
 from pipeline.model.poses import stable_poses
+from pipeline.model.rng import stream
+from pipeline.model.topple import evaluate_pose
 from pipeline.studies import playlog
 from pipeline.studies.logreader import empirical_distribution
 from pipeline.studies.pushsim import (
@@ -177,6 +180,28 @@ def test_the_standing_box_needs_the_stroke_the_model_says_to_reach_its_apex(box)
         final = simulate_push(obj, pose_set, standing, np.array([0.0, -d, height]), np.array([0.0, 1.0, 0.0]), config,
                               noise=False, body=body)
         assert (final != standing) == toppled, stroke
+
+
+@pytest.mark.parametrize("direction, toppled", [([0.87, 0.0, -0.5], True), ([0.26, 0.0, -0.97], False)])
+def test_the_upside_down_frustum_tips_in_physics_where_the_stuck_finger_says(direction, toppled):
+    """C.11 in physics: pushed down onto its top face 1 cm beyond a base edge, the frustum
+    topples under a push 30 degrees below horizontal, which drags its base, and stays under
+    one 14 degrees off vertical, which cannot (|u_xy| < mu_T |u_z|); the model with
+    ``stuck_finger`` says the same at the world's friction, without it neither topples."""
+    obj, pose_set, index = overhanging_frustum()
+    point, direction = np.array([0.03, 0.0, 0.06]), np.array(direction) / np.linalg.norm(direction)
+    final = simulate_push(obj, pose_set, index, point, direction, THESIS, noise=False, body=body_model(obj))
+    assert (final != index) == toppled
+    topple = replace(THESIS.topple, variant="corrected", corrections="finger_friction,force_limit,momentum,stuck_finger",
+                     n_trials=1, mu_table_std=0.0, mu_finger_std=0.0, contact_std=0.0, direction_std=0.0, rotation_std=0.0,
+                     stuck_finger_share=1.0)
+    pose = pose_set.poses[index]
+    actions = explicit_actions(obj, pose.transform, point[None], direction[None])
+    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, obj.name, index, "trials"))
+    assert table.p_topple.tolist() == [1.0 if toppled else 0.0]
+    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, replace(topple, corrections="finger_friction,force_limit,momentum"),
+                          stream(0, obj.name, index, "trials"))
+    assert table.p_topple.tolist() == [0.0]
 
 
 @pytest.mark.parametrize("limit", [10.0, 40.0])

@@ -30,6 +30,7 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_044", "corrected:finger_friction,force_limit,momentum"),  # falls that roll on past shallow poses (C.8)
     ("random_009", "corrected:finger_friction,edge_spin"),  # the table check without its moment term (C.9)
     ("random_004", "corrected:finger_friction,force_limit,stroke"),  # with a stroke short enough to bite (SHORT_STROKE)
+    ("random_044", "corrected:finger_friction,force_limit,momentum,stuck_finger"),  # pushes down onto overhangs (C.11)
 ]
 
 LOW_LIMIT = 1.0
@@ -58,7 +59,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
     points, normals = object_contacts(obj, contacts, seed=11)
     mesh_collision = collision_object(obj.mesh)
     pose_set = stable_poses(obj)
-    compared = agreed = toppled = capped = rolled = 0
+    compared = agreed = toppled = capped = rolled = stuck = 0
     for pose in pose_set.poses:
         actions = pose_actions(points, normals, obj.mesh, mesh_collision, pose.transform, contacts)
         table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(11, obj.name, pose.index, "trials"))
@@ -79,6 +80,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                     topple.finger_friction_scale,
                     topple.min_stability_margin,
                     topple.stroke,
+                    topple.stuck_finger_share,
                 )
                 compared += 1
                 agreed += edge == table.outcomes[action, trial]
@@ -88,6 +90,10 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                 if corrections == "force_limit":  # trials the limit stops: the uncapped model topples them
                     free = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset)
                     capped += free[0] >= 0 and edge < 0
+                if "stuck_finger" in corrections:  # trials only the stuck finger tips
+                    alone = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
+                                            topple.applied_corrections - {"stuck_finger"}, topple.max_finger_force)
+                    stuck += edge >= 0 and alone[0] < 0
                 if topple.stroke == SHORT_STROKE:  # trials the stroke stops: with an endless one they topple
                     endless = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
                                               topple.applied_corrections, topple.max_finger_force)
@@ -109,6 +115,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         assert capped > 0, "the force limit should stop some trials that would topple"
     if topple.stroke == SHORT_STROKE:
         assert capped > 0, "the short stroke should stop some trials that would topple"
+    if "stuck_finger" in corrections:
+        assert stuck > 0, "some trials should topple only by the stuck finger"
 
 
 def test_reference_required_force_matches_engine_on_box():

@@ -78,7 +78,7 @@ VARIANTS = THESIS_VARIANTS + ("corrected",)
 """Every selectable variant: the thesis's four, and ``corrected`` (the robust model with the
 corrections of docs/MODEL.md "Corrections beyond the thesis" named in ``topple.corrections``)."""
 
-CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum", "edge_spin", "stroke")
+CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum", "edge_spin", "stroke", "stuck_finger")
 """Corrections the ``corrected`` variant can apply (docs/MODEL.md, "Corrections beyond the thesis"):
 ``finger_friction``: the finger's force follows Coulomb sliding at the contact while the object
 tips (friction in the moment balance, pushes from above, faces the finger wedges under);
@@ -88,7 +88,9 @@ base edge falls over that edge whatever the push;
 ``rolling``: a blocked topple rolls on while the finger pushes;
 ``momentum``: the energy of a topple's fall may roll the object on past the pose it lands in;
 ``edge_spin``: a push's moment about the vertical turns the object without stopping the topple;
-``stroke``: a topple needs the finger to reach its apex within ``stroke`` of the contact."""
+``stroke``: a topple needs the finger to reach its apex within ``stroke`` of the contact;
+``stuck_finger``: a push down onto a part that overhangs a base edge tips the object over it
+when nothing else does and the push can drag the base (the finger sticks, the base slides)."""
 
 
 @dataclass(frozen=True)
@@ -202,6 +204,11 @@ class ToppleConfig:
     stroke: float = bounded(0.04, POSITIVE)
     """m, how far past the contact the finger travels (``stroke`` correction, docs/MODEL.md
     C.10): the executed push's ``contacts.push_depth``, which it must equal (``Config`` checks)."""
+    stuck_finger_share: float = bounded(0.5, FRACTION)
+    """Share of the trials ``stuck_finger`` qualifies that topple (a uniform draw per trial,
+    made after every other draw, decides).  0.5: on the corpus log, pushes that qualify
+    noise-free topple 0.43-0.53 of the time; 1, the rule taken at its word, scores the same
+    there but makes the pushes the policies choose overconfident (docs/MODEL.md C.11)."""
     recalibration_x: tuple[float, ...] = bounded((), FRACTION)
     """Knots x_k of the monotone map g of P(topple) (docs/MODEL.md C.7), strictly increasing in
     [0, 1]; empty (the default) is the identity.  reports/recalibrated_corrected.toml holds the

@@ -122,6 +122,7 @@ class TrialDraw:
     direction_offset: Vec
     rotation_axis: Vec
     rotation_angle: float
+    stuck_draw: float = 0.0
 
 
 def in_friction_cone(push: Vec, normal: Vec, mu: float) -> bool:
@@ -144,11 +145,12 @@ def reference_trial(
     friction_scale: float = 1.0,
     min_margin: float = 0.0,
     stroke: float = math.inf,
+    stuck_share: float = 1.0,
 ):
     """Outcome of one trial: (edge index or -1, required force in N or inf).
 
     ``corrections`` (names of ``config.CORRECTIONS``), ``max_force``, ``friction_scale``,
-    ``min_margin`` and ``stroke`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
+    ``min_margin``, ``stroke`` and ``stuck_share`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
     empty, it is the thesis's trial.
     """
     if "stability_margin" in corrections:
@@ -194,8 +196,24 @@ def reference_trial(
     if "stroke" in corrections and best_edge >= 0:
         y0, y1 = scene.edges[best_edge]
         if not finger_travel(contact, normal, push, y0, y1, com) <= stroke:  # C.10: falls back short of the apex
-            return -1, math.inf
+            best_edge, best_force = -1, math.inf
+    if "stuck_finger" in corrections and best_edge < 0 and draw.stuck_draw < stuck_share and drags_base(push, draw.mu_table):
+        for index, (y0, y1) in enumerate(scene.edges):  # C.11: the finger holds, the base slides
+            e = _unit(_sub(y1, y0))
+            outward = (e[1], -e[0], 0.0)
+            com_distance = -_dot(_sub(com, y0), outward)
+            torque = _dot(e, _cross(_sub(contact, y0), push))
+            if _dot(_sub(contact, y0), outward) <= 0.0 or com_distance <= 0.0 or torque <= MIN_PUSH_TORQUE:
+                continue
+            force = weight * com_distance / torque
+            if force <= max_force and force < best_force:
+                best_edge, best_force = index, force
     return best_edge, best_force
+
+
+def drags_base(push: Vec, mu_table: float) -> bool:
+    """C.11's push: down, yet able to drag the base (|u_xy| > mu_T |u_z|)."""
+    return push[2] < 0.0 and math.hypot(push[0], push[1]) > mu_table * -push[2]
 
 
 def finger_travel(contact: Vec, normal: Vec, push: Vec, y0: Vec, y1: Vec, com: Vec) -> float:
@@ -326,4 +344,5 @@ def draw_of(actions, noise, action: int, trial: int) -> TrialDraw:
         direction_offset=as_vec(noise.direction_offset[action, trial]),
         rotation_axis=as_vec(noise.rotation_axis[action, trial]),
         rotation_angle=float(noise.rotation_angle[action, trial]),
+        stuck_draw=float(noise.stuck_draw[action, trial]),
     )

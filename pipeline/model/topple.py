@@ -87,6 +87,8 @@ class TrialNoise:
     contact_offset : (A, T, 3) float, m
     direction_offset : (A, T, 3) float
     rotation_axis : (A, T, 3) float, unit; rotation_angle : (A, T) float, rad
+    stuck_draw : (A, T) float in [0, 1), decides the ``stuck_finger`` topples (drawn last, so
+      adding it changed no other draw; zeros for noise-free variants)
     """
 
     mu_table: np.ndarray
@@ -95,6 +97,7 @@ class TrialNoise:
     direction_offset: np.ndarray
     rotation_axis: np.ndarray
     rotation_angle: np.ndarray
+    stuck_draw: np.ndarray
 
 
 def sample_noise(rng: np.random.Generator, n_actions: int, config: ToppleConfig) -> TrialNoise:
@@ -108,6 +111,7 @@ def sample_noise(rng: np.random.Generator, n_actions: int, config: ToppleConfig)
             direction_offset=np.zeros(shape + (3,)),
             rotation_axis=np.tile(NO_ROTATION_AXIS, shape + (1,)),
             rotation_angle=np.zeros(shape),
+            stuck_draw=np.zeros(shape),
         )
     return TrialNoise(
         mu_table=rng.normal(config.mu_table_mean, config.mu_table_std, shape),
@@ -116,6 +120,7 @@ def sample_noise(rng: np.random.Generator, n_actions: int, config: ToppleConfig)
         direction_offset=rng.normal(0.0, config.direction_std, shape + (3,)),
         rotation_axis=_unit_rows(rng.normal(size=shape + (3,))),
         rotation_angle=rng.normal(0.0, config.rotation_std, shape),
+        stuck_draw=rng.random(shape),
     )
 
 
@@ -125,6 +130,7 @@ class Trials:
 
     contact : (n, 3) float, m;  normal : (n, 3) float, unit outward;  push : (n, 3) float, unit
     mu_table, mu_finger : (n,) float;  valid : (n,) bool, the finger found the surface from outside
+    stuck_draw : (n,) float in [0, 1) (``TrialNoise``), or None: zeros
     """
 
     contact: np.ndarray
@@ -133,6 +139,7 @@ class Trials:
     mu_table: np.ndarray
     mu_finger: np.ndarray
     valid: np.ndarray
+    stuck_draw: np.ndarray | None = None
 
 
 def noisy_trials(
@@ -169,6 +176,7 @@ def noisy_trials(
             mu_table=noise.mu_table.ravel(),
             mu_finger=noise.mu_finger.ravel(),
             valid=np.ones(a * t, dtype=bool),
+            stuck_draw=noise.stuck_draw.ravel(),
         )
     axes, angles = flat(noise.rotation_axis), noise.rotation_angle.ravel()  # (n, 3), (n,)
     # (a, 1, 3) + (a, T, 3) + (a, 1, 3): p + dp + ray_offset n of (8.2), then relative to the COM
@@ -200,7 +208,7 @@ def noisy_trials(
     # Front face iff n' . r < 0 (8.3): an exact sign test, a grazing hit (n' . r ~ 0) is
     # as good as any other, so no tolerance.
     valid[rays] = np.einsum("ij,ij->i", hit_normal, ray[rays]) < 0.0
-    return Trials(contact, normal, push, noise.mu_table.ravel(), noise.mu_finger.ravel(), valid)
+    return Trials(contact, normal, push, noise.mu_table.ravel(), noise.mu_finger.ravel(), valid, noise.stuck_draw.ravel())
 
 
 def trial_outcomes(
@@ -213,13 +221,15 @@ def trial_outcomes(
     max_force: float = np.inf,
     friction_scale: float = 1.0,
     stroke: float = np.inf,
+    stuck_share: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Edge each trial topples over, and the force it takes.
 
     corrections : names from ``config.CORRECTIONS`` (empty: the thesis's model, section 7)
-    max_force : N, the finger force limit of the ``force_limit`` correction
+    max_force : N, the finger force limit (``force_limit``; also ``stuck_finger``'s)
     friction_scale : share of the finger friction resisting tipping (``finger_friction``)
     stroke : m, how far past the contact the finger travels (``stroke`` correction)
+    stuck_share : share of the trials ``stuck_finger`` qualifies that topple
     returns : edge (n,) int (``OUTCOME_NO_EDGE`` when none), required_force (n,) float, N (inf when none)
 
     Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
@@ -231,6 +241,8 @@ def trial_outcomes(
     row-wise, so neither the row selection nor the tiling changes a result).
     """
     n = len(trials.mu_table)
+    if trials.stuck_draw is None:
+        trials = replace(trials, stuck_draw=np.zeros(n))
     edge = np.full(n, OUTCOME_NO_EDGE, dtype=np.intp)  # (n,)
     required = np.full(n, np.inf)  # (n,), N
     live = np.flatnonzero(trials.valid)  # (m,) valid rows
@@ -244,6 +256,7 @@ def trial_outcomes(
         edge[live[rows]], required[live[rows]] = _tile_outcomes(
             Trials(*(getattr(kept, f)[rows] for f in Trials.__dataclass_fields__)),
             edges, mass, gravity, predicts_rotations, corrections, max_force, friction_scale, stroke,
+            stuck_share,
         )  # (r,) each, for the tile's r valid trials
     return edge, required
 
@@ -284,6 +297,7 @@ def _tile_outcomes(
     max_force: float,
     friction_scale: float,
     stroke: float = np.inf,
+    stuck_share: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``trial_outcomes`` on one tile of r trials (contact and normal finite): edge (r,) int,
     required_force (r,) float, N."""
@@ -308,7 +322,48 @@ def _tile_outcomes(
         # stroke carries it to that edge's apex.  Only the chosen edge is checked.
         short = ~(finger_travel(trials, edges, edge) <= stroke)  # (n,); NaN or inf: out of reach
         required[short] = np.inf
+    if "stuck_finger" in corrections:
+        # C.11: where nothing tips the object, a push down onto a part beyond a base edge may,
+        # the finger holding on and the base sliding (a share of such trials, by the last draw).
+        # Only the trials that stay, push down and drew under the share are looked at (a few
+        # in ten of a pose's trials): the same result as all of them, for less work.
+        rows = np.flatnonzero(~np.isfinite(required) & (trials.push[:, 2] < 0.0) & (trials.stuck_draw < stuck_share))
+        if len(rows):
+            some = Trials(*(getattr(trials, f)[rows] for f in Trials.__dataclass_fields__))
+            stuck_edge, stuck_force = stuck_finger(some, edges, mass, gravity, max_force)  # (r,) each
+            takes = np.isfinite(stuck_force)
+            edge[rows[takes]], required[rows[takes]] = stuck_edge[takes], stuck_force[takes]
     return np.where(np.isfinite(required), edge, OUTCOME_NO_EDGE), required
+
+
+def stuck_finger(
+    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, max_force: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``stuck_finger`` correction (MODEL.md C.11): the edge a push down onto an overhang tips.
+
+    A trial qualifies over base edge e when the push moves down (u_z < 0) yet can drag the
+    base along the table (|u_xy| > mu_T |u_z|: a force along u pressing the object down
+    overcomes the friction it adds), the contact lies beyond the edge's line (L_e =
+    (p - y0) . o_e > 0, so tipping over e lowers it), the centre of mass is inside (d_e > 0),
+    and the force along u whose moment about e matches gravity's, the thesis's (7.5)
+    F*_e = m g d_e / (e . ((p - y0) x u)), is positive and at most ``max_force``.  The object
+    tips over the qualifying edge with the least F*_e.
+
+    returns : edge (n,) int (any index where none qualifies), force (n,) float, N (inf where none)
+    """
+    u, contact = trials.push, trials.contact  # (n, 3) each
+    drags = np.hypot(u[:, 0], u[:, 1]) > trials.mu_table * -u[:, 2]  # (n,), |u_xy| > mu_T |u_z| for u_z < 0
+    descends = (u[:, 2] < 0.0) & drags & trials.valid  # (n,)
+    # L_e = p . o_e - y0 . o_e: (n, 3) @ (3, E) - (E,), no (n, E, 3) array.
+    overhang = contact @ edges.outward.T - np.einsum("ek,ek->e", edges.start, edges.outward)  # (n, E), m
+    # Torque identity (10.2): e . ((p - y0) x u) = e . (p x u) - u . (e x y0).
+    torque = _cross_rows(contact, u) @ edges.direction.T - u @ np.cross(edges.direction, edges.start).T  # (n, E), m
+    rotates = torque > MIN_PUSH_TORQUE
+    force = np.where(rotates, mass * gravity * edges.com_distance / np.where(rotates, torque, 1.0), np.inf)  # (n, E), N
+    qualifies = descends[:, None] & (overhang > 0.0) & (edges.com_distance > 0.0) & rotates & (force <= max_force)
+    candidate = np.where(qualifies, force, np.inf)  # (n, E)
+    edge = np.argmin(candidate, axis=1)  # (n,)
+    return edge, candidate[np.arange(len(edge)), edge]
 
 
 def finger_travel(trials: Trials, edges: EdgeGeometry, edge: np.ndarray) -> np.ndarray:
@@ -571,6 +626,7 @@ def evaluate_pose(
             config.max_finger_force,
             config.finger_friction_scale,
             config.stroke,
+            config.stuck_finger_share,
         )  # (n,)
         outcomes[chunk] = edge.reshape(len(chunk), trials)  # (n,) -> (a, T), undoing the action-major flattening
         forces[chunk] = force.reshape(len(chunk), trials)
