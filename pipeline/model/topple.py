@@ -356,10 +356,7 @@ def stuck_finger(
     descends = (u[:, 2] < 0.0) & drags & trials.valid  # (n,)
     # L_e = p . o_e - y0 . o_e: (n, 3) @ (3, E) - (E,), no (n, E, 3) array.
     overhang = contact @ edges.outward.T - np.einsum("ek,ek->e", edges.start, edges.outward)  # (n, E), m
-    # Torque identity (10.2): e . ((p - y0) x u) = e . (p x u) - u . (e x y0).
-    torque = _cross_rows(contact, u) @ edges.direction.T - u @ np.cross(edges.direction, edges.start).T  # (n, E), m
-    rotates = torque > MIN_PUSH_TORQUE
-    force = np.where(rotates, mass * gravity * edges.com_distance / np.where(rotates, torque, 1.0), np.inf)  # (n, E), N
+    rotates, force = _push_force(_cross_rows(contact, u), u, edges, mass, gravity)  # (n, E) each
     qualifies = descends[:, None] & (overhang > 0.0) & (edges.com_distance > 0.0) & rotates & (force <= max_force)
     candidate = np.where(qualifies, force, np.inf)  # (n, E)
     edge = np.argmin(candidate, axis=1)  # (n,)
@@ -411,16 +408,9 @@ def _thesis_conditions(
     cos_tip = -(outer @ edges.tip_rotation.reshape(-1, 9).T)  # (n, 9) @ (9, E) -> (n, E)
     in_cone = _inside_cone(cos_start, mu_f) & _inside_cone(cos_tip, mu_f)  # (n, 1) & (n, E) -> (n, E)
 
-    # 2. Minimum push force (7.3)-(7.5).  Torque identity (10.2):
-    #    e . ((p - y0) x u) = e . (p x u) - u . (e x y0), so p x u is crossed once per trial
-    #    and e x y0 once per edge, instead of (p - y0) x u once per (trial, edge).
+    # 2. Minimum push force (7.3)-(7.5).
     p_cross_u = _cross_rows(contact, u)  # (n, 3), batched cross product
-    torque = p_cross_u @ edges.direction.T - u @ np.cross(edges.direction, edges.start).T  # (n, E), tau_e, m
-    rotates = torque > MIN_PUSH_TORQUE  # (n, E), (7.4)
-    gravity_torque = mass * gravity * edges.com_distance  # (E,), m g d_e, N m
-    # The inner where puts a harmless divisor (1) where the push does not rotate; those
-    # entries are replaced by inf anyway, this only keeps division warnings away.
-    force = np.where(rotates, gravity_torque / np.where(rotates, torque, 1.0), np.inf)  # (n, E), F*_e, N
+    rotates, force = _push_force(p_cross_u, u, edges, mass, gravity)  # (n, E) each
 
     # 3. Workspace slip on the friction limit surface (7.6)-(7.9), divided through by F*^2 (10.4):
     #    tangential: F*|u_xy| <= mu_T F_n;  F_n = m g + F* max(0, -u_z)
@@ -443,6 +433,27 @@ def _thesis_conditions(
 
     passes = in_cone & rotates & holds & trials.valid[:, None]  # (n, E), (7.10)
     return force, passes
+
+
+def _push_force(
+    p_cross_u: np.ndarray, u: np.ndarray, edges: EdgeGeometry, mass: float, gravity: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The thesis's (7.3)-(7.5): whether a push along u rotates the object outward about each
+    edge, and the force along u whose moment about the edge matches gravity's.
+
+    Torque identity (10.2): e . ((p - y0) x u) = e . (p x u) - u . (e x y0), so p x u is
+    crossed once per trial and e x y0 once per edge, instead of (p - y0) x u once per (trial, edge).
+
+    p_cross_u : (n, 3) float, p x u;  u : (n, 3) float, unit push
+    returns : rotates (n, E) bool, (7.4); force (n, E) float, F*_e = m g d_e / tau_e, N (inf where it does not rotate)
+    """
+    torque = p_cross_u @ edges.direction.T - u @ np.cross(edges.direction, edges.start).T  # (n, E), tau_e, m
+    rotates = torque > MIN_PUSH_TORQUE  # (n, E), (7.4)
+    gravity_torque = mass * gravity * edges.com_distance  # (E,), m g d_e, N m
+    # The inner where puts a harmless divisor (1) where the push does not rotate; those
+    # entries are replaced by inf anyway, this only keeps division warnings away.
+    force = np.where(rotates, gravity_torque / np.where(rotates, torque, 1.0), np.inf)  # (n, E), F*_e, N
+    return rotates, force
 
 
 def sliding_contact(
