@@ -141,6 +141,10 @@ class Trials:
     valid: np.ndarray
     stuck_draw: np.ndarray | None = None
 
+    def take(self, rows) -> Trials:
+        """The trials at ``rows`` (an index array or slice) of every field."""
+        return Trials(*(getattr(self, f)[rows] for f in Trials.__dataclass_fields__))
+
 
 def noisy_trials(
     obj: ObjectModel,
@@ -250,11 +254,11 @@ def trial_outcomes(
         # A lone valid row would make the tile's matrix products 1-row ones (a gemv, not the
         # block's gemm); compute every row instead, the invalid ones fail on ``valid``.
         live = np.arange(n)
-    kept = Trials(*(getattr(trials, f)[live] for f in Trials.__dataclass_fields__))  # (m, ...)
+    kept = trials.take(live)  # (m, ...)
     kept = replace(kept, contact=np.nan_to_num(kept.contact), normal=np.nan_to_num(kept.normal))  # (m, 3) each
     for rows in _row_tiles(len(live), len(edges.com_distance)):
         edge[live[rows]], required[live[rows]] = _tile_outcomes(
-            Trials(*(getattr(kept, f)[rows] for f in Trials.__dataclass_fields__)),
+            kept.take(rows),
             edges, mass, gravity, predicts_rotations, corrections, max_force, friction_scale, stroke,
             stuck_share,
         )  # (r,) each, for the tile's r valid trials
@@ -329,8 +333,7 @@ def _tile_outcomes(
         # in ten of a pose's trials): the same result as all of them, for less work.
         rows = np.flatnonzero(~np.isfinite(required) & (trials.push[:, 2] < 0.0) & (trials.stuck_draw < stuck_share))
         if len(rows):
-            some = Trials(*(getattr(trials, f)[rows] for f in Trials.__dataclass_fields__))
-            stuck_edge, stuck_force = stuck_finger(some, edges, mass, gravity, max_force)  # (r,) each
+            stuck_edge, stuck_force = stuck_finger(trials.take(rows), edges, mass, gravity, max_force)  # (r,) each
             takes = np.isfinite(stuck_force)
             edge[rows[takes]], required[rows[takes]] = stuck_edge[takes], stuck_force[takes]
     return np.where(np.isfinite(required), edge, OUTCOME_NO_EDGE), required
