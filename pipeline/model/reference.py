@@ -179,9 +179,7 @@ def reference_trial(
     spin_stops = predicts_rotations and "edge_spin" not in corrections  # C.9: a turn does not stop the topple
     best_edge, best_force = -1, math.inf
     for index, (y0, y1) in enumerate(scene.edges):
-        e = _unit(_sub(y1, y0))
-        outward = (e[1], -e[0], 0.0)
-        com_distance = -_dot(_sub(com, y0), outward)
+        e, _, com_distance = _edge_frame(y0, y1, com)
         if "finger_friction" in corrections:
             force = sliding_force(contact, normal, push, draw.mu_table, friction_scale * draw.mu_finger, e, y0, y1, com, weight,
                                   com_distance, spin_stops)
@@ -199,9 +197,7 @@ def reference_trial(
             best_edge, best_force = -1, math.inf
     if "stuck_finger" in corrections and best_edge < 0 and draw.stuck_draw < stuck_share and drags_base(push, draw.mu_table):
         for index, (y0, y1) in enumerate(scene.edges):  # C.11: the finger holds, the base slides
-            e = _unit(_sub(y1, y0))
-            outward = (e[1], -e[0], 0.0)
-            com_distance = -_dot(_sub(com, y0), outward)
+            e, outward, com_distance = _edge_frame(y0, y1, com)
             torque = _dot(e, _cross(_sub(contact, y0), push))
             if _dot(_sub(contact, y0), outward) <= 0.0 or com_distance <= 0.0 or torque <= MIN_PUSH_TORQUE:
                 continue
@@ -209,6 +205,14 @@ def reference_trial(
             if force <= max_force and force < best_force:
                 best_edge, best_force = index, force
     return best_edge, best_force
+
+
+def _edge_frame(y0: Vec, y1: Vec, com: Vec) -> tuple[Vec, Vec, float]:
+    """Base edge y0 -> y1: its unit direction e, horizontal outward normal o = (e_y, -e_x, 0), and
+    the centre of mass's distance inside it, d = -(c - y0) . o (m)."""
+    e = _unit(_sub(y1, y0))
+    outward = (e[1], -e[0], 0.0)
+    return e, outward, -_dot(_sub(com, y0), outward)
 
 
 def drags_base(push: Vec, mu_table: float) -> bool:
@@ -219,8 +223,7 @@ def drags_base(push: Vec, mu_table: float) -> bool:
 def finger_travel(contact: Vec, normal: Vec, push: Vec, y0: Vec, y1: Vec, com: Vec) -> float:
     """C.10: how far past the contact the finger advances to bring the face to the apex of the
     topple over the edge y0 -> y1 (m; inf if the face turns away from the finger first)."""
-    e = _unit(_sub(y1, y0))
-    com_distance = -_dot(_sub(com, y0), (e[1], -e[0], 0.0))
+    e, _, com_distance = _edge_frame(y0, y1, com)
     apex_normal = _rotate(normal, e, math.atan2(com_distance, com[2]))
     approach = _dot(apex_normal, push)
     if approach >= 0.0:
@@ -243,8 +246,7 @@ def marginal_edge(scene: Scene, min_margin: float):
     nearer than ``min_margin`` (m); None for a pose that stands."""
     best, best_distance = None, math.inf
     for index, (y0, y1) in enumerate(scene.edges):
-        e = _unit(_sub(y1, y0))
-        distance = -_dot(_sub(scene.center_mass, y0), (e[1], -e[0], 0.0))
+        _, _, distance = _edge_frame(y0, y1, scene.center_mass)
         if distance < best_distance:  # the first on a tie, as argmin
             best, best_distance = index, distance
     return best if best_distance < min_margin else None
