@@ -280,15 +280,16 @@ def bootstrap_metric_difference(
     rng = np.random.default_rng(seed)
     names, which = np.unique(objects, return_inverse=True)
     rows = [np.flatnonzero(which == i) for i in range(len(names))]
+    with_brier = first.brier is not None and second.brier is not None
+
+    def metrics(scores: Scores, index: np.ndarray, copies: np.ndarray) -> dict[str, float]:
+        return push_metrics(scores.tv[index], scores.p_topple[index], observed[index], copies,
+                            scores.brier[index] if with_brier else None)
 
     def difference(draw: np.ndarray) -> dict[str, float]:
         index = np.concatenate([rows[d] for d in draw])
         copies = np.repeat(np.arange(len(draw)), [len(rows[d]) for d in draw])
-        with_brier = first.brier is not None and second.brier is not None
-        a = push_metrics(first.tv[index], first.p_topple[index], observed[index], copies,
-                         first.brier[index] if with_brier else None)
-        b = push_metrics(second.tv[index], second.p_topple[index], observed[index], copies,
-                         second.brier[index] if with_brier else None)
+        a, b = metrics(first, index, copies), metrics(second, index, copies)
         return {key: a[key] - b[key] for key in a}
 
     point = difference(np.arange(len(names)))
