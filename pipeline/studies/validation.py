@@ -137,15 +137,17 @@ def push_metrics(
     labels = observed > TOPPLES
     per_object = [average_precision(predicted[groups == g], labels[groups == g]) for g in np.unique(groups)]
     per_object = [ap for ap in per_object if not math.isnan(ap)]
-    return {
+    out = {
         "tv_all": float(np.mean(tv)) if len(tv) else float("nan"),
         "tv_informative": float(np.mean(tv[useful])) if useful.any() else float("nan"),
         "informative": float(np.mean(useful)) if len(tv) else float("nan"),
         "ap": average_precision(predicted, labels),
         "map": float(np.mean(per_object)) if per_object else float("nan"),
         "ece": expected_calibration_error(predicted, observed),
-        **({"brier": float(np.mean(brier)) if len(brier) else float("nan")} if brier is not None else {}),
     }
+    if brier is not None:
+        out["brier"] = float(np.mean(brier)) if len(brier) else float("nan")
+    return out
 
 
 def bootstrap_intervals(
