@@ -391,6 +391,7 @@ def report(
         scores = scorer.score_variant(config.topple, variant)
         results[variant] = predictor_summary(scores, scorer, n_resamples=n_resamples, seed=seed)
         if variant == main_variant:
+            main_scores = scores
             objects = per_object(scores, scorer)
             directions = by_direction(scores, scorer)
     recalibration = None
@@ -403,8 +404,7 @@ def report(
             "x": list(x), "y": list(y), "raw": f"{main_variant}_raw",
             "raw_metrics": predictor_summary(raw, scorer, n_resamples=n_resamples, seed=seed),
             "difference": bootstrap_metric_difference(
-                scorer.score_variant(config.topple, main_variant), raw, scorer.empirical_topple, scorer.object_index,
-                n_resamples, seed),
+                main_scores, raw, scorer.empirical_topple, scorer.object_index, n_resamples, seed),
         }
     references = {"never_topples": predictor_summary(scorer.never_topples(), scorer, n_resamples=n_resamples, seed=seed)}
     if rate is not None:
