@@ -108,8 +108,8 @@ class Scorer:
           ``topple_spread`` (0: the model as it is); the report's check of what informative TV
           rewards (docs/VALIDATION.md "Reading informative TV")
         """
-        tv, p_topple, brier = np.empty(len(self)), np.empty(len(self)), np.empty(len(self))
-        for group in self.groups:
+
+        def prediction(group: Group) -> tuple[np.ndarray, np.ndarray]:
             obj = self.log.objects[group.object_id].model
             rng = stream(self.seed, obj.name, group.pose.index, "trials")
             table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng)
@@ -119,10 +119,9 @@ class Scorer:
                 spread = topple_spread(group)  # (P + 1,)
                 predicted = (1.0 - spread_share) * predicted + spread_share * spread
                 p = (1.0 - spread_share) * p + spread_share * (1.0 - spread[group.pose.index])
-            tv[group.rows] = sup_tv(predicted, group.empirical)
-            brier[group.rows] = brier_score(predicted, group.empirical)
-            p_topple[group.rows] = p
-        return Scores(tv, p_topple, brier)
+            return predicted, p
+
+        return self._scores(prediction)
 
     def score_variant(self, topple: ToppleConfig, variant: str) -> Scores:
         return self.score(replace(topple, variant=variant))
@@ -138,14 +137,24 @@ class Scorer:
         blocked, onto the pose each one leads to (geometry only, nothing learnt from the log);
         a pose without such an edge keeps all its mass.
         """
-        tv, p_topple, brier = np.empty(len(self)), np.empty(len(self)), np.empty(len(self))
-        for group in self.groups:
+
+        def prediction(group: Group) -> tuple[np.ndarray, float]:
             stays = np.zeros(group.n_poses + 1)
             stays[group.pose.index] = 1.0
             predicted = (1.0 - rate) * stays + rate * topple_spread(group)  # (P + 1,)
-            tv[group.rows] = sup_tv(predicted[None], group.empirical)
-            brier[group.rows] = brier_score(predicted[None], group.empirical)
-            p_topple[group.rows] = 1.0 - predicted[group.pose.index]
+            return predicted[None], 1.0 - predicted[group.pose.index]
+
+        return self._scores(prediction)
+
+    def _scores(self, prediction) -> Scores:
+        """Every push scored against a predictor given per group: ``prediction(group)`` is the
+        next-pose distribution ((pushes, P + 1), or (1, P + 1) for all of them) and P(topple)."""
+        tv, p_topple, brier = np.empty(len(self)), np.empty(len(self)), np.empty(len(self))
+        for group in self.groups:
+            predicted, p = prediction(group)
+            tv[group.rows] = sup_tv(predicted, group.empirical)
+            brier[group.rows] = brier_score(predicted, group.empirical)
+            p_topple[group.rows] = p
         return Scores(tv, p_topple, brier)
 
 
