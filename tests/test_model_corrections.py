@@ -139,7 +139,13 @@ def test_finger_travel_is_the_closed_form_and_infinite_once_the_face_turns_away(
 def test_stroke_must_equal_the_executed_push_depth():
     with pytest.raises(ValueError, match="push_depth"):
         Config().with_overrides({"topple.stroke": 0.06})
+    with pytest.raises(ValueError, match="push_depth"):
+        Config().with_overrides({"topple.stroke": 0.06, "contacts.push_depth": 0.05})
     assert Config().with_overrides({"topple.stroke": 0.06, "contacts.push_depth": 0.06}).topple.stroke == 0.06
+    # The push depth alone carries the stroke with it, from --set and from a file or an old manifest.
+    assert Config().with_overrides({"contacts.push_depth": 0.05}).topple.stroke == 0.05
+    assert Config.from_dict({"contacts": {"push_depth": 0.03}, "topple": {"n_trials": 10}}).topple.stroke == 0.03
+    assert Config.from_dict({"contacts": {"push_depth": 0.03}}).topple.stroke == 0.03
 
 
 @pytest.fixture(scope="module")

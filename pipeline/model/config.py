@@ -203,7 +203,8 @@ class ToppleConfig:
     object's weight; docs/MODEL.md "Corrections beyond the thesis" gives the reasoning."""
     stroke: float = bounded(0.04, POSITIVE)
     """m, how far past the contact the finger travels (``stroke`` correction, docs/MODEL.md
-    C.10): the executed push's ``contacts.push_depth``, which it must equal (``Config`` checks)."""
+    C.10): the executed push's ``contacts.push_depth``, which it must equal (``Config`` checks;
+    setting the push depth alone sets it too)."""
     stuck_finger_share: float = bounded(0.5, FRACTION)
     """Share of the trials ``stuck_finger`` qualifies that topple (a uniform draw per trial,
     made after every other draw, decides).  0.5: on the corpus log, pushes that qualify
@@ -350,6 +351,11 @@ class Config:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "Config":
+        """Build from nested sections; a ``contacts.push_depth`` given without ``topple.stroke``
+        (a config file, or a manifest written before the stroke existed) sets the stroke too."""
+        contacts, topple = data.get("contacts"), data.get("topple")
+        if isinstance(contacts, dict) and "push_depth" in contacts and not (isinstance(topple, dict) and "stroke" in topple):
+            data = {**data, "topple": {**(topple if isinstance(topple, dict) else {}), "stroke": contacts["push_depth"]}}
         return _build(cls, data, "")
 
     @classmethod
@@ -358,7 +364,10 @@ class Config:
             return cls.from_dict(tomllib.load(f))
 
     def with_overrides(self, overrides: dict[str, Any]) -> "Config":
-        """Return a copy with dotted keys replaced, e.g. ``{"topple.n_trials": 10}``."""
+        """Return a copy with dotted keys replaced, e.g. ``{"topple.n_trials": 10}``; the stroke
+        follows a new ``contacts.push_depth`` unless ``topple.stroke`` is given too."""
+        if "contacts.push_depth" in overrides and "topple.stroke" not in overrides:
+            overrides = {**overrides, "topple.stroke": overrides["contacts.push_depth"]}
         data = self.to_dict()
         for key, value in overrides.items():
             *path, leaf = key.split(".")
