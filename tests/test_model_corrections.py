@@ -127,12 +127,12 @@ def test_finger_travel_is_the_closed_form_and_infinite_once_the_face_turns_away(
     heights = np.array([0.05, 0.1, 0.135])
     contact = np.column_stack([np.zeros(3), np.full(3, -0.04), heights])
     normal = np.tile([0.0, -1.0, 0.0], (3, 1))
-    trials = Trials(contact, normal, np.tile([0.0, 1.0, 0.0], (3, 1)), np.ones(3), np.ones(3), np.ones(3, bool))
+    trials = Trials(contact, normal, np.tile([0.0, 1.0, 0.0], (3, 1)), np.ones(3), np.ones(3), np.ones(3, bool), np.zeros(3))
     np.testing.assert_allclose(finger_travel(trials, edges, np.full(3, far)), stroke_to_apex(heights), rtol=1e-12)
     # Pushed steeply upward, the face (its normal turning up by 28 degrees on the way to the apex)
     # comes to face along the push before the apex: the finger cannot carry it there.
     steep = Trials(contact, normal, np.tile([0.0, 0.3, 0.95], (3, 1)) / np.hypot(0.3, 0.95), np.ones(3), np.ones(3),
-                   np.ones(3, bool))
+                   np.ones(3, bool), np.zeros(3))
     assert np.isinf(finger_travel(steep, edges, np.full(3, far))).all()
 
 

@@ -130,7 +130,7 @@ class Trials:
 
     contact : (n, 3) float, m;  normal : (n, 3) float, unit outward;  push : (n, 3) float, unit
     mu_table, mu_finger : (n,) float;  valid : (n,) bool, the finger found the surface from outside
-    stuck_draw : (n,) float in [0, 1) (``TrialNoise``), or None: zeros
+    stuck_draw : (n,) float in [0, 1) (``TrialNoise``)
     """
 
     contact: np.ndarray
@@ -139,7 +139,7 @@ class Trials:
     mu_table: np.ndarray
     mu_finger: np.ndarray
     valid: np.ndarray
-    stuck_draw: np.ndarray | None = None
+    stuck_draw: np.ndarray
 
     def take(self, rows) -> Trials:
         """The trials at ``rows`` (an index array or slice) of every field."""
@@ -215,25 +215,12 @@ def noisy_trials(
     return Trials(contact, normal, push, noise.mu_table.ravel(), noise.mu_finger.ravel(), valid, noise.stuck_draw.ravel())
 
 
-def trial_outcomes(
-    trials: Trials,
-    edges: EdgeGeometry,
-    mass: float,
-    gravity: float,
-    predicts_rotations: bool,
-    corrections: frozenset[str] = frozenset(),
-    max_force: float = np.inf,
-    friction_scale: float = 1.0,
-    stroke: float = np.inf,
-    stuck_share: float = 1.0,
-) -> tuple[np.ndarray, np.ndarray]:
+def trial_outcomes(trials: Trials, edges: EdgeGeometry, mass: float, config: ToppleConfig) -> tuple[np.ndarray, np.ndarray]:
     """Edge each trial topples over, and the force it takes.
 
-    corrections : names from ``config.CORRECTIONS`` (empty: the thesis's model, section 7)
-    max_force : N, the finger force limit (``force_limit``; also ``stuck_finger``'s)
-    friction_scale : share of the finger friction resisting tipping (``finger_friction``)
-    stroke : m, how far past the contact the finger travels (``stroke`` correction)
-    stuck_share : share of the trials ``stuck_finger`` qualifies that topple
+    mass : kg;  config : the variant, its corrections (``applied_corrections``; none: the
+      thesis's model, section 7) and their parameters (``max_finger_force``,
+      ``finger_friction_scale``, ``stroke``, ``stuck_finger_share``) and ``gravity``
     returns : edge (n,) int (``OUTCOME_NO_EDGE`` when none), required_force (n,) float, N (inf when none)
 
     Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
@@ -245,8 +232,7 @@ def trial_outcomes(
     row-wise, so neither the row selection nor the tiling changes a result).
     """
     n = len(trials.mu_table)
-    if trials.stuck_draw is None:
-        trials = replace(trials, stuck_draw=np.zeros(n))
+    corrections = config.applied_corrections  # parsed once, not once per tile
     edge = np.full(n, OUTCOME_NO_EDGE, dtype=np.intp)  # (n,)
     required = np.full(n, np.inf)  # (n,), N
     live = np.flatnonzero(trials.valid)  # (m,) valid rows
@@ -258,9 +244,7 @@ def trial_outcomes(
     kept = replace(kept, contact=np.nan_to_num(kept.contact), normal=np.nan_to_num(kept.normal))  # (m, 3) each
     for rows in _row_tiles(len(live), len(edges.com_distance)):
         edge[live[rows]], required[live[rows]] = _tile_outcomes(
-            kept.take(rows),
-            edges, mass, gravity, predicts_rotations, corrections, max_force, friction_scale, stroke,
-            stuck_share,
+            kept.take(rows), edges, mass, config, corrections
         )  # (r,) each, for the tile's r valid trials
     return edge, required
 
@@ -292,24 +276,16 @@ def _unit_rows(vectors: np.ndarray) -> np.ndarray:
 
 
 def _tile_outcomes(
-    trials: Trials,
-    edges: EdgeGeometry,
-    mass: float,
-    gravity: float,
-    predicts_rotations: bool,
-    corrections: frozenset[str],
-    max_force: float,
-    friction_scale: float,
-    stroke: float = np.inf,
-    stuck_share: float = 1.0,
+    trials: Trials, edges: EdgeGeometry, mass: float, config: ToppleConfig, corrections: frozenset[str]
 ) -> tuple[np.ndarray, np.ndarray]:
     """``trial_outcomes`` on one tile of r trials (contact and normal finite): edge (r,) int,
-    required_force (r,) float, N."""
+    required_force (r,) float, N.  corrections : ``config.applied_corrections``"""
+    gravity, max_force = config.gravity, config.max_finger_force
     # C.9 (``edge_spin``): a moment about the vertical turns the object without stopping the
     # topple, so the limit surface (7.9) keeps only its force term.
-    spin_stops = predicts_rotations and "edge_spin" not in corrections
+    spin_stops = config.predicts_rotations and "edge_spin" not in corrections
     if "finger_friction" in corrections:
-        force, passes = sliding_contact(trials, edges, mass, gravity, friction_scale, spin_stops)  # (n, E) each
+        force, passes = sliding_contact(trials, edges, mass, gravity, config.finger_friction_scale, spin_stops)  # (n, E) each
     else:
         force, passes = _thesis_conditions(trials, edges, mass, gravity, spin_stops)
     if "force_limit" in corrections:
@@ -324,14 +300,14 @@ def _tile_outcomes(
     if "stroke" in corrections:
         # C.10: the object tips over the least-force edge, and falls back unless the finger's
         # stroke carries it to that edge's apex.  Only the chosen edge is checked.
-        short = ~(finger_travel(trials, edges, edge) <= stroke)  # (n,); NaN or inf: out of reach
+        short = ~(finger_travel(trials, edges, edge) <= config.stroke)  # (n,); NaN or inf: out of reach
         required[short] = np.inf
     if "stuck_finger" in corrections:
         # C.11: where nothing tips the object, a push down onto a part beyond a base edge may,
         # the finger holding on and the base sliding (a share of such trials, by the last draw).
         # Only the trials that stay, push down and drew under the share are looked at (a few
         # in ten of a pose's trials): the same result as all of them, for less work.
-        rows = np.flatnonzero(~np.isfinite(required) & (trials.push[:, 2] < 0.0) & (trials.stuck_draw < stuck_share))
+        rows = np.flatnonzero(~np.isfinite(required) & (trials.push[:, 2] < 0.0) & (trials.stuck_draw < config.stuck_finger_share))
         if len(rows):
             stuck_edge, stuck_force = stuck_finger(trials.take(rows), edges, mass, gravity, max_force)  # (r,) each
             takes = np.isfinite(stuck_force)
@@ -630,18 +606,7 @@ def evaluate_pose(
             chunk_noise,
             config,
         )
-        edge, force = trial_outcomes(
-            chunk_trials,
-            edges,
-            obj.mass,
-            config.gravity,
-            config.predicts_rotations,
-            config.applied_corrections,
-            config.max_finger_force,
-            config.finger_friction_scale,
-            config.stroke,
-            config.stuck_finger_share,
-        )  # (n,)
+        edge, force = trial_outcomes(chunk_trials, edges, obj.mass, config)  # (n,)
         outcomes[chunk] = edge.reshape(len(chunk), trials)  # (n,) -> (a, T), undoing the action-major flattening
         forces[chunk] = force.reshape(len(chunk), trials)
 
