@@ -102,19 +102,29 @@ class Scorer:
         return len(self.log.pushes)
 
     def score(self, topple: ToppleConfig, spread_share: float = 0.0) -> Scores:
-        """The toppling model with these parameters against every push.
+        """The toppling model with these parameters against every push (``predict``, then
+        ``score_predictions``)."""
+        return self.score_predictions(self.predict(topple), spread_share)
 
-        spread_share : share of every push's probability moved from the model's prediction to
-          ``topple_spread`` (0: the model as it is); the report's check of what informative TV
-          rewards (docs/VALIDATION.md "Reading informative TV")
-        """
-
-        def prediction(group: Group) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, topple: ToppleConfig) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The model's prediction of every push, per group (``self.groups``' order): next-pose
+        distribution (pushes, P + 1) (the last bucket, outside the pose set, 0) and P(topple) (pushes,)."""
+        out = []
+        for group in self.groups:
             obj = self.log.objects[group.object_id].model
             rng = stream(self.seed, obj.name, group.pose.index, "trials")
             table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng)
-            predicted = np.hstack([table.next_pose, np.zeros((len(group.rows), 1))])  # (pushes, P + 1)
-            p = table.p_topple  # (pushes,)
+            out.append((np.hstack([table.next_pose, np.zeros((len(group.rows), 1))]), table.p_topple))
+        return out
+
+    def score_predictions(self, predictions: list[tuple[np.ndarray, np.ndarray]], spread_share: float = 0.0) -> Scores:
+        """Scores of ``predict``'s predictions, with ``spread_share`` of every push's probability
+        moved to ``topple_spread`` (0: as predicted; the report's check of what informative TV
+        rewards, docs/VALIDATION.md "Reading informative TV")."""
+        by_group = dict(zip(map(id, self.groups), predictions))
+
+        def prediction(group: Group) -> tuple[np.ndarray, np.ndarray]:
+            predicted, p = by_group[id(group)]
             if spread_share:
                 spread = topple_spread(group)  # (P + 1,)
                 predicted = (1.0 - spread_share) * predicted + spread_share * spread

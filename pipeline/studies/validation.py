@@ -388,10 +388,11 @@ def report(
     objects: list[dict] = []
     directions: list[dict] = []
     for variant in variants:
-        scores = scorer.score_variant(config.topple, variant)
+        predictions = scorer.predict(replace(config.topple, variant=variant))
+        scores = scorer.score_predictions(predictions)
         results[variant] = predictor_summary(scores, scorer, n_resamples=n_resamples, seed=seed)
         if variant == main_variant:
-            main_scores = scores
+            main_predictions, main_scores = predictions, scores
             objects = per_object(scores, scorer)
             directions = by_direction(scores, scorer)
     recalibration = None
@@ -414,7 +415,7 @@ def report(
     if main_variant in variants:
         # What informative TV is worth: the same model with 1 % of every push moved to a topple
         # that knows nothing about the push (docs/VALIDATION.md "Reading informative TV").
-        spread = scorer.score(replace(config.topple, variant=main_variant), spread_share=SPREAD_SHARE)
+        spread = scorer.score_predictions(main_predictions, spread_share=SPREAD_SHARE)
         references["spread_1pct"] = predictor_summary(spread, scorer, n_resamples=n_resamples, seed=seed)
         references["spread_1pct"].update(share=SPREAD_SHARE, of=main_variant)
     counts = log.counts()
