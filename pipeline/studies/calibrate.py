@@ -515,7 +515,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--params", nargs="+", choices=list(BOUNDS), default=list(NOISE_KEYS),
                         help="parameters to search (default: the seven noise parameters)")
     parser.add_argument("--variant", choices=VARIANTS, default="robust", help="variant whose objective is minimised (default: %(default)s)")
-    parser.add_argument("--objective", choices=OBJECTIVES, default="informative", help="pushes the mean TV is over (default: %(default)s)")
+    parser.add_argument("--objective", choices=OBJECTIVES, default="informative", help="what a setting is chosen by: mean sup-TV over informative or all pushes, or the Brier score (OBJECTIVE_NAMES; default: %(default)s)")
     parser.add_argument("--corpus", default="default", help="calibrate only on this corpus's objects ('none': any object; default: %(default)s)")
     parser.add_argument("--heldout", nargs="+", metavar="LOG", help="score the chosen setting once more on this log (objects outside the corpus)")
     parser.add_argument("--config", type=Path, metavar="FILE.toml", help="base parameters (default: the dataset's defaults; --config thesis for the thesis's)")
