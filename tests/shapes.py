@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pybullet_data
 import trimesh
@@ -71,3 +73,33 @@ def overhanging_frustum():
     obj = model_from_mesh(trimesh.convex.convex_hull(np.array(corners)), mass=0.2, name="frustum")
     pose_set = stable_poses(obj)
     return obj, pose_set, pose_with_down(pose_set, [0, 0, -1], atol=1e-3)
+
+
+def noise_free(variant="corrected", **fields):
+    """A noise-free trial of ``variant`` at the thesis's friction means (mu_T 0.43, mu_f 0.98: the
+    world the push player plays), the other fields the defaults, then ``fields``.  corrected is
+    robust, so every spread is zeroed; no recalibration map (MODEL.md C.7 is tested on its own)."""
+    topple = replace(
+        Config().topple,
+        variant=variant,
+        n_trials=1,
+        mu_table_mean=THESIS.topple.mu_table_mean,
+        mu_table_std=0.0,
+        mu_finger_mean=THESIS.topple.mu_finger_mean,
+        mu_finger_std=0.0,
+        contact_std=0.0,
+        direction_std=0.0,
+        rotation_std=0.0,
+        recalibration_x=(),
+        recalibration_y=(),
+    )
+    return replace(topple, **fields)
+
+
+def stroke_to_apex(height, d=0.04, w=0.08, com_height=0.075):
+    """Finger travel (m) that tips the standing box to its apex, pushed horizontally at ``height``
+    on a side face w from the far edge (MODEL.md C.10.3): the face turns by theta_a =
+    atan(d / com_height) about that edge, and a point finger at that height meets it
+    h tan(theta_a) - w (sec(theta_a) - 1) past the contact.  Defaults: across the 8 cm side."""
+    apex = np.arctan2(d, com_height)
+    return height * np.tan(apex) - w * (1.0 / np.cos(apex) - 1.0)

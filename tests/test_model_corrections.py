@@ -13,7 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from shapes import overhanging_frustum, random_object, standing_box
+from shapes import THESIS, noise_free, overhanging_frustum, random_object, standing_box, stroke_to_apex
 
 from pipeline.model.config import CORRECTIONS, Config
 from pipeline.model.contacts import explicit_actions
@@ -22,30 +22,11 @@ from pipeline.model.rng import stream
 from pipeline.model.topple import Trials, evaluate_pose, finger_travel, landed_poses
 from schema.frames import transform_points
 
-MU_TABLE = 0.43
-MU_FINGER = 0.98
-"""The thesis's friction means: the analytic cases below are worked out for them."""
+MU_TABLE = THESIS.topple.mu_table_mean
+MU_FINGER = THESIS.topple.mu_finger_mean
+"""The thesis's friction means (0.43, 0.98), ``noise_free``'s: the analytic cases below are worked out for them."""
 STEP = 1e-3
 """m, pushes are placed this far below and above the closed-form threshold."""
-
-
-def _noise_free(variant="corrected", **fields):
-    """A noise-free trial of ``variant`` (corrected is robust, so every spread is zeroed)."""
-    topple = replace(
-        Config().topple,
-        variant=variant,
-        n_trials=1,
-        mu_table_mean=MU_TABLE,
-        mu_table_std=0.0,
-        mu_finger_mean=MU_FINGER,
-        mu_finger_std=0.0,
-        contact_std=0.0,
-        direction_std=0.0,
-        rotation_std=0.0,
-        recalibration_x=(),  # the counted probabilities; MODEL.md C.7's map is tested on its own
-        recalibration_y=(),
-    )
-    return replace(topple, **fields)
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +46,7 @@ def _push(box, points, direction, topple):
 @pytest.mark.parametrize("axis, width", [(0, 0.05), (1, 0.08)])  # push across the 5 cm side, then the 8 cm side
 def test_standing_box_threshold_and_force_match_the_closed_form(box, mu_finger, scale, axis, width):
     obj, pose_set, index = box
-    topple = _noise_free(corrections="finger_friction", mu_finger_mean=mu_finger, finger_friction_scale=scale)
+    topple = noise_free(corrections="finger_friction", mu_finger_mean=mu_finger, finger_friction_scale=scale)
     mu = scale * mu_finger
     d = width / 2
     threshold = d / MU_TABLE + mu * (width - d)
@@ -92,17 +73,8 @@ def test_an_off_centre_push_tips_the_box_at_the_centred_threshold_with_edge_spin
     for corrections, threshold in (("finger_friction", d * c / MU_TABLE + mu_finger * (w - d)),
                                    ("finger_friction,edge_spin", d / MU_TABLE + mu_finger * (w - d))):
         points = [[-d, y, threshold - STEP], [-d, y, threshold + STEP]]
-        table = _push(box, points, [1.0, 0.0, 0.0], _noise_free(corrections=corrections, mu_finger_mean=mu_finger))
+        table = _push(box, points, [1.0, 0.0, 0.0], noise_free(corrections=corrections, mu_finger_mean=mu_finger))
         assert table.p_topple.tolist() == [0.0, 1.0], corrections
-
-
-def stroke_to_apex(height, d=0.04, w=0.08, com_height=0.075):
-    """Finger travel (m) that tips the standing box to its apex, pushed horizontally at ``height``
-    on a side face w from the far edge (C.10): the face turns by theta_a = atan(d / com_height)
-    about that edge, and a point finger at that height meets it h tan(theta_a) - w (sec(theta_a) - 1)
-    past the contact."""
-    apex = np.arctan2(d, com_height)
-    return height * np.tan(apex) - w * (1.0 / np.cos(apex) - 1.0)
 
 
 @pytest.mark.parametrize("height", [0.135, 0.145])
@@ -112,9 +84,9 @@ def test_a_topple_needs_the_stroke_to_reach_the_apex(box, height):
     travel = stroke_to_apex(height)
     point, direction = [[0.0, -0.04, height]], [0.0, 1.0, 0.0]
     for stroke, toppled in ((travel - STEP, 0.0), (travel + STEP, 1.0)):
-        table = _push(box, point, direction, _noise_free(corrections="finger_friction,stroke", stroke=stroke))
+        table = _push(box, point, direction, noise_free(corrections="finger_friction,stroke", stroke=stroke))
         assert table.p_topple.tolist() == [toppled], stroke
-    endless = _push(box, point, direction, _noise_free(corrections="finger_friction", stroke=travel - STEP))
+    endless = _push(box, point, direction, noise_free(corrections="finger_friction", stroke=travel - STEP))
     assert endless.p_topple.tolist() == [1.0]  # the stroke is only read by the correction
 
 
@@ -167,8 +139,8 @@ def test_a_push_down_onto_an_overhang_tips_it_with_the_stuck_finger(frustum, x):
     obj, pose_set, index = frustum
     direction = np.array([0.87, 0.0, -0.5]) / np.hypot(0.87, 0.5)
     point = [[x, 0.0, FRUSTUM_HEIGHT]]
-    sliding = _push(frustum, point, direction, _noise_free(corrections="finger_friction"))
-    stuck = _push(frustum, point, direction, _noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=1.0))
+    sliding = _push(frustum, point, direction, noise_free(corrections="finger_friction"))
+    stuck = _push(frustum, point, direction, noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=1.0))
     assert sliding.p_topple.tolist() == [0.0] and stuck.p_topple.tolist() == [1.0]
     lever = FRUSTUM_HEIGHT * direction[0] + (x - FRUSTUM_BASE) * -direction[2]
     assert stuck.mean_force[0] == pytest.approx(obj.mass * 9.81 * FRUSTUM_BASE / lever, rel=1e-9)
@@ -183,7 +155,7 @@ def test_the_stuck_finger_leaves_steep_inward_and_upward_pushes_alone(frustum, d
     under both), pointing inward (no outward moment) or upward, the same overhang is not
     tipped by ``stuck_finger``."""
     direction = np.array(direction) / np.linalg.norm(direction)
-    table = _push(frustum, [[0.035, 0.0, FRUSTUM_HEIGHT]], direction, _noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=1.0))
+    table = _push(frustum, [[0.035, 0.0, FRUSTUM_HEIGHT]], direction, noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=1.0))
     assert table.p_topple.tolist() == [0.0]
 
 
@@ -192,8 +164,8 @@ def test_the_stuck_finger_never_tips_a_box_pushed_from_above(box):
     points = [[0.015, 0.0, 0.15], [0.02, 0.03, 0.15], [-0.02, -0.03, 0.15]]
     for direction in ([0.45, 0.0, -1.0], [0.0, 0.6, -0.8], [-0.8, 0.0, -0.6]):
         direction = np.array(direction) / np.linalg.norm(direction)
-        with_stuck = _push(box, points, direction, _noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=1.0))
-        without = _push(box, points, direction, _noise_free(corrections="finger_friction"))
+        with_stuck = _push(box, points, direction, noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=1.0))
+        without = _push(box, points, direction, noise_free(corrections="finger_friction"))
         assert with_stuck.p_topple.tolist() == without.p_topple.tolist()
 
 
@@ -203,7 +175,7 @@ def test_the_stuck_finger_share_is_the_fraction_of_qualifying_trials_that_topple
     direction = np.array([0.87, 0.0, -0.5]) / np.hypot(0.87, 0.5)
     point = [[0.03, 0.0, FRUSTUM_HEIGHT]]
     for share, low, high in ((0.0, 0.0, 0.0), (0.3, 0.23, 0.37), (1.0, 1.0, 1.0)):
-        topple = _noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=share, n_trials=400)
+        topple = noise_free(corrections="finger_friction,stuck_finger", stuck_finger_share=share, n_trials=400)
         assert low <= _push(frustum, point, direction, topple).p_topple[0] <= high, share
 
 
@@ -212,7 +184,7 @@ def test_thesis_model_ignores_finger_friction_in_the_moment_balance(box):
     d = 0.025
     heights = np.array([d / MU_TABLE - STEP, d / MU_TABLE + STEP])
     points = np.column_stack([np.full(2, -d), np.zeros(2), heights])
-    table = _push(box, points, [1.0, 0.0, 0.0], _noise_free("rotations", mu_finger_mean=0.98))
+    table = _push(box, points, [1.0, 0.0, 0.0], noise_free("rotations", mu_finger_mean=0.98))
     assert table.p_topple.tolist() == [0.0, 1.0]
 
 
@@ -222,8 +194,8 @@ def test_push_from_above_cannot_tip_what_would_have_to_rise_into_the_finger(box)
     thesis's model, whose force simply points along the push, tips it."""
     points = [[0.015, 0.0, 0.15], [0.02, 0.01, 0.15]]
     direction = np.array([0.45, 0.0, -1.0]) / np.hypot(0.45, 1.0)  # inside the 44 degree cone of mu_f 0.98
-    thesis = _push(box, points, direction, _noise_free("rotations"))
-    corrected = _push(box, points, direction, _noise_free(corrections="finger_friction"))
+    thesis = _push(box, points, direction, noise_free("rotations"))
+    corrected = _push(box, points, direction, noise_free(corrections="finger_friction"))
     assert thesis.p_topple.tolist() == [1.0, 1.0]
     assert corrected.p_topple.tolist() == [0.0, 0.0]
 
@@ -231,10 +203,10 @@ def test_push_from_above_cannot_tip_what_would_have_to_rise_into_the_finger(box)
 def test_force_limit_stops_pushes_that_need_more(box):
     d = 0.025
     points = np.array([[-d, 0.0, 0.06], [-d, 0.0, 0.12]])  # the lower push needs more force
-    free = _push(box, points, [1.0, 0.0, 0.0], _noise_free(corrections="none"))
+    free = _push(box, points, [1.0, 0.0, 0.0], noise_free(corrections="none"))
     assert free.p_topple.tolist() == [1.0, 1.0] and free.mean_force[0] > free.mean_force[1]
     limit = 0.5 * (free.mean_force[0] + free.mean_force[1])
-    capped = _push(box, points, [1.0, 0.0, 0.0], _noise_free(corrections="force_limit", max_finger_force=limit))
+    capped = _push(box, points, [1.0, 0.0, 0.0], noise_free(corrections="force_limit", max_finger_force=limit))
     assert capped.p_topple.tolist() == [0.0, 1.0]
     assert capped.mean_force[1] == free.mean_force[1]
 
@@ -343,13 +315,13 @@ def test_a_blocked_topple_rolls_on_to_the_far_side_with_rolling(elliptic_prism):
     actions = explicit_actions(obj, pose.transform, point[None], outward[None])
     for corrections, lands in [("finger_friction,force_limit,rolling", rolled), ("finger_friction,force_limit", index)]:
         # k mu_f = 0.245: with the whole Coulomb friction (0.98) this low push jams instead of tipping.
-        topple = _noise_free(corrections=corrections, finger_friction_scale=0.25)
+        topple = noise_free(corrections=corrections, finger_friction_scale=0.25)
         table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, "e", index, "trials"))
         assert table.outcomes[0, 0] == edge, corrections
         assert table.next_pose[0, lands] == 1.0, corrections
     # The thesis's variants ignore every correction: their topples over an edge land as in 4.2.4.
     for variant in ("baseline", "rotations", "robustness", "robust"):
-        applied = _noise_free(variant, corrections="all").applied_corrections
+        applied = noise_free(variant, corrections="all").applied_corrections
         np.testing.assert_array_equal(landed_poses(pose, applied), pose.edge_final_pose)
 
 

@@ -11,7 +11,17 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import trimesh
-from shapes import DATA, THESIS, box_object, overhanging_frustum, pose_with_down, random_object, standing_box
+from shapes import (
+    DATA,
+    THESIS,
+    box_object,
+    noise_free,
+    overhanging_frustum,
+    pose_with_down,
+    random_object,
+    standing_box,
+    stroke_to_apex,
+)
 
 from pipeline.api import evaluate
 from pipeline.build.atomic import file_sha256
@@ -171,9 +181,8 @@ def test_the_standing_box_needs_the_stroke_the_model_says_to_reach_its_apex(box)
     further (measured by bisection: 5.67 cm), so physics topples it with that stroke and leaves
     it standing 8 mm short of it."""
     obj, pose_set, standing = box
-    height, d, w = 0.135, 0.04, 0.08
-    apex = np.arctan2(d, 0.075)
-    travel = height * np.tan(apex) - w * (1.0 / np.cos(apex) - 1.0)
+    height, d = 0.135, 0.04
+    travel = stroke_to_apex(height)
     body = body_model(obj)
     for stroke, toppled in ((travel - 0.008, False), (travel, True)):
         config = THESIS.with_overrides({"contacts.push_depth": stroke, "topple.stroke": stroke})
@@ -192,9 +201,7 @@ def test_the_upside_down_frustum_tips_in_physics_where_the_stuck_finger_says(dir
     point, direction = np.array([0.03, 0.0, 0.06]), np.array(direction) / np.linalg.norm(direction)
     final = simulate_push(obj, pose_set, index, point, direction, THESIS, noise=False, body=body_model(obj))
     assert (final != index) == toppled
-    topple = replace(THESIS.topple, variant="corrected", corrections="finger_friction,force_limit,momentum,stuck_finger",
-                     n_trials=1, mu_table_std=0.0, mu_finger_std=0.0, contact_std=0.0, direction_std=0.0, rotation_std=0.0,
-                     stuck_finger_share=1.0)
+    topple = noise_free(corrections="finger_friction,force_limit,momentum,stuck_finger", stuck_finger_share=1.0)
     pose = pose_set.poses[index]
     actions = explicit_actions(obj, pose.transform, point[None], direction[None])
     table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, obj.name, index, "trials"))
