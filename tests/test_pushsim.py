@@ -322,6 +322,25 @@ def test_the_log_is_the_same_whatever_the_number_of_workers(reference_log, specs
     assert playlog.read_log(tmp_path / "two").equals(playlog.read_log(reference_log))
 
 
+def test_a_replay_plays_the_logs_pushes_with_other_noise(reference_log, specs, tmp_path):
+    """``noise_draws`` > 0: the same pushes (ids, points, directions, start poses), independent
+    noise, any number of repeats; reproducible, and kept apart from the log by its key."""
+    replay = replace(PARAMS, repeats=3, noise_draws=1)
+    playlog.play(specs, replay, tmp_path / "replay", workers=1)
+    log, replayed = playlog.read_log(reference_log).to_pandas(), playlog.read_log(tmp_path / "replay").to_pandas()
+    push = ["object_id", "push_id", "start_pose", "action"] + [f"{k}_{a}" for k in ("point", "direction") for a in "xyz"]
+    assert log[push].drop_duplicates().reset_index(drop=True).equals(replayed[push].drop_duplicates().reset_index(drop=True))
+    assert len(replayed) == 3 * len(log[push].drop_duplicates())
+    first = ["object_id", "push_id", "repeat"]
+    both = log.merge(replayed, on=first, suffixes=("", "_replay"))
+    assert len(both) == len(log) and not np.any(both.mu_table == both.mu_table_replay)
+    playlog.play(specs, replace(replay, noise_draws=2), tmp_path / "second", workers=1)
+    assert not playlog.read_log(tmp_path / "second").equals(playlog.read_log(tmp_path / "replay"))
+    assert playlog.play(specs, replay, tmp_path / "replay", workers=1).reused == 2
+    with pytest.raises(playlog.PlayError, match="other parameters"):
+        playlog.play(specs, replace(PARAMS, noise_draws=1), reference_log, workers=1)
+
+
 def test_a_stopped_run_resumes_and_gives_the_same_log(reference_log, specs, tmp_path):
     out = tmp_path / "log"
     playlog.play(specs, PARAMS, out, workers=1, stop_after=1)
@@ -377,6 +396,8 @@ def test_heldout_objects_exclude_every_corpus_object():
 def test_play_command_rejects_bad_input(capsys, tmp_path):
     assert playlog.main(["--out", str(tmp_path / "x"), "--eps", "0", "--no-progress"]) == 2
     assert "--eps" in capsys.readouterr().err
+    assert playlog.main(["--out", str(tmp_path / "x"), "--noise-draws", "-1", "--no-progress"]) == 2
+    assert "--noise-draws" in capsys.readouterr().err
     assert playlog.main(["--out", str(tmp_path / "x"), "--set", "topple.nope=1", "--no-progress"]) == 2
     assert "nope" in capsys.readouterr().err
 

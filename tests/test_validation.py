@@ -13,7 +13,7 @@ from shapes import THESIS
 from pipeline.build.atomic import file_sha256
 from pipeline.model.config import VARIANTS, Config
 from pipeline.studies.logreader import OUTSIDE, LogError, read_log
-from pipeline.studies.scoring import Scorer, Scores, brier_score, sup_tv, topple_spread
+from pipeline.studies.scoring import Scorer, Scores, brier_floor, brier_score, sup_tv, topple_spread
 from pipeline.studies.synthetic_log import planar
 from pipeline.studies.validation import (
     SPREAD_SHARE,
@@ -424,3 +424,64 @@ def test_an_empty_log_file_reads_as_no_rows(tmp_path):
     pq.write_table(pa.Table.from_pylist([one_row], schema=PUSHLOG), tmp_path / "b.parquet")
     table = read_tables([tmp_path / "a.parquet", tmp_path / "b.parquet"])
     assert table.num_rows == 1 and table.column("_file").to_pylist() == [str(tmp_path / "b.parquet")]
+
+
+# ---------------------------------------------------------------- physics predicting itself
+
+
+def test_brier_floor_is_an_unbiased_estimate_of_the_true_distributions_expected_score():
+    """Over every way R repeats can fall, the floor's expectation is sum p (1 - p) / R, which is
+    also the expected Brier score of the true distribution itself."""
+    from itertools import product
+    from math import comb
+
+    p, repeats = np.array([0.6, 0.3, 0.1]), 4
+    expected_floor = expected_true_score = 0.0
+    for counts in product(range(repeats + 1), repeat=3):
+        if sum(counts) != repeats:
+            continue
+        weight = comb(repeats, counts[0]) * comb(repeats - counts[0], counts[1]) * np.prod(p ** np.array(counts))
+        e = np.array([counts]) / repeats
+        expected_floor += weight * brier_floor(e, np.array([repeats]))[0]
+        expected_true_score += weight * brier_score(p[None], e)[0]
+    assert expected_floor == pytest.approx((p * (1 - p)).sum() / repeats)
+    assert expected_true_score == pytest.approx(expected_floor)
+    assert np.isnan(brier_floor(np.array([[1.0, 0.0]]), np.array([1])))[0]
+
+
+def test_a_log_replayed_by_itself_scores_perfectly_and_a_mismatched_replay_is_refused(model_logs, tmp_path):
+    log = read_log([model_logs / "reported.parquet"])
+    scorer = Scorer(log)
+    itself = scorer.replay(log)
+    assert np.all(itself.tv == 0.0) and np.all(itself.brier == 0.0)
+    np.testing.assert_allclose(itself.p_topple, scorer.empirical_topple, rtol=0, atol=1e-12)
+    floor = scorer.brier_floor()
+    assert floor.shape == (len(log.pushes),) and np.all(floor >= 0.0)
+    assert floor.max() > 0  # some pushes topple in some repeats only
+
+    table = pq.read_table(model_logs / "reported.parquet")
+    first = table.column("push_id")[0].as_py()
+    keep = pa.compute.not_equal(table.column("push_id"), first)
+    pq.write_table(table.filter(keep), tmp_path / "short.parquet")
+    with pytest.raises(LogError, match="no usable rows for 1 of"):
+        scorer.replay(read_log([tmp_path / "short.parquet"]))
+    moved = table.column("point_z").to_numpy() + np.where(table.column("push_id").to_numpy() == first, 0.01, 0.0)
+    pq.write_table(_replace(table, "point_z", moved), tmp_path / "moved.parquet")
+    with pytest.raises(LogError, match="is another push in the replay"):
+        scorer.replay(read_log([tmp_path / "moved.parquet"]))
+
+
+def test_report_scores_a_replay_as_the_physics_reference(model_logs, tmp_path, capsys):
+    out = tmp_path / "validation.json"
+    reported = str(model_logs / "reported.parquet")
+    assert main([reported, "--replay", reported, "--variants", "baseline", "--corpus", "", "--bootstrap", "20",
+                 "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    physics = result["references"]["physics_replay"]
+    assert physics["tv_all"] == 0.0 and physics["brier"] == 0.0 and physics["ap"] == 1.0
+    assert physics["repeats_min"] == result["counts"]["repeats_min"]
+    assert 0.0 < result["brier_floor"] < result["variants"]["baseline"]["brier"]
+    assert "Brier floor" in capsys.readouterr().out
+    calibration = str(model_logs / "calibration.parquet")  # other objects: refused with its reason, exit 2
+    assert main([reported, "--replay", calibration, "--corpus", "", "--bootstrap", "0", "--out", str(out)]) == 2
+    assert "no usable rows" in capsys.readouterr().err

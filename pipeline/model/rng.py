@@ -11,8 +11,9 @@ import hashlib
 
 import numpy as np
 
-PURPOSES = ("contacts", "trials", "suction", "play")
-"""``play``: the push player's draws (which pushes, their noise; ``pipeline.studies.playlog``)."""
+PURPOSES = ("contacts", "trials", "suction", "play", "replay")
+"""``play``: the push player's draws (which pushes, their noise; ``pipeline.studies.playlog``);
+``replay``: the noise of a replay of those pushes with other draws (``play --noise-draws``)."""
 
 
 def stream(seed: int, object_id: str, pose: int, purpose: str) -> np.random.Generator:

@@ -50,7 +50,9 @@ from .pushsim import FINGER_SPEED, PlayedPush, body_model, draw_noise, play_push
 
 OBJECT_MODES = ("corpus", "heldout")
 PURPOSE = "play"
-"""Random stream purpose of every draw made here."""
+"""Random stream purpose of the push draws, and of their noise in a log."""
+REPLAY_PURPOSE = "replay"
+"""Random stream purpose of the noise of a replay (``PlayParams.noise_draws`` > 0)."""
 SELECTION_STREAM = -1
 """``pose`` argument of the stream that orders the candidate objects (a per-object draw)."""
 PUSH_ID_SPAN = 10_000
@@ -76,6 +78,9 @@ class PlayParams:
     actions : pushes drawn per pose;  repeats : noisy plays of each push
     eps : added to every P(topple) before sampling;  max_poses : most probable poses per object (all: None)
     seed : root of the play's draws (the model's own candidates use ``config.seed``)
+    noise_draws : 0: the noise comes from the stream the pushes were drawn from (a log);
+      k > 0: the same pushes, played with the k-th independent set of noise draws (a replay
+      of a log, which the report scores as physics predicting itself)
     """
 
     actions: int = 3
@@ -84,10 +89,11 @@ class PlayParams:
     max_poses: int | None = 4
     seed: int = 0
     config: Config = field(default_factory=Config)
+    noise_draws: int = 0
 
     def record(self) -> dict:
         """The parameters as JSON-ready values (with the player's constants and the log version)."""
-        return {
+        record = {
             "actions": self.actions,
             "repeats": self.repeats,
             "eps": self.eps,
@@ -97,6 +103,16 @@ class PlayParams:
             "player": player_parameters(),
             "pushlog_version": PUSHLOG_VERSION,
         }
+        if self.noise_draws:  # absent means 0, so the part files of logs made before the option are reused
+            record["noise_draws"] = self.noise_draws
+        return record
+
+    def noise_stream(self, object_id: str, pose: int, play_rng: np.random.Generator) -> np.random.Generator:
+        """Where the noise of one pose's plays comes from: the play's own stream (after the
+        push draws), or the ``noise_draws``-th child of the pose's ``replay`` stream."""
+        if not self.noise_draws:
+            return play_rng
+        return stream(self.seed, object_id, pose, REPLAY_PURPOSE).spawn(self.noise_draws)[-1]
 
     def key(self, spec: ObjectSpec) -> dict:
         """Everything that makes one object's rows; a part file is reused only when this is equal."""
@@ -205,13 +221,14 @@ def play_object(spec: ObjectSpec, params: PlayParams) -> ObjectLog:
         rng = stream(params.seed, spec.object_id, pose, PURPOSE)
         table = evaluate(obj, pose_set, pose, variant="robust", seed=config.seed, config=config)
         chosen = sample_actions(table.table.p_topple, table.actions.status, params.actions, rng, params.eps)
+        noise = params.noise_stream(spec.object_id, pose, rng)
         transform = pose_set.poses[pose].transform
         to_object = np.linalg.inv(transform)
         for action in chosen:
             point = to_object[:3, :3] @ table.actions.points[action] + to_object[:3, 3]
             direction = to_object[:3, :3] @ table.actions.directions[action]
             for repeat in range(params.repeats):
-                played = play_push(body, transform, point, direction, config, draw_noise(config, rng, noise=True))
+                played = play_push(body, transform, point, direction, config, draw_noise(config, noise, noise=True))
                 final_pose = settle(pose_set, obj, played.final_transform[:3, :3])
                 toppled += int(final_pose != pose)
                 outside += int(final_pose < 0)
@@ -457,6 +474,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="noisy plays of each push (default: %(default)s)")
     parser.add_argument("--eps", type=float, default=DEFAULT_EPS, help="added to P(topple) when sampling pushes (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the play's draws (default: %(default)s)")
+    parser.add_argument("--noise-draws", type=int, default=0, metavar="K",
+                        help="0: a log (default); K > 0: the same pushes as the log of these arguments, played with "
+                             "the K-th independent set of noise draws (a replay, for `report --replay`)")
     parser.add_argument("--workers", type=positive_int, help="worker processes (default: all cores)")
     parser.add_argument("--config", type=Path, metavar="FILE.toml", help="model and noise parameters from a TOML file")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -467,8 +487,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if not np.isfinite(args.eps) or args.eps <= 0:
             raise UsageError(f"--eps must be positive, got {args.eps}")
+        if args.noise_draws < 0:
+            raise UsageError(f"--noise-draws must be 0 or more, got {args.noise_draws}")
         config = make_config(args)
-        params = PlayParams(args.actions, args.repeats, args.eps, args.max_poses, args.seed, config)
+        params = PlayParams(args.actions, args.repeats, args.eps, args.max_poses, args.seed, config, args.noise_draws)
         specs = select_objects(args.objects, args.count, args.seed, config.mesh.default_mass)
         summary = play(specs, params, args.out, workers=args.workers, progress=not args.no_progress, force=args.force,
                        run_info={"objects": args.objects, "count": args.count})

@@ -25,7 +25,7 @@ from ..model.contacts import explicit_actions
 from ..model.outcomes import Actions, StablePose
 from ..model.rng import stream
 from ..model.topple import evaluate_pose
-from .logreader import PushLog
+from .logreader import SAME_PUSH_TOLERANCE, LogError, PushLog
 
 
 @dataclass
@@ -156,6 +156,41 @@ class Scorer:
 
         return self._scores(prediction)
 
+    def replay(self, replay: PushLog) -> Scores:
+        """Physics predicting itself: every push predicted by the next-pose frequencies of a
+        replay of it (the same push played with other noise draws, ``toppledb play
+        --noise-draws``).  With enough replayed repeats this is the best any predictor of the
+        push can do; what it still scores is the log's own repeat noise.
+
+        Raises ``LogError`` when a push has no replay, or its replay is another push.
+        """
+        replayed = {(p.object_id, p.push_id): p for p in replay.pushes}
+        missing = [(p.object_id, p.push_id) for p in self.log.pushes if (p.object_id, p.push_id) not in replayed]
+        if missing:
+            raise LogError(f"the replay has no usable rows for {len(missing)} of the log's {len(self)} pushes "
+                           f"(first: object {missing[0][0]}, push_id {missing[0][1]}); replay the same objects and pushes")
+        for push in self.log.pushes:
+            twin = replayed[(push.object_id, push.push_id)]
+            if twin.pose != push.pose or not (np.allclose(twin.point, push.point, atol=SAME_PUSH_TOLERANCE)
+                                              and np.allclose(twin.direction, push.direction, atol=SAME_PUSH_TOLERANCE)):
+                raise LogError(f"push_id {push.push_id} of object {push.object_id} is another push in the replay "
+                               "(start pose, point or direction differ); replay with the log's own seed and parameters")
+
+        def prediction(group: Group) -> tuple[np.ndarray, np.ndarray]:
+            twins = [replayed[(group.object_id, self.log.pushes[r].push_id)] for r in group.rows]
+            predicted = np.array([t.empirical(group.n_poses) for t in twins])
+            return predicted, 1.0 - predicted[:, group.pose.index]
+
+        return self._scores(prediction)
+
+    def brier_floor(self) -> np.ndarray:
+        """Per push, the part of any predictor's Brier score that is the log's own repeat noise
+        (``brier_floor``).  returns : (n,) float, NaN for a push with one repeat"""
+        out = np.full(len(self), np.nan)
+        for group in self.groups:
+            out[group.rows] = brier_floor(group.empirical, self.repeats[group.rows])
+        return out
+
     def _scores(self, prediction) -> Scores:
         """Every push scored against a predictor given per group: ``prediction(group)`` is the
         next-pose distribution ((pushes, P + 1), or (1, P + 1) for all of them) and P(topple)."""
@@ -189,6 +224,20 @@ def brier_score(predicted: np.ndarray, empirical: np.ndarray) -> np.ndarray:
     returns : (n,) float in [0, 2]
     """
     return np.square(predicted - empirical).sum(axis=1)
+
+
+def brier_floor(empirical: np.ndarray, repeats: np.ndarray) -> np.ndarray:
+    """The Brier score a push's true next-pose distribution p is expected to get against R
+    observed repeats, sum over buckets of p (1 - p) / R, estimated without bias from the observed
+    frequencies e as sum e (1 - e) / (R - 1).  No predictor, physics included, can expect less.
+
+    empirical : (n, B) float, observed frequencies;  repeats : (n,) int, R per push
+    returns : (n,) float, NaN where R = 1 (one repeat says nothing about the spread)
+    """
+    spread = (empirical * (1.0 - empirical)).sum(axis=1)
+    repeats = np.asarray(repeats, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(repeats > 1, spread / (repeats - 1), np.nan)
 
 
 def sup_tv(predicted: np.ndarray, empirical: np.ndarray) -> np.ndarray:

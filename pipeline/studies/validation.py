@@ -376,11 +376,14 @@ def report(
     n_resamples: int = BOOTSTRAP,
     seed: int = 0,
     scorer: Scorer | None = None,
+    replay: PushLog | None = None,
 ) -> dict:
     """The validation report of ``config`` on ``log`` as a JSON-ready dict.
 
     variants : model variants to score with ``config``'s parameters
     rate : topple rate of the *calibration* data for the constant-rate reference (omitted when None)
+    replay : the log's pushes played again with other noise draws, for the ``physics_replay``
+      reference (``Scorer.replay``; omitted when None)
     """
     scorer = scorer or Scorer(log, config.seed)
     main_variant = config.topple.variant if config.topple.variant in variants else variants[-1]
@@ -418,6 +421,13 @@ def report(
         spread = scorer.score_predictions(main_predictions, spread_share=SPREAD_SHARE)
         references["spread_1pct"] = predictor_summary(spread, scorer, n_resamples=n_resamples, seed=seed)
         references["spread_1pct"].update(share=SPREAD_SHARE, of=main_variant)
+    if replay is not None:
+        # The other end of the scale from never-topples: physics predicting itself.
+        references["physics_replay"] = predictor_summary(scorer.replay(replay), scorer, n_resamples=n_resamples, seed=seed)
+        replay_repeats = replay.counts()
+        references["physics_replay"].update(files=replay.files, repeats_min=replay_repeats["repeats_min"],
+                                            repeats_max=replay_repeats["repeats_max"])
+    floor = scorer.brier_floor()
     counts = log.counts()
     counts["objects_in_corpus"] = sum(1 for o in log.objects.values() if o.in_corpus)
     return {
@@ -433,6 +443,7 @@ def report(
         "objects": objects,
         "worst_objects": worst_objects(objects),
         "by_direction": directions,
+        "brier_floor": float(np.nanmean(floor)) if np.isfinite(floor).any() else float("nan"),
         "bootstrap": {"resamples": n_resamples, "confidence": CONFIDENCE, "seed": seed, "over": "objects"},
         "thesis_table_4_3": THESIS_TABLE_4_3,
         **({"recalibration": recalibration} if recalibration else {}),
@@ -475,6 +486,8 @@ def format_report(result: dict) -> str:
             f"{cell(m.get('brier')):>7} {cell(m['ap']) + ci(m, 'ap'):>26} {cell(m['map']):>7} {cell(m['ece']):>7} "
             f"{cell(m['informative']):>8}"
         )
+    if result.get("brier_floor") is not None:
+        lines.append(f"Brier floor (the log's own repeat noise; no predictor can expect less): {cell(result['brier_floor'])}")
     lines.append(f"worst objects ({result['main_variant']}, informative TV): {', '.join(result['worst_objects'])}")
     if result.get("by_direction"):
         lines.append(f"{result['main_variant']} by push direction and predicted P(topple): pushes, predicted, observed")
@@ -571,6 +584,9 @@ def main(argv: list[str] | None = None) -> int:
     rate = parser.add_mutually_exclusive_group()
     rate.add_argument("--rate", type=float, help="topple rate of the calibration data, for the constant-rate reference")
     rate.add_argument("--rate-from", nargs="+", metavar="LOG", help="calibration log(s) to take that rate from")
+    parser.add_argument("--replay", nargs="+", metavar="LOG",
+                        help="the same pushes played with other noise draws (`toppledb play --noise-draws 1`), "
+                             "scored as the physics_replay reference")
     parser.add_argument("--corpus", default="default", help="calibration corpus, to count reported objects inside it (default: %(default)s)")
     parser.add_argument("--exclude-corpus", action="store_true", help="reject rows of corpus objects (a held-out report)")
     parser.add_argument("--bootstrap", type=int, default=BOOTSTRAP, help="resamples over objects (default: %(default)s; 0: none)")
@@ -592,11 +608,12 @@ def main(argv: list[str] | None = None) -> int:
             rate_value, rate_source = observed_topple_rate(calibration), " ".join(args.rate_from)
         if rate_value is not None and not 0.0 <= rate_value <= 1.0:
             raise UsageError(f"--rate must be in [0, 1], got {rate_value}")
+        replay = read_log(args.replay, config, corpus, exclude_corpus=args.exclude_corpus) if args.replay else None
+        result = report(log, config, tuple(args.variants), rate=rate_value, rate_source=rate_source,
+                        n_resamples=args.bootstrap, seed=config.seed, replay=replay)
     except (UsageError, CorpusError, LogError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    result = report(log, config, tuple(args.variants), rate=rate_value, rate_source=rate_source,
-                    n_resamples=args.bootstrap, seed=config.seed)
     result["wall_s"] = round(time.perf_counter() - started, 1)
     print(format_report(result))
     write_text_atomic(args.out, json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
