@@ -62,6 +62,26 @@ def neighbour_mean(
     return (mean[:, 0] if flat else mean), count
 
 
+def neighbours(
+    points: np.ndarray,
+    directions: np.ndarray,
+    action: int,
+    radius: float = RADIUS,
+    max_angle: float = MAX_ANGLE,
+) -> np.ndarray:
+    """The candidates in one candidate's neighbourhood (``neighbour_mean``'s limits), itself included.
+
+    points : (A, 3) float, m;  directions : (A, 3) float, unit;  action : index of the candidate
+    returns : (A,) bool
+    """
+    points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
+    limit = radius + TOLERANCE
+    near = (np.square(points - points[action]).sum(axis=1) <= limit * limit) & (
+        directions @ directions[action] >= np.cos(max_angle) - TOLERANCE)
+    near[action] = True
+    return near
+
+
 def chosen_means(
     action_offsets: np.ndarray,
     points: np.ndarray,

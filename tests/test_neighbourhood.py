@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from schema.neighbourhood import MAX_ANGLE, RADIUS, neighbour_mean
+from schema.neighbourhood import MAX_ANGLE, RADIUS, neighbour_mean, neighbours
 from tests.test_service import client, dataset, planar_transform, stored_transform, tables, xyz  # noqa: F401 (fixtures)
 
 
@@ -28,6 +28,10 @@ def test_neighbours_are_near_in_contact_and_direction_and_ok():
     wider, _ = neighbour_mean(points, directions, values, radius=0.05, max_angle=1.0)
     assert wider[0] == pytest.approx(np.mean([0.9, 0.3, 0.0, 0.0]))
     assert RADIUS == 0.02 and MAX_ANGLE == 0.5
+    # One candidate's neighbourhood, ok or not (what a failed push rules out): 0, 1 and 4.
+    assert neighbours(points, directions, 0).tolist() == [True, True, False, False, True]
+    assert neighbours(points, directions, 3).tolist() == [False, False, False, True, False], "only itself: turned"
+    assert neighbours(points, directions, 0, radius=0.0).tolist() == [True, False, False, False, False]
 
 
 def test_plan_reports_the_mean_p_topple_around_its_push(client, tables):

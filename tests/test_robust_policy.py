@@ -13,6 +13,7 @@ from pipeline.studies.robust_policy import (
     pose_scores,
     robust_actions,
     smoothed_choice,
+    untried_choice,
 )
 from schema.vocabulary import NO_OP
 
@@ -154,3 +155,17 @@ def test_pose_scores_smooth_rows_over_neighbours_and_drop_lonely_candidates():
     np.testing.assert_allclose(smoothed[1], [0.5, 0.5])  # the mean of all three
     assert np.isnan(smoothed[3]).all()  # alone: fewer than 2
     np.testing.assert_allclose(smoothed[:3].sum(axis=1), 1.0)
+
+
+def test_untried_choice_is_value_iteration_over_the_pushes_not_ruled_out():
+    from pipeline.model.mdp import value_iteration_policy
+
+    v_s = np.array([0.2, 0.9])
+    q = np.array([0.5, np.nan, 0.8, 0.3])
+    none = np.zeros(4, dtype=bool)
+    assert untried_choice(0, v_s, q, none, 0.95) == value_iteration_policy(0, v_s, q, 0.95).action == 2
+    assert untried_choice(0, v_s, q, np.array([False, False, True, False]), 0.95) == 0, "the next best"
+    assert untried_choice(0, v_s, q, np.array([True, False, True, False]), 0.95) == 3
+    # Nothing left that beats grasping here (0.95 x 0.3 > 0.2; 0.95 x 0.3 < 0.3), or nothing left at all.
+    assert untried_choice(0, np.array([0.3, 0.9]), q, np.array([True, False, True, False]), 0.95) == NO_OP
+    assert untried_choice(0, v_s, q, np.ones(4, dtype=bool), 0.95) == NO_OP

@@ -45,7 +45,7 @@ from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
 from ..model.config import Config
-from ..model.mdp import IMPROVEMENT
+from ..model.mdp import IMPROVEMENT, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
 from .policy_experiment import best_pose_value
@@ -57,7 +57,9 @@ HORIZON_POLICY = "horizon_vi"
 """Value iteration solved for the experiment's push budget (``horizon_actions``)."""
 SMOOTHED_HORIZON_POLICY = "smoothed_horizon_vi"
 """``horizon_vi`` over the neighbourhood-smoothed transitions (``PoseScores.smoothed_rows``)."""
-CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY)
+UNTRIED_POLICY = "untried_vi"
+"""Value iteration that does not push again where a push failed (``untried_choice``)."""
+CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY)
 """The policies each compared with value iteration, paired."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
 """Policies the study plays (common random numbers: adding one changes no other's pushes)."""
@@ -83,6 +85,19 @@ class Smoothing:
             raise ValueError(f"smoothing needs radius >= 0, max_angle >= 0, min_neighbours >= 1, got {self}")
 
 
+@dataclass(frozen=True)
+class Exclusion:
+    """What a failed push rules out for the rest of a trial (``untried_vi``): the candidates of
+    the same pose within ``radius`` (m) and ``max_angle`` (rad) of it, itself included."""
+
+    radius: float = neighbourhood.RADIUS
+    max_angle: float = neighbourhood.MAX_ANGLE
+
+    def __post_init__(self):
+        if not (self.radius >= 0 and self.max_angle >= 0):
+            raise ValueError(f"exclusion needs radius >= 0 and max_angle >= 0, got {self}")
+
+
 def neighbour_mean(points: np.ndarray, directions: np.ndarray, values: np.ndarray, smoothing: Smoothing) -> tuple[np.ndarray, np.ndarray]:
     """``schema.neighbourhood.neighbour_mean`` of every candidate with ``smoothing``'s limits
     (the service reports the same mean beside each chosen push)."""
@@ -101,6 +116,20 @@ def smoothed_choice(v_s_pose: float, smoothed_q: np.ndarray, count: np.ndarray, 
     score = np.where(eligible, smoothed_q, -np.inf)
     action = int(np.argmax(score))  # first of equal scores: deterministic
     return action if gamma * score[action] > v_s_pose + IMPROVEMENT else NO_OP
+
+
+def untried_choice(pose: int, v_s: np.ndarray, q: np.ndarray, failed: np.ndarray, gamma: float) -> int:
+    """Value iteration's push among the candidates no failed push of this pose has ruled out.
+
+    Played pushes are nearly deterministic (a replay of the held-out log's pushes with other
+    noise draws predicts them with Brier score 0.010, docs/VALIDATION.md "Physics predicting
+    itself"), so a push that left the object in its pose will almost surely fail again, and so
+    will its neighbours; value iteration's table treats every push as a fresh draw.
+    pose : int;  v_s : (P,) float;  q : (A,) float, Q_T of this pose (NaN unless ok)
+    failed : (A,) bool, candidates ruled out by this trial's failed pushes from this pose
+    returns : action index, or NO_OP
+    """
+    return value_iteration_policy(pose, v_s, np.where(failed, np.nan, q), gamma).action
 
 
 @dataclass
@@ -245,7 +274,8 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
     if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms, atol=1e-6):
         return spec.object_id, {"failure": "its stable poses differ from the dataset's"}, []
     body = body_model(obj)
-    candidates, scores = extra["candidates"], extra["scores"]
+    candidates, scores, exclusion = extra["candidates"], extra["scores"], extra["exclusion"]
+    gamma = config.mdp.gamma
     results: dict[int, dict[str, list[int]]] = {}
     pushes: list[Push] = []
     for trial, start in trials:
@@ -256,8 +286,12 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
             poses = [start]
             pose, transform = start, plan.transforms[start]
             choice = plan.actions[policy]
+            failed: dict[int, np.ndarray] = {}  # pose -> candidates ruled out this trial (untried_vi)
             for step in range(max_pushes):
-                action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # horizon_vi: per pushes left
+                if policy == UNTRIED_POLICY and pose in failed:
+                    action = untried_choice(pose, plan.v_s, candidates[pose].q, failed[pose], gamma)
+                else:
+                    action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # horizon_vi: per pushes left
                 if action == NO_OP:
                     break
                 c, s = candidates[pose], scores[pose]
@@ -273,6 +307,9 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 poses.append(after)
                 if after < 0:
                     break
+                if after == pose:
+                    ruled_out = neighbourhood.neighbours(c.points, c.directions, action, exclusion.radius, exclusion.max_angle)
+                    failed[pose] = failed.get(pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
                 pose, transform = after, played.final_transform
             results[trial][policy] = poses
     return spec.object_id, results, pushes
@@ -286,8 +323,11 @@ def _mean_se(values) -> tuple[float | None, float | None]:
 
 
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
-               workers: int | None = 1, world: Config | None = None, progress: bool = False) -> tuple[dict, list[Push]]:
-    """Play the ``COMPARED`` policies; the report (JSON-ready) and every push played."""
+               workers: int | None = 1, world: Config | None = None, progress: bool = False,
+               exclusion: Exclusion = Exclusion()) -> tuple[dict, list[Push]]:
+    """Play the ``COMPARED`` policies; the report (JSON-ready) and every push played.
+
+    exclusion : what a failed push rules out for ``untried_vi``"""
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
@@ -302,7 +342,9 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[ROBUST_POLICY] = robust_actions(plan.v_s, scores, config.mdp.gamma, smoothing)
         plan.actions[HORIZON_POLICY] = horizon_actions(plan.v_s, rows, max_pushes)
         plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, [s.smoothed_rows for s in scores], max_pushes)
-        tasks.append((plan, {"candidates": candidates, "scores": scores}, by_object[object_id], config, seed, max_pushes, world))
+        plan.actions[UNTRIED_POLICY] = plan.actions["value_iteration"]  # until a push fails
+        tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion}, by_object[object_id],
+                      config, seed, max_pushes, world))
 
     runs: dict[int, dict[str, list[int]]] = {}
     pushes: list[Push] = []
@@ -316,7 +358,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     report = summarise(tables, starts, runs, pushes)
     report.update({"dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
-                   "smoothing": vars(smoothing), "wall_s": round(time.perf_counter() - started, 1)})
+                   "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
     return report, pushes
 
 
@@ -383,6 +425,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--radius", type=float, default=Smoothing.radius, help="m (default: %(default)s)")
     parser.add_argument("--max-angle", type=float, default=Smoothing.max_angle, help="rad (default: %(default)s)")
     parser.add_argument("--min-neighbours", type=positive_int, default=Smoothing.min_neighbours)
+    parser.add_argument("--exclude-radius", type=float, default=Exclusion.radius,
+                        help="m, what a failed push rules out for untried_vi (default: %(default)s)")
+    parser.add_argument("--exclude-angle", type=float, default=Exclusion.max_angle, help="rad (default: %(default)s)")
     parser.add_argument("--world", default="thesis")
     parser.add_argument("--json", type=Path, help="write the report here")
     parser.add_argument("--pushes", type=Path, help="write every push played (diagnostics) here, JSON lines")
@@ -390,7 +435,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         smoothing = Smoothing(args.radius, args.max_angle, args.min_neighbours)
         report, pushes = experiment(args.dataset, args.trials, smoothing, max_pushes=args.max_pushes, seed=args.seed,
-                                    workers=args.workers, world=world_config(args.world))
+                                    workers=args.workers, world=world_config(args.world),
+                                    exclusion=Exclusion(args.exclude_radius, args.exclude_angle))
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
