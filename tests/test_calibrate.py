@@ -77,9 +77,10 @@ def test_calibration_recovers_the_table_friction_that_made_the_log(boxes, tmp_pa
     toml, record = tmp_path / "calibrated.toml", tmp_path / "calibration.json"
     code = main([str(root / "log.parquet"), "--folds", "2", "--settings", "16", "--params", "mu_table_mean",
                  "--corpus", "none", "--workers", "1", "--no-progress", "--set", "topple.n_trials=40",
-                 "--out", str(toml), "--json", str(record)])
+                 "--objective", "informative", "--out", str(toml), "--json", str(record)])
     assert code == 0
     result = json.loads(record.read_text())
+    assert result["objective_kind"] == "informative"
     chosen = result["chosen"]["mu_table_mean"]
     assert abs(chosen - TRUE_MU_TABLE) < 0.06, chosen
     assert result["chosen_objective"] < result["base_objective"]
@@ -93,6 +94,16 @@ def test_calibration_recovers_the_table_friction_that_made_the_log(boxes, tmp_pa
     config = Config.from_toml(toml)
     assert config.topple.mu_table_mean == pytest.approx(chosen)
     assert config.topple.rotation_std == Config().topple.rotation_std  # not searched: default
+
+
+def test_the_command_chooses_by_the_brier_score_unless_told(boxes, tmp_path):
+    root, _ = boxes
+    record = tmp_path / "calibration.json"
+    assert main([str(root / "log.parquet"), "--folds", "2", "--settings", "4", "--params", "mu_table_mean",
+                 "--corpus", "none", "--workers", "1", "--no-progress", "--set", "topple.n_trials=10",
+                 "--out", str(tmp_path / "c.toml"), "--json", str(record)]) == 0
+    result = json.loads(record.read_text())
+    assert result["objective_kind"] == "brier" and "Brier" in result["objective"]
 
 
 def test_the_brier_objective_recovers_the_table_friction_and_reports_brier(boxes):

@@ -13,9 +13,10 @@ A selection problem is one cross-validation fold's training objects (the folds a
 grouped by object: an object's pushes are all in one fold), or all objects for the
 final choice.  Each fold chooses its setting on its training objects only and reports
 it on its held-out objects; the final setting is chosen on all objects and written as
-a config TOML (``toppledb dataset --config FILE``).  Objective: the mean sup-form TV
-over the *informative* pushes (the model or physics says something topples) of the
-calibrated variant (robust by default); ``--objective all`` uses all pushes instead.
+a config TOML (``toppledb dataset --config FILE``).  Objective (``OBJECTIVE_NAMES``): the
+mean multi-class Brier score of the calibrated variant (robust by default) over all pushes,
+the proper score the default model is chosen by; ``--objective informative`` is the thesis's
+sup-TV over the informative pushes, ``--objective all`` sup-TV over all pushes.
 
 Scoring a setting predicts every push of the log once (``scoring.Scorer``); the folds
 only aggregate per-push results, so a setting is never scored twice.  Settings are
@@ -236,7 +237,7 @@ def calibrate(
     seed: int = 0,
     params: tuple[str, ...] = NOISE_KEYS,
     variant: str = "robust",
-    kind: str = "informative",
+    kind: str = "brier",
     workers: int = 1,
     progress: bool = False,
 ) -> dict:
@@ -515,7 +516,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--params", nargs="+", choices=list(BOUNDS), default=list(NOISE_KEYS),
                         help="parameters to search (default: the seven noise parameters)")
     parser.add_argument("--variant", choices=VARIANTS, default="robust", help="variant whose objective is minimised (default: %(default)s)")
-    parser.add_argument("--objective", choices=OBJECTIVES, default="informative", help="what a setting is chosen by: mean sup-TV over informative or all pushes, or the Brier score (OBJECTIVE_NAMES; default: %(default)s)")
+    parser.add_argument("--objective", choices=OBJECTIVES, default="brier", help="what a setting is chosen by: the Brier score (the default model's rule), or mean sup-TV over informative or all pushes (OBJECTIVE_NAMES; default: %(default)s)")
     parser.add_argument("--corpus", default="default", help="calibrate only on this corpus's objects ('none': any object; default: %(default)s)")
     parser.add_argument("--heldout", nargs="+", metavar="LOG", help="score the chosen setting once more on this log (objects outside the corpus)")
     parser.add_argument("--config", type=Path, metavar="FILE.toml", help="base parameters (default: the dataset's defaults; --config thesis for the thesis's)")
