@@ -15,7 +15,9 @@ from pipeline.studies.robust_policy import (
     smoothed_choice,
     untried_choice,
 )
+from schema import neighbourhood
 from schema.vocabulary import NO_OP
+from tests.test_policies_physics import dataset  # noqa: F401 (fixture)
 
 X = np.array([1.0, 0.0, 0.0])
 Y = np.array([0.0, 1.0, 0.0])
@@ -169,3 +171,32 @@ def test_untried_choice_is_value_iteration_over_the_pushes_not_ruled_out():
     # Nothing left that beats grasping here (0.95 x 0.3 > 0.2; 0.95 x 0.3 < 0.3), or nothing left at all.
     assert untried_choice(0, np.array([0.3, 0.9]), q, np.array([True, False, True, False]), 0.95) == NO_OP
     assert untried_choice(0, v_s, q, np.ones(4, dtype=bool), 0.95) == NO_OP
+
+
+def test_untried_vi_does_not_push_again_where_a_push_failed_in_the_trial(dataset):  # noqa: F811 (fixture)
+    """Played on a tiny dataset: ``untried_vi`` pushes as value iteration until a push leaves the
+    object in its pose, then never within that push's neighbourhood (``Exclusion``) from that pose."""
+    from pipeline.studies.robust_policy import UNTRIED_POLICY, Exclusion, experiment, read_candidates
+    from schema.reader import Dataset
+
+    report, pushes = experiment(dataset, 8, seed=1, workers=1)
+    assert not report["failed_objects"] and report["exclusion"] == vars(Exclusion())
+    candidates = {o: read_candidates(Dataset.open(dataset), o) for o in {p.object_id for p in pushes}}
+    by_trial: dict[tuple, dict[str, list]] = {}
+    for push in pushes:
+        by_trial.setdefault((push.object_id, push.trial), {}).setdefault(push.policy, []).append(push)
+    after_failure = 0
+    for (object_id, _), played in by_trial.items():
+        mine, vi = played.get(UNTRIED_POLICY, []), played.get("value_iteration", [])
+        failed: dict[int, np.ndarray] = {}
+        for step, push in enumerate(mine):
+            if push.pose in failed:
+                after_failure += 1
+                assert not failed[push.pose][push.action], "pushed again where a push failed"
+            else:  # nothing ruled out here: value iteration's push (same noise, same start)
+                assert step < len(vi) and (push.pose, push.action) == (vi[step].pose, vi[step].action)
+            if not push.toppled:
+                c = candidates[object_id][push.pose]
+                ruled_out = neighbourhood.neighbours(c.points, c.directions, push.action)
+                failed[push.pose] = failed.get(push.pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
+    assert after_failure > 0, "no trial reached a pose where a push had failed: the test tests nothing"
