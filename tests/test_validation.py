@@ -12,7 +12,7 @@ from shapes import THESIS
 
 from pipeline.build.atomic import file_sha256
 from pipeline.model.config import VARIANTS, Config
-from pipeline.studies.logreader import OUTSIDE, LogError, read_log
+from pipeline.studies.logreader import OUTSIDE, LogError, PushLog, read_log
 from pipeline.studies.scoring import Scorer, Scores, brier_floor, brier_score, sup_tv, topple_spread
 from pipeline.studies.synthetic_log import planar
 from pipeline.studies.validation import (
@@ -469,6 +469,13 @@ def test_a_log_replayed_by_itself_scores_perfectly_and_a_mismatched_replay_is_re
     pq.write_table(_replace(table, "point_z", moved), tmp_path / "moved.parquet")
     with pytest.raises(LogError, match="is another push in the replay"):
         scorer.replay(read_log([tmp_path / "moved.parquet"]))
+    # The same push is within SAME_PUSH_TOLERANCE (1e-6) in every component, as the log's own
+    # repeats are, however large the component (no tolerance relative to it).
+    push = log.pushes[0]
+    turned = push.direction.copy()
+    turned[np.argmax(np.abs(turned))] += 5e-6
+    with pytest.raises(LogError, match="is another push in the replay"):
+        scorer.replay(PushLog(log.objects, [replace(push, direction=turned), *log.pushes[1:]]))
 
 
 def test_report_scores_a_replay_as_the_physics_reference(model_logs, tmp_path, capsys):

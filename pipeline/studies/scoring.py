@@ -171,8 +171,8 @@ class Scorer:
                            f"(first: object {missing[0][0]}, push_id {missing[0][1]}); replay the same objects and pushes")
         for push in self.log.pushes:
             twin = replayed[(push.object_id, push.push_id)]
-            if twin.pose != push.pose or not (np.allclose(twin.point, push.point, atol=SAME_PUSH_TOLERANCE)
-                                              and np.allclose(twin.direction, push.direction, atol=SAME_PUSH_TOLERANCE)):
+            if twin.pose != push.pose or not (np.allclose(twin.point, push.point, rtol=0, atol=SAME_PUSH_TOLERANCE)
+                                              and np.allclose(twin.direction, push.direction, rtol=0, atol=SAME_PUSH_TOLERANCE)):
                 raise LogError(f"push_id {push.push_id} of object {push.object_id} is another push in the replay "
                                "(start pose, point or direction differ); replay with the log's own seed and parameters")
 
