@@ -326,6 +326,8 @@ def test_a_replay_plays_the_logs_pushes_with_other_noise(reference_log, specs, t
     """``noise_draws`` > 0: the same pushes (ids, points, directions, start poses), independent
     noise, any number of repeats; reproducible, and kept apart from the log by its key."""
     replay = replace(PARAMS, repeats=3, noise_draws=1)
+    # A log's parameters carry no noise_draws, so part files made before the option are reused.
+    assert "noise_draws" not in PARAMS.record() and replay.record()["noise_draws"] == 1
     playlog.play(specs, replay, tmp_path / "replay", workers=1)
     log, replayed = playlog.read_log(reference_log).to_pandas(), playlog.read_log(tmp_path / "replay").to_pandas()
     push = ["object_id", "push_id", "start_pose", "action"] + [f"{k}_{a}" for k in ("point", "direction") for a in "xyz"]
