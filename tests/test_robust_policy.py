@@ -145,6 +145,8 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert main([str(tmp_path), "--radius", "-1"]) == 2
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(lines) == 2 and all(line.startswith("error: ") for line in lines)
+    assert main([str(tmp_path), "--exclude-angle", "-1"]) == 2  # what a failed push rules out (untried_vi)
+    assert capsys.readouterr().err.startswith("error: exclusion needs radius >= 0 and max_angle >= 0")
 
 
 def test_pose_scores_smooth_rows_over_neighbours_and_drop_lonely_candidates():
