@@ -110,7 +110,7 @@ def test_by_direction_groups_pushes_by_their_vertical_component_and_predicted_ba
     directions = [(0, 0, -1), (0.6, 0, -0.8), (1, 0, 0), (1, 0, 0), (0.8, 0, 0.6), (0, 0.6, -0.8)]
     log = SimpleNamespace(pushes=[SimpleNamespace(direction=np.array(d, dtype=float)) for d in directions])
     scorer = SimpleNamespace(log=log, empirical_topple=np.array([0.5, 0.9, 0.1, 0.3, 1.0, 0.0]))
-    scores = Scores(np.zeros(6), np.array([0.1, 0.2, 0.0, 0.0, 1.0, 0.5]))
+    scores = Scores(np.zeros(6), np.array([0.1, 0.2, 0.0, 0.0, 1.0, 0.5]), np.zeros(6))
     cells = {(c["direction"], c["band"]): (c["pushes"], c["predicted_topple"], c["observed_topple"])
              for c in by_direction(scores, scorer)}
     assert cells == {
@@ -126,9 +126,9 @@ def test_paired_bootstrap_of_a_difference():
 
     rng = np.random.default_rng(2)
     tv, predicted, observed, objects = _object_level_data(30, 10, rng)
-    same = bootstrap_difference(Scores(tv, predicted), Scores(tv, predicted), observed, objects, n_resamples=100)
+    same = bootstrap_difference(Scores(tv, predicted, tv), Scores(tv, predicted, tv), observed, objects, n_resamples=100)
     assert same["tv_all"] == {"difference": 0.0, "ci": [0.0, 0.0]}
-    better = bootstrap_difference(Scores(tv * 0.8, predicted), Scores(tv, predicted), observed, objects, n_resamples=100)
+    better = bootstrap_difference(Scores(tv * 0.8, predicted, tv), Scores(tv, predicted, tv), observed, objects, n_resamples=100)
     assert better["tv_all"]["difference"] == pytest.approx(-0.2 * tv.mean())
     assert better["tv_all"]["ci"][1] < 0 and better["tv_informative"]["ci"][1] < 0
 

@@ -50,14 +50,14 @@ class Scores:
 
     tv : (n,) float, sup-form total variation between predicted and empirical next-pose distributions
     p_topple : (n,) float, predicted P(topple) (1 - P(start pose))
-    brier : (n,) float or None, multi-class Brier score: sum over next poses (and the outside
-      bucket) of (predicted - empirical)^2.  A proper score: its expectation is least for the
-      true probabilities, so neither sharpening nor spreading a prediction can lower it
+    brier : (n,) float, multi-class Brier score: sum over next poses (and the outside bucket)
+      of (predicted - empirical)^2.  A proper score: its expectation is least for the true
+      probabilities, so neither sharpening nor spreading a prediction can lower it
     """
 
     tv: np.ndarray
     p_topple: np.ndarray
-    brier: np.ndarray | None = None
+    brier: np.ndarray
 
 
 class Scorer:

@@ -232,11 +232,11 @@ def bootstrap_difference(
     confidence: float = CONFIDENCE,
 ) -> dict[str, dict]:
     """Paired bootstrap over objects of ``first - second`` for the mean sup-TV over all and over
-    informative pushes, and the mean Brier score when both have one: both predictors see the
-    same resampled objects, so the interval is that of the difference, much narrower than the
-    two intervals side by side.
+    informative pushes and the mean Brier score: both predictors see the same resampled
+    objects, so the interval is that of the difference, much narrower than the two intervals
+    side by side.
 
-    returns : {"tv_all": {"difference", "ci": [low, high]}, "tv_informative": {...}[, "brier": {...}]}
+    returns : {"tv_all": {"difference", "ci": [low, high]}, "tv_informative": {...}, "brier": {...}}
     """
     rng = np.random.default_rng(seed)
     names, which = np.unique(objects, return_inverse=True)
@@ -249,8 +249,7 @@ def bootstrap_difference(
 
     pushes = np.bincount(which, minlength=k).astype(float)
     (a_all, a_useful, a_n), (b_all, b_useful, b_n) = sums(first), sums(second)
-    with_brier = first.brier is not None and second.brier is not None
-    brier_gap = np.bincount(which, weights=first.brier - second.brier, minlength=k) if with_brier else np.zeros(k)
+    brier_gap = np.bincount(which, weights=first.brier - second.brier, minlength=k)
 
     def metrics(times: np.ndarray) -> tuple[float, float, float]:
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -260,7 +259,7 @@ def bootstrap_difference(
 
     point = metrics(np.ones(k))
     draws = np.array([metrics(np.bincount(rng.integers(k, size=k), minlength=k).astype(float)) for _ in range(n_resamples)])
-    keys = ("tv_all", "tv_informative") + (("brier",) if with_brier else ())
+    keys = ("tv_all", "tv_informative", "brier")
     return {key: {"difference": float(point[i]), "ci": percentile_interval(draws[:, i], confidence)} for i, key in enumerate(keys)}
 
 
@@ -282,11 +281,9 @@ def bootstrap_metric_difference(
     rng = np.random.default_rng(seed)
     names, which = np.unique(objects, return_inverse=True)
     rows = [np.flatnonzero(which == i) for i in range(len(names))]
-    with_brier = first.brier is not None and second.brier is not None
 
     def metrics(scores: Scores, index: np.ndarray, copies: np.ndarray) -> dict[str, float]:
-        return push_metrics(scores.tv[index], scores.p_topple[index], observed[index], copies,
-                            scores.brier[index] if with_brier else None)
+        return push_metrics(scores.tv[index], scores.p_topple[index], observed[index], copies, scores.brier[index])
 
     def difference(draw: np.ndarray) -> dict[str, float]:
         index = np.concatenate([rows[d] for d in draw])
@@ -307,8 +304,7 @@ def predictor_summary(scores: Scores, scorer: Scorer, *, n_resamples: int, seed:
     """Metrics, confidence intervals and the reliability diagram of one predictor (on ``rows``, default all)."""
     rows = np.arange(len(scorer)) if rows is None else rows
     tv, predicted, observed = scores.tv[rows], scores.p_topple[rows], scorer.empirical_topple[rows]
-    objects = scorer.object_index[rows]
-    brier = scores.brier[rows] if scores.brier is not None else None
+    objects, brier = scorer.object_index[rows], scores.brier[rows]
     out = push_metrics(tv, predicted, observed, objects, brier)
     out["ci"] = bootstrap_intervals(tv, predicted, observed, objects, n_resamples, seed, brier=brier) if n_resamples else {}
     out["reliability"] = reliability(predicted, observed)["bins"]
