@@ -307,7 +307,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 poses.append(after)
                 if after < 0:
                     break
-                if after == pose:
+                if policy == UNTRIED_POLICY and after == pose:
                     ruled_out = neighbourhood.neighbours(c.points, c.directions, action, exclusion.radius, exclusion.max_angle)
                     failed[pose] = failed.get(pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
                 pose, transform = after, played.final_transform
