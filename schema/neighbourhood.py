@@ -33,6 +33,7 @@ def neighbour_mean(
     radius: float = RADIUS,
     max_angle: float = MAX_ANGLE,
     rows: np.ndarray | None = None,
+    pool: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mean of ``values`` over each candidate's neighbours with a finite value (itself included).
 
@@ -40,6 +41,9 @@ def neighbour_mean(
     values : (A,) or (A, k) float, NaN for candidates that are not ok (they are nobody's
       neighbour; a row is finite only when all its k values are)
     rows : indices of the candidates to average for (default: all), (R,) int
+    pool : only the first ``pool`` candidates are anyone's neighbours (default: all A); a row
+      past them (a push that is not one of the pose's candidates, such as a logged push) is
+      averaged over the pool and itself, and counts in no other row's mean
     returns : mean (R,) or (R, k) float, NaN where the candidate itself is NaN;
       count (R,) int, its finite neighbours (0 where it is NaN)
     """
@@ -48,7 +52,11 @@ def neighbour_mean(
     values = values[:, None] if flat else values
     rows = np.arange(len(points)) if rows is None else np.asarray(rows, dtype=np.int64)
     finite = np.isfinite(values).all(axis=1)
-    near = _near(points, directions, rows, radius, max_angle) & finite[None, :] & finite[rows, None]
+    near = _near(points, directions, rows, radius, max_angle)
+    if pool is not None:
+        near[:, pool:] = False
+        near[np.arange(len(rows)), rows] = True
+    near &= finite[None, :] & finite[rows, None]
     count = near.sum(axis=1)
     total = near.astype(float) @ np.where(finite[:, None], values, 0.0)
     mean = np.where((count > 0)[:, None], total / np.maximum(count, 1)[:, None], np.nan)

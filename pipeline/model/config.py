@@ -210,6 +210,14 @@ class ToppleConfig:
     made after every other draw, decides).  0.5: on the corpus log, pushes that qualify
     noise-free topple 0.43-0.53 of the time; 1, the rule taken at its word, scores the same
     there but makes the pushes the policies choose overconfident (docs/MODEL.md C.11)."""
+    smoothing_radius: float = bounded(0.0, NON_NEGATIVE)
+    """m; when positive, each candidate push's next-pose row is replaced by the mean row of the
+    pose's candidates around it: contacts within this distance, directions within
+    ``smoothing_angle``, itself included (docs/MODEL.md C.12).  It is applied before any
+    recalibration, so a map is fitted on the smoothed P(topple).  0, the default, leaves the rows
+    as counted; only the ``corrected`` variant smooths (the thesis's variants never do)."""
+    smoothing_angle: float = bounded(0.35, POSITIVE)
+    """rad, largest angle between the push directions of two neighbours (``smoothing_radius``)."""
     recalibration_x: tuple[float, ...] = bounded((), FRACTION)
     """Knots x_k of the monotone map g of P(topple) (docs/MODEL.md C.7), strictly increasing in
     [0, 1]; empty (the default) is the identity.  reports/recalibrated_corrected.toml holds the
@@ -259,6 +267,12 @@ class ToppleConfig:
         if self.variant != "corrected":
             return (), ()
         return self.recalibration_x, self.recalibration_y
+
+    @property
+    def applied_smoothing(self) -> float:
+        """m, the neighbourhood radius this configuration smooths over: 0 (no smoothing) for the
+        thesis's variants, whatever the field says, as with the corrections."""
+        return self.smoothing_radius if self.variant == "corrected" else 0.0
 
     def without_recalibration(self) -> "ToppleConfig":
         """This model with the identity map: the Monte Carlo counts of MODEL.md (9.1)-(9.2),

@@ -47,6 +47,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from schema.frames import axis_angle_matrices, transform_points, unit
+from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
 from .config import ToppleConfig
@@ -575,15 +576,26 @@ def evaluate_pose(
     actions: Actions,
     config: ToppleConfig,
     rng: np.random.Generator,
+    candidates: int | None = None,
 ) -> ToppleTable:
     """Transition table of every action of one pose.
 
     obj : the object;  pose : one of its stable poses;  n_poses : size of its pose set
     actions : candidate pushes of this pose;  rng : stream for this (object, pose)
+    candidates : the first ``candidates`` actions are the pose's candidate set, the rest are
+      probes (pushes someone asks about, such as logged ones).  Probes draw their noise after
+      every candidate, so the candidates' rows are those of the candidate set alone, and with
+      ``smoothing_radius`` a probe is smoothed over the candidates and itself, never over other
+      probes (MODEL.md C.12).  Default: every action is a candidate.
     """
     n_actions, trials = len(actions.status), config.trials  # A, T
+    n_candidates = n_actions if candidates is None else int(candidates)
     # Drawn once for all A actions, ok or not, before blocking: blocking never changes a draw.
-    noise = sample_noise(rng, n_actions, config)  # (A, T), (A, T, 3) fields
+    noise = sample_noise(rng, n_candidates, config)  # (A, T), (A, T, 3) fields
+    if n_candidates < n_actions:
+        probe_noise = sample_noise(rng, n_actions - n_candidates, config)
+        noise = TrialNoise(*(np.concatenate([getattr(noise, f), getattr(probe_noise, f)])
+                             for f in TrialNoise.__dataclass_fields__))
     center_mass = transform_points(pose.transform, obj.center_mass[None])[0]  # (3,), pose frame
     edges = edge_geometry(pose.base_edges, center_mass)  # (E, ...) fields
     final_pose = np.append(landed_poses(pose, config.applied_corrections), pose.index)  # (E + 1,); -1: stays
@@ -624,6 +636,11 @@ def evaluate_pose(
     cells = np.repeat(np.arange(len(ok)), trials) * n_poses + landed.ravel()  # (n_ok T,), row * P + pose
     counts = np.bincount(cells, minlength=len(ok) * n_poses).reshape(len(ok), n_poses)  # (n_ok, P)
     next_pose[ok] = counts / trials
+    if config.applied_smoothing > 0:
+        # MODEL.md C.12: a push's row is its neighbourhood's mean row. Taking the best of ~1,000
+        # candidates picks those whose count is most inflated; the mean over neighbours is not.
+        next_pose, _ = neighbour_mean(actions.points, actions.directions, next_pose,
+                                      config.applied_smoothing, config.smoothing_angle, pool=n_candidates)
     # MODEL.md C.7: P(topple) through the fitted monotone map g, the row rescaled to stay a
     # distribution; no knots (the default, and every thesis variant) leave the table as counted.
     next_pose, p_topple = recalibrate_rows(next_pose, pose.index, *config.applied_recalibration)  # (A, P), (A,), (9.2)

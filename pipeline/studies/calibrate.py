@@ -256,7 +256,7 @@ def calibrate(
         raise CalibrationError(f"cannot calibrate {', '.join(unknown)}; searchable: {', '.join(BOUNDS)}")
     timings: dict[str, float] = {}
     started = time.perf_counter()
-    scorer = Scorer(log, config.seed)
+    scorer = Scorer(log, config.seed, config.contacts)
     timings["prepare_s"] = time.perf_counter() - started
     # The noise is searched on the counted probabilities: the recalibration (MODEL.md C.7) is
     # fitted afterwards on the chosen noise (`toppledb recalibrate`), never the other way round.
@@ -484,7 +484,7 @@ def bench(logs: list[str] | None, config: Config, pushes: int, repeats: int, see
             log = read_log([f"{tmp}/bench.parquet"], config)
     read_s = time.perf_counter() - started
     t = time.perf_counter()
-    scorer = Scorer(log, config.seed)
+    scorer = Scorer(log, config.seed, config.contacts)
     prepare_s = time.perf_counter() - t
     wall, cpu = [], []
     for _ in range(3):
@@ -559,7 +559,7 @@ def main(argv: list[str] | None = None) -> int:
     if heldout is not None:
         rate = observed_topple_rate(log)
         result["heldout"] = {}
-        held_scorer = Scorer(heldout, config.seed)
+        held_scorer = Scorer(heldout, config.seed, config.contacts)
         for name, cfg in (("base", config), ("calibrated", calibrated)):
             r = report(heldout, cfg, VARIANTS, rate=rate, rate_source="calibration log", n_resamples=args.bootstrap,
                        seed=args.seed, scorer=held_scorer)

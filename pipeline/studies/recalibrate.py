@@ -88,7 +88,7 @@ def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, s
     with ``chosen`` (method) and ``knots`` ({"x", "y"})."""
     config = config or Config()
     started = time.perf_counter()
-    scorer = Scorer(log, config.seed)
+    scorer = Scorer(log, config.seed, config.contacts)
     raw = config.topple.without_recalibration()
     p = scorer.score(raw).p_topple
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index

@@ -12,6 +12,12 @@ The trial noise of (object, pose) comes from ``stream(seed, object, pose, "trial
 and numpy draws normal(mean, std) as mean + std * z, so every setting sees the same
 standard draws z: differences between settings are the parameters' effect, not
 resampling noise (common random numbers), and a search over settings is deterministic.
+
+A model that smooths its rows over the pose's candidate pushes (``smoothing_radius``,
+docs/MODEL.md C.12) needs those candidates: they are made once per (object, pose) exactly
+as the dataset job makes them (same seed, same contact settings), a logged push that is one
+of them is read from the candidate's row, and any other is evaluated beside them as a probe.
+That costs a whole pose's evaluation per group, about 30 times a plain setting.
 """
 
 from __future__ import annotations
@@ -20,8 +26,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..model.config import ToppleConfig
-from ..model.contacts import explicit_actions
+from schema.vocabulary import STATUS_OK
+
+from ..model.collision import collision_object
+from ..model.config import ContactConfig, ToppleConfig
+from ..model.contacts import explicit_actions, object_contacts, pose_actions
 from ..model.outcomes import Actions, StablePose
 from ..model.rng import stream
 from ..model.topple import evaluate_pose
@@ -42,6 +51,19 @@ class Group:
     actions: Actions
     rows: np.ndarray
     empirical: np.ndarray
+
+
+@dataclass
+class PoseCandidates:
+    """A group's pose's candidate pushes followed by the logged pushes that are none of them.
+
+    actions : (n + k,) candidates then probes;  candidates : n
+    index : (pushes,) int, the row of ``actions`` that predicts each of the group's pushes
+    """
+
+    actions: Actions
+    candidates: int
+    index: np.ndarray
 
 
 @dataclass
@@ -68,9 +90,11 @@ class Scorer:
     object_index : (n,) int, index into ``object_ids`` of each push's object
     """
 
-    def __init__(self, log: PushLog, seed: int = 0) -> None:
+    def __init__(self, log: PushLog, seed: int = 0, contacts: ContactConfig | None = None) -> None:
         self.log = log
         self.seed = seed
+        self.contacts = ContactConfig() if contacts is None else contacts
+        self._candidates: dict[int, PoseCandidates] = {}
         self.object_ids = sorted({p.object_id for p in log.pushes})
         index = {name: i for i, name in enumerate(self.object_ids)}
         self.object_index = np.array([index[p.object_id] for p in log.pushes], dtype=int)
@@ -113,9 +137,26 @@ class Scorer:
         for group in self.groups:
             obj = self.log.objects[group.object_id].model
             rng = stream(self.seed, obj.name, group.pose.index, "trials")
-            table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng)
-            out.append((np.hstack([table.next_pose, np.zeros((len(group.rows), 1))]), table.p_topple))
+            if topple.applied_smoothing > 0:
+                pool = self.pose_candidates(group)
+                table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, rng, candidates=pool.candidates)
+                next_pose, p_topple = table.next_pose[pool.index], table.p_topple[pool.index]
+            else:
+                table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng)
+                next_pose, p_topple = table.next_pose, table.p_topple
+            out.append((np.hstack([next_pose, np.zeros((len(group.rows), 1))]), p_topple))
         return out
+
+    def pose_candidates(self, group: Group) -> PoseCandidates:
+        """The candidate pushes of ``group``'s pose as the dataset job makes them, plus its logged
+        pushes that are none of them (probes); built on first use and kept."""
+        key = id(group)
+        if key not in self._candidates:
+            obj = self.log.objects[group.object_id].model
+            points, normals = object_contacts(obj, self.contacts, self.seed)
+            pool = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), group.pose.transform, self.contacts)
+            self._candidates[key] = with_probes(pool, group.actions, [self.log.pushes[r] for r in group.rows])
+        return self._candidates[key]
 
     def score_predictions(self, predictions: list[tuple[np.ndarray, np.ndarray]], spread_share: float = 0.0) -> Scores:
         """Scores of ``predict``'s predictions, with ``spread_share`` of every push's probability
@@ -201,6 +242,33 @@ class Scorer:
             brier[group.rows] = brier_score(predicted, group.empirical)
             p_topple[group.rows] = p
         return Scores(tv, p_topple, brier)
+
+
+def with_probes(pool: Actions, logged: Actions, pushes) -> PoseCandidates:
+    """``pool`` (a pose's candidates) followed by the logged pushes that are not ok candidates of it.
+
+    logged : the pushes as explicit actions;  pushes : the ``LoggedPush`` of each, whose recorded
+    point and direction (pose frame) are matched to a candidate within ``SAME_PUSH_TOLERANCE``
+    """
+    ok = np.flatnonzero(pool.status == STATUS_OK)
+    index = np.empty(len(pushes), dtype=np.int64)
+    probes: list[int] = []
+    for i, push in enumerate(pushes):
+        same = ok[np.all(np.abs(pool.points[ok] - push.point) <= SAME_PUSH_TOLERANCE, axis=1)
+                  & np.all(np.abs(pool.directions[ok] - push.direction) <= SAME_PUSH_TOLERANCE, axis=1)]
+        if len(same):
+            index[i] = same[0]
+        else:
+            index[i] = len(pool.status) + len(probes)
+            probes.append(i)
+    actions = Actions(
+        points=np.vstack([pool.points, logged.points[probes]]),
+        normals=np.vstack([pool.normals, logged.normals[probes]]),
+        directions=np.vstack([pool.directions, logged.directions[probes]]),
+        status=np.concatenate([pool.status, logged.status[probes]]),
+        max_height=pool.max_height,
+    )
+    return PoseCandidates(actions=actions, candidates=len(pool.status), index=index)
 
 
 def topple_spread(group: Group) -> np.ndarray:

@@ -381,7 +381,7 @@ def report(
     replay : the log's pushes played again with other noise draws, for the ``physics_replay``
       reference (``Scorer.replay``; omitted when None)
     """
-    scorer = scorer or Scorer(log, config.seed)
+    scorer = scorer or Scorer(log, config.seed, config.contacts)
     main_variant = config.topple.variant if config.topple.variant in variants else variants[-1]
     results: dict[str, dict] = {}
     objects: list[dict] = []

@@ -1,0 +1,164 @@
+"""Smoothing the transition rows over a pose's candidate pushes (docs/MODEL.md C.12)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import trimesh
+from shapes import random_object
+
+from pipeline.model.collision import collision_object
+from pipeline.model.config import Config, ContactConfig
+from pipeline.model.contacts import object_contacts, pose_actions
+from pipeline.model.outcomes import Actions
+from pipeline.model.poses import stable_poses
+from pipeline.model.rng import stream
+from pipeline.model.topple import evaluate_pose
+from pipeline.studies.logreader import read_log
+from pipeline.studies.scoring import Scorer
+from schema.neighbourhood import neighbour_mean
+from schema.vocabulary import STATUS_OK
+
+RADIUS, ANGLE = 0.02, 0.5
+
+
+def _topple(radius: float, variant: str = "corrected", n_trials: int = 40):
+    return replace(Config().topple, smoothing_radius=radius, smoothing_angle=ANGLE, variant=variant, n_trials=n_trials)
+
+
+@pytest.fixture(scope="module")
+def pose_and_candidates():
+    obj = random_object(3)
+    pose_set = stable_poses(obj)
+    contacts = ContactConfig(n_contacts=80)
+    points, normals = object_contacts(obj, contacts, 3)
+    pose = pose_set.poses[0]
+    actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
+    return obj, pose_set, pose, actions
+
+
+def _evaluate(setup, topple, actions=None, candidates=None):
+    obj, pose_set, pose, pool = setup
+    return evaluate_pose(obj, pose, len(pose_set.poses), pool if actions is None else actions, topple,
+                         stream(3, obj.name, pose.index, "trials"), candidates=candidates)
+
+
+def test_a_row_past_the_pool_is_averaged_over_the_pool_and_itself_only():
+    x = np.array([1.0, 0.0, 0.0])
+    points = np.array([[0, 0, 0], [0.01, 0, 0], [0.005, 0, 0], [0.006, 0, 0]], dtype=float)
+    directions = np.array([x, x, x, x])
+    values = np.array([0.2, 0.4, 0.9, 0.0])
+    mean, count = neighbour_mean(points, directions, values, pool=2)
+    # The pool (0, 1) never sees the probes 2 and 3; each probe sees the pool and itself, not the other probe.
+    assert mean[0] == pytest.approx(0.3) and count[0] == 2
+    assert mean[2] == pytest.approx((0.2 + 0.4 + 0.9) / 3) and count[2] == 3
+    assert mean[3] == pytest.approx((0.2 + 0.4 + 0.0) / 3) and count[3] == 3
+    everyone, _ = neighbour_mean(points, directions, values)
+    assert everyone[0] == pytest.approx(np.mean(values)), "without a pool every row is everyone's neighbour"
+
+
+def test_smoothed_rows_are_the_neighbourhood_means_of_the_counted_rows(pose_and_candidates):
+    counted = _evaluate(pose_and_candidates, _topple(0.0))
+    smoothed = _evaluate(pose_and_candidates, _topple(RADIUS))
+    actions = pose_and_candidates[3]
+    ok = actions.status == STATUS_OK
+    expected, count = neighbour_mean(actions.points, actions.directions, counted.next_pose, RADIUS, ANGLE)
+    assert np.allclose(smoothed.next_pose[ok], expected[ok])
+    assert np.all(np.isnan(smoothed.next_pose[~ok]))
+    assert np.allclose(smoothed.next_pose[ok].sum(axis=1), 1.0), "means of distributions are distributions"
+    assert np.allclose(smoothed.p_topple[ok], 1.0 - smoothed.next_pose[ok, 0])
+    assert (count[ok] > 1).any() and not np.allclose(smoothed.p_topple[ok], counted.p_topple[ok]), "the test must smooth something"
+    assert np.array_equal(smoothed.outcomes, counted.outcomes), "the trials themselves are untouched"
+    assert np.array_equal(smoothed.mean_force, counted.mean_force, equal_nan=True)
+    # A radius no candidate is within averages each push with itself alone.
+    alone = _evaluate(pose_and_candidates, _topple(1e-12))
+    far = count[ok] > 0
+    assert np.allclose(alone.next_pose[ok][far], counted.next_pose[ok][far])
+
+
+def test_the_thesis_variants_never_smooth(pose_and_candidates):
+    robust = _evaluate(pose_and_candidates, _topple(0.0, "robust"))
+    asked = _evaluate(pose_and_candidates, _topple(RADIUS, "robust"))
+    assert np.array_equal(robust.next_pose, asked.next_pose, equal_nan=True)
+    assert _topple(RADIUS, "robust").applied_smoothing == 0.0 and _topple(RADIUS).applied_smoothing == RADIUS
+
+
+def test_probes_leave_the_candidates_rows_and_are_smoothed_over_them(pose_and_candidates):
+    obj, pose_set, pose, pool = pose_and_candidates
+    ok = np.flatnonzero(pool.status == STATUS_OK)
+    # Two probes at the contact of the ok candidate likeliest to topple, turned by 0.1 rad each
+    # way: near it, and near each other.
+    base = ok[np.argmax(_evaluate(pose_and_candidates, _topple(0.0)).p_topple[ok])]
+    turn = np.array([[math.cos(0.1), -math.sin(0.1), 0], [math.sin(0.1), math.cos(0.1), 0], [0, 0, 1]])
+    probe_directions = np.array([pool.directions[base] @ turn.T, pool.directions[base] @ turn])
+    with_probes = Actions(
+        points=np.vstack([pool.points, pool.points[[base, base]]]),
+        normals=np.vstack([pool.normals, pool.normals[[base, base]]]),
+        directions=np.vstack([pool.directions, probe_directions / np.linalg.norm(probe_directions, axis=1, keepdims=True)]),
+        status=np.concatenate([pool.status, [STATUS_OK, STATUS_OK]]).astype(pool.status.dtype),
+        max_height=pool.max_height,
+    )
+    n = len(pool.status)
+    alone = _evaluate(pose_and_candidates, _topple(RADIUS))
+    probed = _evaluate(pose_and_candidates, _topple(RADIUS), with_probes, candidates=n)
+    assert np.array_equal(probed.next_pose[:n], alone.next_pose, equal_nan=True), "probes draw after the candidates"
+    counted = _evaluate(pose_and_candidates, _topple(0.0), with_probes, candidates=n)
+    assert not np.allclose(counted.next_pose[n], counted.next_pose[n + 1]), "the test needs probes that differ"
+    for probe in (n, n + 1):
+        rows = np.vstack([counted.next_pose[:n], counted.next_pose[probe]])
+        points = np.vstack([with_probes.points[:n], with_probes.points[probe]])
+        directions = np.vstack([with_probes.directions[:n], with_probes.directions[probe]])
+        expected, count = neighbour_mean(points, directions, rows, RADIUS, ANGLE, rows=[n])
+        assert count[0] >= 2 and np.allclose(probed.next_pose[probe], expected[0])
+
+
+@pytest.fixture(scope="module")
+def box_log(tmp_path_factory):
+    from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE, MeshSpec, model_log
+
+    root = tmp_path_factory.mktemp("smoothing_log")
+    trimesh.creation.box((0.05, 0.08, 0.15)).export(root / "box.stl")
+    specs = [MeshSpec("box", str(root / "box.stl"), 1.0, 0.25)]
+    pq.write_table(model_log(specs, Config(), pushes_per_pose=6, repeats=3, seed=1), root / "log.parquet")
+    return read_log([root / "log.parquet"]), ContactConfig(n_contacts=CANDIDATES_PER_POSE)
+
+
+def test_the_scorer_reads_a_logged_candidate_from_the_smoothed_candidate_set(box_log):
+    log, contacts = box_log
+    topple = _topple(RADIUS)
+    scorer = Scorer(log, seed=1, contacts=contacts)  # the log's pushes are candidates of seed 1
+    predictions = scorer.predict(topple)
+    for group, (predicted, p_topple) in zip(scorer.groups, predictions):
+        pool = scorer.pose_candidates(group)
+        assert pool.candidates == len(pool.actions.status) and np.all(pool.index < pool.candidates), "all are candidates"
+        obj = log.objects[group.object_id].model
+        table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, stream(1, obj.name, group.pose.index, "trials"))
+        assert np.allclose(predicted[:, :-1], table.next_pose[pool.index]) and np.all(predicted[:, -1] == 0)
+        assert np.allclose(p_topple, table.p_topple[pool.index])
+    # Made with another seed, the candidates are other points: every logged push is a probe.
+    other = Scorer(log, seed=2, contacts=contacts)
+    for group in other.groups:
+        pool = other.pose_candidates(group)
+        assert np.array_equal(pool.index, pool.candidates + np.arange(len(group.rows)))
+    scores = other.score(topple)
+    assert np.all(np.isfinite(scores.brier)) and np.all((scores.p_topple >= 0) & (scores.p_topple <= 1))
+    # Without smoothing the scorer evaluates the logged pushes alone and never builds candidates.
+    plain = Scorer(log, seed=1, contacts=contacts)
+    plain.score(_topple(0.0))
+    assert plain._candidates == {}
+
+
+def test_a_negative_radius_is_refused_and_the_fields_round_trip(tmp_path):
+    with pytest.raises(ValueError, match="smoothing_radius"):
+        Config().with_overrides({"topple.smoothing_radius": -0.01})
+    with pytest.raises(ValueError, match="smoothing_angle"):
+        Config().with_overrides({"topple.smoothing_angle": 0.0})
+    path = tmp_path / "smooth.toml"
+    path.write_text("[topple]\nsmoothing_radius = 0.01\nsmoothing_angle = 0.35\n")
+    config = Config.from_toml(path)
+    assert (config.topple.smoothing_radius, config.topple.smoothing_angle) == (0.01, 0.35)
+    assert config.to_dict()["topple"]["smoothing_radius"] == 0.01
