@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 
@@ -121,14 +122,16 @@ def box_log(tmp_path_factory):
     from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE, MeshSpec, model_log
 
     root = tmp_path_factory.mktemp("smoothing_log")
-    trimesh.creation.box((0.05, 0.08, 0.15)).export(root / "box.stl")
-    specs = [MeshSpec("box", str(root / "box.stl"), 1.0, 0.25)]
+    specs = []
+    for i, size in enumerate([(0.05, 0.08, 0.15), (0.06, 0.06, 0.12), (0.04, 0.1, 0.2)]):
+        trimesh.creation.box(size).export(root / f"box{i}.stl")
+        specs.append(MeshSpec(f"box{i}", str(root / f"box{i}.stl"), 1.0, 0.25))
     pq.write_table(model_log(specs, Config(), pushes_per_pose=6, repeats=3, seed=1), root / "log.parquet")
-    return read_log([root / "log.parquet"]), ContactConfig(n_contacts=CANDIDATES_PER_POSE)
+    return read_log([root / "log.parquet"]), ContactConfig(n_contacts=CANDIDATES_PER_POSE), root / "log.parquet"
 
 
 def test_the_scorer_reads_a_logged_candidate_from_the_smoothed_candidate_set(box_log):
-    log, contacts = box_log
+    log, contacts, _ = box_log
     topple = _topple(RADIUS)
     scorer = Scorer(log, seed=1, contacts=contacts)  # the log's pushes are candidates of seed 1
     predictions = scorer.predict(topple)
@@ -162,3 +165,34 @@ def test_a_negative_radius_is_refused_and_the_fields_round_trip(tmp_path):
     config = Config.from_toml(path)
     assert (config.topple.smoothing_radius, config.topple.smoothing_angle) == (0.01, 0.35)
     assert config.to_dict()["topple"]["smoothing_radius"] == 0.01
+
+
+def test_the_noise_is_calibrated_on_the_counts_and_the_map_fitted_on_the_smoothed_table():
+    topple = replace(_topple(RADIUS), recalibration_x=(0.0, 1.0), recalibration_y=(0.0, 0.8))
+    fitted_on = topple.without_recalibration()
+    assert fitted_on.recalibration_x == () and fitted_on.applied_smoothing == RADIUS
+    searched = topple.counted()
+    assert searched.recalibration_x == () and searched.applied_smoothing == 0.0
+    assert (searched.mu_table_mean, searched.smoothing_angle) == (topple.mu_table_mean, topple.smoothing_angle)
+
+
+def test_a_map_fitted_on_a_smoothed_table_is_written_exactly_and_with_its_smoothing(box_log, tmp_path):
+    from pipeline.studies.recalibrate import main
+
+    _, _, path = box_log
+    out, record = tmp_path / "map.toml", tmp_path / "map.json"
+    code = main([str(path), "--corpus", "none", "--folds", "3", "--set", f"topple.smoothing_radius={RADIUS}",
+                 "--set", f"topple.smoothing_angle={ANGLE}", "--out", str(out), "--json", str(record)])
+    assert code == 0
+    written = Config.from_toml(out).topple
+    assert (written.smoothing_radius, written.smoothing_angle) == (RADIUS, ANGLE), "the map keeps the smoothing it was fitted on"
+    fitted = json.loads(record.read_text())["knots"]
+    assert list(written.recalibration_x) == fitted["x"] and list(written.recalibration_y) == fitted["y"], "knots written exactly"
+
+
+def test_knots_closer_than_six_digits_survive_the_toml(tmp_path):
+    from pipeline.studies.calibrate import write_toml
+
+    x = (0.0, 0.012345671, 0.012345678, 1.0)  # equal to 6 significant digits
+    write_toml(tmp_path / "k.toml", {"recalibration_x": x, "recalibration_y": (0.0, 0.1, 0.2, 0.9)}, ["test"])
+    assert Config.from_toml(tmp_path / "k.toml").topple.recalibration_x == x

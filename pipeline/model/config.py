@@ -275,9 +275,15 @@ class ToppleConfig:
         return self.smoothing_radius if self.variant == "corrected" else 0.0
 
     def without_recalibration(self) -> "ToppleConfig":
-        """This model with the identity map: the Monte Carlo counts of MODEL.md (9.1)-(9.2),
-        what the noise calibration searches and the recalibration is fitted on."""
+        """This model with the identity map: what the recalibration (MODEL.md C.7) is fitted on,
+        the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12)."""
         return dataclasses.replace(self, recalibration_x=(), recalibration_y=())
+
+    def counted(self) -> "ToppleConfig":
+        """This model as the Monte Carlo counts of MODEL.md (9.1)-(9.2), neither smoothed (C.12) nor
+        recalibrated (C.7): what the noise calibration searches.  Smoothing and the map are
+        layers over the counts, fitted after the noise, never the other way round."""
+        return dataclasses.replace(self.without_recalibration(), smoothing_radius=0.0)
 
     @property
     def trials(self) -> int:

@@ -258,9 +258,10 @@ def calibrate(
     started = time.perf_counter()
     scorer = Scorer(log, config.seed, config.contacts)
     timings["prepare_s"] = time.perf_counter() - started
-    # The noise is searched on the counted probabilities: the recalibration (MODEL.md C.7) is
-    # fitted afterwards on the chosen noise (`toppledb recalibrate`), never the other way round.
-    base = replace(config.topple.without_recalibration(), variant=variant)
+    # The noise is searched on the counted probabilities: the smoothing (MODEL.md C.12) would
+    # cost a whole pose's candidates per logged pose, and the recalibration (C.7) is fitted
+    # afterwards on the chosen noise (`toppledb recalibrate`), never the other way round.
+    base = replace(config.topple.counted(), variant=variant)
     observed = scorer.empirical_topple
     pushes_per_object = {name: int(np.sum(scorer.object_index == i)) for i, name in enumerate(scorer.object_ids)}
     fold_objects = grouped_folds(pushes_per_object, folds, seed)
@@ -394,10 +395,12 @@ def calibrated_config(base: Config, chosen: dict[str, float]) -> Config:
 
 def write_toml(path: str | Path, topple: dict[str, float | tuple[float, ...]], comments: list[str]) -> None:
     """A config TOML holding only the fitted ``[topple]`` keys (everything else stays default):
-    a number exactly (repr), a sequence (recalibration knots) as a list of 6 significant digits."""
+    every number exactly (repr), a sequence (recalibration knots) as a list of them.  Exactly,
+    because knots fitted on a smoothed table (MODEL.md C.12) can differ in the 7th digit, and
+    rounding them would make x no longer strictly increasing."""
     def value(v) -> str:
         if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
+            return "[" + ", ".join(repr(float(x)) for x in v) + "]"
         return repr(float(v))
 
     lines = [f"# {c}" for c in comments] + ["", "[topple]"]
@@ -533,8 +536,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = config_from_args(args)
         # As in ``calibrate``: the base, the chosen setting and the held-out report are the
-        # model without its recalibration (MODEL.md C.7), which is fitted after the noise.
-        config = replace(config, topple=config.topple.without_recalibration())
+        # counted model, neither smoothed (MODEL.md C.12) nor recalibrated (C.7); the written
+        # TOML holds only the noise, so a dataset built with it smooths as the defaults say.
+        config = replace(config, topple=config.topple.counted())
         if args.bench:
             print(json.dumps(bench(args.logs, config, args.bench_pushes, 10, args.seed)))
             return 0

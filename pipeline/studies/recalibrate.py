@@ -168,8 +168,12 @@ def main(argv: list[str] | None = None) -> int:
     ]
     if args.config:
         comments.append(f"base model: {args.config} (its other parameters are not written here)")
-    knots = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"])}
-    write_outputs(args.out, knots, comments, args.json, result)
+    # The map is fitted on the table as smoothed (MODEL.md C.12), so the smoothing goes with it:
+    # the same knots over another smoothing would map other probabilities.
+    topple = config.topple
+    fitted = {"smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle,
+              "recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"])}
+    write_outputs(args.out, fitted, comments, args.json, result)
     return 0
 
 
