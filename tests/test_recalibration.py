@@ -23,7 +23,7 @@ from pipeline.model.recalibration import (
 from pipeline.studies.recalibrate import cross_validate
 from schema.vocabulary import STATUS_OK
 
-RAW = replace(Config().topple, recalibration_x=(), recalibration_y=())
+RAW = Config().topple.counted()  # the counts alone: no smoothing (MODEL.md C.12), no map
 # A steep, clearly non-identity map: lifts small probabilities, as the corpus fit does.
 LIFT = Knots((0.0, 0.2, 1.0), (0.0, 0.5, 0.9))
 

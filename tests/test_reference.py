@@ -49,8 +49,9 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
     variant, _, corrections = variant.partition(":")
     # The thesis's variants with the thesis's noise (the default noise is calibrated for corrected).
     config = Config() if variant == "corrected" else THESIS
-    # The reference counts trials; the recalibration after the count (MODEL.md C.7) is tested on its own.
-    topple = replace(config.topple, variant=variant, n_trials=8, corrections=corrections or "all", recalibration_x=(), recalibration_y=())
+    # The reference counts each push's own trials: the smoothing (MODEL.md C.12) and the recalibration
+    # (C.7) after the count are tested on their own.
+    topple = replace(config.topple.counted(), variant=variant, n_trials=8, corrections=corrections or "all")
     if corrections == "force_limit":
         topple = replace(topple, max_finger_force=LOW_LIMIT)
     if "stroke" in corrections.split(","):
