@@ -149,14 +149,18 @@ class Scorer:
 
     def pose_candidates(self, group: Group) -> PoseCandidates:
         """The candidate pushes of ``group``'s pose as the dataset job makes them, plus its logged
-        pushes that are none of them (probes); built on first use and kept."""
-        key = id(group)
-        if key not in self._candidates:
+        pushes that are none of them (probes).  Built on first use for every logged pose of the
+        object, whose contacts and collision mesh are shared by its poses (as in the dataset
+        job), and kept."""
+        if id(group) not in self._candidates:
             obj = self.log.objects[group.object_id].model
             points, normals = object_contacts(obj, self.contacts, self.seed)
-            pool = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), group.pose.transform, self.contacts)
-            self._candidates[key] = with_probes(pool, group.actions, [self.log.pushes[r] for r in group.rows])
-        return self._candidates[key]
+            collision = collision_object(obj.mesh)
+            for other in self.groups:
+                if other.object_id == group.object_id:
+                    pool = pose_actions(points, normals, obj.mesh, collision, other.pose.transform, self.contacts)
+                    self._candidates[id(other)] = with_probes(pool, other.actions, [self.log.pushes[r] for r in other.rows])
+        return self._candidates[id(group)]
 
     def score_predictions(self, predictions: list[tuple[np.ndarray, np.ndarray]], spread_share: float = 0.0) -> Scores:
         """Scores of ``predict``'s predictions, with ``spread_share`` of every push's probability
