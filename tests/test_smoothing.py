@@ -19,10 +19,10 @@ from pipeline.model.outcomes import Actions
 from pipeline.model.poses import stable_poses
 from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose
-from pipeline.studies.logreader import read_log
-from pipeline.studies.scoring import Scorer
+from pipeline.studies.logreader import Push, read_log
+from pipeline.studies.scoring import Scorer, with_probes
 from schema.neighbourhood import neighbour_mean
-from schema.vocabulary import STATUS_OK
+from schema.vocabulary import STATUS_FINGER_COLLISION, STATUS_OK
 
 RADIUS, ANGLE = 0.02, 0.5
 
@@ -61,6 +61,16 @@ def test_a_row_past_the_pool_is_averaged_over_the_pool_and_itself_only():
     everyone, _ = neighbour_mean(points, directions, values)
     assert everyone[0] == pytest.approx(np.mean(values)), "without a pool every row is everyone's neighbour"
 
+
+
+def test_a_probe_that_is_not_ok_has_no_mean_and_an_ok_one_skips_the_candidates_that_are_not():
+    x = np.array([1.0, 0.0, 0.0])
+    points, directions = np.zeros((4, 3)), np.array([x, x, x, x])
+    values = np.array([0.2, np.nan, np.nan, 0.6])  # candidates 0 (ok) and 1 (not); probes 2 (not) and 3 (ok)
+    mean, count = neighbour_mean(points, directions, values, pool=2)
+    assert mean[0] == pytest.approx(0.2) and count[0] == 1
+    assert np.isnan(mean[1]) and np.isnan(mean[2]) and count[1] == count[2] == 0
+    assert mean[3] == pytest.approx(0.4) and count[3] == 2
 
 def test_smoothed_rows_are_the_neighbourhood_means_of_the_counted_rows(pose_and_candidates):
     counted = _evaluate(pose_and_candidates, _topple(0.0))
@@ -116,6 +126,47 @@ def test_probes_leave_the_candidates_rows_and_are_smoothed_over_them(pose_and_ca
         expected, count = neighbour_mean(points, directions, rows, RADIUS, ANGLE, rows=[n])
         assert count[0] >= 2 and np.allclose(probed.next_pose[probe], expected[0])
 
+
+
+def test_a_probe_of_a_pose_with_no_ok_candidate_keeps_its_counted_row(pose_and_candidates):
+    obj, pose_set, pose, pool = pose_and_candidates
+    first = np.flatnonzero(pool.status == STATUS_OK)[0]
+    n = len(pool.status)
+    blocked = Actions(
+        points=np.vstack([pool.points, pool.points[[first]]]),
+        normals=np.vstack([pool.normals, pool.normals[[first]]]),
+        directions=np.vstack([pool.directions, pool.directions[[first]]]),
+        status=np.append(np.full(n, STATUS_FINGER_COLLISION), STATUS_OK).astype(pool.status.dtype),
+        max_height=pool.max_height,
+    )
+    smoothed = _evaluate(pose_and_candidates, _topple(RADIUS), blocked, candidates=n)
+    counted = _evaluate(pose_and_candidates, _topple(0.0), blocked, candidates=n)
+    assert np.all(np.isnan(smoothed.next_pose[:n])), "no candidate is evaluated"
+    assert np.allclose(smoothed.next_pose[n], counted.next_pose[n]), "the probe is averaged over itself alone"
+
+
+def test_logged_pushes_that_are_no_ok_candidate_are_appended_as_probes():
+    x, y = np.eye(3)[:2]
+    pool = Actions(points=np.array([[0.0, 0, 0], [0.01, 0, 0], [0.02, 0, 0]]), normals=-np.array([x, x, x]),
+                   directions=np.array([x, x, x]), max_height=1,
+                   status=np.array([STATUS_OK, STATUS_OK, STATUS_FINGER_COLLISION], dtype=np.int8))
+    pushes = [Push("box", i, 0, np.array(point), direction, np.array([0])) for i, (point, direction) in enumerate([
+        ([0.01 + 5e-7, 0, 0], x),  # candidate 1, within SAME_PUSH_TOLERANCE
+        ([0.02, 0, 0], x),  # candidate 2, which is not ok: a probe
+        ([0.01, 0, 0], y),  # candidate 1's contact pushed another way: a probe
+        ([0.0, 0, 0], x),  # candidate 0
+    ])]
+    logged = Actions(points=np.array([p.point for p in pushes]), normals=-np.array([x, x, y, x]),
+                     directions=np.array([p.direction for p in pushes]), status=np.full(4, STATUS_OK, dtype=np.int8))
+    probed = with_probes(pool, logged, pushes)
+    assert probed.candidates == 3 and probed.index.tolist() == [1, 3, 4, 0]
+    assert np.array_equal(probed.actions.points, np.vstack([pool.points, logged.points[[1, 2]]]))
+    assert np.array_equal(probed.actions.directions, np.vstack([pool.directions, logged.directions[[1, 2]]]))
+    assert probed.actions.status.tolist() == [STATUS_OK, STATUS_OK, STATUS_FINGER_COLLISION, STATUS_OK, STATUS_OK]
+    assert probed.actions.max_height == pool.max_height
+    # A pose with no ok candidate: every logged push is a probe, in the log's order.
+    none_ok = with_probes(replace(pool, status=np.full(3, STATUS_FINGER_COLLISION, dtype=np.int8)), logged, pushes)
+    assert none_ok.index.tolist() == [3, 4, 5, 6] and len(none_ok.actions.status) == 7
 
 @pytest.fixture(scope="module")
 def box_log(tmp_path_factory):
