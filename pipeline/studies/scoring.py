@@ -34,7 +34,7 @@ from ..model.contacts import explicit_actions, object_contacts, pose_actions
 from ..model.outcomes import Actions, StablePose
 from ..model.rng import stream
 from ..model.topple import evaluate_pose
-from .logreader import SAME_PUSH_TOLERANCE, LogError, PushLog
+from .logreader import SAME_PUSH_TOLERANCE, LogError, Push, PushLog
 
 
 @dataclass
@@ -54,7 +54,7 @@ class Group:
 
 
 @dataclass
-class PoseCandidates:
+class CandidatesAndProbes:
     """A group's pose's candidate pushes followed by the logged pushes that are none of them.
 
     actions : (n + k,) candidates then probes;  candidates : n
@@ -94,7 +94,7 @@ class Scorer:
         self.log = log
         self.seed = seed
         self.contacts = ContactConfig() if contacts is None else contacts
-        self._candidates: dict[int, PoseCandidates] = {}
+        self._candidates: dict[int, CandidatesAndProbes] = {}
         self.object_ids = sorted({p.object_id for p in log.pushes})
         index = {name: i for i, name in enumerate(self.object_ids)}
         self.object_index = np.array([index[p.object_id] for p in log.pushes], dtype=int)
@@ -147,7 +147,7 @@ class Scorer:
             out.append((np.hstack([next_pose, np.zeros((len(group.rows), 1))]), p_topple))
         return out
 
-    def pose_candidates(self, group: Group) -> PoseCandidates:
+    def pose_candidates(self, group: Group) -> CandidatesAndProbes:
         """The candidate pushes of ``group``'s pose as the dataset job makes them, plus its logged
         pushes that are none of them (probes).  Built on first use for every logged pose of the
         object, whose contacts and collision mesh are shared by its poses (as in the dataset
@@ -248,10 +248,10 @@ class Scorer:
         return Scores(tv, p_topple, brier)
 
 
-def with_probes(pool: Actions, logged: Actions, pushes) -> PoseCandidates:
+def with_probes(pool: Actions, logged: Actions, pushes: list[Push]) -> CandidatesAndProbes:
     """``pool`` (a pose's candidates) followed by the logged pushes that are not ok candidates of it.
 
-    logged : the pushes as explicit actions;  pushes : the ``LoggedPush`` of each, whose recorded
+    logged : the pushes as explicit actions;  pushes : the log's ``Push`` of each, whose recorded
     point and direction (pose frame) are matched to a candidate within ``SAME_PUSH_TOLERANCE``
     """
     ok = np.flatnonzero(pool.status == STATUS_OK)
@@ -272,7 +272,7 @@ def with_probes(pool: Actions, logged: Actions, pushes) -> PoseCandidates:
         status=np.concatenate([pool.status, logged.status[probes]]),
         max_height=pool.max_height,
     )
-    return PoseCandidates(actions=actions, candidates=len(pool.status), index=index)
+    return CandidatesAndProbes(actions=actions, candidates=len(pool.status), index=index)
 
 
 def topple_spread(group: Group) -> np.ndarray:
