@@ -99,7 +99,7 @@ def test_the_thesis_variants_never_smooth(pose_and_candidates):
 
 
 def test_probes_leave_the_candidates_rows_and_are_smoothed_over_them(pose_and_candidates):
-    obj, pose_set, pose, pool = pose_and_candidates
+    pool = pose_and_candidates[3]
     ok = np.flatnonzero(pool.status == STATUS_OK)
     # Two probes at the contact of the ok candidate likeliest to topple, turned by 0.1 rad each
     # way: near it, and near each other.
@@ -129,7 +129,7 @@ def test_probes_leave_the_candidates_rows_and_are_smoothed_over_them(pose_and_ca
 
 
 def test_a_probe_of_a_pose_with_no_ok_candidate_keeps_its_counted_row(pose_and_candidates):
-    obj, pose_set, pose, pool = pose_and_candidates
+    pool = pose_and_candidates[3]
     first = np.flatnonzero(pool.status == STATUS_OK)[0]
     n = len(pool.status)
     blocked = Actions(
