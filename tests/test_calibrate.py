@@ -77,7 +77,7 @@ def test_calibration_recovers_the_table_friction_that_made_the_log(boxes, tmp_pa
     toml, record = tmp_path / "calibrated.toml", tmp_path / "calibration.json"
     code = main([str(root / "log.parquet"), "--folds", "2", "--settings", "16", "--params", "mu_table_mean",
                  "--corpus", "none", "--workers", "1", "--no-progress", "--set", "topple.n_trials=40",
-                 "--objective", "informative", "--out", str(toml), "--json", str(record)])
+                 "--variant", "robust", "--objective", "informative", "--out", str(toml), "--json", str(record)])
     assert code == 0
     result = json.loads(record.read_text())
     assert result["objective_kind"] == "informative"
@@ -104,6 +104,8 @@ def test_the_command_chooses_by_the_brier_score_unless_told(boxes, tmp_path):
                  "--out", str(tmp_path / "c.toml"), "--json", str(record)]) == 0
     result = json.loads(record.read_text())
     assert result["objective_kind"] == "brier" and "Brier" in result["objective"]
+    # Without --variant it calibrates the configured model: the default's variant.
+    assert result["variant"] == Config().topple.variant == "corrected"
 
 
 def test_the_brier_objective_recovers_the_table_friction_and_reports_brier(boxes):

@@ -518,7 +518,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed of the search, the folds and the model's trials (default: %(default)s)")
     parser.add_argument("--params", nargs="+", choices=list(BOUNDS), default=list(NOISE_KEYS),
                         help="parameters to search (default: the seven noise parameters)")
-    parser.add_argument("--variant", choices=VARIANTS, default="robust", help="variant whose objective is minimised (default: %(default)s)")
+    parser.add_argument("--variant", choices=VARIANTS, default=None,
+                        help="variant whose objective is minimised (default: the configuration's, `corrected` unless --config says otherwise)")
     parser.add_argument("--objective", choices=OBJECTIVES, default="brier", help="what a setting is chosen by: the Brier score (the default model's rule), or mean sup-TV over informative or all pushes (OBJECTIVE_NAMES; default: %(default)s)")
     parser.add_argument("--corpus", default="default", help="calibrate only on this corpus's objects ('none': any object; default: %(default)s)")
     parser.add_argument("--heldout", nargs="+", metavar="LOG", help="score the chosen setting once more on this log (objects outside the corpus)")
@@ -539,6 +540,8 @@ def main(argv: list[str] | None = None) -> int:
         # counted model, neither smoothed (MODEL.md C.12) nor recalibrated (C.7); the written
         # TOML holds only the noise, so a dataset built with it smooths as the defaults say.
         config = replace(config, topple=config.topple.counted())
+        # The model being calibrated is the configured one (`--config thesis` is robust).
+        args.variant = args.variant or config.topple.variant
         if args.bench:
             print(json.dumps(bench(args.logs, config, args.bench_pushes, 10, args.seed)))
             return 0
