@@ -114,7 +114,7 @@ def test_the_brier_objective_recovers_the_table_friction_and_reports_brier(boxes
     from mu_T 0.15 to 0.22 (0.0082-0.0083 at 40 trials, 0.0105 at 0.3), hence the tolerance."""
     log = read_log([boxes[0] / "log.parquet"])
     config = Config().with_overrides({"topple.n_trials": 40})
-    result = calibrate(log, config, folds=2, settings=16, seed=0, params=("mu_table_mean",), kind="brier")
+    result = calibrate(log, config, folds=2, settings=16, seed=0, params=("mu_table_mean",), variant="robust", kind="brier")
     assert abs(result["chosen"]["mu_table_mean"] - TRUE_MU_TABLE) < 0.1
     assert result["objective_kind"] == "brier" and "Brier" in result["objective"]
     assert result["chosen_objective"] < result["base_objective"]

@@ -14,7 +14,7 @@ grouped by object: an object's pushes are all in one fold), or all objects for t
 final choice.  Each fold chooses its setting on its training objects only and reports
 it on its held-out objects; the final setting is chosen on all objects and written as
 a config TOML (``toppledb dataset --config FILE``).  Objective (``OBJECTIVE_NAMES``): the
-mean multi-class Brier score of the calibrated variant (robust by default) over all pushes,
+mean multi-class Brier score of the calibrated variant (the configuration's by default) over all pushes,
 the proper score the default model is chosen by; ``--objective informative`` is the thesis's
 sup-TV over the informative pushes, ``--objective all`` sup-TV over all pushes.
 
@@ -236,7 +236,7 @@ def calibrate(
     settings: int = 100,
     seed: int = 0,
     params: tuple[str, ...] = NOISE_KEYS,
-    variant: str = "robust",
+    variant: str | None = None,
     kind: str = "brier",
     workers: int = 1,
     progress: bool = False,
@@ -244,6 +244,7 @@ def calibrate(
     """Search the noise parameters on ``log`` with object-grouped k-fold cross-validation.
 
     config : the base model (its non-searched parameters and ``seed`` are kept)
+    variant : the variant whose objective is minimised (default: the configuration's)
     settings : candidates each selection problem chooses among (Sobol + refinement; plus the defaults)
     returns : a JSON-ready dict: folds (objects, chosen values, training objective, held-out
       metrics per variant for the chosen and the base setting), pooled held-out metrics,
@@ -261,6 +262,7 @@ def calibrate(
     # The noise is searched on the counted probabilities: the smoothing (MODEL.md C.12) would
     # cost a whole pose's candidates per logged pose, and the recalibration (C.7) is fitted
     # afterwards on the chosen noise (`toppledb recalibrate`), never the other way round.
+    variant = variant or config.topple.variant
     base = replace(config.topple.counted(), variant=variant)
     observed = scorer.empirical_topple
     pushes_per_object = {name: int(np.sum(scorer.object_index == i)) for i, name in enumerate(scorer.object_ids)}
@@ -540,8 +542,6 @@ def main(argv: list[str] | None = None) -> int:
         # counted model, neither smoothed (MODEL.md C.12) nor recalibrated (C.7); the written
         # TOML holds only the noise, so a dataset built with it smooths as the defaults say.
         config = replace(config, topple=config.topple.counted())
-        # The model being calibrated is the configured one (`--config thesis` is robust).
-        args.variant = args.variant or config.topple.variant
         if args.bench:
             print(json.dumps(bench(args.logs, config, args.bench_pushes, 10, args.seed)))
             return 0
@@ -580,19 +580,19 @@ def main(argv: list[str] | None = None) -> int:
         }
         print(format_difference("held-out log", result["heldout"]["difference"]))
     result["wall_s"] = round(time.perf_counter() - started, 1)
+    variant = result["variant"]  # --variant, or the configuration's
     comments = [
         "toppledb calibrate: noise parameters chosen on push logs (docs/VALIDATION.md, Calibration)",
         f"logs: {' '.join(args.logs)}; {result['counts']['pushes']} pushes on {result['counts']['objects']} objects",
         (f"objective: {result['objective']}; {args.folds}-fold CV grouped by object, "
          f"{result['settings']['per_problem']} settings per fold, seed {args.seed}"),
         "cross-validated {v}, base -> calibrated: {m}".format(
-            v=args.variant, m=_changes(result["cross_validated"][args.variant]["base"],
-                                       result["cross_validated"][args.variant]["calibrated"])),
+            v=variant, m=_changes(result["cross_validated"][variant]["base"], result["cross_validated"][variant]["calibrated"])),
     ]
     if heldout is not None:
         comments.append("held-out log ({v}), base -> calibrated: {m}".format(
-            v=args.variant, m=_changes(result["heldout"]["base"]["variants"][args.variant],
-                                       result["heldout"]["calibrated"]["variants"][args.variant])))
+            v=variant, m=_changes(result["heldout"]["base"]["variants"][variant],
+                                  result["heldout"]["calibrated"]["variants"][variant])))
     write_outputs(args.out, result["chosen"], comments, args.json, result)
     return 0
 
