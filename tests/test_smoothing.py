@@ -7,9 +7,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-import pyarrow.parquet as pq
 import pytest
-import trimesh
 from shapes import random_object
 
 from pipeline.model.collision import collision_object
@@ -23,6 +21,7 @@ from pipeline.studies.logreader import Push, read_log
 from pipeline.studies.scoring import Scorer, with_probes
 from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import STATUS_FINGER_COLLISION, STATUS_OK
+from tests.test_validation import model_logs  # noqa: F401 (fixture)
 
 RADIUS, ANGLE = 0.02, 0.5
 
@@ -168,40 +167,37 @@ def test_logged_pushes_that_are_no_ok_candidate_are_appended_as_probes():
     none_ok = with_probes(replace(pool, status=np.full(3, STATUS_FINGER_COLLISION, dtype=np.int8)), logged, pushes)
     assert none_ok.index.tolist() == [3, 4, 5, 6] and len(none_ok.actions.status) == 7
 
-@pytest.fixture(scope="module")
-def box_log(tmp_path_factory):
-    from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE, MeshSpec, model_log
 
-    root = tmp_path_factory.mktemp("smoothing_log")
-    specs = []
-    for i, size in enumerate([(0.05, 0.08, 0.15), (0.06, 0.06, 0.12), (0.04, 0.1, 0.2)]):
-        trimesh.creation.box(size).export(root / f"box{i}.stl")
-        specs.append(MeshSpec(f"box{i}", str(root / f"box{i}.stl"), 1.0, 0.25))
-    pq.write_table(model_log(specs, Config(), pushes_per_pose=6, repeats=3, seed=1), root / "log.parquet")
-    return read_log([root / "log.parquet"]), ContactConfig(n_contacts=CANDIDATES_PER_POSE), root / "log.parquet"
+@pytest.fixture(scope="module")
+def box_log(model_logs):  # noqa: F811 (fixture)
+    """test_validation's model-made log on three boxes: its pushes are candidates of seed 2."""
+    from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
+
+    path = model_logs / "reported.parquet"
+    return read_log([path]), ContactConfig(n_contacts=CANDIDATES_PER_POSE), path
 
 
 def test_the_scorer_reads_a_logged_candidate_from_the_smoothed_candidate_set(box_log):
     log, contacts, _ = box_log
     topple = _topple(RADIUS)
-    scorer = Scorer(log, seed=1, contacts=contacts)  # the log's pushes are candidates of seed 1
+    scorer = Scorer(log, seed=2, contacts=contacts)  # the log's pushes are candidates of seed 2
     predictions = scorer.predict(topple)
     for group, (predicted, p_topple) in zip(scorer.groups, predictions):
         pool = scorer.pose_candidates(group)
         assert pool.candidates == len(pool.actions.status) and np.all(pool.index < pool.candidates), "all are candidates"
         obj = log.objects[group.object_id].model
-        table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, stream(1, obj.name, group.pose.index, "trials"))
+        table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, stream(2, obj.name, group.pose.index, "trials"))
         assert np.allclose(predicted[:, :-1], table.next_pose[pool.index]) and np.all(predicted[:, -1] == 0)
         assert np.allclose(p_topple, table.p_topple[pool.index])
     # Made with another seed, the candidates are other points: every logged push is a probe.
-    other = Scorer(log, seed=2, contacts=contacts)
+    other = Scorer(log, seed=1, contacts=contacts)
     for group in other.groups:
         pool = other.pose_candidates(group)
         assert np.array_equal(pool.index, pool.candidates + np.arange(len(group.rows)))
     scores = other.score(topple)
     assert np.all(np.isfinite(scores.brier)) and np.all((scores.p_topple >= 0) & (scores.p_topple <= 1))
     # Without smoothing the scorer evaluates the logged pushes alone and never builds candidates.
-    plain = Scorer(log, seed=1, contacts=contacts)
+    plain = Scorer(log, seed=2, contacts=contacts)
     plain.score(_topple(0.0))
     assert plain._candidates == {}
 
