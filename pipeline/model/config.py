@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
+from .feature_map import check_weights
 from .recalibration import check_knots
 
 PRESETS = Path(__file__).with_name("presets")
@@ -229,6 +230,12 @@ class ToppleConfig:
     it (the thesis's variants never do).  A list in TOML, comma-separated with ``--set``."""
     recalibration_y: tuple[float, ...] = bounded((), FRACTION)
     """Knots g(x_k), non-decreasing in [0, 1], as many as ``recalibration_x``."""
+    feature_map: tuple[float, ...] = bounded((), Range())
+    """Weights w of the feature map of P(topple) (docs/MODEL.md C.13), one per feature (bias,
+    logit_p, logit_neighbourhood, log_force_ratio, no_own_topple, direction_z), or empty (the default): no map.  Fitted by ``toppledb recalibrate
+    --features`` on observed pushes; applied after the smoothing (C.12), to candidates and
+    probes alike.  Not together with ``recalibration_x``/``_y`` (two maps of one probability).
+    Only the ``corrected`` variant applies it."""
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -237,6 +244,9 @@ class ToppleConfig:
             raise ValueError("n_trials must be at least 1")
         self.applied_corrections  # noqa: B018, validates ``corrections``
         check_knots(self.recalibration_x, self.recalibration_y)
+        check_weights(self.feature_map)
+        if self.feature_map and self.recalibration_x:
+            raise ValueError("topple.feature_map and topple.recalibration_x/_y are two maps of one P(topple); set one")
 
     @property
     def predicts_rotations(self) -> bool:
@@ -276,10 +286,22 @@ class ToppleConfig:
         thesis's variants, whatever the field says, as with the corrections."""
         return self.smoothing_radius if self.variant == "corrected" else 0.0
 
+    @property
+    def applied_feature_map(self) -> tuple[float, ...]:
+        """Weights of the feature map (MODEL.md C.13) this configuration applies: empty for the
+        thesis's variants, whatever the field says."""
+        return self.feature_map if self.variant == "corrected" else ()
+
+    @property
+    def needs_candidates(self) -> bool:
+        """Whether a push's prediction depends on the pose's other candidates (the smoothing of
+        C.12, the neighbourhood feature of C.13): a probe must then be evaluated beside them."""
+        return self.applied_smoothing > 0 or bool(self.applied_feature_map)
+
     def without_recalibration(self) -> "ToppleConfig":
-        """This model with the identity map: what the recalibration (MODEL.md C.7) is fitted on,
-        the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12)."""
-        return dataclasses.replace(self, recalibration_x=(), recalibration_y=())
+        """This model with no map: what a recalibration (MODEL.md C.7) or a feature map (C.13) is
+        fitted on, the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12)."""
+        return dataclasses.replace(self, recalibration_x=(), recalibration_y=(), feature_map=())
 
     def counted(self) -> "ToppleConfig":
         """This model as the Monte Carlo counts of MODEL.md (9.1)-(9.2), neither smoothed (C.12) nor

@@ -55,6 +55,7 @@ from .edges import EdgeGeometry, edge_geometry
 from .mesh import ObjectModel
 from .outcomes import Actions, StablePose, ToppleTable
 from .poses import stability_margin
+from .feature_map import map_rows
 from .recalibration import recalibrate_rows
 
 MIN_PUSH_TORQUE = 1e-12
@@ -641,11 +642,15 @@ def evaluate_pose(
         # candidates picks those whose count is most inflated; the mean over neighbours is not.
         next_pose, _ = neighbour_mean(actions.points, actions.directions, next_pose,
                                       config.applied_smoothing, config.smoothing_angle, pool=n_candidates)
-    # MODEL.md C.7: P(topple) through the fitted monotone map g, the row rescaled to stay a
-    # distribution; no knots (the default, and every thesis variant) leave the table as counted.
-    next_pose, p_topple = recalibrate_rows(next_pose, pose.index, *config.applied_recalibration)  # (A, P), (A,), (9.2)
     toppled = outcomes >= 0  # (A, T), toppled over some edge (blocked ones included, section 9)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_force = np.where(toppled, forces, 0.0).sum(axis=1) / toppled.sum(axis=1)  # (A,), (9.3), N
     mean_force[toppled.sum(axis=1) == 0] = np.nan
+    # MODEL.md C.7: P(topple) through the fitted monotone map g, the row rescaled to stay a
+    # distribution; no knots (the default, and every thesis variant) leave the table as counted.
+    next_pose, p_topple = recalibrate_rows(next_pose, pose.index, *config.applied_recalibration)  # (A, P), (A,), (9.2)
+    if config.applied_feature_map:
+        # MODEL.md C.13: P(topple) from the push's features, its landing kept (or borrowed).
+        next_pose, p_topple = map_rows(next_pose, pose.index, actions.points, actions.directions, mean_force,
+                                       obj.mass * config.gravity, config.applied_feature_map, pool=n_candidates)
     return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes)

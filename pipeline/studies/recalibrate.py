@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model.config import Config
+from ..model.feature_map import FEATURES, FeatureMapError, fit_weights, mapped_probability
 from ..model.recalibration import METHODS, RecalibrationError, fit, fit_logistic, predict
 from .calibrate import CalibrationError, grouped_folds, write_outputs
 from .logreader import LogError, PushLog, read_log
@@ -117,6 +118,74 @@ def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, s
     }
 
 
+def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
+    """Cross-validate the feature map (docs/MODEL.md C.13) over ``logs`` together, fit it on all.
+
+    logs : (name, log) pairs, each read on its own (two logs may reuse push ids); an object's
+      pushes in every log fall in one fold
+    returns : a JSON-ready record with ``weights`` (one per ``FEATURES``), the pooled and per-log
+      held-out metrics of the map beside the unmapped P (``identity``)
+    """
+    config = config or Config()
+    started = time.perf_counter()
+    raw = config.topple.without_recalibration()
+    parts = []
+    for name, log in logs:
+        scorer = Scorer(log, config.seed, config.contacts)
+        features, p = scorer.features(raw)
+        parts.append({"name": name, "features": features, "p": p, "observed": scorer.empirical_topple,
+                      "weight": scorer.repeats.astype(float), "objects": [scorer.object_ids[i] for i in scorer.object_index],
+                      "counts": log.counts()})
+    features = np.vstack([part["features"] for part in parts])
+    p, observed, weight = (np.concatenate([part[key] for part in parts]) for key in ("p", "observed", "weight"))
+    names = [name for part in parts for name in part["objects"]]
+    object_ids = sorted(set(names))
+    objects = np.array([object_ids.index(name) for name in names])
+    source = np.repeat(np.arange(len(parts)), [len(part["p"]) for part in parts])
+    fold_objects = grouped_folds({name: names.count(name) for name in object_ids}, folds, seed)
+    fold_of = np.empty(len(p), dtype=int)
+    for f, members in enumerate(fold_objects):
+        fold_of[np.isin(objects, [object_ids.index(name) for name in members])] = f
+    held_out = np.empty(len(p))
+    for f in range(folds):
+        train, test = fold_of != f, fold_of == f
+        held_out[test] = mapped_probability(features[test], fit_weights(features[train], observed[train], weight[train]))
+    weights = fit_weights(features, observed, weight)
+
+    def both(rows: np.ndarray) -> dict:
+        return {"identity": metrics(p[rows], observed[rows], weight[rows], objects[rows]),
+                "feature_map": metrics(held_out[rows], observed[rows], weight[rows], objects[rows]),
+                "pushes": int(rows.sum())}
+
+    return {
+        "variant": config.topple.variant,
+        "features": list(FEATURES),
+        "weights": [float(w) for w in weights],
+        "pushes": len(p),
+        "objects": len(object_ids),
+        "folds": folds,
+        "seed": seed,
+        "cross_validated": {"pooled": both(np.ones(len(p), dtype=bool)),
+                            **{part["name"]: both(source == i) for i, part in enumerate(parts)}},
+        "fold_objects": fold_objects,
+        "counts": {part["name"]: part["counts"] for part in parts},
+        "wall_s": round(time.perf_counter() - started, 1),
+    }
+
+
+def format_feature_record(result: dict) -> str:
+    lines = [(f"{result['pushes']} pushes on {result['objects']} objects; {result['folds']}-fold CV grouped by object, "
+              f"held-out folds pooled (identity: P as the model gives it, unfitted):"),
+             f"{'pushes':<28} {'predictor':<12} {'ECE':>6} {'Brier':>7} {'AP':>6} {'mAP':>6} {'mean pred.':>10} {'observed':>8}"]
+    for name, cell in result["cross_validated"].items():
+        for predictor in ("identity", "feature_map"):
+            m = cell[predictor]
+            lines.append(f"{name[-28:]:<28} {predictor:<12} {m['ece']:>6.3f} {m['brier']:>7.4f} {m['ap']:>6.3f} {m['map']:>6.3f} "
+                         f"{m['predicted']:>10.3f} {m['observed']:>8.3f}")
+    lines.append("weights: " + ", ".join(f"{f} {w:+.4f}" for f, w in zip(result["features"], result["weights"])))
+    return "\n".join(lines)
+
+
 def format_record(result: dict) -> str:
     cv = result["cross_validated"]
     lines = [(f"{result['pushes']} pushes on {result['objects']} objects ({result['pushes_fitted']} with P(topple) > 0 are fitted); "
@@ -143,6 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     parser.add_argument("--out", type=Path, default=Path("reports/recalibrated.toml"), help="config TOML to write (default: %(default)s)")
     parser.add_argument("--json", type=Path, default=Path("reports/recalibration.json"), help="full record (default: %(default)s)")
+    parser.add_argument("--features", action="store_true",
+                        help="fit the feature map (docs/MODEL.md C.13) instead of a monotone map; each LOG is read on its own")
     args = parser.parse_args(argv)
 
     try:
@@ -150,13 +221,39 @@ def main(argv: list[str] | None = None) -> int:
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
         corpus = None if args.corpus == "none" else load_corpus(args.corpus, config.mesh.default_mass)
-        log = read_log(args.logs, config, corpus, corpus_only=corpus is not None)
-        if not log.pushes:
-            raise UsageError(f"no usable pushes in {' '.join(args.logs)} ({log.rows} rows; rejected: {dict(log.rejected)})")
-        result = recalibrate(log, config, folds=args.folds, seed=args.seed)
-    except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError) as err:
+        # A feature map is fitted on several logs at once (drawn pushes and a policy's), read one
+        # by one: two logs may number their pushes alike.
+        groups = [[path] for path in args.logs] if args.features else [args.logs]
+        logs = []
+        for paths in groups:
+            log = read_log(paths, config, corpus, corpus_only=corpus is not None)
+            if not log.pushes:
+                raise UsageError(f"no usable pushes in {' '.join(paths)} ({log.rows} rows; rejected: {dict(log.rejected)})")
+            logs.append((" ".join(paths), log))
+        if args.features:
+            result = feature_recalibrate(logs, config, folds=args.folds, seed=args.seed)
+        else:
+            result = recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
+    except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    topple = config.topple
+    if args.features:
+        print(format_feature_record(result))
+        pooled = result["cross_validated"]["pooled"]
+        comments = [
+            "toppledb recalibrate --features: feature map of P(topple) fitted on push logs (docs/MODEL.md C.13)",
+            f"logs: {' '.join(args.logs)}; {result['pushes']} pushes on {result['objects']} objects, variant {result['variant']}",
+            (f"{args.folds}-fold CV grouped by object (seed {args.seed}), held-out ECE / Brier: identity "
+             f"{pooled['identity']['ece']:.3f} / {pooled['identity']['brier']:.4f}, feature map "
+             f"{pooled['feature_map']['ece']:.3f} / {pooled['feature_map']['brier']:.4f}"),
+        ]
+        if args.config:
+            comments.append(f"base model: {args.config} (its other parameters are not written here)")
+        fitted = {"smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle,
+                  "feature_map": tuple(result["weights"])}
+        write_outputs(args.out, fitted, comments, args.json, result)
+        return 0
     print(format_record(result))
     cv = result["cross_validated"]
     comments = [
@@ -170,7 +267,6 @@ def main(argv: list[str] | None = None) -> int:
         comments.append(f"base model: {args.config} (its other parameters are not written here)")
     # The map is fitted on the table as smoothed (MODEL.md C.12), so the smoothing goes with it:
     # the same knots over another smoothing would map other probabilities.
-    topple = config.topple
     fitted = {"smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle,
               "recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"])}
     write_outputs(args.out, fitted, comments, args.json, result)

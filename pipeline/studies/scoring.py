@@ -14,7 +14,7 @@ standard draws z: differences between settings are the parameters' effect, not
 resampling noise (common random numbers), and a search over settings is deterministic.
 
 A model that smooths its rows over the pose's candidate pushes (``smoothing_radius``,
-docs/MODEL.md C.12) needs those candidates: they are made once per (object, pose) exactly
+docs/MODEL.md C.12) or maps P(topple) with its neighbourhood's (``feature_map``, C.13) needs those candidates: they are made once per (object, pose) exactly
 as the dataset job makes them (same seed, same contact settings), a logged push that is one
 of them is read from the candidate's row, and any other is evaluated beside them as a probe.
 That costs a whole pose's evaluation per group, about 30 times a plain setting.
@@ -26,12 +26,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import STATUS_OK
 
 from ..model.collision import collision_object
 from ..model.config import ContactConfig, ToppleConfig
 from ..model.contacts import explicit_actions, object_contacts, pose_actions
-from ..model.outcomes import Actions, StablePose
+from ..model.feature_map import FEATURES, push_features
+from ..model.outcomes import Actions, StablePose, ToppleTable
 from ..model.rng import stream
 from ..model.topple import evaluate_pose
 from .logreader import SAME_PUSH_TOLERANCE, LogError, Push, PushLog
@@ -135,17 +137,41 @@ class Scorer:
         distribution (pushes, P + 1) (the last bucket, outside the pose set, 0) and P(topple) (pushes,)."""
         out = []
         for group in self.groups:
-            obj = self.log.objects[group.object_id].model
-            rng = stream(self.seed, obj.name, group.pose.index, "trials")
-            if topple.applied_smoothing > 0:
-                pool = self.pose_candidates(group)
-                table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, rng, candidates=pool.candidates)
-                next_pose, p_topple = table.next_pose[pool.index], table.p_topple[pool.index]
-            else:
-                table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng)
-                next_pose, p_topple = table.next_pose, table.p_topple
+            table, _, index = self._evaluate(group, topple)
+            next_pose, p_topple = table.next_pose[index], table.p_topple[index]
             out.append((np.hstack([next_pose, np.zeros((len(group.rows), 1))]), p_topple))
         return out
+
+    def features(self, topple: ToppleConfig) -> tuple[np.ndarray, np.ndarray]:
+        """The feature map's features f(u) (docs/MODEL.md C.13) of every push, in log order,
+        from ``topple`` with no map (what a feature map is fitted on).
+
+        returns : features (n, F) float;  p_topple (n,) float, the unmapped P(topple)"""
+        topple = topple.without_recalibration()
+        out = np.full((len(self), len(FEATURES)), np.nan)
+        p = np.full(len(self), np.nan)
+        for group in self.groups:
+            table, actions, index = self._evaluate(group, topple, candidates=True)
+            pool = self._candidates[id(group)].candidates
+            mass = self.log.objects[group.object_id].model.mass
+            neighbourhood, _ = neighbour_mean(actions.points, actions.directions, table.p_topple, pool=pool, rows=index)
+            out[group.rows] = push_features(table.p_topple[index], neighbourhood, table.mean_force[index],
+                                            mass * topple.gravity, actions.directions[index])
+            p[group.rows] = table.p_topple[index]
+        return out, p
+
+    def _evaluate(self, group: Group, topple: ToppleConfig, candidates: bool = False) -> tuple[ToppleTable, Actions, np.ndarray]:
+        """``group``'s table: over its pose's candidates and its probes when the model needs them
+        (``ToppleConfig.needs_candidates``) or ``candidates`` asks, else over its pushes alone.
+        returns : the table, its actions, and (pushes,) int, the row that predicts each push"""
+        obj = self.log.objects[group.object_id].model
+        rng = stream(self.seed, obj.name, group.pose.index, "trials")
+        if topple.needs_candidates or candidates:
+            pool = self.pose_candidates(group)
+            table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, rng, candidates=pool.candidates)
+            return table, pool.actions, pool.index
+        table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng)
+        return table, group.actions, np.arange(len(group.rows))
 
     def pose_candidates(self, group: Group) -> CandidatesAndProbes:
         """The candidate pushes of ``group``'s pose as the dataset job makes them, plus its logged

@@ -395,13 +395,15 @@ def report(
             objects = per_object(scores, scorer)
             directions = by_direction(scores, scorer)
     recalibration = None
-    x, y = replace(config.topple, variant=main_variant).applied_recalibration
-    if len(x) and main_variant in variants:
-        # The configured variant without its recalibration (docs/MODEL.md C.7), and the paired
-        # difference: recalibrated minus raw, on the same resampled objects.
+    applied = replace(config.topple, variant=main_variant)
+    x, y = applied.applied_recalibration
+    if (len(x) or applied.applied_feature_map) and main_variant in variants:
+        # The configured variant without its map (docs/MODEL.md C.7, C.13), and the paired
+        # difference: mapped minus raw, on the same resampled objects.
         raw = scorer.score_variant(config.topple.without_recalibration(), main_variant)
         recalibration = {
-            "x": list(x), "y": list(y), "raw": f"{main_variant}_raw",
+            **({"x": list(x), "y": list(y)} if len(x) else {"feature_map": list(applied.applied_feature_map)}),
+            "raw": f"{main_variant}_raw",
             "raw_metrics": predictor_summary(raw, scorer, n_resamples=n_resamples, seed=seed),
             "difference": bootstrap_metric_difference(
                 main_scores, raw, scorer.empirical_topple, scorer.object_index, n_resamples, seed),
