@@ -15,6 +15,7 @@ from pipeline.model.contacts import object_contacts, pose_actions
 from pipeline.model.feature_map import (FEATURES, FeatureMapError, check_weights, fit_weights, landing_rows, logit,
                                         map_rows, mapped_probability, push_features)
 from pipeline.model.poses import stable_poses
+from pipeline.model.outcomes import Actions
 from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose
 from pipeline.studies.logreader import read_log
@@ -57,6 +58,9 @@ def test_a_push_that_never_toppled_lands_where_its_neighbours_do_else_where_the_
     assert np.allclose(landing[0], [0, 0, 1]), "its own landing"
     assert np.allclose(landing[1], [0, 0, 1]), "its neighbour's (push 0, 1 cm away)"
     assert np.allclose(landing[3], [0, 2 / 7, 5 / 7]), "no neighbour toppled: where the pose's topples land"
+    # Its own landing wins over a neighbour that lands elsewhere.
+    pair = landing_rows(np.array([[0.5, 0.5, 0.0], [0.5, 0.0, 0.5]]), 0, points[:2], directions[:2])
+    assert np.allclose(pair, [[0, 1, 0], [0, 0, 1]])
     weights = (-2.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # q = sigmoid(-2) for every push
     mapped, p = map_rows(rows, 0, points, directions, np.array([1.0, np.nan, 1.0, np.nan]), 1.0, weights)
     q = 1 / (1 + np.exp(2.0))
@@ -136,6 +140,42 @@ def test_the_engine_maps_the_smoothed_rows_with_the_pushes_own_features(pose_and
     assert np.allclose(mapped.p_topple[ok], q[ok]), "this pose has topples, so every ok push has somewhere to land"
     assert np.allclose(mapped.next_pose[ok].sum(axis=1), 1.0) and np.all(np.isnan(mapped.next_pose[~ok]))
     assert np.array_equal(mapped.outcomes, plain.outcomes)
+
+
+def test_probes_are_mapped_over_the_candidates_and_leave_their_rows(pose_and_candidates):
+    obj, pose_set, pose, pool = pose_and_candidates
+    topple = replace(Config().topple, n_trials=40, feature_map=(-0.4, 0.5, 0.6, -0.2, -1.0, 0.7))
+    ok = np.flatnonzero(pool.status == STATUS_OK)
+    n = len(pool.status)
+    counted = evaluate_pose(obj, pose, len(pose_set.poses), pool, topple.counted(), stream(3, obj.name, pose.index, "trials"))
+    best = ok[np.argmax(counted.p_topple[ok])]
+    probes = [best, best]  # the likeliest push asked about twice: two probes, each other's neighbours but for the pool
+    asked = Actions(points=np.vstack([pool.points, pool.points[probes]]), normals=np.vstack([pool.normals, pool.normals[probes]]),
+                    directions=np.vstack([pool.directions, pool.directions[probes]]),
+                    status=np.concatenate([pool.status, pool.status[probes]]).astype(pool.status.dtype), max_height=pool.max_height)
+
+    def table(actions, t, candidates=None):
+        return evaluate_pose(obj, pose, len(pose_set.poses), actions, t, stream(3, obj.name, pose.index, "trials"), candidates=candidates)
+
+    alone, probed = table(pool, topple), table(asked, topple, candidates=n)
+    assert np.array_equal(probed.next_pose[:n], alone.next_pose, equal_nan=True), "probes change no candidate's row"
+    raw = table(asked, topple.without_recalibration(), candidates=n)
+    near, _ = neighbour_mean(asked.points, asked.directions, raw.p_topple, pool=n)
+    q = mapped_probability(push_features(raw.p_topple, near, raw.mean_force, obj.mass * topple.gravity, asked.directions),
+                           topple.feature_map)
+    assert np.allclose(probed.p_topple[n:], q[n:]), "a probe's neighbourhood is the candidates and itself"
+    everyone, _ = neighbour_mean(asked.points, asked.directions, raw.p_topple)
+    assert not np.allclose(near[n:], everyone[n:]), "the test needs probes whose pool matters"
+
+
+def test_folds_keep_an_object_in_one_fold_across_logs():
+    from pipeline.studies.recalibrate import push_folds
+
+    names = ["a", "b", "c", "a", "d", "e", "f", "b", "a"]  # two logs' pushes, one list
+    fold_objects, fold_of = push_folds(names, 3, 0)
+    for name in set(names):
+        assert len({int(fold_of[i]) for i, n in enumerate(names) if n == name}) == 1
+    assert sorted(sum(fold_objects, [])) == sorted(set(names))
 
 
 def test_the_scorer_gives_features_of_logged_candidates_and_the_fit_is_written(model_logs, tmp_path):  # noqa: F811

@@ -28,8 +28,8 @@ from schema.neighbourhood import MAX_ANGLE, RADIUS, neighbour_mean
 FEATURES = ("bias", "logit_p", "logit_neighbourhood", "log_force_ratio", "no_own_topple", "direction_z")
 """The entries of f(u) in (C.13.1), in the order of ``topple.feature_map``'s weights."""
 LOGIT_FLOOR = 1e-3
-"""P and N are clipped to [LOGIT_FLOOR, 1 - LOGIT_FLOOR] before the logit: below one trial in
-100 and below the smallest nonzero neighbourhood mean of a pose with ~1,000 candidates."""
+"""P and N are clipped to [LOGIT_FLOOR, 1 - LOGIT_FLOOR] before the logit, which keeps it finite
+at 0 and 1: a tenth of one trial in the default 100."""
 FORCE_FLOOR = 1e-3
 """Smallest F / mg taken before the log: a marginal pose's trials topple with no force (C.3)."""
 RIDGE = 1e-4

@@ -118,6 +118,20 @@ def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, s
     }
 
 
+def push_folds(objects: list[str], folds: int, seed: int) -> tuple[list[list[str]], np.ndarray]:
+    """Folds grouped by object over pushes from any number of logs (``grouped_folds``).
+
+    objects : (n,) the object id of each push, every log's pushes in one list
+    returns : object ids per fold;  (n,) int, the fold of each push (one per object)
+    """
+    counts: dict[str, int] = {}
+    for name in objects:
+        counts[name] = counts.get(name, 0) + 1
+    fold_objects = grouped_folds(counts, folds, seed)
+    fold_of_object = {name: f for f, members in enumerate(fold_objects) for name in members}
+    return fold_objects, np.array([fold_of_object[name] for name in objects], dtype=int)
+
+
 def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
     """Cross-validate the feature map (docs/MODEL.md C.13) over ``logs`` together, fit it on all.
 
@@ -142,15 +156,14 @@ def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None =
     object_ids = sorted(set(names))
     objects = np.array([object_ids.index(name) for name in names])
     source = np.repeat(np.arange(len(parts)), [len(part["p"]) for part in parts])
-    fold_objects = grouped_folds({name: names.count(name) for name in object_ids}, folds, seed)
-    fold_of = np.empty(len(p), dtype=int)
-    for f, members in enumerate(fold_objects):
-        fold_of[np.isin(objects, [object_ids.index(name) for name in members])] = f
+    fold_objects, fold_of = push_folds(names, folds, seed)
     held_out = np.empty(len(p))
     for f in range(folds):
         train, test = fold_of != f, fold_of == f
         held_out[test] = mapped_probability(features[test], fit_weights(features[train], observed[train], weight[train]))
     weights = fit_weights(features, observed, weight)
+    if not np.all(np.isfinite(weights)):
+        raise FeatureMapError(f"the feature map's fit did not converge (weights {weights.tolist()})")
 
     def both(rows: np.ndarray) -> dict:
         return {"identity": metrics(p[rows], observed[rows], weight[rows], objects[rows]),
@@ -165,10 +178,9 @@ def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None =
         "objects": len(object_ids),
         "folds": folds,
         "seed": seed,
-        "cross_validated": {"pooled": both(np.ones(len(p), dtype=bool)),
-                            **{part["name"]: both(source == i) for i, part in enumerate(parts)}},
+        "cross_validated": both(np.ones(len(p), dtype=bool)),
+        "per_log": [{"log": part["name"], **both(source == i), "counts": part["counts"]} for i, part in enumerate(parts)],
         "fold_objects": fold_objects,
-        "counts": {part["name"]: part["counts"] for part in parts},
         "wall_s": round(time.perf_counter() - started, 1),
     }
 
@@ -177,7 +189,7 @@ def format_feature_record(result: dict) -> str:
     lines = [(f"{result['pushes']} pushes on {result['objects']} objects; {result['folds']}-fold CV grouped by object, "
               f"held-out folds pooled (identity: P as the model gives it, unfitted):"),
              f"{'pushes':<28} {'predictor':<12} {'ECE':>6} {'Brier':>7} {'AP':>6} {'mAP':>6} {'mean pred.':>10} {'observed':>8}"]
-    for name, cell in result["cross_validated"].items():
+    for name, cell in [("pooled", result["cross_validated"])] + [(cell["log"], cell) for cell in result["per_log"]]:
         for predictor in ("identity", "feature_map"):
             m = cell[predictor]
             lines.append(f"{name[-28:]:<28} {predictor:<12} {m['ece']:>6.3f} {m['brier']:>7.4f} {m['ap']:>6.3f} {m['map']:>6.3f} "
@@ -240,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     topple = config.topple
     if args.features:
         print(format_feature_record(result))
-        pooled = result["cross_validated"]["pooled"]
+        pooled = result["cross_validated"]
         comments = [
             "toppledb recalibrate --features: feature map of P(topple) fitted on push logs (docs/MODEL.md C.13)",
             f"logs: {' '.join(args.logs)}; {result['pushes']} pushes on {result['objects']} objects, variant {result['variant']}",
