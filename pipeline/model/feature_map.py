@@ -106,14 +106,27 @@ def landing_rows(next_pose: np.ndarray, start: int, points: np.ndarray, directio
     points, directions : (A, 3) float, pose frame;  pool : the pose's candidates (default all)
     returns : (A, P) float, column ``start`` zero; rows sum to 1 or to 0
     """
+    leaving = _leaving(next_pose, start)
+    near, _ = neighbour_mean(points, directions, leaving, RADIUS, MAX_ANGLE, pool=pool)
+    return _landing(leaving, near, pool)
+
+
+def _leaving(next_pose: np.ndarray, start: int) -> np.ndarray:
+    """(A, P) float, the part of each row that leaves ``start`` (NaN rows stay NaN)."""
     leaving = np.array(next_pose, dtype=float)
-    leaving[:, start] = 0.0  # (A, P), the part of each row that leaves the start pose
+    leaving[:, start] = np.where(np.isfinite(leaving).all(axis=1), 0.0, np.nan)
+    return leaving
+
+
+def _landing(leaving: np.ndarray, near: np.ndarray, pool: int | None) -> np.ndarray:
+    """``landing_rows`` from the leaving parts (A, P) and their neighbourhood means (A, P)."""
     ok = np.isfinite(leaving).all(axis=1)
-    pool_rows = slice(None) if pool is None else slice(0, pool)
-    near, _ = neighbour_mean(points, directions, np.where(ok[:, None], leaving, np.nan), RADIUS, MAX_ANGLE, pool=pool)
-    whole = np.nanmean(np.where(ok[:, None], leaving, np.nan)[pool_rows], axis=0) if ok[pool_rows].any() else np.zeros(leaving.shape[1])
+    in_pool = ok.copy()
+    if pool is not None:
+        in_pool[pool:] = False
+    whole = leaving[in_pool].mean(axis=0) if in_pool.any() else np.zeros(leaving.shape[1])  # (P,)
     landing = np.zeros_like(leaving)
-    for source in (whole[None, :].repeat(len(leaving), axis=0), np.nan_to_num(near), np.nan_to_num(leaving)):
+    for source in (np.broadcast_to(whole, leaving.shape), np.nan_to_num(near), np.nan_to_num(leaving)):
         mass = source.sum(axis=1)
         known = mass > 0
         landing[known] = source[known] / mass[known, None]  # later sources (more local) overwrite
@@ -144,9 +157,12 @@ def map_rows(
     if len(weights) == 0:
         return next_pose, 1.0 - next_pose[:, start]
     p = 1.0 - next_pose[:, start]  # (A,)
-    neighbourhood, _ = neighbour_mean(points, directions, p, RADIUS, MAX_ANGLE, pool=pool)
-    q = mapped_probability(push_features(p, neighbourhood, mean_force, weight, directions), weights)  # (A,)
-    landing = landing_rows(next_pose, start, points, directions, pool)  # (A, P)
+    leaving = _leaving(next_pose, start)  # (A, P)
+    # One neighbourhood pass for both N and the neighbours' landing: p and the leaving parts are
+    # NaN on the same rows, so their means are over the same neighbours.
+    near, _ = neighbour_mean(points, directions, np.column_stack([p, leaving]), RADIUS, MAX_ANGLE, pool=pool)
+    q = mapped_probability(push_features(p, near[:, 0], mean_force, weight, directions), weights)  # (A,)
+    landing = _landing(leaving, near[:, 1:], pool)  # (A, P)
     ok = np.isfinite(p)
     q = np.where(landing.sum(axis=1) > 0, q, 0.0)
     next_pose[ok] = q[ok, None] * landing[ok]
