@@ -97,6 +97,19 @@ def test_fit_weights_recovers_the_weights_that_made_the_outcomes():
     assert np.allclose(fitted, truth, atol=0.06)
 
 
+def test_the_bias_is_not_shrunk_and_a_probe_lends_no_landing_to_the_pose():
+    rng = np.random.default_rng(1)
+    features = np.column_stack([np.ones(400), np.zeros((400, len(FEATURES) - 1))])
+    observed = rng.uniform(0.8, 1.0, 400)
+    fitted = fit_weights(features, observed, np.full(400, 10.0))
+    assert fitted[0] == pytest.approx(logit(observed.mean()), abs=1e-8), "the bias alone fits the mean rate exactly"
+    # Candidates 0 and 1 never topple; probe 2 (far from both) does: candidate 1 has nowhere to land.
+    points = np.array([[0, 0, 0], [0.3, 0, 0], [0.6, 0, 0]], dtype=float)
+    rows = np.array([[1.0, 0, 0], [1.0, 0, 0], [0.5, 0.5, 0]])
+    landing = landing_rows(rows, 0, points, np.array([X, X, X]), pool=2)
+    assert np.all(landing[:2] == 0) and np.allclose(landing[2], [0, 1, 0])
+
+
 def test_bad_weights_are_refused_with_the_field_named():
     check_weights(())
     with pytest.raises(FeatureMapError, match="6 finite weights"):

@@ -80,7 +80,7 @@ def push_features(
         np.ones_like(p_topple),
         logit(p_topple),
         logit(neighbourhood),
-        np.where(none_own, 0.0, np.log(ratio)),
+        np.log(ratio),  # 0 where none toppled (ratio 1 there)
         none_own.astype(float),
         np.asarray(directions, dtype=float)[:, 2],
     ])  # (A, F)
