@@ -7,14 +7,19 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from shapes import random_object
 
-from pipeline.model.collision import collision_object
 from pipeline.model.config import Config, ContactConfig
-from pipeline.model.contacts import object_contacts, pose_actions
-from pipeline.model.feature_map import (FEATURES, FeatureMapError, check_weights, fit_weights, landing_rows, logit,
-                                        map_rows, mapped_probability, push_features)
-from pipeline.model.poses import stable_poses
+from pipeline.model.feature_map import (
+    FEATURES,
+    FeatureMapError,
+    check_weights,
+    fit_weights,
+    landing_rows,
+    logit,
+    map_rows,
+    mapped_probability,
+    push_features,
+)
 from pipeline.model.outcomes import Actions
 from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose
@@ -22,6 +27,7 @@ from pipeline.studies.logreader import read_log
 from pipeline.studies.scoring import Scorer
 from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import STATUS_OK
+from tests.test_smoothing import pose_and_candidates  # noqa: F401 (fixture: random_object(3), pose 0, 80 contacts)
 from tests.test_validation import model_logs  # noqa: F401 (fixture)
 
 X = np.array([1.0, 0.0, 0.0])
@@ -125,18 +131,7 @@ def test_bad_weights_are_refused_with_the_field_named():
     assert topple.without_recalibration().feature_map == () and topple.counted().feature_map == ()
 
 
-@pytest.fixture(scope="module")
-def pose_and_candidates():
-    obj = random_object(3)
-    pose_set = stable_poses(obj)
-    contacts = ContactConfig(n_contacts=80)
-    points, normals = object_contacts(obj, contacts, 3)
-    pose = pose_set.poses[0]
-    actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
-    return obj, pose_set, pose, actions
-
-
-def test_the_engine_maps_the_smoothed_rows_with_the_pushes_own_features(pose_and_candidates):
+def test_the_engine_maps_the_smoothed_rows_with_the_pushes_own_features(pose_and_candidates):  # noqa: F811
     obj, pose_set, pose, actions = pose_and_candidates
     topple = replace(Config().topple, n_trials=40)
     weights = (-0.4, 0.5, 0.6, -0.2, -1.0, 0.7)
@@ -155,7 +150,7 @@ def test_the_engine_maps_the_smoothed_rows_with_the_pushes_own_features(pose_and
     assert np.array_equal(mapped.outcomes, plain.outcomes)
 
 
-def test_probes_are_mapped_over_the_candidates_and_leave_their_rows(pose_and_candidates):
+def test_probes_are_mapped_over_the_candidates_and_leave_their_rows(pose_and_candidates):  # noqa: F811
     obj, pose_set, pose, pool = pose_and_candidates
     topple = replace(Config().topple, n_trials=40, feature_map=(-0.4, 0.5, 0.6, -0.2, -1.0, 0.7))
     ok = np.flatnonzero(pool.status == STATUS_OK)

@@ -232,9 +232,9 @@ class ToppleConfig:
     """Knots g(x_k), non-decreasing in [0, 1], as many as ``recalibration_x``."""
     feature_map: tuple[float, ...] = bounded((), Range())
     """Weights w of the feature map of P(topple) (docs/MODEL.md C.13), one per feature (bias,
-    logit_p, logit_neighbourhood, log_force_ratio, no_own_topple, direction_z), or empty (the default): no map.  Fitted by ``toppledb recalibrate
-    --features`` on observed pushes; applied after the smoothing (C.12), to candidates and
-    probes alike.  Not together with ``recalibration_x``/``_y`` (two maps of one probability).
+    logit_p, logit_neighbourhood, log_force_ratio, no_own_topple, direction_z), or empty (the
+    default): no map.  Fitted by ``toppledb recalibrate --features`` on observed pushes; applied
+    after the smoothing (C.12), to candidates and probes alike.  Not together with ``recalibration_x``/``_y`` (two maps of one probability).
     Only the ``corrected`` variant applies it."""
 
     def __post_init__(self) -> None:

@@ -25,6 +25,9 @@ import numpy as np
 
 from schema.neighbourhood import MAX_ANGLE, RADIUS, neighbour_mean
 
+from .recalibration import logistic_regression
+from .recalibration import logit as clipped_logit
+
 FEATURES = ("bias", "logit_p", "logit_neighbourhood", "log_force_ratio", "no_own_topple", "direction_z")
 """The entries of f(u) in (C.13.1), in the order of ``topple.feature_map``'s weights."""
 LOGIT_FLOOR = 1e-3
@@ -35,8 +38,6 @@ FORCE_FLOOR = 1e-3
 RIDGE = 1e-4
 """Weight of the L2 penalty on the non-bias weights, per unit of total repeat weight: keeps the
 fit finite when a feature separates the pushes (all P = 0 pushes of a set never toppling)."""
-NEWTON_STEPS = 100
-NEWTON_TOLERANCE = 1e-10
 
 
 class FeatureMapError(ValueError):
@@ -54,8 +55,8 @@ def check_weights(weights) -> None:
 
 
 def logit(p: np.ndarray) -> np.ndarray:
-    p = np.clip(np.asarray(p, dtype=float), LOGIT_FLOOR, 1.0 - LOGIT_FLOOR)
-    return np.log(p) - np.log1p(-p)
+    """``recalibration.logit`` at this map's floor."""
+    return clipped_logit(p, LOGIT_FLOOR)
 
 
 def push_features(
@@ -86,6 +87,20 @@ def push_features(
     ])  # (A, F)
     features[~np.isfinite(p_topple)] = np.nan
     return features
+
+
+def pose_features(p_topple: np.ndarray, points: np.ndarray, directions: np.ndarray, mean_force: np.ndarray,
+                  weight: float, pool: int | None = None, rows: np.ndarray | None = None) -> np.ndarray:
+    """f(u) of (C.13.1) for ``rows`` of one pose's pushes (default all), N taken over the pose's
+    pool as ``map_rows`` takes it: what the map is fitted on (``Scorer.features``).
+
+    p_topple : (A,) float;  points, directions : (A, 3) float, pose frame;  mean_force : (A,) float, N
+    weight : float, N, mg;  pool, rows : as ``neighbour_mean``
+    returns : (R, F) float
+    """
+    rows = np.arange(len(p_topple)) if rows is None else np.asarray(rows)
+    neighbourhood, _ = neighbour_mean(points, directions, p_topple, RADIUS, MAX_ANGLE, rows=rows, pool=pool)
+    return push_features(p_topple[rows], neighbourhood, mean_force[rows], weight, directions[rows])
 
 
 def mapped_probability(features: np.ndarray, weights) -> np.ndarray:
@@ -180,14 +195,6 @@ def fit_weights(features: np.ndarray, observed: np.ndarray, repeats: np.ndarray)
     target, w = np.asarray(observed, dtype=float), np.asarray(repeats, dtype=float)
     penalty = RIDGE * w.sum() * np.eye(x.shape[1])
     penalty[0, 0] = 0.0
-    theta = np.zeros(x.shape[1])
-    theta[0] = float(logit(np.average(target, weights=w)))
-    for _ in range(NEWTON_STEPS):
-        q = 1.0 / (1.0 + np.exp(-(x @ theta)))  # (n,)
-        gradient = x.T @ (w * (target - q)) - penalty @ theta  # (F,)
-        hessian = (x * (w * q * (1.0 - q))[:, None]).T @ x + penalty + 1e-9 * np.eye(x.shape[1])
-        step = np.linalg.solve(hessian, gradient)
-        theta = theta + step
-        if np.max(np.abs(step)) < NEWTON_TOLERANCE:
-            break
-    return theta
+    start = np.zeros(x.shape[1])
+    start[0] = float(logit(np.average(target, weights=w)))
+    return logistic_regression(x, target, w, start, penalty)

@@ -160,9 +160,33 @@ def fit_isotonic(p: np.ndarray, observed: np.ndarray, weight: np.ndarray) -> Kno
     return Knots(tuple(map(float, kx)), tuple(map(float, ky)))
 
 
-def logit(p: np.ndarray) -> np.ndarray:
-    p = np.clip(np.asarray(p, dtype=float), LOGIT_FLOOR, 1.0 - LOGIT_FLOOR)
+def logit(p: np.ndarray, floor: float = LOGIT_FLOOR) -> np.ndarray:
+    """log(p / (1 - p)) with p clipped to [floor, 1 - floor], so 0 and 1 stay finite."""
+    p = np.clip(np.asarray(p, dtype=float), floor, 1.0 - floor)
     return np.log(p) - np.log1p(-p)
+
+
+def logistic_regression(design: np.ndarray, target: np.ndarray, weight: np.ndarray, start: np.ndarray,
+                        penalty: np.ndarray | None = None) -> np.ndarray:
+    """Maximum binomial likelihood of sigmoid(design @ theta) by Newton's method.
+
+    design : (n, k) float;  target : (n,) float, observed frequency;  weight : (n,) repeats
+    start : (k,) float, the first theta;  penalty : (k, k) float, an L2 penalty theta' R theta / 2
+    on the likelihood (default none)
+    returns : theta (k,) float
+    """
+    design, target, weight = (np.asarray(a, dtype=float) for a in (design, target, weight))
+    penalty = np.zeros((design.shape[1], design.shape[1])) if penalty is None else penalty
+    theta = np.array(start, dtype=float)
+    for _ in range(NEWTON_STEPS):
+        q = 1.0 / (1.0 + np.exp(-(design @ theta)))  # (n,)
+        gradient = design.T @ (weight * (target - q)) - penalty @ theta  # (k,)
+        hessian = (design * (weight * q * (1 - q))[:, None]).T @ design + penalty + 1e-9 * np.eye(len(theta))  # (k, k)
+        step = np.linalg.solve(hessian, gradient)
+        theta = theta + step
+        if np.max(np.abs(step)) < NEWTON_TOLERANCE:
+            break
+    return theta
 
 
 def fit_logistic(p: np.ndarray, observed: np.ndarray, weight: np.ndarray) -> tuple[float, float]:
@@ -172,21 +196,10 @@ def fit_logistic(p: np.ndarray, observed: np.ndarray, weight: np.ndarray) -> tup
     returns : (a, b); a < 0 (an anti-monotone fit) is clipped to 0 (a constant map)
     """
     z = logit(p)
-    design = np.column_stack([z, np.ones_like(z)])  # (n, 2)
-    theta = np.array([1.0, 0.0])
-    w = np.asarray(weight, dtype=float)
-    target = np.asarray(observed, dtype=float)
-    for _ in range(NEWTON_STEPS):
-        q = 1.0 / (1.0 + np.exp(-(design @ theta)))  # (n,)
-        gradient = design.T @ (w * (target - q))  # (2,)
-        hessian = (design * (w * q * (1 - q))[:, None]).T @ design + 1e-9 * np.eye(2)  # (2, 2)
-        step = np.linalg.solve(hessian, gradient)
-        theta = theta + step
-        if np.max(np.abs(step)) < NEWTON_TOLERANCE:
-            break
+    theta = logistic_regression(np.column_stack([z, np.ones_like(z)]), observed, weight, start=np.array([1.0, 0.0]))
     a, b = float(theta[0]), float(theta[1])
     if a < 0:
-        a, b = 0.0, float(logit(np.average(target, weights=w)))
+        a, b = 0.0, float(logit(np.average(observed, weights=weight)))
     return a, b
 
 

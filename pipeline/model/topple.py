@@ -52,10 +52,10 @@ from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
 from .config import ToppleConfig
 from .edges import EdgeGeometry, edge_geometry
+from .feature_map import map_rows
 from .mesh import ObjectModel
 from .outcomes import Actions, StablePose, ToppleTable
 from .poses import stability_margin
-from .feature_map import map_rows
 from .recalibration import recalibrate_rows
 
 MIN_PUSH_TORQUE = 1e-12

@@ -153,8 +153,8 @@ def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None =
     features = np.vstack([part["features"] for part in parts])
     p, observed, weight = (np.concatenate([part[key] for part in parts]) for key in ("p", "observed", "weight"))
     names = [name for part in parts for name in part["objects"]]
-    object_ids = sorted(set(names))
-    objects = np.array([object_ids.index(name) for name in names])
+    object_ids, objects = np.unique(names, return_inverse=True)
+    object_ids = object_ids.tolist()
     source = np.repeat(np.arange(len(parts)), [len(part["p"]) for part in parts])
     fold_objects, fold_of = push_folds(names, folds, seed)
     held_out = np.empty(len(p))
@@ -249,7 +249,6 @@ def main(argv: list[str] | None = None) -> int:
     except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    topple = config.topple
     if args.features:
         print(format_feature_record(result))
         pooled = result["cross_validated"]
@@ -260,27 +259,24 @@ def main(argv: list[str] | None = None) -> int:
              f"{pooled['identity']['ece']:.3f} / {pooled['identity']['brier']:.4f}, feature map "
              f"{pooled['feature_map']['ece']:.3f} / {pooled['feature_map']['brier']:.4f}"),
         ]
-        if args.config:
-            comments.append(f"base model: {args.config} (its other parameters are not written here)")
-        fitted = {"smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle,
-                  "feature_map": tuple(result["weights"])}
-        write_outputs(args.out, fitted, comments, args.json, result)
-        return 0
-    print(format_record(result))
-    cv = result["cross_validated"]
-    comments = [
-        "toppledb recalibrate: monotone map of P(topple) fitted on push logs (docs/MODEL.md C.7)",
-        f"logs: {' '.join(args.logs)}; {result['pushes']} pushes on {result['objects']} objects, variant {result['variant']}",
-        (f"method {result['chosen']}, chosen by {args.folds}-fold CV grouped by object (seed {args.seed}) on held-out "
-         f"{result['select_by']}; held-out ECE / Brier: "
-         + ", ".join(f"{m} {v['ece']:.3f} / {v['brier']:.4f}" for m, v in [("identity", cv["identity"])] + list(cv["methods"].items()))),
-    ]
+        fitted_map = {"feature_map": tuple(result["weights"])}
+    else:
+        print(format_record(result))
+        cv = result["cross_validated"]
+        comments = [
+            "toppledb recalibrate: monotone map of P(topple) fitted on push logs (docs/MODEL.md C.7)",
+            f"logs: {' '.join(args.logs)}; {result['pushes']} pushes on {result['objects']} objects, variant {result['variant']}",
+            (f"method {result['chosen']}, chosen by {args.folds}-fold CV grouped by object (seed {args.seed}) on held-out "
+             f"{result['select_by']}; held-out ECE / Brier: "
+             + ", ".join(f"{m} {v['ece']:.3f} / {v['brier']:.4f}" for m, v in [("identity", cv["identity"])] + list(cv["methods"].items()))),
+        ]
+        fitted_map = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"])}
     if args.config:
         comments.append(f"base model: {args.config} (its other parameters are not written here)")
-    # The map is fitted on the table as smoothed (MODEL.md C.12), so the smoothing goes with it:
-    # the same knots over another smoothing would map other probabilities.
-    fitted = {"smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle,
-              "recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"])}
+    # A map is fitted on the table as smoothed (MODEL.md C.12), so the smoothing goes with it:
+    # the same map over another smoothing would map other probabilities.
+    topple = config.topple
+    fitted = {"smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **fitted_map}
     write_outputs(args.out, fitted, comments, args.json, result)
     return 0
 

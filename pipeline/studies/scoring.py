@@ -14,10 +14,10 @@ standard draws z: differences between settings are the parameters' effect, not
 resampling noise (common random numbers), and a search over settings is deterministic.
 
 A model that smooths its rows over the pose's candidate pushes (``smoothing_radius``,
-docs/MODEL.md C.12) or maps P(topple) with its neighbourhood's (``feature_map``, C.13) needs those candidates: they are made once per (object, pose) exactly
-as the dataset job makes them (same seed, same contact settings), a logged push that is one
-of them is read from the candidate's row, and any other is evaluated beside them as a probe.
-That costs a whole pose's evaluation per group, about 30 times a plain setting.
+docs/MODEL.md C.12) or maps P(topple) with its neighbourhood's (``feature_map``, C.13) needs
+those candidates: they are made once per (object, pose) exactly as the dataset job makes them
+(same seed, same contact settings), a logged push that is one of them is read from the
+candidate's row, and any other is evaluated beside them as a probe.  That costs a whole pose's evaluation per group, about 30 times a plain setting.
 """
 
 from __future__ import annotations
@@ -26,13 +26,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import STATUS_OK
 
 from ..model.collision import collision_object
 from ..model.config import ContactConfig, ToppleConfig
 from ..model.contacts import explicit_actions, object_contacts, pose_actions
-from ..model.feature_map import FEATURES, push_features
+from ..model.feature_map import FEATURES, pose_features
 from ..model.outcomes import Actions, StablePose, ToppleTable
 from ..model.rng import stream
 from ..model.topple import evaluate_pose
@@ -152,11 +151,9 @@ class Scorer:
         p = np.full(len(self), np.nan)
         for group in self.groups:
             table, actions, index = self._evaluate(group, topple, candidates=True)
-            pool = self._candidates[id(group)].candidates
-            mass = self.log.objects[group.object_id].model.mass
-            neighbourhood, _ = neighbour_mean(actions.points, actions.directions, table.p_topple, pool=pool, rows=index)
-            out[group.rows] = push_features(table.p_topple[index], neighbourhood, table.mean_force[index],
-                                            mass * topple.gravity, actions.directions[index])
+            weight = self.log.objects[group.object_id].model.mass * topple.gravity
+            out[group.rows] = pose_features(table.p_topple, actions.points, actions.directions, table.mean_force, weight,
+                                            pool=self.pose_candidates(group).candidates, rows=index)
             p[group.rows] = table.p_topple[index]
         return out, p
 
