@@ -26,6 +26,16 @@ import numpy as np
 
 from .vocabulary import NO_OP
 
+def choosable_pushes(direction_z: np.ndarray, min_direction_z: float) -> np.ndarray:
+    """(N,) bool, the pushes greedy and value iteration may choose: those whose direction's
+    vertical component (pose frame, z up) is at least ``min_direction_z`` (``mdp.min_direction_z``).
+
+    Compared in float32, as the served tables store directions, so the dataset job and the
+    service choose from the same pushes.  direction_z : (N,) float
+    """
+    return np.asarray(direction_z, dtype=np.float32) >= np.float32(min_direction_z)
+
+
 MAX_PUSHES_LEFT = 10
 """Largest budget a request may give: beyond a few pushes the choice stops changing."""
 IMPROVEMENT = 1e-9
@@ -40,12 +50,14 @@ def budget_choices(
     next_pose: np.ndarray,
     probability: np.ndarray,
     max_pushes_left: int,
+    choosable: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The best push of every pose for every budget from 1 to ``max_pushes_left`` pushes.
 
     v_s : (P,) float;  action_offsets : (P + 1,) int, pose x's actions are rows
       action_offsets[x] : action_offsets[x + 1];  transition_offsets : (N + 1,) int over the
       N action rows;  next_pose : (K,) int;  probability : (K,) float
+    choosable : (N,) bool, the rows a choice may take (``choosable_pushes``); default all
     returns : actions (H, P) int, the action (index within its pose) to push with h = row + 1
       pushes left, NO_OP where grasping now is at least as good; values (H, P) float, V_h:
       the expected V_s when the budget is spent, following these choices
@@ -64,6 +76,8 @@ def budget_choices(
     for h in range(max_pushes_left):
         q = np.full(n_rows, -np.inf)
         q[ok] = np.bincount(owner, weights=probability * value[next_pose], minlength=n_rows)[ok]
+        if choosable is not None:
+            q[~np.asarray(choosable, dtype=bool)] = -np.inf
         best = v_s.copy()
         for x in range(n_poses):
             start, stop = int(action_offsets[x]), int(action_offsets[x + 1])

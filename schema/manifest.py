@@ -54,6 +54,9 @@ class ToppleParameters(_Open):
 
 class MDPParameters(_Open):
     gamma: float = Field(gt=0, le=1)
+    min_direction_z: float = Field(-1.0, ge=-1, le=1)
+    """Greedy and value iteration chose only pushes with u_z at least this (pose frame); a
+    manifest from before the field chose from every push, which -1 is."""
 
 
 class Parameters(_Open):

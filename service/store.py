@@ -87,6 +87,7 @@ class ObjectData:
     Transitions (K nonzero entries), from served/transitions.arrow:
       transition_offsets (N + 1,) int64; next_pose (K,) int32; transition_probability (K,) float32
     Hull: hull_vertices (V, 3) float64, m, object frame
+    min_direction_z: the build's ``mdp.min_direction_z``: the pushes a budget's choice may take
     """
 
     object_id: str
@@ -127,6 +128,7 @@ class ObjectData:
     next_pose: np.ndarray
     transition_probability: np.ndarray
     hull_vertices: np.ndarray
+    min_direction_z: float = -1.0
     _budgets: tuple | None = field(default=None, init=False, repr=False)
 
     def budget(self, pushes_left: int) -> tuple[np.ndarray, np.ndarray]:
@@ -140,8 +142,9 @@ class ObjectData:
         """
         if self._budgets is None:
             # one assignment: a concurrent first request computes the same
+            choosable = horizon.choosable_pushes(self.directions[:, 2], self.min_direction_z)
             self._budgets = horizon.budget_choices(self.v_s, self.action_offsets, self.transition_offsets, self.next_pose,
-                                                   self.transition_probability, horizon.MAX_PUSHES_LEFT)
+                                                   self.transition_probability, horizon.MAX_PUSHES_LEFT, choosable)
         actions, values = self._budgets
         return actions[pushes_left - 1], values[pushes_left - 1]
 
@@ -294,7 +297,7 @@ class Store:
                 tables = served.served_from_parquet(Dataset(root, manifest))
             except (served.ServedError, DatasetUnreadable) as err:
                 raise DatasetError(f"{root}: {err}") from None
-        objects = _objects(tables)
+        objects = _objects(tables, manifest.parameters.mdp.min_direction_z)
         store = cls(root, manifest, objects, time.perf_counter() - started, manifest_sha256)
         expected = {k: getattr(manifest.counts, k) for k in store.counts}
         if expected != store.counts:
@@ -305,9 +308,9 @@ class Store:
         return store
 
 
-def _objects(tables: dict[str, pa.Table]) -> dict[str, ObjectData]:
+def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0) -> dict[str, ObjectData]:
     """ObjectData of every object: views into the served tables' columns (no copies but
-    two small offset arrays per object)."""
+    two small offset arrays per object); ``min_direction_z`` is the build's (``ObjectData``)."""
     col = {name: {f.name: served.column(table, f.name) for f in table.schema if not pa.types.is_string(f.type)}
            for name, table in tables.items()}
     numbers, poses, matches, actions, transitions, hulls = (col[name] for name in served.NAMES)
@@ -362,6 +365,7 @@ def _objects(tables: dict[str, pa.Table]) -> dict[str, ObjectData]:
             next_pose=transitions["next_pose"][t],
             transition_probability=transitions["probability"][t],
             hull_vertices=hulls["vertex"][h],
+            min_direction_z=min_direction_z,
         )
     return out
 

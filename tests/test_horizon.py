@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from schema.horizon import budget_choices, csr_from_rows
+from schema.horizon import budget_choices, choosable_pushes, csr_from_rows
 from schema.vocabulary import NO_OP
 
 
@@ -81,3 +81,24 @@ def test_values_agree_with_the_recursion_and_one_push_left_is_greedy(seed):
             assert not len(greedy) or greedy.max() <= v_s[x] + 1e-6
         else:
             assert greedy[actions[0, x]] == pytest.approx(greedy.max(), abs=1e-6)
+
+
+def test_a_budget_chooses_among_the_choosable_pushes_only():
+    # Pose 0: push 0 reaches pose 1 surely, push 1 half the time; push 0 may not be chosen.
+    rows = [np.array([[0.0, 1.0], [0.5, 0.5]]), np.array([[0.0, 1.0]])]
+    v_s = np.array([0.1, 0.9])
+    actions, values = budget_choices(v_s, *csr_from_rows(rows), 2)
+    assert actions[0, 0] == 0
+    actions, values = budget_choices(v_s, *csr_from_rows(rows), 2, np.array([False, True, True]))
+    assert actions[0, 0] == actions[1, 0] == 1
+    np.testing.assert_allclose(values[:, 0], [0.5, 0.5 * 0.5 + 0.45])
+    nothing, _ = budget_choices(v_s, *csr_from_rows(rows), 1, np.zeros(3, dtype=bool))
+    assert nothing[0, 0] == NO_OP
+
+
+def test_choosable_pushes_compare_as_the_served_float32_directions():
+    z = np.array([-1.0, -0.31, -0.3, np.float32(-0.3), -0.29, 1.0])
+    np.testing.assert_array_equal(choosable_pushes(z, -0.3), [False, False, True, True, True, True])
+    # A float64 just below -0.3 rounds to float32 -0.3, as the service reads it: choosable there, so here.
+    assert choosable_pushes(np.array([-0.3 - 1e-9]), -0.3)[0]
+    assert choosable_pushes(np.array([-1.0]), -1.0)[0]

@@ -188,6 +188,26 @@ def test_an_object_without_poses_has_no_values():
     assert pose_values([], np.zeros(0), []) == []
 
 
+def test_policies_choose_among_the_choosable_pushes_and_every_push_keeps_its_value():
+    # Pose 0 (V_s 0.1): push 0 reaches pose 1 (V_s 0.9) surely but may not be chosen (a push from
+    # above, say); push 1 reaches it half the time.  Pose 1 is the best pose.
+    v_s = np.array([0.1, 0.9])
+    tables = [np.array([[0.0, 1.0], [0.5, 0.5]]), np.array([[0.0, 1.0]])]
+    free = pose_values(tables, v_s, [-1, -1], MDPConfig())
+    assert free[0].policies["value_iteration"].action == 0 and free[0].policies["greedy"].action == 0
+    kept = pose_values(tables, v_s, [-1, -1], MDPConfig(), [np.array([False, True]), np.array([True])])
+    assert kept[0].policies["value_iteration"].action == 1 and kept[0].policies["greedy"].action == 1
+    # V_T(0) solves V = gamma (0.5 V + 0.5 * 0.9) with push 1 alone; V_T(1) = V_s(1).
+    v0 = GAMMA * 0.45 / (1 - GAMMA * 0.5)
+    assert kept[0].value == pytest.approx(v0)
+    # The push it may not choose still has its Q_T under that plan, and its greedy value.
+    np.testing.assert_allclose(kept[0].q, [0.9, 0.5 * v0 + 0.45], atol=1e-9)
+    np.testing.assert_allclose(kept[0].greedy, free[0].greedy)
+    # All choosable is the same as no mask, to the bit.
+    every = pose_values(tables, v_s, [-1, -1], MDPConfig(), [np.ones(2, dtype=bool), np.ones(1, dtype=bool)])
+    assert [(v.value, v.q.tolist(), v.policies) for v in every] == [(v.value, v.q.tolist(), v.policies) for v in free]
+
+
 # ----------------------------------------------------------------------------- greedy values and policies
 
 

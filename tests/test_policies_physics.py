@@ -66,6 +66,12 @@ def test_a_small_run_plays_every_policy_and_logs_its_pushes(dataset, tmp_path):
         assert r["pushes"] <= 8 * policies_physics.MAX_PUSHES
         for key in ("predicted_topple_rate", "physical_topple_rate"):
             assert r[key] is None or 0.0 <= r[key] <= 1.0
+        # The direction classes split the same pushes: counts add up, and so do the rates.
+        assert sum(d["pushes"] for d in r["by_direction"]) == r["pushes"]
+        for key in ("predicted_topple_rate", "physical_topple_rate"):
+            if r["pushes"]:
+                parts = sum(d["pushes"] * d[key] for d in r["by_direction"]) / r["pushes"]
+                assert parts == pytest.approx(r[key])
     # Every logged push starts where the previous push of its trial and policy ended.
     rows = sorted(table.to_pylist(), key=lambda row: (row["object_id"], row["push_id"]))
     for before, after in itertools.pairwise(rows):
@@ -75,6 +81,20 @@ def test_a_small_run_plays_every_policy_and_logs_its_pushes(dataset, tmp_path):
     # Same seed, same starts and noise: the same report.
     again = policies_physics.experiment(dataset, 8, seed=1, workers=1)
     assert again["policies"] == report["policies"]
+
+
+def test_chosen_pushes_are_split_by_the_reports_direction_classes():
+    predicted = np.array([0.8, 0.6, 0.5, 0.2, 0.3, 0.4])
+    toppled = np.array([1.0, 0.0, 1.0, 0.0, 1.0, 1.0])
+    u_z = np.array([-0.9, -0.7, -0.31, -0.3, 0.29, 0.5])  # the bands are closed below: -0.7 oblique, -0.3 side
+    rows = {d["direction"]: d for d in policies_physics.topple_rates_by_direction(predicted, toppled, u_z)}
+    assert list(rows) == ["from above", "oblique", "side", "from below"]
+    assert (rows["from above"]["pushes"], rows["from above"]["predicted_topple_rate"], rows["from above"]["physical_topple_rate"]) == (1, 0.8, 1.0)
+    assert rows["oblique"]["pushes"] == 2 and rows["oblique"]["predicted_topple_rate"] == pytest.approx(0.55)
+    assert rows["oblique"]["physical_topple_rate"] == 0.5
+    assert rows["side"]["pushes"] == 2 and rows["side"]["predicted_topple_rate"] == pytest.approx(0.25)
+    assert rows["from below"]["pushes"] == 1
+    assert policies_physics.topple_rates_by_direction(np.zeros(0), np.zeros(0), np.zeros(0)) == []
 
 
 def test_a_missing_dataset_is_a_one_line_error(tmp_path, capsys):

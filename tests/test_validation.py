@@ -24,6 +24,7 @@ from pipeline.studies.validation import (
     expected_calibration_error,
     main,
     push_metrics,
+    ranking_by_direction,
     reliability,
     report,
 )
@@ -119,6 +120,22 @@ def test_by_direction_groups_pushes_by_their_vertical_component_and_predicted_ba
         ("side", "P = 0"): (2, 0.0, pytest.approx(0.2)),
         ("from below", "P >= 0.75"): (1, 1.0, 1.0),  # P = 1 and u_z 0.6 fall in the top cells
     }
+
+
+def test_ranking_by_direction_scores_each_class_on_its_own_pushes():
+    from types import SimpleNamespace
+
+    # From above: the predictor ranks them backwards (the toppler lowest); from the side, right.
+    directions = [(0, 0, -1), (0, 0.6, -0.8), (0.6, 0, -0.8), (1, 0, 0), (1, 0, 0), (1, 0, 0)]
+    log = SimpleNamespace(pushes=[SimpleNamespace(direction=np.array(d, dtype=float)) for d in directions])
+    scorer = SimpleNamespace(log=log, empirical_topple=np.array([0.9, 0.1, 0.2, 0.8, 0.0, 0.6]))
+    scores = Scores(np.zeros(6), np.array([0.1, 0.7, 0.5, 0.9, 0.1, 0.6]), np.zeros(6))
+    rows = {r["direction"]: r for r in ranking_by_direction(scores, scorer)}
+    assert list(rows) == ["from above", "side"]
+    assert rows["from above"]["pushes"] == 3 and rows["from above"]["ap"] == pytest.approx(1 / 3)
+    assert rows["from above"]["predicted_topple"] == pytest.approx(1.3 / 3)
+    assert rows["from above"]["observed_topple"] == pytest.approx(0.4)
+    assert rows["side"]["ap"] == 1.0  # both topplers (0.8, 0.6) ranked above the push that stays
 
 
 def test_paired_bootstrap_of_a_difference():

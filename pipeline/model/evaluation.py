@@ -136,6 +136,7 @@ def evaluate_object(
             np.array([s.quality for s in suction]),
             [a.max_height for a in actions],
             config.mdp,
+            [horizon.choosable_pushes(a.directions[:, 2], config.mdp.min_direction_z) for a in actions],
         )
     return ObjectResult(
         object_id=object_id or obj.name,
@@ -235,6 +236,7 @@ def solve(evaluations: list["PoseEvaluation"], v_s: np.ndarray, config: Config =
     return pose_values(
         [e.table.next_pose for e in evaluations], np.asarray(v_s, dtype=float),
         [e.actions.max_height for e in evaluations], config.mdp,
+        [horizon.choosable_pushes(e.actions.directions[:, 2], config.mdp.min_direction_z) for e in evaluations],
     )
 
 
@@ -367,7 +369,9 @@ def plan(
     if pushes_left is not None:
         v_s = np.array([s.quality for s in result.suction], dtype=float)
         rows = [np.asarray(t.next_pose, dtype=float) for t in result.topple]
-        actions, values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes_left)
+        choosable = np.concatenate([horizon.choosable_pushes(a.directions[:, 2], config.mdp.min_direction_z)
+                                    for a in result.actions])
+        actions, values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes_left, choosable)
         choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
     if choice.action == NO_OP:
         return Plan(match, policy, None, float(choice.value), None, None, [], grasp)

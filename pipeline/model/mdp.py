@@ -14,6 +14,8 @@ next_pose : list of P arrays, next_pose[x] is (A_x, P) float, P(x' | x, u) for t
   actions of pose x; rows of actions that are not ``ok`` are NaN (any NaN marks the
   row) and are ignored; the other rows sum to 1
 v_s : (P,) float in [0, 1], suction grasp quality of each pose
+choosable : list of P arrays, choosable[x] is (A_x,) bool, the pushes the policies may
+  choose (``schema.horizon.choosable_pushes``); the others keep their Q_T and greedy values
 
 No geometry here: the service and planners can import it without the mesh stack.
 """
@@ -126,9 +128,19 @@ def value_iteration(
             break
         value = np.maximum(bellman, _policy_value(rows, row, gamma * best > v_s, v_s, gamma))
 
+    return value, action_values(next_pose, value)
+
+
+def action_values(next_pose: list[np.ndarray], value: np.ndarray) -> list[np.ndarray]:
+    """Q(x, u) = sum_x' P(x' | x, u) value(x') of every action, per pose.
+
+    next_pose : list of P (A_x, P) float;  value : (P,) float
+    returns : list of P (A_x,) float, NaN where the row is NaN
+    """
+    rows, _, ok = _stack(next_pose, len(value))
     q = np.full(len(ok), np.nan)
     q[ok] = rows @ value
-    return value, _split(q, next_pose)
+    return _split(q, next_pose)
 
 
 def greedy_values(next_pose: list[np.ndarray], v_s: np.ndarray) -> list[np.ndarray]:
@@ -202,23 +214,35 @@ def pose_values(
     v_s: np.ndarray,
     max_height_actions: list[int] | np.ndarray,
     config: MDPConfig = MDPConfig(),
+    choosable: list[np.ndarray] | None = None,
 ) -> list[PoseValues]:
     """Value iteration, greedy values and all three policies' choices for every pose.
 
     next_pose : list of P (A_x, P) float;  v_s : (P,) float
     max_height_actions : (P,) int, ``Actions.max_height`` of each pose (-1: none)
+    choosable : list of P (A_x,) bool, the pushes greedy and value iteration may choose
+      (default all).  Value iteration plans over these alone; every push's Q_T is then its
+      value under that plan (push it, then follow the policy), choosable or not.  Max-Height
+      pushes its own push, as the thesis defines it.
     returns : list of P PoseValues (q = Q_T, greedy = E[V_s(x')], value = V_T(x), and
       policies ``max_height``, ``greedy``, ``value_iteration``)
     """
     v_s = np.asarray(v_s, dtype=float)
-    v_t, q = value_iteration(next_pose, v_s, config.gamma, config.tolerance, config.max_iterations)
+    planned = next_pose if choosable is None else [
+        np.where(np.asarray(c, dtype=bool)[:, None], np.asarray(t, dtype=float).reshape(-1, len(v_s)), np.nan)
+        for t, c in zip(next_pose, choosable)
+    ]
+    v_t, q = value_iteration(planned, v_s, config.gamma, config.tolerance, config.max_iterations)
     greedy = greedy_values(next_pose, v_s)
+    if choosable is not None:
+        q = action_values(next_pose, v_t)
     out = []
     for x in range(len(v_s)):
+        mine = np.ones(len(greedy[x]), dtype=bool) if choosable is None else np.asarray(choosable[x], dtype=bool)
         policies = {
             "max_height": max_height_policy(x, v_s, int(max_height_actions[x]), greedy[x]),
-            "greedy": greedy_policy(x, v_s, greedy[x]),
-            "value_iteration": value_iteration_policy(x, v_s, q[x], config.gamma),
+            "greedy": greedy_policy(x, v_s, np.where(mine, greedy[x], np.nan)),
+            "value_iteration": value_iteration_policy(x, v_s, np.where(mine, q[x], np.nan), config.gamma),
         }
         out.append(PoseValues(q=q[x], greedy=greedy[x], value=float(v_t[x]), policies=policies))
     return out

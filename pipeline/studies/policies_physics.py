@@ -18,7 +18,9 @@ the pushes are played by the push player instead:
 Per policy it reports the physical V_s gain (V_s of the pose the object ends in minus
 V_s of the start pose) beside the gain the model's own table predicts for the same
 start (the exact expectation over the stored transitions, up to ``max_pushes``
-pushes), and the chosen pushes' predicted P(topple) against how often they toppled.
+pushes), and the chosen pushes' predicted P(topple) against how often they toppled, in all
+and per push direction (``validation.DIRECTIONS``: the model ranks pushes from the side well
+and pushes from above poorly, so one average can hide two opposite errors).
 All policies see the same starts and the same noise draws (common random numbers), so
 their differences are their own.  Every push played is also written to a push log
 (``schema.pushlog``), one part file per object.
@@ -53,6 +55,7 @@ from ..model.rng import stream
 from .playlog import ObjectLog, append_row, mesh_location, write_part
 from .policy_experiment import ACTION_SPAN, PolicyTables, best_pose_value, draw_starts, load_tables
 from .pushsim import body_model, draw_noise, play_push, player_parameters
+from .validation import direction_classes
 
 MAX_PUSHES = 3
 """Most pushes per trial and policy (the experiment of the issue; ``toppledb policies`` uses 5)."""
@@ -163,11 +166,13 @@ class PolicyRun:
 
     poses : visited poses, start first (the last is where it ended; -1: outside the pose set)
     predicted : (n,) P(topple) of each push;  toppled : (n,) bool, the push changed the pose
+    direction_z : (n,) the push direction's vertical component in the pose frame (z up)
     """
 
     poses: list[int]
     predicted: list[float] = field(default_factory=list)
     toppled: list[bool] = field(default_factory=list)
+    direction_z: list[float] = field(default_factory=list)
 
 
 def play_trials(
@@ -211,6 +216,7 @@ def play_trials(
                 if action == NO_OP:
                     break
                 point, direction, p_topple = plan.pushes[(pose, action)]
+                run.direction_z.append(float(direction[2]))  # the stored direction is in the pose frame
                 to_object = np.linalg.inv(plan.transforms[pose])
                 point, direction = to_object[:3, :3] @ point + to_object[:3, 3], to_object[:3, :3] @ direction
                 played = play_push(body, transform, point, direction, config, noises[step])
@@ -327,6 +333,7 @@ def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str
         pushes = [r for t in played for r in [runs[t][policy]]]
         p_hat = np.array([p for r in pushes for p in r.predicted])
         toppled = np.array([x for r in pushes for x in r.toppled], dtype=float)
+        direction_z = np.array([z for r in pushes for z in r.direction_z])
         n_pushes = np.array([len(runs[t][policy].predicted) for t in kept])
         entry = {
             "physical_gain_all": _mean_and_error(physical)[0],
@@ -338,6 +345,7 @@ def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str
             "pushes": len(p_hat),
             "predicted_topple_rate": _mean_and_error(p_hat)[0],
             "physical_topple_rate": _mean_and_error(toppled)[0],
+            "by_direction": topple_rates_by_direction(p_hat, toppled, direction_z),
         }
         report["policies"][policy] = entry
     for policy in ("greedy", "value_iteration"):
@@ -350,6 +358,21 @@ def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str
             None if None in model_difference else model_difference[0] - model_difference[1]
         )
     return report
+
+
+def topple_rates_by_direction(predicted: np.ndarray, toppled: np.ndarray, direction_z: np.ndarray) -> list[dict]:
+    """Chosen pushes per push direction (``validation.DIRECTIONS``, by u_z in the pose frame):
+    how many, their mean predicted P(topple) and how often they toppled.  Empty classes are left out.
+
+    predicted, toppled, direction_z : (n,) float, one entry per push played
+    """
+    out = []
+    for name, rows in direction_classes(direction_z):
+        if rows.any():
+            out.append({"direction": name, "pushes": int(rows.sum()),
+                        "predicted_topple_rate": float(predicted[rows].mean()),
+                        "physical_topple_rate": float(toppled[rows].mean())})
+    return out
 
 
 def text(report: dict) -> str:
@@ -374,6 +397,10 @@ def text(report: dict) -> str:
             f"{cell(r['physical_gain_all']):>21} {cell(r['model_gain_all']):>7} {r['pushes']:>7} "
             f"{cell(r['predicted_topple_rate'], False):>20} {cell(r['physical_topple_rate'], False):>8}"
         )
+    for policy, r in report["policies"].items():
+        lines.append(f"{policy} pushes by direction, predicted / toppled: " + ", ".join(
+            f"{d['direction']} {d['pushes']} {d['predicted_topple_rate']:.3f} / {d['physical_topple_rate']:.3f}"
+            for d in r.get("by_direction", [])))
     for policy in ("greedy", "value_iteration"):
         r = report["policies"][policy]
         se = r["physical_gain_over_max_height_se"]

@@ -199,9 +199,12 @@ def pose_scores(candidates: PoseCandidates, smoothing: Smoothing, rows: np.ndarr
     return PoseScores(means[:, 0], means[:, 1], count, smoothed_rows)
 
 
-def robust_actions(v_s: np.ndarray, scores: list[PoseScores], gamma: float, smoothing: Smoothing) -> np.ndarray:
-    """(P,) int, ``smoothed_vi``'s action per pose (NO_OP: no push)."""
-    return np.array([smoothed_choice(float(v_s[x]), s.smoothed_q, s.count, gamma, smoothing.min_neighbours)
+def robust_actions(v_s: np.ndarray, scores: list[PoseScores], gamma: float, smoothing: Smoothing,
+                   choosable: list[np.ndarray] | None = None) -> np.ndarray:
+    """(P,) int, ``smoothed_vi``'s action per pose (NO_OP: no push), among each pose's
+    ``choosable`` pushes ((A_x,) bool, ``schema.horizon.choosable_pushes``; default all)."""
+    return np.array([smoothed_choice(float(v_s[x]), s.smoothed_q if choosable is None else np.where(choosable[x], s.smoothed_q, np.nan),
+                                     s.count, gamma, smoothing.min_neighbours)
                      for x, s in enumerate(scores)], dtype=np.int64)
 
 
@@ -220,16 +223,17 @@ def next_pose_rows(dataset: Dataset, object_id: str, n_actions: list[int]) -> li
     return rows
 
 
-def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int) -> np.ndarray:
+def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int, choosable: list[np.ndarray] | None = None) -> np.ndarray:
     """(pushes, P) int: ``horizon_vi``'s push per pose with ``pushes - k`` pushes left (row k).
 
     ``schema.horizon.budget_choices`` (finite-horizon value iteration, as ``/plan`` serves it
     for ``pushes_left``) over ``next_pose_rows``.  The table's probabilities are float64, the
     service's float32: where two pushes' values differ by less than that rounding (~1e-8; 13
     of 2,709 pose-budgets of the default dataset's first 80 objects, 3 pushes) the two may
-    pick different pushes of equal value.
+    pick different pushes of equal value.  choosable : per pose (A_x,) bool, as ``robust_actions``.
     """
-    actions, _ = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes)
+    mask = None if choosable is None else np.concatenate(choosable)
+    actions, _ = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes, mask)
     return actions[::-1]  # row k: pushes - k left, the order the pushes are played in
 
 
@@ -275,6 +279,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
         return spec.object_id, {"failure": "its stable poses differ from the dataset's"}, []
     body = body_model(obj)
     candidates, scores, exclusion = extra["candidates"], extra["scores"], extra["exclusion"]
+    choosable = extra.get("choosable") or [np.ones(len(c.q), dtype=bool) for c in candidates]
     gamma = config.mdp.gamma
     results: dict[int, dict[str, list[int]]] = {}
     pushes: list[Push] = []
@@ -289,7 +294,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
             failed: dict[int, np.ndarray] = {}  # pose -> candidates ruled out this trial (untried_vi)
             for step in range(max_pushes):
                 if policy == UNTRIED_POLICY and pose in failed:
-                    action = untried_choice(pose, plan.v_s, candidates[pose].q, failed[pose], gamma)
+                    action = untried_choice(pose, plan.v_s, candidates[pose].q, failed[pose] | ~choosable[pose], gamma)
                 else:
                     action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # horizon_vi: per pushes left
                 if action == NO_OP:
@@ -339,11 +344,13 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         candidates = read_candidates(dataset, object_id)
         rows = next_pose_rows(dataset, object_id, [len(c.q) for c in candidates])
         scores = [pose_scores(c, smoothing, r) for c, r in zip(candidates, rows)]
-        plan.actions[ROBUST_POLICY] = robust_actions(plan.v_s, scores, config.mdp.gamma, smoothing)
-        plan.actions[HORIZON_POLICY] = horizon_actions(plan.v_s, rows, max_pushes)
-        plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, [s.smoothed_rows for s in scores], max_pushes)
+        # The pushes the dataset's own policies could choose (mdp.min_direction_z), for every rule here.
+        choosable = [horizon.choosable_pushes(c.directions[:, 2], config.mdp.min_direction_z) for c in candidates]
+        plan.actions[ROBUST_POLICY] = robust_actions(plan.v_s, scores, config.mdp.gamma, smoothing, choosable)
+        plan.actions[HORIZON_POLICY] = horizon_actions(plan.v_s, rows, max_pushes, choosable)
+        plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, [s.smoothed_rows for s in scores], max_pushes, choosable)
         plan.actions[UNTRIED_POLICY] = plan.actions["value_iteration"]  # until a push fails
-        tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion}, by_object[object_id],
+        tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable}, by_object[object_id],
                       config, seed, max_pushes, world))
 
     runs: dict[int, dict[str, list[int]]] = {}

@@ -338,6 +338,14 @@ def _within(values: np.ndarray, low: float, high: float) -> np.ndarray:
     return (values >= low) & ((values < high) | (high >= 1.0))
 
 
+def direction_classes(u_z: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """Each of ``DIRECTIONS``' names with the (n,) bool rows whose push is in it.
+
+    u_z : (n,) float, the push direction's vertical component in the pose frame (z up)"""
+    u_z = np.asarray(u_z, dtype=float)
+    return [(name, _within(u_z, low, high)) for name, low, high in DIRECTIONS]
+
+
 def by_direction(scores: Scores, scorer: Scorer) -> list[dict]:
     """Where the predictor is right or wrong: per push direction (``DIRECTIONS``) and band of
     predicted P(topple) (``BANDS``), the pushes, their mean predicted and mean observed topple
@@ -345,13 +353,29 @@ def by_direction(scores: Scores, scorer: Scorer) -> list[dict]:
     u_z = np.array([p.direction[2] for p in scorer.log.pushes])
     predicted, observed = scores.p_topple, scorer.empirical_topple
     out = []
-    for direction, low_z, high_z in DIRECTIONS:
+    for direction, in_direction in direction_classes(u_z):
         for band, low, high in BANDS:
             in_band = (predicted == 0.0) if high == 0.0 else _within(predicted, low, high) & (predicted > 0.0)
-            rows = _within(u_z, low_z, high_z) & in_band
+            rows = in_direction & in_band
             if rows.any():
                 out.append({"direction": direction, "band": band, "pushes": int(rows.sum()),
                             "predicted_topple": float(predicted[rows].mean()), "observed_topple": float(observed[rows].mean())})
+    return out
+
+
+def ranking_by_direction(scores: Scores, scorer: Scorer) -> list[dict]:
+    """How well the predictor ranks the pushes of each push direction (``DIRECTIONS``) among
+    themselves: pushes, average precision of "it topples" within the class, mean predicted and
+    observed topple rate.  A policy choosing the best of a pose's pushes leans on the ranking,
+    and a class ranked badly is where its choices go wrong.  Empty classes are left out."""
+    u_z = np.array([p.direction[2] for p in scorer.log.pushes])
+    predicted, observed = scores.p_topple, scorer.empirical_topple
+    out = []
+    for direction, rows in direction_classes(u_z):
+        if rows.any():
+            out.append({"direction": direction, "pushes": int(rows.sum()),
+                        "ap": average_precision(predicted[rows], observed[rows] > TOPPLES),
+                        "predicted_topple": float(predicted[rows].mean()), "observed_topple": float(observed[rows].mean())})
     return out
 
 
@@ -386,6 +410,7 @@ def report(
     results: dict[str, dict] = {}
     objects: list[dict] = []
     directions: list[dict] = []
+    ranking: list[dict] = []
     for variant in variants:
         predictions = scorer.predict(replace(config.topple, variant=variant))
         scores = scorer.score_predictions(predictions)
@@ -394,6 +419,7 @@ def report(
             main_predictions, main_scores = predictions, scores
             objects = per_object(scores, scorer)
             directions = by_direction(scores, scorer)
+            ranking = ranking_by_direction(scores, scorer)
     recalibration = None
     applied = replace(config.topple, variant=main_variant)
     x, y = applied.applied_recalibration
@@ -441,6 +467,7 @@ def report(
         "objects": objects,
         "worst_objects": worst_objects(objects),
         "by_direction": directions,
+        "ranking_by_direction": ranking,
         "brier_floor": float(np.nanmean(floor)) if np.isfinite(floor).any() else float("nan"),
         "bootstrap": {"resamples": n_resamples, "confidence": CONFIDENCE, "seed": seed, "over": "objects"},
         "thesis_table_4_3": THESIS_TABLE_4_3,
@@ -491,6 +518,10 @@ def format_report(result: dict) -> str:
         lines.append(f"{result['main_variant']} by push direction and predicted P(topple): pushes, predicted, observed")
         lines += [f"  {d['direction']:<11} {d['band']:<17} {d['pushes']:5d} {d['predicted_topple']:.3f} {d['observed_topple']:.3f}"
                   for d in result["by_direction"]]
+    if result.get("ranking_by_direction"):
+        lines.append(f"{result['main_variant']} ranking within each push direction: pushes, AP, predicted, observed")
+        lines += [f"  {d['direction']:<11} {d['pushes']:5d} {cell(d['ap'])} {d['predicted_topple']:.3f} {d['observed_topple']:.3f}"
+                  for d in result["ranking_by_direction"]]
     if "recalibration" in result:
         parts = [f"{key} {d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]"
                  for key, d in result["recalibration"]["difference"].items() if key != "informative"]
