@@ -316,13 +316,14 @@ class ActionDetail(Model):
     action: int
     status: Status
     executable: bool = Field(description="status == ok; otherwise the value fields are null and next_poses empty")
+    choosable: bool = Field(description="Whether greedy and value iteration may choose this push (ok, and its direction's u_z at least the build's mdp.min_direction_z); its q is its value either way")
     is_max_height: bool = Field(description="The Max-Height baseline's action")
     point: Vector3 = Field(description="m, contact point, pose frame")
     normal: Vector3 = Field(description="outward unit surface normal, pose frame")
     direction: Vector3 = Field(description="unit push direction, pose frame")
     p_topple: float | None = Field(description="P(next pose != pose); null unless ok")
     mean_force: float | None = Field(description="N, mean required push force over toppling trials; null when none")
-    q: float | None = Field(description="Q_T(pose, action); null unless ok")
+    q: float | None = Field(description="Q_T(pose, action): expected V_T after this push; null unless ok")
     greedy: float | None = Field(description="E[V_s(next pose)]; null unless ok")
     next_poses: list[NextPose] = Field(description="P(next pose | pose, action), sums to 1; empty unless ok")
 
@@ -333,6 +334,7 @@ class RankedAction(Model):
     greedy: float
     p_topple: float
     is_max_height: bool
+    choosable: bool = Field(description="Whether greedy and value iteration may choose this push (ok, and its direction's u_z at least the build's mdp.min_direction_z); its q is its value either way")
 
 
 class QValues(Model):
@@ -341,7 +343,7 @@ class QValues(Model):
     by: RankBy = Field(description="Column the top actions are ranked by")
     gamma: float = Field(description="Discount of value iteration")
     v_s: float = Field(description="Value of not pushing (grasping now)")
-    v_t: float = Field(description="V_T = max(V_s, gamma max_u Q_T)")
+    v_t: float = Field(description="V_T = max(V_s, gamma max_u Q_T), u over the choosable pushes")
     q: list[float | None] = Field(description="Q_T of every action, in action order; null unless ok")
     top: list[RankedAction] = Field(description="The best ok actions, highest first (ties: lower action first)")
 

@@ -148,6 +148,11 @@ class ObjectData:
         actions, values = self._budgets
         return actions[pushes_left - 1], values[pushes_left - 1]
 
+    def choosable(self, rows: slice | list[int]) -> np.ndarray:
+        """(n,) bool, whether greedy and value iteration may choose each action row: ``ok``
+        and pushing with u_z at least the build's ``mdp.min_direction_z`` (``schema.horizon``)."""
+        return (self.status[rows] == STATUS_OK) & horizon.choosable_pushes(self.directions[rows, 2], self.min_direction_z)
+
     def neighbourhood_p(self, pose: int, action: int) -> float:
         """The mean P(topple) around one push of a pose (``schema.neighbourhood``; the served
         tables hold it for each policy's push, this is for any other, about 80 us)."""

@@ -28,6 +28,9 @@ from service import DatasetError, create_app
 from service.__main__ import main
 from service.store import widen
 
+MIN_DIRECTION_Z = Config().mdp.min_direction_z
+"""The test dataset is built with the default config: the pushes its policies may choose."""
+
 OBJECTS = ["random_000", "random_001", "random_002"]
 ROOT = Path(__file__).resolve().parent.parent
 JSON = {"content-type": "application/json"}
@@ -155,6 +158,7 @@ def check_action(body: dict, row: dict, expected_next: dict[int, float] | None) 
     for name in ("point", "normal", "direction"):
         np.testing.assert_allclose(body[name], xyz(row, name), rtol=1e-6, atol=1e-9)
     assert body["q"] == row["q"] and body["greedy"] == row["greedy"]
+    assert body["choosable"] == (row["status"] == "ok" and np.float32(row["direction_z"]) >= np.float32(MIN_DIRECTION_Z))
     if row["status"] != "ok":
         assert not body["executable"] and body["next_poses"] == [] and expected_next is None
         assert body["p_topple"] is None and body["q"] is None
@@ -198,8 +202,12 @@ def test_q_values_and_top_k_sorted(client, tables, by):
         ok_scores = [a[by] for a in actions if a["status"] == "ok"]
         if ok_scores:
             assert scores[0] == pytest.approx(max(ok_scores), abs=1e-7)
+        choosable = [a["status"] == "ok" and np.float32(a["direction_z"]) >= np.float32(MIN_DIRECTION_Z) for a in actions]
+        assert [item["choosable"] for item in body["top"]] == [choosable[item["action"]] for item in body["top"]]
         if by == "q" and row["value_iteration_action"] != -1:
-            assert body["top"][0]["action"] == row["value_iteration_action"], "argmax Q, ties to the first"
+            # Value iteration's push is the best Q among the pushes it may choose (ties: the first).
+            best = max((a["q"], -u) for u, a in enumerate(actions) if choosable[u])
+            assert row["value_iteration_action"] == -best[1]
 
 
 # --- planning ------------------------------------------------------------------------

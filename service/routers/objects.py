@@ -78,6 +78,7 @@ def action_detail(obj: ObjectData, pose: int, action: int) -> ActionDetail:
         action=action,
         status=obj.status_name(row),
         executable=obj.is_ok(row),
+        choosable=bool(obj.choosable([row])[0]),
         is_max_height=bool(obj.is_max_height[row]),
         point=point,
         normal=normal,
@@ -178,6 +179,7 @@ async def get_q(
     ranked = candidates[np.lexsort((candidates, -score[candidates]))][:top]
     ranked_p_topple = widen(p_topple[ranked])
     max_height = obj.is_max_height[rows]
+    choosable = obj.choosable(rows)
     return QValues(
         object_id=obj.object_id,
         pose=pose,
@@ -188,7 +190,8 @@ async def get_q(
         q=[optional(v) for v in q],
         top=[
             RankedAction(
-                action=int(a), q=float(q[a]), greedy=float(greedy[a]), p_topple=float(p), is_max_height=bool(max_height[a])
+                action=int(a), q=float(q[a]), greedy=float(greedy[a]), p_topple=float(p), is_max_height=bool(max_height[a]),
+                choosable=bool(choosable[a]),
             )
             for a, p in zip(ranked, ranked_p_topple)
         ],
