@@ -26,6 +26,13 @@ import numpy as np
 
 from .vocabulary import NO_OP
 
+MAX_PUSHES_LEFT = 10
+"""Largest budget a request may give: beyond a few pushes the choice stops changing."""
+IMPROVEMENT = 1e-9
+"""A push must beat grasping now by more than this: stored probabilities are float32, so
+"stay in this pose" may sum to 1 only within ~1e-7 before the rows are renormalised."""
+
+
 def choosable_pushes(direction_z: np.ndarray, min_direction_z: float) -> np.ndarray:
     """(N,) bool, the pushes greedy and value iteration may choose: those whose direction's
     vertical component (pose frame, z up) is at least ``min_direction_z`` (``mdp.min_direction_z``).
@@ -34,13 +41,6 @@ def choosable_pushes(direction_z: np.ndarray, min_direction_z: float) -> np.ndar
     service choose from the same pushes.  direction_z : (N,) float
     """
     return np.asarray(direction_z, dtype=np.float32) >= np.float32(min_direction_z)
-
-
-MAX_PUSHES_LEFT = 10
-"""Largest budget a request may give: beyond a few pushes the choice stops changing."""
-IMPROVEMENT = 1e-9
-"""A push must beat grasping now by more than this: stored probabilities are float32, so
-"stay in this pose" may sum to 1 only within ~1e-7 before the rows are renormalised."""
 
 
 def budget_choices(

@@ -72,6 +72,20 @@ def test_a_small_run_plays_every_policy_and_logs_its_pushes(dataset, tmp_path):
             if r["pushes"]:
                 parts = sum(d["pushes"] * d[key] for d in r["by_direction"]) / r["pushes"]
                 assert parts == pytest.approx(r[key])
+    # by_direction classes each push by its own direction in the pose frame, as the dataset stores it.
+    from pipeline.studies.validation import direction_classes
+    from schema.reader import Dataset
+
+    stored = Dataset.open(dataset)
+    u_z = {}
+    for object_id in set(table["object_id"].to_pylist()):
+        rows = stored.object_rows("actions", object_id, columns=["pose", "action", "direction_z"]).to_pydict()
+        u_z.update({(object_id, p, a): z for p, a, z in zip(rows["pose"], rows["action"], rows["direction_z"])})
+    keys = list(zip(table["object_id"].to_pylist(), table["start_pose"].to_pylist(), table["action"].to_pylist()))
+    for index, policy in enumerate(POLICIES):
+        z = np.array([u_z[k] for k, mine in zip(keys, policy_of == index) if mine])
+        expected = {name: int(rows.sum()) for name, rows in direction_classes(z) if rows.any()}
+        assert {d["direction"]: d["pushes"] for d in report["policies"][policy]["by_direction"]} == expected
     # Every logged push starts where the previous push of its trial and policy ended.
     rows = sorted(table.to_pylist(), key=lambda row: (row["object_id"], row["push_id"]))
     for before, after in itertools.pairwise(rows):

@@ -104,6 +104,13 @@ def test_robust_actions_are_deterministic_and_per_pose():
         scores = pose_scores(poses[x], smoothing)
         assert np.isfinite(poses[x].q[first[x]]) and scores.count[first[x]] >= 2
         assert scores.smoothed_q[first[x]] == np.nanmax(np.where(scores.count >= 2, scores.smoothed_q, np.nan))
+    # A pose's best candidate the policies may not choose: the best of the others instead.
+    choosable = [np.ones(200, dtype=bool) for _ in poses]
+    choosable[0][first[0]] = False
+    masked = robust_actions(v_s, [pose_scores(c, smoothing) for c in poses], 0.95, smoothing, choosable)
+    scores = pose_scores(poses[0], smoothing)
+    assert masked[0] != first[0] and masked[2] == first[2]
+    assert scores.smoothed_q[masked[0]] == np.nanmax(np.where((scores.count >= 2) & choosable[0], scores.smoothed_q, np.nan))
 
 
 class TransitionsOnly:
@@ -129,6 +136,9 @@ def test_horizon_actions_are_played_most_pushes_left_first():
     # Row k: 3 - k pushes left, the order a trial plays them in.
     np.testing.assert_array_equal(actions[:, 0], [0, 0, 1])
     assert (actions[:, 1:] == NO_OP).all()
+    # The long shot not choosable: the sure push at every budget.
+    masked = horizon_actions(np.array([0.0, 0.35, 1.0]), rows, 3, [np.array([False, True]), np.array([True]), np.zeros(0, dtype=bool)])
+    np.testing.assert_array_equal(masked[:, 0], [1, 1, 1])
 
 
 def test_bad_smoothing_is_a_clear_error():
@@ -184,6 +194,10 @@ def test_untried_vi_does_not_push_again_where_a_push_failed_in_the_trial(dataset
     report, pushes = experiment(dataset, 8, seed=1, workers=1)
     assert not report["failed_objects"] and report["exclusion"] == vars(Exclusion())
     candidates = {o: read_candidates(Dataset.open(dataset), o) for o in {p.object_id for p in pushes}}
+    # Every rule chooses among the pushes the dataset's policies may choose (mdp.min_direction_z).
+    min_z = Dataset.open(dataset).manifest.parameters.mdp.min_direction_z
+    assert all(np.float32(candidates[p.object_id][p.pose].directions[p.action, 2]) >= np.float32(min_z)
+               for p in pushes if p.policy != "max_height")
     by_trial: dict[tuple, dict[str, list]] = {}
     for push in pushes:
         by_trial.setdefault((push.object_id, push.trial), {}).setdefault(push.policy, []).append(push)

@@ -52,3 +52,18 @@ def test_hdf5_layout_check_names_what_is_wrong(tmp_path):
         assert "/poses/000/edge_final_pose: shape (5,)" in problems[1]
         assert hdf5.check_file(f, {"object_id": "y"}) == ["attribute object_id = 'x', expected 'y'"]
         assert any("outcomes" in p for p in hdf5.check_file(f, {"A": [6]}))
+
+
+def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_push():
+    """Datasets built before ``mdp.min_direction_z`` let the policies choose any push: their
+    manifests must read as -1, in the service (``schema.manifest``) and in the pipeline's studies
+    (``Config.from_dict`` of the manifest's parameters, as ``policies_physics.dataset_config``)."""
+    from pipeline.model.config import Config
+    from schema.manifest import Parameters
+
+    old = Config().to_dict()
+    del old["mdp"]["min_direction_z"]
+    parameters = Parameters.model_validate(old)
+    assert parameters.mdp.min_direction_z == -1.0
+    assert Config.from_dict(parameters.model_dump()).mdp.min_direction_z == -1.0
+    assert Parameters.model_validate(Config().to_dict()).mdp.min_direction_z == Config().mdp.min_direction_z == -0.3

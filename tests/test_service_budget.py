@@ -10,7 +10,15 @@ import numpy as np
 import pytest
 
 from schema.horizon import MAX_PUSHES_LEFT
-from tests.test_service import JSON, client, dataset, planar_transform, stored_transform, tables  # noqa: F401 (fixtures)
+from tests.test_service import (  # noqa: F401 (fixtures)
+    JSON,
+    MIN_DIRECTION_Z,
+    client,
+    dataset,
+    planar_transform,
+    stored_transform,
+    tables,
+)
 
 
 def plan(client, tables, object_id: str, pose: int, **extra) -> dict:
@@ -26,7 +34,11 @@ def test_one_push_left_is_the_greedy_choice(client, tables):
         answer = plan(client, tables, object_id, pose, pushes_left=1)
         assert answer["pushes_left"] == 1
         greedy = {a: r["greedy"] for (o, p, a), r in tables["actions"].items() if (o, p) == (object_id, pose) and r["greedy"] is not None}
-        best = max(greedy.values(), default=-np.inf)
+        # Only the pushes the policies may choose (mdp.min_direction_z) compete.
+        choosable = {a: g for a, g in greedy.items()
+                     if np.float32(tables["actions"][(object_id, pose, a)]["direction_z"]) >= np.float32(MIN_DIRECTION_Z)}
+        best = max(choosable.values(), default=-np.inf)
+        assert answer["action"] is None or answer["action"] in choosable, (object_id, pose)
         if answer["action"] is None:
             assert best <= row["v_s"] + 1e-6, (object_id, pose)
             assert answer["expected_v_s_final"] is None
@@ -37,6 +49,32 @@ def test_one_push_left_is_the_greedy_choice(client, tables):
             assert answer["expected_v_s_final"] == pytest.approx(best, abs=1e-6)
             assert answer["expected_v_s_final"] == pytest.approx(answer["expected_v_s_after"], abs=1e-6)
     assert pushed > 0, "the test dataset should have poses worth pushing from"
+
+
+def test_a_budget_chooses_only_pushes_the_build_lets_the_policies_choose(dataset, tables):
+    """The served budget with a stricter mdp.min_direction_z (0.2: mostly pushes from below):
+    one push left is the best greedy value among those pushes, though better ones exist."""
+    import dataclasses
+
+    from service.store import Store
+
+    store = Store.load(dataset)
+    masked = 0
+    for object_id, obj in store.objects.items():
+        strict = dataclasses.replace(obj, min_direction_z=0.2)
+        actions, values = strict.budget(1)
+        for pose in range(len(strict.v_s)):
+            rows = tables["actions"]
+            greedy = {a: rows[(object_id, pose, a)]["greedy"] for a in range(int(strict.n_actions[pose]))
+                      if rows[(object_id, pose, a)]["greedy"] is not None}
+            allowed = {a: g for a, g in greedy.items() if np.float32(rows[(object_id, pose, a)]["direction_z"]) >= np.float32(0.2)}
+            best = max(allowed.values(), default=-np.inf)
+            masked += max(greedy.values(), default=-np.inf) > best + 1e-6
+            if actions[pose] < 0:
+                assert best <= strict.v_s[pose] + 1e-6
+            else:
+                assert actions[pose] in allowed and allowed[actions[pose]] == pytest.approx(best, abs=1e-6)
+    assert masked > 0, "some pose's best push should be one the stricter build does not let the policies choose"
 
 
 def final_value(client, tables, object_id: str, pose: int, budget: int) -> float:

@@ -371,9 +371,10 @@ class MDPConfig:
     (pose frame, z up) is at least this; -1 lets them choose any (the thesis).  The model ranks
     pushes from above and oblique pushes (u_z < -0.3) poorly among themselves: average
     precision of "it topples" 0.51-0.55 within those classes on the corpus log, 0.82-0.86 from
-    the side and from below.  Planning on the others gained as much in physics and keeps the chosen pushes'
-    predictions from resting on two opposite errors (docs/VALIDATION.md, "Plan on the pushes the
-    model can judge").  Every push keeps its P(topple), Q and greedy value."""
+    the side and from below.  Planning on the others gained more in physics (on all ten seeds
+    played) and keeps the chosen pushes' predictions from resting on two opposite errors
+    (docs/VALIDATION.md, "Plan on the pushes the model can judge").  Every push keeps its
+    P(topple), Q and greedy value."""
 
 
 @dataclass(frozen=True)

@@ -131,12 +131,13 @@ def evaluate_object(
             with clock("suction"):
                 suction.append(pose_suction(obj, p, config))
     with _stage(timings, "mdp"), clock("mdp"):
+        choosable = [horizon.choosable_pushes(a.directions[:, 2], config.mdp.min_direction_z) for a in actions]
         values = pose_values(
             [t.next_pose for t in tables],
             np.array([s.quality for s in suction]),
             [a.max_height for a in actions],
             config.mdp,
-            [horizon.choosable_pushes(a.directions[:, 2], config.mdp.min_direction_z) for a in actions],
+            choosable,
         )
     return ObjectResult(
         object_id=object_id or obj.name,
@@ -152,6 +153,7 @@ def evaluate_object(
         values=values,
         timings=timings,
         equivalent_transforms=pose_set.equivalents,
+        choosable=choosable,
     )
 
 
@@ -369,8 +371,8 @@ def plan(
     if pushes_left is not None:
         v_s = np.array([s.quality for s in result.suction], dtype=float)
         rows = [np.asarray(t.next_pose, dtype=float) for t in result.topple]
-        choosable = np.concatenate([horizon.choosable_pushes(a.directions[:, 2], config.mdp.min_direction_z)
-                                    for a in result.actions])
+        # The pushes the build's policies could choose (its mdp.min_direction_z, not ``config``'s).
+        choosable = None if result.choosable is None else np.concatenate(result.choosable)
         actions, values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes_left, choosable)
         choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
     if choice.action == NO_OP:

@@ -114,7 +114,7 @@ def value_iteration(
     """
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
-    rows, owner, ok = _stack(next_pose, n_poses)
+    rows, owner, _ = _stack(next_pose, n_poses)
     poses, starts = np.unique(owner, return_index=True)
     ends = np.r_[starts[1:], len(owner)].astype(int)
 

@@ -141,3 +141,6 @@ class ObjectResult:
     equivalent_transforms: list[np.ndarray] | None = None
     """Per pose, (k, 4, 4) float: every orientation that is the pose (``PoseSet.equivalents``),
     its own transform first; None when no symmetric poses were merged."""
+    choosable: list[np.ndarray] | None = None
+    """Per pose, (A_x,) bool: the pushes greedy and value iteration could choose under the
+    build's ``mdp.min_direction_z`` (``schema.horizon.choosable_pushes``); None: every push."""

@@ -232,7 +232,7 @@ def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int, choosa
     of 2,709 pose-budgets of the default dataset's first 80 objects, 3 pushes) the two may
     pick different pushes of equal value.  choosable : per pose (A_x,) bool, as ``robust_actions``.
     """
-    mask = None if choosable is None else np.concatenate(choosable)
+    mask = None if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])
     actions, _ = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes, mask)
     return actions[::-1]  # row k: pushes - k left, the order the pushes are played in
 

@@ -341,9 +341,11 @@ def _within(values: np.ndarray, low: float, high: float) -> np.ndarray:
 def direction_classes(u_z: np.ndarray) -> list[tuple[str, np.ndarray]]:
     """Each of ``DIRECTIONS``' names with the (n,) bool rows whose push is in it.
 
-    u_z : (n,) float, the push direction's vertical component in the pose frame (z up)"""
-    u_z = np.asarray(u_z, dtype=float)
-    return [(name, _within(u_z, low, high)) for name, low, high in DIRECTIONS]
+    u_z : (n,) float, the push direction's vertical component in the pose frame (z up); clipped
+      to [-1, 1] (a unit vector's rounding) and compared in float32, as
+      ``schema.horizon.choosable_pushes`` compares it, so the classes split what the policies choose"""
+    u_z = np.clip(np.asarray(u_z, dtype=float), -1.0, 1.0).astype(np.float32)
+    return [(name, _within(u_z, np.float32(low), np.float32(high))) for name, low, high in DIRECTIONS]
 
 
 def by_direction(scores: Scores, scorer: Scorer) -> list[dict]:
