@@ -142,9 +142,8 @@ class ObjectData:
         """
         if self._budgets is None:
             # one assignment: a concurrent first request computes the same
-            choosable = horizon.choosable_pushes(self.directions[:, 2], self.min_direction_z)
             self._budgets = horizon.budget_choices(self.v_s, self.action_offsets, self.transition_offsets, self.next_pose,
-                                                   self.transition_probability, horizon.MAX_PUSHES_LEFT, choosable)
+                                                   self.transition_probability, horizon.MAX_PUSHES_LEFT, self.choosable(slice(None)))
         actions, values = self._budgets
         return actions[pushes_left - 1], values[pushes_left - 1]
 

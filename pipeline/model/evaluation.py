@@ -131,7 +131,7 @@ def evaluate_object(
             with clock("suction"):
                 suction.append(pose_suction(obj, p, config))
     with _stage(timings, "mdp"), clock("mdp"):
-        choosable = [horizon.choosable_pushes(a.directions[:, 2], config.mdp.min_direction_z) for a in actions]
+        choosable = _choosable(actions, config)
         values = pose_values(
             [t.next_pose for t in tables],
             np.array([s.quality for s in suction]),
@@ -237,9 +237,13 @@ def solve(evaluations: list["PoseEvaluation"], v_s: np.ndarray, config: Config =
         raise ValueError("solve needs one evaluation per stable pose, in pose order")
     return pose_values(
         [e.table.next_pose for e in evaluations], np.asarray(v_s, dtype=float),
-        [e.actions.max_height for e in evaluations], config.mdp,
-        [horizon.choosable_pushes(e.actions.directions[:, 2], config.mdp.min_direction_z) for e in evaluations],
+        [e.actions.max_height for e in evaluations], config.mdp, _choosable([e.actions for e in evaluations], config),
     )
+
+
+def _choosable(actions: list[Actions], config: Config) -> list[np.ndarray]:
+    """Per pose, (A_x,) bool: the pushes greedy and value iteration may choose (``mdp.min_direction_z``)."""
+    return [horizon.choosable_pushes(a.directions[:, 2], config.mdp.min_direction_z) for a in actions]
 
 
 # --- an observed pose: match it, and the policy's push in the world --------------------------

@@ -93,6 +93,7 @@ def value_iteration(
     gamma: float,
     tolerance: float,
     max_iterations: int,
+    choosable: list[np.ndarray] | None = None,
 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """V_T and Q_T by value iteration from V_T = V_s, accelerated by policy evaluation.
 
@@ -110,37 +111,31 @@ def value_iteration(
     gamma : discount in [0, 1)
     tolerance : float, largest change of any V_T(x) in the last sweep
     max_iterations : int, upper bound on sweeps
+    choosable : list of P (A_x,) bool, the pushes the max over u may take (default all); the
+      others' Q_T is still their value under the plan, (12.7)
     returns : V_T (P,) float; Q_T list of (A_x,) float, NaN where the row is NaN
     """
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
-    rows, owner, _ = _stack(next_pose, n_poses)
-    poses, starts = np.unique(owner, return_index=True)
-    ends = np.r_[starts[1:], len(owner)].astype(int)
+    rows, owner, ok = _stack(next_pose, n_poses)
+    planned = slice(None) if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])[ok]
+    plan_rows, plan_owner = rows[planned], owner[planned]
+    poses, starts = np.unique(plan_owner, return_index=True)
+    ends = np.r_[starts[1:], len(plan_owner)].astype(int)
 
     value = v_s.copy()
     for _ in range(max_iterations):
-        best, row = _greedy_step(rows @ value, starts, ends, poses, n_poses)
+        best, row = _greedy_step(plan_rows @ value, starts, ends, poses, n_poses)
         bellman = np.maximum(v_s, gamma * best)
         change = float(np.max(bellman - value)) if n_poses else 0.0  # iterates only rise
         if change <= tolerance:
             value = bellman
             break
-        value = np.maximum(bellman, _policy_value(rows, row, gamma * best > v_s, v_s, gamma))
+        value = np.maximum(bellman, _policy_value(plan_rows, row, gamma * best > v_s, v_s, gamma))
 
-    return value, action_values(next_pose, value)
-
-
-def action_values(next_pose: list[np.ndarray], value: np.ndarray) -> list[np.ndarray]:
-    """Q(x, u) = sum_x' P(x' | x, u) value(x') of every action, per pose.
-
-    next_pose : list of P (A_x, P) float;  value : (P,) float
-    returns : list of P (A_x,) float, NaN where the row is NaN
-    """
-    rows, _, ok = _stack(next_pose, len(value))
     q = np.full(len(ok), np.nan)
     q[ok] = rows @ value
-    return _split(q, next_pose)
+    return value, _split(q, next_pose)
 
 
 def greedy_values(next_pose: list[np.ndarray], v_s: np.ndarray) -> list[np.ndarray]:
@@ -228,17 +223,11 @@ def pose_values(
       policies ``max_height``, ``greedy``, ``value_iteration``)
     """
     v_s = np.asarray(v_s, dtype=float)
-    planned = next_pose if choosable is None else [
-        np.where(np.asarray(c, dtype=bool)[:, None], np.asarray(t, dtype=float).reshape(-1, len(v_s)), np.nan)
-        for t, c in zip(next_pose, choosable)
-    ]
-    v_t, q = value_iteration(planned, v_s, config.gamma, config.tolerance, config.max_iterations)
+    v_t, q = value_iteration(next_pose, v_s, config.gamma, config.tolerance, config.max_iterations, choosable)
     greedy = greedy_values(next_pose, v_s)
-    if choosable is not None:
-        q = action_values(next_pose, v_t)
     out = []
     for x in range(len(v_s)):
-        mine = np.ones(len(greedy[x]), dtype=bool) if choosable is None else np.asarray(choosable[x], dtype=bool)
+        mine = True if choosable is None else np.asarray(choosable[x], dtype=bool)
         policies = {
             "max_height": max_height_policy(x, v_s, int(max_height_actions[x]), greedy[x]),
             "greedy": greedy_policy(x, v_s, np.where(mine, greedy[x], np.nan)),

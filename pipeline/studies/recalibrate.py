@@ -249,12 +249,13 @@ def main(argv: list[str] | None = None) -> int:
     except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    logs_line = f"logs: {' '.join(args.logs)}; {result['pushes']} pushes on {result['objects']} objects, variant {result['variant']}"
     if args.features:
         print(format_feature_record(result))
         pooled = result["cross_validated"]
         comments = [
             "toppledb recalibrate --features: feature map of P(topple) fitted on push logs (docs/MODEL.md C.13)",
-            f"logs: {' '.join(args.logs)}; {result['pushes']} pushes on {result['objects']} objects, variant {result['variant']}",
+            logs_line,
             (f"{args.folds}-fold CV grouped by object (seed {args.seed}), held-out ECE / Brier: identity "
              f"{pooled['identity']['ece']:.3f} / {pooled['identity']['brier']:.4f}, feature map "
              f"{pooled['feature_map']['ece']:.3f} / {pooled['feature_map']['brier']:.4f}"),
@@ -265,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
         cv = result["cross_validated"]
         comments = [
             "toppledb recalibrate: monotone map of P(topple) fitted on push logs (docs/MODEL.md C.7)",
-            f"logs: {' '.join(args.logs)}; {result['pushes']} pushes on {result['objects']} objects, variant {result['variant']}",
+            logs_line,
             (f"method {result['chosen']}, chosen by {args.folds}-fold CV grouped by object (seed {args.seed}) on held-out "
              f"{result['select_by']}; held-out ECE / Brier: "
              + ", ".join(f"{m} {v['ece']:.3f} / {v['brier']:.4f}" for m, v in [("identity", cv["identity"])] + list(cv["methods"].items()))),

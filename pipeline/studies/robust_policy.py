@@ -278,8 +278,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
     if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms, atol=1e-6):
         return spec.object_id, {"failure": "its stable poses differ from the dataset's"}, []
     body = body_model(obj)
-    candidates, scores, exclusion = extra["candidates"], extra["scores"], extra["exclusion"]
-    choosable = extra.get("choosable") or [np.ones(len(c.q), dtype=bool) for c in candidates]
+    candidates, scores, exclusion, choosable = extra["candidates"], extra["scores"], extra["exclusion"], extra["choosable"]
     gamma = config.mdp.gamma
     results: dict[int, dict[str, list[int]]] = {}
     pushes: list[Push] = []
