@@ -94,6 +94,8 @@ def test_calibration_recovers_the_table_friction_that_made_the_log(boxes, tmp_pa
     config = Config.from_toml(toml)
     assert config.topple.mu_table_mean == pytest.approx(chosen)
     assert config.topple.rotation_std == Config().topple.rotation_std  # not searched: default
+    # The default's map was fitted on the default noise: the file clears it rather than inherit it.
+    assert Config().topple.recalibration_x and config.topple.recalibration_x == config.topple.recalibration_y == ()
 
 
 def test_the_command_chooses_by_the_brier_score_unless_told(boxes, tmp_path):

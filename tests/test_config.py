@@ -29,8 +29,23 @@ def test_the_calibrated_defaults_are_the_shipped_calibration_rounded():
     from pathlib import Path
 
     calibrated = tomllib.loads((Path(__file__).parents[1] / "reports" / "calibrated_corrected.toml").read_text())["topple"]
-    for key, value in calibrated.items():
+    noise = {key: value for key, value in calibrated.items() if not key.startswith("recalibration_")}
+    assert noise, "the calibration file holds no noise parameters"
+    for key, value in noise.items():
         assert math.isclose(getattr(Config().topple, key), float(f"{value:.3g}")), key
+
+
+def test_the_default_map_is_the_shipped_recalibration_exactly():
+    """config.py's default recalibration knots are reports/recalibrated_centred.toml's, unrounded,
+    fitted under the default smoothing; the thesis's variants ignore them."""
+    import tomllib
+    from pathlib import Path
+
+    fitted = tomllib.loads((Path(__file__).parents[1] / "reports" / "recalibrated_centred.toml").read_text())["topple"]
+    topple = Config().topple
+    assert topple.applied_recalibration == (tuple(fitted["recalibration_x"]), tuple(fitted["recalibration_y"]))
+    assert (topple.smoothing_radius, topple.smoothing_angle) == (fitted["smoothing_radius"], fitted["smoothing_angle"])
+    assert Config.from_toml(PRESETS / "thesis.toml").topple.applied_recalibration == ((), ())
 
 
 def test_round_trip_and_overrides(tmp_path):

@@ -125,7 +125,12 @@ def test_bad_weights_are_refused_with_the_field_named():
     with pytest.raises(ValueError, match="two maps"):
         Config().with_overrides({"topple.feature_map": "0,1,0,0,0,0", "topple.recalibration_x": "0,1",
                                  "topple.recalibration_y": "0,1"})
-    topple = replace(Config().topple, feature_map=IDENTITY)
+    with pytest.raises(ValueError, match="recalibration_x= --set topple.recalibration_y="):
+        Config().with_overrides({"topple.feature_map": "0,1,0,0,0,0"})  # the defaults carry a map
+    emptied = Config().with_overrides({"topple.feature_map": "0,1,0,0,0,0", "topple.recalibration_x": "",
+                                       "topple.recalibration_y": ""}).topple
+    assert emptied.applied_feature_map == IDENTITY and emptied.applied_recalibration == ((), ())
+    topple = replace(Config().topple.without_recalibration(), feature_map=IDENTITY)
     assert topple.applied_feature_map == IDENTITY and topple.needs_candidates
     assert replace(topple, variant="robust").applied_feature_map == ()
     assert topple.without_recalibration().feature_map == () and topple.counted().feature_map == ()
@@ -133,7 +138,7 @@ def test_bad_weights_are_refused_with_the_field_named():
 
 def test_the_engine_maps_the_smoothed_rows_with_the_pushes_own_features(pose_and_candidates):  # noqa: F811
     obj, pose_set, pose, actions = pose_and_candidates
-    topple = replace(Config().topple, n_trials=40)
+    topple = replace(Config().topple.without_recalibration(), n_trials=40)
     weights = (-0.4, 0.5, 0.6, -0.2, -1.0, 0.7)
 
     def table(t):
@@ -152,7 +157,7 @@ def test_the_engine_maps_the_smoothed_rows_with_the_pushes_own_features(pose_and
 
 def test_probes_are_mapped_over_the_candidates_and_leave_their_rows(pose_and_candidates):  # noqa: F811
     obj, pose_set, pose, pool = pose_and_candidates
-    topple = replace(Config().topple, n_trials=40, feature_map=(-0.4, 0.5, 0.6, -0.2, -1.0, 0.7))
+    topple = replace(Config().topple.without_recalibration(), n_trials=40, feature_map=(-0.4, 0.5, 0.6, -0.2, -1.0, 0.7))
     ok = np.flatnonzero(pool.status == STATUS_OK)
     n = len(pool.status)
     counted = evaluate_pose(obj, pose, len(pose_set.poses), pool, topple.counted(), stream(3, obj.name, pose.index, "trials"))
@@ -193,7 +198,7 @@ def test_the_scorer_gives_features_of_logged_candidates_and_the_fit_is_written(m
     path = model_logs / "reported.parquet"
     log = read_log([path])
     contacts = ContactConfig(n_contacts=CANDIDATES_PER_POSE)
-    topple = Config().topple
+    topple = Config().topple.without_recalibration()
     scorer = Scorer(log, seed=2, contacts=contacts)  # the log's pushes are candidates of seed 2
     features, p = scorer.features(replace(topple, feature_map=IDENTITY))
     assert np.allclose(p, scorer.score(topple).p_topple), "features come from the model with no map"

@@ -12,7 +12,9 @@ from pipeline.model.poses import stable_poses
 from pipeline.model.recalibration import (
     Knots,
     apply_map,
+    check_knots,
     fit,
+    fit_centred,
     fit_isotonic,
     fit_logistic,
     logistic_knots,
@@ -21,7 +23,9 @@ from pipeline.model.recalibration import (
     recalibrate_rows,
 )
 from pipeline.studies.recalibrate import cross_validate
+from pipeline.studies.validation import average_precision
 from schema.vocabulary import STATUS_OK
+from tests.test_validation import model_logs  # noqa: F401 (fixture)
 
 RAW = Config().topple.counted()  # the counts alone: no smoothing (MODEL.md C.12), no map
 # A steep, clearly non-identity map: lifts small probabilities, as the corpus fit does.
@@ -60,6 +64,62 @@ def test_isotonic_fit_is_monotone_and_recovers_a_monotone_map():
     assert np.mean(np.abs(apply_map(p, knots.x, knots.y) - truth(p))) < 0.05
 
 
+def rises_between_flat_ends(x, y) -> bool:
+    """Whether knot values y strictly increase everywhere but in a flat start and a flat end,
+    past the (0, 0) anchor (the fitted p are all > 0)."""
+    rises = np.diff(np.asarray(y, dtype=float)[np.asarray(x) > 0]) > 0
+    where = np.flatnonzero(rises)
+    return len(where) > 0 and bool(np.all(rises[where[0]:where[-1] + 1]))
+
+
+def test_strict_pooling_also_pools_equal_neighbours():
+    fitted, block = pool_adjacent_violators(np.array([0.1, 0.3, 0.3, 0.5]), np.ones(4), strict=True)
+    assert list(block) == [0, 1, 1, 2] and np.allclose(fitted, [0.1, 0.3, 0.3, 0.5])
+    _, loose = pool_adjacent_violators(np.array([0.1, 0.3, 0.3, 0.5]), np.ones(4))
+    assert list(loose) == [0, 1, 2, 3], "plain isotonic keeps equal neighbours apart"
+
+
+def test_centred_fit_puts_one_knot_at_each_blocks_weighted_centre():
+    p = np.array([0.1, 0.2, 0.4, 0.6, 0.8])
+    observed = np.array([0.0, 0.3, 0.1, 0.5, 0.5])  # 0.2 and 0.4 violate; 0.6 and 0.8 tie
+    weight = np.array([1.0, 1.0, 3.0, 1.0, 1.0])
+    knots = fit_centred(p, observed, weight)
+    # Blocks {0.1}, {0.2, 0.4} (weights 1 and 3), {0.6, 0.8}: the last block is constant from
+    # its centre to its largest p; anchored at (0, 0), flat to x = 1.
+    assert np.allclose(knots.x, [0.0, 0.1, (0.2 + 3 * 0.4) / 4, 0.7, 0.8, 1.0])
+    assert np.allclose(knots.y, [0.0, 0.0, (0.3 + 3 * 0.1) / 4, 0.5, 0.5, 0.5])
+
+
+def test_centred_fit_keeps_a_blocks_value_over_all_of_its_pushes():
+    # One block: every push is predicted its observed rate, none pulled towards the (0, 0) anchor.
+    knots = fit_centred(np.array([0.2, 0.5, 0.9]), np.full(3, 0.4), np.ones(3))
+    assert np.allclose(predict(np.array([0.2, 0.5, 0.9]), knots), 0.4)
+
+
+def test_centred_knots_stay_strictly_increasing_for_probabilities_one_bit_apart():
+    p = np.array([0.3, np.nextafter(0.3, 1.0)])
+    knots = fit_centred(p, np.array([0.1, 0.2]), np.full(2, 107.0))
+    check_knots(knots.x, knots.y)
+    assert np.allclose(predict(p, knots), [0.1, 0.2])
+
+
+def test_centred_fit_is_strictly_increasing_inside_its_knots_and_keeps_the_ranking():
+    rng = np.random.default_rng(4)
+    p = rng.choice(np.arange(1, 100) / 100, 500)
+    truth = 0.05 + 0.7 * p**1.5
+    observed = rng.binomial(10, truth) / 10
+    centred, isotonic = fit_centred(p, observed, np.full(len(p), 10.0)), fit_isotonic(p, observed, np.full(len(p), 10.0))
+    assert np.all(np.diff(centred.x) > 0) and rises_between_flat_ends(centred.x, centred.y), "strictly increasing between block centres"
+    rising = np.flatnonzero(np.diff(centred.y[1:]) > 0) + 1  # knots past the anchor that rise to the next
+    inside = (p >= centred.x[rising[0]]) & (p <= centred.x[rising[-1] + 1])
+    mapped = predict(p, centred)
+    assert np.array_equal(np.argsort(mapped[inside], kind="stable"), np.argsort(p[inside], kind="stable"))
+    topples = observed > 0.5
+    assert average_precision(predict(p, isotonic), topples) < average_precision(p, topples), "isotonic's steps tie pushes"
+    assert abs(average_precision(mapped, topples) - average_precision(p, topples)) < 0.01
+    assert np.mean(np.abs(mapped - truth)) < 0.05
+
+
 def test_logistic_fit_recovers_known_parameters_and_is_strictly_increasing():
     p = np.arange(1, 100) / 100
     a, b = 0.6, 0.4
@@ -87,7 +147,7 @@ def test_cross_validation_is_grouped_by_object_and_scores_every_method():
     observed = np.clip(p * 0.6 + 0.2, 0, 1)
     cv = cross_validate(p, observed, np.full(len(p), 10.0), objects, [f"o{i}" for i in range(12)], 4, 0)
     assert sorted(name for fold in cv["folds"] for name in fold) == sorted(f"o{i}" for i in range(12))
-    for method in ("isotonic", "logistic"):
+    for method in ("isotonic", "logistic", "centred"):
         assert cv["methods"][method]["ece"] < cv["identity"]["ece"]
 
 
@@ -175,3 +235,37 @@ def test_knots_round_trip_through_dict_and_toml(tmp_path):
     path.write_text("[topple]\nrecalibration_x = [0.0, 0.5, 1.0]\nrecalibration_y = [0.0, 0.7, 0.9]\n")
     assert Config.from_toml(path) == config
     assert isinstance(config.to_dict()["topple"]["recalibration_x"], list)  # as JSON reads it back (manifest)
+
+
+# ---------------------------------------------------------------- the command
+
+
+def test_the_command_fits_the_methods_it_is_given_and_refuses_unknown_ones(model_logs, tmp_path, capsys):  # noqa: F811
+    import json
+
+    from pipeline.studies.recalibrate import main
+    from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
+
+    path = model_logs / "reported.parquet"
+    out, record = tmp_path / "map.toml", tmp_path / "map.json"
+    common = ["--corpus", "none", "--folds", "3", "--set", f"contacts.n_contacts={CANDIDATES_PER_POSE}", "--seed", "2",
+              "--set", "seed=2", "--out", str(out), "--json", str(record)]
+    assert main([str(path), "--methods", "centred", *common]) == 0
+    result = json.loads(record.read_text())
+    written = Config.from_toml(out).topple
+    assert result["chosen"] == "centred" and result["methods"] == ["centred"]
+    assert set(result["cross_validated"]["methods"]) == {"isotonic", "logistic", "centred"}, "every method is scored"
+    assert list(written.recalibration_x) == result["knots"]["x"] and rises_between_flat_ends(written.recalibration_x, written.recalibration_y)
+    assert "chosen among centred" in out.read_text()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as refused:
+        main([str(path), "--methods", "splines", *common])
+    assert refused.value.code == 2 and "invalid choice: 'splines'" in capsys.readouterr().err
+    # On a base model with other noise (a ``toppledb calibrate`` file, say), the written file
+    # carries that noise with the map fitted on it; loaded alone it is the model the map was fitted for.
+    base = tmp_path / "noise.toml"
+    base.write_text('[topple]\nmu_table_mean = 0.5\nrecalibration_x = []\nrecalibration_y = []\n')
+    assert main([str(path), "--config", str(base), "--methods", "isotonic", *common]) == 0
+    written = Config.from_toml(out).topple
+    assert written.mu_table_mean == 0.5 and list(written.recalibration_x) == json.loads(record.read_text())["knots"]["x"]
+    assert written.variant == Config().topple.variant and "base model: " in out.read_text()

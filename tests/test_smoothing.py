@@ -27,7 +27,7 @@ RADIUS, ANGLE = 0.02, 0.5
 
 
 def _topple(radius: float, variant: str = "corrected", n_trials: int = 40):
-    return replace(Config().topple, smoothing_radius=radius, smoothing_angle=ANGLE, variant=variant, n_trials=n_trials)
+    return replace(Config().topple.without_recalibration(), smoothing_radius=radius, smoothing_angle=ANGLE, variant=variant, n_trials=n_trials)
 
 
 @pytest.fixture(scope="module")

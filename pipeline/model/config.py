@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
+from . import fitted_map
 from .feature_map import check_weights
 from .recalibration import check_knots
 
@@ -221,20 +222,22 @@ class ToppleConfig:
     ``corrected`` variant smooths (the thesis's variants never do)."""
     smoothing_angle: float = bounded(0.35, POSITIVE)
     """rad, largest angle between the push directions of two neighbours (``smoothing_radius``)."""
-    recalibration_x: tuple[float, ...] = bounded((), FRACTION)
+    recalibration_x: tuple[float, ...] = bounded(fitted_map.RECALIBRATION_X, FRACTION)
     """Knots x_k of the monotone map g of P(topple) (docs/MODEL.md C.7), strictly increasing in
-    [0, 1]; empty (the default) is the identity.  reports/recalibrated_corrected.toml holds the
-    map fitted on data/logs/corpus (``--config reports/recalibrated_corrected.toml``); it is not
-    the default because it widened the over-confidence of the pushes the policies choose
-    (docs/VALIDATION.md, "Probability recalibration").  Only the ``corrected`` variant applies
-    it (the thesis's variants never do).  A list in TOML, comma-separated with ``--set``."""
-    recalibration_y: tuple[float, ...] = bounded((), FRACTION)
+    [0, 1]; empty is the identity.  The default is candidate C (``pipeline.model.fitted_map``):
+    the centred isotonic map fitted on the corpus's drawn pushes (data/logs/corpus_all) under
+    the default model, adopted by a rule written down before it was played (docs/VALIDATION.md,
+    "candidate C").
+    Only the ``corrected`` variant applies it (the thesis's variants never do).  A list in
+    TOML (``[]`` for the identity), comma-separated with ``--set``."""
+    recalibration_y: tuple[float, ...] = bounded(fitted_map.RECALIBRATION_Y, FRACTION)
     """Knots g(x_k), non-decreasing in [0, 1], as many as ``recalibration_x``."""
     feature_map: tuple[float, ...] = bounded((), Range())
     """Weights w of the feature map of P(topple) (docs/MODEL.md C.13), one per feature (bias,
     logit_p, logit_neighbourhood, log_force_ratio, no_own_topple, direction_z), or empty (the
     default): no map.  Fitted by ``toppledb recalibrate --features`` on observed pushes; applied
-    after the smoothing (C.12), to candidates and probes alike.  Not together with ``recalibration_x``/``_y`` (two maps of one probability).
+    after the smoothing (C.12), to candidates and probes alike.  Not together with
+    ``recalibration_x``/``_y`` (two maps of one probability): a file that sets it sets those to ``[]``.
     Only the ``corrected`` variant applies it."""
 
     def __post_init__(self) -> None:
@@ -246,7 +249,9 @@ class ToppleConfig:
         check_knots(self.recalibration_x, self.recalibration_y)
         check_weights(self.feature_map)
         if self.feature_map and self.recalibration_x:
-            raise ValueError("topple.feature_map and topple.recalibration_x/_y are two maps of one P(topple); set one")
+            raise ValueError("topple.feature_map and topple.recalibration_x/_y are two maps of one P(topple); set one "
+                             "(the defaults carry a recalibration map: with a feature map set recalibration_x = [] and "
+                             "recalibration_y = [], or --set topple.recalibration_x= --set topple.recalibration_y=)")
 
     @property
     def predicts_rotations(self) -> bool:

@@ -16,8 +16,9 @@ linear interpolation, clamped to the end knots.  It is applied to a transition t
 Rows with p = 0 are left as they are even when g(0) > 0: the engine saw no trial topple,
 so there is no next pose to give the mass to.
 
-Two fitters, both over pushes weighted by their repeats (observed frequency as target):
-``fit_isotonic`` (pool adjacent violators) and ``fit_logistic`` (g(p) = sigmoid(a logit(p)
+Three fitters, all over pushes weighted by their repeats (observed frequency as target):
+``fit_isotonic`` (pool adjacent violators), ``fit_centred`` (the same, strictly increasing
+between block centres) and ``fit_logistic`` (g(p) = sigmoid(a logit(p)
 + b), two parameters, by Newton's method on the binomial likelihood).  numpy only.
 """
 
@@ -108,10 +109,11 @@ def recalibrate_rows(next_pose: np.ndarray, start: int, x, y) -> tuple[np.ndarra
 # ---------------------------------------------------------------- fitting
 
 
-def pool_adjacent_violators(y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pool_adjacent_violators(y: np.ndarray, w: np.ndarray, strict: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Weighted isotonic (non-decreasing) least squares fit of ``y`` in the given order.
 
     y : (n,) float, targets sorted by their x;  w : (n,) float > 0, weights
+    strict : pool equal neighbouring blocks too, so the block values strictly increase
     returns : fitted (n,) float, non-decreasing; block (n,) int, the pooled block of each point
     """
     means: list[float] = []
@@ -122,7 +124,7 @@ def pool_adjacent_violators(y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, n
         weights.append(weight)
         sizes.append(1)
         # Merge backwards while the last two blocks violate the order.
-        while len(means) > 1 and means[-2] > means[-1]:
+        while len(means) > 1 and (means[-2] > means[-1] or (strict and means[-2] == means[-1])):
             total = weights[-2] + weights[-1]
             means[-2] = (means[-2] * weights[-2] + means[-1] * weights[-1]) / total
             weights[-2] = total
@@ -130,6 +132,18 @@ def pool_adjacent_violators(y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, n
             del means[-1], weights[-1], sizes[-1]
     block = np.repeat(np.arange(len(sizes)), sizes)
     return np.asarray(means)[block], block
+
+
+def pooled_by_p(p: np.ndarray, observed: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One point per distinct p: its total weight and weighted mean observed frequency.
+
+    p, observed, weight : (n,) float
+    returns : xs (m,) distinct p, sorted;  w (m,) summed weights;  y (m,) mean observed
+    """
+    p, observed, weight = (np.asarray(a, dtype=float) for a in (p, observed, weight))
+    xs, inverse = np.unique(p, return_inverse=True)
+    w = np.bincount(inverse, weights=weight)
+    return xs, w, np.bincount(inverse, weights=weight * observed) / w
 
 
 def fit_isotonic(p: np.ndarray, observed: np.ndarray, weight: np.ndarray) -> Knots:
@@ -140,10 +154,7 @@ def fit_isotonic(p: np.ndarray, observed: np.ndarray, weight: np.ndarray) -> Kno
     gives knots at its smallest and largest p (a flat step), and the map is anchored at
     (0, 0) and extended flat to x = 1.
     """
-    p, observed, weight = (np.asarray(a, dtype=float) for a in (p, observed, weight))
-    xs, inverse = np.unique(p, return_inverse=True)  # (m,) distinct p, sorted
-    w = np.bincount(inverse, weights=weight)
-    y = np.bincount(inverse, weights=weight * observed) / w
+    xs, w, y = pooled_by_p(p, observed, weight)
     fitted, block = pool_adjacent_violators(y, w)
     kx, ky = [], []
     for b in range(block[-1] + 1):
@@ -151,12 +162,42 @@ def fit_isotonic(p: np.ndarray, observed: np.ndarray, weight: np.ndarray) -> Kno
         for i in (members[0], members[-1]) if len(members) > 1 else (members[0],):
             kx.append(xs[i])
             ky.append(fitted[i])
+    return anchored(kx, ky)
+
+
+def fit_centred(p: np.ndarray, observed: np.ndarray, weight: np.ndarray) -> Knots:
+    """Centred isotonic regression (Oron and Flournoy 2017) of observed frequency on P(topple).
+
+    p, observed, weight : (n,) float as ``fit_isotonic``
+    The isotonic blocks, with equal neighbours pooled too, each give one knot: their
+    weight-averaged p and their observed frequency.  The map is linear between knots, constant
+    from the smallest fitted p to the first centre and from the last centre to the largest (as
+    the authors' ``cirPAVA``), anchored at (0, 0) and flat to x = 1, so it strictly increases
+    from the first block's centre to the last's: it keeps the model's order of those pushes,
+    where isotonic's flat steps tie them.  Unlike the paper, equality of blocks is exact (no
+    rounding), and blocks at p = 0 or 1 pool like any other.
+    """
+    xs, w, y = pooled_by_p(p, observed, weight)
+    fitted, block = pool_adjacent_violators(y, w, strict=True)
+    first = np.flatnonzero(np.diff(block, prepend=-1))  # (blocks,) index of each block's first point
+    last = np.append(first[1:] - 1, len(xs) - 1)  # (blocks,) and of its last
+    centres = np.bincount(block, weights=w * xs) / np.bincount(block, weights=w)  # (blocks,)
+    # (w x) / w can miss x in the last bit: clipping to the block's own p keeps centres increasing.
+    centres = np.clip(centres, xs[first], xs[last])
+    kx, ky = list(centres), list(fitted[first])
+    if xs[0] < kx[0]:
+        kx, ky = [xs[0], *kx], [ky[0], *ky]
+    if xs[-1] > kx[-1]:
+        kx, ky = [*kx, xs[-1]], [*ky, ky[-1]]
+    return anchored(kx, ky)
+
+
+def anchored(kx: list[float], ky: list[float]) -> Knots:
+    """Knots (kx, ky) of a fitted map, anchored at (0, 0) and extended flat to x = 1."""
     if kx[0] > 0.0:
-        kx.insert(0, 0.0)
-        ky.insert(0, 0.0)
+        kx, ky = [0.0, *kx], [0.0, *ky]
     if kx[-1] < 1.0:
-        kx.append(1.0)
-        ky.append(ky[-1])
+        kx, ky = [*kx, 1.0], [*ky, ky[-1]]
     return Knots(tuple(map(float, kx)), tuple(map(float, ky)))
 
 
@@ -211,7 +252,7 @@ def logistic_knots(a: float, b: float, grid: int = LOGISTIC_GRID) -> Knots:
     return Knots(tuple(map(float, x)), tuple(map(float, np.maximum.accumulate(y))))
 
 
-METHODS = ("isotonic", "logistic")
+METHODS = ("isotonic", "logistic", "centred")
 
 
 def fit(method: str, p: np.ndarray, observed: np.ndarray, weight: np.ndarray) -> Knots:
@@ -224,6 +265,8 @@ def fit(method: str, p: np.ndarray, observed: np.ndarray, weight: np.ndarray) ->
         return fit_isotonic(p[use], observed[use], weight[use])
     if method == "logistic":
         return logistic_knots(*fit_logistic(p[use], observed[use], weight[use]))
+    if method == "centred":
+        return fit_centred(p[use], observed[use], weight[use])
     raise RecalibrationError(f"unknown recalibration method {method!r}; choose one of {', '.join(METHODS)}")
 
 

@@ -396,13 +396,20 @@ def calibrated_config(base: Config, chosen: dict[str, float]) -> Config:
 
 
 def write_toml(path: str | Path, topple: dict[str, float | tuple[float, ...]], comments: list[str]) -> None:
-    """A config TOML holding only the fitted ``[topple]`` keys (everything else stays default):
-    every number exactly (repr), a sequence (recalibration knots) as a list of them.  Exactly,
+    """A config TOML holding only the given ``[topple]`` keys (everything else stays default):
+    every number exactly (repr), a sequence (recalibration knots) as a list of them, strings
+    and booleans as TOML writes them.  Exactly,
     because knots fitted on a smoothed table (MODEL.md C.12) can differ in the 7th digit, and
     rounding them would make x no longer strictly increasing."""
     def value(v) -> str:
         if isinstance(v, (list, tuple)):
             return "[" + ", ".join(repr(float(x)) for x in v) + "]"
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v)  # a TOML basic string
+        if isinstance(v, int):
+            return str(v)
         return repr(float(v))
 
     lines = [f"# {c}" for c in comments] + ["", "[topple]"]
@@ -540,7 +547,8 @@ def main(argv: list[str] | None = None) -> int:
         config = config_from_args(args)
         # As in ``calibrate``: the base, the chosen setting and the held-out report are the
         # counted model, neither smoothed (MODEL.md C.12) nor recalibrated (C.7); the written
-        # TOML holds only the noise, so a dataset built with it smooths as the defaults say.
+        # TOML holds the noise and an identity map (the default's map was fitted for the default
+        # noise), so a dataset built with it smooths as the defaults say and maps nothing.
         config = replace(config, topple=config.topple.counted())
         if args.bench:
             print(json.dumps(bench(args.logs, config, args.bench_pushes, 10, args.seed)))
@@ -593,7 +601,10 @@ def main(argv: list[str] | None = None) -> int:
         comments.append("held-out log ({v}), base -> calibrated: {m}".format(
             v=variant, m=_changes(result["heldout"]["base"]["variants"][variant],
                                   result["heldout"]["calibrated"]["variants"][variant])))
-    write_outputs(args.out, result["chosen"], comments, args.json, result)
+    # The default's recalibration map (MODEL.md C.7) was fitted on the default noise's
+    # probabilities; over other noise it would map other numbers, so this file clears it.
+    comments.append("recalibration map cleared (fitted for the default noise): refit with toppledb recalibrate LOG --config THIS_FILE")
+    write_outputs(args.out, {**result["chosen"], "recalibration_x": (), "recalibration_y": ()}, comments, args.json, result)
     return 0
 
 

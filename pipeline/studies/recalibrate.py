@@ -16,19 +16,23 @@ log: ``toppledb report`` judges the result there.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ..model.config import Config
+from ..model.config import Config, ToppleConfig
 from ..model.feature_map import FEATURES, FeatureMapError, fit_weights, mapped_probability
 from ..model.recalibration import METHODS, RecalibrationError, fit, fit_logistic, predict
 from .calibrate import CalibrationError, grouped_folds, write_outputs
 from .logreader import LogError, PushLog, read_log
 from .scoring import Scorer
 from .validation import TOPPLES, average_precision, push_metrics, reliability
+
+MAP_FIELDS = ("recalibration_x", "recalibration_y", "feature_map")
+"""The [topple] fields that hold a map of P(topple): what a fit writes, never copied from the base."""
 
 SELECT_BY = "brier"
 """Held-out metric that chooses the method: the Brier score, a proper scoring rule, which
@@ -84,9 +88,13 @@ def cross_validate(
     return out
 
 
-def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
-    """Cross-validate the methods on ``log``, fit the best on all of it; a JSON-ready record
-    with ``chosen`` (method) and ``knots`` ({"x", "y"})."""
+def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0,
+                methods: tuple[str, ...] = METHODS) -> dict:
+    """Cross-validate every method on ``log``, fit the best of ``methods`` on all of it; a
+    JSON-ready record with ``chosen`` (method) and ``knots`` ({"x", "y"})."""
+    unknown = set(methods) - set(METHODS)
+    if not methods or unknown:
+        raise RecalibrationError(f"unknown recalibration method(s) {', '.join(sorted(unknown)) or '(none given)'}; choose from {', '.join(METHODS)}")
     config = config or Config()
     started = time.perf_counter()
     scorer = Scorer(log, config.seed, config.contacts)
@@ -94,7 +102,7 @@ def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, s
     p = scorer.score(raw).p_topple
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
     cv = cross_validate(p, observed, weight, objects, scorer.object_ids, folds, seed)
-    chosen = min(METHODS, key=lambda m: (cv["methods"][m][SELECT_BY], METHODS.index(m)))
+    chosen = min(methods, key=lambda m: (cv["methods"][m][SELECT_BY], METHODS.index(m)))
     knots = fit(chosen, p, observed, weight)
     fitted = predict(p, knots)
     return {
@@ -106,6 +114,7 @@ def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, s
         "seed": seed,
         "select_by": SELECT_BY,
         "cross_validated": cv,
+        "methods": list(methods),
         "chosen": chosen,
         "knots": {"x": list(knots.x), "y": list(knots.y)},
         "logistic": dict(zip(("a", "b"), fit_logistic(p[p > 0], observed[p > 0], weight[p > 0]))),
@@ -224,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     parser.add_argument("--out", type=Path, default=Path("reports/recalibrated.toml"), help="config TOML to write (default: %(default)s)")
     parser.add_argument("--json", type=Path, default=Path("reports/recalibration.json"), help="full record (default: %(default)s)")
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS, metavar="METHOD",
+                        help=f"monotone maps cross-validation chooses among (all are scored): {' '.join(METHODS)} (default: all)")
     parser.add_argument("--features", action="store_true",
                         help="fit the feature map (docs/MODEL.md C.13) instead of a monotone map; each LOG is read on its own")
     args = parser.parse_args(argv)
@@ -245,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.features:
             result = feature_recalibrate(logs, config, folds=args.folds, seed=args.seed)
         else:
-            result = recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
+            result = recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, methods=tuple(args.methods))
     except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -260,24 +271,34 @@ def main(argv: list[str] | None = None) -> int:
              f"{pooled['identity']['ece']:.3f} / {pooled['identity']['brier']:.4f}, feature map "
              f"{pooled['feature_map']['ece']:.3f} / {pooled['feature_map']['brier']:.4f}"),
         ]
-        fitted_map = {"feature_map": tuple(result["weights"])}
+        # The default carries a monotone map (C.7); the feature map replaces it, never stacks on it.
+        fitted_map = {"feature_map": tuple(result["weights"]), "recalibration_x": (), "recalibration_y": ()}
     else:
         print(format_record(result))
         cv = result["cross_validated"]
         comments = [
             "toppledb recalibrate: monotone map of P(topple) fitted on push logs (docs/MODEL.md C.7)",
             logs_line,
-            (f"method {result['chosen']}, chosen by {args.folds}-fold CV grouped by object (seed {args.seed}) on held-out "
+            (f"method {result['chosen']}, chosen among {' '.join(result['methods'])} by {args.folds}-fold CV grouped by object (seed {args.seed}) on held-out "
              f"{result['select_by']}; held-out ECE / Brier: "
              + ", ".join(f"{m} {v['ece']:.3f} / {v['brier']:.4f}" for m, v in [("identity", cv["identity"])] + list(cv["methods"].items()))),
         ]
         fitted_map = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"])}
-    if args.config:
-        comments.append(f"base model: {args.config} (its other parameters are not written here)")
-    # A map is fitted on the table as smoothed (MODEL.md C.12), so the smoothing goes with it:
-    # the same map over another smoothing would map other probabilities.
     topple = config.topple
-    fitted = {"smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **fitted_map}
+    # A map belongs to the probabilities it was fitted on, so the file carries the model they
+    # come from: every [topple] value of the base model that is not the default's (its noise,
+    # from a ``toppledb calibrate`` file, say) and the smoothing (MODEL.md C.12).  The fitted map
+    # replaces any map of the base model.
+    if "recalibration_x" in fitted_map and topple.feature_map:
+        fitted_map = {**fitted_map, "feature_map": ()}
+    default = ToppleConfig()
+    base = {f.name: getattr(topple, f.name) for f in dataclasses.fields(topple)
+            if f.name not in MAP_FIELDS and getattr(topple, f.name) != getattr(default, f.name)}
+    if base:
+        source = " ".join(filter(None, [str(args.config or "the defaults"), *(f"--set {o}" for o in args.overrides)]))
+        comments.append(f"base model: {source}; its [topple] values that differ from the defaults are written here, "
+                        "its other sections are not")
+    fitted = {**base, "smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **fitted_map}
     write_outputs(args.out, fitted, comments, args.json, result)
     return 0
 
