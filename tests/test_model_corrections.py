@@ -232,7 +232,7 @@ def test_thesis_variants_apply_no_correction_and_unknown_names_are_refused():
     for variant in ("baseline", "rotations", "robustness", "robust"):
         assert replace(Config().topple, variant=variant, corrections="all").applied_corrections == frozenset()
     assert replace(Config().topple, variant="corrected", corrections="all").applied_corrections == frozenset(CORRECTIONS)
-    assert replace(Config().topple, variant="corrected").applied_corrections == {"finger_friction", "force_limit", "momentum"}
+    assert replace(Config().topple, variant="corrected").applied_corrections == {"finger_friction", "force_limit", "momentum", "stuck_finger"}
     assert replace(Config().topple, variant="corrected", corrections="none").applied_corrections == frozenset()
     one = Config().with_overrides({"topple.variant": "corrected", "topple.corrections": "force_limit"})
     assert one.topple.applied_corrections == {"force_limit"}

@@ -185,12 +185,13 @@ class ToppleConfig:
     """m; the finger ray that re-finds a noisy contact starts this far outside it."""
     chunk_actions: int = bounded(256, AT_LEAST_ONE)
     """Actions evaluated per vectorised block; bounds peak memory, not results."""
-    corrections: str = "finger_friction,force_limit,momentum"
+    corrections: str = "finger_friction,force_limit,momentum,stuck_finger"
     """Comma-separated corrections the ``corrected`` variant applies (``CORRECTIONS``), or
     ``all`` or ``none``; the thesis's variants apply none, whatever this says.  The default
     leaves out ``stability_margin``, which physics does not support as a rule (docs/MODEL.md C.3),
-    ``rolling``, which did not help (C.6), and ``edge_spin``, which makes the pushes the
-    policies choose overconfident in physics (C.9)."""
+    ``rolling``, which did not help (C.6), ``edge_spin``, which makes the pushes the
+    policies choose overconfident in physics (C.9), and ``stroke`` (C.10).  ``stuck_finger``
+    (C.11) joined it with the recalibration map refitted on it (candidate S, docs/VALIDATION.md)."""
     finger_friction_scale: float = bounded(1.0, FRACTION)
     """Share of the finger's Coulomb friction that resists tipping (``finger_friction``
     correction): 1 is Coulomb's law, which the standing box in pybullet follows, and what the
@@ -224,10 +225,10 @@ class ToppleConfig:
     """rad, largest angle between the push directions of two neighbours (``smoothing_radius``)."""
     recalibration_x: tuple[float, ...] = bounded(fitted_map.RECALIBRATION_X, FRACTION)
     """Knots x_k of the monotone map g of P(topple) (docs/MODEL.md C.7), strictly increasing in
-    [0, 1]; empty is the identity.  The default is candidate C (``pipeline.model.fitted_map``):
-    the centred isotonic map fitted on the corpus's drawn pushes (data/logs/corpus_all) under
-    the default model, adopted by a rule written down before it was played (docs/VALIDATION.md,
-    "candidate C").
+    [0, 1]; empty is the identity.  The default (``pipeline.model.fitted_map``) is the centred
+    isotonic map fitted on the corpus's drawn pushes (data/logs/corpus_all) under the default
+    model, adopted by rules written down before it was played (docs/VALIDATION.md, candidates C
+    and S); it belongs to the default's corrections and noise, and another model needs its own.
     Only the ``corrected`` variant applies it (the thesis's variants never do).  A list in
     TOML (``[]`` for the identity), comma-separated with ``--set``."""
     recalibration_y: tuple[float, ...] = bounded(fitted_map.RECALIBRATION_Y, FRACTION)
