@@ -10,7 +10,7 @@ from pipeline.model.collision import collision_object
 from pipeline.model.config import Config
 from pipeline.model.contacts import object_contacts, pose_actions
 from pipeline.model.poses import stable_poses
-from pipeline.model.reference import draw_of, landed_pose, reference_trial, scene_from_pose
+from pipeline.model.reference import configured_trial, draw_of, landed_pose, reference_trial, scene_from_pose
 from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose, sample_noise
 from schema.vocabulary import STATUS_OK
@@ -70,19 +70,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         for action in np.flatnonzero(actions.status == STATUS_OK)[: 25 if topple.trials > 1 else None]:
             landed = np.zeros(len(pose_set.poses))  # (P,), the reference's trials per landed pose
             for trial in range(topple.trials):
-                edge, force = reference_trial(
-                    scene,
-                    draw_of(actions, noise, action, trial),
-                    topple.robust,
-                    topple.predicts_rotations,
-                    topple.ray_offset,
-                    topple.applied_corrections,
-                    topple.max_finger_force,
-                    topple.finger_friction_scale,
-                    topple.min_stability_margin,
-                    topple.stroke,
-                    topple.stuck_finger_share,
-                )
+                edge, force = configured_trial(scene, draw_of(actions, noise, action, trial), topple)
                 compared += 1
                 agreed += edge == table.outcomes[action, trial]
                 landed[landed_pose(pose, edge, topple.applied_corrections)] += 1
@@ -135,3 +123,24 @@ def test_reference_required_force_matches_engine_on_box():
         edge, force = reference_trial(scene, draw_of(actions, noise, action, 0), False, True, topple.ray_offset)
         assert edge == table.outcomes[action, 0] >= 0
         assert np.isclose(force, table.mean_force[action], rtol=1e-12)
+
+
+def test_the_configured_trial_sets_every_parameter_of_the_reference(monkeypatch):
+    """The bench and the test above hold the engine against ``configured_trial``: it must set
+    every parameter ``reference_trial`` has (a new one left at its default would make the
+    reference another model), each from the config."""
+    import inspect
+
+    from pipeline.model import reference
+
+    calls = []
+    monkeypatch.setattr(reference, "reference_trial", lambda *args, **kwargs: calls.append((args, kwargs)) or (-1, 0.0))
+    topple = replace(Config().topple, stuck_finger_share=0.3, stroke=0.02, max_finger_force=7.0, finger_friction_scale=0.6)
+    assert reference.configured_trial("scene", "draw", topple) == (-1, 0.0)
+    (args, kwargs), = calls
+    signature = inspect.signature(reference_trial)  # the function itself, imported before the patch
+    bound = signature.bind(*args, **kwargs)
+    assert set(bound.arguments) == set(signature.parameters), "a parameter left at its default"
+    assert bound.arguments["stuck_share"] == 0.3 and bound.arguments["stroke"] == 0.02
+    assert bound.arguments["max_force"] == 7.0 and bound.arguments["friction_scale"] == 0.6
+    assert bound.arguments["corrections"] == topple.applied_corrections and "stuck_finger" in topple.applied_corrections

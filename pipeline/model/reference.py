@@ -207,6 +207,17 @@ def reference_trial(
     return best_edge, best_force
 
 
+def configured_trial(scene: Scene, draw: TrialDraw, topple) -> tuple[int, float]:
+    """``reference_trial`` with every model parameter taken from ``topple`` (a
+    ``config.ToppleConfig``), as the engine reads them: what tests and the bench hold the
+    engine against, so neither can leave a parameter at its default."""
+    return reference_trial(
+        scene, draw, topple.robust, topple.predicts_rotations, topple.ray_offset, topple.applied_corrections,
+        topple.max_finger_force, topple.finger_friction_scale, topple.min_stability_margin, topple.stroke,
+        topple.stuck_finger_share,
+    )
+
+
 def _edge_frame(y0: Vec, y1: Vec, com: Vec) -> tuple[Vec, Vec, float]:
     """Base edge y0 -> y1: its unit direction e, horizontal outward normal o = (e_y, -e_x, 0), and
     the centre of mass's distance inside it, d = -(c - y0) . o (m)."""

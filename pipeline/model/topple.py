@@ -307,9 +307,11 @@ def _tile_outcomes(
     if "stuck_finger" in corrections:
         # C.11: where nothing tips the object, a push down onto a part beyond a base edge may,
         # the finger holding on and the base sliding (a share of such trials, by the last draw).
-        # Only the trials that stay, push down and drew under the share are looked at (a few
-        # in ten of a pose's trials): the same result as all of them, for less work.
-        rows = np.flatnonzero(~np.isfinite(required) & (trials.push[:, 2] < 0.0) & (trials.stuck_draw < config.stuck_finger_share))
+        # Only the trials that stay, drew under the share and push down hard enough sideways to
+        # drag the base are looked at (a few in ten of a pose's trials): the same result as all
+        # of them, for less work.
+        rows = np.flatnonzero(~np.isfinite(required) & (trials.stuck_draw < config.stuck_finger_share)
+                              & drags_base(trials.push, trials.mu_table) & trials.valid)
         if len(rows):
             stuck_edge, stuck_force = stuck_finger(trials.take(rows), edges, mass, gravity, max_force)  # (r,) each
             takes = np.isfinite(stuck_force)
@@ -333,8 +335,7 @@ def stuck_finger(
     returns : edge (n,) int (any index where none qualifies), force (n,) float, N (inf where none)
     """
     u, contact = trials.push, trials.contact  # (n, 3) each
-    drags = np.hypot(u[:, 0], u[:, 1]) > trials.mu_table * -u[:, 2]  # (n,), |u_xy| > mu_T |u_z| for u_z < 0
-    descends = (u[:, 2] < 0.0) & drags & trials.valid  # (n,)
+    descends = drags_base(u, trials.mu_table) & trials.valid  # (n,)
     # L_e = p . o_e - y0 . o_e: (n, 3) @ (3, E) - (E,), no (n, E, 3) array.
     overhang = contact @ edges.outward.T - np.einsum("ek,ek->e", edges.start, edges.outward)  # (n, E), m
     rotates, force = _push_force(_cross_rows(contact, u), u, edges, mass, gravity)  # (n, E) each
@@ -342,6 +343,17 @@ def stuck_finger(
     candidate = np.where(qualifies, force, np.inf)  # (n, E)
     edge = np.argmin(candidate, axis=1)  # (n,)
     return edge, candidate[np.arange(len(edge)), edge]
+
+
+def drags_base(push: np.ndarray, mu_table: np.ndarray) -> np.ndarray:
+    """Whether a push moves down yet drags the base along the table (MODEL.md C.11): u_z < 0
+    and |u_xy| > mu_T |u_z|, a force along u pressing the object down overcoming the friction
+    it adds.
+
+    push : (n, 3) float, unit;  mu_table : (n,) float
+    returns : (n,) bool
+    """
+    return (push[:, 2] < 0.0) & (np.hypot(push[:, 0], push[:, 1]) > mu_table * -push[:, 2])
 
 
 def finger_travel(trials: Trials, edges: EdgeGeometry, edge: np.ndarray) -> np.ndarray:

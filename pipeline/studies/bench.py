@@ -26,7 +26,7 @@ from schema.vocabulary import STATUS_OK  # noqa: E402
 
 from ..model.config import Config  # noqa: E402
 from ..model.evaluation import evaluate_object, load_object  # noqa: E402
-from ..model.reference import draw_of, reference_trial, scene_from_pose  # noqa: E402
+from ..model.reference import configured_trial, draw_of, scene_from_pose  # noqa: E402
 from ..model.rng import stream  # noqa: E402
 from ..model.topple import sample_noise  # noqa: E402
 
@@ -86,10 +86,7 @@ def run(n_objects: int, reference_trials: int, config: Config) -> dict:
             scene = scene_from_pose(obj, pose, topple.gravity)
             action, trial = int(rng.choice(ok)), int(rng.integers(topple.trials))
             start = time.perf_counter()
-            edge, _ = reference_trial(
-                scene, draw_of(actions, noise, action, trial), topple.robust, topple.predicts_rotations, topple.ray_offset,
-                topple.applied_corrections, topple.max_finger_force, topple.finger_friction_scale, topple.min_stability_margin,
-            )
+            edge, _ = configured_trial(scene, draw_of(actions, noise, action, trial), topple)
             reference_seconds += time.perf_counter() - start
             reference_count += 1
             if edge != tables[pose_index].outcomes[action, trial]:
