@@ -269,3 +269,5 @@ def test_the_command_fits_the_methods_it_is_given_and_refuses_unknown_ones(model
     written = Config.from_toml(out).topple
     assert written.mu_table_mean == 0.5 and list(written.recalibration_x) == json.loads(record.read_text())["knots"]["x"]
     assert written.variant == Config().topple.variant and "base model: " in out.read_text()
+    # The variant and the corrections are pinned, so the file stays this model when the defaults change.
+    assert f'corrections = "{Config().topple.corrections}"' in out.read_text() and 'variant = "corrected"' in out.read_text()

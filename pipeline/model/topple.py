@@ -313,7 +313,11 @@ def _tile_outcomes(
         rows = np.flatnonzero(~np.isfinite(required) & (trials.stuck_draw < config.stuck_finger_share)
                               & drags_base(trials.push, trials.mu_table) & trials.valid)
         if len(rows):
-            stuck_edge, stuck_force = stuck_finger(trials.take(rows), edges, mass, gravity, max_force)  # (r,) each
+            # A lone row would make the matrix products 1-row ones (a gemv, other last bits than
+            # the gemm of a block, as in ``trial_outcomes``): evaluate it twice, keep the first.
+            both = np.append(rows, rows) if len(rows) == 1 else rows
+            stuck_edge, stuck_force = stuck_finger(trials.take(both), edges, mass, gravity, max_force)  # (r,) each
+            stuck_edge, stuck_force = stuck_edge[: len(rows)], stuck_force[: len(rows)]
             takes = np.isfinite(stuck_force)
             edge[rows[takes]], required[rows[takes]] = stuck_edge[takes], stuck_force[takes]
     return np.where(np.isfinite(required), edge, OUTCOME_NO_EDGE), required

@@ -292,12 +292,15 @@ def main(argv: list[str] | None = None) -> int:
     if "recalibration_x" in fitted_map and topple.feature_map:
         fitted_map = {**fitted_map, "feature_map": ()}
     default = ToppleConfig()
+    # The variant and the corrections always: the file must stay the same model when the
+    # defaults change (they did when stuck_finger joined them).
     base = {f.name: getattr(topple, f.name) for f in dataclasses.fields(topple)
-            if f.name not in MAP_FIELDS and getattr(topple, f.name) != getattr(default, f.name)}
-    if base:
+            if f.name not in MAP_FIELDS
+            and (f.name in ("variant", "corrections") or getattr(topple, f.name) != getattr(default, f.name))}
+    if args.config or args.overrides:
         source = " ".join(filter(None, [str(args.config or "the defaults"), *(f"--set {o}" for o in args.overrides)]))
-        comments.append(f"base model: {source}; its [topple] values that differ from the defaults are written here, "
-                        "its other sections are not")
+        comments.append(f"base model: {source}; its variant, corrections and [topple] values that differ from the "
+                        "defaults are written here, its other sections are not")
     fitted = {**base, "smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **fitted_map}
     write_outputs(args.out, fitted, comments, args.json, result)
     return 0
