@@ -73,11 +73,11 @@ def budget_choices(
     actions = np.full((max_pushes_left, n_poses), NO_OP, dtype=np.int64)
     values = np.empty((max_pushes_left, n_poses))
     value = v_s
+    if choosable is not None:
+        ok = ok[np.asarray(choosable, dtype=bool)[ok]]  # rows no choice may take stay at -inf
     for h in range(max_pushes_left):
         q = np.full(n_rows, -np.inf)
         q[ok] = np.bincount(owner, weights=probability * value[next_pose], minlength=n_rows)[ok]
-        if choosable is not None:
-            q[~np.asarray(choosable, dtype=bool)] = -np.inf
         best = v_s.copy()
         for x in range(n_poses):
             start, stop = int(action_offsets[x]), int(action_offsets[x + 1])

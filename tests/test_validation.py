@@ -22,6 +22,7 @@ from pipeline.studies.validation import (
     bootstrap_intervals,
     by_direction,
     expected_calibration_error,
+    log_direction_classes,
     main,
     push_metrics,
     ranking_by_direction,
@@ -113,7 +114,7 @@ def test_by_direction_groups_pushes_by_their_vertical_component_and_predicted_ba
     scorer = SimpleNamespace(log=log, empirical_topple=np.array([0.5, 0.9, 0.1, 0.3, 1.0, 0.0]))
     scores = Scores(np.zeros(6), np.array([0.1, 0.2, 0.0, 0.0, 1.0, 0.5]), np.zeros(6))
     cells = {(c["direction"], c["band"]): (c["pushes"], c["predicted_topple"], c["observed_topple"])
-             for c in by_direction(scores, scorer)}
+             for c in by_direction(scores, scorer, log_direction_classes(scorer))}
     assert cells == {
         ("from above", "0 < P < 0.25"): (2, pytest.approx(0.15), pytest.approx(0.7)),  # u_z -1 and -0.8
         ("from above", "0.25 <= P < 0.75"): (1, 0.5, 0.0),
@@ -130,7 +131,7 @@ def test_ranking_by_direction_scores_each_class_on_its_own_pushes():
     log = SimpleNamespace(pushes=[SimpleNamespace(direction=np.array(d, dtype=float)) for d in directions])
     scorer = SimpleNamespace(log=log, empirical_topple=np.array([0.9, 0.1, 0.2, 0.8, 0.0, 0.6]))
     scores = Scores(np.zeros(6), np.array([0.1, 0.7, 0.5, 0.9, 0.1, 0.6]), np.zeros(6))
-    rows = {r["direction"]: r for r in ranking_by_direction(scores, scorer)}
+    rows = {r["direction"]: r for r in ranking_by_direction(scores, scorer, log_direction_classes(scorer))}
     assert list(rows) == ["from above", "side"]
     assert rows["from above"]["pushes"] == 3 and rows["from above"]["ap"] == pytest.approx(1 / 3)
     assert rows["from above"]["predicted_topple"] == pytest.approx(1.3 / 3)

@@ -73,6 +73,11 @@ def field_range(cls: type, name: str) -> Range | None:
     return next((f.metadata.get("range") for f in fields(cls) if f.name == name), None)
 
 
+MAP_FIELDS = ("recalibration_x", "recalibration_y", "feature_map")
+"""The ``topple`` fields that hold a map of P(topple) (MODEL.md C.7, C.13); all empty: no map."""
+NO_MAP = {name: () for name in MAP_FIELDS}
+"""``topple`` values of a model with no map: what a file writes to clear the default's."""
+
 THESIS_VARIANTS = ("baseline", "rotations", "robustness", "robust")
 """Model variants of thesis table 4.1: (predicts planar rotations, robust estimates)."""
 
@@ -307,7 +312,7 @@ class ToppleConfig:
     def without_recalibration(self) -> "ToppleConfig":
         """This model with no map: what a recalibration (MODEL.md C.7) or a feature map (C.13) is
         fitted on, the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12)."""
-        return dataclasses.replace(self, recalibration_x=(), recalibration_y=(), feature_map=())
+        return dataclasses.replace(self, **NO_MAP)
 
     def counted(self) -> "ToppleConfig":
         """This model as the Monte Carlo counts of MODEL.md (9.1)-(9.2), neither smoothed (C.12) nor

@@ -43,7 +43,7 @@ import numpy as np
 from scipy.stats import qmc
 
 from ..build.atomic import write_text_atomic
-from ..model.config import VARIANTS, Config, ToppleConfig
+from ..model.config import NO_MAP, VARIANTS, Config, ToppleConfig
 from .logreader import LogError, PushLog, read_log
 from .scoring import Scorer, Scores
 from .validation import NOISE_KEYS, bootstrap_difference, informative, observed_topple_rate, push_metrics, report, to_json
@@ -604,7 +604,7 @@ def main(argv: list[str] | None = None) -> int:
     # The default's recalibration map (MODEL.md C.7) was fitted on the default noise's
     # probabilities; over other noise it would map other numbers, so this file clears it.
     comments.append("recalibration map cleared (fitted for the default noise): refit with toppledb recalibrate LOG --config THIS_FILE")
-    write_outputs(args.out, {**result["chosen"], "recalibration_x": (), "recalibration_y": ()}, comments, args.json, result)
+    write_outputs(args.out, {**result["chosen"], **NO_MAP}, comments, args.json, result)
     return 0
 
 

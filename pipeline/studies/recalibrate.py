@@ -23,16 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.config import Config, ToppleConfig
+from ..model.config import MAP_FIELDS, NO_MAP, Config, ToppleConfig
 from ..model.feature_map import FEATURES, FeatureMapError, fit_weights, mapped_probability
 from ..model.recalibration import METHODS, RecalibrationError, fit, fit_logistic, predict
 from .calibrate import CalibrationError, grouped_folds, write_outputs
 from .logreader import LogError, PushLog, read_log
 from .scoring import Scorer
 from .validation import TOPPLES, average_precision, push_metrics, reliability
-
-MAP_FIELDS = ("recalibration_x", "recalibration_y", "feature_map")
-"""The [topple] fields that hold a map of P(topple): what a fit writes, never copied from the base."""
 
 SELECT_BY = "brier"
 """Held-out metric that chooses the method: the Brier score, a proper scoring rule, which
@@ -271,8 +268,7 @@ def main(argv: list[str] | None = None) -> int:
              f"{pooled['identity']['ece']:.3f} / {pooled['identity']['brier']:.4f}, feature map "
              f"{pooled['feature_map']['ece']:.3f} / {pooled['feature_map']['brier']:.4f}"),
         ]
-        # The default carries a monotone map (C.7); the feature map replaces it, never stacks on it.
-        fitted_map = {"feature_map": tuple(result["weights"]), "recalibration_x": (), "recalibration_y": ()}
+        fitted_map = {"feature_map": tuple(result["weights"])}
     else:
         print(format_record(result))
         cv = result["cross_validated"]
@@ -288,9 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     # A map belongs to the probabilities it was fitted on, so the file carries the model they
     # come from: every [topple] value of the base model that is not the default's (its noise,
     # from a ``toppledb calibrate`` file, say) and the smoothing (MODEL.md C.12).  The fitted map
-    # replaces any map of the base model.
-    if "recalibration_x" in fitted_map and topple.feature_map:
-        fitted_map = {**fitted_map, "feature_map": ()}
+    # replaces any map of the base model or the defaults: every map field is written.
     default = ToppleConfig()
     # The variant and the corrections always: the file must stay the same model when the
     # defaults change (they did when stuck_finger joined them).
@@ -301,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
         source = " ".join(filter(None, [str(args.config or "the defaults"), *(f"--set {o}" for o in args.overrides)]))
         comments.append(f"base model: {source}; its variant, corrections and [topple] values that differ from the "
                         "defaults are written here, its other sections are not")
-    fitted = {**base, "smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **fitted_map}
+    fitted = {**base, "smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **NO_MAP, **fitted_map}
     write_outputs(args.out, fitted, comments, args.json, result)
     return 0
 

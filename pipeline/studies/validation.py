@@ -348,14 +348,18 @@ def direction_classes(u_z: np.ndarray) -> list[tuple[str, np.ndarray]]:
     return [(name, _within(u_z, np.float32(low), np.float32(high))) for name, low, high in DIRECTIONS]
 
 
-def by_direction(scores: Scores, scorer: Scorer) -> list[dict]:
+def log_direction_classes(scorer: Scorer) -> list[tuple[str, np.ndarray]]:
+    """``direction_classes`` of the scorer's logged pushes (their u_z, pose frame)."""
+    return direction_classes(np.array([p.direction[2] for p in scorer.log.pushes]))
+
+
+def by_direction(scores: Scores, scorer: Scorer, classes: list[tuple[str, np.ndarray]]) -> list[dict]:
     """Where the predictor is right or wrong: per push direction (``DIRECTIONS``) and band of
     predicted P(topple) (``BANDS``), the pushes, their mean predicted and mean observed topple
     rate.  Empty cells are left out."""
-    u_z = np.array([p.direction[2] for p in scorer.log.pushes])
     predicted, observed = scores.p_topple, scorer.empirical_topple
     out = []
-    for direction, in_direction in direction_classes(u_z):
+    for direction, in_direction in classes:
         for band, low, high in BANDS:
             in_band = (predicted == 0.0) if high == 0.0 else _within(predicted, low, high) & (predicted > 0.0)
             rows = in_direction & in_band
@@ -365,15 +369,15 @@ def by_direction(scores: Scores, scorer: Scorer) -> list[dict]:
     return out
 
 
-def ranking_by_direction(scores: Scores, scorer: Scorer) -> list[dict]:
+def ranking_by_direction(scores: Scores, scorer: Scorer, classes: list[tuple[str, np.ndarray]]) -> list[dict]:
     """How well the predictor ranks the pushes of each push direction (``DIRECTIONS``) among
     themselves: pushes, average precision of "it topples" within the class, mean predicted and
     observed topple rate.  A policy choosing the best of a pose's pushes leans on the ranking,
-    and a class ranked badly is where its choices go wrong.  Empty classes are left out."""
-    u_z = np.array([p.direction[2] for p in scorer.log.pushes])
+    and a class ranked badly is where its choices go wrong.  Empty classes are left out.
+    classes : ``log_direction_classes(scorer)``"""
     predicted, observed = scores.p_topple, scorer.empirical_topple
     out = []
-    for direction, rows in direction_classes(u_z):
+    for direction, rows in classes:
         if rows.any():
             out.append({"direction": direction, "pushes": int(rows.sum()),
                         "ap": average_precision(predicted[rows], observed[rows] > TOPPLES),
@@ -420,8 +424,9 @@ def report(
         if variant == main_variant:
             main_predictions, main_scores = predictions, scores
             objects = per_object(scores, scorer)
-            directions = by_direction(scores, scorer)
-            ranking = ranking_by_direction(scores, scorer)
+            classes = log_direction_classes(scorer)
+            directions = by_direction(scores, scorer, classes)
+            ranking = ranking_by_direction(scores, scorer, classes)
     recalibration = None
     applied = replace(config.topple, variant=main_variant)
     x, y = applied.applied_recalibration
