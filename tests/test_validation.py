@@ -510,3 +510,42 @@ def test_report_scores_a_replay_as_the_physics_reference(model_logs, tmp_path, c
     calibration = str(model_logs / "calibration.parquet")  # other objects: refused with its reason, exit 2
     assert main([reported, "--replay", calibration, "--corpus", "", "--bootstrap", "0", "--out", str(out)]) == 2
     assert "no usable rows" in capsys.readouterr().err
+
+
+def test_report_against_other_models_pairs_them_with_the_configured_one(model_logs, tmp_path, capsys):
+    from pipeline.model.config import PRESETS
+
+    reported = str(model_logs / "reported.parquet")
+    same = tmp_path / "same.toml"  # the defaults' [topple], spelled out: the same model
+    same.write_text('[topple]\nvariant = "corrected"\n')
+    out = tmp_path / "validation.json"
+    assert main([reported, "--variants", "corrected", "--against", "thesis", str(same), "--corpus", "",
+                 "--bootstrap", "30", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    ours, thesis, itself = result["variants"]["corrected"], result["against"]["thesis"], result["against"][str(same)]
+    assert thesis["variant"] == "robust" and thesis["corrections"] == []
+    # The thesis's model scored on the very same pushes, candidates and trial streams.
+    log = read_log([reported])
+    scores = Scorer(log, Config().seed, Config().contacts).score(Config.from_toml(PRESETS / "thesis.toml").topple)
+    assert thesis["metrics"]["brier"] == pytest.approx(float(np.mean(scores.brier)), abs=1e-12)
+    assert thesis["metrics"]["brier"] != ours["brier"]
+    for key in ("brier", "tv_all", "ap", "ece"):
+        assert thesis["difference"][key]["difference"] == pytest.approx(ours[key] - thesis["metrics"][key], abs=1e-12)
+        low, high = thesis["difference"][key]["ci"]
+        assert low <= thesis["difference"][key]["difference"] <= high
+        # A model against itself differs by nothing, in every resample.
+        assert itself["difference"][key] == {"difference": 0.0, "ci": [0.0, 0.0]}
+    printed = capsys.readouterr().out
+    assert "corrected - thesis (robust; paired" in printed and "\nthesis " in printed
+
+
+def test_report_against_refuses_unknown_models_and_a_stroke_it_cannot_read(model_logs, tmp_path, capsys):
+    reported = str(model_logs / "reported.parquet")
+    out = tmp_path / "validation.json"
+    assert main([reported, "--against", "no_such_model", "--corpus", "", "--out", str(out)]) == 2
+    assert "config file not found: no_such_model" in capsys.readouterr().err
+    stroke = tmp_path / "stroke.toml"
+    stroke.write_text('[topple]\nvariant = "corrected"\ncorrections = "finger_friction,stroke"\n')
+    assert main([reported, "--against", str(stroke), "--corpus", "", "--out", str(out)]) == 2
+    assert "stroke correction reads the log's push depths" in capsys.readouterr().err
+    assert not out.exists()

@@ -16,7 +16,9 @@ log against the model (``logreader``), predicts every push with each model varia
   (the topple rate of *calibration* data, given with ``--rate`` or ``--rate-from``,
   never that of the reported log);
 * per-object results with the worst objects named, bootstrap confidence intervals
-  over objects, counts (rejected rows by reason).
+  over objects, counts (rejected rows by reason);
+* with ``--against``, other models (the thesis's, an earlier default) scored on the same
+  pushes, and the configured model minus each, paired over objects.
 
     toppledb report data/logs/heldout --rate-from data/logs/calibration --out reports/validation.json --plot reports/validation.png
 """
@@ -35,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ..build.atomic import write_text_atomic
-from ..model.config import VARIANTS, Config
+from ..model.config import VARIANTS, Config, ToppleConfig
 from .logreader import LogError, PushLog, read_log
 from .scoring import Scorer, Scores
 
@@ -403,6 +405,7 @@ def report(
     seed: int = 0,
     scorer: Scorer | None = None,
     replay: PushLog | None = None,
+    against: dict[str, ToppleConfig] | None = None,
 ) -> dict:
     """The validation report of ``config`` on ``log`` as a JSON-ready dict.
 
@@ -410,6 +413,9 @@ def report(
     rate : topple rate of the *calibration* data for the constant-rate reference (omitted when None)
     replay : the log's pushes played again with other noise draws, for the ``physics_replay``
       reference (``Scorer.replay``; omitted when None)
+    against : name -> another model's ``[topple]`` parameters, each scored on the same pushes,
+      candidates and trial streams in its own configured variant, with the configured variant
+      minus it bootstrapped over objects (``bootstrap_metric_difference``; omitted when None)
     """
     scorer = scorer or Scorer(log, config.seed, config.contacts)
     main_variant = config.topple.variant if config.topple.variant in variants else variants[-1]
@@ -458,6 +464,17 @@ def report(
         replay_repeats = replay.counts()
         references["physics_replay"].update(files=replay.files, repeats_min=replay_repeats["repeats_min"],
                                             repeats_max=replay_repeats["repeats_max"])
+    comparisons = {}
+    if against and main_variant in variants:
+        for name, other in against.items():
+            other_scores = scorer.score(other)
+            comparisons[name] = {
+                "variant": other.variant,
+                "corrections": sorted(other.applied_corrections),
+                "metrics": predictor_summary(other_scores, scorer, n_resamples=n_resamples, seed=seed),
+                "difference": bootstrap_metric_difference(
+                    main_scores, other_scores, scorer.empirical_topple, scorer.object_index, n_resamples, seed),
+            }
     floor = scorer.brier_floor()
     counts = log.counts()
     counts["objects_in_corpus"] = sum(1 for o in log.objects.values() if o.in_corpus)
@@ -479,6 +496,7 @@ def report(
         "bootstrap": {"resamples": n_resamples, "confidence": CONFIDENCE, "seed": seed, "over": "objects"},
         "thesis_table_4_3": THESIS_TABLE_4_3,
         **({"recalibration": recalibration} if recalibration else {}),
+        **({"against": comparisons} if comparisons else {}),
     }
 
 
@@ -533,6 +551,10 @@ def format_report(result: dict) -> str:
         parts = [f"{key} {d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]"
                  for key, d in result["recalibration"]["difference"].items() if key != "informative"]
         lines.append(f"recalibrated - {result['recalibration']['raw']} (paired bootstrap over objects): " + ", ".join(parts))
+    for name, other in result.get("against", {}).items():
+        parts = [f"{key} {d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]"
+                 for key, d in other["difference"].items() if key != "informative"]
+        lines.append(f"{result['main_variant']} - {name} ({other['variant']}; paired bootstrap over objects): " + ", ".join(parts))
     return "\n".join(lines)
 
 
@@ -540,7 +562,10 @@ def _rows(result: dict) -> list[tuple[str, dict]]:
     """(name, metrics) of every predictor of a report: the variants, the configured variant
     without its recalibration when it has one (``<variant>_raw``), then the references."""
     raw = [(result["recalibration"]["raw"], result["recalibration"]["raw_metrics"])] if "recalibration" in result else []
-    return list(result["variants"].items()) + raw + list(result["references"].items())
+    # A model compared with --against is named as given, a file by its stem (reports/x.toml: x).
+    against = [(Path(name).stem if name.endswith(".toml") else name, other["metrics"])
+               for name, other in result.get("against", {}).items()]
+    return list(result["variants"].items()) + raw + against + list(result["references"].items())
 
 
 def plot(result: dict, path: str | Path) -> None:
@@ -607,6 +632,28 @@ def config_from_args(args: argparse.Namespace) -> Config:
     return make_config(argparse.Namespace(config=args.config, overrides=args.overrides, seed=args.seed))
 
 
+def comparison_models(names: list[str], config: Config) -> dict[str, ToppleConfig]:
+    """``--against``'s models: name (as given) -> its ``[topple]`` parameters.
+
+    Only ``[topple]`` is compared: the log is read, and candidates are made, with ``config``'s
+    poses and contacts, so both models predict the very same pushes.  A model whose stroke
+    (docs/MODEL.md C.10) decides which rows it can score is refused unless ``config`` reads
+    the log with that stroke too.
+    """
+    from ..cli import UsageError, make_config
+
+    models = {}
+    for name in names:
+        other = make_config(argparse.Namespace(config=name, overrides=[], seed=None)).topple
+        if "stroke" in other.applied_corrections and not (
+            "stroke" in config.topple.applied_corrections and other.stroke == config.topple.stroke
+        ):
+            raise UsageError(f"--against {name}: its stroke correction reads the log's push depths; "
+                             "score it as --config, or compare with a model of the same stroke")
+        models[name] = other
+    return models
+
+
 def main(argv: list[str] | None = None) -> int:
     """``toppledb report LOG...``: score model variants against push logs and write the report."""
     from ..build.corpus import CorpusError, load_corpus
@@ -623,6 +670,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--replay", nargs="+", metavar="LOG",
                         help="the same pushes played with other noise draws (`toppledb play --noise-draws 1`), "
                              "scored as the physics_replay reference")
+    parser.add_argument("--against", nargs="+", default=[], metavar="PRESET|FILE.toml",
+                        help="other models to score on the same pushes, each compared with this one paired over objects "
+                             "(their [topple] section: variant, corrections, noise, map), e.g. --against thesis")
     parser.add_argument("--corpus", default="default", help="calibration corpus, to count reported objects inside it (default: %(default)s)")
     parser.add_argument("--exclude-corpus", action="store_true", help="reject rows of corpus objects (a held-out report)")
     parser.add_argument("--bootstrap", type=int, default=BOOTSTRAP, help="resamples over objects (default: %(default)s; 0: none)")
@@ -645,8 +695,9 @@ def main(argv: list[str] | None = None) -> int:
         if rate_value is not None and not 0.0 <= rate_value <= 1.0:
             raise UsageError(f"--rate must be in [0, 1], got {rate_value}")
         replay = read_log(args.replay, config, corpus, exclude_corpus=args.exclude_corpus) if args.replay else None
+        against = comparison_models(args.against, config)
         result = report(log, config, tuple(args.variants), rate=rate_value, rate_source=rate_source,
-                        n_resamples=args.bootstrap, seed=config.seed, replay=replay)
+                        n_resamples=args.bootstrap, seed=config.seed, replay=replay, against=against)
     except (UsageError, CorpusError, LogError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
