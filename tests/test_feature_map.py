@@ -27,7 +27,7 @@ from pipeline.studies.logreader import read_log
 from pipeline.studies.scoring import Scorer
 from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import STATUS_OK
-from tests.test_smoothing import pose_and_candidates  # noqa: F401 (fixture: random_object(3), pose 0, 80 contacts)
+from tests.test_smoothing import pose_and_candidates  # noqa: F401 (fixture: random_object(3), pose 2, 80 contacts)
 from tests.test_validation import model_logs  # noqa: F401 (fixture)
 
 X = np.array([1.0, 0.0, 0.0])
@@ -147,6 +147,7 @@ def test_the_engine_maps_the_smoothed_rows_with_the_pushes_own_features(pose_and
     plain, mapped = table(topple), table(replace(topple, feature_map=weights))
     ok = actions.status == STATUS_OK
     p = plain.p_topple
+    assert (p[ok] > 0).any()
     near, _ = neighbour_mean(actions.points, actions.directions, p)
     f = push_features(p, near, plain.mean_force, obj.mass * topple.gravity, actions.directions)
     q = mapped_probability(f, weights)

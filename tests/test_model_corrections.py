@@ -232,12 +232,14 @@ def test_thesis_variants_apply_no_correction_and_unknown_names_are_refused():
     for variant in ("baseline", "rotations", "robustness", "robust"):
         assert replace(Config().topple, variant=variant, corrections="all").applied_corrections == frozenset()
     assert replace(Config().topple, variant="corrected", corrections="all").applied_corrections == frozenset(CORRECTIONS)
-    assert replace(Config().topple, variant="corrected").applied_corrections == {"finger_friction", "force_limit", "momentum", "stuck_finger"}
+    assert replace(Config().topple, variant="corrected").applied_corrections == {"finger_friction", "force_limit", "momentum", "stuck_finger", "tip_path"}
     assert replace(Config().topple, variant="corrected", corrections="none").applied_corrections == frozenset()
     one = Config().with_overrides({"topple.variant": "corrected", "topple.corrections": "force_limit"})
     assert one.topple.applied_corrections == {"force_limit"}
     with pytest.raises(ValueError, match="unknown correction.*slippery"):
         Config().with_overrides({"topple.corrections": "force_limit,slippery"})
+    with pytest.raises(ValueError, match="tip_path checks finger_friction's balance.*add finger_friction"):
+        Config().with_overrides({"topple.corrections": "force_limit,tip_path"})
 
 
 def test_a_marginal_pose_falls_over_its_nearest_edge_whatever_the_push():
@@ -346,3 +348,95 @@ def test_the_boot_rolls_over_its_toe_with_rolling():
         same = ~p.edge_blocked
         np.testing.assert_array_equal(p.edge_rolled_pose[same], p.edge_final_pose[same])
     assert replace(Config().topple, variant="robust", corrections="rolling").applied_corrections == frozenset()
+
+
+# ---------------------------------------------------------------- C.14: the balance on the way to the apex
+
+
+def _box_along_tip(height, mu, theta, weight, d=0.04, w=0.08, com_height=0.075, mu_table=MU_TABLE, max_force=np.inf):
+    """C.2's balance for the standing box pushed horizontally at ``height`` across its 8 cm side,
+    turned by ``theta`` about the far edge (MODEL.md C.14, in closed form).  In the plane of the
+    push (x along it, z up, the far edge at the origin) the near face's normal has turned to
+    n = (-cos theta, sin theta) and keeps n . x = w, so the finger (z = height) meets it at
+    x_q = (height sin theta - w) / cos theta; a point there moves at v = (height, -x_q) per
+    radian, and v . n = (w sin theta - height) / cos theta < 0 while the face recedes.  Along
+    the face (t = (sin theta, cos theta)) it slides at (w - height sin theta) / cos^2 theta
+    relative to the finger, so friction adds -sign(that) mu t to -n, the torque per newton of
+    normal force is tau = (height - w sin theta) / cos theta - sign mu w, and the centre of mass
+    is d cos theta - com_height sin theta inside the edge."""
+    s, c = np.sin(theta), np.cos(theta)
+    recedes = height > w * s
+    sign = np.sign(w - height * s)
+    tau = (height - w * s) / c - sign * mu * w
+    inside = d * c - com_height * s
+    if not (recedes and tau > 0 and inside > 0):
+        return False, np.inf
+    normal_force = weight * inside / tau
+    f_push, f_up = normal_force * (c - sign * mu * s), normal_force * (-s - sign * mu * c)
+    force = normal_force * np.hypot(1.0, mu)
+    table = weight - f_up
+    return bool(table > 0 and abs(f_push) <= mu_table * table and force <= max_force), force
+
+
+@pytest.mark.parametrize("mu_finger", [0.0, 0.98])
+def test_the_balance_half_way_to_the_apex_is_the_closed_form(box, mu_finger):
+    from pipeline.model.topple import holds_along_tip
+
+    obj, pose_set, index = box
+    pose = pose_set.poses[index]
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
+    edges = edge_geometry(pose.base_edges, center_mass)
+    far = next(e for e in range(len(edges.start)) if abs(edges.direction[e, 0]) > 0.9 and edges.start[e, 1] > 0)  # y = +4 cm
+    weight = obj.mass * 9.81
+    theta = edges.apex_angle[far] / 2  # points = 1: the one angle half way
+    outcomes = []
+    for height in (0.005, 0.02, 0.06, 0.1, 0.135, 0.149):
+        for margin in (np.inf, 1 + 1e-9, 1 - 1e-9):  # no limit, a limit just above and just below the force
+            _, force = _box_along_tip(height, mu_finger, theta, weight)
+            limit = force * margin if np.isfinite(force) and np.isfinite(margin) else np.inf
+            expected, _ = _box_along_tip(height, mu_finger, theta, weight, max_force=limit)
+            trials = Trials(np.array([[0.0, -0.04, height]]), np.array([[0.0, -1.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]),
+                            np.array([MU_TABLE]), np.array([mu_finger]), np.ones(1, bool), np.zeros(1))
+            held = holds_along_tip(trials, edges, np.array([far]), obj.mass, 9.81, 1.0, limit, True, 1)
+            assert held.tolist() == [expected], (height, margin)
+            outcomes.append(expected)
+    assert True in outcomes and False in outcomes  # both sides of the balance are exercised
+
+
+@pytest.mark.parametrize("mu_finger", [0.0, 0.98])
+def test_the_standing_box_keeps_its_threshold_with_the_balance_on_the_way(box, mu_finger):
+    """Pushed horizontally, the box needs less as it turns (the centre of mass nears the edge
+    faster than the torque falls), so ``tip_path`` leaves (C.2.3)'s threshold where it is."""
+    d, width = 0.04, 0.08
+    threshold = d / MU_TABLE + mu_finger * (width - d)
+    points = [[0.0, -d, threshold - STEP], [0.0, -d, threshold + STEP], [0.0, -d, threshold + 10 * STEP]]
+    for points_checked in (1, 2, 5):
+        topple = noise_free(corrections="finger_friction,tip_path", mu_finger_mean=mu_finger, tip_path_points=points_checked)
+        assert _push(box, points, [0.0, 1.0, 0.0], topple).p_topple.tolist() == [0.0, 1.0, 1.0]
+
+
+def test_the_balance_on_the_way_only_removes_topples_and_stops_some():
+    """On a random object under the default noise, ``tip_path`` keeps every trial's outcome or
+    stops it (a trial it stops toppled over the edge C.2 chose at the start, and stays): no
+    trial topples that did not, and some that did stall on the way (C.14)."""
+    from pipeline.model.collision import collision_object
+    from pipeline.model.contacts import object_contacts, pose_actions
+    from pipeline.model.poses import stable_poses
+    from schema.vocabulary import OUTCOME_NO_EDGE
+
+    obj = random_object(44)
+    pose_set = stable_poses(obj)
+    contacts = replace(Config().contacts, n_contacts=150)
+    points, normals = object_contacts(obj, contacts, seed=5)
+    collision = collision_object(obj.mesh)
+    base = replace(Config().topple.counted(), n_trials=20, corrections="finger_friction,force_limit")
+    stopped = 0
+    for pose in pose_set.poses[:4]:
+        actions = pose_actions(points, normals, obj.mesh, collision, pose.transform, contacts)
+        tables = [evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(5, obj.name, pose.index, "trials"))
+                  for topple in (base, replace(base, corrections="finger_friction,force_limit,tip_path"))]
+        start, path = (t.outcomes for t in tables)
+        changed = start != path
+        assert (path[changed] == OUTCOME_NO_EDGE).all()
+        stopped += int(changed.sum())
+    assert stopped > 0, "some trials should start to tip and stall on the way"

@@ -31,6 +31,7 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_009", "corrected:finger_friction,edge_spin"),  # the table check without its moment term (C.9)
     ("random_004", "corrected:finger_friction,force_limit,stroke"),  # with a stroke short enough to bite (SHORT_STROKE)
     ("random_044", "corrected:finger_friction,force_limit,momentum,stuck_finger"),  # pushes down onto overhangs (C.11)
+    ("random_044", "corrected:finger_friction,force_limit,tip_path"),  # tips that stall on the way (C.14)
 ]
 
 LOW_LIMIT = 1.0
@@ -83,6 +84,10 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                     alone = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
                                             topple.applied_corrections - {"stuck_finger"}, topple.max_finger_force)
                     stuck += edge >= 0 and alone[0] < 0
+                if "tip_path" in corrections:  # trials that start to tip and stall on the way
+                    start_only = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
+                                                 topple.applied_corrections - {"tip_path"}, topple.max_finger_force)
+                    capped += start_only[0] >= 0 and edge < 0
                 if topple.stroke == SHORT_STROKE:  # trials the stroke stops: with an endless one they topple
                     endless = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
                                               topple.applied_corrections, topple.max_finger_force)
@@ -106,6 +111,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         assert capped > 0, "the short stroke should stop some trials that would topple"
     if "stuck_finger" in corrections:
         assert stuck > 0, "some trials should topple only by the stuck finger"
+    if "tip_path" in corrections:
+        assert capped > 0, "the balance on the way should stop some trials that start to tip"
 
 
 def test_reference_required_force_matches_engine_on_box():
@@ -135,7 +142,8 @@ def test_the_configured_trial_sets_every_parameter_of_the_reference(monkeypatch)
 
     calls = []
     monkeypatch.setattr(reference, "reference_trial", lambda *args, **kwargs: calls.append((args, kwargs)) or (-1, 0.0))
-    topple = replace(Config().topple, stuck_finger_share=0.3, stroke=0.02, max_finger_force=7.0, finger_friction_scale=0.6)
+    topple = replace(Config().topple, stuck_finger_share=0.3, stroke=0.02, max_finger_force=7.0, finger_friction_scale=0.6,
+                     tip_path_points=3)
     assert reference.configured_trial("scene", "draw", topple) == (-1, 0.0)
     (args, kwargs), = calls
     signature = inspect.signature(reference_trial)  # the function itself, imported before the patch
@@ -143,4 +151,5 @@ def test_the_configured_trial_sets_every_parameter_of_the_reference(monkeypatch)
     assert set(bound.arguments) == set(signature.parameters), "a parameter left at its default"
     assert bound.arguments["stuck_share"] == 0.3 and bound.arguments["stroke"] == 0.02
     assert bound.arguments["max_force"] == 7.0 and bound.arguments["friction_scale"] == 0.6
+    assert bound.arguments["tip_points"] == 3
     assert bound.arguments["corrections"] == topple.applied_corrections and "stuck_finger" in topple.applied_corrections

@@ -36,7 +36,9 @@ def pose_and_candidates():
     pose_set = stable_poses(obj)
     contacts = ContactConfig(n_contacts=80)
     points, normals = object_contacts(obj, contacts, 3)
-    pose = pose_set.poses[0]
+    # Pose 2: 26 of its pushes topple under the default model (pose 0, on which these tests were
+    # written, has none once tip_path stops its few stalling tips, MODEL.md C.14).
+    pose = pose_set.poses[2]
     actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
     return obj, pose_set, pose, actions
 
@@ -80,7 +82,7 @@ def test_smoothed_rows_are_the_neighbourhood_means_of_the_counted_rows(pose_and_
     assert np.allclose(smoothed.next_pose[ok], expected[ok])
     assert np.all(np.isnan(smoothed.next_pose[~ok]))
     assert np.allclose(smoothed.next_pose[ok].sum(axis=1), 1.0), "means of distributions are distributions"
-    assert np.allclose(smoothed.p_topple[ok], 1.0 - smoothed.next_pose[ok, 0])
+    assert np.allclose(smoothed.p_topple[ok], 1.0 - smoothed.next_pose[ok, pose_and_candidates[2].index])
     assert (count[ok] > 1).any() and not np.allclose(smoothed.p_topple[ok], counted.p_topple[ok]), "the test must smooth something"
     assert np.array_equal(smoothed.outcomes, counted.outcomes), "the trials themselves are untouched"
     assert np.array_equal(smoothed.mean_force, counted.mean_force, equal_nan=True)

@@ -85,7 +85,8 @@ VARIANTS = THESIS_VARIANTS + ("corrected",)
 """Every selectable variant: the thesis's four, and ``corrected`` (the robust model with the
 corrections of docs/MODEL.md "Corrections beyond the thesis" named in ``topple.corrections``)."""
 
-CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum", "edge_spin", "stroke", "stuck_finger")
+CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum", "edge_spin", "stroke", "stuck_finger",
+               "tip_path")
 """Corrections the ``corrected`` variant can apply (docs/MODEL.md, "Corrections beyond the thesis"):
 ``finger_friction``: the finger's force follows Coulomb sliding at the contact while the object
 tips (friction in the moment balance, pushes from above, faces the finger wedges under);
@@ -97,7 +98,9 @@ base edge falls over that edge whatever the push;
 ``edge_spin``: a push's moment about the vertical turns the object without stopping the topple;
 ``stroke``: a topple needs the finger to reach its apex within ``stroke`` of the contact;
 ``stuck_finger``: a push down onto a part that overhangs a base edge tips the object over it
-when nothing else does and the push can drag the base (the finger sticks, the base slides)."""
+when nothing else does and the push can drag the base (the finger sticks, the base slides);
+``tip_path``: ``finger_friction``'s balance must hold on the way to the apex too, at
+``tip_path_points`` angles between, not only at the start (it needs ``finger_friction``)."""
 
 
 @dataclass(frozen=True)
@@ -190,13 +193,14 @@ class ToppleConfig:
     """m; the finger ray that re-finds a noisy contact starts this far outside it."""
     chunk_actions: int = bounded(256, AT_LEAST_ONE)
     """Actions evaluated per vectorised block; bounds peak memory, not results."""
-    corrections: str = "finger_friction,force_limit,momentum,stuck_finger"
+    corrections: str = "finger_friction,force_limit,momentum,stuck_finger,tip_path"
     """Comma-separated corrections the ``corrected`` variant applies (``CORRECTIONS``), or
     ``all`` or ``none``; the thesis's variants apply none, whatever this says.  The default
     leaves out ``stability_margin``, which physics does not support as a rule (docs/MODEL.md C.3),
     ``rolling``, which did not help (C.6), ``edge_spin``, which makes the pushes the
     policies choose overconfident in physics (C.9), and ``stroke`` (C.10).  ``stuck_finger``
-    (C.11) joined it with the recalibration map refitted on it (candidate S, docs/VALIDATION.md)."""
+    (C.11) joined it with the recalibration map refitted on it (candidate S, docs/VALIDATION.md),
+    and ``tip_path`` (C.14) the same way (candidate T)."""
     finger_friction_scale: float = bounded(1.0, FRACTION)
     """Share of the finger's Coulomb friction that resists tipping (``finger_friction``
     correction): 1 is Coulomb's law, which the standing box in pybullet follows, and what the
@@ -218,6 +222,9 @@ class ToppleConfig:
     made after every other draw, decides).  0.5: on the corpus log, pushes that qualify
     noise-free topple 0.43-0.53 of the time; 1, the rule taken at its word, scores the same
     there but makes the pushes the policies choose overconfident (docs/MODEL.md C.11)."""
+    tip_path_points: int = bounded(2, AT_LEAST_ONE)
+    """How many angles between the start and the apex ``tip_path`` checks the balance at:
+    k / (n + 1) of the apex angle for k = 1..n (docs/MODEL.md C.14)."""
     smoothing_radius: float = bounded(0.01, NON_NEGATIVE)
     """m; when positive, each candidate push's next-pose row is replaced by the mean row of the
     pose's candidates around it: contacts within this distance, directions within
@@ -281,6 +288,9 @@ class ToppleConfig:
                 f"unknown correction(s) {', '.join(sorted(unknown))} in topple.corrections; "
                 f"choose from {', '.join(CORRECTIONS)}, or all / none"
             )
+        if "tip_path" in names and "finger_friction" not in names:
+            raise ValueError("topple.corrections: tip_path checks finger_friction's balance on the way to the apex; "
+                             "add finger_friction")
         return frozenset(names) if self.variant == "corrected" else frozenset()
 
     @property

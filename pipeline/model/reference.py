@@ -146,11 +146,12 @@ def reference_trial(
     min_margin: float = 0.0,
     stroke: float = math.inf,
     stuck_share: float = 1.0,
+    tip_points: int = 2,
 ):
     """Outcome of one trial: (edge index or -1, required force in N or inf).
 
     ``corrections`` (names of ``config.CORRECTIONS``), ``max_force``, ``friction_scale``,
-    ``min_margin``, ``stroke`` and ``stuck_share`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
+    ``min_margin``, ``stroke``, ``stuck_share`` and ``tip_points`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
     empty, it is the thesis's trial.
     """
     if "stability_margin" in corrections:
@@ -195,6 +196,12 @@ def reference_trial(
         y0, y1 = scene.edges[best_edge]
         if not finger_travel(contact, normal, push, y0, y1, com) <= stroke:  # C.10: falls back short of the apex
             best_edge, best_force = -1, math.inf
+    if "tip_path" in corrections and best_edge >= 0:
+        y0, y1 = scene.edges[best_edge]
+        limit = max_force if "force_limit" in corrections else math.inf
+        if not holds_along_tip(contact, normal, push, draw.mu_table, friction_scale * draw.mu_finger, y0, y1, com, weight,
+                               spin_stops, limit, tip_points):  # C.14: the tip stalls on the way
+            best_edge, best_force = -1, math.inf
     if "stuck_finger" in corrections and best_edge < 0 and draw.stuck_draw < stuck_share and drags_base(push, draw.mu_table):
         for index, (y0, y1) in enumerate(scene.edges):  # C.11: the finger holds, the base slides
             e, outward, com_distance = _edge_frame(y0, y1, com)
@@ -214,7 +221,7 @@ def configured_trial(scene: Scene, draw: TrialDraw, topple) -> tuple[int, float]
     return reference_trial(
         scene, draw, topple.robust, topple.predicts_rotations, topple.ray_offset, topple.applied_corrections,
         topple.max_finger_force, topple.finger_friction_scale, topple.min_stability_margin, topple.stroke,
-        topple.stuck_finger_share,
+        topple.stuck_finger_share, topple.tip_path_points,
     )
 
 
@@ -241,6 +248,28 @@ def finger_travel(contact: Vec, normal: Vec, push: Vec, y0: Vec, y1: Vec, com: V
         return math.inf
     offset = _sub(contact, y0)
     return (_dot(normal, offset) - _dot(apex_normal, offset)) / approach
+
+
+def holds_along_tip(contact: Vec, normal: Vec, push: Vec, mu_table: float, mu_finger: float, y0: Vec, y1: Vec, com: Vec,
+                    weight: float, spin_stops: bool, max_force: float, points: int) -> bool:
+    """C.14: whether C.2's balance holds at k / (points + 1) of the way to the apex of the edge
+    y0 -> y1, k = 1..points, the face turned with the object and the finger advanced along the
+    push onto it (``mu_finger``: the trial's mu_f times ``finger_friction_scale``)."""
+    e, _, com_distance = _edge_frame(y0, y1, com)
+    apex = math.atan2(com_distance, com[2])
+    offset = _sub(contact, y0)
+    for k in range(1, points + 1):
+        theta = apex * k / (points + 1)
+        turned = _rotate(normal, e, theta)
+        approach = _dot(turned, push)
+        if approach >= 0.0:  # the face has turned away from the finger
+            return False
+        finger = _add(contact, _scale(push, _dot(_sub(normal, turned), offset) / approach))
+        inside = com_distance * math.sin(apex - theta) / math.sin(apex)
+        force = sliding_force(finger, turned, push, mu_table, mu_finger, e, y0, y1, com, weight, inside, spin_stops)
+        if force is None or force > max_force:
+            return False
+    return True
 
 
 def landed_pose(pose, edge: int, corrections: frozenset = frozenset()) -> int:

@@ -304,6 +304,15 @@ def _tile_outcomes(
         # stroke carries it to that edge's apex.  Only the chosen edge is checked.
         short = ~(finger_travel(trials, edges, edge) <= config.stroke)  # (n,); NaN or inf: out of reach
         required[short] = np.inf
+    if "tip_path" in corrections:
+        # C.14: the balance that let the finger start the tip must hold on the way to the
+        # apex too; where it fails the object stops, and does not tip over another edge instead.
+        rows = np.flatnonzero(np.isfinite(required))
+        if len(rows):
+            limit = max_force if "force_limit" in corrections else np.inf
+            holds = holds_along_tip(trials.take(rows), edges, edge[rows], mass, gravity, config.finger_friction_scale,
+                                    limit, spin_stops, config.tip_path_points)
+            required[rows[~holds]] = np.inf
     if "stuck_finger" in corrections:
         # C.11: where nothing tips the object, a push down onto a part beyond a base edge may,
         # the finger holding on and the base sliding (a share of such trials, by the last draw).
@@ -347,6 +356,51 @@ def stuck_finger(
     candidate = np.where(qualifies, force, np.inf)  # (n, E)
     edge = np.argmin(candidate, axis=1)  # (n,)
     return edge, candidate[np.arange(len(edge)), edge]
+
+
+def holds_along_tip(
+    trials: Trials,
+    edges: EdgeGeometry,
+    edge: np.ndarray,
+    mass: float,
+    gravity: float,
+    friction_scale: float,
+    max_force: float,
+    spin_stops: bool,
+    points: int,
+) -> np.ndarray:
+    """The ``tip_path`` correction (MODEL.md C.14): whether C.2's balance holds on the way to the apex.
+
+    The object turned by theta about its edge (through y0, unit e, MODEL.md C.10's convention)
+    has its face in the plane n_t . (x - y0) = n . (p - y0), n_t = Rot(e, theta) n; the finger,
+    advanced along u, meets it at q = p + s u with s = (n - n_t) . (p - y0) / (n_t . u), and the
+    centre of mass is d_e sin(theta_e - theta) / sin(theta_e) inside the edge.  At
+    theta = k theta_e / (points + 1), k = 1..points, the finger must still reach the face
+    (n_t . u < 0) and ``sliding_contact`` must pass there with a force of at most ``max_force``.
+
+    trials : r trials whose least-force edge passed at the start;  edge : (r,) int, that edge
+    returns : (r,) bool
+    """
+    u, normal, contact = trials.push, trials.normal, trials.contact  # (r, 3) each
+    e, y0, apex = edges.direction[edge], edges.start[edge], edges.apex_angle[edge]  # (r, 3), (r, 3), (r,)
+    # Each row's own edge as (r, 1) columns: ``_sliding_balance`` then works row by row.
+    ex, ey, y0x, y0y = e[:, 0:1], e[:, 1:2], y0[:, 0:1], y0[:, 1:2]
+    origin = edges.origin[edge]  # (r, 3)
+    origin_x, origin_y, half_span = origin[:, 0:1], origin[:, 1:2], edges.half_span[edge][:, None]
+    offset = contact - y0  # (r, 3), p - y0
+    holds = np.ones(len(edge), dtype=bool)
+    for k in range(1, points + 1):
+        theta = apex * (k / (points + 1))  # (r,), rad
+        turned = np.einsum("rij,rj->ri", axis_angle_matrices(e, theta), normal)  # (r, 3), n_t
+        approach = np.einsum("ij,ij->i", turned, u)  # (r,), n_t . u
+        reaches = approach < 0.0
+        gap = np.einsum("ij,ij->i", normal - turned, offset)  # (r,), (n - n_t) . (p - y0)
+        finger = contact + (gap / np.where(reaches, approach, -1.0))[:, None] * u  # (r, 3), q
+        inside = (edges.com_distance[edge] * (np.sin(apex - theta) / np.sin(apex)))[:, None]  # (r, 1), d_e(theta), m
+        force, passes = _sliding_balance(replace(trials, contact=finger, normal=turned), ex, ey, y0x, y0y, inside,
+                                         origin_x, origin_y, half_span, mass, gravity, friction_scale, spin_stops)  # (r, 1) each
+        holds &= reaches & passes[:, 0] & (force[:, 0] <= max_force)
+    return holds
 
 
 def drags_base(push: np.ndarray, mu_table: np.ndarray) -> np.ndarray:
@@ -474,17 +528,34 @@ def sliding_contact(
 
     returns : force (n, E) float, N (finger force magnitude); passes (n, E) bool
     """
-    u, normal, contact = trials.push, trials.normal, trials.contact  # (n, 3) each, finite (``trial_outcomes``)
     e, y0 = edges.direction, edges.start  # (E, 3) each, horizontal and on the table (e_z = y0_z = 0, section 5)
+    return _sliding_balance(trials, e[:, 0], e[:, 1], y0[:, 0], y0[:, 1], edges.com_distance, edges.origin[:, 0],
+                            edges.origin[:, 1], edges.half_span, mass, gravity, friction_scale, spin_stops)
+
+
+def _sliding_balance(
+    trials: Trials, ex, ey, y0x, y0y, com_distance, origin_x, origin_y, half_span,
+    mass: float, gravity: float, friction_scale: float, spin_stops: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``sliding_contact``'s balance with its edge quantities given as arrays that broadcast
+    against the trials' (n, 1) columns: (E,) each for every edge of every trial, (n, 1) each
+    for one edge per trial (``holds_along_tip``).  The same operations either way, so a
+    trial's result does not depend on which.
+
+    ex, ey : e's components;  y0x, y0y : y0's;  com_distance : d_e, m;  origin_x, origin_y : O_e's, m
+    half_span : h_e, m
+    returns : force, passes: (n, E) or (n, 1)
+    """
+    u, normal, contact = trials.push, trials.normal, trials.contact  # (n, 3) each, finite (``trial_outcomes``)
     col = lambda a, k: a[:, k : k + 1]  # noqa: E731, (n, 1) column k of an (n, 3) array
     # In-place steps (+=, out=) are the same operations in the same order as the formulas in
     # the comments, without the temporaries.
     # v_e = e x (p - y0) per component, with e_z = y0_z = 0: (n, 1) x (E,) outer products, no (n, E, 3) array.
-    vx = col(contact, 2) * e[:, 1]  # (n, E), e_y p_z
-    vy = -col(contact, 2) * e[:, 0]  # (n, E), -e_x p_z
-    vz = col(contact, 1) * e[:, 0]
-    vz -= col(contact, 0) * e[:, 1]
-    vz -= e[:, 0] * y0[:, 1] - e[:, 1] * y0[:, 0]  # (n, E), (p_y e_x - p_x e_y) - (e x y0)_z
+    vx = col(contact, 2) * ey  # (n, E), e_y p_z
+    vy = -col(contact, 2) * ex  # (n, E), -e_x p_z
+    vz = col(contact, 1) * ex
+    vz -= col(contact, 0) * ey
+    vz -= ex * y0y - ey * y0x  # (n, E), (p_y e_x - p_x e_y) - (e x y0)_z
     face_speed = vx * col(normal, 0)
     face_speed += vy * col(normal, 1)
     face_speed += vz * col(normal, 2)  # (n, E), v_e . n
@@ -520,9 +591,9 @@ def sliding_contact(
     torque = fx * vx
     torque += fy * vy
     torque += fz * vz  # (n, E), tau_e = f_hat . v_e, m
-    rotates = follows & (torque > MIN_PUSH_TORQUE) & (edges.com_distance > 0.0)  # (n, E)
+    rotates = follows & (torque > MIN_PUSH_TORQUE) & (com_distance > 0.0)  # (n, E)
     weight = mass * gravity
-    normal_force = np.where(rotates, weight * edges.com_distance / np.where(rotates, torque, 1.0), 0.0)  # (n, E), F_n*
+    normal_force = np.where(rotates, weight * com_distance / np.where(rotates, torque, 1.0), 0.0)  # (n, E), F_n*
     fx *= normal_force
     fy *= normal_force
     fz *= normal_force  # (n, E) each, f, N
@@ -531,9 +602,9 @@ def sliding_contact(
     force_xy += fy * fy  # (n, E), |f_xy|^2, shared by load and |f|
     if spin_stops:
         # ((p - O_e) x f)_z with (p - O_e)_xy as (n, 1) - (E,) columns.
-        tau_z = (col(contact, 0) - edges.origin[:, 0]) * fy
-        tau_z -= (col(contact, 1) - edges.origin[:, 1]) * fx  # (n, E)
-        tau_z /= edges.half_span
+        tau_z = (col(contact, 0) - origin_x) * fy
+        tau_z -= (col(contact, 1) - origin_y) * fx  # (n, E)
+        tau_z /= half_span
         load = force_xy + np.square(tau_z, out=tau_z)  # (n, E), |f_xy|^2 + (tau_z / h_e)^2, N^2
     else:
         load = force_xy.copy()  # (n, E), |f_xy|^2, N^2: force_xy goes on to become |f|

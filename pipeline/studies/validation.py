@@ -528,11 +528,12 @@ def format_report(result: dict) -> str:
     ]
     for reason, count in c["rejected_by_reason"].items():
         lines.append(f"  rejected {count} rows: {reason}")
-    lines.append(f"{'predictor':<15} {'TV inform.':>26} {'TV all':>8} {'Brier':>7} {'AP':>26} {'mAP':>7} {'ECE':>7} {'inform.':>8}")
     rows = _rows(result)
+    width = max([15] + [len(name) for name, _ in rows])
+    lines.append(f"{'predictor':<{width}} {'TV inform.':>26} {'TV all':>8} {'Brier':>7} {'AP':>26} {'mAP':>7} {'ECE':>7} {'inform.':>8}")
     for name, m in rows:
         lines.append(
-            f"{name:<15} {cell(m['tv_informative']) + ci(m, 'tv_informative'):>26} {cell(m['tv_all']):>8} "
+            f"{name:<{width}} {cell(m['tv_informative']) + ci(m, 'tv_informative'):>26} {cell(m['tv_all']):>8} "
             f"{cell(m.get('brier')):>7} {cell(m['ap']) + ci(m, 'ap'):>26} {cell(m['map']):>7} {cell(m['ece']):>7} "
             f"{cell(m['informative']):>8}"
         )
