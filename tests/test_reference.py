@@ -32,12 +32,16 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_004", "corrected:finger_friction,force_limit,stroke"),  # with a stroke short enough to bite (SHORT_STROKE)
     ("random_044", "corrected:finger_friction,force_limit,momentum,stuck_finger"),  # pushes down onto overhangs (C.11)
     ("random_044", "corrected:finger_friction,force_limit,tip_path"),  # tips that stall on the way (C.14)
+    ("random_044", "corrected:finger_friction,tip_path"),  # no force limit on the way; TIP_POINTS angles
 ]
 
 LOW_LIMIT = 1.0
 """N, a finger force limit below many of the box's required forces, so the cut is exercised."""
 SHORT_STROKE = 0.01
 """m, a stroke shorter than many of random_004's topples need (C.10), so the cut is exercised."""
+TIP_POINTS = 3
+"""Angles checked on the way to the apex (C.14) when ``tip_path`` runs without ``force_limit``,
+so a count other than the default's 2 is held to the reference too."""
 
 
 def _object(name):
@@ -57,6 +61,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         topple = replace(topple, max_finger_force=LOW_LIMIT)
     if "stroke" in corrections.split(","):
         topple = replace(topple, stroke=SHORT_STROKE)
+    if "tip_path" in corrections.split(",") and "force_limit" not in corrections.split(","):
+        topple = replace(topple, tip_path_points=TIP_POINTS)
     contacts = replace(config.contacts, n_contacts=60)
     points, normals = object_contacts(obj, contacts, seed=11)
     mesh_collision = collision_object(obj.mesh)

@@ -535,8 +535,30 @@ def test_report_against_other_models_pairs_them_with_the_configured_one(model_lo
         assert low <= thesis["difference"][key]["difference"] <= high
         # A model against itself differs by nothing, in every resample.
         assert itself["difference"][key] == {"difference": 0.0, "ci": [0.0, 0.0]}
+    # What was compared is recorded, not only its file's name.
+    thesis_topple = Config.from_toml(PRESETS / "thesis.toml").topple
+    assert thesis["topple"] == {k: getattr(thesis_topple, k) for k in thesis["topple"]}
+    assert thesis["recalibration"]["x"] == [] and len(itself["recalibration"]["x"]) == len(Config().topple.recalibration_x) > 0
+    assert itself["ranking_by_direction"] == result["ranking_by_direction"]
     printed = capsys.readouterr().out
     assert "corrected - thesis (robust; paired" in printed and "\nthesis " in printed
+    assert "corrected - same (corrected; paired" in printed  # a file by its stem, as in the table
+    assert main([reported, "--variants", "corrected", "--against", "thesis", "--corpus", "",
+                 "--bootstrap", "0", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "corrected - thesis" in printed and "nan" not in printed
+
+
+def test_report_against_accepts_a_model_of_the_same_stroke(model_logs, tmp_path, capsys):
+    reported = str(model_logs / "reported.parquet")
+    stroke = tmp_path / "stroke.toml"
+    stroke.write_text('[topple]\nvariant = "corrected"\ncorrections = "finger_friction,stroke"\n')
+    out = tmp_path / "validation.json"
+    assert main([reported, "--config", str(stroke), "--variants", "corrected", "--against", str(stroke),
+                 "--corpus", "", "--bootstrap", "0", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["against"][str(stroke)]["corrections"] == ["finger_friction", "stroke"]
+    assert result["against"][str(stroke)]["difference"]["brier"]["difference"] == 0.0
 
 
 def test_report_against_refuses_unknown_models_and_a_stroke_it_cannot_read(model_logs, tmp_path, capsys):
@@ -549,3 +571,6 @@ def test_report_against_refuses_unknown_models_and_a_stroke_it_cannot_read(model
     assert main([reported, "--against", str(stroke), "--corpus", "", "--out", str(out)]) == 2
     assert "stroke correction reads the log's push depths" in capsys.readouterr().err
     assert not out.exists()
+    # The compared models are resolved before any log is read.
+    assert main([str(tmp_path / "missing.parquet"), "--against", "no_such_model", "--corpus", "", "--out", str(out)]) == 2
+    assert "no_such_model" in capsys.readouterr().err

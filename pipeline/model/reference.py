@@ -259,13 +259,13 @@ def holds_along_tip(contact: Vec, normal: Vec, push: Vec, mu_table: float, mu_fi
     apex = math.atan2(com_distance, com[2])
     offset = _sub(contact, y0)
     for k in range(1, points + 1):
-        theta = apex * k / (points + 1)
+        theta = apex * (k / (points + 1))  # grouped as the engine groups it, so the angles agree bit for bit
         turned = _rotate(normal, e, theta)
         approach = _dot(turned, push)
         if approach >= 0.0:  # the face has turned away from the finger
             return False
         finger = _add(contact, _scale(push, _dot(_sub(normal, turned), offset) / approach))
-        inside = com_distance * math.sin(apex - theta) / math.sin(apex)
+        inside = com_distance * (math.sin(apex - theta) / math.sin(apex))
         force = sliding_force(finger, turned, push, mu_table, mu_finger, e, y0, y1, com, weight, inside, spin_stops)
         if force is None or force > max_force:
             return False

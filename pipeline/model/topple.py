@@ -222,7 +222,7 @@ def trial_outcomes(trials: Trials, edges: EdgeGeometry, mass: float, config: Top
 
     mass : kg;  config : the variant, its corrections (``applied_corrections``; none: the
       thesis's model, section 7) and their parameters (``max_finger_force``,
-      ``finger_friction_scale``, ``stroke``, ``stuck_finger_share``) and ``gravity``
+      ``finger_friction_scale``, ``stroke``, ``tip_path_points``, ``stuck_finger_share``) and ``gravity``
     returns : edge (n,) int (``OUTCOME_NO_EDGE`` when none), required_force (n,) float, N (inf when none)
 
     Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
@@ -306,7 +306,8 @@ def _tile_outcomes(
         required[short] = np.inf
     if "tip_path" in corrections:
         # C.14: the balance that let the finger start the tip must hold on the way to the
-        # apex too; where it fails the object stops, and does not tip over another edge instead.
+        # apex too; where it fails the object stops, and does not tip over another edge instead
+        # (the stuck finger below may still tip a stalled trial, as any trial nothing tips).
         rows = np.flatnonzero(np.isfinite(required))
         if len(rows):
             limit = max_force if "force_limit" in corrections else np.inf

@@ -468,10 +468,16 @@ def report(
     if against and main_variant in variants:
         for name, other in against.items():
             other_scores = scorer.score(other)
+            other_x, other_y = other.applied_recalibration
             comparisons[name] = {
                 "variant": other.variant,
                 "corrections": sorted(other.applied_corrections),
+                # Enough to tell which model was compared without the file it came from.
+                "topple": {k: getattr(other, k) for k in NOISE_KEYS},
+                "recalibration": {"x": list(other_x), "y": list(other_y),
+                                  "feature_map": list(other.applied_feature_map)},
                 "metrics": predictor_summary(other_scores, scorer, n_resamples=n_resamples, seed=seed),
+                "ranking_by_direction": ranking_by_direction(other_scores, scorer, classes),
                 "difference": bootstrap_metric_difference(
                     main_scores, other_scores, scorer.empirical_topple, scorer.object_index, n_resamples, seed),
             }
@@ -549,23 +555,39 @@ def format_report(result: dict) -> str:
         lines += [f"  {d['direction']:<11} {d['pushes']:5d} {cell(d['ap'])} {d['predicted_topple']:.3f} {d['observed_topple']:.3f}"
                   for d in result["ranking_by_direction"]]
     if "recalibration" in result:
-        parts = [f"{key} {d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]"
-                 for key, d in result["recalibration"]["difference"].items() if key != "informative"]
+        parts = [f"{key} {_difference(d)}" for key, d in result["recalibration"]["difference"].items() if key != "informative"]
         lines.append(f"recalibrated - {result['recalibration']['raw']} (paired bootstrap over objects): " + ", ".join(parts))
     for name, other in result.get("against", {}).items():
-        parts = [f"{key} {d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]"
-                 for key, d in other["difference"].items() if key != "informative"]
-        lines.append(f"{result['main_variant']} - {name} ({other['variant']}; paired bootstrap over objects): " + ", ".join(parts))
+        parts = [f"{key} {_difference(d)}" for key, d in other["difference"].items() if key != "informative"]
+        lines.append(f"{result['main_variant']} - {_shown(name)} ({other['variant']}; paired bootstrap over objects): "
+                     + ", ".join(parts))
+        if other.get("ranking_by_direction"):
+            lines.append(f"{_shown(name)} ranking within each push direction: "
+                         + ", ".join(f"{d['direction']} {cell(d['ap'])}" for d in other["ranking_by_direction"]))
     return "\n".join(lines)
+
+
+def _shown(name: str) -> str:
+    """How a model compared with --against is named in tables: as given, a file by its stem
+    (reports/x.toml: x)."""
+    return Path(name).stem if name.endswith(".toml") else name
+
+
+def _difference(d: dict) -> str:
+    """A paired difference with its interval ("+0.012 [+0.004, +0.020]"); without resamples
+    (``--bootstrap 0``) the interval is NaN and only the difference is shown."""
+    low, high = d.get("ci") or (None, None)
+    if low is None or high is None or math.isnan(low) or math.isnan(high):  # None: read back from JSON
+        return f"{d['difference']:+.3f}"
+    return f"{d['difference']:+.3f} [{low:+.3f}, {high:+.3f}]"
 
 
 def _rows(result: dict) -> list[tuple[str, dict]]:
     """(name, metrics) of every predictor of a report: the variants, the configured variant
-    without its recalibration when it has one (``<variant>_raw``), then the references."""
+    without its recalibration when it has one (``<variant>_raw``), the models compared with
+    ``--against`` (``_shown``), then the references."""
     raw = [(result["recalibration"]["raw"], result["recalibration"]["raw_metrics"])] if "recalibration" in result else []
-    # A model compared with --against is named as given, a file by its stem (reports/x.toml: x).
-    against = [(Path(name).stem if name.endswith(".toml") else name, other["metrics"])
-               for name, other in result.get("against", {}).items()]
+    against = [(_shown(name), other["metrics"]) for name, other in result.get("against", {}).items()]
     return list(result["variants"].items()) + raw + against + list(result["references"].items())
 
 
@@ -685,6 +707,8 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     try:
         config = config_from_args(args)
+        # The compared models first: a bad name fails before minutes of log reading.
+        against = comparison_models(args.against, config)
         corpus = load_corpus(args.corpus, config.mesh.default_mass) if args.corpus else None
         log = read_log(args.logs, config, corpus, exclude_corpus=args.exclude_corpus)
         if not log.pushes:
@@ -696,7 +720,6 @@ def main(argv: list[str] | None = None) -> int:
         if rate_value is not None and not 0.0 <= rate_value <= 1.0:
             raise UsageError(f"--rate must be in [0, 1], got {rate_value}")
         replay = read_log(args.replay, config, corpus, exclude_corpus=args.exclude_corpus) if args.replay else None
-        against = comparison_models(args.against, config)
         result = report(log, config, tuple(args.variants), rate=rate_value, rate_source=rate_source,
                         n_resamples=args.bootstrap, seed=config.seed, replay=replay, against=against)
     except (UsageError, CorpusError, LogError) as err:
