@@ -9,7 +9,7 @@ far bottom edge from the height (C.2.3)
 finger force |f| = F_n sqrt(1 + (k mu_f)^2), F_n = m g d / (h - k mu_f w).
 """
 
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -17,10 +17,11 @@ from shapes import THESIS, noise_free, overhanging_frustum, random_object, stand
 
 from pipeline.model.config import CORRECTIONS, Config
 from pipeline.model.contacts import explicit_actions
-from pipeline.model.edges import edge_geometry
+from pipeline.model.edges import EdgeGeometry, edge_geometry
 from pipeline.model.rng import stream
-from pipeline.model.topple import Trials, evaluate_pose, finger_travel, landed_poses
-from schema.frames import transform_points
+from pipeline.model.topple import Trials, evaluate_pose, finger_travel, holds_along_tip, landed_poses, sliding_contact, trial_outcomes
+from schema.frames import axis_angle_matrices, transform_points
+from schema.vocabulary import OUTCOME_NO_EDGE
 
 MU_TABLE = THESIS.topple.mu_table_mean
 MU_FINGER = THESIS.topple.mu_finger_mean
@@ -380,7 +381,6 @@ def _box_along_tip(height, mu, theta, weight, d=0.04, w=0.08, com_height=0.075, 
 
 @pytest.mark.parametrize("mu_finger", [0.0, 0.98])
 def test_the_balance_half_way_to_the_apex_is_the_closed_form(box, mu_finger):
-    from pipeline.model.topple import holds_along_tip
 
     obj, pose_set, index = box
     pose = pose_set.poses[index]
@@ -422,7 +422,6 @@ def test_the_balance_on_the_way_only_removes_topples_and_stops_some():
     from pipeline.model.collision import collision_object
     from pipeline.model.contacts import object_contacts, pose_actions
     from pipeline.model.poses import stable_poses
-    from schema.vocabulary import OUTCOME_NO_EDGE
 
     obj = random_object(44)
     pose_set = stable_poses(obj)
@@ -440,3 +439,179 @@ def test_the_balance_on_the_way_only_removes_topples_and_stops_some():
         assert (path[changed] == OUTCOME_NO_EDGE).all()
         stopped += int(changed.sum())
     assert stopped > 0, "some trials should start to tip and stall on the way"
+
+
+# ---------------------------------------------------------------- C.14 and C.2 at their boundaries (found by mutation testing)
+def _square_edges(center_mass):
+    """EdgeGeometry of a 1 x 1 (m) square base centred on the origin, edges counter-clockwise
+    seen from above; edge 2 runs from (0.5, 0.5) to (-0.5, 0.5): e = (-1, 0, 0), outward +y.
+    Every quantity is a small binary fraction, so C.2's arithmetic on it is exact."""
+    corners = np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
+    return edge_geometry(np.stack([corners, np.roll(corners, -1, axis=0)], axis=1), np.asarray(center_mass, float))
+
+
+def _one_trial(contact, normal, push, mu_table, mu_finger=0.0):
+    return Trials(np.array([contact], float), np.array([normal], float), np.array([push], float),
+                  np.array([mu_table], float), np.array([mu_finger], float), np.ones(1, bool), np.zeros(1))
+
+
+def _box_far_edge(box):
+    obj, pose_set, index = box
+    pose = pose_set.poses[index]
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
+    edges = edge_geometry(pose.base_edges, center_mass)
+    far = next(e for e in range(len(edges.start)) if abs(edges.direction[e, 0]) > 0.9 and edges.start[e, 1] > 0)  # y = +4 cm
+    return edges, far
+
+
+def test_the_table_check_is_inclusive_at_the_closed_form_threshold():
+    """(C.2.5) admits f_xy^2 <= (mu_T N_T)^2, equality included.  Pushed horizontally (u = -n,
+    frictionless finger) at height h on the face 1 m from edge 2, the unit-weight body with its
+    centre of mass d = 0.5 m inside that edge needs F = d / h (C.2.3 with mu_f = 0) and the table
+    carries 1, so at mu_T = 0.5 the threshold is h* = d / mu_T = 1 m exactly."""
+
+    edges = _square_edges([0.0, 0.0, 1.0])
+    for height, passes in ((1.0 - 2.0**-10, False), (1.0, True), (1.0 + 2.0**-10, True)):
+        force, passed = sliding_contact(_one_trial([0.0, -0.5, height], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0], 0.5),
+                                        edges, 1.0, 1.0, 1.0, True)
+        assert passed[0, 2] == passes, height
+        assert force[0, 2] == 0.5 / height  # F = m g d / h, exact in binary
+
+
+def test_a_finger_moving_off_the_face_pushes_nothing():
+    """(C.2.1) follows_e needs u . n < 0: a finger whose push has no component into the face
+    (u . n >= 0) loses it at once, however the face would move, so no edge passes, though the
+    face over edge 2 recedes (v . n = -h) and the same contact pushed into the face tips it."""
+
+    edges = _square_edges([0.0, 0.0, 1.0])
+    contact, normal = [0.0, -0.5, 1.0], [0.0, -1.0, 0.0]
+    _, into = sliding_contact(_one_trial(contact, normal, [0.0, 1.0, 0.0], 0.9), edges, 1.0, 1.0, 1.0, True)
+    assert into[0, 2]  # F = 0.5 <= 0.9 mu_T: tips
+    for push in ([0.0, -0.6, 0.8], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]):  # u . n = 0.6, 0, 1
+        for mu_finger in (0.0, 0.98):
+            force, passes = sliding_contact(_one_trial(contact, normal, push, 0.9, mu_finger), edges, 1.0, 1.0, 1.0, True)
+            assert not passes.any(), (push, mu_finger)
+            assert np.isinf(force).all(), (push, mu_finger)
+
+
+def test_no_push_tips_over_an_edge_the_centre_of_mass_is_on():
+    """(C.2.4) rotates_e needs d_e > 0: with the centre of mass above edge 2's line (d = 0) the
+    moment balance needs no force, and C.2 does not call that a topple over the edge (the reference's
+    ``sliding_force`` returns None for d <= 0); just inside (d = 2^-10 m) the same push, 1 m up,
+    tips it with F = m g d / h = 2^-10 N."""
+
+    trial = _one_trial([0.0, -0.5, 1.0], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0], 0.5)
+    on_edge = _square_edges([0.0, 0.5, 1.0])
+    assert on_edge.com_distance[2] == 0.0
+    force, passes = sliding_contact(trial, on_edge, 1.0, 1.0, 1.0, True)
+    assert not passes[0, 2] and np.isinf(force[0, 2])
+    inside = _square_edges([0.0, 0.5 - 2.0**-10, 1.0])
+    force, passes = sliding_contact(trial, inside, 1.0, 1.0, 1.0, True)
+    assert passes[0, 2] and force[0, 2] == 2.0**-10
+
+
+def test_a_frictionless_table_holds_nothing_even_under_a_vertical_push():
+    """(C.2.5) passes only if mu_T > 0 (a draw at or below zero holds nothing, exactly).  A
+    frictionless finger pushing straight down on an overhang 0.25 m beyond edge 2 puts no horizontal
+    force on the table (f = (0, 0, -m g d / 0.25)), so the friction limit alone would pass it at
+    mu_T = 0; the rule does not."""
+
+    edges = _square_edges([0.0, 0.0, 1.0])
+    down = ([0.0, 0.75, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0])
+    force, passes = sliding_contact(_one_trial(*down, 0.5), edges, 1.0, 1.0, 1.0, True)
+    assert passes[0, 2] and force[0, 2] == 2.0  # F_n = m g d / tau = 0.5 / 0.25
+    for mu_table in (0.0, -0.1):
+        _, passes = sliding_contact(_one_trial(*down, mu_table), edges, 1.0, 1.0, 1.0, True)
+        assert not passes.any(), mu_table
+
+
+def test_a_push_that_carries_the_whole_weight_is_not_a_topple():
+    """(C.2.5) N_T = m g - f_z must be > 0.  A frictionless finger pushing straight up under a
+    down-facing face at the centre of the unit square, 0.5 m from edge 2 (d = 0.5 m), needs
+    F = m g d / 0.5 = m g: the table carries exactly nothing and the body is lifted, not tipped.
+    From under the near edge (1 m from edge 2) it needs half the weight and tips; from 0.25 m,
+    twice the weight, and it does not."""
+
+    edges = _square_edges([0.0, 0.0, 1.0])
+    for y, force_needed, passes in ((-0.5, 0.5, True), (0.0, 1.0, False), (0.25, 2.0, False)):
+        force, passed = sliding_contact(_one_trial([0.0, y, 0.5], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0], 0.5),
+                                        edges, 1.0, 1.0, 1.0, True)
+        assert force[0, 2] == force_needed, y
+        assert passed[0, 2] == passes, y
+
+
+@pytest.mark.parametrize("mu_finger", [0.0, 0.98])
+def test_the_force_limit_on_the_way_is_inclusive(box, mu_finger):
+    """(C.14.2) asks F_e(theta_k) <= max_finger_force: a limit equal to the force C.2 needs half
+    way (``sliding_contact`` at q(theta), n_t, d_e(theta) of (C.14.1), which is (C.14.3) for the
+    box) holds, the next float below it does not."""
+
+
+    obj, _, _ = box
+    edges, far = _box_far_edge(box)
+    one = EdgeGeometry(*(getattr(edges, f.name)[[far]] for f in fields(EdgeGeometry)))  # the far edge alone
+    height = 0.14
+    trials = _one_trial([0.0, -0.04, height], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0], MU_TABLE, mu_finger)
+    theta = one.apex_angle * (1 / 2)
+    turned = np.einsum("rij,rj->ri", axis_angle_matrices(one.direction, theta), trials.normal)  # n_t
+    advance = np.einsum("ij,ij->i", trials.normal - turned, trials.contact - one.start) / np.einsum("ij,ij->i", turned, trials.push)
+    finger = trials.contact + advance[:, None] * trials.push  # q(theta), (C.14.1)
+    inside = one.com_distance * (np.sin(one.apex_angle - theta) / np.sin(one.apex_angle))  # d_e(theta)
+    force, passes = sliding_contact(replace(trials, contact=finger, normal=turned), replace(one, com_distance=inside),
+                                    obj.mass, 9.81, 1.0, True)
+    needed = force[0, 0]
+    held, closed_form = _box_along_tip(height, mu_finger, theta[0], obj.mass * 9.81)
+    assert passes[0, 0] and held
+    assert np.isclose(needed, closed_form, rtol=1e-9)  # (C.14.3)
+
+    def holds(limit):
+        return holds_along_tip(trials, edges, np.array([far]), obj.mass, 9.81, 1.0, limit, True, 1)[0]
+
+    assert holds(needed)
+    assert not holds(np.nextafter(needed, 0.0))
+
+
+def test_the_force_limit_bites_on_the_way_only_with_force_limit(box):
+    """On a grippy table (mu_T = 2) a frictionless finger low on the box's 8 cm side (h = 2.8 cm)
+    starts the tip with F_0 = m g d / h and needs more half way ((C.14.3): the torque arm
+    h - w sin theta shrinks faster than d_e(theta)).  With a finger force limit between the two
+    the push topples with ``force_limit`` alone and with ``tip_path`` alone (no limit on the way
+    without ``force_limit``), and stalls with both; a limit above both lets it topple."""
+    height, mu_table = 0.028, 2.0
+    obj, _, _ = box
+    weight = obj.mass * noise_free().gravity
+    apex = np.arctan2(0.04, 0.075)
+    starts, start = _box_along_tip(height, 0.0, 0.0, weight, mu_table=mu_table)
+    holds, half_way = _box_along_tip(height, 0.0, apex / 2, weight, mu_table=mu_table)
+    assert starts and holds and half_way > 1.2 * start
+
+    def p_topple(corrections, limit):
+        topple = noise_free(corrections=corrections, mu_table_mean=mu_table, mu_finger_mean=0.0,
+                            max_finger_force=limit, tip_path_points=1)
+        return _push(box, [[0.0, -0.04, height]], [0.0, 1.0, 0.0], topple).p_topple[0]
+
+    between = (start + half_way) / 2
+    assert p_topple("finger_friction,force_limit", between) == 1.0
+    assert p_topple("finger_friction,tip_path", between) == 1.0
+    assert p_topple("finger_friction,force_limit,tip_path", between) == 0.0
+    assert p_topple("finger_friction,force_limit,tip_path", 1.1 * half_way) == 1.0
+
+
+def test_a_trial_that_stalls_on_the_way_reports_no_edge_and_infinite_force(box):
+    """``trial_outcomes`` returns OUTCOME_NO_EDGE and an infinite force for a trial that does not
+    topple, a stalled one (C.14) included; a trial that topples keeps its start force (C.2.3)."""
+
+    obj, _, _ = box
+    edges, far = _box_far_edge(box)
+    mu_table, weight = 2.0, obj.mass * noise_free().gravity
+    apex = np.arctan2(0.04, 0.075)
+    heights = np.array([0.028, 0.06])  # stalls half way under the limit below; topples
+    _, start = _box_along_tip(heights[0], 0.0, 0.0, weight, mu_table=mu_table)
+    _, half_way = _box_along_tip(heights[0], 0.0, apex / 2, weight, mu_table=mu_table)
+    topple = noise_free(corrections="finger_friction,force_limit,tip_path", mu_table_mean=mu_table, mu_finger_mean=0.0,
+                        max_finger_force=(start + half_way) / 2, tip_path_points=1)
+    trials = Trials(np.column_stack([np.zeros(2), np.full(2, -0.04), heights]), np.tile([0.0, -1.0, 0.0], (2, 1)),
+                    np.tile([0.0, 1.0, 0.0], (2, 1)), np.full(2, mu_table), np.zeros(2), np.ones(2, bool), np.zeros(2))
+    edge, force = trial_outcomes(trials, edges, obj.mass, topple)
+    assert edge[0] == OUTCOME_NO_EDGE and force[0] == np.inf
+    assert edge[1] == far and np.isclose(force[1], weight * 0.04 / heights[1], rtol=1e-9)

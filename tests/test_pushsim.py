@@ -35,11 +35,15 @@ from pipeline.model.topple import evaluate_pose
 from pipeline.studies import playlog
 from pipeline.studies.logreader import empirical_distribution
 from pipeline.studies.pushsim import (
+    FINGER_MASS,
     FINGER_SPEED,
+    TIME_STEP,
     _client,
     body_model,
     clip_to_hull,
     draw_noise,
+    drive_finger,
+    finger_row_limit,
     link_pose,
     object_transform,
     play_push,
@@ -214,13 +218,61 @@ def test_the_upside_down_frustum_tips_in_physics_where_the_stuck_finger_says(dir
 @pytest.mark.parametrize("limit", [10.0, 40.0])
 def test_the_finger_presses_no_harder_than_the_models_force_limit(box, limit):
     """Pressing straight down on the standing box's top: the finger cannot advance, so it presses
-    as hard as it may, topple.max_finger_force (plus its own 0.05 kg weight), and no harder."""
+    as hard as it may, topple.max_finger_force (its weight cancelled), and no harder than that
+    plus the step that stops it (its momentum in one step: m v / dt = 0.6 N)."""
     obj, pose_set, standing = box
     config = Config().with_overrides({"topple.max_finger_force": limit})
     played = play_push(body_model(obj), pose_set.poses[standing].transform, np.array([0.0, 0.0, 0.15]),
                        np.array([0.0, 0.0, -1.0]), config)
-    assert 0.9 * limit < played.peak_force < limit + 1.0
+    impact = FINGER_MASS * FINGER_SPEED / TIME_STEP
+    assert 0.95 * limit < played.peak_force <= limit + impact + 0.01
     np.testing.assert_allclose(played.final_transform[:3, :3], played.start_transform[:3, :3], atol=0.01)
+
+
+def test_the_row_limit_puts_the_force_direction_on_the_limits_sphere():
+    """Bullet clamps each world axis of the constraint at maxForce: the box the force may lie in
+    must meet the sphere of radius ``limit`` where the force points."""
+    for force in ([3.0, 0.0, 0.0], [1.0, 1.0, 0.0], [1.0, -2.0, 0.5], [0.0, 0.0, -7.0]):
+        force = np.array(force)
+        row = finger_row_limit(force, 20.0)
+        reach = row / np.max(np.abs(force)) * force  # the force scaled until one row clamps
+        assert np.linalg.norm(reach) == pytest.approx(20.0)
+    assert finger_row_limit(np.zeros(3), 20.0) == 20.0  # no force yet: the limit itself
+    assert finger_row_limit(np.array([1.0, 1.0, 1.0]), 20.0) == pytest.approx(20.0 / np.sqrt(3.0))
+
+
+@pytest.mark.parametrize("direction", [(1.0, 0.0, 0.0), (1.0, 1.0, 0.0), (1.0, 1.0, 1.0), (1.0, 0.0, -1.0)])
+def test_the_finger_presses_a_wall_with_the_limit_in_any_direction(direction):
+    """Driven into a fixed frictionless wall square to its path, the finger stalls pressing with
+    the limit whatever the direction (a per-axis clamp pressed 28 N at 45 degrees, 34 N along a
+    diagonal), and its weight adds nothing."""
+    pb, client = _client()
+    pb.resetSimulation(physicsClientId=client)
+    pb.setGravity(0, 0, -9.81, physicsClientId=client)
+    pb.setPhysicsEngineParameter(fixedTimeStep=1 / 240, numSolverIterations=50, physicsClientId=client)
+    u = np.array(direction) / np.linalg.norm(direction)
+    side = np.cross(u, [0.0, 0.0, 1.0] if abs(u[2]) < 0.9 else [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    rotation = np.column_stack([u, side, np.cross(u, side)])  # the wall's x axis along the push
+    w, x, y, z = _quaternion(rotation)
+    wall = pb.createMultiBody(0, pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[0.5] * 3, physicsClientId=client),
+                              basePosition=(0.5 * u).tolist(), baseOrientation=[x, y, z, w], physicsClientId=client)
+    pb.changeDynamics(wall, -1, lateralFriction=0.0, physicsClientId=client)
+    path = -0.02 * u + np.linspace(0.0, 0.04, 480)[:, None] * u  # 2 cm short of the wall to 2 cm into it
+    finger = pb.createMultiBody(FINGER_MASS, pb.createCollisionShape(pb.GEOM_SPHERE, radius=0.004, physicsClientId=client),
+                                basePosition=path[0].tolist(), physicsClientId=client)
+    pb.changeDynamics(finger, -1, lateralFriction=0.0, physicsClientId=client)
+    peak = drive_finger(pb, client, finger, path, wall, 20.0, 9.81)
+    pressing = sum(c[9] for c in pb.getContactPoints(finger, wall, physicsClientId=client))
+    assert peak <= 20.0 + FINGER_MASS * FINGER_SPEED / TIME_STEP + 0.01 and pressing == pytest.approx(20.0, rel=0.02)
+
+
+def _quaternion(rotation: np.ndarray) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of a proper rotation matrix."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(rotation).as_quat()
+    return w, x, y, z
 
 
 def test_the_push_is_mapped_through_the_objects_transform(box):

@@ -33,6 +33,9 @@ Simulation choices, and why:
   pressed 0.25 kg objects with 100-150 N until they slipped out over an edge (traced on
   corpus-log pushes the model gives P = 0): a push no arm of the model's class makes,
   and one the model, bounded at the same force, calls a failure (docs/VALIDATION.md).
+  The bound is on the force's norm, as the model's (``finger_row_limit``; up to player
+  version 4 Bullet clamped each world axis at 20 N, so a push at 45 degrees could press
+  with 28 N, and the finger's own weight added 0.5 N from above).
 * Noise: friction coefficients, contact point and push direction, with ``config.topple``'s
   distributions.  The model's object-rotation noise is not applied: a rotated object
   is not at rest, and the engine observes its own pose exactly.
@@ -64,7 +67,9 @@ TABLE_HALF_SIZE = 1.0
 FINGER_SPEED = 0.05
 """m/s; slow enough to be close to quasi-static."""
 FINGER_MASS = 0.05
-"""kg; the finger is dynamic, dragged along its path by a constraint of ``topple.max_finger_force``."""
+"""kg; the finger is dynamic and weightless (its weight is cancelled every step), dragged along
+its path by a constraint whose force is at most ``topple.max_finger_force`` in norm
+(``finger_row_limit``)."""
 REST_BEFORE = 0.2
 """s the object is left on the table before the finger appears, so that its contacts have formed."""
 SETTLE_TIME = 1.5
@@ -85,7 +90,7 @@ VHACD_RESOLUTION = 100_000
 """Voxels of Bullet's V-HACD decomposition (its default): about 2 mm cells for a 10 cm object."""
 MIN_FRICTION = 0.05
 """Noisy friction coefficients are clipped here: Bullet treats 0 as frictionless, a noisy draw below 0 as nonsense."""
-PLAYER_VERSION = "4"
+PLAYER_VERSION = "5"
 """Bumped whenever the player's physics changes, so that push logs made before are not resumed into."""
 
 
@@ -308,6 +313,25 @@ def finger_path(point: np.ndarray, direction: np.ndarray, config: Config, n_step
     return point + s[:, None] * direction - c.finger_radius * direction
 
 
+def finger_row_limit(force: np.ndarray, limit: float) -> float:
+    """The per-row force limit that keeps the finger's constraint force within ``limit`` in norm.
+
+    force : (3,) float, N, the constraint's linear force at the last step (world x, y, z)
+    limit : float, N, the finger force limit (``topple.max_finger_force``, MODEL.md C.1)
+    returns : float, N, the ``maxForce`` for the next step
+
+    Bullet clamps each row of a fixed constraint (world x, y and z) at ``maxForce`` on its
+    own: the force may reach sqrt(3) ``limit`` along a diagonal (28 N for a push at 45
+    degrees, up to player version 4).  The model bounds the force's norm, so the box is
+    scaled to pass through the sphere of radius ``limit`` in the force's direction; the
+    direction moves little from one 4 ms step to the next.
+    """
+    norm = float(np.linalg.norm(force))
+    if not np.isfinite(norm) or norm <= 1e-9:
+        return float(limit)
+    return float(limit) * float(np.max(np.abs(force))) / norm
+
+
 def finger_steps(config: Config) -> int:
     """Simulation steps of the finger's stroke at ``FINGER_SPEED``."""
     stroke = config.contacts.approach_offset + config.contacts.push_depth
@@ -367,16 +391,8 @@ def play_push(
     finger = pb.createMultiBody(FINGER_MASS, sphere, basePosition=path[0].tolist(), physicsClientId=client)
     pb.changeDynamics(finger, -1, lateralFriction=noise.mu_finger / noise.mu_table, physicsClientId=client)
     pb.setCollisionFilterPair(finger, table, -1, -1, 0, physicsClientId=client)
-    grip = pb.createConstraint(finger, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], path[0].tolist(), physicsClientId=client)
-    peak_force = 0.0
-    for target in path:
-        pb.changeConstraint(grip, target.tolist(), maxForce=config.topple.max_finger_force, physicsClientId=client)
-        pb.stepSimulation(physicsClientId=client)
-        contacts = pb.getContactPoints(finger, obj_id, physicsClientId=client)
-        peak_force = max(peak_force, sum(c[9] for c in contacts))
-
+    peak_force = drive_finger(pb, client, finger, path, obj_id, config.topple.max_finger_force, config.topple.gravity)
     # Withdraw the finger so it neither props the object up nor pushes it further.
-    pb.removeConstraint(grip, physicsClientId=client)
     pb.removeBody(finger, physicsClientId=client)
     still = 0
     for _ in range(int(SETTLE_TIME / TIME_STEP)):
@@ -387,6 +403,32 @@ def play_push(
             break
     final = _observe(pb, client, obj_id, body)
     return PlayedPush(start, final, still >= REST_STEPS, world_point, world_direction, noise, peak_force)
+
+
+def drive_finger(pb, client: int, finger: int, path: np.ndarray, pushed: int, limit: float, gravity: float) -> float:
+    """Drag the finger body through ``path``, one simulation step per point, pressing with at
+    most ``limit`` N in norm; the constraint is removed at the end.
+
+    path : (n_steps, 3) float, m, world frame;  pushed : body id of what the finger pushes
+    returns : float, N, the largest normal force the finger pressed ``pushed`` with (summed
+      over its contact points, per step)
+    """
+    grip = pb.createConstraint(finger, -1, -1, -1, pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], path[0].tolist(), physicsClientId=client)
+    # The model's finger has no weight: cancelled, so what the constraint pulls with is what
+    # the finger presses with once it moves steadily.
+    lift = [0.0, 0.0, FINGER_MASS * gravity]
+    row_limit, peak_force = limit, 0.0
+    for target in path:
+        pb.changeConstraint(grip, target.tolist(), maxForce=row_limit, physicsClientId=client)
+        position, _ = pb.getBasePositionAndOrientation(finger, physicsClientId=client)
+        pb.applyExternalForce(finger, -1, lift, position, pb.WORLD_FRAME, physicsClientId=client)
+        pb.stepSimulation(physicsClientId=client)
+        applied = np.asarray(pb.getConstraintState(grip, physicsClientId=client)[:3], dtype=float)
+        row_limit = finger_row_limit(applied, limit)
+        contacts = pb.getContactPoints(finger, pushed, physicsClientId=client)
+        peak_force = max(peak_force, sum(c[9] for c in contacts))
+    pb.removeConstraint(grip, physicsClientId=client)
+    return peak_force
 
 
 def rest_on_table(body: BodyModel, transform: np.ndarray, config: Config = DEFAULT_CONFIG, duration: float = REST_BEFORE) -> np.ndarray:
