@@ -42,9 +42,12 @@ serve: venv
 # noise and push sampling are the thesis's, so the simulated world stays put when the model is tuned.
 # The replays play the same pushes again with other noise draws, 40 repeats each: the reports'
 # physics_replay reference (what any predictor can reach). About 12 minutes each on 2 cores.
+# corpus_all, every corpus object's drawn pushes, is what the default's map of P(topple) is
+# fitted on (docs/MODEL.md C.7; about 13 minutes on 2 cores).
 logs: venv
 	$(PY) -m pipeline play --config thesis --objects corpus --count 42 --out data/logs/corpus $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --out data/logs/heldout $(ARGS)
+	$(PY) -m pipeline play --config thesis --objects corpus --out data/logs/corpus_all $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects corpus --count 42 --repeats 40 --noise-draws 1 --out data/logs/corpus_replay $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --repeats 40 --noise-draws 1 --out data/logs/heldout_replay $(ARGS)
 
