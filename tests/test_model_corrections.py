@@ -381,7 +381,6 @@ def _box_along_tip(height, mu, theta, weight, d=0.04, w=0.08, com_height=0.075, 
 
 @pytest.mark.parametrize("mu_finger", [0.0, 0.98])
 def test_the_balance_half_way_to_the_apex_is_the_closed_form(box, mu_finger):
-
     obj, pose_set, index = box
     pose = pose_set.poses[index]
     center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
@@ -545,8 +544,6 @@ def test_the_force_limit_on_the_way_is_inclusive(box, mu_finger):
     """(C.14.2) asks F_e(theta_k) <= max_finger_force: a limit equal to the force C.2 needs half
     way (``sliding_contact`` at q(theta), n_t, d_e(theta) of (C.14.1), which is (C.14.3) for the
     box) holds, the next float below it does not."""
-
-
     obj, _, _ = box
     edges, far = _box_far_edge(box)
     one = EdgeGeometry(*(getattr(edges, f.name)[[far]] for f in fields(EdgeGeometry)))  # the far edge alone

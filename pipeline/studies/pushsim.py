@@ -323,11 +323,12 @@ def finger_row_limit(force: np.ndarray, limit: float) -> float:
     Bullet clamps each row of a fixed constraint (world x, y and z) at ``maxForce`` on its
     own: the force may reach sqrt(3) ``limit`` along a diagonal (28 N for a push at 45
     degrees, up to player version 4).  The model bounds the force's norm, so the box is
-    scaled to pass through the sphere of radius ``limit`` in the force's direction; the
-    direction moves little from one 4 ms step to the next.
+    scaled to pass through the sphere of radius ``limit`` in the force's direction.  It
+    follows the last step's direction: where that jumps (a rocking contact) a single step
+    can still overshoot (docs/VALIDATION.md, "Push player").
     """
     norm = float(np.linalg.norm(force))
-    if not np.isfinite(norm) or norm <= 1e-9:
+    if not np.isfinite(norm) or norm <= 1e-9:  # no force yet (free flight): no direction to scale by
         return float(limit)
     return float(limit) * float(np.max(np.abs(force))) / norm
 
@@ -406,10 +407,13 @@ def play_push(
 
 
 def drive_finger(pb, client: int, finger: int, path: np.ndarray, pushed: int, limit: float, gravity: float) -> float:
-    """Drag the finger body through ``path``, one simulation step per point, pressing with at
-    most ``limit`` N in norm; the constraint is removed at the end.
+    """Drag the finger body through ``path``, one simulation step per point, pressing with
+    ``limit`` in norm once it presses steadily (``finger_row_limit``); the constraint is
+    removed at the end, the finger body left to the caller.
 
+    pb : the pybullet module;  client : its physics client;  finger : the finger's body id
     path : (n_steps, 3) float, m, world frame;  pushed : body id of what the finger pushes
+    limit : float, N (``topple.max_finger_force``);  gravity : float, m/s^2, cancelled on the finger
     returns : float, N, the largest normal force the finger pressed ``pushed`` with (summed
       over its contact points, per step)
     """

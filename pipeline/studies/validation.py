@@ -472,7 +472,8 @@ def report(
             comparisons[name] = {
                 "variant": other.variant,
                 "corrections": sorted(other.applied_corrections),
-                # Enough to tell which model was compared without the file it came from.
+                # What calibration and recalibration change (the noise, the map), beside the
+                # variant and corrections above; the rest of [topple] is in the compared file.
                 "topple": {k: getattr(other, k) for k in NOISE_KEYS},
                 "recalibration": {"x": list(other_x), "y": list(other_y),
                                   "feature_map": list(other.applied_feature_map)},
