@@ -42,6 +42,17 @@ def _push(box, points, direction, topple):
     return evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, "box", index, "trials"))
 
 
+def _box_far_edge(box):
+    """The standing box's base edges and the one at y = +4 cm, across the 8 cm side from a push
+    on the -y face (edges of the pose frame)."""
+    obj, pose_set, index = box
+    pose = pose_set.poses[index]
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
+    edges = edge_geometry(pose.base_edges, center_mass)
+    far = next(e for e in range(len(edges.start)) if abs(edges.direction[e, 0]) > 0.9 and edges.start[e, 1] > 0)  # y = +4 cm
+    return edges, far
+
+
 @pytest.mark.parametrize("mu_finger", [0.0, 0.98])
 @pytest.mark.parametrize("scale", [1.0, 0.25])
 @pytest.mark.parametrize("axis, width", [(0, 0.05), (1, 0.08)])  # push across the 5 cm side, then the 8 cm side
@@ -92,11 +103,7 @@ def test_a_topple_needs_the_stroke_to_reach_the_apex(box, height):
 
 
 def test_finger_travel_is_the_closed_form_and_infinite_once_the_face_turns_away(box):
-    obj, pose_set, index = box
-    pose = pose_set.poses[index]
-    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
-    edges = edge_geometry(pose.base_edges, center_mass)
-    far = next(e for e in range(len(edges.start)) if abs(edges.direction[e, 0]) > 0.9 and edges.start[e, 1] > 0)  # y = +4 cm
+    edges, far = _box_far_edge(box)
     heights = np.array([0.05, 0.1, 0.135])
     contact = np.column_stack([np.zeros(3), np.full(3, -0.04), heights])
     normal = np.tile([0.0, -1.0, 0.0], (3, 1))
@@ -381,11 +388,8 @@ def _box_along_tip(height, mu, theta, weight, d=0.04, w=0.08, com_height=0.075, 
 
 @pytest.mark.parametrize("mu_finger", [0.0, 0.98])
 def test_the_balance_half_way_to_the_apex_is_the_closed_form(box, mu_finger):
-    obj, pose_set, index = box
-    pose = pose_set.poses[index]
-    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
-    edges = edge_geometry(pose.base_edges, center_mass)
-    far = next(e for e in range(len(edges.start)) if abs(edges.direction[e, 0]) > 0.9 and edges.start[e, 1] > 0)  # y = +4 cm
+    obj, _, _ = box
+    edges, far = _box_far_edge(box)
     weight = obj.mass * 9.81
     theta = edges.apex_angle[far] / 2  # points = 1: the one angle half way
     outcomes = []
@@ -452,15 +456,6 @@ def _square_edges(center_mass):
 def _one_trial(contact, normal, push, mu_table, mu_finger=0.0):
     return Trials(np.array([contact], float), np.array([normal], float), np.array([push], float),
                   np.array([mu_table], float), np.array([mu_finger], float), np.ones(1, bool), np.zeros(1))
-
-
-def _box_far_edge(box):
-    obj, pose_set, index = box
-    pose = pose_set.poses[index]
-    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
-    edges = edge_geometry(pose.base_edges, center_mass)
-    far = next(e for e in range(len(edges.start)) if abs(edges.direction[e, 0]) > 0.9 and edges.start[e, 1] > 0)  # y = +4 cm
-    return edges, far
 
 
 def test_the_table_check_is_inclusive_at_the_closed_form_threshold():
