@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from . import fitted_map
-from .feature_map import check_weights
+from .feature_map import check_down_weights, check_weights
 from .recalibration import check_knots
 
 PRESETS = Path(__file__).with_name("presets")
@@ -73,7 +73,7 @@ def field_range(cls: type, name: str) -> Range | None:
     return next((f.metadata.get("range") for f in fields(cls) if f.name == name), None)
 
 
-MAP_FIELDS = ("recalibration_x", "recalibration_y", "feature_map")
+MAP_FIELDS = ("recalibration_x", "recalibration_y", "feature_map", "down_map")
 """The ``topple`` fields that hold a map of P(topple) (MODEL.md C.7, C.13); all empty: no map."""
 NO_MAP = {name: () for name in MAP_FIELDS}
 """``topple`` values of a model with no map: what a file writes to clear the default's."""
@@ -252,6 +252,16 @@ class ToppleConfig:
     after the smoothing (C.12), to candidates and probes alike.  Not together with
     ``recalibration_x``/``_y`` (two maps of one probability): a file that sets it sets those to ``[]``.
     Only the ``corrected`` variant applies it."""
+    down_map: tuple[float, ...] = bounded(fitted_map.DOWN_MAP, Range())
+    """Weights of the map of P(topple) for pushes that press down (docs/MODEL.md C.15), one per
+    feature (bias, logit_p, direction_z, overhang, height, normal_z, stability, offset), or empty
+    (no map).  The default is fitted by ``toppledb recalibrate --down`` on the corpus's drawn
+    pushes (data/logs/corpus_all).  It replaces the recalibration map (C.7) for the pushes with
+    u_z below ``down_map_z``, read from their unmapped P; the rest keep C.7's.  Only the
+    ``corrected`` variant applies it."""
+    down_map_z: float = bounded(-0.3, Range(-1.0, 1.0))
+    """Pushes whose direction's z (pose frame) is below this are mapped by ``down_map``; the
+    default is ``mdp.min_direction_z``'s, so no push the policies choose is ever mapped."""
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -261,6 +271,7 @@ class ToppleConfig:
         self.applied_corrections  # noqa: B018, validates ``corrections``
         check_knots(self.recalibration_x, self.recalibration_y)
         check_weights(self.feature_map)
+        check_down_weights(self.down_map)
         if self.feature_map and self.recalibration_x:
             raise ValueError("topple.feature_map and topple.recalibration_x/_y are two maps of one P(topple); set one "
                              "(the defaults carry a recalibration map: with a feature map set recalibration_x = [] and "
@@ -314,10 +325,16 @@ class ToppleConfig:
         return self.feature_map if self.variant == "corrected" else ()
 
     @property
+    def applied_down_map(self) -> tuple[float, ...]:
+        """Weights of the down map (MODEL.md C.15) this configuration applies: empty for the
+        thesis's variants, whatever the field says."""
+        return self.down_map if self.variant == "corrected" else ()
+
+    @property
     def needs_candidates(self) -> bool:
         """Whether a push's prediction depends on the pose's other candidates (the smoothing of
         C.12, the neighbourhood feature of C.13): a probe must then be evaluated beside them."""
-        return self.applied_smoothing > 0 or bool(self.applied_feature_map)
+        return self.applied_smoothing > 0 or bool(self.applied_feature_map) or bool(self.applied_down_map)
 
     def without_recalibration(self) -> "ToppleConfig":
         """This model with no map: what a recalibration (MODEL.md C.7) or a feature map (C.13) is
@@ -426,10 +443,16 @@ class Config:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "Config":
         """Build from nested sections; a ``contacts.push_depth`` given without ``topple.stroke``
-        (a config file, or a manifest written before the stroke existed) sets the stroke too."""
+        (a config file, or a manifest written before the stroke existed) sets the stroke too, and
+        a ``[topple]`` map given without ``down_map`` comes with no down map."""
         contacts, topple = data.get("contacts"), data.get("topple")
         if isinstance(contacts, dict) and "push_depth" in contacts and not (isinstance(topple, dict) and "stroke" in topple):
             data = {**data, "topple": {**(topple if isinstance(topple, dict) else {}), "stroke": contacts["push_depth"]}}
+        topple = data.get("topple")
+        if isinstance(topple, dict) and any(k in topple for k in MAP_FIELDS) and "down_map" not in topple:
+            # A map belongs to the probabilities it was fitted on: a file with its own map, written
+            # before the down map existed (MODEL.md C.15), does not take the default's.
+            data = {**data, "topple": {**topple, "down_map": ()}}
         return _build(cls, data, "")
 
     @classmethod

@@ -1,5 +1,5 @@
-"""The recalibration map the default model carries (docs/MODEL.md C.7, "The default map";
-docs/VALIDATION.md, candidates C, S and T).
+"""The maps of P(topple) the default model carries: the recalibration map (docs/MODEL.md C.7,
+"The default map"; docs/VALIDATION.md, candidates C, S and T) and the down map (C.15, candidate D).
 
 Centred isotonic regression of the physical topple frequency on the default model's P(topple)
 (its corrections, stuck_finger and tip_path included, counted and smoothed as C.12 says), fitted on the
@@ -7,7 +7,8 @@ corpus's drawn pushes (data/logs/corpus_all, 2,253 pushes on 189 corpus objects,
 version 5; no held-out object was used): 6-fold cross-validation grouped by object gave
 held-out Brier 0.1174 against the identity's 0.1258.  It belongs to the default's corrections and noise: a model with others
 needs its own fit.  Regenerate with ``toppledb recalibrate data/logs/corpus_all --folds 6
---seed 0 --methods centred`` (reports/recalibrated_centred.toml is that output).  The values
+--seed 0 --methods centred`` (reports/recalibrated_centred.toml is that output) or with ``--down``,
+which fits the same knots and the down map below (reports/recalibrated_down.toml).  The values
 are the fitter's, unrounded, so the default reproduces the reports exactly.
 """
 
@@ -36,3 +37,13 @@ RECALIBRATION_Y = (
     0.8964285714285715, 0.98125, 1.0, 1.0, 1.0
 )
 """Knots g(x_k), non-decreasing in [0, 1]."""
+
+# The down map (docs/MODEL.md C.15; docs/VALIDATION.md, candidate D): logistic weights, in the
+# order of ``feature_map.DOWN_FEATURES``, for the pushes with u_z < -0.3, fitted on the unmapped P
+# of the same log's 1,026 such pushes.  Cross-validated with the centred map (6 folds by object,
+# seed 0): held-out Brier 0.1103 against the centred map's 0.1174.  Regenerate both with
+# ``toppledb recalibrate data/logs/corpus_all --folds 6 --seed 0 --down`` (reports/recalibrated_down.toml).
+DOWN_MAP = (
+    3.3627733572815646, 0.5043682233597462, 0.2321465377401717, 0.665954464606287,
+    -1.294299656366433, -0.2321465377401717, -2.37241784403425, -0.06371437980744568,
+)

@@ -52,7 +52,7 @@ from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
 from .config import ToppleConfig
 from .edges import EdgeGeometry, edge_geometry
-from .feature_map import map_rows
+from .feature_map import map_down_rows, map_rows
 from .mesh import ObjectModel
 from .outcomes import Actions, StablePose, ToppleTable
 from .poses import stability_margin
@@ -736,9 +736,15 @@ def evaluate_pose(
     mean_force[toppled.sum(axis=1) == 0] = np.nan
     # MODEL.md C.7: P(topple) through the fitted monotone map g, the row rescaled to stay a
     # distribution; no knots (the default, and every thesis variant) leave the table as counted.
+    counted = next_pose
     next_pose, p_topple = recalibrate_rows(next_pose, pose.index, *config.applied_recalibration)  # (A, P), (A,), (9.2)
     if config.applied_feature_map:
         # MODEL.md C.13: P(topple) from the push's features, its landing kept (or borrowed).
         next_pose, p_topple = map_rows(next_pose, pose.index, actions.points, actions.directions, mean_force,
                                        obj.mass * config.gravity, config.applied_feature_map, pool=n_candidates)
+    if config.applied_down_map:
+        # MODEL.md C.15: pushes that press down, which the policies never choose, from their geometry.
+        next_pose, p_topple = map_down_rows(next_pose, counted, pose.index, actions.points, actions.normals,
+                                            actions.directions, pose.base_edges, center_mass, config.applied_down_map,
+                                            config.down_map_z, pool=n_candidates)
     return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes)

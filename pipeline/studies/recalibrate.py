@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model.config import MAP_FIELDS, NO_MAP, Config, ToppleConfig
-from ..model.feature_map import FEATURES, FeatureMapError, fit_weights, mapped_probability
+from ..model.feature_map import DOWN_FEATURES, FEATURES, FeatureMapError, fit_weights, mapped_probability
 from ..model.recalibration import METHODS, RecalibrationError, fit, fit_logistic, predict
 from .calibrate import CalibrationError, grouped_folds, write_outputs
 from .logreader import LogError, PushLog, read_log
@@ -191,6 +191,77 @@ def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None =
     }
 
 
+def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
+    """Cross-validate the down map (docs/MODEL.md C.15) beside the centred map, fit both on all.
+
+    Every fold fits the centred map (C.7) on all its training pushes and the down map on the
+    training pushes with u_z < ``topple.down_map_z``; the held-out pushes below that get the down
+    map's q, the rest the centred map's.  ``centred`` is the same folds with no down map: the
+    comparison the down map is adopted by.
+    returns : a JSON-ready record with ``weights`` (one per ``DOWN_FEATURES``), ``knots`` (the
+      centred map on all pushes), pooled held-out metrics of both (all pushes and the down ones)
+    """
+    config = config or Config()
+    started = time.perf_counter()
+    scorer = Scorer(log, config.seed, config.contacts)
+    features, p = scorer.down_features(config.topple)
+    observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
+    down = features[:, DOWN_FEATURES.index("direction_z")] < config.topple.down_map_z
+    if down.sum() < len(DOWN_FEATURES):
+        raise RecalibrationError(f"{int(down.sum())} pushes with u_z < {config.topple.down_map_z} are too few to fit "
+                                 f"{len(DOWN_FEATURES)} weights")
+    fold_objects, fold_of = push_folds([scorer.object_ids[i] for i in objects], folds, seed)
+    centred, mapped = np.empty(len(p)), np.empty(len(p))
+    for f in range(folds):
+        train, test = fold_of != f, fold_of == f
+        centred[test] = predict(p[test], fit("centred", p[train], observed[train], weight[train]))
+        weights = fit_weights(features[train & down], observed[train & down], weight[train & down])
+        mapped[test] = np.where(down[test], mapped_probability(features[test], weights), centred[test])
+    weights = fit_weights(features[down], observed[down], weight[down])
+    if not np.all(np.isfinite(weights)):
+        raise FeatureMapError(f"the down map's fit did not converge (weights {weights.tolist()})")
+    knots = fit("centred", p, observed, weight)
+
+    def both(rows: np.ndarray) -> dict:
+        if not rows.any():
+            return {"pushes": 0}
+        return {"identity": metrics(p[rows], observed[rows], weight[rows], objects[rows]),
+                "centred": metrics(centred[rows], observed[rows], weight[rows], objects[rows]),
+                "down_map": metrics(mapped[rows], observed[rows], weight[rows], objects[rows]),
+                "pushes": int(rows.sum())}
+
+    return {
+        "variant": config.topple.variant,
+        "features": list(DOWN_FEATURES),
+        "weights": [float(w) for w in weights],
+        "down_map_z": config.topple.down_map_z,
+        "knots": {"x": list(knots.x), "y": list(knots.y)},
+        "pushes": len(p),
+        "objects": len(scorer.object_ids),
+        "folds": folds,
+        "seed": seed,
+        "cross_validated": both(np.ones(len(p), dtype=bool)),
+        "down_pushes": both(down),
+        "other_pushes": both(~down),
+        "fold_objects": fold_objects,
+        "counts": log.counts(),
+        "wall_s": round(time.perf_counter() - started, 1),
+    }
+
+
+def format_down_record(result: dict) -> str:
+    lines = [(f"{result['pushes']} pushes on {result['objects']} objects ({result['down_pushes']['pushes']} with u_z < "
+              f"{result['down_map_z']}); {result['folds']}-fold CV grouped by object, held-out folds pooled:"),
+             f"{'pushes':<24} {'predictor':<10} {'ECE':>6} {'Brier':>7} {'AP':>6} {'mAP':>6} {'mean pred.':>10} {'observed':>8}"]
+    for name, key in [("all", "cross_validated"), (f"u_z < {result['down_map_z']}", "down_pushes"), ("the others", "other_pushes")]:
+        for predictor in ("identity", "centred", "down_map") if result[key]["pushes"] else ():
+            m = result[key][predictor]
+            lines.append(f"{name:<24} {predictor:<10} {m['ece']:>6.3f} {m['brier']:>7.4f} {m['ap']:>6.3f} {m['map']:>6.3f} "
+                         f"{m['predicted']:>10.3f} {m['observed']:>8.3f}")
+    lines.append("weights: " + ", ".join(f"{n} {w:+.3f}" for n, w in zip(result["features"], result["weights"])))
+    return "\n".join(lines)
+
+
 def format_feature_record(result: dict) -> str:
     lines = [(f"{result['pushes']} pushes on {result['objects']} objects; {result['folds']}-fold CV grouped by object, "
               f"held-out folds pooled (identity: P as the model gives it, unfitted):"),
@@ -234,9 +305,13 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"monotone maps cross-validation chooses among (all are scored): {' '.join(METHODS)} (default: all)")
     parser.add_argument("--features", action="store_true",
                         help="fit the feature map (docs/MODEL.md C.13) instead of a monotone map; each LOG is read on its own")
+    parser.add_argument("--down", action="store_true",
+                        help="fit the centred map and, for pushes with u_z < topple.down_map_z, the down map (docs/MODEL.md C.15)")
     args = parser.parse_args(argv)
 
     try:
+        if args.features and args.down:
+            raise UsageError("--features and --down fit two different maps; choose one")
         config = config_from_args(args)
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
@@ -252,6 +327,8 @@ def main(argv: list[str] | None = None) -> int:
             logs.append((" ".join(paths), log))
         if args.features:
             result = feature_recalibrate(logs, config, folds=args.folds, seed=args.seed)
+        elif args.down:
+            result = down_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
         else:
             result = recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, methods=tuple(args.methods))
     except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError) as err:
@@ -269,6 +346,19 @@ def main(argv: list[str] | None = None) -> int:
              f"{pooled['feature_map']['ece']:.3f} / {pooled['feature_map']['brier']:.4f}"),
         ]
         fitted_map = {"feature_map": tuple(result["weights"])}
+    elif args.down:
+        print(format_down_record(result))
+        cv = result["cross_validated"]
+        comments = [
+            ("toppledb recalibrate --down: centred map of P(topple), and the down map for pushes with "
+             f"u_z < {result['down_map_z']} (docs/MODEL.md C.7, C.15)"),
+            logs_line,
+            (f"{args.folds}-fold CV grouped by object (seed {args.seed}), held-out ECE / Brier: identity "
+             f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, centred {cv['centred']['ece']:.3f} / "
+             f"{cv['centred']['brier']:.4f}, centred and down map {cv['down_map']['ece']:.3f} / {cv['down_map']['brier']:.4f}"),
+        ]
+        fitted_map = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"]),
+                      "down_map": tuple(result["weights"])}
     else:
         print(format_record(result))
         cv = result["cross_validated"]

@@ -26,12 +26,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from schema.frames import transform_points
 from schema.vocabulary import STATUS_OK
 
 from ..model.collision import collision_object
 from ..model.config import ContactConfig, ToppleConfig
 from ..model.contacts import explicit_actions, object_contacts, pose_actions
-from ..model.feature_map import FEATURES, pose_features
+from ..model.feature_map import DOWN_FEATURES, FEATURES, down_features, pose_features
 from ..model.outcomes import Actions, StablePose, ToppleTable
 from ..model.rng import stream
 from ..model.topple import evaluate_pose
@@ -154,6 +155,22 @@ class Scorer:
             weight = self.log.objects[group.object_id].model.mass * topple.gravity
             out[group.rows] = pose_features(table.p_topple, actions.points, actions.directions, table.mean_force, weight,
                                             pool=self.pose_candidates(group).candidates, rows=index)
+            p[group.rows] = table.p_topple[index]
+        return out, p
+
+    def down_features(self, topple: ToppleConfig) -> tuple[np.ndarray, np.ndarray]:
+        """The down map's features (docs/MODEL.md C.15) of every push, in log order, from
+        ``topple`` with no map (what the down map is fitted on).
+
+        returns : features (n, 8) float;  p_topple (n,) float, the unmapped P(topple)"""
+        topple = topple.without_recalibration()
+        out = np.full((len(self), len(DOWN_FEATURES)), np.nan)
+        p = np.full(len(self), np.nan)
+        for group in self.groups:
+            table, actions, index = self._evaluate(group, topple)
+            center_mass = transform_points(group.pose.transform, self.log.objects[group.object_id].model.center_mass[None])[0]
+            out[group.rows] = down_features(table.p_topple[index], actions.points[index], actions.normals[index],
+                                            actions.directions[index], group.pose.base_edges, center_mass)
             p[group.rows] = table.p_topple[index]
         return out, p
 
