@@ -74,7 +74,7 @@ def field_range(cls: type, name: str) -> Range | None:
 
 
 MAP_FIELDS = ("recalibration_x", "recalibration_y", "feature_map", "down_map")
-"""The ``topple`` fields that hold a map of P(topple) (MODEL.md C.7, C.13); all empty: no map."""
+"""The ``topple`` fields that hold a map of P(topple) (MODEL.md C.7, C.13, C.15); all empty: no map."""
 NO_MAP = {name: () for name in MAP_FIELDS}
 """``topple`` values of a model with no map: what a file writes to clear the default's."""
 
@@ -333,12 +333,13 @@ class ToppleConfig:
     @property
     def needs_candidates(self) -> bool:
         """Whether a push's prediction depends on the pose's other candidates (the smoothing of
-        C.12, the neighbourhood feature of C.13): a probe must then be evaluated beside them."""
+        C.12, the neighbourhood feature of C.13, the borrowed landing of C.15): a probe must then
+        be evaluated beside them."""
         return self.applied_smoothing > 0 or bool(self.applied_feature_map) or bool(self.applied_down_map)
 
     def without_recalibration(self) -> "ToppleConfig":
-        """This model with no map: what a recalibration (MODEL.md C.7) or a feature map (C.13) is
-        fitted on, the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12)."""
+        """This model with no map: what a recalibration (MODEL.md C.7), a feature map (C.13) or the
+        down map (C.15) is fitted on, the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12)."""
         return dataclasses.replace(self, **NO_MAP)
 
     def counted(self) -> "ToppleConfig":
@@ -435,6 +436,14 @@ class Config:
                 f"topple.stroke ({self.topple.stroke:g} m) must equal contacts.push_depth "
                 f"({self.contacts.push_depth:g} m): the model predicts the push the robot executes; set both"
             )
+        # The down map is safe only on pushes no policy chooses (MODEL.md C.15): a map of chosen
+        # pushes makes them over-confident (C.7, C.13).
+        if self.topple.applied_down_map and self.topple.down_map_z > self.mdp.min_direction_z:
+            raise ValueError(
+                f"topple.down_map_z ({self.topple.down_map_z:g}) is above mdp.min_direction_z ({self.mdp.min_direction_z:g}): "
+                "the down map would map pushes the policies may choose; lower topple.down_map_z, raise "
+                "mdp.min_direction_z, or set no down map (topple.down_map = [], --set topple.down_map=)"
+            )
 
     def to_dict(self) -> dict[str, Any]:
         """Every parameter as plain JSON types (tuples of knots as lists, as JSON reads them back)."""
@@ -444,14 +453,15 @@ class Config:
     def from_dict(cls, data: dict[str, Any]) -> "Config":
         """Build from nested sections; a ``contacts.push_depth`` given without ``topple.stroke``
         (a config file, or a manifest written before the stroke existed) sets the stroke too, and
-        a ``[topple]`` map given without ``down_map`` comes with no down map."""
+        a ``[topple]`` map of its own given without ``down_map`` comes with no down map."""
         contacts, topple = data.get("contacts"), data.get("topple")
         if isinstance(contacts, dict) and "push_depth" in contacts and not (isinstance(topple, dict) and "stroke" in topple):
             data = {**data, "topple": {**(topple if isinstance(topple, dict) else {}), "stroke": contacts["push_depth"]}}
         topple = data.get("topple")
-        if isinstance(topple, dict) and any(k in topple for k in MAP_FIELDS) and "down_map" not in topple:
-            # A map belongs to the probabilities it was fitted on: a file with its own map, written
-            # before the down map existed (MODEL.md C.15), does not take the default's.
+        if isinstance(topple, dict) and "down_map" not in topple and _own_map(topple):
+            # A map belongs to the probabilities it was fitted on: a file with a map of its own,
+            # written before the down map existed (MODEL.md C.15), does not take the default's.
+            # (``--set`` changes one key of a whole configuration and keeps the down map.)
             data = {**data, "topple": {**topple, "down_map": ()}}
         return _build(cls, data, "")
 
@@ -477,6 +487,23 @@ class Config:
                 raise ValueError(f"unknown config key {key!r}")
             node[leaf] = value
         return Config.from_dict(data)
+
+
+def _own_map(topple: dict[str, Any]) -> bool:
+    """Whether a ``[topple]`` section sets a map of P(topple) of its own: any recalibration knots
+    (a manifest written before the down map has them, and was built without it), or a feature
+    map other than the default's (a file restating ``feature_map = []`` has none)."""
+    if "recalibration_x" in topple or "recalibration_y" in topple:
+        return True
+    default = ToppleConfig()
+    for key in ("feature_map",):
+        if key in topple:
+            try:
+                if tuple(float(v) for v in topple[key]) != tuple(getattr(default, key)):
+                    return True
+            except (TypeError, ValueError):
+                return True  # not a list of numbers: ``_build`` says what is wrong with it
+    return False
 
 
 def _lists(node: Any) -> Any:

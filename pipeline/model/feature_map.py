@@ -21,12 +21,18 @@ pushes: drawn ones and ones a policy chose, so the map learns what selection doe
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
+from schema.horizon import choosable_pushes
 from schema.neighbourhood import MAX_ANGLE, RADIUS, neighbour_mean
 
 from .recalibration import logistic_regression
 from .recalibration import logit as clipped_logit
+
+if TYPE_CHECKING:  # the service imports the config without the geometry (scipy)
+    from .edges import EdgeGeometry
 
 FEATURES = ("bias", "logit_p", "logit_neighbourhood", "log_force_ratio", "no_own_topple", "direction_z")
 """The entries of f(u) in (C.13.1), in the order of ``topple.feature_map``'s weights."""
@@ -204,13 +210,17 @@ def fit_weights(features: np.ndarray, observed: np.ndarray, repeats: np.ndarray)
 #
 # Pushes that press down onto the object (u_z below ``topple.down_map_z``) tip by mechanics the
 # model lacks: the base slides and turns while the object tips (docs/VALIDATION.md, "Where the
-# default model is wrong"), so P ranks them poorly (AP 0.56 within the class on the corpus log,
-# 0.86 for side pushes).  Their geometry says more, and the policies never choose them
-# (``mdp.min_direction_z``), so a map of them cannot make a chosen push over-confident.
+# default model is wrong"), so P ranks them poorly (on the corpus log AP 0.58 within them, 0.85
+# within the other pushes).  Their geometry says more, and the policies never choose them
+# (``mdp.min_direction_z``, which the configuration holds at or below the cut), so a map of them
+# cannot make a chosen push over-confident.
 
 DOWN_FEATURES = ("bias", "logit_p", "direction_z", "overhang", "height", "normal_z", "stability", "offset")
 """The entries of the down map's features, in the order of ``topple.down_map``'s weights; every
 length is over the centre of mass's height, so the features are dimensionless (C.15.1)."""
+MIN_COM_HEIGHT = 1e-6
+"""m, floor of the centre of mass's height the lengths are divided by: a resting object's centre
+of mass is above the table, this only keeps a degenerate pose finite."""
 
 
 def check_down_weights(weights) -> None:
@@ -223,79 +233,83 @@ def check_down_weights(weights) -> None:
                               f"({', '.join(DOWN_FEATURES)}) or none, got {w.size}")
 
 
+def pressed_down(direction_z: np.ndarray, cut_z: float) -> np.ndarray:
+    """(A,) bool, the pushes the down map takes: exactly those the policies may not choose with
+    ``mdp.min_direction_z = cut_z`` (``schema.horizon.choosable_pushes``, compared in float32 as
+    it is, so no push is on both sides of the cut).  direction_z : (A,) float, pose frame"""
+    return ~choosable_pushes(direction_z, cut_z)
+
+
 def down_features(
     p_topple: np.ndarray,
     points: np.ndarray,
     normals: np.ndarray,
     directions: np.ndarray,
-    base_edges: np.ndarray,
+    edges: EdgeGeometry,
     center_mass: np.ndarray,
 ) -> np.ndarray:
-    """f(u) of (C.15.1) for every push of one pose.
+    """g(u) of (C.15.1) for every push of one pose.
 
     p_topple : (A,) float, P(topple) as counted and smoothed, NaN where not ok
     points : (A, 3) float, m, contacts;  normals : (A, 3) float, unit, outward face normals
-    directions : (A, 3) float, unit pushes;  base_edges : (E, 2, 3) float, m, the base's edges
-      (counter-clockwise);  center_mass : (3,) float, m;  all in the pose frame (table z = 0)
-    returns : (A, 8) float in ``DOWN_FEATURES`` order, NaN rows where P is NaN
+    directions : (A, 3) float, unit pushes;  edges : the pose's base edges and their distances from
+      ``center_mass`` (``edges.edge_geometry``);  center_mass : (3,) float, m;  all in the pose
+      frame (table at z = 0)
+    returns : (A, len(DOWN_FEATURES)) float, NaN rows where P is NaN
     """
     points = np.asarray(points, dtype=float)
-    height = max(float(center_mass[2]), 1e-6)  # m; a resting object's centre of mass is above the table
-    y0, y1 = base_edges[:, 0], base_edges[:, 1]  # (E, 3)
-    along = (y1 - y0) / np.linalg.norm(y1 - y0, axis=1, keepdims=True)  # (E, 3), e
-    outward = np.column_stack([along[:, 1], -along[:, 0], np.zeros(len(along))])  # (E, 3), o = e x z
+    p_topple = np.asarray(p_topple, dtype=float)
+    height = max(float(center_mass[2]), MIN_COM_HEIGHT)  # m
     # How far the contact lies beyond the base (> 0 outside it): the largest of its distances
-    # outside the edge lines, as the centre of mass's d_e (MODEL.md section 5) with the sign turned.
-    beyond = np.einsum("aek,ek->ae", points[:, None, :] - y0[None], outward)  # (A, E), m
-    com_inside = -np.einsum("ek,ek->e", center_mass - y0, outward)  # (E,), d_e, m
+    # outside the edge lines, d_e of MODEL.md section 5 for the contact with the sign turned.
+    beyond = np.einsum("aek,ek->ae", points[:, None, :] - edges.start[None], edges.outward)  # (A, E), m
     offset = np.linalg.norm(points[:, :2] - np.asarray(center_mass)[:2], axis=1)  # (A,), m
     features = np.column_stack([
         np.ones(len(points)),
-        logit(np.asarray(p_topple, dtype=float)),
+        logit(p_topple),
         np.asarray(directions, dtype=float)[:, 2],
         beyond.max(axis=1) / height,
         points[:, 2] / height,
         np.asarray(normals, dtype=float)[:, 2],
-        np.full(len(points), com_inside.min() / height),
+        np.full(len(points), edges.com_distance.min() / height),
         offset / height,
-    ])  # (A, 8)
-    features[~np.isfinite(np.asarray(p_topple, dtype=float))] = np.nan
+    ])  # (A, F)
+    features[~np.isfinite(p_topple)] = np.nan
     return features
 
 
 def map_down_rows(
     next_pose: np.ndarray,
-    counted: np.ndarray,
+    unmapped: np.ndarray,
     start: int,
-    points: np.ndarray,
-    normals: np.ndarray,
-    directions: np.ndarray,
-    base_edges: np.ndarray,
+    actions,
+    edges: EdgeGeometry,
     center_mass: np.ndarray,
     weights,
-    below: float,
+    cut_z: float,
     pool: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Apply the down map (C.15) to the rows of pushes with u_z < ``below``, the rest as they are.
+    """Apply the down map (C.15) to the rows of the pushes ``pressed_down`` below ``cut_z``; the
+    rest are returned as they are.
 
     next_pose : (A, P) float, the rows as mapped so far (C.7), NaN rows not ok
-    counted : (A, P) float, the same rows before any map (what the map's P is read from)
-    start : the pose the rows leave;  points, normals, directions : (A, 3) float, pose frame
-    base_edges : (E, 2, 3) float, m;  center_mass : (3,) float, m;  weights : (8,) or empty
-    below : the u_z under which a push is mapped;  pool : as ``map_rows``
+    unmapped : (A, P) float, the same rows before any map: counted and smoothed (C.12), what the
+      map's P and a push's landing are read from
+    start : the pose the rows leave;  actions : the pose's ``outcomes.Actions`` (points, m;
+      normals; directions; pose frame);  edges, center_mass : as ``down_features``
+    weights : (len(DOWN_FEATURES),) or empty;  pool : as ``map_rows``
     returns : next_pose (A, P), a down push's row (1 - q) at ``start`` + q times its landing
       (C.13.2); p_topple (A,)
     """
     next_pose = np.array(next_pose, dtype=float)
-    down = np.asarray(directions, dtype=float)[:, 2] < below  # (A,)
+    down = pressed_down(actions.directions[:, 2], cut_z) & np.isfinite(unmapped[:, start])  # (A,)
     if len(weights) == 0 or not down.any():
         return next_pose, 1.0 - next_pose[:, start]
-    p = 1.0 - counted[:, start]  # (A,)
-    q = mapped_probability(down_features(p, points, normals, directions, base_edges, center_mass), weights)  # (A,)
-    landing = landing_rows(counted, start, points, directions, pool=pool)  # (A, P)
-    q = np.where(landing.sum(axis=1) > 0, q, 0.0)
-    rows = down & np.isfinite(p)
-    next_pose[rows] = q[rows, None] * landing[rows]
-    next_pose[rows, start] = 1.0 - q[rows]
+    p = 1.0 - unmapped[:, start]  # (A,)
+    q = mapped_probability(down_features(p, actions.points, actions.normals, actions.directions, edges, center_mass),
+                           weights)  # (A,)
+    landing = landing_rows(unmapped, start, actions.points, actions.directions, pool=pool)  # (A, P)
+    q = np.where(landing.sum(axis=1) > 0, q, 0.0)  # nowhere the model knows to land: no topple
+    next_pose[down] = q[down, None] * landing[down]
+    next_pose[down, start] = 1.0 - q[down]
     return next_pose, 1.0 - next_pose[:, start]
-

@@ -735,8 +735,8 @@ def evaluate_pose(
         mean_force = np.where(toppled, forces, 0.0).sum(axis=1) / toppled.sum(axis=1)  # (A,), (9.3), N
     mean_force[toppled.sum(axis=1) == 0] = np.nan
     # MODEL.md C.7: P(topple) through the fitted monotone map g, the row rescaled to stay a
-    # distribution; no knots (the default, and every thesis variant) leave the table as counted.
-    counted = next_pose
+    # distribution; no knots (every thesis variant) leave the table as counted.
+    unmapped = next_pose  # the down map (C.15) reads P from the rows before C.7's map, as it was fitted
     next_pose, p_topple = recalibrate_rows(next_pose, pose.index, *config.applied_recalibration)  # (A, P), (A,), (9.2)
     if config.applied_feature_map:
         # MODEL.md C.13: P(topple) from the push's features, its landing kept (or borrowed).
@@ -744,7 +744,6 @@ def evaluate_pose(
                                        obj.mass * config.gravity, config.applied_feature_map, pool=n_candidates)
     if config.applied_down_map:
         # MODEL.md C.15: pushes that press down, which the policies never choose, from their geometry.
-        next_pose, p_topple = map_down_rows(next_pose, counted, pose.index, actions.points, actions.normals,
-                                            actions.directions, pose.base_edges, center_mass, config.applied_down_map,
-                                            config.down_map_z, pool=n_candidates)
+        next_pose, p_topple = map_down_rows(next_pose, unmapped, pose.index, actions, edges, center_mass,
+                                            config.applied_down_map, config.down_map_z, pool=n_candidates)
     return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes)

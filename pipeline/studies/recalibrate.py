@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model.config import MAP_FIELDS, NO_MAP, Config, ToppleConfig
-from ..model.feature_map import DOWN_FEATURES, FEATURES, FeatureMapError, fit_weights, mapped_probability
+from ..model.feature_map import DOWN_FEATURES, FEATURES, FeatureMapError, fit_weights, mapped_probability, pressed_down
 from ..model.recalibration import METHODS, RecalibrationError, fit, fit_logistic, predict
 from .calibrate import CalibrationError, grouped_folds, write_outputs
 from .logreader import LogError, PushLog, read_log
@@ -195,18 +195,20 @@ def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
     """Cross-validate the down map (docs/MODEL.md C.15) beside the centred map, fit both on all.
 
     Every fold fits the centred map (C.7) on all its training pushes and the down map on the
-    training pushes with u_z < ``topple.down_map_z``; the held-out pushes below that get the down
-    map's q, the rest the centred map's.  ``centred`` is the same folds with no down map: the
-    comparison the down map is adopted by.
+    training pushes below ``topple.down_map_z`` (``feature_map.pressed_down``); the held-out pushes
+    below it get the down map's q (0 where the model knows of no landing, as the engine has it),
+    the rest the centred map's.  ``centred`` is the same folds with no down map: the comparison
+    the down map is adopted by.
     returns : a JSON-ready record with ``weights`` (one per ``DOWN_FEATURES``), ``knots`` (the
       centred map on all pushes), pooled held-out metrics of both (all pushes and the down ones)
     """
     config = config or Config()
     started = time.perf_counter()
     scorer = Scorer(log, config.seed, config.contacts)
-    features, p = scorer.down_features(config.topple)
+    features, p, lands = scorer.down_map_inputs(config.topple)
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
-    down = features[:, DOWN_FEATURES.index("direction_z")] < config.topple.down_map_z
+    # As the engine takes them: the evaluated push's direction, and only pushes with a P.
+    down = pressed_down(features[:, DOWN_FEATURES.index("direction_z")], config.topple.down_map_z) & np.isfinite(p)
     if down.sum() < len(DOWN_FEATURES):
         raise RecalibrationError(f"{int(down.sum())} pushes with u_z < {config.topple.down_map_z} are too few to fit "
                                  f"{len(DOWN_FEATURES)} weights")
@@ -215,8 +217,11 @@ def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
     for f in range(folds):
         train, test = fold_of != f, fold_of == f
         centred[test] = predict(p[test], fit("centred", p[train], observed[train], weight[train]))
+        if not (train & down).any():
+            raise RecalibrationError(f"fold {f} leaves no push below {config.topple.down_map_z} to fit on; use fewer folds")
         weights = fit_weights(features[train & down], observed[train & down], weight[train & down])
-        mapped[test] = np.where(down[test], mapped_probability(features[test], weights), centred[test])
+        q = np.where(lands[test], mapped_probability(features[test], weights), 0.0)
+        mapped[test] = np.where(down[test], q, centred[test])
     weights = fit_weights(features[down], observed[down], weight[down])
     if not np.all(np.isfinite(weights)):
         raise FeatureMapError(f"the down map's fit did not converge (weights {weights.tolist()})")
@@ -241,6 +246,7 @@ def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
         "folds": folds,
         "seed": seed,
         "cross_validated": both(np.ones(len(p), dtype=bool)),
+        "pushes_without_landing": int(np.sum(down & ~lands)),
         "down_pushes": both(down),
         "other_pushes": both(~down),
         "fold_objects": fold_objects,
@@ -250,6 +256,7 @@ def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
 
 
 def format_down_record(result: dict) -> str:
+    """``down_recalibrate``'s record as the table ``toppledb recalibrate --down`` prints."""
     lines = [(f"{result['pushes']} pushes on {result['objects']} objects ({result['down_pushes']['pushes']} with u_z < "
               f"{result['down_map_z']}); {result['folds']}-fold CV grouped by object, held-out folds pooled:"),
              f"{'pushes':<24} {'predictor':<10} {'ECE':>6} {'Brier':>7} {'AP':>6} {'mAP':>6} {'mean pred.':>10} {'observed':>8}"]
@@ -357,8 +364,9 @@ def main(argv: list[str] | None = None) -> int:
              f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, centred {cv['centred']['ece']:.3f} / "
              f"{cv['centred']['brier']:.4f}, centred and down map {cv['down_map']['ece']:.3f} / {cv['down_map']['brier']:.4f}"),
         ]
+        # The cut travels with the weights fitted below it, whatever the defaults become.
         fitted_map = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"]),
-                      "down_map": tuple(result["weights"])}
+                      "down_map": tuple(result["weights"]), "down_map_z": result["down_map_z"]}
     else:
         print(format_record(result))
         cv = result["cross_validated"]

@@ -32,7 +32,8 @@ from schema.vocabulary import STATUS_OK
 from ..model.collision import collision_object
 from ..model.config import ContactConfig, ToppleConfig
 from ..model.contacts import explicit_actions, object_contacts, pose_actions
-from ..model.feature_map import DOWN_FEATURES, FEATURES, down_features, pose_features
+from ..model.edges import edge_geometry
+from ..model.feature_map import DOWN_FEATURES, FEATURES, down_features, landing_rows, pose_features
 from ..model.outcomes import Actions, StablePose, ToppleTable
 from ..model.rng import stream
 from ..model.topple import evaluate_pose
@@ -158,21 +159,30 @@ class Scorer:
             p[group.rows] = table.p_topple[index]
         return out, p
 
-    def down_features(self, topple: ToppleConfig) -> tuple[np.ndarray, np.ndarray]:
-        """The down map's features (docs/MODEL.md C.15) of every push, in log order, from
-        ``topple`` with no map (what the down map is fitted on).
+    def down_map_inputs(self, topple: ToppleConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the down map (docs/MODEL.md C.15) reads of every push, in log order, from ``topple``
+        with no map (what the map is fitted on), each push evaluated among its pose's candidates
+        as the engine maps it.
 
-        returns : features (n, 8) float;  p_topple (n,) float, the unmapped P(topple)"""
+        returns : features (n, len(DOWN_FEATURES)) float;  p_topple (n,) float, the unmapped
+          P(topple);  lands (n,) bool, whether the model knows where the push would land (C.13.2;
+          where it does not, the engine keeps P = 0 whatever the map says)"""
         topple = topple.without_recalibration()
         out = np.full((len(self), len(DOWN_FEATURES)), np.nan)
         p = np.full(len(self), np.nan)
+        lands = np.zeros(len(self), dtype=bool)
         for group in self.groups:
-            table, actions, index = self._evaluate(group, topple)
-            center_mass = transform_points(group.pose.transform, self.log.objects[group.object_id].model.center_mass[None])[0]
+            table, actions, index = self._evaluate(group, topple, candidates=True)
+            model = self.log.objects[group.object_id].model
+            center_mass = transform_points(group.pose.transform, model.center_mass[None])[0]
+            edges = edge_geometry(group.pose.base_edges, center_mass)
             out[group.rows] = down_features(table.p_topple[index], actions.points[index], actions.normals[index],
-                                            actions.directions[index], group.pose.base_edges, center_mass)
+                                            actions.directions[index], edges, center_mass)
             p[group.rows] = table.p_topple[index]
-        return out, p
+            pool = self.pose_candidates(group).candidates
+            landing = landing_rows(table.next_pose, group.pose.index, actions.points, actions.directions, pool=pool)
+            lands[group.rows] = landing[index].sum(axis=1) > 0
+        return out, p, lands
 
     def _evaluate(self, group: Group, topple: ToppleConfig, candidates: bool = False) -> tuple[ToppleTable, Actions, np.ndarray]:
         """``group``'s table: over its pose's candidates and its probes when the model needs them

@@ -478,7 +478,7 @@ def report(
                 "topple": {k: getattr(other, k) for k in NOISE_KEYS},
                 "recalibration": {"x": list(other_x), "y": list(other_y),
                                   "feature_map": list(other.applied_feature_map),
-                                  "down_map": list(other.applied_down_map)},
+                                  "down_map": list(other.applied_down_map), "down_map_z": other.down_map_z},
                 "metrics": predictor_summary(other_scores, scorer, n_resamples=n_resamples, seed=seed),
                 "ranking_by_direction": ranking_by_direction(other_scores, scorer, classes),
                 "difference": bootstrap_metric_difference(
