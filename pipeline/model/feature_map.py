@@ -115,7 +115,7 @@ def mapped_probability(features: np.ndarray, weights) -> np.ndarray:
 
 
 def landing_rows(next_pose: np.ndarray, start: int, points: np.ndarray, directions: np.ndarray,
-                 pool: int | None = None) -> np.ndarray:
+                 pool: int | None = None, rows: np.ndarray | None = None) -> np.ndarray:
     """Where each push lands when it topples (C.13.2): a distribution over the poses other than
     ``start``, or zeros where the model knows of no landing.
 
@@ -125,11 +125,12 @@ def landing_rows(next_pose: np.ndarray, start: int, points: np.ndarray, directio
 
     next_pose : (A, P) float, rows sum to 1, NaN rows not ok;  start : the pose the rows leave
     points, directions : (A, 3) float, pose frame;  pool : the pose's candidates (default all)
-    returns : (A, P) float, column ``start`` zero; rows sum to 1 or to 0
+    rows : (R,) int, the pushes to give a landing (default all)
+    returns : (R, P) float, column ``start`` zero; rows sum to 1 or to 0
     """
     leaving = _leaving(next_pose, start)
-    near, _ = neighbour_mean(points, directions, leaving, RADIUS, MAX_ANGLE, pool=pool)
-    return _landing(leaving, near, pool)
+    near, _ = neighbour_mean(points, directions, leaving, RADIUS, MAX_ANGLE, rows=rows, pool=pool)
+    return _landing(leaving, near, pool, rows)
 
 
 def _leaving(next_pose: np.ndarray, start: int) -> np.ndarray:
@@ -139,19 +140,21 @@ def _leaving(next_pose: np.ndarray, start: int) -> np.ndarray:
     return leaving
 
 
-def _landing(leaving: np.ndarray, near: np.ndarray, pool: int | None) -> np.ndarray:
-    """``landing_rows`` from the leaving parts (A, P) and their neighbourhood means (A, P)."""
+def _landing(leaving: np.ndarray, near: np.ndarray, pool: int | None, rows: np.ndarray | None = None) -> np.ndarray:
+    """``landing_rows`` of ``rows`` (default all) from every push's leaving part (A, P) and the
+    rows' neighbourhood means (R, P)."""
     ok = np.isfinite(leaving).all(axis=1)
     in_pool = ok.copy()
     if pool is not None:
         in_pool[pool:] = False
     whole = leaving[in_pool].mean(axis=0) if in_pool.any() else np.zeros(leaving.shape[1])  # (P,)
-    landing = np.zeros_like(leaving)
-    for source in (np.broadcast_to(whole, leaving.shape), np.nan_to_num(near), np.nan_to_num(leaving)):
+    own = leaving if rows is None else leaving[rows]  # (R, P)
+    landing = np.zeros_like(own)
+    for source in (np.broadcast_to(whole, own.shape), np.nan_to_num(near), np.nan_to_num(own)):
         mass = source.sum(axis=1)
         known = mass > 0
         landing[known] = source[known] / mass[known, None]  # later sources (more local) overwrite
-    landing[~ok] = np.nan
+    landing[~(ok if rows is None else ok[rows])] = np.nan
     return landing
 
 
@@ -302,14 +305,15 @@ def map_down_rows(
       (C.13.2); p_topple (A,)
     """
     next_pose = np.array(next_pose, dtype=float)
-    down = pressed_down(actions.directions[:, 2], cut_z) & np.isfinite(unmapped[:, start])  # (A,)
-    if len(weights) == 0 or not down.any():
+    down = np.flatnonzero(pressed_down(actions.directions[:, 2], cut_z) & np.isfinite(unmapped[:, start]))  # (D,)
+    if len(weights) == 0 or len(down) == 0:
         return next_pose, 1.0 - next_pose[:, start]
-    p = 1.0 - unmapped[:, start]  # (A,)
-    q = mapped_probability(down_features(p, actions.points, actions.normals, actions.directions, edges, center_mass),
-                           weights)  # (A,)
-    landing = landing_rows(unmapped, start, actions.points, actions.directions, pool=pool)  # (A, P)
+    # Features and landings of the down rows only: the others keep their rows.
+    p = 1.0 - unmapped[down, start]  # (D,)
+    features = down_features(p, actions.points[down], actions.normals[down], actions.directions[down], edges, center_mass)
+    q = mapped_probability(features, weights)  # (D,)
+    landing = landing_rows(unmapped, start, actions.points, actions.directions, pool=pool, rows=down)  # (D, P)
     q = np.where(landing.sum(axis=1) > 0, q, 0.0)  # nowhere the model knows to land: no topple
-    next_pose[down] = q[down, None] * landing[down]
-    next_pose[down, start] = 1.0 - q[down]
+    next_pose[down] = q[:, None] * landing
+    next_pose[down, start] = 1.0 - q
     return next_pose, 1.0 - next_pose[:, start]

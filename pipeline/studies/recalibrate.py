@@ -124,6 +124,16 @@ def recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, s
     }
 
 
+def metrics_by_predictor(predictions: dict[str, np.ndarray], rows: np.ndarray, observed: np.ndarray,
+                         weight: np.ndarray, objects: np.ndarray) -> dict:
+    """Each named predictor's ``metrics`` over ``rows`` ((n,) bool), and how many pushes those are
+    ({"pushes": 0} alone when none).  predictions : name -> (n,) float, held-out P(topple)"""
+    if not rows.any():
+        return {"pushes": 0}
+    return {**{name: metrics(predicted[rows], observed[rows], weight[rows], objects[rows]) for name, predicted in predictions.items()},
+            "pushes": int(rows.sum())}
+
+
 def push_folds(objects: list[str], folds: int, seed: int) -> tuple[list[list[str]], np.ndarray]:
     """Folds grouped by object over pushes from any number of logs (``grouped_folds``).
 
@@ -172,9 +182,7 @@ def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None =
         raise FeatureMapError(f"the feature map's fit did not converge (weights {weights.tolist()})")
 
     def both(rows: np.ndarray) -> dict:
-        return {"identity": metrics(p[rows], observed[rows], weight[rows], objects[rows]),
-                "feature_map": metrics(held_out[rows], observed[rows], weight[rows], objects[rows]),
-                "pushes": int(rows.sum())}
+        return metrics_by_predictor({"identity": p, "feature_map": held_out}, rows, observed, weight, objects)
 
     return {
         "variant": config.topple.variant,
@@ -228,12 +236,7 @@ def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
     knots = fit("centred", p, observed, weight)
 
     def both(rows: np.ndarray) -> dict:
-        if not rows.any():
-            return {"pushes": 0}
-        return {"identity": metrics(p[rows], observed[rows], weight[rows], objects[rows]),
-                "centred": metrics(centred[rows], observed[rows], weight[rows], objects[rows]),
-                "down_map": metrics(mapped[rows], observed[rows], weight[rows], objects[rows]),
-                "pushes": int(rows.sum())}
+        return metrics_by_predictor({"identity": p, "centred": centred, "down_map": mapped}, rows, observed, weight, objects)
 
     return {
         "variant": config.topple.variant,

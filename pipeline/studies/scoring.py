@@ -180,8 +180,8 @@ class Scorer:
                                             actions.directions[index], edges, center_mass)
             p[group.rows] = table.p_topple[index]
             pool = self.pose_candidates(group).candidates
-            landing = landing_rows(table.next_pose, group.pose.index, actions.points, actions.directions, pool=pool)
-            lands[group.rows] = landing[index].sum(axis=1) > 0
+            landing = landing_rows(table.next_pose, group.pose.index, actions.points, actions.directions, pool=pool, rows=index)
+            lands[group.rows] = landing.sum(axis=1) > 0
         return out, p, lands
 
     def _evaluate(self, group: Group, topple: ToppleConfig, candidates: bool = False) -> tuple[ToppleTable, Actions, np.ndarray]:
