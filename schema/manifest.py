@@ -57,6 +57,10 @@ class MDPParameters(_Open):
     min_direction_z: float = Field(-1.0, ge=-1, le=1)
     """Greedy and value iteration chose only pushes with u_z at least this (pose frame); a
     manifest from before the field chose from every push, which -1 is."""
+    retry_failed: bool = True
+    """Whether value iteration counted on pushing again where a push failed (the thesis, the
+    default) or valued that pose at its grasp (docs/MODEL.md (12.9)); a manifest from before the
+    field counted on it."""
 
 
 class Parameters(_Open):

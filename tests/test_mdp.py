@@ -23,19 +23,24 @@ GAMMA = 0.95
 NAN_ROW = [np.nan] * 3
 
 
-def solve(next_pose, v_s, gamma=GAMMA, tolerance=1e-12, max_iterations=10_000):
-    return value_iteration([np.asarray(t, dtype=float) for t in next_pose], np.asarray(v_s, float), gamma, tolerance, max_iterations)
+def solve(next_pose, v_s, gamma=GAMMA, tolerance=1e-12, max_iterations=10_000, retry_failed=True):
+    return value_iteration([np.asarray(t, dtype=float) for t in next_pose], np.asarray(v_s, float), gamma, tolerance, max_iterations,
+                           retry_failed=retry_failed)
 
 
-def reference_values(next_pose, v_s, gamma, sweeps=800):
-    """Textbook value iteration with explicit loops, for comparison."""
+def reference_values(next_pose, v_s, gamma, sweeps=800, retry_failed=True):
+    """Textbook value iteration with explicit loops, for comparison; without retries the
+    pose's own entry of each row is worth its grasp, V_s(x) (MODEL.md (12.9))."""
     value = np.array(v_s, dtype=float)
     for _ in range(sweeps):
         new = value.copy()
         for x, table in enumerate(next_pose):
+            after = value.copy()
+            if not retry_failed:
+                after[x] = v_s[x]
             for row in np.asarray(table, dtype=float):
                 if not np.isnan(row).any():
-                    new[x] = max(new[x], gamma * float(row @ value))
+                    new[x] = max(new[x], gamma * float(row @ after))
         new = np.maximum(new, v_s)
         value = new
     return value
@@ -88,6 +93,50 @@ def test_push_that_rarely_topples_has_the_geometric_series_value():
     expected = 0.1 * GAMMA / (1 - 0.9 * GAMMA)
     np.testing.assert_allclose(v, [expected, 1.0], atol=1e-12)
     np.testing.assert_allclose(q[0], [0.9 * expected + 0.1], atol=1e-12)
+
+
+def test_without_retries_a_failed_push_is_worth_the_grasp_where_it_failed():
+    # Pose 0 (V_s 0.2): a long shot, 0.3 onto pose 1 (V_s 1.0), else stays; a safer push, 0.9
+    # onto pose 2 (V_s 0.5), else stays.  Retried without end the long shot is worth
+    # V0 = 0.3 gamma / (1 - 0.7 gamma) = 0.851 and value iteration takes it; pushed once, it is
+    # worth 0.3 + 0.7 * 0.2 = 0.44 against the safer push's 0.9 * 0.5 + 0.1 * 0.2 = 0.47.
+    next_pose = [np.array([[0.7, 0.3, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
+    v_s = np.array([0.2, 1.0, 0.5])
+    v, q = solve(next_pose, v_s)
+    v0 = 0.3 * GAMMA / (1 - 0.7 * GAMMA)
+    np.testing.assert_allclose(v, [v0, 1.0, 0.5], atol=1e-12)
+    assert value_iteration_policy(0, v_s, q[0], GAMMA).action == 0
+    v, q = solve(next_pose, v_s, retry_failed=False)
+    np.testing.assert_allclose(q[0], [0.44, 0.47], atol=1e-12)
+    np.testing.assert_allclose(v, [GAMMA * 0.47, 1.0, 0.5], atol=1e-12)
+    assert value_iteration_policy(0, v_s, q[0], GAMMA).action == 1
+
+
+def test_without_retries_a_push_that_never_topples_is_worth_grasping_now():
+    # With retries, V0 = gamma (0.9 V0 + 0.1) (the geometric series above); without, one try.
+    v, q = solve([[[0.9, 0.1]], np.zeros((0, 2))], [0.0, 1.0], retry_failed=False)
+    np.testing.assert_allclose(q[0], [0.1], atol=1e-12)
+    np.testing.assert_allclose(v, [0.1 * GAMMA, 1.0], atol=1e-12)
+    v, q = solve([[[1.0, 0.0]], np.zeros((0, 2))], [0.3, 1.0], retry_failed=False)
+    np.testing.assert_allclose(v, [0.3, 1.0])
+    assert value_iteration_policy(0, np.array([0.3, 1.0]), q[0], GAMMA).action == NO_OP
+
+
+def test_without_retries_matches_textbook_value_iteration_and_a_chain_still_pays():
+    rng = np.random.default_rng(3)
+    for n_poses, n_actions in [(2, 3), (5, 20), (8, 50)]:
+        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+        v, q = solve(next_pose, v_s, retry_failed=False)
+        np.testing.assert_allclose(v, reference_values(next_pose, v_s, GAMMA, retry_failed=False), atol=1e-10)
+        retried, _ = solve(next_pose, v_s)
+        assert np.all(v >= v_s) and np.all(v <= retried + 1e-12)  # retries can only add value
+        for x, (table, qx) in enumerate(zip(next_pose, q)):
+            after = v.copy()
+            after[x] = v_s[x]
+            np.testing.assert_allclose(qx, table @ after, atol=1e-12)
+    # Pushes that topple for sure are not retries: a chain keeps gamma^k.
+    v, _ = solve([[[0, 1, 0]], [[0, 0, 1]], np.zeros((0, 3))], [0.0, 0.0, 1.0], retry_failed=False)
+    np.testing.assert_allclose(v, [GAMMA**2, GAMMA, 1.0], atol=1e-12)
 
 
 def test_figure_4_6_values():
@@ -193,9 +242,10 @@ def test_policies_choose_among_the_choosable_pushes_and_every_push_keeps_its_val
     # above, say); push 1 reaches it half the time.  Pose 1 is the best pose.
     v_s = np.array([0.1, 0.9])
     tables = [np.array([[0.0, 1.0], [0.5, 0.5]]), np.array([[0.0, 1.0]])]
-    free = pose_values(tables, v_s, [-1, -1], MDPConfig())
+    thesis = MDPConfig()  # the value below counts on retrying push 1
+    free = pose_values(tables, v_s, [-1, -1], thesis)
     assert free[0].policies["value_iteration"].action == 0 and free[0].policies["greedy"].action == 0
-    kept = pose_values(tables, v_s, [-1, -1], MDPConfig(), [np.array([False, True]), np.array([True])])
+    kept = pose_values(tables, v_s, [-1, -1], thesis, [np.array([False, True]), np.array([True])])
     assert kept[0].policies["value_iteration"].action == 1 and kept[0].policies["greedy"].action == 1
     # V_T(0) solves V = gamma (0.5 V + 0.5 * 0.9) with push 1 alone; V_T(1) = V_s(1).
     v0 = GAMMA * 0.45 / (1 - GAMMA * 0.5)
@@ -204,7 +254,7 @@ def test_policies_choose_among_the_choosable_pushes_and_every_push_keeps_its_val
     np.testing.assert_allclose(kept[0].q, [0.9, 0.5 * v0 + 0.45], atol=1e-9)
     np.testing.assert_allclose(kept[0].greedy, free[0].greedy)
     # All choosable is the same as no mask, to the bit.
-    every = pose_values(tables, v_s, [-1, -1], MDPConfig(), [np.ones(2, dtype=bool), np.ones(1, dtype=bool)])
+    every = pose_values(tables, v_s, [-1, -1], thesis, [np.ones(2, dtype=bool), np.ones(1, dtype=bool)])
     assert [(v.value, v.q.tolist(), v.policies) for v in every] == [(v.value, v.q.tolist(), v.policies) for v in free]
 
 
@@ -268,11 +318,22 @@ def test_max_height_policy_rules():
     assert (stay.action, stay.value) == (NO_OP, 0.2)
 
 
-def test_pose_values_ties_it_together():
+def test_pose_values_takes_retries_from_the_config():
+    next_pose = [np.array([[0.7, 0.3, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
+    v_s = np.array([0.2, 1.0, 0.5])
+    once = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(retry_failed=False))
+    thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig())
+    assert once[0].policies["value_iteration"].action == 1
+    assert thesis[0].policies["value_iteration"].action == 0
+    np.testing.assert_allclose(once[0].greedy, thesis[0].greedy)  # greedy has no retries to count
+
+
+@pytest.mark.parametrize("retry_failed", [True, False])
+def test_pose_values_ties_it_together(retry_failed):
     next_pose, v_s = figure_4_6()
-    config = MDPConfig(gamma=GAMMA, tolerance=1e-12)
+    config = MDPConfig(gamma=GAMMA, tolerance=1e-12, retry_failed=retry_failed)
     values = pose_values(next_pose, v_s, [1, 0, -1, 0], config)
-    v, q = solve(next_pose, v_s)
+    v, q = solve(next_pose, v_s, retry_failed=retry_failed)
     assert len(values) == 4
     for x, pv in enumerate(values):
         assert set(pv.policies) == {"max_height", "greedy", "value_iteration"}

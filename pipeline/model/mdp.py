@@ -8,6 +8,11 @@ episode with a suction grasp worth V_s(x):
     Q_T(x, u) = sum_x' P(x' | x, u) V_T(x')
     V_T(x)    = max(V_s(x), gamma * max_u Q_T(x, u))
 
+or, with ``retry_failed`` false (opt-in; docs/MODEL.md section 12, (12.9)), a push that
+leaves the object where it was is worth grasping there, V_s(x), not V_T(x):
+
+    Q_T(x, u) = sum_{x' != x} P(x' | x, u) V_T(x') + P(x | x, u) V_s(x)
+
 Inputs, for an object with P poses:
 
 next_pose : list of P arrays, next_pose[x] is (A_x, P) float, P(x' | x, u) for the
@@ -66,10 +71,25 @@ def _greedy_step(
     return best, row
 
 
-def _policy_value(rows: np.ndarray, row: np.ndarray, acting: np.ndarray, v_s: np.ndarray, gamma: float) -> np.ndarray:
+def _self_mass(rows: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """(N,) float, each row's probability of leaving the object in its own pose."""
+    return rows[np.arange(len(rows)), owner]
+
+
+def _q_values(rows: np.ndarray, owner: np.ndarray, value: np.ndarray, v_s: np.ndarray, retry_failed: bool) -> np.ndarray:
+    """(N,) float, Q_T of every row under ``value``: (12.1), or (12.9) when a failed push is not retried."""
+    q = rows @ value
+    if not retry_failed:
+        q -= _self_mass(rows, owner) * (value[owner] - v_s[owner])
+    return q
+
+
+def _policy_value(rows: np.ndarray, row: np.ndarray, acting: np.ndarray, v_s: np.ndarray, gamma: float,
+                  retry_failed: bool = True) -> np.ndarray:
     """Exact value of the stationary policy "push ``row[x]`` where ``acting``, else grasp".
 
-    Solves V_A = gamma (T_AA V_A + T_AS V_s(S)), V_S = V_s(S).  Any policy's value is a
+    Solves V_A = gamma (T_AA V_A + T_AS V_s(S)), V_S = V_s(S); without retries (12.9) the
+    mass a push leaves in its own pose goes to V_s there instead.  Any policy's value is a
     lower bound on V_T, which is what lets value iteration jump to it.
     """
     value = v_s.copy()
@@ -77,9 +97,15 @@ def _policy_value(rows: np.ndarray, row: np.ndarray, acting: np.ndarray, v_s: np
     if len(act):
         t = rows[row[act]]
         stay = np.flatnonzero(~acting)
+        constant = gamma * t[:, stay] @ v_s[stay]
+        if not retry_failed:
+            own = np.arange(len(act)), act
+            constant = constant + gamma * t[own] * v_s[act]
+            t = t.copy()
+            t[own] = 0.0
         system = np.eye(len(act)) - gamma * t[:, act]
         try:
-            value[act] = np.linalg.solve(system, gamma * t[:, stay] @ v_s[stay])
+            value[act] = np.linalg.solve(system, constant)
         except np.linalg.LinAlgError:
             # Only possible without discount (gamma = 1) and a closed loop of pushes;
             # V_s is still a valid lower bound, and plain sweeps do the rest.
@@ -94,6 +120,7 @@ def value_iteration(
     tolerance: float,
     max_iterations: int,
     choosable: list[np.ndarray] | None = None,
+    retry_failed: bool = True,
 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """V_T and Q_T by value iteration from V_T = V_s, accelerated by policy evaluation.
 
@@ -113,6 +140,8 @@ def value_iteration(
     max_iterations : int, upper bound on sweeps
     choosable : list of P (A_x,) bool, the pushes the max over u may take (default all); the
       others' Q_T is still their value under the plan, (12.7)
+    retry_failed : whether a push that leaves the object in its pose may be pushed again
+      (the thesis, (12.1)) or the object is then grasped there ((12.9))
     returns : V_T (P,) float; Q_T list of (A_x,) float, NaN where the row is NaN
     """
     v_s = np.asarray(v_s, dtype=float)
@@ -125,16 +154,16 @@ def value_iteration(
 
     value = v_s.copy()
     for _ in range(max_iterations):
-        best, row = _greedy_step(plan_rows @ value, starts, ends, poses, n_poses)
+        best, row = _greedy_step(_q_values(plan_rows, plan_owner, value, v_s, retry_failed), starts, ends, poses, n_poses)
         bellman = np.maximum(v_s, gamma * best)
         change = float(np.max(bellman - value)) if n_poses else 0.0  # iterates only rise
         if change <= tolerance:
             value = bellman
             break
-        value = np.maximum(bellman, _policy_value(plan_rows, row, gamma * best > v_s, v_s, gamma))
+        value = np.maximum(bellman, _policy_value(plan_rows, row, gamma * best > v_s, v_s, gamma, retry_failed))
 
     q = np.full(len(ok), np.nan)
-    q[ok] = rows @ value
+    q[ok] = _q_values(rows, owner, value, v_s, retry_failed)
     return value, _split(q, next_pose)
 
 
@@ -223,7 +252,8 @@ def pose_values(
       policies ``max_height``, ``greedy``, ``value_iteration``)
     """
     v_s = np.asarray(v_s, dtype=float)
-    v_t, q = value_iteration(next_pose, v_s, config.gamma, config.tolerance, config.max_iterations, choosable)
+    v_t, q = value_iteration(next_pose, v_s, config.gamma, config.tolerance, config.max_iterations, choosable,
+                             config.retry_failed)
     greedy = greedy_values(next_pose, v_s)
     out = []
     for x in range(len(v_s)):

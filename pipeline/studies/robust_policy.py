@@ -20,8 +20,9 @@ Only the dataset's tables are read (``point``, ``direction``, ``status``, ``q``,
 
     python -m pipeline.studies.robust_policy DATASET --trials 600 [--radius 0.02 --max-angle 0.5 --min-neighbours 5]
 
-plays max_height, value_iteration, ``smoothed_vi`` and ``horizon_vi`` (value iteration for
-the experiment's push budget, ``schema.horizon``) in pybullet from the same starts and
+plays max_height, value_iteration, ``smoothed_vi``, ``horizon_vi`` (value iteration for
+the experiment's push budget, ``schema.horizon``), ``untried_vi`` and ``once_vi`` (value
+iteration without retries, docs/MODEL.md (12.9)) in pybullet from the same starts and
 noise draws as ``toppledb policies-physics`` (common random numbers, so max_height and
 value_iteration reproduce that report's numbers), and reports each policy's V_s gain over
 max_height on useful trials, the 'never push' baseline, and predicted (raw and smoothed)
@@ -34,7 +35,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,8 +45,8 @@ from schema.reader import Dataset
 from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
-from ..model.config import Config
-from ..model.mdp import IMPROVEMENT, value_iteration_policy
+from ..model.config import Config, MDPConfig
+from ..model.mdp import IMPROVEMENT, pose_values, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
 from .policy_experiment import best_pose_value
@@ -59,7 +60,10 @@ SMOOTHED_HORIZON_POLICY = "smoothed_horizon_vi"
 """``horizon_vi`` over the neighbourhood-smoothed transitions (``PoseScores.smoothed_rows``)."""
 UNTRIED_POLICY = "untried_vi"
 """Value iteration that does not push again where a push failed (``untried_choice``)."""
-CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY)
+ONCE_POLICY = "once_vi"
+"""Value iteration that does not count on retrying a failed push (``mdp.retry_failed = false``,
+docs/MODEL.md (12.9)), from the dataset's transitions (``once_actions``)."""
+CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY)
 """The policies each compared with value iteration, paired."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
 """Policies the study plays (common random numbers: adding one changes no other's pushes)."""
@@ -223,6 +227,14 @@ def next_pose_rows(dataset: Dataset, object_id: str, n_actions: list[int]) -> li
     return rows
 
 
+def once_actions(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray] | None = None) -> np.ndarray:
+    """(P,) int: value iteration's push per pose without retries (``mdp`` with
+    ``retry_failed = False``, ``pipeline.model.mdp.pose_values``) over ``next_pose_rows``;
+    NO_OP: grasp.  choosable : as ``robust_actions``."""
+    values = pose_values(rows, v_s, [-1] * len(rows), replace(mdp, retry_failed=False), choosable)
+    return np.array([v.policies["value_iteration"].action for v in values], dtype=np.int64)
+
+
 def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int, choosable: list[np.ndarray] | None = None) -> np.ndarray:
     """(pushes, P) int: ``horizon_vi``'s push per pose with ``pushes - k`` pushes left (row k).
 
@@ -349,6 +361,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[HORIZON_POLICY] = horizon_actions(plan.v_s, rows, max_pushes, choosable)
         plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, [s.smoothed_rows for s in scores], max_pushes, choosable)
         plan.actions[UNTRIED_POLICY] = plan.actions["value_iteration"]  # until a push fails
+        plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable}, by_object[object_id],
                       config, seed, max_pushes, world))
 
