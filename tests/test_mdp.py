@@ -122,6 +122,22 @@ def test_without_retries_a_push_that_never_topples_is_worth_grasping_now():
     assert value_iteration_policy(0, np.array([0.3, 1.0]), q[0], GAMMA).action == NO_OP
 
 
+def test_without_retries_the_policy_evaluation_still_lands_on_the_fixed_point_at_once():
+    # A loop of pushes that rarely topple: 0 -> 1 half the time, 1 -> 2 (the perfect grasp) one
+    # time in five or back to 0.  Each sweep's exact evaluation of its greedy policy (12.5), with
+    # a failed push's mass at V_s, makes two sweeps enough where plain sweeps would still be rising.
+    next_pose = [np.array([[0.5, 0.5, 0.0]]), np.array([[0.3, 0.5, 0.2]]), np.zeros((0, 3))]
+    v_s = np.array([0.0, 0.1, 1.0])
+    exact = reference_values(next_pose, v_s, GAMMA, retry_failed=False)
+    v, _ = solve(next_pose, v_s, max_iterations=2, retry_failed=False)
+    np.testing.assert_allclose(v, exact, atol=1e-12)
+    # The thesis's retries are the default of value_iteration itself, as of MDPConfig.
+    long_shot = [np.array([[0.7, 0.3, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
+    default, _ = value_iteration(long_shot, np.array([0.2, 1.0, 0.5]), GAMMA, 1e-12, 10_000)
+    np.testing.assert_allclose(default, solve(long_shot, [0.2, 1.0, 0.5], retry_failed=True)[0], atol=0)
+    assert MDPConfig().retry_failed
+
+
 def test_without_retries_matches_textbook_value_iteration_and_a_chain_still_pays():
     rng = np.random.default_rng(3)
     for n_poses, n_actions in [(2, 3), (5, 20), (8, 50)]:

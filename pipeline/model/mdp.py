@@ -85,7 +85,7 @@ def _q_values(rows: np.ndarray, owner: np.ndarray, value: np.ndarray, v_s: np.nd
 
 
 def _policy_value(rows: np.ndarray, row: np.ndarray, acting: np.ndarray, v_s: np.ndarray, gamma: float,
-                  retry_failed: bool = True) -> np.ndarray:
+                  retry_failed: bool) -> np.ndarray:
     """Exact value of the stationary policy "push ``row[x]`` where ``acting``, else grasp".
 
     Solves V_A = gamma (T_AA V_A + T_AS V_s(S)), V_S = V_s(S); without retries (12.9) the
