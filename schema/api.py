@@ -323,7 +323,8 @@ class ActionDetail(Model):
     direction: Vector3 = Field(description="unit push direction, pose frame")
     p_topple: float | None = Field(description="P(next pose != pose); null unless ok")
     mean_force: float | None = Field(description="N, mean required push force over toppling trials; null when none")
-    q: float | None = Field(description="Q_T(pose, action): expected V_T after this push; null unless ok")
+    q: float | None = Field(description="Q_T(pose, action): expected V_T after this push (in a build with mdp.retry_failed false, "
+                                        "the pose itself counted at its grasp V_s should the push fail); null unless ok")
     greedy: float | None = Field(description="E[V_s(next pose)]; null unless ok")
     next_poses: list[NextPose] = Field(description="P(next pose | pose, action), sums to 1; empty unless ok")
 
@@ -459,7 +460,8 @@ class PlanResponse(Model):
     v_s: float = Field(description="V_s of the matched pose: robust suction grasp quality of grasping now, in [0, 1]")
     v_t: float = Field(description="V_T of the matched pose: its value under value iteration, max(V_s, gamma max_u Q_T)")
     q_value: float | None = Field(
-        description="Q_T(pose, action) of the push: expected V_T of the next pose, before the push's discount gamma; null when no push"
+        description="Q_T(pose, action) of the push: expected V_T of the next pose, before the push's discount gamma (in a build "
+        "with mdp.retry_failed false, the pose itself counted at its grasp V_s should the push fail); null when no push"
     )
     expected_v_s_after: float | None = Field(
         description="Expected V_s of the next pose after the push, sum_x' P(x' | pose, action) V_s(x'); null when no push"

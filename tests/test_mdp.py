@@ -131,6 +131,9 @@ def test_without_retries_the_policy_evaluation_still_lands_on_the_fixed_point_at
     exact = reference_values(next_pose, v_s, GAMMA, retry_failed=False)
     v, _ = solve(next_pose, v_s, max_iterations=2, retry_failed=False)
     np.testing.assert_allclose(v, exact, atol=1e-12)
+
+
+def test_value_iteration_counts_on_retries_by_default():
     # The thesis's retries are the default of value_iteration itself, as of MDPConfig.
     long_shot = [np.array([[0.7, 0.3, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
     default, _ = value_iteration(long_shot, np.array([0.2, 1.0, 0.5]), GAMMA, 1e-12, 10_000)
@@ -341,7 +344,26 @@ def test_pose_values_takes_retries_from_the_config():
     thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig())
     assert once[0].policies["value_iteration"].action == 1
     assert thesis[0].policies["value_iteration"].action == 0
-    np.testing.assert_allclose(once[0].greedy, thesis[0].greedy)  # greedy has no retries to count
+    assert once[0].policies["greedy"] == thesis[0].policies["greedy"]  # greedy has no retries to count
+
+
+def test_without_retries_undiscounted_loops_and_pushes_it_may_not_choose():
+    # gamma = 1: a loop between two poses that never reaches a better one gains nothing, and a
+    # loop with a way out (1 -> 2 one time in ten) is worth the way out, retried or not.
+    loop = [np.array([[0.5, 0.5]]), np.array([[0.5, 0.5]])]
+    v, q = solve(loop, [0.3, 0.3], gamma=1.0, retry_failed=False)
+    np.testing.assert_allclose(v, [0.3, 0.3])
+    np.testing.assert_allclose(q[0], [0.3])
+    way_out = [np.array([[0.0, 1.0, 0.0]]), np.array([[0.9, 0.0, 0.1]]), np.zeros((0, 3))]
+    v, _ = solve(way_out, [0.3, 0.3, 1.0], gamma=1.0, retry_failed=False)
+    np.testing.assert_allclose(v, [1.0, 1.0, 1.0], atol=1e-9)
+    # A push the policies may not choose keeps its (12.9) value under the plan of the others.
+    next_pose = [np.array([[0.0, 1.0, 0.0], [0.5, 0.0, 0.5]]), np.zeros((0, 3)), np.zeros((0, 3))]
+    v_s = np.array([0.1, 0.9, 0.6])
+    v, q = value_iteration(next_pose, v_s, GAMMA, 1e-12, 10_000, [np.array([False, True]), np.zeros(0, bool), np.zeros(0, bool)],
+                           retry_failed=False)
+    np.testing.assert_allclose(q[0], [0.9, 0.5 * 0.1 + 0.5 * 0.6], atol=1e-12)
+    np.testing.assert_allclose(v[0], GAMMA * 0.35, atol=1e-12)
 
 
 @pytest.mark.parametrize("retry_failed", [True, False])

@@ -72,6 +72,12 @@ def test_a_small_run_plays_every_policy_and_logs_its_pushes(dataset, tmp_path):
             if r["pushes"]:
                 parts = sum(d["pushes"] * d[key] for d in r["by_direction"]) / r["pushes"]
                 assert parts == pytest.approx(r[key])
+        # So do first tries and repeats, and a repeat follows a push of its trial that left the pose.
+        assert sum(d["pushes"] for d in r["by_attempt"]) == r["pushes"]
+        for key in ("predicted_topple_rate", "physical_topple_rate"):
+            if r["pushes"]:
+                parts = sum(d["pushes"] * d[key] for d in r["by_attempt"]) / r["pushes"]
+                assert parts == pytest.approx(r[key])
     # by_direction classes each push by its own direction in the pose frame, as the dataset stores it.
     from pipeline.studies.validation import direction_classes
     from schema.reader import Dataset
@@ -114,3 +120,19 @@ def test_chosen_pushes_are_split_by_the_reports_direction_classes():
 def test_a_missing_dataset_is_a_one_line_error(tmp_path, capsys):
     assert policies_physics.main([str(tmp_path / "nope"), "--trials", "1", "--no-progress"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_repeats_of_a_failed_push_are_read_apart_from_first_tries():
+    # A trial's pushes: fail, fail (the same push again), topple, then from the new pose fail once.
+    assert policies_physics.after_a_failure([False, False, True, False]) == [False, True, True, False]
+    assert policies_physics.after_a_failure([True, True]) == [False, False]
+    assert policies_physics.after_a_failure([]) == []
+    predicted = np.array([0.6, 0.6, 0.6, 0.3])
+    toppled = np.array([0.0, 0.0, 1.0, 0.0])
+    again = np.array(policies_physics.after_a_failure([False, False, True, False]))
+    rows = {d["attempt"]: d for d in policies_physics.topple_rates_by_attempt(predicted, toppled, again)}
+    assert (rows["first try"]["pushes"], rows["first try"]["physical_topple_rate"]) == (2, 0.0)
+    assert rows["first try"]["predicted_topple_rate"] == pytest.approx(0.45)
+    assert (rows["after a failure"]["pushes"], rows["after a failure"]["physical_topple_rate"]) == (2, 0.5)
+    assert list(rows) == ["first try", "after a failure"]
+    assert [d["attempt"] for d in policies_physics.topple_rates_by_attempt(predicted[:1], toppled[:1], again[:1])] == ["first try"]

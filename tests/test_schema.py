@@ -63,9 +63,14 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
 
     old = Config().to_dict()
     del old["mdp"]["min_direction_z"]
+    del old["mdp"]["retry_failed"]  # and value iteration without retries (MODEL.md (12.9))
     del old["topple"]["down_map"], old["topple"]["down_map_z"]  # it predates the down map (MODEL.md C.15) too
     parameters = Parameters.model_validate(old)
     assert parameters.mdp.min_direction_z == -1.0
+    assert parameters.mdp.retry_failed is True, "built counting on retries, read so"
+    assert Config.from_dict(parameters.model_dump()).mdp.retry_failed is True
+    without = Config().with_overrides({"mdp.retry_failed": False}).to_dict()
+    assert Parameters.model_validate(without).mdp.retry_failed is False
     assert Config.from_dict(parameters.model_dump()).mdp.min_direction_z == -1.0
     assert Config.from_dict(parameters.model_dump()).topple.down_map == (), "built without the down map, read without it"
     assert Parameters.model_validate(Config().to_dict()).mdp.min_direction_z == Config().mdp.min_direction_z == -0.3

@@ -417,10 +417,11 @@ class MDPConfig:
     retry_failed: bool = True
     """Whether value iteration may push again where a push failed (the thesis's Bellman
     equation).  False (opt-in): a push that leaves the object in its pose is worth grasping
-    there (docs/MODEL.md (12.9)).  In physics a push's outcome is nearly fixed by the push, and
-    without retries value iteration gained +0.016 V_s on four seeds, but its chosen pushes were
-    over-predicted by 0.103 on the two fresh ones, past the 0.10 its rule allowed, so the thesis's
-    equation stays the default (docs/VALIDATION.md, "A failed push is not retried")."""
+    there (docs/MODEL.md (12.9)), which assumes the robot grasps after a failed push.  In physics
+    a push's outcome is nearly fixed by the push, and without retries value iteration gained
+    +0.016 V_s over six seeds, but its chosen pushes were over-predicted by 0.103 on the two fresh
+    ones (played re-planning, so pushing a failed push again), past the 0.10 its rule allowed, so
+    the thesis's equation stays the default (docs/VALIDATION.md, "A failed push is not retried")."""
 
 
 @dataclass(frozen=True)

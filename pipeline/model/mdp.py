@@ -124,7 +124,8 @@ def value_iteration(
 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """V_T and Q_T by value iteration from V_T = V_s, accelerated by policy evaluation.
 
-    Each sweep applies the Bellman update V <- max(V_s, gamma * max_u T_u V) and also
+    Each sweep applies the Bellman update V <- max(V_s, gamma * max_u T_u V) (without retries,
+    T_u's own-pose entry takes V_s there, (12.9)) and also
     evaluates exactly (one P x P linear solve) the greedy policy of the current V,
     keeping the larger of the two.  Both are lower bounds on the fixed point, so the
     iterates rise monotonically from V_s to it (V_T >= V_s everywhere) -- in a handful
@@ -224,7 +225,8 @@ def value_iteration_policy(pose: int, v_s: np.ndarray, q: np.ndarray, gamma: flo
 
     pose : int;  v_s : (P,) float;  q : (A_x,) float, Q_T of this pose;  gamma : discount
     returns : PolicyChoice; value = Q_T(x, u) of the push (the expected V_T of the next
-      pose, before this step's discount; V_T(x) = gamma Q_T), or V_s(x) for the no-op
+      pose, or (12.9) without retries, before this step's discount; V_T(x) = gamma Q_T), or
+      V_s(x) for the no-op
     """
     stay = float(np.asarray(v_s, dtype=float)[pose])
     action = _best_action(q)

@@ -334,6 +334,7 @@ def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str
         p_hat = np.array([p for r in pushes for p in r.predicted])
         toppled = np.array([x for r in pushes for x in r.toppled], dtype=float)
         direction_z = np.array([z for r in pushes for z in r.direction_z])
+        again = np.array([x for r in pushes for x in after_a_failure(r.toppled)], dtype=bool)
         n_pushes = np.array([len(runs[t][policy].predicted) for t in kept])
         entry = {
             "physical_gain_all": _mean_and_error(physical)[0],
@@ -346,6 +347,7 @@ def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str
             "predicted_topple_rate": _mean_and_error(p_hat)[0],
             "physical_topple_rate": _mean_and_error(toppled)[0],
             "by_direction": topple_rates_by_direction(p_hat, toppled, direction_z),
+            "by_attempt": topple_rates_by_attempt(p_hat, toppled, again),
         }
         report["policies"][policy] = entry
     for policy in ("greedy", "value_iteration"):
@@ -370,6 +372,30 @@ def topple_rates_by_direction(predicted: np.ndarray, toppled: np.ndarray, direct
     for name, rows in direction_classes(direction_z):
         if rows.any():
             out.append({"direction": name, "pushes": int(rows.sum()),
+                        "predicted_topple_rate": float(predicted[rows].mean()),
+                        "physical_topple_rate": float(toppled[rows].mean())})
+    return out
+
+
+def after_a_failure(toppled: list[bool]) -> list[bool]:
+    """Per push of one trial: whether the push before it left the object in its pose.
+
+    The policies are stationary (one push per pose), so such a push is the same push again, from
+    the same pose: the repeat of a push that just failed.  toppled : (n,) bool, in push order"""
+    return [k > 0 and not toppled[k - 1] for k in range(len(toppled))]
+
+
+def topple_rates_by_attempt(predicted: np.ndarray, toppled: np.ndarray, again: np.ndarray) -> list[dict]:
+    """Chosen pushes split into first tries and repeats of a push that just failed
+    (``after_a_failure``): how many, their mean predicted P(topple) and how often they toppled.
+
+    A push's outcome is nearly fixed by the push (docs/VALIDATION.md, "Physics predicting
+    itself"), while P(topple) is the same for every try, so the two parts are read apart.
+    predicted, toppled : (n,) float;  again : (n,) bool.  Empty parts are left out."""
+    out = []
+    for name, rows in (("first try", ~again), ("after a failure", again)):
+        if rows.any():
+            out.append({"attempt": name, "pushes": int(rows.sum()),
                         "predicted_topple_rate": float(predicted[rows].mean()),
                         "physical_topple_rate": float(toppled[rows].mean())})
     return out
@@ -401,6 +427,10 @@ def text(report: dict) -> str:
         lines.append(f"{policy} pushes by direction, predicted / toppled: " + ", ".join(
             f"{d['direction']} {d['pushes']} {d['predicted_topple_rate']:.3f} / {d['physical_topple_rate']:.3f}"
             for d in r.get("by_direction", [])))
+    for policy, r in report["policies"].items():
+        lines.append(f"{policy} pushes by attempt, predicted / toppled: " + ", ".join(
+            f"{d['attempt']} {d['pushes']} {d['predicted_topple_rate']:.3f} / {d['physical_topple_rate']:.3f}"
+            for d in r.get("by_attempt", [])))
     for policy in ("greedy", "value_iteration"):
         r = report["policies"][policy]
         se = r["physical_gain_over_max_height_se"]
