@@ -77,6 +77,16 @@ def figure_4_6():
     return next_pose, v_s
 
 
+def long_shot():
+    """Pose 0 (V_s 0.2): a long shot, 0.3 onto pose 1 (V_s 1.0), else stays; a safer push, 0.9
+    onto pose 2 (V_s 0.5), else stays.  Retried without end the long shot is worth
+    V0 = 0.3 gamma / (1 - 0.7 gamma) = 0.851 and value iteration takes it; pushed once, it is
+    worth 0.3 + 0.7 * 0.2 = 0.44 against the safer push's 0.9 * 0.5 + 0.1 * 0.2 = 0.47 (MODEL.md (12.9)).
+    """
+    next_pose = [np.array([[0.7, 0.3, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
+    return next_pose, np.array([0.2, 1.0, 0.5])
+
+
 # ----------------------------------------------------------------------------- value iteration
 
 
@@ -96,12 +106,7 @@ def test_push_that_rarely_topples_has_the_geometric_series_value():
 
 
 def test_without_retries_a_failed_push_is_worth_the_grasp_where_it_failed():
-    # Pose 0 (V_s 0.2): a long shot, 0.3 onto pose 1 (V_s 1.0), else stays; a safer push, 0.9
-    # onto pose 2 (V_s 0.5), else stays.  Retried without end the long shot is worth
-    # V0 = 0.3 gamma / (1 - 0.7 gamma) = 0.851 and value iteration takes it; pushed once, it is
-    # worth 0.3 + 0.7 * 0.2 = 0.44 against the safer push's 0.9 * 0.5 + 0.1 * 0.2 = 0.47.
-    next_pose = [np.array([[0.7, 0.3, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
-    v_s = np.array([0.2, 1.0, 0.5])
+    next_pose, v_s = long_shot()
     v, q = solve(next_pose, v_s)
     v0 = 0.3 * GAMMA / (1 - 0.7 * GAMMA)
     np.testing.assert_allclose(v, [v0, 1.0, 0.5], atol=1e-12)
@@ -135,9 +140,9 @@ def test_without_retries_the_policy_evaluation_still_lands_on_the_fixed_point_at
 
 def test_value_iteration_counts_on_retries_by_default():
     # The thesis's retries are the default of value_iteration itself, as of MDPConfig.
-    long_shot = [np.array([[0.7, 0.3, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
-    default, _ = value_iteration(long_shot, np.array([0.2, 1.0, 0.5]), GAMMA, 1e-12, 10_000)
-    np.testing.assert_allclose(default, solve(long_shot, [0.2, 1.0, 0.5], retry_failed=True)[0], atol=0)
+    next_pose, v_s = long_shot()
+    default, _ = value_iteration(next_pose, v_s, GAMMA, 1e-12, 10_000)
+    np.testing.assert_allclose(default, solve(next_pose, v_s, retry_failed=True)[0], atol=0)
     assert MDPConfig().retry_failed
 
 
@@ -338,8 +343,7 @@ def test_max_height_policy_rules():
 
 
 def test_pose_values_takes_retries_from_the_config():
-    next_pose = [np.array([[0.7, 0.3, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
-    v_s = np.array([0.2, 1.0, 0.5])
+    next_pose, v_s = long_shot()
     once = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(retry_failed=False))
     thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig())
     assert once[0].policies["value_iteration"].action == 1

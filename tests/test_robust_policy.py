@@ -221,12 +221,12 @@ def test_untried_vi_does_not_push_again_where_a_push_failed_in_the_trial(dataset
 def test_once_vi_takes_the_surer_push_where_value_iteration_counts_on_retrying_a_long_shot():
     from pipeline.model.config import MDPConfig
     from pipeline.studies.robust_policy import once_actions
+    from tests.test_mdp import long_shot
 
-    # Pose 0 (V_s 0.2): a long shot onto pose 1 (V_s 1.0, 0.3) or a surer push onto pose 2 (V_s
-    # 0.5, 0.9); a push that is not ok (NaN).  Value iteration counts on retrying the long shot
-    # (docs/MODEL.md (12.1)); pushed once, it is worth 0.44 against the surer push's 0.47.
-    rows = [np.array([[0.7, 0.3, 0.0], [0.1, 0.0, 0.9], [np.nan] * 3]), np.zeros((0, 3)), np.zeros((0, 3))]
-    v_s = np.array([0.2, 1.0, 0.5])
+    # test_mdp's long shot (worth 0.44 pushed once, against the surer push's 0.47), and a push
+    # that is not ok (NaN).
+    next_pose, v_s = long_shot()
+    rows = [np.vstack([next_pose[0], [np.nan] * 3]), *next_pose[1:]]
     assert once_actions(v_s, rows, MDPConfig()).tolist() == [1, NO_OP, NO_OP]
     assert once_actions(v_s, rows, MDPConfig(), [np.array([True, False, True]), np.zeros(0, bool), np.zeros(0, bool)]).tolist() == [0, NO_OP, NO_OP]
     # Grasping at 0.9 beats the long shot alone: 0.95 x (0.3 x 1.0 + 0.7 x 0.9) = 0.8835.

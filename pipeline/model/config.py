@@ -503,15 +503,12 @@ def _own_map(topple: dict[str, Any]) -> bool:
     map other than the default's (a file restating ``feature_map = []`` has none)."""
     if "recalibration_x" in topple or "recalibration_y" in topple:
         return True
-    default = ToppleConfig()
-    for key in ("feature_map",):
-        if key in topple:
-            try:
-                if tuple(float(v) for v in topple[key]) != tuple(getattr(default, key)):
-                    return True
-            except (TypeError, ValueError):
-                return True  # not a list of numbers: ``_build`` says what is wrong with it
-    return False
+    if "feature_map" not in topple:
+        return False
+    try:
+        return tuple(float(v) for v in topple["feature_map"]) != ToppleConfig().feature_map
+    except (TypeError, ValueError):
+        return True  # not a list of numbers: ``_build`` says what is wrong with it
 
 
 def _lists(node: Any) -> Any:

@@ -423,14 +423,11 @@ def text(report: dict) -> str:
             f"{cell(r['physical_gain_all']):>21} {cell(r['model_gain_all']):>7} {r['pushes']:>7} "
             f"{cell(r['predicted_topple_rate'], False):>20} {cell(r['physical_topple_rate'], False):>8}"
         )
-    for policy, r in report["policies"].items():
-        lines.append(f"{policy} pushes by direction, predicted / toppled: " + ", ".join(
-            f"{d['direction']} {d['pushes']} {d['predicted_topple_rate']:.3f} / {d['physical_topple_rate']:.3f}"
-            for d in r.get("by_direction", [])))
-    for policy, r in report["policies"].items():
-        lines.append(f"{policy} pushes by attempt, predicted / toppled: " + ", ".join(
-            f"{d['attempt']} {d['pushes']} {d['predicted_topple_rate']:.3f} / {d['physical_topple_rate']:.3f}"
-            for d in r.get("by_attempt", [])))
+    for split, label in (("by_direction", "direction"), ("by_attempt", "attempt")):
+        for policy, r in report["policies"].items():
+            lines.append(f"{policy} pushes by {label}, predicted / toppled: " + ", ".join(
+                f"{d[label]} {d['pushes']} {d['predicted_topple_rate']:.3f} / {d['physical_topple_rate']:.3f}"
+                for d in r.get(split, [])))
     for policy in ("greedy", "value_iteration"):
         r = report["policies"][policy]
         se = r["physical_gain_over_max_height_se"]
