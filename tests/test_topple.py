@@ -12,6 +12,7 @@ from pipeline.model.config import Config
 from pipeline.model.poses import stable_poses
 from pipeline.model.reference import draw_of, reference_trial, scene_from_pose
 from pipeline.model.rng import stream
+from pipeline.model import topple
 from pipeline.model.topple import sample_noise
 from schema.frames import transform_points
 from schema.vocabulary import OUTCOME_NOT_EVALUATED, STATUS_OK
@@ -112,6 +113,18 @@ def test_same_seed_same_result_different_seed_differs(random_table):
     assert np.array_equal(first.table.outcomes, again.table.outcomes)
     assert np.array_equal(first.actions.points, again.actions.points)
     assert not np.array_equal(first.table.outcomes, other.table.outcomes)
+
+
+def test_tile_size_never_changes_a_result(random_table, monkeypatch):
+    # The engine runs its conditions over row tiles sized for speed; every operation is
+    # row-wise, so many small, uneven tiles must give the very same table as the default's few.
+    obj, pose_set, first = random_table
+    monkeypatch.setattr(topple, "TILE_ELEMENTS", 97)
+    tiled = evaluate(obj, pose_set, 4, n_contacts=150, n_trials=40, seed=3)
+    assert np.array_equal(first.table.outcomes, tiled.table.outcomes)
+    assert np.array_equal(first.table.mean_force, tiled.table.mean_force, equal_nan=True)
+    assert np.array_equal(first.table.next_pose, tiled.table.next_pose, equal_nan=True)
+    assert (first.table.outcomes >= 0).sum() > 100, "the comparison needs trials that topple"
 
 
 def test_robust_estimate_converges_with_trials(box):

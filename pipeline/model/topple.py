@@ -67,14 +67,17 @@ huge force of arbitrary sign.  1e-12 m is far below any physical lever arm (a 1 
 lever arm is 1e-6 m) and far above rounding.  ``pipeline.model.reference`` uses the
 same constant so both models cut at the same place."""
 
-TILE_ELEMENTS = 8192
+TILE_ELEMENTS = 65536
 """Entries per row tile: (trial, edge) entries in ``trial_outcomes``, (trial, xyz) entries
-in ``noisy_trials``' rotations.  The model's conditions are a few dozen elementwise passes
-over (trials, E) float64 arrays; a whole block (n ~ 25 000 trials x E ~ 7 edges, ~1.4 MB
-per array) streams every pass through memory, while a tile of 8192 entries (64 kB per
-array) keeps its temporaries in a core's L2 cache (1 MB on the bench machine): about
-2-3x faster per block.  Every operation is row-wise, so the tile size never changes a
-result; it is not a model parameter."""
+in ``noisy_trials``' rotations.  A whole block (n ~ 25 000 trials x E edges) in one pass
+would make each of the conditions' temporaries several MB; tiles bound that.  The size
+weighs cache against Python's cost per numpy call: the corrected model makes about 150
+calls per tile (C.2's balance, C.14's two points, C.11), and at 8192 entries (64 kB per
+array, stop 8's choice for the thesis's few passes) that overhead was a seventh of the
+engine's time.  65536 entries (512 kB per array) ran the bench objects 15 % faster than
+8192 and the same as 131072 (``make bench``, interleaved runs, stop 28).  Every operation
+is row-wise, so the tile size never changes a result (checked: identical outcomes and
+forces on the 20 bench objects, 19 million trials); it is not a model parameter."""
 
 NO_ROTATION_AXIS = (0.0, 0.0, 1.0)
 """Rotation axis of the noise-free variants, whose rotation angle is 0: any unit axis
