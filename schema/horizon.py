@@ -89,6 +89,30 @@ def budget_choices(
     return actions, values
 
 
+def pose_q(
+    value: np.ndarray,
+    rows: slice,
+    transition_offsets: np.ndarray,
+    next_pose: np.ndarray,
+    probability: np.ndarray,
+) -> np.ndarray:
+    """Q_h of one pose's candidates given V_{h-1} (``value``), as ``budget_choices`` computes it
+    (each row's probabilities renormalised, then summed in stored order, so the same bits).
+
+    value : (P,) float, V_{h-1} (V_s for one push left);  rows : the pose's action rows
+    transition_offsets, next_pose, probability : the object's transitions (``budget_choices``)
+    returns : (A,) float, NaN for the rows with no transitions (not ok)
+    """
+    value = np.asarray(value, dtype=np.float64)
+    counts = np.diff(transition_offsets[rows.start : rows.stop + 1])
+    span = slice(int(transition_offsets[rows.start]), int(transition_offsets[rows.stop]))
+    owner = np.repeat(np.arange(len(counts)), counts)
+    weight = np.asarray(probability[span], dtype=np.float64)
+    weight = weight / np.bincount(owner, weights=weight, minlength=len(counts))[owner]
+    q = np.bincount(owner, weights=weight * value[next_pose[span]], minlength=len(counts))
+    return np.where(counts > 0, q, np.nan)
+
+
 def csr_from_rows(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One object's per-pose matrices of P(x' | x, u) -> ``budget_choices``' layout.
 

@@ -61,6 +61,9 @@ class MDPParameters(_Open):
     """Whether value iteration counted on pushing again where a push failed (the thesis, the
     default) or valued that pose at its grasp (docs/MODEL.md (12.9)); a manifest from before the
     field counted on it."""
+    after_failure_power: float | None = Field(None, ge=1)
+    """k of the after-failure map p^k that /plan serves with failed_actions (``schema.retry``);
+    a manifest from before the field has none, and the service serves no such probability."""
 
 
 class Parameters(_Open):

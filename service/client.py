@@ -145,11 +145,14 @@ class Client:
         ros_pose: RosPose | dict | None = None,
         policy: str = "value_iteration",
         pushes_left: int | None = None,
+        failed_actions: list[int] | None = None,
     ) -> PlanResponse:
         """The decision for one observed object: ``pose`` a 4x4 object -> world matrix (array or
         nested lists) or ``ros_pose`` (position, orientation x, y, z, w, frame_id); with
-        ``pushes_left``, value iteration's push for that budget."""
-        return self._call("POST", "/plan", PlanResponse, json=plan_item(object_id, pose, ros_pose, policy, pushes_left))
+        ``pushes_left``, value iteration's push for that budget; with ``failed_actions`` (the
+        actions of earlier answers that left the object in this pose), a push that has not failed."""
+        item = plan_item(object_id, pose, ros_pose, policy, pushes_left, failed_actions)
+        return self._call("POST", "/plan", PlanResponse, json=item)
 
     def plan_batch(self, items: list[dict]) -> PlanResults:
         """Up to 1000 items of ``plan_item(...)``; per-item errors are in ``results[i].error``."""
@@ -182,13 +185,15 @@ class Client:
 
 
 def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None = None, policy: str = "value_iteration",
-              pushes_left: int | None = None) -> dict:
+              pushes_left: int | None = None, failed_actions: list[int] | None = None) -> dict:
     """One /plan body (also one /batch/plan item) from a matrix or a ROS pose."""
     if (pose is None) == (ros_pose is None):
         raise ValueError("give exactly one of pose (4x4) and ros_pose")
     item: dict = {"object_id": object_id, "policy": policy}
     if pushes_left is not None:
         item["pushes_left"] = int(pushes_left)
+    if failed_actions:
+        item["failed_actions"] = [int(a) for a in failed_actions]
     if pose is not None:
         item["pose"] = np.asarray(pose, dtype=float).tolist()
     else:

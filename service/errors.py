@@ -63,6 +63,21 @@ class UnknownFrame(ServiceError):
                 "errors": [{"loc": ["body", "ros_pose", "frame_id"], "msg": self.detail, "type": "unknown_frame"}]}
 
 
+class UnknownAction(ServiceError):
+    """A failed action the matched pose does not have: malformed input (the pose is known only
+    once the observation is matched, so pydantic cannot check it)."""
+
+    status_code = 422
+
+    def __init__(self, detail: str, index: int):
+        super().__init__(detail)
+        self.index = index
+
+    def body(self) -> dict:
+        return {"detail": f"body.failed_actions.{self.index}: {self.detail}",
+                "errors": [{"loc": ["body", "failed_actions", self.index], "msg": self.detail, "type": "unknown_action"}]}
+
+
 TRACEBACKS_PER_MINUTE = 10
 """Most tracebacks logged a minute: a bug hit by every request must not fill the disk."""
 

@@ -27,11 +27,12 @@ from __future__ import annotations
 import numpy as np
 import orjson
 
+from schema import horizon, retry
 from schema.api import PlanRequest
 from schema.frames import match_pose, place_push
 from schema.vocabulary import NO_OP
 
-from .errors import NoStablePose, OffTable, UnknownFrame
+from .errors import NoStablePose, OffTable, UnknownAction, UnknownFrame
 from .settings import Settings
 from .store import ObjectData, Store, optional, widen
 
@@ -66,11 +67,39 @@ def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
     return request.observed()
 
 
+def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float) -> tuple[int, float | None, int]:
+    """The policy's push among the candidates of ``pose`` that the request's failed pushes do
+    not rule out (``schema.retry``), by the rule the dataset's policy or the budget uses.
+
+    returns : action (NO_OP: grasp now), V_h of the push with ``pushes_left`` (else None), the
+      number of candidates ruled out.  UnknownAction for a failed index the pose does not have.
+    """
+    rows = obj.pose_rows(pose)
+    count = rows.stop - rows.start
+    for index, action in enumerate(request.failed_actions):
+        if action >= count:
+            raise UnknownAction(f"pose {pose} of '{obj.object_id}' has no action {action}: its actions are 0..{count - 1}", index)
+    excluded = retry.ruled_out(obj.points[rows], obj.directions[rows], request.failed_actions)
+    allowed = obj.choosable(rows) & ~excluded
+    stay, final = float(obj.v_s[pose]), None
+    if request.pushes_left is not None:
+        previous = obj.v_s if request.pushes_left == 1 else obj.budget(request.pushes_left - 1)[1]
+        q = horizon.pose_q(previous, rows, obj.transition_offsets, obj.next_pose, obj.transition_probability)
+        action = retry.best_untried(q, allowed, stay, horizon.IMPROVEMENT)
+        final = None if action == NO_OP else float(q[action])
+    elif request.policy == "greedy":
+        action = retry.best_untried(obj.greedy[rows], allowed, stay, retry.POLICY_IMPROVEMENT)
+    else:
+        action = retry.best_untried(obj.q[rows], allowed, stay, retry.POLICY_IMPROVEMENT, scale=gamma)
+    return action, final, int(excluded.sum())
+
+
 def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
     """The policy's decision for an object observed at the request's pose.
 
     NotFound (unknown object), NoStablePose (orientation within tolerance of no stable pose),
-    OffTable (|z_offset| > settings.height_tolerance), UnknownFrame (ROS pose in another frame).
+    OffTable (|z_offset| > settings.height_tolerance), UnknownFrame (ROS pose in another frame),
+    UnknownAction (a failed action the matched pose does not have).
     """
     obj = store.object(request.object_id)
     observed = observed_pose(request, settings)
@@ -103,7 +132,11 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
 
     grasp = world_grasp(obj, pose, pose_to_world)
     v_s = float(obj.v_s[pose])
-    if request.pushes_left is None:
+    ruled = 0
+    if request.failed_actions:
+        action, final, ruled = untried_push(obj, pose, request, store.gamma)
+        near = np.nan if action == NO_OP else obj.neighbourhood_p(pose, action)
+    elif request.pushes_left is None:
         action = int(obj.policy_action[request.policy][pose])
         near, final = obj.policy_p_topple_neighbourhood[request.policy][pose], None
     else:
@@ -111,7 +144,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         action = int(actions[pose])
         near = np.nan if action == NO_OP else obj.neighbourhood_p(pose, action)
         final = None if action == NO_OP else float(finals[pose])
-    push = p_topple = p_near = q_value = after = None
+    push = p_topple = p_near = p_given = q_value = after = None
     outcomes: list[dict] = []
     if action != NO_OP:
         row = obj.row(pose, action)
@@ -129,13 +162,16 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
             "within_force_limit": None if force is None else bool(force <= limit),
         }
         p_topple = optional(values[10])
+        if request.failed_actions and p_topple is not None and store.after_failure_power is not None:
+            p_given = retry.after_failure(p_topple, store.after_failure_power)
         # float32 storage: a mean of stored 0.76s is 0.7639999986; six decimals are all it holds.
         p_near = optional(round(float(near), 6))
         q_value = optional(obj.q[row])
         after = optional(obj.greedy[row])
         outcomes = next_poses(obj, row)
 
-    decision, reason = _decision(request.policy, request.pushes_left, action, v_s, grasp, p_topple, p_near, after, push)
+    decision, reason = _decision(request.policy, request.pushes_left, action, v_s, grasp, p_topple, p_near, after, push,
+                                 len(request.failed_actions), ruled, p_given)
     return {
         "object_id": obj.object_id,
         "policy": request.policy,
@@ -155,6 +191,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         "decision": decision,
         "reason": reason,
         "action": None if action == NO_OP else action,
+        "ruled_out": ruled,
         "v_s": v_s,
         "v_t": float(obj.v_t[pose]),
         "q_value": q_value,
@@ -162,22 +199,27 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         "expected_v_s_final": final,
         "p_topple": p_topple,
         "p_topple_neighbourhood": p_near,
+        "p_topple_given_failures": p_given,
         "push": push,
         "next_poses": outcomes,
         "grasp": grasp,
     }
 
 
-def _decision(policy, pushes_left, action, v_s, grasp, p_topple, p_near, after, push) -> tuple[str, str]:
+def _decision(policy, pushes_left, action, v_s, grasp, p_topple, p_near, after, push, failed=0, ruled=0,
+              p_given=None) -> tuple[str, str]:
     """(decision, one-sentence reason) for the response."""
     if pushes_left is not None:
         policy = f"{policy} for {pushes_left} push{'es' if pushes_left > 1 else ''}"
+    if failed:
+        policy = f"{policy}, after {failed} failed push{'es' if failed > 1 else ''} ({ruled} candidates ruled out),"
     if action != NO_OP:
         force = ""
         if push is not None and push["within_force_limit"] is False:
             force = (f"; it needs {push['required_force']:.3g} N, more than the finger's limit of "
                      f"{push['finger_force_limit']:.3g} N: do not execute it with this finger")
-        return "push", (f"{policy} pushes: P(topple) {_g(p_topple)} ({_g(p_near)} around it), expected V_s after "
+        given = "" if p_given is None else f", {_g(p_given)} now that pushes here have failed"
+        return "push", (f"{policy} pushes: P(topple) {_g(p_topple)} ({_g(p_near)} around it{given}), expected V_s after "
                         f"the push {_g(after)} vs V_s {v_s:.3g} now{force}")
     if grasp is None or v_s <= 0.0:
         return "no_grasp", (f"{policy} does not push and this pose has no suction grasp (V_s = {v_s:.3g}): "

@@ -230,6 +230,8 @@ class Store:
         self.push_depth = parameters.contacts.push_depth
         """m, the finger ends this far inside the contact along the normal."""
         self.gamma = parameters.mdp.gamma
+        self.after_failure_power: float | None = parameters.mdp.after_failure_power
+        """k of schema.retry.after_failure; None for a build from before it (then no p_topple_given_failures)."""
         self.failures = {f.object_id: f.reason for f in manifest.failures}
         self.counts = {
             "objects": len(objects),

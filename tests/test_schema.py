@@ -72,5 +72,10 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
     without = Config().with_overrides({"mdp.retry_failed": False}).to_dict()
     assert Parameters.model_validate(without).mdp.retry_failed is False
     assert Config.from_dict(parameters.model_dump()).mdp.min_direction_z == -1.0
+    del old["mdp"]["after_failure_power"]  # and the after-failure map /plan serves (schema.retry)
+    parameters = Parameters.model_validate(old)
+    assert parameters.mdp.after_failure_power is None, "no map: the service serves no p_topple_given_failures"
+    assert Config.from_dict(parameters.model_dump()).mdp == Config().mdp.__class__(
+        min_direction_z=-1.0), "the rest reads as before; the map, unused by the build, as the default"
     assert Config.from_dict(parameters.model_dump()).topple.down_map == (), "built without the down map, read without it"
     assert Parameters.model_validate(Config().to_dict()).mdp.min_direction_z == Config().mdp.min_direction_z == -0.3

@@ -47,6 +47,11 @@ def test_typed_answers_equal_the_json(typed, client, tables):
     budget = typed.plan(object_id, pose=observed, pushes_left=2)
     assert budget.pushes_left == 2
     assert budget.model_dump(mode="json") == client.post("/plan", json=plan_item(object_id, pose=observed, pushes_left=2)).json()
+    if answer.action is not None:
+        after = typed.plan(object_id, pose=observed, failed_actions=[answer.action])
+        assert after.ruled_out >= 1 and after.action != answer.action
+        assert after.model_dump(mode="json") == client.post(
+            "/plan", json=plan_item(object_id, pose=observed, failed_actions=[answer.action])).json()
 
 
 def test_errors_are_exceptions_by_status_and_reason(typed, tables):

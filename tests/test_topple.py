@@ -8,11 +8,11 @@ import pytest
 from shapes import THESIS, boot_object, pose_with_down, random_object, standing_box
 
 from pipeline.api import evaluate
+from pipeline.model import topple
 from pipeline.model.config import Config
 from pipeline.model.poses import stable_poses
 from pipeline.model.reference import draw_of, reference_trial, scene_from_pose
 from pipeline.model.rng import stream
-from pipeline.model import topple
 from pipeline.model.topple import sample_noise
 from schema.frames import transform_points
 from schema.vocabulary import OUTCOME_NOT_EVALUATED, STATUS_OK

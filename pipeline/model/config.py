@@ -422,6 +422,13 @@ class MDPConfig:
     +0.016 V_s over six seeds, but its chosen pushes were over-predicted by 0.103 on the two fresh
     ones (played re-planning, so pushing a failed push again), past the 0.10 its rule allowed, so
     the thesis's equation stays the default (docs/VALIDATION.md, "A failed push is not retried")."""
+    after_failure_power: float = bounded(2.1, Range(1.0, None))
+    """k of the map g(p) = p^k from a push's P(topple) to its topple rate once a push from the
+    same pose has failed: what ``/plan`` serves as ``p_topple_given_failures`` when a client
+    reports its failed pushes (``schema.retry``).  The build does not use it.  A failure says
+    the pose topples less than the table thinks: in pybullet the pushes played after one were
+    predicted 0.23 and toppled 0.09, while first tries were honest.  Fitted on corpus objects
+    only (docs/VALIDATION.md, "After a failed push"); 1 serves the table's P unchanged."""
 
 
 @dataclass(frozen=True)
@@ -471,6 +478,11 @@ class Config:
             # written before the down map existed (MODEL.md C.15), does not take the default's.
             # (``--set`` changes one key of a whole configuration and keeps the down map.)
             data = {**data, "topple": {**topple, "down_map": ()}}
+        mdp = data.get("mdp")
+        if isinstance(mdp, dict) and "after_failure_power" in mdp and mdp["after_failure_power"] is None:
+            # A manifest from before the after-failure map reads it as none (schema.manifest); the
+            # build never used it, so such a manifest's configuration takes the default.
+            data = {**data, "mdp": {k: v for k, v in mdp.items() if k != "after_failure_power"}}
         return _build(cls, data, "")
 
     @classmethod

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from schema import horizon, neighbourhood
+from schema import horizon, neighbourhood, retry
 from schema.reader import Dataset
 from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
@@ -324,7 +324,8 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 if after < 0:
                     break
                 if policy == UNTRIED_POLICY and after == pose:
-                    ruled_out = neighbourhood.neighbours(c.points, c.directions, action, exclusion.radius, exclusion.max_angle)
+                    # What /plan's failed_actions rules out (schema.retry), the same rule.
+                    ruled_out = retry.ruled_out(c.points, c.directions, [action], exclusion.radius, exclusion.max_angle)
                     failed[pose] = failed.get(pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
                 pose, transform = after, played.final_transform
             results[trial][policy] = poses

@@ -1,0 +1,77 @@
+"""After a failed push: the candidates it rules out, and the best push among the rest.
+
+A push's outcome is nearly fixed by the push.  Replayed in pybullet with fresh noise, the
+held-out log's pushes predict themselves with informative sup-TV 0.08, and value
+iteration's repeats of a push that had just left the object in its pose toppled 12 % of the
+time where its table said 31 % (docs/VALIDATION.md, "Do not push again where a push
+failed").  The dataset's tables treat every push as a fresh draw, so a client that reports
+its failed pushes gets a push that has not failed, chosen by the policy's own rule among
+the candidates no failed push rules out: the failed push and its neighbourhood (contacts
+within ``neighbourhood.RADIUS``, directions within ``neighbourhood.MAX_ANGLE``), whose
+outcomes the failure has made unlikely too.
+
+numpy only: the service and the pipeline's studies share it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import neighbourhood
+from .vocabulary import NO_OP
+
+POLICY_IMPROVEMENT = 1e-12
+"""The margin by which the dataset's greedy and value iteration push only when a push beats
+grasping now (``pipeline.model.mdp.IMPROVEMENT``, held equal by a test): with it the service's
+choice over every candidate is the stored policy's."""
+
+
+def ruled_out(
+    points: np.ndarray,
+    directions: np.ndarray,
+    failed: np.ndarray,
+    radius: float = neighbourhood.RADIUS,
+    max_angle: float = neighbourhood.MAX_ANGLE,
+) -> np.ndarray:
+    """The candidates of one pose in the neighbourhood of any failed push, the failed ones included.
+
+    points : (A, 3) float, m, the pose's candidate contacts;  directions : (A, 3) float, unit
+    failed : (F,) int, indices of the failed pushes among the A candidates (F may be 0)
+    returns : (A,) bool
+    """
+    points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
+    failed = np.unique(np.asarray(failed, dtype=np.int64))
+    if len(failed) == 0:
+        return np.zeros(len(points), dtype=bool)
+    return neighbourhood._near(points, directions, failed, radius, max_angle).any(axis=0)
+
+
+def best_untried(values: np.ndarray, allowed: np.ndarray, stay: float, improvement: float, scale: float = 1.0) -> int:
+    """The allowed candidate of largest value, pushed only if ``scale`` times its value beats
+    grasping now.
+
+    The rule of the dataset's policies (``pipeline.model.mdp``: greedy with the expected V_s
+    after the push, value iteration with Q_T and scale gamma) and of the budgets
+    (``schema.horizon``, Q_h), over the candidates ``allowed``; the first of equal values
+    wins, as there.
+    values : (A,) float, NaN for candidates that cannot be pushed;  allowed : (A,) bool
+    stay : V_s of the pose (grasping now);  improvement : the margin a push must beat it by
+    returns : the candidate's index, or NO_OP
+    """
+    values = np.where(np.asarray(allowed, dtype=bool), np.asarray(values, dtype=float), np.nan)
+    if values.size == 0 or np.isnan(values).all():
+        return NO_OP
+    action = int(np.nanargmax(values))
+    return action if scale * values[action] > stay + improvement else NO_OP
+
+
+def after_failure(p_topple: float, power: float) -> float:
+    """A push's P(topple) once a push from the same pose has failed: p^k, k = ``power``
+    (``mdp.after_failure_power``, fitted on corpus objects in pybullet).
+
+    A failure is evidence about the pose, not only about the failed push: in physics, the
+    other pushes played after one toppled far less often than their P(topple) (0.10 against
+    0.25 for value iteration's next choice), least so for the pushes the table is sure of.
+    p^k keeps 0 and 1 and is monotone, so the choice among pushes does not change.
+    """
+    return float(p_topple) ** power

@@ -1,0 +1,246 @@
+# ruff: noqa: F811  (pytest fixtures imported from tests/test_service.py)
+"""POST /plan with ``failed_actions``: the policy's push among the candidates no failed push
+rules out (schema.retry), served."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.model import mdp
+from schema import horizon, retry
+from schema.api import MAX_FAILED_ACTIONS, PlanRequest
+from schema.vocabulary import NO_OP
+from service.planning import untried_push
+from service.store import Store
+from tests.test_service import (  # noqa: F401 (fixtures)
+    JSON,
+    client,
+    dataset,
+    planar_transform,
+    stored_transform,
+    tables,
+)
+
+
+def body(tables, object_id: str, pose: int, **extra) -> dict:
+    observed = planar_transform(-0.4, 0.1, 0.25) @ stored_transform(tables, object_id, pose)
+    return {"object_id": object_id, "pose": observed.tolist(), **extra}
+
+
+def plan(client, tables, object_id: str, pose: int, **extra) -> dict:
+    response = client.post("/plan", content=json.dumps(body(tables, object_id, pose, **extra)), headers=JSON)
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+# --- schema.retry -------------------------------------------------------------------
+
+
+def test_the_margin_is_the_datasets_policies():
+    assert retry.POLICY_IMPROVEMENT == mdp.IMPROVEMENT
+
+
+def test_a_failed_push_rules_out_its_neighbourhood_and_nothing_else():
+    x = np.array([1.0, 0.0, 0.0])
+    points = np.array([[0.0, 0.0, 0.05], [0.015, 0.0, 0.05], [0.05, 0.0, 0.05], [0.005, 0.0, 0.05]])
+    directions = np.array([x, x, x, [-1.0, 0.0, 0.0]])
+    # 0 and 1 are 15 mm apart with one direction; 2 is 50 mm away; 3 is near but pushes the other way.
+    assert retry.ruled_out(points, directions, [0]).tolist() == [True, True, False, False]
+    assert retry.ruled_out(points, directions, [3]).tolist() == [False, False, False, True]
+    assert retry.ruled_out(points, directions, [0, 2, 0]).tolist() == [True, True, True, False]
+    assert not retry.ruled_out(points, directions, []).any()
+    assert retry.ruled_out(points, directions, [0], radius=0.01).tolist() == [True, False, False, False]
+
+
+def test_the_best_untried_push_must_beat_grasping_now():
+    values = np.array([0.5, np.nan, 0.8, 0.8, 0.3])
+    everything = np.ones(5, dtype=bool)
+    assert retry.best_untried(values, everything, 0.2, 1e-12) == 2, "the first of equal values"
+    assert retry.best_untried(values, np.array([1, 1, 0, 1, 1], bool), 0.2, 1e-12) == 3
+    assert retry.best_untried(values, np.array([1, 1, 0, 0, 1], bool), 0.2, 1e-12) == 0
+    assert retry.best_untried(values, np.array([1, 1, 0, 0, 1], bool), 0.5, 1e-12) == NO_OP, "a tie with V_s stays"
+    assert retry.best_untried(values, everything, 0.75, 1e-12, scale=0.95) == 2
+    assert retry.best_untried(values, everything, 0.77, 1e-12, scale=0.95) == NO_OP, "0.95 x 0.8 = 0.76"
+    assert retry.best_untried(values, np.zeros(5, bool), 0.0, 1e-12) == NO_OP
+    assert retry.best_untried(np.zeros(0), np.zeros(0, bool), 0.0, 1e-12) == NO_OP
+
+
+def test_the_after_failure_map_keeps_certainty_and_order():
+    p = np.linspace(0.0, 1.0, 11)
+    mapped = np.array([retry.after_failure(v, 1.7) for v in p])
+    assert mapped[0] == 0.0 and mapped[-1] == 1.0
+    assert np.all(np.diff(mapped) > 0) and np.all(mapped[1:-1] < p[1:-1]), "lower, in the same order"
+    assert retry.after_failure(0.6, 1.0) == 0.6 and retry.after_failure(0.5, 2.0) == 0.25
+
+
+def test_a_poses_q_is_the_budgets_own_bits():
+    rng = np.random.default_rng(4)
+    n_poses, per_pose = 4, 6
+    rows = []
+    for _ in range(n_poses):
+        matrix = rng.random((per_pose, n_poses)) * (rng.random((per_pose, n_poses)) < 0.6)
+        matrix[:, 0] += 1e-3
+        matrix = matrix / matrix.sum(axis=1, keepdims=True)
+        matrix[rng.random(per_pose) < 0.2] = np.nan  # pushes that are not ok
+        rows.append(matrix.astype(np.float32).astype(float))
+    v_s = rng.random(n_poses)
+    action_offsets, transition_offsets, next_pose, probability = horizon.csr_from_rows(rows)
+    actions, values = horizon.budget_choices(v_s, action_offsets, transition_offsets, next_pose, probability, 3)
+    choices = 0
+    for h in range(3):
+        previous = v_s if h == 0 else values[h - 1]
+        for x in range(n_poses):
+            span = slice(int(action_offsets[x]), int(action_offsets[x + 1]))
+            q = horizon.pose_q(previous, span, transition_offsets, next_pose, probability)
+            assert np.isnan(q).tolist() == np.isnan(rows[x]).any(axis=1).tolist()
+            action = retry.best_untried(q, np.ones(per_pose, bool), v_s[x], horizon.IMPROVEMENT)
+            assert action == actions[h, x]
+            assert (q[action] if action != NO_OP else v_s[x]) == values[h, x], "the same sums, bit for bit"
+            choices += action != NO_OP
+    assert choices > 0
+
+
+# --- the service --------------------------------------------------------------------
+
+
+def test_with_nothing_failed_the_choice_is_the_stored_policys(dataset):
+    store = Store.load(dataset)
+    compared = 0
+    for object_id, obj in store.objects.items():
+        for pose in range(obj.n_poses):
+            for policy in ("greedy", "value_iteration"):
+                request = PlanRequest(object_id=object_id, pose=np.eye(4).tolist(), policy=policy)
+                action, final, ruled = untried_push(obj, pose, request, store.gamma)
+                assert (action, final, ruled) == (int(obj.policy_action[policy][pose]), None, 0), (object_id, pose, policy)
+                compared += action != NO_OP
+            for budget in (1, 2, 4):
+                request = PlanRequest(object_id=object_id, pose=np.eye(4).tolist(), pushes_left=budget)
+                action, final, _ = untried_push(obj, pose, request, store.gamma)
+                actions, values = obj.budget(budget)
+                assert action == actions[pose]
+                assert final == (None if action == NO_OP else values[pose])
+    assert compared > 0
+
+
+def test_value_iteration_pushes_only_when_the_discounted_q_beats_grasping_now(dataset):
+    import dataclasses
+
+    store = Store.load(dataset)
+    obj = next(o for o in store.objects.values() if (o.v_s > 0.1).any())
+    pose = int(np.argmax(obj.v_s))
+    rows = obj.pose_rows(pose)
+    allowed = np.flatnonzero(obj.choosable(rows))
+    target, stay = int(allowed[0]), float(obj.v_s[pose])
+    request = PlanRequest(object_id=obj.object_id, pose=np.eye(4).tolist(), failed_actions=[])
+    for q_value, expected in ((stay / store.gamma - 1e-6, NO_OP), (stay / store.gamma + 1e-6, target)):
+        q = np.full(len(obj.q), np.nan)
+        q[rows.start + target] = q_value  # above V_s either way; gamma Q only beats it in the second
+        action, _, _ = untried_push(dataclasses.replace(obj, q=q), pose, request, store.gamma)
+        assert action == expected, (q_value, stay)
+
+
+def test_a_failed_push_is_not_served_again_nor_its_neighbours(client, tables, dataset):
+    store = Store.load(dataset)
+    replaced = 0
+    for (object_id, pose), row in tables["poses"].items():
+        obj = store.objects[object_id]
+        for policy, column in (("value_iteration", "q"), ("greedy", "greedy")):
+            first = row[f"{policy}_action"]
+            if first == NO_OP:
+                continue
+            answer = plan(client, tables, object_id, pose, policy=policy, failed_actions=[first])
+            rows = obj.pose_rows(pose)
+            excluded = retry.ruled_out(obj.points[rows], obj.directions[rows], [first])
+            assert excluded[first] and answer["ruled_out"] == int(excluded.sum()) >= 1
+            assert (answer["p_topple_given_failures"] is None) == (answer["action"] is None)
+            assert "1 failed push" in answer["reason"]
+            actions = tables["actions"]
+            allowed = {a: actions[(object_id, pose, a)][column] for a in np.flatnonzero(~excluded & obj.choosable(rows))
+                       if actions[(object_id, pose, a)][column] is not None}
+            if answer["action"] is None:
+                best = max(allowed.values(), default=-np.inf)
+                scale = store.gamma if policy == "value_iteration" else 1.0
+                assert scale * best <= row["v_s"] + 1e-9, (object_id, pose, policy)
+                assert answer["decision"] in ("grasp", "no_grasp") and answer["p_topple_neighbourhood"] is None
+            else:
+                replaced += 1
+                assert not excluded[answer["action"]]
+                assert allowed[answer["action"]] == max(allowed.values())
+                again = {"object_id": object_id, "pose": pose, "action": answer["action"]}
+                assert answer["p_topple"] == pytest.approx(client.post("/batch/transitions", json={"items": [again]})
+                                                           .json()["results"][0]["result"]["p_topple"])
+                assert 0.0 <= answer["p_topple_neighbourhood"] <= 1.0
+                power = tables["manifest"]["parameters"]["mdp"]["after_failure_power"]
+                assert answer["p_topple_given_failures"] == pytest.approx(answer["p_topple"] ** power, abs=1e-12)
+                assert f"{answer['p_topple_given_failures']:.3g} now that pushes here have failed" in answer["reason"]
+    assert replaced > 0, "some pose should have another push worth trying"
+
+
+def test_a_budget_after_a_failure_values_its_push_as_the_budget_does(client, tables):
+    checked = 0
+    for object_id, pose in list(tables["poses"])[:15]:
+        first = plan(client, tables, object_id, pose, pushes_left=2)
+        if first["action"] is None:
+            continue
+        answer = plan(client, tables, object_id, pose, pushes_left=2, failed_actions=[first["action"]])
+        assert answer["pushes_left"] == 2 and answer["ruled_out"] >= 1
+        if answer["action"] is not None:
+            checked += 1
+            assert answer["action"] != first["action"]
+            assert answer["expected_v_s_final"] <= first["expected_v_s_final"] + 1e-12, "the best was ruled out"
+    assert checked > 0
+
+
+def test_a_build_from_before_the_map_serves_no_probability_given_failures(dataset, tables):
+    from service.planning import plan as plan_for
+    from service.settings import Settings
+
+    store = Store.load(dataset)
+    served = 0
+    for (object_id, pose), row in tables["poses"].items():
+        if row["greedy_action"] == NO_OP:
+            continue
+        request = PlanRequest.model_validate(body(tables, object_id, pose, policy="greedy", failed_actions=[row["greedy_action"]]))
+        with_map = plan_for(store, request, Settings())
+        store.after_failure_power = None
+        without = plan_for(store, request, Settings())
+        store.after_failure_power = tables["manifest"]["parameters"]["mdp"]["after_failure_power"]
+        if with_map["action"] is not None:
+            served += 1
+            assert with_map["p_topple_given_failures"] is not None and without["p_topple_given_failures"] is None
+            assert {**without, "p_topple_given_failures": None, "reason": None} == {**with_map, "p_topple_given_failures": None, "reason": None}
+    assert served > 0
+
+
+def test_no_failed_push_is_the_plain_answer(client, tables):
+    object_id, pose = next(iter(tables["poses"]))
+    plain = plan(client, tables, object_id, pose)
+    assert plain["ruled_out"] == 0 and plain["p_topple_given_failures"] is None
+    assert plan(client, tables, object_id, pose, failed_actions=[]) == plain
+
+
+@pytest.mark.parametrize("extra, where", [
+    ({"failed_actions": [10_000]}, "failed_actions.0"),
+    ({"failed_actions": [0, 10_000]}, "failed_actions.1"),
+    ({"failed_actions": [-1]}, "failed_actions"),
+    ({"failed_actions": None}, "failed_actions"),
+    ({"failed_actions": [0.5]}, "failed_actions"),
+    ({"failed_actions": list(range(MAX_FAILED_ACTIONS + 1))}, "failed_actions"),
+    ({"failed_actions": [0], "policy": "max_height"}, "failed_actions"),
+])
+def test_bad_failed_actions_are_422(client, tables, extra, where):
+    object_id, pose = next(iter(tables["poses"]))
+    response = client.post("/plan", content=json.dumps(body(tables, object_id, pose, **extra)), headers=JSON)
+    assert response.status_code == 422, response.text
+    assert where in response.json()["detail"]
+
+
+def test_a_batch_item_with_an_unknown_failed_action_fails_alone(client, tables):
+    (object_id, pose), (other, other_pose) = list(tables["poses"])[:2]
+    items = [body(tables, object_id, pose, failed_actions=[10_000]), body(tables, other, other_pose, failed_actions=[0])]
+    results = client.post("/batch/plan", json={"items": items}).json()["results"]
+    assert results[0]["error"]["status"] == 422 and "no action 10000" in results[0]["error"]["detail"]
+    assert results[1]["result"]["ruled_out"] >= 1
