@@ -8,6 +8,7 @@ import pytest
 from shapes import random_object
 
 import pipeline as toppledb
+from schema import retry
 from schema.frames import PoseMatch
 from schema.neighbourhood import MAX_ANGLE, RADIUS
 from schema.vocabulary import NO_OP, POLICIES
@@ -108,6 +109,41 @@ def test_plan_for_a_budget_is_greedy_with_one_push_left_and_never_worth_less_wit
         toppledb.plan(result, world(result.poses[0].transform, 0.0), policy="greedy", pushes_left=2, config=CONFIG)
     with pytest.raises(ValueError, match="pushes_left"):
         toppledb.plan(result, world(result.poses[0].transform, 0.0), pushes_left=0, config=CONFIG)
+
+
+def test_plan_after_failed_pushes_chooses_among_the_rest_and_says_how_likely_now(box):
+    _, _, _, result = box
+    power = CONFIG.mdp.after_failure_power
+    replaced = 0
+    for pose in result.poses:
+        observed = world(pose.transform, -0.2)
+        for policy, budget in (("value_iteration", None), ("greedy", None), ("value_iteration", 2)):
+            first = toppledb.plan(result, observed, policy=policy, pushes_left=budget, config=CONFIG)
+            same = toppledb.plan(result, observed, policy=policy, pushes_left=budget, config=CONFIG, failed_actions=[])
+            assert (same.action, same.value, same.p_topple) == (first.action, first.value, first.p_topple)
+            assert first.ruled_out == same.ruled_out == 0 and first.p_topple_given_failures is None
+            if first.action is None:
+                continue
+            after = toppledb.plan(result, observed, policy=policy, pushes_left=budget, config=CONFIG, failed_actions=[first.action])
+            actions = result.actions[pose.index]
+            excluded = retry.ruled_out(actions.points, actions.directions, [first.action])
+            assert after.ruled_out == int(excluded.sum()) >= 1
+            if after.action is None:
+                assert after.value == result.suction[pose.index].quality and after.p_topple_given_failures is None
+                continue
+            replaced += 1
+            assert not excluded[after.action] and after.value <= first.value + 1e-12, "the best was ruled out"
+            assert after.p_topple_given_failures == pytest.approx(after.p_topple ** power, abs=1e-15)
+            if budget is None:
+                values = result.values[pose.index].q if policy == "value_iteration" else result.values[pose.index].greedy
+                allowed = np.where(result.choosable[pose.index] & ~excluded, values, np.nan)
+                assert after.value == np.nanmax(allowed), "the policy's own rule over the rest"
+    assert replaced > 0
+    observed = world(result.poses[0].transform, 0.0)
+    with pytest.raises(ValueError, match="max_height"):
+        toppledb.plan(result, observed, policy="max_height", failed_actions=[0], config=CONFIG)
+    with pytest.raises(ValueError, match="no actions of pose"):
+        toppledb.plan(result, observed, failed_actions=[10**6], config=CONFIG)
 
 
 def test_plan_matches_a_symmetric_object_at_any_roll():

@@ -11,11 +11,11 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Iterator, Protocol
+from typing import Iterator, Protocol, Sequence
 
 import numpy as np
 
-from schema import horizon
+from schema import horizon, retry
 from schema.frames import PoseMatch, match_pose, place_push, transform_points
 from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES
@@ -313,6 +313,9 @@ class Plan:
     grasp : (point (3,), axis (3,)) world, the best suction grasp in this pose, or None
     p_topple_neighbourhood : float or None, the mean P(topple) of the pose's ok candidates
       around the push (``schema.neighbourhood``; what /plan reports under the same name)
+    ruled_out : int, candidates of the pose that ``failed_actions`` ruled out (``schema.retry``)
+    p_topple_given_failures : float or None, with ``failed_actions``: P(topple)^k now that pushes
+      from the pose have failed (``mdp.after_failure_power``; /plan's field of the same name)
     """
 
     match: ObservedPose
@@ -324,6 +327,8 @@ class Plan:
     next_poses: list[tuple[int, float]]
     grasp: tuple[np.ndarray, np.ndarray] | None
     p_topple_neighbourhood: float | None = None
+    ruled_out: int = 0
+    p_topple_given_failures: float | None = None
 
 
 class NotResting(ValueError):
@@ -339,12 +344,16 @@ def plan(
     height_tolerance: float = DEFAULT_HEIGHT_TOLERANCE,
     config: Config = Config(),
     pushes_left: int | None = None,
+    failed_actions: Sequence[int] = (),
 ) -> Plan:
     """What ``policy`` (``max_height``, ``greedy``, ``value_iteration``) does for the object
     of ``result`` observed at ``observed`` (4x4, object -> world, z up, table at ``table_height``).
     With ``pushes_left`` (1 to ``schema.horizon.MAX_PUSHES_LEFT``, value_iteration only), value
     iteration's push for that budget (``schema.horizon``, as /plan's ``pushes_left``); the
-    plan's ``value`` is then the expected V_s when the budget is spent.
+    plan's ``value`` is then the expected V_s when the budget is spent.  With
+    ``failed_actions`` (actions of the matched pose that left the object in it; greedy and
+    value_iteration), the policy's push among the candidates they do not rule out, and
+    ``p_topple_given_failures`` (``schema.retry``, as /plan's ``failed_actions``).
 
     Raises ``NotResting`` when the orientation is within ``tolerance`` of no stable pose
     or the pose's support plane is more than ``height_tolerance`` from the table.
@@ -354,6 +363,9 @@ def plan(
     if pushes_left is not None and (policy != "value_iteration" or not 1 <= pushes_left <= horizon.MAX_PUSHES_LEFT):
         raise ValueError(f"pushes_left must be 1..{horizon.MAX_PUSHES_LEFT} with policy value_iteration, "
                          f"got {pushes_left!r} with {policy}")
+    failed = [int(a) for a in failed_actions]
+    if failed and policy == "max_height":
+        raise ValueError("max_height has one push per pose; give failed_actions with greedy or value_iteration")
     # A symmetric object's merged turns of a pose match too (PoseSet.match_arrays).
     candidates = result.poses if result.equivalent_transforms is None else PoseSet(
         result.poses, np.empty(0, dtype=int), result.equivalent_transforms)
@@ -372,15 +384,20 @@ def plan(
     if np.all(np.isfinite(suction.point)):
         grasp = (rotation @ suction.point + origin, rotation @ suction.axis)
     choice = result.values[pose].policies[policy]
+    v_s = np.array([s.quality for s in result.suction], dtype=float)
+    csr = None  # the object's tables in the budgets' layout, built when a budget needs them
+    if pushes_left is not None or failed:
+        csr = horizon.csr_from_rows([np.asarray(t.next_pose, dtype=float) for t in result.topple])
     if pushes_left is not None:
-        v_s = np.array([s.quality for s in result.suction], dtype=float)
-        rows = [np.asarray(t.next_pose, dtype=float) for t in result.topple]
         # The pushes the build's policies could choose (its mdp.min_direction_z, not ``config``'s).
         choosable = None if result.choosable is None else np.concatenate(result.choosable)
-        actions, values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes_left, choosable)
+        actions, values = horizon.budget_choices(v_s, *csr, pushes_left, choosable)
         choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
+    ruled = 0
+    if failed:
+        choice, ruled = _untried_choice(result, pose, policy, pushes_left, failed, v_s, csr, config)
     if choice.action == NO_OP:
-        return Plan(match, policy, None, float(choice.value), None, None, [], grasp)
+        return Plan(match, policy, None, float(choice.value), None, None, [], grasp, ruled_out=ruled)
     actions, table = result.actions[pose], result.topple[pose]
     a = int(choice.action)
     push = place_push(
@@ -391,4 +408,37 @@ def plan(
     order = np.argsort(-distribution, kind="stable")
     next_poses = [(int(x), float(distribution[x])) for x in order if distribution[x] > 0]
     near, _ = neighbour_mean(actions.points, actions.directions, table.p_topple, rows=[a])
-    return Plan(match, policy, a, float(choice.value), float(table.p_topple[a]), push, next_poses, grasp, float(near[0]))
+    p_topple = float(table.p_topple[a])
+    given = retry.after_failure(p_topple, config.mdp.after_failure_power) if failed else None
+    return Plan(match, policy, a, float(choice.value), p_topple, push, next_poses, grasp, float(near[0]), ruled, given)
+
+
+def _untried_choice(result: ObjectResult, pose: int, policy: str, pushes_left: int | None, failed: list[int],
+                    v_s: np.ndarray, csr: tuple, config: Config) -> tuple[PolicyChoice, int]:
+    """``plan``'s choice among the candidates of ``pose`` that no failed push rules out, by the
+    policy's rule (/plan's ``service.planning.untried_push``, on the in-memory result).
+
+    v_s : (P,) float;  csr : ``horizon.csr_from_rows`` of the object's tables
+    returns : the choice (value: Q_T, greedy's E[V_s], or V_h with a budget; V_s(x) for no push)
+      and the number of candidates ruled out
+    """
+    actions, values = result.actions[pose], result.values[pose]
+    count = len(actions.status)
+    bad = [a for a in failed if not 0 <= a < count]
+    if bad:
+        raise ValueError(f"failed_actions {bad} are no actions of pose {pose} (0..{count - 1})")
+    excluded = retry.ruled_out(actions.points, actions.directions, failed)
+    allowed = ~excluded if result.choosable is None else result.choosable[pose] & ~excluded
+    stay = float(v_s[pose])
+    if pushes_left is not None:
+        action_offsets, transition_offsets, next_pose, probability = csr
+        previous = v_s if pushes_left == 1 else horizon.budget_choices(
+            v_s, *csr, pushes_left - 1, None if result.choosable is None else np.concatenate(result.choosable))[1][-1]
+        rows = slice(int(action_offsets[pose]), int(action_offsets[pose + 1]))
+        q, improvement, scale = horizon.pose_q(previous, rows, transition_offsets, next_pose, probability), horizon.IMPROVEMENT, 1.0
+    elif policy == "greedy":
+        q, improvement, scale = values.greedy, retry.POLICY_IMPROVEMENT, 1.0
+    else:
+        q, improvement, scale = values.q, retry.POLICY_IMPROVEMENT, config.mdp.gamma
+    action = retry.best_untried(q, allowed, stay, improvement, scale)
+    return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), int(excluded.sum())
