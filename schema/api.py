@@ -30,9 +30,9 @@ from schema.horizon import MAX_PUSHES_LEFT
 from schema.vocabulary import PolicyName, StatusName
 
 MAX_BATCH = 1000
+"""Most items in one batch request; more is a 422."""
 MAX_FAILED_ACTIONS = 100
 """Most failed pushes a /plan request may report: a robot gives up long before."""
-"""Most items in one batch request; more is a 422."""
 
 ROTATION_TOLERANCE = 1e-3
 """Largest |R^T R - I| entry and |det R - 1| accepted for the rotation of an observed pose."""
@@ -393,14 +393,14 @@ class PlanRequest(Model):
         "likely topple to a long shot; only with policy value_iteration. Absent: the thesis's value iteration",
     )
 
-    failed_actions: list[Annotated[int, Field(ge=0)]] = Field(
+    failed_actions: list[Annotated[StrictInt, Field(ge=0)]] = Field(
         [], max_length=MAX_FAILED_ACTIONS,
         description="Actions of the matched pose already pushed on this object that left it in this pose. A push's "
         "outcome is nearly fixed by the push (in simulated physics, value iteration's repeats of a failed push toppled "
         "12% of the time where its table said 31%), so the policy chooses among the candidates that no failed push "
         "rules out: each failed push and its neighbourhood (contacts within 2 cm, directions within 0.5 rad: "
         "schema/retry.py), by its own rule. Only with greedy or value_iteration (pushes_left too); an index the "
-        "matched pose does not have is a 422",
+        "matched pose does not have, or of a push that is not ok (never served), is a 422",
     )
 
     @model_validator(mode="after")
@@ -473,8 +473,8 @@ class PlanResponse(Model):
     reason: str = Field(description="One sentence: why this decision, with the values behind it")
     action: int | None = Field(description="The policy's action in the matched pose; null when it does not push")
     ruled_out: int = Field(
-        description="Candidates of the matched pose that the request's failed_actions rule out (each failed push and its "
-        "neighbourhood); the policy chose among the others. 0 without failed_actions"
+        description="Candidates of the matched pose the policy could choose that the request's failed_actions rule out "
+        "(each failed push and its neighbourhood); it chose among the others. 0 without failed_actions"
     )
     v_s: float = Field(description="V_s of the matched pose: robust suction grasp quality of grasping now, in [0, 1]")
     v_t: float = Field(description="V_T of the matched pose: its value under value iteration, max(V_s, gamma max_u Q_T)")
@@ -498,10 +498,10 @@ class PlanResponse(Model):
     )
     p_topple_given_failures: float | None = Field(
         description="With failed_actions: P(topple) of this push now that the reported pushes have failed, p_topple^k "
-        "(k the build's mdp.after_failure_power, fitted on corpus objects: docs/VALIDATION.md, 'After a failed push'). "
-        "A failure says the pose topples less than the table thinks; first tries are honest, the pushes after a "
-        "failure topple far less than p_topple. Null without failed_actions, without a push, or for a build "
-        "from before the map"
+        "(k the build's mdp.after_failure_power, fitted and judged on value iteration's pushes: docs/VALIDATION.md, "
+        "'After a failed push'). A failure says the pose topples less than the table thinks: value iteration's first "
+        "tries are honest, the pushes after a failure topple far less than p_topple. Null without failed_actions, "
+        "without a push, or for a build without the map (k = 1, as the thesis preset, or from before it)"
     )
     push: WorldPush | None = Field(description="The push in world coordinates; null when no push")
     next_poses: list[NextPose] = Field(description="Where the push leads; empty when no push")

@@ -20,6 +20,7 @@ the dev extra; the client imports nothing of the server).
 
 from __future__ import annotations
 
+import operator
 import time
 from typing import Any, Self, TypeVar
 
@@ -193,7 +194,7 @@ def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None 
     if pushes_left is not None:
         item["pushes_left"] = int(pushes_left)
     if failed_actions:
-        item["failed_actions"] = [int(a) for a in failed_actions]
+        item["failed_actions"] = [operator.index(a) for a in failed_actions]  # 1.7 or "1" raise, as the service would
     if pose is not None:
         item["pose"] = np.asarray(pose, dtype=float).tolist()
     else:

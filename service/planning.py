@@ -72,15 +72,21 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float)
     not rule out (``schema.retry``), by the rule the dataset's policy or the budget uses.
 
     returns : action (NO_OP: grasp now), V_h of the push with ``pushes_left`` (else None), the
-      number of candidates ruled out.  UnknownAction for a failed index the pose does not have.
+      number of candidates the policy could choose that are ruled out.  UnknownAction for a
+      failed index the pose does not have, or of a push that is not ok: /plan never serves one,
+      so it is a client's mistake, and it would silently rule out the ok pushes around it.
     """
     rows = obj.pose_rows(pose)
     count = rows.stop - rows.start
     for index, action in enumerate(request.failed_actions):
         if action >= count:
             raise UnknownAction(f"pose {pose} of '{obj.object_id}' has no action {action}: its actions are 0..{count - 1}", index)
+        if not obj.is_ok(rows.start + action):
+            raise UnknownAction(f"action {action} of pose {pose} of '{obj.object_id}' is {obj.status_name(rows.start + action)}, "
+                                "not ok: /plan never serves it, so it cannot have failed", index)
     excluded = retry.ruled_out(obj.points[rows], obj.directions[rows], request.failed_actions)
-    allowed = obj.choosable(rows) & ~excluded
+    choosable = obj.choosable(rows)
+    allowed = choosable & ~excluded
     stay, final = float(obj.v_s[pose]), None
     if request.pushes_left is not None:
         previous = obj.v_s if request.pushes_left == 1 else obj.budget(request.pushes_left - 1)[1]
@@ -91,7 +97,7 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float)
         action = retry.best_untried(obj.greedy[rows], allowed, stay, retry.POLICY_IMPROVEMENT)
     else:
         action = retry.best_untried(obj.q[rows], allowed, stay, retry.POLICY_IMPROVEMENT, scale=gamma)
-    return action, final, int(excluded.sum())
+    return action, final, int((excluded & choosable).sum())
 
 
 def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
@@ -162,8 +168,9 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
             "within_force_limit": None if force is None else bool(force <= limit),
         }
         p_topple = optional(values[10])
-        if request.failed_actions and p_topple is not None and store.after_failure_power is not None:
-            p_given = retry.after_failure(p_topple, store.after_failure_power)
+        power = store.after_failure_power
+        if request.failed_actions and p_topple is not None and power is not None and power != 1.0:
+            p_given = retry.after_failure(p_topple, power)
         # float32 storage: a mean of stored 0.76s is 0.7639999986; six decimals are all it holds.
         p_near = optional(round(float(near), 6))
         q_value = optional(obj.q[row])
@@ -171,7 +178,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         outcomes = next_poses(obj, row)
 
     decision, reason = _decision(request.policy, request.pushes_left, action, v_s, grasp, p_topple, p_near, after, push,
-                                 len(request.failed_actions), ruled, p_given)
+                                 len(set(request.failed_actions)), ruled, p_given)
     return {
         "object_id": obj.object_id,
         "policy": request.policy,
@@ -212,7 +219,8 @@ def _decision(policy, pushes_left, action, v_s, grasp, p_topple, p_near, after, 
     if pushes_left is not None:
         policy = f"{policy} for {pushes_left} push{'es' if pushes_left > 1 else ''}"
     if failed:
-        policy = f"{policy}, after {failed} failed push{'es' if failed > 1 else ''} ({ruled} candidates ruled out),"
+        policy = (f"{policy}, after {failed} failed push{'es' if failed > 1 else ''} "
+                  f"({ruled} candidate{'s' if ruled != 1 else ''} ruled out),")
     if action != NO_OP:
         force = ""
         if push is not None and push["within_force_limit"] is False:
@@ -222,8 +230,9 @@ def _decision(policy, pushes_left, action, v_s, grasp, p_topple, p_near, after, 
         return "push", (f"{policy} pushes: P(topple) {_g(p_topple)} ({_g(p_near)} around it{given}), expected V_s after "
                         f"the push {_g(after)} vs V_s {v_s:.3g} now{force}")
     if grasp is None or v_s <= 0.0:
+        untried = "untried " if failed else ""
         return "no_grasp", (f"{policy} does not push and this pose has no suction grasp (V_s = {v_s:.3g}): "
-                            "no stored push nor grasp helps; pick another object or another tool")
+                            f"no {untried}stored push nor grasp helps; pick another object or another tool")
     return "grasp", f"{policy} does not push: grasp now at grasp (V_s = {v_s:.3g})"
 
 

@@ -7,22 +7,22 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.studies.after_failure import after_failed_pushes, brier, fit_power, main, score
+from pipeline.studies.after_failure import after_failed_pushes, breakdown, brier, fit_power, main, score, told
 
 
-def push(trial, policy, p, toppled):
-    return {"trial": trial, "policy": policy, "object_id": "box", "p_topple": p, "toppled": toppled}
+def push(trial, policy, p, toppled, action=0):
+    return {"trial": trial, "policy": policy, "object_id": "box", "p_topple": p, "toppled": toppled, "action": action}
 
 
 RUN = [
-    push(0, "untried_vi", 0.9, False),
-    push(0, "value_iteration", 0.9, False),
-    push(0, "untried_vi", 0.6, True),   # after a failure: kept
-    push(0, "untried_vi", 0.5, False),  # after a topple: not
-    push(1, "untried_vi", 0.2, True),
-    push(1, "value_iteration", 0.9, False),
-    push(1, "value_iteration", 0.9, False),  # value iteration's, after its own failure
-    push(0, "untried_vi", 0.4, True),   # after trial 0's failed third push
+    push(0, "untried_vi", 0.9, False, 7),
+    push(0, "value_iteration", 0.9, False, 7),
+    push(0, "untried_vi", 0.6, True, 8),   # after a failure: kept
+    push(0, "untried_vi", 0.5, False, 9),  # after a topple: not
+    push(1, "untried_vi", 0.2, True, 3),
+    push(1, "value_iteration", 0.9, False, 7),
+    push(1, "value_iteration", 0.9, False, 7),  # value iteration's, after its own failure: the same push
+    push(0, "untried_vi", 0.4, True, 2),   # after trial 0's failed third push
 ]
 
 
@@ -51,14 +51,40 @@ def test_the_score_shows_the_trivial_predictors_beside_the_map():
     assert predictors["table P"]["brier"] == pytest.approx(brier(p, toppled)) == pytest.approx((0.25 + 0.04 + 0.01) / 4)
 
 
+def test_the_breakdown_tells_first_tries_repeats_and_other_pushes_apart():
+    untried = breakdown(RUN, "untried_vi", 2.0)
+    assert untried["first try"] == {"pushes": 3, "p_topple": pytest.approx((0.9 + 0.5 + 0.2) / 3), "toppled": pytest.approx(1 / 3)}
+    assert untried["another push"] == {"pushes": 2, "p_topple": pytest.approx(0.5), "toppled": 1.0, "p^2": pytest.approx(0.26)}
+    assert "same push again" not in untried
+    assert breakdown(RUN, "value_iteration", 2.0)["same push again"] == {"pushes": 1, "p_topple": 0.9, "toppled": 0.0}
+
+
+def test_a_client_is_told_the_table_unless_it_reports_its_failures():
+    assert told(RUN, "untried_vi", None)["told"] == pytest.approx((0.9 + 0.6 + 0.5 + 0.2 + 0.4) / 5)
+    reported = told(RUN, "untried_vi", 2.0)
+    assert reported["told"] == pytest.approx((0.9 + 0.36 + 0.5 + 0.2 + 0.16) / 5)
+    assert reported["gap"] == pytest.approx(reported["told"] - 3 / 5)
+
+
 def test_the_command_fits_and_scores(tmp_path, capsys):
     path = tmp_path / "pushes.jsonl"
     path.write_text("\n".join(json.dumps(r) for r in RUN) + "\n")
     assert main(["fit", str(path)]) == 0
     fitted = json.loads(capsys.readouterr().out)
     assert fitted["pushes"] == 2 and 1.0 <= fitted["power"] <= 6.0
-    assert main(["score", str(path), "--power", "2"]) == 0
+    assert main(["score", "--power", "2", str(path)]) == 0, "files after the options too"
     assert json.loads(capsys.readouterr().out)["predictors"]["p^2"]["mean"] == pytest.approx((0.36 + 0.16) / 2)
+    gains = tmp_path / "run.json"
+    gains.write_text(json.dumps({"policies": {"untried_vi": {"gain_over_max_height": 0.1, "pushes": 5}}}))
+    out = tmp_path / "report.json"
+    assert main(["report", "--fit", str(path), "--judge", str(path), "--gains", str(gains), "--json", str(out)]) == 0
+    written = json.loads(out.read_text())
+    assert written == json.loads(capsys.readouterr().out)
+    assert written["judged"]["pushes"] == 2 and written["gains"][str(gains)] == {"untried_vi": {"gain_over_max_height": 0.1}}
+    assert set(written["told"]["judge"]) == {"re-asking (value_iteration)", "reporting failures (untried_vi)"}
+    with pytest.raises(SystemExit) as half:
+        main(["report", "--fit", str(path)])
+    assert half.value.code == 2
     with pytest.raises(SystemExit) as missing:
         main(["score", str(path)])
     assert missing.value.code == 2

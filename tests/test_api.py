@@ -11,7 +11,7 @@ import pipeline as toppledb
 from schema import retry
 from schema.frames import PoseMatch
 from schema.neighbourhood import MAX_ANGLE, RADIUS
-from schema.vocabulary import NO_OP, POLICIES
+from schema.vocabulary import NO_OP, POLICIES, STATUS_OK
 
 CONFIG = toppledb.Config().with_overrides({
     "contacts.n_contacts": 40, "topple.n_trials": 5, "suction.n_candidates": 20, "suction.n_samples": 5, "seed": 3,
@@ -127,7 +127,7 @@ def test_plan_after_failed_pushes_chooses_among_the_rest_and_says_how_likely_now
             after = toppledb.plan(result, observed, policy=policy, pushes_left=budget, config=CONFIG, failed_actions=[first.action])
             actions = result.actions[pose.index]
             excluded = retry.ruled_out(actions.points, actions.directions, [first.action])
-            assert after.ruled_out == int(excluded.sum()) >= 1
+            assert after.ruled_out == int((excluded & result.choosable[pose.index]).sum()) >= 1
             if after.action is None:
                 assert after.value == result.suction[pose.index].quality and after.p_topple_given_failures is None
                 continue
@@ -144,6 +144,9 @@ def test_plan_after_failed_pushes_chooses_among_the_rest_and_says_how_likely_now
         toppledb.plan(result, observed, policy="max_height", failed_actions=[0], config=CONFIG)
     with pytest.raises(ValueError, match="no actions of pose"):
         toppledb.plan(result, observed, failed_actions=[10**6], config=CONFIG)
+    not_ok = int(np.flatnonzero(result.actions[0].status != STATUS_OK)[0])
+    with pytest.raises(ValueError, match="not ok"):
+        toppledb.plan(result, observed, failed_actions=[not_ok], config=CONFIG)
 
 
 def test_plan_matches_a_symmetric_object_at_any_roll():

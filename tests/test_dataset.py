@@ -444,6 +444,24 @@ def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_
     assert json.loads((copy / "manifest.json").read_text())["corpus"]["objects"][0]["object_id"] == OBJECTS[0]
 
 
+def test_a_parameter_only_the_service_reads_recomputes_nothing(reference, corpus, tmp_path, capsys):
+    # mdp.after_failure_power (schema.retry's map) is served from the manifest; the build never
+    # reads it, so a new value rewrites the manifest over the same shards.
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    capsys.readouterr()
+    assert build(corpus, copy, "--workers", "1", "--set", "mdp.after_failure_power=3") == 0
+    assert "resuming: 3 of 3 objects already complete" in capsys.readouterr().err
+    manifest = read_manifest(copy)
+    assert manifest.parameters.mdp.after_failure_power == 3.0 and manifest.run["computed"] == 0
+    assert_same_dataset(reference, copy)
+    config = Config.from_dict(manifest.parameters.model_dump())
+    spec = next(iter(read_list(corpus, 0.25).specs))
+    assert shards.shard_inputs(spec, config) == shards.shard_inputs(spec, Config.from_dict(read_manifest(reference).parameters.model_dump()))
+    other = config.with_overrides({"mdp.gamma": 0.9})
+    assert shards.fingerprint(shards.shard_inputs(spec, other)) != shards.fingerprint(shards.shard_inputs(spec, config))
+
+
 def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_path, capsys):
     copy = tmp_path / "dataset"
     shutil.copytree(reference, copy)

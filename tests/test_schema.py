@@ -58,7 +58,7 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
     """Datasets built before ``mdp.min_direction_z`` let the policies choose any push: their
     manifests must read as -1, in the service (``schema.manifest``) and in the pipeline's studies
     (``Config.from_dict`` of the manifest's parameters, as ``policies_physics.dataset_config``)."""
-    from pipeline.model.config import Config
+    from pipeline.model.config import Config, MDPConfig
     from schema.manifest import Parameters
 
     old = Config().to_dict()
@@ -75,7 +75,7 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
     del old["mdp"]["after_failure_power"]  # and the after-failure map /plan serves (schema.retry)
     parameters = Parameters.model_validate(old)
     assert parameters.mdp.after_failure_power is None, "no map: the service serves no p_topple_given_failures"
-    assert Config.from_dict(parameters.model_dump()).mdp == Config().mdp.__class__(
+    assert Config.from_dict(parameters.model_dump()).mdp == MDPConfig(
         min_direction_z=-1.0), "the rest reads as before; the map, unused by the build, as the default"
     assert Config.from_dict(parameters.model_dump()).topple.down_map == (), "built without the down map, read without it"
     assert Parameters.model_validate(Config().to_dict()).mdp.min_direction_z == Config().mdp.min_direction_z == -0.3

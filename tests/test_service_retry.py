@@ -4,6 +4,7 @@ rules out (schema.retry), served."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -17,6 +18,7 @@ from service.planning import untried_push
 from service.store import Store
 from tests.test_service import (  # noqa: F401 (fixtures)
     JSON,
+    MIN_DIRECTION_Z,
     client,
     dataset,
     planar_transform,
@@ -126,8 +128,6 @@ def test_with_nothing_failed_the_choice_is_the_stored_policys(dataset):
 
 
 def test_value_iteration_pushes_only_when_the_discounted_q_beats_grasping_now(dataset):
-    import dataclasses
-
     store = Store.load(dataset)
     obj = next(o for o in store.objects.values() if (o.v_s > 0.1).any())
     pose = int(np.argmax(obj.v_s))
@@ -142,6 +142,37 @@ def test_value_iteration_pushes_only_when_the_discounted_q_beats_grasping_now(da
         assert action == expected, (q_value, stay)
 
 
+def test_the_neighbours_of_a_failed_push_are_ruled_out_and_each_policy_ranks_by_its_own_values(dataset):
+    """On one pose of the test dataset, rearranged: candidates a, b, c, d choosable, b 1 cm from
+    a with a's direction, c and d far away.  Q ranks a > b > c > d, greedy d > c > b > a."""
+    store = Store.load(dataset)
+    obj = next(iter(store.objects.values()))
+    pose = 0
+    rows = obj.pose_rows(pose)
+    a, b, c, d = (int(i) for i in np.flatnonzero(obj.choosable(rows))[:4])
+    points, directions = obj.points.copy(), obj.directions.copy()
+    directions[rows.start + b] = directions[rows.start + a]
+    points[rows.start + b] = points[rows.start + a] + np.float32([0.01, 0.0, 0.0])
+    for far, offset in ((c, 0.2), (d, -0.2)):
+        points[rows.start + far] = points[rows.start + a] + np.float32([0.0, offset, 0.0])
+    q, greedy = np.full(len(obj.q), np.nan), np.full(len(obj.q), np.nan)
+    stay = float(obj.v_s[pose])
+    for action, (q_value, greedy_value) in zip((a, b, c, d), ((4, 1), (3, 2), (2, 3), (1, 4))):
+        q[rows.start + action], greedy[rows.start + action] = stay + q_value, stay + greedy_value
+    moved = dataclasses.replace(obj, points=points, directions=directions, q=q, greedy=greedy)
+
+    def choose(policy, failed):
+        request = PlanRequest(object_id=obj.object_id, pose=np.eye(4).tolist(), policy=policy, failed_actions=failed)
+        return untried_push(moved, pose, request, store.gamma)
+
+    assert choose("value_iteration", [])[0] == a and choose("greedy", [])[0] == d
+    assert choose("value_iteration", [a])[0] == c, "b is a's neighbour: ruled out with it"
+    assert choose("value_iteration", [a])[2] == int(retry.ruled_out(points[rows], directions[rows], [a])[
+        np.flatnonzero(moved.choosable(rows))].sum()) >= 2
+    assert choose("greedy", [d])[0] == c and choose("greedy", [d, c])[0] == b
+    assert choose("value_iteration", [a, c])[0] == d and choose("value_iteration", [a, c, d])[0] == NO_OP
+
+
 def test_a_failed_push_is_not_served_again_nor_its_neighbours(client, tables, dataset):
     store = Store.load(dataset)
     replaced = 0
@@ -154,7 +185,7 @@ def test_a_failed_push_is_not_served_again_nor_its_neighbours(client, tables, da
             answer = plan(client, tables, object_id, pose, policy=policy, failed_actions=[first])
             rows = obj.pose_rows(pose)
             excluded = retry.ruled_out(obj.points[rows], obj.directions[rows], [first])
-            assert excluded[first] and answer["ruled_out"] == int(excluded.sum()) >= 1
+            assert excluded[first] and answer["ruled_out"] == int((excluded & obj.choosable(rows)).sum()) >= 1
             assert (answer["p_topple_given_failures"] is None) == (answer["action"] is None)
             assert "1 failed push" in answer["reason"]
             actions = tables["actions"]
@@ -172,7 +203,7 @@ def test_a_failed_push_is_not_served_again_nor_its_neighbours(client, tables, da
                 again = {"object_id": object_id, "pose": pose, "action": answer["action"]}
                 assert answer["p_topple"] == pytest.approx(client.post("/batch/transitions", json={"items": [again]})
                                                            .json()["results"][0]["result"]["p_topple"])
-                assert 0.0 <= answer["p_topple_neighbourhood"] <= 1.0
+                assert answer["p_topple_neighbourhood"] == round(obj.neighbourhood_p(pose, answer["action"]), 6)
                 power = tables["manifest"]["parameters"]["mdp"]["after_failure_power"]
                 assert answer["p_topple_given_failures"] == pytest.approx(answer["p_topple"] ** power, abs=1e-12)
                 assert f"{answer['p_topple_given_failures']:.3g} now that pushes here have failed" in answer["reason"]
@@ -207,10 +238,16 @@ def test_a_build_from_before_the_map_serves_no_probability_given_failures(datase
         with_map = plan_for(store, request, Settings())
         store.after_failure_power = None
         without = plan_for(store, request, Settings())
+        store.after_failure_power = 1.0  # the thesis preset's: no map
+        unmapped = plan_for(store, request, Settings())
+        store.after_failure_power = 3.0
+        cubed = plan_for(store, request, Settings())
         store.after_failure_power = tables["manifest"]["parameters"]["mdp"]["after_failure_power"]
         if with_map["action"] is not None:
             served += 1
             assert with_map["p_topple_given_failures"] is not None and without["p_topple_given_failures"] is None
+            assert unmapped["p_topple_given_failures"] is None
+            assert cubed["p_topple_given_failures"] == pytest.approx(cubed["p_topple"] ** 3, abs=1e-15)
             assert {**without, "p_topple_given_failures": None, "reason": None} == {**with_map, "p_topple_given_failures": None, "reason": None}
     assert served > 0
 
@@ -224,10 +261,12 @@ def test_no_failed_push_is_the_plain_answer(client, tables):
 
 @pytest.mark.parametrize("extra, where", [
     ({"failed_actions": [10_000]}, "failed_actions.0"),
-    ({"failed_actions": [0, 10_000]}, "failed_actions.1"),
     ({"failed_actions": [-1]}, "failed_actions"),
     ({"failed_actions": None}, "failed_actions"),
     ({"failed_actions": [0.5]}, "failed_actions"),
+    ({"failed_actions": [True]}, "failed_actions"),
+    ({"failed_actions": ["1"]}, "failed_actions"),
+    ({"failed_actions": [1.0]}, "failed_actions"),
     ({"failed_actions": list(range(MAX_FAILED_ACTIONS + 1))}, "failed_actions"),
     ({"failed_actions": [0], "policy": "max_height"}, "failed_actions"),
 ])
@@ -238,9 +277,33 @@ def test_bad_failed_actions_are_422(client, tables, extra, where):
     assert where in response.json()["detail"]
 
 
+def test_the_last_action_is_the_boundary_and_a_push_that_is_not_ok_never_failed(client, tables):
+    for object_id, pose in tables["poses"]:
+        actions = {a: r for (o, p, a), r in tables["actions"].items() if (o, p) == (object_id, pose)}
+        count = len(actions)
+        not_ok = [a for a, r in actions.items() if r["status"] != "ok"]
+        ok = [a for a, r in actions.items() if r["status"] == "ok"]
+        if not (not_ok and ok):
+            continue
+
+        def post(failed, object_id=object_id, pose=pose):
+            return client.post("/plan", content=json.dumps(body(tables, object_id, pose, failed_actions=failed)), headers=JSON)
+
+        beyond = post([count])
+        assert beyond.status_code == 422 and f"has no action {count}" in beyond.json()["detail"]
+        assert post([max(ok)]).status_code == 200
+        refused = post([ok[0], not_ok[0]])
+        assert refused.status_code == 422 and "failed_actions.1" in refused.json()["detail"]
+        assert f"is {actions[not_ok[0]]['status']}, not ok" in refused.json()["detail"]
+        return
+    raise AssertionError("the test dataset should have a pose with ok pushes and others")
+
+
 def test_a_batch_item_with_an_unknown_failed_action_fails_alone(client, tables):
     (object_id, pose), (other, other_pose) = list(tables["poses"])[:2]
-    items = [body(tables, object_id, pose, failed_actions=[10_000]), body(tables, other, other_pose, failed_actions=[0])]
+    ok = min(a for (o, p, a), r in tables["actions"].items()
+             if (o, p) == (other, other_pose) and r["status"] == "ok" and r["direction_z"] >= MIN_DIRECTION_Z)
+    items = [body(tables, object_id, pose, failed_actions=[10_000]), body(tables, other, other_pose, failed_actions=[ok])]
     results = client.post("/batch/plan", json={"items": items}).json()["results"]
     assert results[0]["error"]["status"] == 422 and "no action 10000" in results[0]["error"]["detail"]
     assert results[1]["result"]["ruled_out"] >= 1

@@ -120,6 +120,7 @@ def test_tile_size_never_changes_a_result(random_table, monkeypatch):
     # row-wise, so many small, uneven tiles must give the very same table as the default's few.
     obj, pose_set, first = random_table
     monkeypatch.setattr(topple, "TILE_ELEMENTS", 97)
+    assert len(topple._row_tiles(40 * 100, 4)) > 100, "97 entries split a block into many tiles"
     tiled = evaluate(obj, pose_set, 4, n_contacts=150, n_trials=40, seed=3)
     assert np.array_equal(first.table.outcomes, tiled.table.outcomes)
     assert np.array_equal(first.table.mean_force, tiled.table.mean_force, equal_nan=True)

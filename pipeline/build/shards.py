@@ -40,12 +40,21 @@ COMPRESS_ABOVE_BYTES = 16 * 1024
 # --- identity of a shard's inputs ---------------------------------------------------------
 
 
+SERVING_ONLY = {"mdp": ("after_failure_power",)}
+"""Parameters the build does not use, which the manifest carries for the service (section ->
+keys): they are no part of a shard's identity, so a new value asks for no rebuild and a dataset
+built before one existed can still be added to."""
+
+
 def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:
-    """Everything that determines a shard's content: schema version, every parameter,
-    and the object (mesh checksum, scale, mass, id, source).  The mesh's location is
-    left out: the same file elsewhere gives the same shard."""
+    """Everything that determines a shard's content: schema version, every parameter the
+    build uses (``SERVING_ONLY`` left out), and the object (mesh checksum, scale, mass, id,
+    source).  The mesh's location is left out: the same file elsewhere gives the same shard."""
     identity = {k: v for k, v in dataclasses.asdict(spec).items() if k != "path"}
-    return {"schema_version": SCHEMA_VERSION, "config": config.to_dict(), "object": identity}
+    parameters = config.to_dict()
+    for section, keys in SERVING_ONLY.items():
+        parameters[section] = {k: v for k, v in parameters[section].items() if k not in keys}
+    return {"schema_version": SCHEMA_VERSION, "config": parameters, "object": identity}
 
 
 def fingerprint(inputs: dict[str, Any]) -> str:

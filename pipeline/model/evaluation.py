@@ -9,16 +9,17 @@ runs it.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Iterator, Protocol, Sequence
+from typing import Protocol
 
 import numpy as np
 
 from schema import horizon, retry
 from schema.frames import PoseMatch, match_pose, place_push, transform_points
 from schema.neighbourhood import neighbour_mean
-from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES
+from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .collision import collision_object
 from .config import Config
@@ -353,7 +354,8 @@ def plan(
     plan's ``value`` is then the expected V_s when the budget is spent.  With
     ``failed_actions`` (actions of the matched pose that left the object in it; greedy and
     value_iteration), the policy's push among the candidates they do not rule out, and
-    ``p_topple_given_failures`` (``schema.retry``, as /plan's ``failed_actions``).
+    ``p_topple_given_failures`` (``schema.retry``, as /plan's ``failed_actions``; k is
+    ``config``'s ``mdp.after_failure_power``, none when it is 1).
 
     Raises ``NotResting`` when the orientation is within ``tolerance`` of no stable pose
     or the pose's support plane is more than ``height_tolerance`` from the table.
@@ -409,7 +411,8 @@ def plan(
     next_poses = [(int(x), float(distribution[x])) for x in order if distribution[x] > 0]
     near, _ = neighbour_mean(actions.points, actions.directions, table.p_topple, rows=[a])
     p_topple = float(table.p_topple[a])
-    given = retry.after_failure(p_topple, config.mdp.after_failure_power) if failed else None
+    power = config.mdp.after_failure_power  # the caller's config, as the noise of ``evaluate_object``'s
+    given = retry.after_failure(p_topple, power) if failed and power != 1.0 else None
     return Plan(match, policy, a, float(choice.value), p_topple, push, next_poses, grasp, float(near[0]), ruled, given)
 
 
@@ -427,8 +430,12 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, pushes_left: i
     bad = [a for a in failed if not 0 <= a < count]
     if bad:
         raise ValueError(f"failed_actions {bad} are no actions of pose {pose} (0..{count - 1})")
+    never = [a for a in failed if actions.status[a] != STATUS_OK]
+    if never:
+        raise ValueError(f"failed_actions {never} of pose {pose} are not ok: no policy pushes them, so they cannot have failed")
     excluded = retry.ruled_out(actions.points, actions.directions, failed)
-    allowed = ~excluded if result.choosable is None else result.choosable[pose] & ~excluded
+    choosable = np.ones(count, dtype=bool) if result.choosable is None else result.choosable[pose]
+    allowed = choosable & ~excluded
     stay = float(v_s[pose])
     if pushes_left is not None:
         action_offsets, transition_offsets, next_pose, probability = csr
@@ -441,4 +448,4 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, pushes_left: i
     else:
         q, improvement, scale = values.q, retry.POLICY_IMPROVEMENT, config.mdp.gamma
     action = retry.best_untried(q, allowed, stay, improvement, scale)
-    return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), int(excluded.sum())
+    return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), int((excluded & choosable).sum())

@@ -29,14 +29,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from schema import retry
 from schema.vocabulary import NO_OP
 
 from .config import MDPConfig
 from .outcomes import PolicyChoice, PoseValues
 
-IMPROVEMENT = 1e-12
+IMPROVEMENT = retry.POLICY_IMPROVEMENT
 """An action must beat the no-op by more than this to be chosen: rows summing to 1
-only up to rounding must not turn "stay in this pose" into a spurious improvement."""
+only up to rounding must not turn "stay in this pose" into a spurious improvement.  The
+rule itself is ``schema.retry.best_untried``, which the service and the Python API's plan
+apply after failed pushes too."""
 
 
 def _stack(next_pose: list[np.ndarray], n_poses: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -177,14 +180,6 @@ def greedy_values(next_pose: list[np.ndarray], v_s: np.ndarray) -> list[np.ndarr
     return [np.asarray(t, dtype=float).reshape(-1, len(v_s)) @ v_s for t in next_pose]
 
 
-def _best_action(values: np.ndarray) -> int:
-    """Index of the largest non-NaN value, or NO_OP when there is none."""
-    values = np.asarray(values, dtype=float)
-    if values.size == 0 or np.isnan(values).all():
-        return NO_OP
-    return int(np.nanargmax(values))
-
-
 def max_height_policy(pose: int, v_s: np.ndarray, max_height_action: int, greedy: np.ndarray) -> PolicyChoice:
     """Max-Height baseline (thesis 4.3.1): push the highest near-horizontal-normal point.
 
@@ -213,10 +208,9 @@ def greedy_policy(pose: int, v_s: np.ndarray, greedy: np.ndarray) -> PolicyChoic
     returns : PolicyChoice; value = E[V_s(x')] of the push, or V_s(x) for the no-op
     """
     stay = float(np.asarray(v_s, dtype=float)[pose])
-    action = _best_action(greedy)
-    if action == NO_OP or not greedy[action] > stay + IMPROVEMENT:
-        return PolicyChoice(NO_OP, stay)
-    return PolicyChoice(action, float(greedy[action]))
+    greedy = np.asarray(greedy, dtype=float)
+    action = retry.best_untried(greedy, np.ones(len(greedy), dtype=bool), stay, IMPROVEMENT)
+    return PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(greedy[action]))
 
 
 def value_iteration_policy(pose: int, v_s: np.ndarray, q: np.ndarray, gamma: float) -> PolicyChoice:
@@ -229,10 +223,9 @@ def value_iteration_policy(pose: int, v_s: np.ndarray, q: np.ndarray, gamma: flo
       V_s(x) for the no-op
     """
     stay = float(np.asarray(v_s, dtype=float)[pose])
-    action = _best_action(q)
-    if action == NO_OP or not gamma * q[action] > stay + IMPROVEMENT:
-        return PolicyChoice(NO_OP, stay)
-    return PolicyChoice(action, float(q[action]))
+    q = np.asarray(q, dtype=float)
+    action = retry.best_untried(q, np.ones(len(q), dtype=bool), stay, IMPROVEMENT, scale=gamma)
+    return PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))
 
 
 def pose_values(

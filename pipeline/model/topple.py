@@ -74,10 +74,13 @@ would make each of the conditions' temporaries several MB; tiles bound that.  Th
 weighs cache against Python's cost per numpy call: the corrected model makes about 150
 calls per tile (C.2's balance, C.14's two points, C.11), and at 8192 entries (64 kB per
 array, stop 8's choice for the thesis's few passes) that overhead was a seventh of the
-engine's time.  65536 entries (512 kB per array) ran the bench objects 15 % faster than
-8192 and the same as 131072 (``make bench``, interleaved runs, stop 28).  Every operation
-is row-wise, so the tile size never changes a result (checked: identical outcomes and
-forces on the 20 bench objects, 19 million trials); it is not a model parameter."""
+engine's time.  On 8 bench objects, four interleaved rounds (``reports/bench.json``,
+``tile_sizes``), the median took 9.25 s at 8192, 8.24 s at 32768, 7.57 s at 65536 and
+7.72 s at 131072; ``make bench`` measured 0.132 s per pose right before 0.161 s at 8192.
+Every operation is row-wise, so the tile size should never change a result (checked, not
+guaranteed by BLAS: identical outcomes and forces on the 20 bench objects, 19 million trials,
+and on the whole default dataset; ``tests/test_topple.py`` holds a 97-entry tiling to the
+default's table); it is not a model parameter."""
 
 NO_ROTATION_AXIS = (0.0, 0.0, 1.0)
 """Rotation axis of the noise-free variants, whose rotation angle is 0: any unit axis
