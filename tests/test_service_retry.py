@@ -68,6 +68,8 @@ def test_the_best_untried_push_must_beat_grasping_now():
     assert retry.best_untried(values, everything, 0.77, 1e-12, scale=0.95) == NO_OP, "0.95 x 0.8 = 0.76"
     assert retry.best_untried(values, np.zeros(5, bool), 0.0, 1e-12) == NO_OP
     assert retry.best_untried(np.zeros(0), np.zeros(0, bool), 0.0, 1e-12) == NO_OP
+    assert retry.best_untried(np.array([0.4]), np.ones(1, bool), 0.3, 1e-12) == 0, "one candidate"
+    assert retry.best_untried(np.array([0.4]), np.ones(1, bool), 0.4, 0.0) == NO_OP, "equal to grasping now is no gain"
 
 
 def test_the_after_failure_map_keeps_certainty_and_order():
@@ -278,7 +280,8 @@ def test_bad_failed_actions_are_422(client, tables, extra, where):
 
 
 def test_the_last_action_is_the_boundary_and_a_push_that_is_not_ok_never_failed(client, tables):
-    for object_id, pose in tables["poses"]:
+    checked = 0
+    for object_id, pose in tables["poses"]:  # every pose: their rows start at other offsets
         actions = {a: r for (o, p, a), r in tables["actions"].items() if (o, p) == (object_id, pose)}
         count = len(actions)
         not_ok = [a for a, r in actions.items() if r["status"] != "ok"]
@@ -290,13 +293,13 @@ def test_the_last_action_is_the_boundary_and_a_push_that_is_not_ok_never_failed(
             return client.post("/plan", content=json.dumps(body(tables, object_id, pose, failed_actions=failed)), headers=JSON)
 
         beyond = post([count])
-        assert beyond.status_code == 422 and f"has no action {count}" in beyond.json()["detail"]
+        assert beyond.status_code == 422 and f"has no action {count}: its actions are 0..{count - 1}" in beyond.json()["detail"]
         assert post([max(ok)]).status_code == 200
-        refused = post([ok[0], not_ok[0]])
+        refused = post([ok[0], not_ok[-1]])
         assert refused.status_code == 422 and "failed_actions.1" in refused.json()["detail"]
-        assert f"is {actions[not_ok[0]]['status']}, not ok" in refused.json()["detail"]
-        return
-    raise AssertionError("the test dataset should have a pose with ok pushes and others")
+        assert f"is {actions[not_ok[-1]]['status']}, not ok" in refused.json()["detail"]
+        checked += 1
+    assert checked > 5, "the test dataset should have poses with ok pushes and others"
 
 
 def test_a_batch_item_with_an_unknown_failed_action_fails_alone(client, tables):
