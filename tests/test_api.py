@@ -135,7 +135,11 @@ def test_plan_after_failed_pushes_chooses_among_the_rest_and_says_how_likely_now
             assert not excluded[after.action] and after.value <= first.value + 1e-12, "the best was ruled out"
             assert after.p_topple_given_failures == pytest.approx(after.p_topple ** power, abs=1e-15)
             if budget is None:
-                values = result.values[pose.index].q if policy == "value_iteration" else result.values[pose.index].greedy
+                mine, p = result.values[pose.index], result.topple[pose.index].p_topple
+                stay = result.suction[pose.index].quality
+                # Value iteration ranks by what it believes after a failure (MODEL.md (12.12)), by hand.
+                believed = stay + p ** (power - 1) * (mine.q - (1 - p) * mine.value) - p ** power * stay
+                values = believed if policy == "value_iteration" else mine.greedy
                 allowed = np.where(result.choosable[pose.index] & ~excluded, values, np.nan)
                 assert after.value == np.nanmax(allowed), "the policy's own rule over the rest"
     assert replaced > 0

@@ -7,6 +7,7 @@ import pytest
 from pipeline.studies.robust_policy import (
     PoseCandidates,
     Smoothing,
+    aware_choice,
     horizon_actions,
     neighbour_mean,
     next_pose_rows,
@@ -183,6 +184,27 @@ def test_untried_choice_is_value_iteration_over_the_pushes_not_ruled_out():
     # Nothing left that beats grasping here (0.95 x 0.3 > 0.2; 0.95 x 0.3 < 0.3), or nothing left at all.
     assert untried_choice(0, np.array([0.3, 0.9]), q, np.array([True, False, True, False]), 0.95) == NO_OP
     assert untried_choice(0, v_s, q, np.ones(4, dtype=bool), 0.95) == NO_OP
+
+
+def test_after_a_failure_aware_choice_weighs_each_push_by_its_believed_topple_chance():
+    # u0 topples 0.9 of the time onto poses worth 0.6, u1 0.3 onto 0.95, u2 never; V_s = 0.2.
+    # The table's Q = p T + (1 - p) V_T at its fixed point V_T = gamma max Q prefers the long shot u1.
+    gamma, v_s = 0.95, np.array([0.2, 0.9])
+    p, landing = np.array([0.9, 0.3, 0.0]), np.array([0.6, 0.95, 0.0])
+    v_t = gamma * 0.285 / (1 - gamma * 0.7)
+    q = p * landing + (1 - p) * v_t
+    assert np.isclose(gamma * q.max(), v_t) and np.argmax(q) == 1
+    choosable, nothing = np.ones(3, dtype=bool), np.zeros(3, dtype=bool)
+    assert untried_choice(0, v_s, q, nothing, gamma) == 1
+    # Believed: V_s + p^k (T - V_s); k = 2: 0.524, 0.2675, 0.2.
+    assert aware_choice(0, v_s, q, p, nothing, choosable, gamma, 2.0) == 0
+    assert aware_choice(0, v_s, q, p, np.array([True, False, False]), choosable, gamma, 2.0) == 1
+    assert aware_choice(0, v_s, q, p, np.array([True, False, False]), np.array([True, False, True]), gamma, 2.0) == NO_OP
+    assert aware_choice(0, v_s, q, p, np.array([True, True, False]), choosable, gamma, 2.0) == NO_OP, "u2 never topples"
+    # u1 alone: 0.95 (0.3 + 0.3^k 0.65) beats V_s = 0.3 at k = 2 (0.341), not at k = 6 (0.285).
+    higher = np.array([0.3, 0.9])
+    assert aware_choice(0, higher, q, p, np.array([True, False, True]), choosable, gamma, 2.0) == 1
+    assert aware_choice(0, higher, q, p, np.array([True, False, True]), choosable, gamma, 6.0) == NO_OP
 
 
 def test_untried_vi_does_not_push_again_where_a_push_failed_in_the_trial(dataset):  # noqa: F811 (fixture)

@@ -355,7 +355,9 @@ def plan(
     ``failed_actions`` (actions of the matched pose that left the object in it; greedy and
     value_iteration), the policy's push among the candidates they do not rule out, and
     ``p_topple_given_failures`` (``schema.retry``, as /plan's ``failed_actions``; k is
-    ``config``'s ``mdp.after_failure_power``, none when it is 1).
+    ``config``'s ``mdp.after_failure_power``, none when it is 1).  Value iteration then ranks
+    them by what it believes of them (``retry.believed_values``, docs/MODEL.md (12.12)), and
+    the plan's ``value`` is that belief.
 
     Raises ``NotResting`` when the orientation is within ``tolerance`` of no stable pose
     or the pose's support plane is more than ``height_tolerance`` from the table.
@@ -422,8 +424,8 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, pushes_left: i
     policy's rule (/plan's ``service.planning.untried_push``, on the in-memory result).
 
     v_s : (P,) float;  csr : ``horizon.csr_from_rows`` of the object's tables
-    returns : the choice (value: Q_T, greedy's E[V_s], or V_h with a budget; V_s(x) for no push)
-      and the number of candidates ruled out
+    returns : the choice (value: Q'' of value iteration, (12.12), or Q_T when k is 1; greedy's
+      E[V_s]; V_h with a budget; V_s(x) for no push) and the number of candidates ruled out
     """
     actions, values = result.actions[pose], result.values[pose]
     count = len(actions.status)
@@ -447,5 +449,7 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, pushes_left: i
         q, improvement, scale = values.greedy, retry.POLICY_IMPROVEMENT, 1.0
     else:
         q, improvement, scale = values.q, retry.POLICY_IMPROVEMENT, config.mdp.gamma
+        if config.mdp.after_failure_power != 1.0:  # what value iteration believes of the pushes now (service.planning)
+            q = retry.believed_values(q, result.topple[pose].p_topple, stay, float(values.value), config.mdp.after_failure_power)
     action = retry.best_untried(q, allowed, stay, improvement, scale)
     return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), int((excluded & choosable).sum())

@@ -21,8 +21,10 @@ Only the dataset's tables are read (``point``, ``direction``, ``status``, ``q``,
     python -m pipeline.studies.robust_policy DATASET --trials 600 [--radius 0.02 --max-angle 0.5 --min-neighbours 5]
 
 plays max_height, value_iteration, ``smoothed_vi``, ``horizon_vi`` (value iteration for
-the experiment's push budget, ``schema.horizon``), ``untried_vi`` and ``once_vi`` (value
-iteration without retries, docs/MODEL.md (12.9)) in pybullet from the same starts and
+the experiment's push budget, ``schema.horizon``), ``untried_vi`` (what /plan's
+``failed_actions`` serves), ``once_vi`` (value iteration without retries, docs/MODEL.md
+(12.9)) and ``aware_vi`` (``untried_vi`` ranking the pushes after a failure by their believed
+P(topple)^k, ``aware_choice``) in pybullet from the same starts and
 noise draws as ``toppledb policies-physics`` (common random numbers, so max_height and
 value_iteration reproduce that report's numbers), and reports each policy's V_s gain over
 max_height on useful trials, the 'never push' baseline, and predicted (raw and smoothed)
@@ -63,7 +65,10 @@ UNTRIED_POLICY = "untried_vi"
 ONCE_POLICY = "once_vi"
 """Value iteration that does not count on retrying a failed push (``mdp.retry_failed = false``,
 docs/MODEL.md (12.9)), from the dataset's transitions (``once_actions``)."""
-CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY)
+AWARE_POLICY = "aware_vi"
+"""``untried_vi`` that, after a failure, ranks the untried pushes by what it now believes of them
+(``aware_choice``: P(topple)^k, ``mdp.after_failure_power``), a failure worth the grasp now."""
+CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY)
 """The policies each compared with value iteration, paired."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
 """Policies the study plays (common random numbers: adding one changes no other's pushes)."""
@@ -134,6 +139,27 @@ def untried_choice(pose: int, v_s: np.ndarray, q: np.ndarray, failed: np.ndarray
     returns : action index, or NO_OP
     """
     return value_iteration_policy(pose, v_s, np.where(failed, np.nan, q), gamma).action
+
+
+def aware_choice(pose: int, v_s: np.ndarray, q: np.ndarray, p_topple: np.ndarray, ruled_out: np.ndarray,
+                 choosable: np.ndarray, gamma: float, power: float) -> int:
+    """After a failure: the untried push of most believed value, pushed if it beats grasping now.
+
+    The table's Q_T(x, u) = p T + (1 - p) V_T(x), T the mean V_T of where a topple lands.  Once
+    a push from x has failed, u topples with p^k (``schema.retry.after_failure``), and a push
+    that fails again is worth the grasp here, so
+
+        Q''(x, u) = V_s(x) + p^k (T - V_s(x)) = V_s(x) + p^(k-1) (Q_T - (1 - p) V_T(x)) - p^k V_s(x)
+
+    with the stored V_T(x) = max(V_s(x), gamma max Q_T over the choosable pushes).
+    pose : int;  v_s : (P,) float;  q, p_topple : (A,) float, NaN unless ok
+    ruled_out, choosable : (A,) bool;  power : k;  returns : action index, or NO_OP
+    """
+    stay = float(v_s[pose])
+    mine = np.where(choosable, q, np.nan)
+    v_t = max(stay, gamma * float(np.nanmax(mine))) if np.isfinite(mine).any() else stay
+    believed = retry.believed_values(q, p_topple, stay, v_t, power)
+    return retry.best_untried(believed, choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
 
 
 @dataclass
@@ -306,6 +332,9 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
             for step in range(max_pushes):
                 if policy == UNTRIED_POLICY and pose in failed:
                     action = untried_choice(pose, plan.v_s, candidates[pose].q, failed[pose] | ~choosable[pose], gamma)
+                elif policy == AWARE_POLICY and pose in failed:
+                    action = aware_choice(pose, plan.v_s, candidates[pose].q, candidates[pose].p_topple, failed[pose],
+                                          choosable[pose], gamma, config.mdp.after_failure_power)
                 else:
                     action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # horizon_vi: per pushes left
                 if action == NO_OP:
@@ -323,7 +352,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 poses.append(after)
                 if after < 0:
                     break
-                if policy == UNTRIED_POLICY and after == pose:
+                if policy in (UNTRIED_POLICY, AWARE_POLICY) and after == pose:
                     # What /plan's failed_actions rules out (schema.retry), the same rule.
                     ruled_out = retry.ruled_out(c.points, c.directions, [action], exclusion.radius, exclusion.max_angle)
                     failed[pose] = failed.get(pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
@@ -362,6 +391,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[HORIZON_POLICY] = horizon_actions(plan.v_s, rows, max_pushes, choosable)
         plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, [s.smoothed_rows for s in scores], max_pushes, choosable)
         plan.actions[UNTRIED_POLICY] = plan.actions["value_iteration"]  # until a push fails
+        plan.actions[AWARE_POLICY] = plan.actions["value_iteration"]
         plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable}, by_object[object_id],
                       config, seed, max_pushes, world))
