@@ -71,8 +71,8 @@ def after_failure(p_topple: float, power: float) -> float:
 
     A failure is evidence about the pose, not only about the failed push: in physics, value
     iteration's next pushes after one toppled half as often as their P(topple) (0.122 against
-    0.244 on corpus objects), least so for the pushes the table is sure of.  The map is
-    reported, not planned with: the choice (``best_untried``) ranks the table's values.
+    0.244 on corpus objects), least so for the pushes the table is sure of.  Greedy and the
+    budgets only report it; value iteration also ranks its pushes by it (``believed_values``).
     """
     return float(p_topple) ** power
 
