@@ -80,12 +80,15 @@ def after_failure(p_topple: float, power: float) -> float:
 def believed_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float, power: float) -> np.ndarray:
     """Value iteration's Q of a pose's pushes once a push from it has failed (docs/MODEL.md (12.12)).
 
-    The table's Q_T(x, u) = p T + (1 - p) V_T(x), T the mean V_T of where a topple lands.  After
+    The table's Q_T(x, u) = p T + (1 - p) F, T the mean V_T of where a topple lands and F what the
+    table counted a failure at: V_T(x) (the thesis's retries) or V_s(x) (``mdp.retry_failed``
+    false, (12.9)); ``v_t`` is that F, so the caller passes V_s(x) for such a build.  After
     a failure u topples with p^k (``after_failure``), and a push that fails again is worth the
     grasp here, so Q'' = V_s(x) + p^k (T - V_s(x)): the believed chance of a topple times what
     it gains.  A long shot that the table values for its retries loses to a likelier push, and
     a pose whose pushes are all unlikely now is grasped.
-    q, p_topple : (A,) float, NaN unless ok;  stay : V_s(x);  v_t : V_T(x), the pose's stored value
+    q, p_topple : (A,) float, NaN unless ok;  stay : V_s(x);  v_t : F, V_T(x) (the pose's stored value)
+      or V_s(x) without retries
     power : k;  returns : (A,) float, Q'' (NaN where q is)
     """
     q, p = np.asarray(q, dtype=float), np.asarray(p_topple, dtype=float)

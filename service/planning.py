@@ -68,7 +68,7 @@ def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
 
 
 def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
-                 power: float | None = None) -> tuple[int, float | None, int]:
+                 power: float | None = None, retry_failed: bool = True) -> tuple[int, float | None, int]:
     """The policy's push among the candidates of ``pose`` that the request's failed pushes do
     not rule out (``schema.retry``), by the rule the dataset's policy or the budget uses.
     Value iteration (no budget) ranks them by what it believes of them now
@@ -102,7 +102,9 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
     else:
         q = obj.q[rows]
         if request.failed_actions and power is not None and power != 1.0:
-            q = retry.believed_values(q, widen(obj.p_topple[rows]), stay, float(obj.v_t[pose]), power)
+            # What the table's Q counted a failure at: V_T here, or V_s in a build without retries (12.9).
+            failure = float(obj.v_t[pose]) if retry_failed else stay
+            q = retry.believed_values(q, widen(obj.p_topple[rows]), stay, failure, power)
         action = retry.best_untried(q, allowed, stay, retry.POLICY_IMPROVEMENT, scale=gamma)
     return action, final, int((excluded & choosable).sum())
 
@@ -147,7 +149,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
     v_s = float(obj.v_s[pose])
     ruled = 0
     if request.failed_actions:
-        action, final, ruled = untried_push(obj, pose, request, store.gamma, store.after_failure_power)
+        action, final, ruled = untried_push(obj, pose, request, store.gamma, store.after_failure_power, store.retry_failed)
         near = np.nan if action == NO_OP else obj.neighbourhood_p(pose, action)
     elif request.pushes_left is None:
         action = int(obj.policy_action[request.policy][pose])

@@ -231,6 +231,8 @@ class Store:
         """m, the finger ends this far inside the contact along the normal."""
         self.gamma = parameters.mdp.gamma
         self.after_failure_power: float | None = parameters.mdp.after_failure_power
+        self.retry_failed: bool = parameters.mdp.retry_failed
+        """Whether the build's Q_T counts on retrying a failed push (docs/MODEL.md (12.9)); retry.believed_values needs it."""
         """k of schema.retry.after_failure; None for a build from before it (then no p_topple_given_failures)."""
         self.failures = {f.object_id: f.reason for f in manifest.failures}
         self.counts = {

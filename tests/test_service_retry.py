@@ -204,7 +204,18 @@ def test_after_a_failure_value_iteration_prefers_a_likely_push_to_a_long_shot(da
     assert untried_push(moved, pose, request, gamma, 2.1)[0] == sure
     assert untried_push(moved, pose, request, gamma, 1.0)[0] == long_shot
     assert untried_push(moved, pose, request, gamma, None)[0] == long_shot
+    # A build without retries counts a failure at V_s in Q_T: the same landings, so the same belief.
+    q_once = q.copy()
+    for action in (sure, long_shot):
+        q_once[rows.start + action] = p[action] * landing[action] + (1 - p[action]) * stay
+    once = dataclasses.replace(moved, q=q_once)
+    assert untried_push(once, pose, request, gamma, 2.1, retry_failed=False)[0] == sure
+    # The long shot alone is still worth a try; read as if Q counted retries (V_T), it would not be.
+    both = PlanRequest(object_id=obj.object_id, pose=np.eye(4).tolist(), failed_actions=[failed, sure])
+    assert untried_push(once, pose, both, gamma, 2.1, retry_failed=False)[0] == long_shot
+    believed_once = retry.believed_values(q_once[rows], p_topple[rows].astype(float), stay, stay, 2.1)
     expected = retry.believed_values(q[rows], p_topple[rows].astype(float), stay, v_t, 2.1)
+    np.testing.assert_allclose(believed_once[[sure, long_shot]], expected[[sure, long_shot]], rtol=1e-6)  # float32 P
     assert expected[sure] == pytest.approx(stay + 0.9 ** 2.1 * 0.4) and expected[long_shot] == pytest.approx(stay + 0.3 ** 2.1 * 0.75)
 
 
@@ -244,7 +255,7 @@ def test_a_failed_push_is_not_served_again_nor_its_neighbours(client, tables, da
             else:
                 replaced += 1
                 assert not excluded[answer["action"]]
-                assert allowed[answer["action"]] == pytest.approx(max(allowed.values()), abs=1e-6)
+                assert allowed[answer["action"]] == pytest.approx(max(allowed.values()), abs=1e-8)
                 again = {"object_id": object_id, "pose": pose, "action": answer["action"]}
                 assert answer["p_topple"] == pytest.approx(client.post("/batch/transitions", json={"items": [again]})
                                                            .json()["results"][0]["result"]["p_topple"])

@@ -450,6 +450,7 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, pushes_left: i
     else:
         q, improvement, scale = values.q, retry.POLICY_IMPROVEMENT, config.mdp.gamma
         if config.mdp.after_failure_power != 1.0:  # what value iteration believes of the pushes now (service.planning)
-            q = retry.believed_values(q, result.topple[pose].p_topple, stay, float(values.value), config.mdp.after_failure_power)
+            failure = float(values.value) if config.mdp.retry_failed else stay  # what Q_T counted a failure at, (12.9)
+            q = retry.believed_values(q, result.topple[pose].p_topple, stay, failure, config.mdp.after_failure_power)
     action = retry.best_untried(q, allowed, stay, improvement, scale)
     return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), int((excluded & choosable).sum())

@@ -142,7 +142,7 @@ def untried_choice(pose: int, v_s: np.ndarray, q: np.ndarray, failed: np.ndarray
 
 
 def aware_choice(pose: int, v_s: np.ndarray, q: np.ndarray, p_topple: np.ndarray, ruled_out: np.ndarray,
-                 choosable: np.ndarray, gamma: float, power: float) -> int:
+                 choosable: np.ndarray, gamma: float, power: float, retry_failed: bool = True) -> int:
     """After a failure: the untried push of most believed value, pushed if it beats grasping now.
 
     The table's Q_T(x, u) = p T + (1 - p) V_T(x), T the mean V_T of where a topple lands.  Once
@@ -158,7 +158,7 @@ def aware_choice(pose: int, v_s: np.ndarray, q: np.ndarray, p_topple: np.ndarray
     stay = float(v_s[pose])
     mine = np.where(choosable, q, np.nan)
     v_t = max(stay, gamma * float(np.nanmax(mine))) if np.isfinite(mine).any() else stay
-    believed = retry.believed_values(q, p_topple, stay, v_t, power)
+    believed = retry.believed_values(q, p_topple, stay, v_t if retry_failed else stay, power)  # (12.9): failure at V_s
     return retry.best_untried(believed, choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
 
 
@@ -334,7 +334,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                     action = untried_choice(pose, plan.v_s, candidates[pose].q, failed[pose] | ~choosable[pose], gamma)
                 elif policy == AWARE_POLICY and pose in failed:
                     action = aware_choice(pose, plan.v_s, candidates[pose].q, candidates[pose].p_topple, failed[pose],
-                                          choosable[pose], gamma, config.mdp.after_failure_power)
+                                          choosable[pose], gamma, config.mdp.after_failure_power, config.mdp.retry_failed)
                 else:
                     action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # horizon_vi: per pushes left
                 if action == NO_OP:
