@@ -46,6 +46,21 @@ def ruled_out(
     return neighbourhood._near(points, directions, failed, radius, max_angle).any(axis=0)
 
 
+def impossible_failure(failed, ok: np.ndarray) -> tuple[int, int, bool] | None:
+    """The first reported failure that cannot be one: an index the pose does not have, or a push
+    that is not ok (no policy serves it, and it would rule out the ok pushes around it).
+
+    failed : (F,) int, as reported;  ok : (A,) bool, the pose's ok candidates
+    returns : (position in ``failed``, the index, whether the pose has it at all), or None
+    """
+    for position, action in enumerate(failed):
+        if not 0 <= action < len(ok):
+            return position, int(action), False
+        if not ok[action]:
+            return position, int(action), True
+    return None
+
+
 def best_untried(values: np.ndarray, allowed: np.ndarray, stay: float, improvement: float, scale: float = 1.0) -> int:
     """The allowed candidate of largest value, pushed only if ``scale`` times its value beats
     grasping now.
@@ -93,3 +108,28 @@ def believed_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float
     """
     q, p = np.asarray(q, dtype=float), np.asarray(p_topple, dtype=float)
     return stay + np.power(p, power - 1.0) * (q - (1.0 - p) * v_t) - np.power(p, power) * stay
+
+
+def has_map(power: float | None) -> bool:
+    """Whether a build's ``mdp.after_failure_power`` is a map: None (a build from before it)
+    and 1 (the thesis preset) leave P(topple) and value iteration's ranking as the table's."""
+    return power is not None and power != 1.0
+
+
+def given_failures(p_topple: float, power: float | None) -> float | None:
+    """``p_topple_given_failures``: ``after_failure`` when the build has a map, else None."""
+    return after_failure(p_topple, power) if has_map(power) else None
+
+
+def ranking_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float, power: float | None,
+                   retry_failed: bool) -> np.ndarray:
+    """What value iteration ranks a pose's untried pushes by after a failure: ``believed_values``
+    with a map (the failure counted at V_T(x), or at V_s(x) when the build's Q_T does not retry,
+    ``mdp.retry_failed`` false), else the table's Q_T.  The service, the Python API's ``plan``
+    and the robust-choice study all rank by it.
+
+    q, p_topple : (A,) float;  stay : V_s(x);  v_t : V_T(x);  returns : (A,) float
+    """
+    if not has_map(power):
+        return np.asarray(q, dtype=float)
+    return believed_values(q, p_topple, stay, v_t if retry_failed else stay, power)

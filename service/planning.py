@@ -30,7 +30,7 @@ import orjson
 from schema import horizon, retry
 from schema.api import PlanRequest
 from schema.frames import match_pose, place_push
-from schema.vocabulary import NO_OP
+from schema.vocabulary import NO_OP, STATUS_OK
 
 from .errors import NoStablePose, OffTable, UnknownAction, UnknownFrame
 from .settings import Settings
@@ -82,12 +82,13 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
     """
     rows = obj.pose_rows(pose)
     count = rows.stop - rows.start
-    for index, action in enumerate(request.failed_actions):
-        if action >= count:
+    impossible = retry.impossible_failure(request.failed_actions, obj.status[rows] == STATUS_OK)
+    if impossible is not None:
+        index, action, exists = impossible
+        if not exists:
             raise UnknownAction(f"pose {pose} of '{obj.object_id}' has no action {action}: its actions are 0..{count - 1}", index)
-        if not obj.is_ok(rows.start + action):
-            raise UnknownAction(f"action {action} of pose {pose} of '{obj.object_id}' is {obj.status_name(rows.start + action)}, "
-                                "not ok: /plan never serves it, so it cannot have failed", index)
+        raise UnknownAction(f"action {action} of pose {pose} of '{obj.object_id}' is {obj.status_name(rows.start + action)}, "
+                            "not ok: /plan never serves it, so it cannot have failed", index)
     excluded = retry.ruled_out(obj.points[rows], obj.directions[rows], request.failed_actions)
     choosable = obj.choosable(rows)
     allowed = choosable & ~excluded
@@ -100,11 +101,8 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
     elif request.policy == "greedy":
         action = retry.best_untried(obj.greedy[rows], allowed, stay, retry.POLICY_IMPROVEMENT)
     else:
-        q = obj.q[rows]
-        if request.failed_actions and power is not None and power != 1.0:
-            # What the table's Q counted a failure at: V_T here, or V_s in a build without retries (12.9).
-            failure = float(obj.v_t[pose]) if retry_failed else stay
-            q = retry.believed_values(q, widen(obj.p_topple[rows]), stay, failure, power)
+        believed = power if request.failed_actions else None  # nothing failed: the table's own choice
+        q = retry.ranking_values(obj.q[rows], widen(obj.p_topple[rows]), stay, float(obj.v_t[pose]), believed, retry_failed)
         action = retry.best_untried(q, allowed, stay, retry.POLICY_IMPROVEMENT, scale=gamma)
     return action, final, int((excluded & choosable).sum())
 
@@ -177,9 +175,8 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
             "within_force_limit": None if force is None else bool(force <= limit),
         }
         p_topple = optional(values[10])
-        power = store.after_failure_power
-        if request.failed_actions and p_topple is not None and power is not None and power != 1.0:
-            p_given = retry.after_failure(p_topple, power)
+        if request.failed_actions and p_topple is not None:
+            p_given = retry.given_failures(p_topple, store.after_failure_power)
         # float32 storage: a mean of stored 0.76s is 0.7639999986; six decimals are all it holds.
         p_near = optional(round(float(near), 6))
         q_value = optional(obj.q[row])

@@ -72,6 +72,20 @@ def test_the_best_untried_push_must_beat_grasping_now():
     assert retry.best_untried(np.array([0.4]), np.ones(1, bool), 0.4, 0.0) == NO_OP, "equal to grasping now is no gain"
 
 
+def test_impossible_failures_and_the_ranking_without_a_map():
+    ok = np.array([True, False, True])
+    assert retry.impossible_failure([0, 2], ok) is None and retry.impossible_failure([], ok) is None
+    assert retry.impossible_failure([0, 3, 1], ok) == (1, 3, False), "the first: index 3 does not exist"
+    assert retry.impossible_failure([2, 1], ok) == (1, 1, True), "index 1 is not ok"
+    q, p = np.array([0.5, np.nan, 0.7]), np.array([0.9, np.nan, 0.2])
+    for power in (None, 1.0):
+        np.testing.assert_array_equal(retry.ranking_values(q, p, 0.3, 0.6, power, True), q)
+        assert retry.given_failures(0.6, power) is None
+    np.testing.assert_array_equal(retry.ranking_values(q, p, 0.3, 0.6, 2.0, True), retry.believed_values(q, p, 0.3, 0.6, 2.0))
+    np.testing.assert_array_equal(retry.ranking_values(q, p, 0.3, 0.6, 2.0, False), retry.believed_values(q, p, 0.3, 0.3, 2.0))
+    assert retry.given_failures(0.5, 2.0) == 0.25
+
+
 def test_the_after_failure_map_keeps_certainty_and_order():
     p = np.linspace(0.0, 1.0, 11)
     mapped = np.array([retry.after_failure(v, 1.7) for v in p])

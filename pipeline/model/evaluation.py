@@ -389,17 +389,17 @@ def plan(
         grasp = (rotation @ suction.point + origin, rotation @ suction.axis)
     choice = result.values[pose].policies[policy]
     v_s = np.array([s.quality for s in result.suction], dtype=float)
-    csr = None  # the object's tables in the budgets' layout, built when a budget needs them
-    if pushes_left is not None or failed:
-        csr = horizon.csr_from_rows([np.asarray(t.next_pose, dtype=float) for t in result.topple])
+    budget = None  # with pushes_left: the tables in the budgets' layout and V_h for h = 1..pushes_left
     if pushes_left is not None:
+        csr = horizon.csr_from_rows([np.asarray(t.next_pose, dtype=float) for t in result.topple])
         # The pushes the build's policies could choose (its mdp.min_direction_z, not ``config``'s).
         choosable = None if result.choosable is None else np.concatenate(result.choosable)
         actions, values = horizon.budget_choices(v_s, *csr, pushes_left, choosable)
         choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
+        budget = csr, values
     ruled = 0
     if failed:
-        choice, ruled = _untried_choice(result, pose, policy, pushes_left, failed, v_s, csr, config)
+        choice, ruled = _untried_choice(result, pose, policy, failed, v_s, budget, config)
     if choice.action == NO_OP:
         return Plan(match, policy, None, float(choice.value), None, None, [], grasp, ruled_out=ruled)
     actions, table = result.actions[pose], result.topple[pose]
@@ -413,44 +413,43 @@ def plan(
     next_poses = [(int(x), float(distribution[x])) for x in order if distribution[x] > 0]
     near, _ = neighbour_mean(actions.points, actions.directions, table.p_topple, rows=[a])
     p_topple = float(table.p_topple[a])
-    power = config.mdp.after_failure_power  # the caller's config, as the noise of ``evaluate_object``'s
-    given = retry.after_failure(p_topple, power) if failed and power != 1.0 else None
+    # k is the caller's config's, as everything ``evaluate_object`` was given.
+    given = retry.given_failures(p_topple, config.mdp.after_failure_power) if failed else None
     return Plan(match, policy, a, float(choice.value), p_topple, push, next_poses, grasp, float(near[0]), ruled, given)
 
 
-def _untried_choice(result: ObjectResult, pose: int, policy: str, pushes_left: int | None, failed: list[int],
-                    v_s: np.ndarray, csr: tuple, config: Config) -> tuple[PolicyChoice, int]:
+def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[int], v_s: np.ndarray,
+                    budget: tuple | None, config: Config) -> tuple[PolicyChoice, int]:
     """``plan``'s choice among the candidates of ``pose`` that no failed push rules out, by the
     policy's rule (/plan's ``service.planning.untried_push``, on the in-memory result).
 
-    v_s : (P,) float;  csr : ``horizon.csr_from_rows`` of the object's tables
+    v_s : (P,) float;  budget : None, or with pushes_left h the object's tables in the budgets'
+      layout (``horizon.csr_from_rows``) and V_1..V_h ((h, P), ``horizon.budget_choices``)
     returns : the choice (value: Q'' of value iteration, (12.12), or Q_T when k is 1; greedy's
       E[V_s]; V_h with a budget; V_s(x) for no push) and the number of candidates ruled out
     """
     actions, values = result.actions[pose], result.values[pose]
     count = len(actions.status)
-    bad = [a for a in failed if not 0 <= a < count]
-    if bad:
-        raise ValueError(f"failed_actions {bad} are no actions of pose {pose} (0..{count - 1})")
-    never = [a for a in failed if actions.status[a] != STATUS_OK]
-    if never:
-        raise ValueError(f"failed_actions {never} of pose {pose} are not ok: no policy pushes them, so they cannot have failed")
+    impossible = retry.impossible_failure(failed, actions.status == STATUS_OK)
+    if impossible is not None:
+        _, action, exists = impossible
+        if not exists:
+            raise ValueError(f"failed_actions [{action}] are no actions of pose {pose} (0..{count - 1})")
+        raise ValueError(f"failed_actions [{action}] of pose {pose} are not ok: no policy pushes them, so they cannot have failed")
     excluded = retry.ruled_out(actions.points, actions.directions, failed)
     choosable = np.ones(count, dtype=bool) if result.choosable is None else result.choosable[pose]
     allowed = choosable & ~excluded
     stay = float(v_s[pose])
-    if pushes_left is not None:
-        action_offsets, transition_offsets, next_pose, probability = csr
-        previous = v_s if pushes_left == 1 else horizon.budget_choices(
-            v_s, *csr, pushes_left - 1, None if result.choosable is None else np.concatenate(result.choosable))[1][-1]
+    if budget is not None:
+        (action_offsets, transition_offsets, next_pose, probability), budget_values = budget
+        previous = v_s if len(budget_values) == 1 else budget_values[-2]  # V_{h-1}
         rows = slice(int(action_offsets[pose]), int(action_offsets[pose + 1]))
         q, improvement, scale = horizon.pose_q(previous, rows, transition_offsets, next_pose, probability), horizon.IMPROVEMENT, 1.0
     elif policy == "greedy":
         q, improvement, scale = values.greedy, retry.POLICY_IMPROVEMENT, 1.0
     else:
-        q, improvement, scale = values.q, retry.POLICY_IMPROVEMENT, config.mdp.gamma
-        if config.mdp.after_failure_power != 1.0:  # what value iteration believes of the pushes now (service.planning)
-            failure = float(values.value) if config.mdp.retry_failed else stay  # what Q_T counted a failure at, (12.9)
-            q = retry.believed_values(q, result.topple[pose].p_topple, stay, failure, config.mdp.after_failure_power)
+        q = retry.ranking_values(values.q, result.topple[pose].p_topple, stay, float(values.value),
+                                 config.mdp.after_failure_power, config.mdp.retry_failed)
+        improvement, scale = retry.POLICY_IMPROVEMENT, config.mdp.gamma
     action = retry.best_untried(q, allowed, stay, improvement, scale)
     return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), int((excluded & choosable).sum())

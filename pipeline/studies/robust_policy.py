@@ -158,7 +158,7 @@ def aware_choice(pose: int, v_s: np.ndarray, q: np.ndarray, p_topple: np.ndarray
     stay = float(v_s[pose])
     mine = np.where(choosable, q, np.nan)
     v_t = max(stay, gamma * float(np.nanmax(mine))) if np.isfinite(mine).any() else stay
-    believed = retry.believed_values(q, p_topple, stay, v_t if retry_failed else stay, power)  # (12.9): failure at V_s
+    believed = retry.ranking_values(q, p_topple, stay, v_t, power, retry_failed)
     return retry.best_untried(believed, choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
 
 
