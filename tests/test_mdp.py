@@ -9,6 +9,7 @@ import pytest
 from pipeline.model.config import MDPConfig
 from pipeline.model.mdp import (
     IMPROVEMENT,
+    belief_value_iteration,
     greedy_policy,
     greedy_values,
     is_selected,
@@ -280,6 +281,92 @@ def test_policies_choose_among_the_choosable_pushes_and_every_push_keeps_its_val
     # All choosable is the same as no mask, to the bit.
     every = pose_values(tables, v_s, [-1, -1], thesis, [np.ones(2, dtype=bool), np.ones(1, dtype=bool)])
     assert [(v.value, v.q.tolist(), v.policies) for v in every] == [(v.value, v.q.tolist(), v.policies) for v in free]
+
+
+# ----------------------------------------------------------------------------- believing failures (12.13)
+
+
+def reference_belief_values(next_pose, v_s, gamma, power, sweeps=3000, choosable=None):
+    """Plain value iteration over the 2P states (x, fresh) and (x, failed here), with explicit
+    loops and no closed form: a fresh push topples with p, a push in the failed state with p^k,
+    landing where the row's topples land; a failure leads to (x, failed), a topple to (x', fresh)."""
+    n = len(v_s)
+    v0, v1 = np.array(v_s, dtype=float), np.array(v_s, dtype=float)
+    for _ in range(sweeps):
+        n0, n1 = np.array(v_s, dtype=float), np.array(v_s, dtype=float)
+        for x, table in enumerate(next_pose):
+            for a, row in enumerate(np.asarray(table, dtype=float)):
+                if np.isnan(row).any() or (choosable is not None and not choosable[x][a]):
+                    continue
+                p = 1.0 - row[x]
+                land = sum(row[y] * v0[y] for y in range(n) if y != x) / p if p > 0 else 0.0
+                n0[x] = max(n0[x], gamma * (p * land + (1 - p) * v1[x]))
+                n1[x] = max(n1[x], gamma * (p ** power * land + (1 - p ** power) * v1[x]))
+        v0, v1 = n0, n1
+    return v0, v1
+
+
+def test_belief_matches_a_textbook_two_state_value_iteration():
+    rng = np.random.default_rng(3)
+    for n_poses, n_actions in [(2, 3), (4, 12), (6, 20)]:
+        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+        choosable = [rng.random(len(t)) < 0.8 for t in next_pose]
+        v0, v1, q0, q1 = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000, choosable)
+        r0, r1 = reference_belief_values(next_pose, v_s, GAMMA, 2.1, choosable=choosable)
+        np.testing.assert_allclose(v0, r0, atol=1e-9)
+        np.testing.assert_allclose(v1, r1, atol=1e-9)
+        assert (v1 <= v0 + 1e-12).all() and (v1 >= v_s).all()  # a failure is never good news
+        for x, (table, a0, a1) in enumerate(zip(next_pose, q0, q1)):
+            table = np.asarray(table, dtype=float)
+            p = 1.0 - table[:, x]
+            leave = table @ v0 - table[:, x] * v0[x]
+            np.testing.assert_allclose(a0, leave + (1 - p) * v1[x], atol=1e-12)  # NaN where the row is
+            np.testing.assert_allclose(a1, p ** 1.1 * leave + (1 - p ** 2.1) * v1[x], atol=1e-12)
+
+
+def test_belief_of_power_one_is_the_thesis_and_of_a_huge_power_is_no_retries():
+    rng = np.random.default_rng(4)
+    for n_poses, n_actions in [(3, 5), (7, 30)]:
+        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+        thesis_v, thesis_q = solve(next_pose, v_s)
+        v0, v1, q0, q1 = belief_value_iteration(next_pose, v_s, GAMMA, 1.0, 1e-13, 10_000)
+        np.testing.assert_allclose(v0, thesis_v, atol=1e-10)
+        np.testing.assert_allclose(v1, thesis_v, atol=1e-10)  # with k = 1 a failure teaches nothing
+        for a, b, c in zip(q0, q1, thesis_q):
+            np.testing.assert_allclose(a, c, atol=1e-10)
+            np.testing.assert_allclose(b, c, atol=1e-10)
+        once_v, once_q = solve(next_pose, v_s, retry_failed=False)
+        v0, v1, q0, _ = belief_value_iteration(next_pose, v_s, GAMMA, 1e9, 1e-13, 10_000)
+        np.testing.assert_allclose(v0, once_v, atol=1e-10)
+        np.testing.assert_allclose(v1, v_s)  # nothing topples once a push has failed: grasp
+        for a, c in zip(q0, once_q):
+            np.testing.assert_allclose(a, c, atol=1e-10)
+
+
+def test_belief_tries_the_long_shot_once_then_takes_the_likely_push():
+    # Pose 0 (V_s 0.2): a long shot, 0.1 onto pose 1 (V_s 1.0); a likely push, 0.9 onto pose 2
+    # (V_s 0.5).  The thesis retries the long shot for ever: 0.1 g / (1 - 0.9 g) = 0.655 against
+    # 0.45 g / (1 - 0.1 g) = 0.472.  Believing failures (k = 2.1), once a push has failed the long
+    # shot topples with 0.1^2.1 = 0.008 and the likely one with 0.9^2.1 = 0.80, so the failed
+    # state takes the likely push, worth V1 = 0.45 * 0.9^1.1 g / (1 - g + 0.9^2.1 g) = 0.469; a
+    # fresh long shot is then worth 0.1 + 0.9 * 0.469 = 0.522 against 0.45 + 0.1 * 0.469 = 0.497.
+    next_pose = [np.array([[0.9, 0.1, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
+    v_s = np.array([0.2, 1.0, 0.5])
+    v_t, q_t = solve(next_pose, v_s)
+    assert np.argmax(q_t[0]) == 0  # the thesis pushes the long shot, and again after it fails
+    v0, v1, q0, q1 = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000)
+    likely = 0.45 * 0.9 ** 1.1 * GAMMA / (1 - GAMMA + 0.9 ** 2.1 * GAMMA)
+    assert v1[0] == pytest.approx(likely) and likely == pytest.approx(0.469, abs=5e-4)
+    np.testing.assert_allclose(q0[0], [0.1 + 0.9 * likely, 0.45 + 0.1 * likely])
+    assert np.argmax(q0[0]) == 0 and np.argmax(q1[0]) == 1  # the long shot first, then the likely push
+    assert v0[0] == pytest.approx(GAMMA * (0.1 + 0.9 * likely)) and v0[0] < v_t[0]
+    # Poses without pushes keep their grasp in both states.
+    np.testing.assert_allclose([v0[1], v0[2], v1[1], v1[2]], [1.0, 0.5, 1.0, 0.5])
+
+
+def test_belief_refuses_a_power_below_one():
+    with pytest.raises(ValueError, match="power >= 1"):
+        belief_value_iteration([np.zeros((0, 1))], np.array([0.5]), GAMMA, 0.5, 1e-9, 100)
 
 
 # ----------------------------------------------------------------------------- greedy values and policies

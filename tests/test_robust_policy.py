@@ -253,3 +253,58 @@ def test_once_vi_takes_the_surer_push_where_value_iteration_counts_on_retrying_a
     assert once_actions(v_s, rows, MDPConfig(), [np.array([True, False, True]), np.zeros(0, bool), np.zeros(0, bool)]).tolist() == [0, NO_OP, NO_OP]
     # Grasping at 0.9 beats the long shot alone: 0.95 x (0.3 x 1.0 + 0.7 x 0.9) = 0.8835.
     assert once_actions(np.array([0.9, 1.0, 0.5]), [rows[0][:1], rows[1], rows[2]], MDPConfig()).tolist() == [NO_OP] * 3
+
+
+def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # noqa: F811 (fixture)
+    """Played on a tiny dataset: in a fresh pose ``aware_vi`` pushes as value iteration and
+    ``belief_vi`` as argmax Q0; once a push from the pose has failed, each plays its own rule
+    over the pushes no failure ruled out (``aware_choice``; argmax Q1, ``belief_tables``)."""
+    from dataclasses import replace
+
+    from pipeline.model.mdp import IMPROVEMENT
+    from pipeline.studies.policies_physics import object_plans, open_trials
+    from pipeline.studies.robust_policy import AWARE_POLICY, BELIEF_POLICY, belief_tables, experiment, read_candidates
+    from schema import horizon, retry
+    from schema.reader import Dataset
+
+    report, pushes = experiment(dataset, 8, seed=1, workers=1)
+    assert not report["failed_objects"]
+    data, config, _, _, _ = open_trials(dataset, 8, 1)
+    mdp = data.manifest.parameters.mdp
+    mdp_config = replace(config.mdp, after_failure_power=mdp.after_failure_power)
+    by_trial: dict[tuple, dict[str, list]] = {}
+    for push in pushes:
+        by_trial.setdefault((push.object_id, push.trial), {}).setdefault(push.policy, []).append(push)
+    checked = {AWARE_POLICY: 0, BELIEF_POLICY: 0}
+    cache: dict[str, tuple] = {}
+    for (object_id, _), played in by_trial.items():
+        if object_id not in cache:
+            candidates = read_candidates(Dataset.open(dataset), object_id)
+            rows = next_pose_rows(Dataset.open(dataset), object_id, [len(c.q) for c in candidates])
+            choosable = [horizon.choosable_pushes(c.directions[:, 2], mdp.min_direction_z) for c in candidates]
+            v_s = object_plans(data, [object_id])[object_id].v_s
+            cache[object_id] = (candidates, choosable, v_s, *belief_tables(v_s, rows, mdp_config, choosable))
+        candidates, choosable, v_s, belief_first, belief_q1 = cache[object_id]
+        vi = played.get("value_iteration", [])
+        for policy in (AWARE_POLICY, BELIEF_POLICY):
+            failed: dict[int, np.ndarray] = {}
+            for step, push in enumerate(played.get(policy, [])):
+                c = candidates[push.pose]
+                if push.pose in failed:
+                    checked[policy] += 1
+                    if policy == AWARE_POLICY:
+                        expected = aware_choice(push.pose, v_s, c.q, c.p_topple, failed[push.pose], choosable[push.pose],
+                                                mdp.gamma, mdp.after_failure_power, mdp.retry_failed)
+                    else:
+                        expected = retry.best_untried(belief_q1[push.pose], choosable[push.pose] & ~failed[push.pose],
+                                                      float(v_s[push.pose]), IMPROVEMENT, scale=mdp.gamma)
+                    assert push.action == expected, (policy, object_id, push.pose)
+                elif policy == AWARE_POLICY:  # nothing failed here yet: value iteration's push
+                    assert step < len(vi) and (push.pose, push.action) == (vi[step].pose, vi[step].action)
+                else:
+                    assert push.action == belief_first[push.pose]
+                if not push.toppled:
+                    ruled_out = retry.ruled_out(c.points, c.directions, [push.action])
+                    failed[push.pose] = failed.get(push.pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
+    assert min(checked.values()) > 0, f"no push after a failure for some policy: {checked}"
+

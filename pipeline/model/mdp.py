@@ -171,6 +171,70 @@ def value_iteration(
     return value, _split(q, next_pose)
 
 
+def belief_value_iteration(
+    next_pose: list[np.ndarray],
+    v_s: np.ndarray,
+    gamma: float,
+    power: float,
+    tolerance: float,
+    max_iterations: int,
+    choosable: list[np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """Value iteration that believes its own failures (docs/MODEL.md (12.13)).
+
+    Two states per pose: fresh (x, 0), and (x, 1) once a push from x has left the object in x.
+    A failure is news about the pose (docs/VALIDATION.md "After a failed push"): there a push
+    of P(topple) p topples with p^k (``schema.retry.after_failure``, k = ``power``) and lands
+    where its row's topples land; a topple leaves the object fresh in its new pose.
+
+        Q0(x, u) = S(x, u) + (1 - p) V1(x),            S(x, u) = sum_{x' != x} P(x' | x, u) V0(x')
+        Q1(x, u) = p^(k-1) S(x, u) + (1 - p^k) V1(x)
+        V_i(x)   = max(V_s(x), gamma max_u Q_i(x, u))  over the choosable pushes
+
+    k = 1 is the thesis's value iteration (V0 = V1 = V_T); k -> infinity values a failure at
+    the grasp, (12.9).  For a fixed push the failed state's loop has the closed form
+    gamma p^(k-1) S / (1 - gamma + gamma p^k), so V1(x) follows from V0 at once and each sweep
+    only iterates V0 over the topples between poses; sweeps stop when no V0 moves by more than
+    ``tolerance`` (at most ``max_iterations``).
+
+    next_pose, v_s, choosable : as ``value_iteration``;  gamma : discount in [0, 1);  power : k >= 1
+    returns : V0, V1 (P,) float; Q0, Q1 lists of (A_x,) float, NaN where the row is NaN
+    """
+    if not power >= 1.0:
+        raise ValueError(f"belief_value_iteration needs power >= 1, got {power}")
+    v_s = np.asarray(v_s, dtype=float)
+    n_poses = len(v_s)
+    rows, owner, ok = _stack(next_pose, n_poses)
+    planned = np.ones(len(rows), dtype=bool) if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])[ok]
+    stay = _self_mass(rows, owner)
+    topple = np.clip(1.0 - stay, 0.0, 1.0)
+    leave = rows.copy()
+    leave[np.arange(len(rows)), owner] = 0.0
+    believed = np.power(topple, power - 1.0)  # p^(k-1): 0^0 is 1, harmless since S = 0 when p = 0
+    failed_loop = gamma * believed / (1.0 - gamma + gamma * topple * believed)
+
+    def best(values):  # per pose, max over the planned rows; -inf for poses without any
+        out = np.full(n_poses, -np.inf)
+        np.maximum.at(out, owner[planned], values[planned])
+        return out
+
+    value = v_s.copy()
+    for _ in range(max_iterations):
+        s = leave @ value
+        failed_value = np.maximum(v_s, best(failed_loop * s))
+        update = np.maximum(v_s, gamma * best(s + stay * failed_value[owner]))
+        change = float(np.max(np.abs(update - value))) if n_poses else 0.0
+        value = update
+        if change <= tolerance:
+            break
+    s = leave @ value
+    failed_value = np.maximum(v_s, best(failed_loop * s))
+    q0, q1 = np.full(len(ok), np.nan), np.full(len(ok), np.nan)
+    q0[ok] = s + stay * failed_value[owner]
+    q1[ok] = believed * s + (1.0 - topple * believed) * failed_value[owner]
+    return value, failed_value, _split(q0, next_pose), _split(q1, next_pose)
+
+
 def greedy_values(next_pose: list[np.ndarray], v_s: np.ndarray) -> list[np.ndarray]:
     """E[V_s(x')] of every action: the suction quality expected right after the push.
 

@@ -48,7 +48,7 @@ from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
 from ..model.config import Config, MDPConfig
-from ..model.mdp import IMPROVEMENT, pose_values, value_iteration_policy
+from ..model.mdp import IMPROVEMENT, belief_value_iteration, pose_values, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
 from .policy_experiment import best_pose_value
@@ -68,7 +68,12 @@ docs/MODEL.md (12.9)), from the dataset's transitions (``once_actions``)."""
 AWARE_POLICY = "aware_vi"
 """``untried_vi`` that, after a failure, ranks the untried pushes by what it now believes of them
 (``aware_choice``: P(topple)^k, ``mdp.after_failure_power``), a failure worth the grasp now."""
-CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY)
+BELIEF_POLICY = "belief_vi"
+"""Value iteration that believes its own failures from the first push on (``belief_tables``,
+docs/MODEL.md (12.13)): a failure is valued at the failed state's V1, and after one the untried
+pushes are ranked by Q1."""
+CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY,
+               BELIEF_POLICY)
 """The policies each compared with value iteration, paired."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
 """Policies the study plays (common random numbers: adding one changes no other's pushes)."""
@@ -261,6 +266,18 @@ def once_actions(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosa
     return np.array([v.policies["value_iteration"].action for v in values], dtype=np.int64)
 
 
+def belief_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig,
+                  choosable: list[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """``belief_vi``'s push per fresh pose, (P,) int (NO_OP: grasp), and each pose's Q1, (A_x,)
+    float, which ranks its pushes once one has failed (``pipeline.model.mdp.belief_value_iteration``
+    with k = ``mdp.after_failure_power``, over ``next_pose_rows``)."""
+    _, _, q0, q1 = belief_value_iteration(rows, v_s, mdp.gamma, mdp.after_failure_power, mdp.tolerance,
+                                          mdp.max_iterations, choosable)
+    first = [retry.best_untried(q, allowed, float(v_s[x]), IMPROVEMENT, scale=mdp.gamma)
+             for x, (q, allowed) in enumerate(zip(q0, choosable))]
+    return np.array(first, dtype=np.int64), q1
+
+
 def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int, choosable: list[np.ndarray] | None = None) -> np.ndarray:
     """(pushes, P) int: ``horizon_vi``'s push per pose with ``pushes - k`` pushes left (row k).
 
@@ -332,6 +349,9 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
             for step in range(max_pushes):
                 if policy == UNTRIED_POLICY and pose in failed:
                     action = untried_choice(pose, plan.v_s, candidates[pose].q, failed[pose] | ~choosable[pose], gamma)
+                elif policy == BELIEF_POLICY and pose in failed:
+                    action = retry.best_untried(extra["belief_q1"][pose], choosable[pose] & ~failed[pose],
+                                                float(plan.v_s[pose]), IMPROVEMENT, scale=gamma)
                 elif policy == AWARE_POLICY and pose in failed:
                     action = aware_choice(pose, plan.v_s, candidates[pose].q, candidates[pose].p_topple, failed[pose],
                                           choosable[pose], gamma, config.mdp.after_failure_power, config.mdp.retry_failed)
@@ -352,7 +372,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 poses.append(after)
                 if after < 0:
                     break
-                if policy in (UNTRIED_POLICY, AWARE_POLICY) and after == pose:
+                if policy in (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY) and after == pose:
                     # What /plan's failed_actions rules out (schema.retry), the same rule.
                     ruled_out = retry.ruled_out(c.points, c.directions, [action], exclusion.radius, exclusion.max_angle)
                     failed[pose] = failed.get(pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
@@ -393,7 +413,9 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[UNTRIED_POLICY] = plan.actions["value_iteration"]  # until a push fails
         plan.actions[AWARE_POLICY] = plan.actions["value_iteration"]
         plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
-        tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable}, by_object[object_id],
+        plan.actions[BELIEF_POLICY], belief_q1 = belief_tables(plan.v_s, rows, config.mdp, choosable)
+        tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
+                                  "belief_q1": belief_q1}, by_object[object_id],
                       config, seed, max_pushes, world))
 
     runs: dict[int, dict[str, list[int]]] = {}
