@@ -64,6 +64,10 @@ class MDPParameters(_Open):
     after_failure_power: float | None = Field(None, ge=1)
     """k of the after-failure map p^k that /plan serves with failed_actions (``schema.retry``);
     a manifest from before the field has none, and the service serves no such probability."""
+    believe_failures: bool = False
+    """Whether value iteration planned with the after-failure map from the first push on
+    (docs/MODEL.md (12.13)): the stored Q is Q0 and after a failure /plan ranks by Q1.  A manifest
+    from before the field was built with the thesis's equation."""
 
 
 class Parameters(_Open):

@@ -110,6 +110,26 @@ def believed_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float
     return stay + np.power(p, power - 1.0) * (q - (1.0 - p) * v_t) - np.power(p, power) * stay
 
 
+def failed_state_values(q0: np.ndarray, p_topple: np.ndarray, stay: float, gamma: float, power: float,
+                        choosable: np.ndarray) -> np.ndarray:
+    """Q1 of a pose's pushes once a push from it has failed, from a build that believes failures
+    (docs/MODEL.md (12.13)), read off its stored Q0 alone.
+
+    With b = p^(k-1), Q1(x, u) = b Q0(x, u) + (1 - b) V1(x): Q0 = S + (1 - p) V1 and
+    Q1 = b S + (1 - p^k) V1 share S, the value of where a topple lands.  Each push's Q1 is affine
+    in V1 with slope below 1, so V1 = max(V_s, gamma max_u Q1) is the largest of V_s and each
+    push's own fixed point gamma b Q0 / (1 - gamma + gamma b), over the choosable pushes.
+    q0, p_topple : (A,) float, NaN unless ok;  stay : V_s(x);  gamma : discount;  power : k
+    choosable : (A,) bool, the pushes value iteration plans over
+    returns : (A,) float, Q1 (NaN where q0 is)
+    """
+    q0, p = np.asarray(q0, dtype=float), np.asarray(p_topple, dtype=float)
+    believed = np.power(p, power - 1.0)
+    own = np.where(np.asarray(choosable, dtype=bool), gamma * believed * q0 / (1.0 - gamma + gamma * believed), np.nan)
+    failed = max(stay, float(np.nanmax(own))) if np.isfinite(own).any() else stay
+    return believed * q0 + (1.0 - believed) * failed
+
+
 def has_map(power: float | None) -> bool:
     """Whether a build's ``mdp.after_failure_power`` is a map: None (a build from before it)
     and 1 (the thesis preset) leave P(topple) and value iteration's ranking as the table's."""
@@ -122,14 +142,20 @@ def given_failures(p_topple: float, power: float | None) -> float | None:
 
 
 def ranking_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float, power: float | None,
-                   retry_failed: bool) -> np.ndarray:
-    """What value iteration ranks a pose's untried pushes by after a failure: ``believed_values``
-    with a map (the failure counted at V_T(x), or at V_s(x) when the build's Q_T does not retry,
-    ``mdp.retry_failed`` false), else the table's Q_T.  The service, the Python API's ``plan``
-    and the robust-choice study all rank by it.
+                   retry_failed: bool, believes: bool = False, gamma: float = 1.0,
+                   choosable: np.ndarray | None = None) -> np.ndarray:
+    """What value iteration ranks a pose's untried pushes by after a failure: with a map, Q1 of a
+    build that believes failures (``failed_state_values``, ``believes``, then ``gamma`` and
+    ``choosable`` are the build's), else ``believed_values`` (the failure counted at V_T(x), or at
+    V_s(x) when the build's Q_T does not retry, ``mdp.retry_failed`` false); without a map the
+    table's Q.  The service, the Python API's ``plan`` and the robust-choice study all rank by it.
 
-    q, p_topple : (A,) float;  stay : V_s(x);  v_t : V_T(x);  returns : (A,) float
+    q, p_topple : (A,) float;  stay : V_s(x);  v_t : V_T(x);  choosable : (A,) bool (default all)
+    returns : (A,) float
     """
     if not has_map(power):
         return np.asarray(q, dtype=float)
+    if believes:
+        mine = np.ones(len(q), dtype=bool) if choosable is None else choosable
+        return failed_state_values(q, p_topple, stay, gamma, power, mine)
     return believed_values(q, p_topple, stay, v_t if retry_failed else stay, power)

@@ -129,7 +129,7 @@ ACTIONS = pa.schema(
             "N",
             nullable=True,
         ),
-        column("q", pa.float64(), "Q_T(pose, action): expected V_T after this push, value iteration planning over the pushes the policies may choose (mdp.min_direction_z); where it leaves the object in its pose, that pose is worth its grasp V_s if mdp.retry_failed is false; null unless ok", nullable=True),
+        column("q", pa.float64(), "Q_T(pose, action): expected V_T after this push, value iteration planning over the pushes the policies may choose (mdp.min_direction_z); where it leaves the object in its pose, that pose is worth its grasp V_s if mdp.retry_failed is false, and its failed state's value V1 if mdp.believe_failures is true (Q0 of docs/MODEL.md (12.13)); null unless ok", nullable=True),
         column("greedy", pa.float64(), "E[V_s(next pose)], the Greedy policy's score; null unless ok", nullable=True),
     ],
     metadata={"table": "actions", "description": "Every candidate push of every pose; partitioned by object_id"},

@@ -68,12 +68,14 @@ def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
 
 
 def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
-                 power: float | None = None, retry_failed: bool = True) -> tuple[int, float | None, int]:
+                 power: float | None = None, retry_failed: bool = True,
+                 believes: bool = False) -> tuple[int, float | None, int]:
     """The policy's push among the candidates of ``pose`` that the request's failed pushes do
     not rule out (``schema.retry``), by the rule the dataset's policy or the budget uses.
-    Value iteration (no budget) ranks them by what it believes of them now
-    (``retry.believed_values`` with k = ``power``; the table's Q_T when None or 1 and with
-    nothing failed): it made as much V_s in pybullet with a seventh fewer pushes.
+    Value iteration (no budget) ranks them by what it believes of them now: Q1 of a build
+    that believes failures (``believes``, ``retry.failed_state_values``, docs/MODEL.md (12.13)),
+    else ``retry.believed_values`` with k = ``power`` (12.12); the table's Q when None or 1 and
+    with nothing failed.
 
     returns : action (NO_OP: grasp now), V_h of the push with ``pushes_left`` (else None), the
       number of candidates the policy could choose that are ruled out.  UnknownAction for a
@@ -102,7 +104,8 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
         action = retry.best_untried(obj.greedy[rows], allowed, stay, retry.POLICY_IMPROVEMENT)
     else:
         believed = power if request.failed_actions else None  # nothing failed: the table's own choice
-        q = retry.ranking_values(obj.q[rows], widen(obj.p_topple[rows]), stay, float(obj.v_t[pose]), believed, retry_failed)
+        q = retry.ranking_values(widen(obj.q[rows]), widen(obj.p_topple[rows]), stay, float(obj.v_t[pose]), believed, retry_failed,
+                                 believes, gamma, choosable)
         action = retry.best_untried(q, allowed, stay, retry.POLICY_IMPROVEMENT, scale=gamma)
     return action, final, int((excluded & choosable).sum())
 
@@ -147,7 +150,8 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
     v_s = float(obj.v_s[pose])
     ruled = 0
     if request.failed_actions:
-        action, final, ruled = untried_push(obj, pose, request, store.gamma, store.after_failure_power, store.retry_failed)
+        action, final, ruled = untried_push(obj, pose, request, store.gamma, store.after_failure_power, store.retry_failed,
+                                            store.believe_failures)
         near = np.nan if action == NO_OP else obj.neighbourhood_p(pose, action)
     elif request.pushes_left is None:
         action = int(obj.policy_action[request.policy][pose])

@@ -231,9 +231,11 @@ class Store:
         """m, the finger ends this far inside the contact along the normal."""
         self.gamma = parameters.mdp.gamma
         self.after_failure_power: float | None = parameters.mdp.after_failure_power
+        """k of schema.retry.after_failure; None for a build from before it (then no p_topple_given_failures)."""
         self.retry_failed: bool = parameters.mdp.retry_failed
         """Whether the build's Q_T counts on retrying a failed push (docs/MODEL.md (12.9)); retry.believed_values needs it."""
-        """k of schema.retry.after_failure; None for a build from before it (then no p_topple_given_failures)."""
+        self.believe_failures: bool = parameters.mdp.believe_failures
+        """Whether the build's Q is Q0 of docs/MODEL.md (12.13); after a failure /plan then ranks by Q1."""
         self.failures = {f.object_id: f.reason for f in manifest.failures}
         self.counts = {
             "objects": len(objects),

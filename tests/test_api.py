@@ -137,8 +137,13 @@ def test_plan_after_failed_pushes_chooses_among_the_rest_and_says_how_likely_now
             if budget is None:
                 mine, p = result.values[pose.index], result.topple[pose.index].p_topple
                 stay = result.suction[pose.index].quality
-                # Value iteration ranks by what it believes after a failure (MODEL.md (12.12)), by hand.
-                believed = stay + p ** (power - 1) * (mine.q - (1 - p) * mine.value) - p ** power * stay
+                # Value iteration ranks by what it believes after a failure, by hand: Q1 = b Q0 + (1 - b) V1,
+                # b = p^(k-1), V1 the best of V_s and each choosable push's gamma b Q0 / (1 - gamma + gamma b)
+                # (MODEL.md (12.13); CONFIG believes failures).
+                assert CONFIG.mdp.believe_failures
+                b, gamma = p ** (power - 1), CONFIG.mdp.gamma
+                v1 = max(stay, np.nanmax(np.where(result.choosable[pose.index], gamma * b * mine.q / (1 - gamma + gamma * b), np.nan)))
+                believed = b * mine.q + (1 - b) * v1
                 values = believed if policy == "value_iteration" else mine.greedy
                 allowed = np.where(result.choosable[pose.index] & ~excluded, values, np.nan)
                 assert after.value == np.nanmax(allowed), "the policy's own rule over the rest"

@@ -444,20 +444,18 @@ def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_
     assert json.loads((copy / "manifest.json").read_text())["corpus"]["objects"][0]["object_id"] == OBJECTS[0]
 
 
-def test_a_parameter_only_the_service_reads_recomputes_nothing(reference, corpus, tmp_path, capsys):
-    # mdp.after_failure_power (schema.retry's map) is served from the manifest; the build never
-    # reads it, so a new value rewrites the manifest over the same shards.
-    copy = tmp_path / "dataset"
-    shutil.copytree(reference, copy)
-    capsys.readouterr()
-    assert build(corpus, copy, "--workers", "1", "--set", "mdp.after_failure_power=3") == 0
-    assert "resuming: 3 of 3 objects already complete" in capsys.readouterr().err
-    manifest = read_manifest(copy)
-    assert manifest.parameters.mdp.after_failure_power == 3.0 and manifest.run["computed"] == 0
-    assert_same_dataset(reference, copy)
-    config = Config.from_dict(manifest.parameters.model_dump())
+def test_the_after_failure_power_is_part_of_a_shard_only_when_value_iteration_plans_with_it(reference, corpus):
+    # mdp.after_failure_power (schema.retry's map) is what value iteration plans with when it
+    # believes failures (the default, MODEL.md (12.13)), so a new value is a new shard; a build that
+    # does not believe them never reads it, and then a new value asks for no rebuild.
+    config = Config.from_dict(read_manifest(reference).parameters.model_dump())
+    assert config.mdp.believe_failures
     spec = next(iter(read_list(corpus, 0.25).specs))
-    assert shards.shard_inputs(spec, config) == shards.shard_inputs(spec, Config.from_dict(read_manifest(reference).parameters.model_dump()))
+    other_power = config.with_overrides({"mdp.after_failure_power": 3.0})
+    assert shards.fingerprint(shards.shard_inputs(spec, other_power)) != shards.fingerprint(shards.shard_inputs(spec, config))
+    thesis = config.with_overrides({"mdp.believe_failures": False})
+    assert shards.shard_inputs(spec, thesis) == shards.shard_inputs(spec, thesis.with_overrides({"mdp.after_failure_power": 3.0}))
+    assert shards.shard_inputs(spec, thesis) != shards.shard_inputs(spec, config)
     other = config.with_overrides({"mdp.gamma": 0.9})
     assert shards.fingerprint(shards.shard_inputs(spec, other)) != shards.fingerprint(shards.shard_inputs(spec, config))
 

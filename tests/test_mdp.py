@@ -267,7 +267,7 @@ def test_policies_choose_among_the_choosable_pushes_and_every_push_keeps_its_val
     # above, say); push 1 reaches it half the time.  Pose 1 is the best pose.
     v_s = np.array([0.1, 0.9])
     tables = [np.array([[0.0, 1.0], [0.5, 0.5]]), np.array([[0.0, 1.0]])]
-    thesis = MDPConfig()  # the value below counts on retrying push 1
+    thesis = MDPConfig(believe_failures=False)  # the value below counts on retrying push 1
     free = pose_values(tables, v_s, [-1, -1], thesis)
     assert free[0].policies["value_iteration"].action == 0 and free[0].policies["greedy"].action == 0
     kept = pose_values(tables, v_s, [-1, -1], thesis, [np.array([False, True]), np.array([True])])
@@ -343,6 +343,11 @@ def test_belief_of_power_one_is_the_thesis_and_of_a_huge_power_is_no_retries():
             np.testing.assert_allclose(a, c, atol=1e-10)
 
 
+def long_shot_and_likely_push():
+    """Pose 0 (V_s 0.2): a long shot, 0.1 onto pose 1 (V_s 1.0); a likely push, 0.9 onto pose 2 (V_s 0.5)."""
+    return [np.array([[0.9, 0.1, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))], np.array([0.2, 1.0, 0.5])
+
+
 def test_belief_tries_the_long_shot_once_then_takes_the_likely_push():
     # Pose 0 (V_s 0.2): a long shot, 0.1 onto pose 1 (V_s 1.0); a likely push, 0.9 onto pose 2
     # (V_s 0.5).  The thesis retries the long shot for ever: 0.1 g / (1 - 0.9 g) = 0.655 against
@@ -350,8 +355,7 @@ def test_belief_tries_the_long_shot_once_then_takes_the_likely_push():
     # shot topples with 0.1^2.1 = 0.008 and the likely one with 0.9^2.1 = 0.80, so the failed
     # state takes the likely push, worth V1 = 0.45 * 0.9^1.1 g / (1 - g + 0.9^2.1 g) = 0.469; a
     # fresh long shot is then worth 0.1 + 0.9 * 0.469 = 0.522 against 0.45 + 0.1 * 0.469 = 0.497.
-    next_pose = [np.array([[0.9, 0.1, 0.0], [0.1, 0.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 3))]
-    v_s = np.array([0.2, 1.0, 0.5])
+    next_pose, v_s = long_shot_and_likely_push()
     v_t, q_t = solve(next_pose, v_s)
     assert np.argmax(q_t[0]) == 0  # the thesis pushes the long shot, and again after it fails
     v0, v1, q0, q1 = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000)
@@ -362,6 +366,19 @@ def test_belief_tries_the_long_shot_once_then_takes_the_likely_push():
     assert v0[0] == pytest.approx(GAMMA * (0.1 + 0.9 * likely)) and v0[0] < v_t[0]
     # Poses without pushes keep their grasp in both states.
     np.testing.assert_allclose([v0[1], v0[2], v1[1], v1[2]], [1.0, 0.5, 1.0, 0.5])
+
+
+def test_pose_values_believe_failures_by_default_and_the_thesis_preset_does_not():
+    next_pose, v_s = long_shot_and_likely_push()
+    believing = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig())
+    thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(believe_failures=False))
+    assert thesis[0].policies["value_iteration"].action == believing[0].policies["value_iteration"].action == 0
+    assert believing[0].value < thesis[0].value  # a failure is worth V1 < V_T
+    # k = 1 believes nothing: the thesis's equation, to the bit.
+    no_map = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(after_failure_power=1.0))
+    assert [(v.value, v.q.tolist()) for v in no_map] == [(v.value, v.q.tolist()) for v in thesis]
+    with pytest.raises(ValueError, match="two answers to one question"):
+        MDPConfig(retry_failed=False)
 
 
 def test_belief_refuses_a_power_below_one():
@@ -431,7 +448,7 @@ def test_max_height_policy_rules():
 
 def test_pose_values_takes_retries_from_the_config():
     next_pose, v_s = long_shot()
-    once = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(retry_failed=False))
+    once = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(retry_failed=False, believe_failures=False))
     thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig())
     assert once[0].policies["value_iteration"].action == 1
     assert thesis[0].policies["value_iteration"].action == 0
@@ -457,12 +474,15 @@ def test_without_retries_undiscounted_loops_and_pushes_it_may_not_choose():
     np.testing.assert_allclose(v[0], GAMMA * 0.35, atol=1e-12)
 
 
-@pytest.mark.parametrize("retry_failed", [True, False])
-def test_pose_values_ties_it_together(retry_failed):
+@pytest.mark.parametrize("retry_failed, believes", [(True, False), (False, False), (True, True)])
+def test_pose_values_ties_it_together(retry_failed, believes):
     next_pose, v_s = figure_4_6()
-    config = MDPConfig(gamma=GAMMA, tolerance=1e-12, retry_failed=retry_failed)
+    config = MDPConfig(gamma=GAMMA, tolerance=1e-12, retry_failed=retry_failed, believe_failures=believes)
     values = pose_values(next_pose, v_s, [1, 0, -1, 0], config)
-    v, q = solve(next_pose, v_s, retry_failed=retry_failed)
+    if believes:  # the stored Q and value are Q0 and V0 (MODEL.md (12.13))
+        v, _, q, _ = belief_value_iteration(next_pose, v_s, GAMMA, config.after_failure_power, 1e-12, 10_000)
+    else:
+        v, q = solve(next_pose, v_s, retry_failed=retry_failed)
     assert len(values) == 4
     for x, pv in enumerate(values):
         assert set(pv.policies) == {"max_height", "greedy", "value_iteration"}

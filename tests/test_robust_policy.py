@@ -294,7 +294,8 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
                     checked[policy] += 1
                     if policy == AWARE_POLICY:
                         expected = aware_choice(push.pose, v_s, c.q, c.p_topple, failed[push.pose], choosable[push.pose],
-                                                mdp.gamma, mdp.after_failure_power, mdp.retry_failed)
+                                                mdp.gamma, mdp.after_failure_power, mdp.retry_failed,
+                                                mdp.believe_failures)
                     else:
                         expected = retry.best_untried(belief_q1[push.pose], choosable[push.pose] & ~failed[push.pose],
                                                       float(v_s[push.pose]), IMPROVEMENT, scale=mdp.gamma)

@@ -64,18 +64,20 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
     old = Config().to_dict()
     del old["mdp"]["min_direction_z"]
     del old["mdp"]["retry_failed"]  # and value iteration without retries (MODEL.md (12.9))
+    del old["mdp"]["believe_failures"]  # and value iteration that believes failures (MODEL.md (12.13))
     del old["topple"]["down_map"], old["topple"]["down_map_z"]  # it predates the down map (MODEL.md C.15) too
     parameters = Parameters.model_validate(old)
     assert parameters.mdp.min_direction_z == -1.0
     assert parameters.mdp.retry_failed is True, "built counting on retries, read so"
+    assert parameters.mdp.believe_failures is False, "built with the thesis's equation, read so"
     assert Config.from_dict(parameters.model_dump()).mdp.retry_failed is True
-    without = Config().with_overrides({"mdp.retry_failed": False}).to_dict()
+    without = Config().with_overrides({"mdp.retry_failed": False, "mdp.believe_failures": False}).to_dict()
     assert Parameters.model_validate(without).mdp.retry_failed is False
     assert Config.from_dict(parameters.model_dump()).mdp.min_direction_z == -1.0
     del old["mdp"]["after_failure_power"]  # and the after-failure map /plan serves (schema.retry)
     parameters = Parameters.model_validate(old)
     assert parameters.mdp.after_failure_power is None, "no map: the service serves no p_topple_given_failures"
     assert Config.from_dict(parameters.model_dump()).mdp == MDPConfig(
-        min_direction_z=-1.0), "the rest reads as before; the map, unused by the build, as the default"
+        min_direction_z=-1.0, believe_failures=False), "the rest reads as before; the map, unused by the build, as the default"
     assert Config.from_dict(parameters.model_dump()).topple.down_map == (), "built without the down map, read without it"
     assert Parameters.model_validate(Config().to_dict()).mdp.min_direction_z == Config().mdp.min_direction_z == -0.3

@@ -233,12 +233,28 @@ def test_after_a_failure_value_iteration_prefers_a_likely_push_to_a_long_shot(da
     assert expected[sure] == pytest.approx(stay + 0.9 ** 2.1 * 0.4) and expected[long_shot] == pytest.approx(stay + 0.3 ** 2.1 * 0.75)
 
 
-def choice_value(action: dict, pose: dict, column: str, power: float) -> float:
+def failed_value(actions: dict, object_id: str, pose: dict, index: int, choosable: np.ndarray, gamma: float,
+                 power: float) -> float:
+    """V1 of a pose of a build that believes failures (MODEL.md (12.13)), by hand from the analysts'
+    tables: the best of V_s and each choosable push's own fixed point gamma b Q0 / (1 - gamma + gamma b)."""
+    best = pose["v_s"]
+    for a in np.flatnonzero(choosable):
+        row = actions[(object_id, index, int(a))]
+        if row["q"] is not None:
+            b = row["p_topple"] ** (power - 1)
+            best = max(best, gamma * b * row["q"] / (1 - gamma + gamma * b))
+    return best
+
+
+def choice_value(action: dict, pose: dict, column: str, power: float, v1: float | None = None) -> float:
     """What a policy ranks an untried push by, from the analysts' tables: greedy its expected V_s,
-    value iteration what it believes now (MODEL.md (12.12)), by hand."""
+    value iteration what it believes now, by hand: Q1 = b Q0 + (1 - b) V1 (MODEL.md (12.13)) for a
+    build that believes failures (``v1`` given), else (12.12)."""
     if column == "greedy":
         return action["greedy"]
     p, stay = action["p_topple"], pose["v_s"]
+    if v1 is not None:
+        return p ** (power - 1) * action["q"] + (1 - p ** (power - 1)) * v1
     return stay + p ** (power - 1) * (action["q"] - (1 - p) * pose["v_t"]) - p ** power * stay
 
 
@@ -258,8 +274,10 @@ def test_a_failed_push_is_not_served_again_nor_its_neighbours(client, tables, da
             assert (answer["p_topple_given_failures"] is None) == (answer["action"] is None)
             assert "1 failed push" in answer["reason"]
             actions = tables["actions"]
-            power = tables["manifest"]["parameters"]["mdp"]["after_failure_power"]
-            allowed = {a: choice_value(actions[(object_id, pose, a)], row, column, power)
+            mdp = tables["manifest"]["parameters"]["mdp"]
+            power = mdp["after_failure_power"]
+            v1 = failed_value(actions, object_id, row, pose, obj.choosable(rows), store.gamma, power) if mdp["believe_failures"] else None
+            allowed = {a: choice_value(actions[(object_id, pose, a)], row, column, power, v1)
                        for a in np.flatnonzero(~excluded & obj.choosable(rows)) if actions[(object_id, pose, a)][column] is not None}
             if answer["action"] is None:
                 best = max(allowed.values(), default=-np.inf)

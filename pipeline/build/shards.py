@@ -43,7 +43,13 @@ COMPRESS_ABOVE_BYTES = 16 * 1024
 SERVING_ONLY = {"mdp": ("after_failure_power",)}
 """Parameters the build does not use, which the manifest carries for the service (section ->
 keys): they are no part of a shard's identity, so a new value asks for no rebuild and a dataset
-built before one existed can still be added to."""
+built before one existed can still be added to.  ``after_failure_power`` is one only when value
+iteration does not believe failures (``mdp.believe_failures``, docs/MODEL.md (12.13))."""
+
+
+def serving_only(config: Config) -> dict[str, tuple[str, ...]]:
+    """``SERVING_ONLY`` for this configuration: a build that believes failures plans with k."""
+    return {} if config.mdp.believe_failures else SERVING_ONLY
 
 
 def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:
@@ -52,7 +58,7 @@ def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:
     source).  The mesh's location is left out: the same file elsewhere gives the same shard."""
     identity = {k: v for k, v in dataclasses.asdict(spec).items() if k != "path"}
     parameters = config.to_dict()
-    for section, keys in SERVING_ONLY.items():
+    for section, keys in serving_only(config).items():
         parameters[section] = {k: v for k, v in parameters[section].items() if k not in keys}
     return {"schema_version": SCHEMA_VERSION, "config": parameters, "object": identity}
 

@@ -425,13 +425,29 @@ class MDPConfig:
     after_failure_power: float = bounded(2.1, Range(1.0, None))
     """k of the map g(p) = p^k from a push's P(topple) to its topple rate once a push from the
     same pose has failed: what ``/plan`` serves as ``p_topple_given_failures`` when a client
-    reports its failed pushes (``schema.retry``).  The build does not use it.  A failure says
+    reports its failed pushes (``schema.retry``), and what value iteration plans with when
+    ``believe_failures`` (else the build does not use it).  A failure says
     the pose topples less than the table thinks: in pybullet value iteration's next pushes after
     one were predicted 0.244 and toppled 0.122 on corpus objects, while its first tries were
     honest.  Value iteration also ranks the untried pushes by it after a failure
     (docs/MODEL.md (12.12)).  Fitted on corpus objects only (docs/VALIDATION.md, "After a failed
     push"); 1 is no map (the thesis preset: the service then serves no such probability and value
     iteration ranks by Q_T)."""
+    believe_failures: bool = True
+    """Whether value iteration plans with the after-failure map from the first push on
+    (docs/MODEL.md (12.13)): two states per pose, fresh and failed-here, a push from a pose where
+    one has failed toppling with P^k, so the stored Q values a failure at the failed state's value
+    V1(x), and after a failure ``/plan`` ranks the untried pushes by Q1.  k = 1 (the thesis preset)
+    is the thesis's value iteration.  Played in pybullet against the thesis's equation, rule written
+    before it was played: +0.012 V_s on four corpus seeds, +0.018 on two held-out ones, with a sixth
+    fewer pushes (docs/VALIDATION.md, "Value iteration that believes its failures").  False: the
+    thesis's Bellman equation, and after a failure (12.12)."""
+
+    def __post_init__(self) -> None:
+        if self.believe_failures and not self.retry_failed:
+            raise ValueError("mdp.retry_failed = false values a failure at the grasp (MODEL.md (12.9)) and "
+                             "mdp.believe_failures = true at the failed state's value (12.13): two answers to one "
+                             "question; set mdp.believe_failures = false with mdp.retry_failed = false")
 
 
 @dataclass(frozen=True)

@@ -449,7 +449,8 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
         q, improvement, scale = values.greedy, retry.POLICY_IMPROVEMENT, 1.0
     else:
         q = retry.ranking_values(values.q, result.topple[pose].p_topple, stay, float(values.value),
-                                 config.mdp.after_failure_power, config.mdp.retry_failed)
+                                 config.mdp.after_failure_power, config.mdp.retry_failed, config.mdp.believe_failures,
+                                 config.mdp.gamma, choosable)
         improvement, scale = retry.POLICY_IMPROVEMENT, config.mdp.gamma
     action = retry.best_untried(q, allowed, stay, improvement, scale)
     return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), int((excluded & choosable).sum())

@@ -13,6 +13,10 @@ leaves the object where it was is worth grasping there, V_s(x), not V_T(x):
 
     Q_T(x, u) = sum_{x' != x} P(x' | x, u) V_T(x') + P(x | x, u) V_s(x)
 
+or, with ``believe_failures`` (the default, docs/MODEL.md (12.13)), over a fresh and a failed
+state per pose, where a push topples with P^k once one from the pose has failed
+(``belief_value_iteration``).
+
 Inputs, for an object with P poses:
 
 next_pose : list of P arrays, next_pose[x] is (A_x, P) float, P(x' | x, u) for the
@@ -308,11 +312,16 @@ def pose_values(
       value under that plan (push it, then follow the policy), choosable or not.  Max-Height
       pushes its own push, as the thesis defines it.
     returns : list of P PoseValues (q = Q_T, greedy = E[V_s(x')], value = V_T(x), and
-      policies ``max_height``, ``greedy``, ``value_iteration``)
+      policies ``max_height``, ``greedy``, ``value_iteration``); when ``config`` believes failures
+      (``believe_failures`` with k > 1), q = Q0 and value = V0 of ``belief_value_iteration``
     """
     v_s = np.asarray(v_s, dtype=float)
-    v_t, q = value_iteration(next_pose, v_s, config.gamma, config.tolerance, config.max_iterations, choosable,
-                             config.retry_failed)
+    if config.believe_failures and retry.has_map(config.after_failure_power):
+        v_t, _, q, _ = belief_value_iteration(next_pose, v_s, config.gamma, config.after_failure_power, config.tolerance,
+                                              config.max_iterations, choosable)
+    else:
+        v_t, q = value_iteration(next_pose, v_s, config.gamma, config.tolerance, config.max_iterations, choosable,
+                                 config.retry_failed)
     greedy = greedy_values(next_pose, v_s)
     out = []
     for x in range(len(v_s)):

@@ -147,8 +147,9 @@ def untried_choice(pose: int, v_s: np.ndarray, q: np.ndarray, failed: np.ndarray
 
 
 def aware_choice(pose: int, v_s: np.ndarray, q: np.ndarray, p_topple: np.ndarray, ruled_out: np.ndarray,
-                 choosable: np.ndarray, gamma: float, power: float, retry_failed: bool = True) -> int:
-    """After a failure: the untried push of most believed value, pushed if it beats grasping now.
+                 choosable: np.ndarray, gamma: float, power: float, retry_failed: bool = True, believes: bool = False) -> int:
+    """After a failure: the untried push of most believed value, pushed if it beats grasping now
+    (``schema.retry.ranking_values``, what /plan serves).
 
     The table's Q_T(x, u) = p T + (1 - p) V_T(x), T the mean V_T of where a topple lands.  Once
     a push from x has failed, u topples with p^k (``schema.retry.after_failure``), and a push
@@ -156,14 +157,15 @@ def aware_choice(pose: int, v_s: np.ndarray, q: np.ndarray, p_topple: np.ndarray
 
         Q''(x, u) = V_s(x) + p^k (T - V_s(x)) = V_s(x) + p^(k-1) (Q_T - (1 - p) V_T(x)) - p^k V_s(x)
 
-    with the stored V_T(x) = max(V_s(x), gamma max Q_T over the choosable pushes).
+    with the stored V_T(x) = max(V_s(x), gamma max Q_T over the choosable pushes).  From a dataset
+    built believing failures (``believes``, docs/MODEL.md (12.13)) q is Q0 and the ranking is Q1.
     pose : int;  v_s : (P,) float;  q, p_topple : (A,) float, NaN unless ok
     ruled_out, choosable : (A,) bool;  power : k;  returns : action index, or NO_OP
     """
     stay = float(v_s[pose])
     mine = np.where(choosable, q, np.nan)
     v_t = max(stay, gamma * float(np.nanmax(mine))) if np.isfinite(mine).any() else stay
-    believed = retry.ranking_values(q, p_topple, stay, v_t, power, retry_failed)
+    believed = retry.ranking_values(q, p_topple, stay, v_t, power, retry_failed, believes, gamma, choosable)
     return retry.best_untried(believed, choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
 
 
@@ -262,7 +264,7 @@ def once_actions(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosa
     """(P,) int: value iteration's push per pose without retries (``mdp`` with
     ``retry_failed = False``, ``pipeline.model.mdp.pose_values``) over ``next_pose_rows``;
     NO_OP: grasp.  choosable : as ``robust_actions``."""
-    values = pose_values(rows, v_s, [-1] * len(rows), replace(mdp, retry_failed=False), choosable)
+    values = pose_values(rows, v_s, [-1] * len(rows), replace(mdp, retry_failed=False, believe_failures=False), choosable)
     return np.array([v.policies["value_iteration"].action for v in values], dtype=np.int64)
 
 
@@ -354,7 +356,8 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                                                 float(plan.v_s[pose]), IMPROVEMENT, scale=gamma)
                 elif policy == AWARE_POLICY and pose in failed:
                     action = aware_choice(pose, plan.v_s, candidates[pose].q, candidates[pose].p_topple, failed[pose],
-                                          choosable[pose], gamma, config.mdp.after_failure_power, config.mdp.retry_failed)
+                                          choosable[pose], gamma, config.mdp.after_failure_power, config.mdp.retry_failed,
+                                          config.mdp.believe_failures)
                 else:
                     action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # horizon_vi: per pushes left
                 if action == NO_OP:
