@@ -142,7 +142,7 @@ def given_failures(p_topple: float, power: float | None) -> float | None:
 
 
 def ranking_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float, power: float | None,
-                   retry_failed: bool, believes: bool = False, gamma: float = 1.0,
+                   retry_failed: bool, believes: bool = False, gamma: float | None = None,
                    choosable: np.ndarray | None = None) -> np.ndarray:
     """What value iteration ranks a pose's untried pushes by after a failure: with a map, Q1 of a
     build that believes failures (``failed_state_values``, ``believes``, then ``gamma`` and
@@ -150,12 +150,13 @@ def ranking_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float,
     V_s(x) when the build's Q_T does not retry, ``mdp.retry_failed`` false); without a map the
     table's Q.  The service, the Python API's ``plan`` and the robust-choice study all rank by it.
 
-    q, p_topple : (A,) float;  stay : V_s(x);  v_t : V_T(x);  choosable : (A,) bool (default all)
+    q, p_topple : (A,) float;  stay : V_s(x);  v_t : V_T(x);  choosable : (A,) bool
     returns : (A,) float
     """
     if not has_map(power):
         return np.asarray(q, dtype=float)
     if believes:
-        mine = np.ones(len(q), dtype=bool) if choosable is None else choosable
-        return failed_state_values(q, p_topple, stay, gamma, power, mine)
+        if gamma is None or choosable is None:
+            raise ValueError("a build that believes failures ranks by Q1, which needs its gamma and choosable pushes")
+        return failed_state_values(q, p_topple, stay, gamma, power, choosable)
     return believed_values(q, p_topple, stay, v_t if retry_failed else stay, power)

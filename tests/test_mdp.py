@@ -381,6 +381,40 @@ def test_pose_values_believe_failures_by_default_and_the_thesis_preset_does_not(
         MDPConfig(retry_failed=False)
 
 
+def test_belief_plans_over_the_choosable_pushes_only():
+    # The likely push may not be chosen (a push from above, say): the failed state can only take
+    # the long shot again, V1 = max(0.2, 0.1^1.1 * 0.1 g / (1 - g + 0.1^2.1 g)) = 0.2, and the
+    # fresh long shot is worth 0.1 + 0.9 * 0.2; the likely push keeps its Q0 under that plan.
+    next_pose, v_s = long_shot_and_likely_push()
+    choosable = [np.array([True, False]), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)]
+    v0, v1, q0, q1 = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000, choosable)
+    assert v1[0] == pytest.approx(0.2) and v0[0] == pytest.approx(GAMMA * (0.1 + 0.9 * 0.2))
+    np.testing.assert_allclose(q0[0], [0.1 + 0.9 * 0.2, 0.45 + 0.1 * 0.2])
+    free = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000)
+    assert free[1][0] > 0.4, "with every push choosable the failed state takes the likely push"
+    # pose_values plans the same way, and chooses only among the choosable pushes.
+    values = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(tolerance=1e-13), choosable)
+    assert values[0].value == pytest.approx(v0[0]) and values[0].policies["value_iteration"].action == 0
+    np.testing.assert_allclose(values[0].q, q0[0])
+
+
+def test_the_service_reads_q1_off_the_stored_q0():
+    # schema.retry.failed_state_values, from a pose's own Q0, P and V_s alone, is the solver's Q1.
+    from schema import retry
+
+    rng = np.random.default_rng(5)
+    for n_poses, n_actions in [(3, 6), (6, 25)]:
+        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+        choosable = [rng.random(len(t)) < 0.7 for t in next_pose]
+        _, _, q0, q1 = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000, choosable)
+        for x, table in enumerate(next_pose):
+            p = 1.0 - np.asarray(table, dtype=float)[:, x]
+            served = retry.ranking_values(q0[x], p, v_s[x], np.nan, 2.1, True, True, GAMMA, choosable[x])
+            np.testing.assert_allclose(served, q1[x], atol=1e-12)
+    with pytest.raises(ValueError, match="gamma and choosable"):
+        retry.ranking_values(q0[0], p, v_s[0], np.nan, 2.1, True, True)
+
+
 def test_belief_refuses_a_power_below_one():
     with pytest.raises(ValueError, match="power >= 1"):
         belief_value_iteration([np.zeros((0, 1))], np.array([0.5]), GAMMA, 0.5, 1e-9, 100)
