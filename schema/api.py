@@ -400,7 +400,7 @@ class PlanRequest(Model):
         "12% of the time where its table said 31%), so the policy chooses among the candidates that no failed push "
         "rules out: each failed push and its neighbourhood (contacts within 2 cm, directions within 0.5 rad: "
         "schema/retry.py); greedy and a budget by their table values, value iteration by what it believes of the "
-        "pushes now (docs/MODEL.md (12.12)). Only with greedy or value_iteration (pushes_left too); an index the "
+        "pushes now (docs/MODEL.md (12.13); (12.12) in a build from before it). Only with greedy or value_iteration (pushes_left too); an index the "
         "matched pose does not have, or of a push that is not ok (never served), is a 422",
     )
 

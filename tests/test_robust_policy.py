@@ -256,14 +256,16 @@ def test_once_vi_takes_the_surer_push_where_value_iteration_counts_on_retrying_a
 
 
 def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # noqa: F811 (fixture)
-    """Played on a tiny dataset: in a fresh pose ``aware_vi`` pushes as value iteration and
-    ``belief_vi`` as argmax Q0; once a push from the pose has failed, each plays its own rule
-    over the pushes no failure ruled out (``aware_choice``; argmax Q1, ``belief_tables``)."""
+    """Played on a tiny dataset: in a fresh pose ``aware_vi`` pushes as value iteration,
+    ``belief_vi`` as argmax Q0 and ``belief_horizon_vi`` as argmax Q0_h (h pushes left); once a
+    push from the pose has failed, each plays its own rule over the pushes no failure ruled out
+    (``aware_choice``; argmax Q1, ``belief_tables``; argmax Q1_h, ``belief_budget_values``)."""
     from dataclasses import replace
 
-    from pipeline.model.mdp import IMPROVEMENT
+    from pipeline.model.mdp import IMPROVEMENT, belief_budget_values
     from pipeline.studies.policies_physics import object_plans, open_trials
-    from pipeline.studies.robust_policy import AWARE_POLICY, BELIEF_POLICY, belief_tables, experiment, read_candidates
+    from pipeline.studies.robust_policy import (AWARE_POLICY, BELIEF_HORIZON_POLICY, BELIEF_POLICY, belief_tables, experiment,
+                                                read_candidates)
     from schema import horizon, retry
     from schema.reader import Dataset
 
@@ -275,7 +277,8 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
     by_trial: dict[tuple, dict[str, list]] = {}
     for push in pushes:
         by_trial.setdefault((push.object_id, push.trial), {}).setdefault(push.policy, []).append(push)
-    checked = {AWARE_POLICY: 0, BELIEF_POLICY: 0}
+    checked = {AWARE_POLICY: 0, BELIEF_POLICY: 0, BELIEF_HORIZON_POLICY: 0}
+    budget_pushes = report["max_pushes"]
     cache: dict[str, tuple] = {}
     for (object_id, _), played in by_trial.items():
         if object_id not in cache:
@@ -283,14 +286,20 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
             rows = next_pose_rows(Dataset.open(dataset), object_id, [len(c.q) for c in candidates])
             choosable = [horizon.choosable_pushes(c.directions[:, 2], mdp.min_direction_z) for c in candidates]
             v_s = object_plans(data, [object_id])[object_id].v_s
-            cache[object_id] = (candidates, choosable, v_s, *belief_tables(v_s, rows, mdp_config, choosable))
-        candidates, choosable, v_s, belief_first, belief_q1 = cache[object_id]
+            cache[object_id] = (candidates, choosable, v_s, *belief_tables(v_s, rows, mdp_config, choosable),
+                                belief_budget_values(rows, v_s, mdp.after_failure_power, budget_pushes, choosable))
+        candidates, choosable, v_s, belief_first, belief_q1, (q0s, q1s) = cache[object_id]
         vi = played.get("value_iteration", [])
-        for policy in (AWARE_POLICY, BELIEF_POLICY):
+        for policy in (AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY):
             failed: dict[int, np.ndarray] = {}
             for step, push in enumerate(played.get(policy, [])):
                 c = candidates[push.pose]
-                if push.pose in failed:
+                if policy == BELIEF_HORIZON_POLICY:
+                    checked[policy] += push.pose in failed
+                    values = (q1s if push.pose in failed else q0s)[budget_pushes - step - 1][push.pose]
+                    allowed = choosable[push.pose] & ~failed.get(push.pose, np.zeros(len(c.q), dtype=bool))
+                    assert push.action == retry.best_untried(values, allowed, float(v_s[push.pose]), horizon.IMPROVEMENT)
+                elif push.pose in failed:
                     checked[policy] += 1
                     if policy == AWARE_POLICY:
                         expected = aware_choice(push.pose, v_s, c.q, c.p_topple, failed[push.pose], choosable[push.pose],

@@ -356,8 +356,8 @@ def plan(
     value_iteration), the policy's push among the candidates they do not rule out, and
     ``p_topple_given_failures`` (``schema.retry``, as /plan's ``failed_actions``; k is
     ``config``'s ``mdp.after_failure_power``, none when it is 1).  Value iteration then ranks
-    them by what it believes of them (``retry.believed_values``, docs/MODEL.md (12.12)), and
-    the plan's ``value`` is that belief.
+    them by what it believes of them (``retry.ranking_values``: Q1 of docs/MODEL.md (12.13) when
+    the config believes failures, the default, else (12.12)), and the plan's ``value`` is that belief.
 
     Raises ``NotResting`` when the orientation is within ``tolerance`` of no stable pose
     or the pose's support plane is more than ``height_tolerance`` from the table.
@@ -425,7 +425,7 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
 
     v_s : (P,) float;  budget : None, or with pushes_left h the object's tables in the budgets'
       layout (``horizon.csr_from_rows``) and V_1..V_h ((h, P), ``horizon.budget_choices``)
-    returns : the choice (value: Q'' of value iteration, (12.12), or Q_T when k is 1; greedy's
+    returns : the choice (value: value iteration's Q1, (12.13), or Q'', (12.12), or Q_T when k is 1; greedy's
       E[V_s]; V_h with a budget; V_s(x) for no push) and the number of candidates ruled out
     """
     actions, values = result.actions[pose], result.values[pose]

@@ -31,6 +31,8 @@ No geometry here: the service and planners can import it without the mesh stack.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from schema import retry
@@ -175,6 +177,41 @@ def value_iteration(
     return value, _split(q, next_pose)
 
 
+@dataclass(frozen=True)
+class _BeliefRows:
+    """An object's ``ok`` rows as (12.13) reads them: owner (N,) int, ok as ``_stack``; planned
+    (N,) bool, the choosable rows; stay (N,) float, P(x | x, u); topple = 1 - stay; leave (N, P),
+    the rows with their own pose's entry zeroed; believed (N,) float, p^(k-1) (0^0 is 1, harmless
+    since a row that never topples leaves nothing)."""
+
+    owner: np.ndarray
+    ok: np.ndarray
+    planned: np.ndarray
+    stay: np.ndarray
+    topple: np.ndarray
+    leave: np.ndarray
+    believed: np.ndarray
+
+    def best(self, values: np.ndarray, n_poses: int) -> np.ndarray:
+        """(P,) float, per pose the largest of ``values`` over its planned rows; -inf without any."""
+        out = np.full(n_poses, -np.inf)
+        np.maximum.at(out, self.owner[self.planned], values[self.planned])
+        return out
+
+
+def _belief_rows(next_pose: list[np.ndarray], n_poses: int, power: float, choosable: list[np.ndarray] | None,
+                 name: str) -> _BeliefRows:
+    if not power >= 1.0:
+        raise ValueError(f"{name} needs power >= 1, got {power}")
+    rows, owner, ok = _stack(next_pose, n_poses)
+    planned = np.ones(len(rows), dtype=bool) if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])[ok]
+    stay = _self_mass(rows, owner)
+    topple = np.clip(1.0 - stay, 0.0, 1.0)
+    leave = rows.copy()
+    leave[np.arange(len(rows)), owner] = 0.0
+    return _BeliefRows(owner, ok, planned, stay, topple, leave, np.power(topple, power - 1.0))
+
+
 def belief_value_iteration(
     next_pose: list[np.ndarray],
     v_s: np.ndarray,
@@ -204,39 +241,60 @@ def belief_value_iteration(
     next_pose, v_s, choosable : as ``value_iteration``;  gamma : discount in [0, 1);  power : k >= 1
     returns : V0, V1 (P,) float; Q0, Q1 lists of (A_x,) float, NaN where the row is NaN
     """
-    if not power >= 1.0:
-        raise ValueError(f"belief_value_iteration needs power >= 1, got {power}")
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
-    rows, owner, ok = _stack(next_pose, n_poses)
-    planned = np.ones(len(rows), dtype=bool) if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])[ok]
-    stay = _self_mass(rows, owner)
-    topple = np.clip(1.0 - stay, 0.0, 1.0)
-    leave = rows.copy()
-    leave[np.arange(len(rows)), owner] = 0.0
-    believed = np.power(topple, power - 1.0)  # p^(k-1): 0^0 is 1, harmless since S = 0 when p = 0
-    failed_loop = gamma * believed / (1.0 - gamma + gamma * topple * believed)
-
-    def best(values):  # per pose, max over the planned rows; -inf for poses without any
-        out = np.full(n_poses, -np.inf)
-        np.maximum.at(out, owner[planned], values[planned])
-        return out
+    b = _belief_rows(next_pose, n_poses, power, choosable, "belief_value_iteration")
+    failed_loop = gamma * b.believed / (1.0 - gamma + gamma * b.topple * b.believed)
 
     value = v_s.copy()
     for _ in range(max_iterations):
-        s = leave @ value
-        failed_value = np.maximum(v_s, best(failed_loop * s))
-        update = np.maximum(v_s, gamma * best(s + stay * failed_value[owner]))
+        s = b.leave @ value
+        failed_value = np.maximum(v_s, b.best(failed_loop * s, n_poses))
+        update = np.maximum(v_s, gamma * b.best(s + b.stay * failed_value[b.owner], n_poses))
         change = float(np.max(np.abs(update - value))) if n_poses else 0.0
         value = update
         if change <= tolerance:
             break
-    s = leave @ value
-    failed_value = np.maximum(v_s, best(failed_loop * s))
-    q0, q1 = np.full(len(ok), np.nan), np.full(len(ok), np.nan)
-    q0[ok] = s + stay * failed_value[owner]
-    q1[ok] = believed * s + (1.0 - topple * believed) * failed_value[owner]
+    s = b.leave @ value
+    failed_value = np.maximum(v_s, b.best(failed_loop * s, n_poses))
+    q0, q1 = np.full(len(b.ok), np.nan), np.full(len(b.ok), np.nan)
+    q0[b.ok] = s + b.stay * failed_value[b.owner]
+    q1[b.ok] = b.believed * s + (1.0 - b.topple * b.believed) * failed_value[b.owner]
     return value, failed_value, _split(q0, next_pose), _split(q1, next_pose)
+
+
+def belief_budget_values(
+    next_pose: list[np.ndarray],
+    v_s: np.ndarray,
+    power: float,
+    pushes: int,
+    choosable: list[np.ndarray] | None = None,
+) -> tuple[list[list[np.ndarray]], list[list[np.ndarray]]]:
+    """(12.13) for a budget of pushes: the undiscounted finite-horizon value iteration of
+    ``schema.horizon`` over the fresh and failed-here states of each pose.
+
+        V0_0 = V1_0 = V_s;   S_h(x, u) = sum_{x' != x} P(x' | x, u) V0_{h-1}(x')
+        Q0_h = S_h + (1 - p) V1_{h-1}(x),   Q1_h = p^(k-1) S_h + (1 - p^k) V1_{h-1}(x)
+        V_i,h(x) = max(V_s(x), max_u Q_i,h(x, u))  over the choosable pushes
+
+    next_pose, v_s, choosable : as ``value_iteration``;  power : k >= 1;  pushes : the budget H
+    returns : Q0, Q1: for h = 1..H (index h - 1), per pose (A_x,) float, NaN where the row is NaN
+    """
+    v_s = np.asarray(v_s, dtype=float)
+    n_poses = len(v_s)
+    b = _belief_rows(next_pose, n_poses, power, choosable, "belief_budget_values")
+    fresh, failed = v_s.copy(), v_s.copy()
+    q0s, q1s = [], []
+    for _ in range(pushes):
+        s = b.leave @ fresh
+        q0 = s + b.stay * failed[b.owner]
+        q1 = b.believed * s + (1.0 - b.topple * b.believed) * failed[b.owner]
+        fresh, failed = np.maximum(v_s, b.best(q0, n_poses)), np.maximum(v_s, b.best(q1, n_poses))
+        for stored, q in ((q0s, q0), (q1s, q1)):
+            full = np.full(len(b.ok), np.nan)
+            full[b.ok] = q
+            stored.append(_split(full, next_pose))
+    return q0s, q1s
 
 
 def greedy_values(next_pose: list[np.ndarray], v_s: np.ndarray) -> list[np.ndarray]:

@@ -48,7 +48,7 @@ from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
 from ..model.config import Config, MDPConfig
-from ..model.mdp import IMPROVEMENT, belief_value_iteration, pose_values, value_iteration_policy
+from ..model.mdp import IMPROVEMENT, belief_budget_values, belief_value_iteration, pose_values, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
 from .policy_experiment import best_pose_value
@@ -72,8 +72,11 @@ BELIEF_POLICY = "belief_vi"
 """Value iteration that believes its own failures from the first push on (``belief_tables``,
 docs/MODEL.md (12.13)): a failure is valued at the failed state's V1, and after one the untried
 pushes are ranked by Q1."""
+BELIEF_HORIZON_POLICY = "belief_horizon_vi"
+"""``horizon_vi`` over the fresh and failed-here states of ``belief_vi`` (``belief_budget_values``):
+Q0_h in a fresh pose, Q1_h over the pushes no failure ruled out after one, h the pushes left."""
 CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY,
-               BELIEF_POLICY)
+               BELIEF_POLICY, BELIEF_HORIZON_POLICY)
 """The policies each compared with value iteration, paired."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
 """Policies the study plays (common random numbers: adding one changes no other's pushes)."""
@@ -349,7 +352,11 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
             choice = plan.actions[policy]
             failed: dict[int, np.ndarray] = {}  # pose -> candidates ruled out this trial (untried_vi)
             for step in range(max_pushes):
-                if policy == UNTRIED_POLICY and pose in failed:
+                if policy == BELIEF_HORIZON_POLICY:
+                    budget = extra["belief_budget"][1 if pose in failed else 0][max_pushes - step - 1][pose]
+                    allowed = choosable[pose] & ~failed.get(pose, np.zeros(len(budget), dtype=bool))
+                    action = retry.best_untried(budget, allowed, float(plan.v_s[pose]), horizon.IMPROVEMENT)
+                elif policy == UNTRIED_POLICY and pose in failed:
                     action = untried_choice(pose, plan.v_s, candidates[pose].q, failed[pose] | ~choosable[pose], gamma)
                 elif policy == BELIEF_POLICY and pose in failed:
                     action = retry.best_untried(extra["belief_q1"][pose], choosable[pose] & ~failed[pose],
@@ -375,7 +382,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 poses.append(after)
                 if after < 0:
                     break
-                if policy in (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY) and after == pose:
+                if policy in (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY) and after == pose:
                     # What /plan's failed_actions rules out (schema.retry), the same rule.
                     ruled_out = retry.ruled_out(c.points, c.directions, [action], exclusion.radius, exclusion.max_angle)
                     failed[pose] = failed.get(pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
@@ -417,8 +424,10 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[AWARE_POLICY] = plan.actions["value_iteration"]
         plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
         plan.actions[BELIEF_POLICY], belief_q1 = belief_tables(plan.v_s, rows, config.mdp, choosable)
+        plan.actions[BELIEF_HORIZON_POLICY] = plan.actions[BELIEF_POLICY]  # unused: chosen per push left in play
+        belief_budget = belief_budget_values(rows, plan.v_s, config.mdp.after_failure_power, max_pushes, choosable)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
-                                  "belief_q1": belief_q1}, by_object[object_id],
+                                  "belief_q1": belief_q1, "belief_budget": belief_budget}, by_object[object_id],
                       config, seed, max_pushes, world))
 
     runs: dict[int, dict[str, list[int]]] = {}
@@ -465,6 +474,9 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
     for policy in CHALLENGERS:
         mean, error = _mean_se(gains[policy][useful] - gains["value_iteration"][useful])
         report["policies"][policy].update({"gain_over_value_iteration": mean, "gain_over_value_iteration_se": error})
+    # The budget believing failures against the budget that does not (the same pushes left).
+    mean, error = _mean_se(gains[BELIEF_HORIZON_POLICY][useful] - gains[HORIZON_POLICY][useful])
+    report["policies"][BELIEF_HORIZON_POLICY].update({"gain_over_horizon_vi": mean, "gain_over_horizon_vi_se": error})
     return report
 
 
