@@ -391,6 +391,7 @@ def test_belief_plans_over_the_choosable_pushes_only():
     v0, v1, q0, q1 = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000, choosable)
     assert v1[0] == pytest.approx(0.2) and v0[0] == pytest.approx(GAMMA * (0.1 + 0.9 * 0.2))
     np.testing.assert_allclose(q0[0], [0.1 + 0.9 * 0.2, 0.45 + 0.1 * 0.2])
+    np.testing.assert_allclose(q1[0], [0.1 ** 1.1 * 0.1 + (1 - 0.1 ** 2.1) * 0.2, 0.9 ** 1.1 * 0.45 + (1 - 0.9 ** 2.1) * 0.2])
     free = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000)
     assert free[1][0] > 0.4, "with every push choosable the failed state takes the likely push"
     # pose_values plans the same way, and chooses only among the choosable pushes.

@@ -264,8 +264,14 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
 
     from pipeline.model.mdp import IMPROVEMENT, belief_budget_values
     from pipeline.studies.policies_physics import object_plans, open_trials
-    from pipeline.studies.robust_policy import (AWARE_POLICY, BELIEF_HORIZON_POLICY, BELIEF_POLICY, belief_tables, experiment,
-                                                read_candidates)
+    from pipeline.studies.robust_policy import (
+        AWARE_POLICY,
+        BELIEF_HORIZON_POLICY,
+        BELIEF_POLICY,
+        belief_tables,
+        experiment,
+        read_candidates,
+    )
     from schema import horizon, retry
     from schema.reader import Dataset
 
