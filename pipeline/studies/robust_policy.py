@@ -403,6 +403,10 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
                exclusion: Exclusion = Exclusion()) -> tuple[dict, list[Push]]:
     """Play the ``COMPARED`` policies; the report (JSON-ready) and every push played.
 
+    world : the simulated world's noise; default the dataset's own.  The CLI passes the thesis
+      preset (``policies_physics.world_config("thesis")``), as ``toppledb policies-physics`` and
+      ``make logs`` do: pass it too, or the numbers are not the CLI's (a call without it played
+      value iteration at +0.127 over Max-Height where the CLI's seed 0 gives +0.115)
     exclusion : what a failed push rules out for ``untried_vi``"""
     from ..build.fanout import map_unordered
 
