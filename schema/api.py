@@ -400,7 +400,7 @@ class PlanRequest(Model):
         "12% of the time where its table said 31%), so the policy chooses among the candidates that no failed push "
         "rules out: each failed push and its neighbourhood (contacts within 2 cm, directions within 0.5 rad: "
         "schema/retry.py); greedy and a budget by their table values, value iteration by what it believes of the "
-        "pushes now (docs/MODEL.md (12.13); (12.12) in a build from before it). Only with greedy or value_iteration (pushes_left too); an index the "
+        "pushes now (docs/MODEL.md (12.13); (12.12) in a build that does not believe failures). Only with greedy or value_iteration (pushes_left too); an index the "
         "matched pose does not have, or of a push that is not ok (never served), is a 422",
     )
 
@@ -478,10 +478,12 @@ class PlanResponse(Model):
         "(each failed push and its neighbourhood); it chose among the others. 0 without failed_actions"
     )
     v_s: float = Field(description="V_s of the matched pose: robust suction grasp quality of grasping now, in [0, 1]")
-    v_t: float = Field(description="V_T of the matched pose: its value under value iteration, max(V_s, gamma max_u Q_T)")
+    v_t: float = Field(description="V_T of the matched pose: its value under value iteration, max(V_s, gamma max_u Q_T); "
+                       "V0 of docs/MODEL.md (12.13) in a build that believes failures")
     q_value: float | None = Field(
         description="Q_T(pose, action) of the push: expected V_T of the next pose, before the push's discount gamma (in a build "
-        "with mdp.retry_failed false, the pose itself counted at its grasp V_s should the push fail); null when no push"
+        "with mdp.retry_failed false, the pose itself counted at its grasp V_s should the push fail; in a build that believes "
+        "failures, at its failed state's value V1: Q0 of docs/MODEL.md (12.13), also after failed_actions); null when no push"
     )
     expected_v_s_after: float | None = Field(
         description="Expected V_s of the next pose after the push, sum_x' P(x' | pose, action) V_s(x'); null when no push"

@@ -125,7 +125,10 @@ def failed_state_values(q0: np.ndarray, p_topple: np.ndarray, stay: float, gamma
     """
     q0, p = np.asarray(q0, dtype=float), np.asarray(p_topple, dtype=float)
     believed = np.power(p, power - 1.0)
-    own = np.where(np.asarray(choosable, dtype=bool), gamma * believed * q0 / (1.0 - gamma + gamma * believed), np.nan)
+    loop = 1.0 - gamma + gamma * believed
+    # A push that never topples again has no fixed point above the grasp (0 / 0 when gamma = 1).
+    own = np.divide(gamma * believed * q0, loop, out=np.zeros_like(loop), where=loop > 0)
+    own = np.where(np.asarray(choosable, dtype=bool), own, np.nan)
     failed = max(stay, float(np.nanmax(own))) if np.isfinite(own).any() else stay
     return believed * q0 + (1.0 - believed) * failed
 
@@ -142,7 +145,7 @@ def given_failures(p_topple: float, power: float | None) -> float | None:
 
 
 def ranking_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float, power: float | None,
-                   retry_failed: bool, believes: bool = False, gamma: float | None = None,
+                   retry_failed: bool, *, believes: bool = False, gamma: float | None = None,
                    choosable: np.ndarray | None = None) -> np.ndarray:
     """What value iteration ranks a pose's untried pushes by after a failure: with a map, Q1 of a
     build that believes failures (``failed_state_values``, ``believes``, then ``gamma`` and

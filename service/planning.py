@@ -68,7 +68,7 @@ def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
 
 
 def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
-                 power: float | None = None, retry_failed: bool = True,
+                 power: float | None = None, retry_failed: bool = True, *,
                  believes: bool = False) -> tuple[int, float | None, int]:
     """The policy's push among the candidates of ``pose`` that the request's failed pushes do
     not rule out (``schema.retry``), by the rule the dataset's policy or the budget uses.
@@ -104,8 +104,8 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
         action = retry.best_untried(obj.greedy[rows], allowed, stay, retry.POLICY_IMPROVEMENT)
     else:
         believed = power if request.failed_actions else None  # nothing failed: the table's own choice
-        q = retry.ranking_values(widen(obj.q[rows]), widen(obj.p_topple[rows]), stay, float(obj.v_t[pose]), believed, retry_failed,
-                                 believes, gamma, choosable)
+        q = retry.ranking_values(np.asarray(obj.q[rows], dtype=float), widen(obj.p_topple[rows]), stay, float(obj.v_t[pose]), believed, retry_failed,
+                                 believes=believes, gamma=gamma, choosable=choosable)
         action = retry.best_untried(q, allowed, stay, retry.POLICY_IMPROVEMENT, scale=gamma)
     return action, final, int((excluded & choosable).sum())
 
@@ -151,7 +151,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
     ruled = 0
     if request.failed_actions:
         action, final, ruled = untried_push(obj, pose, request, store.gamma, store.after_failure_power, store.retry_failed,
-                                            store.believe_failures)
+                                            believes=store.believe_failures)
         near = np.nan if action == NO_OP else obj.neighbourhood_p(pose, action)
     elif request.pushes_left is None:
         action = int(obj.policy_action[request.policy][pose])

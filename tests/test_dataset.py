@@ -456,6 +456,11 @@ def test_the_after_failure_power_is_part_of_a_shard_only_when_value_iteration_pl
     thesis = config.with_overrides({"mdp.believe_failures": False})
     assert shards.shard_inputs(spec, thesis) == shards.shard_inputs(spec, thesis.with_overrides({"mdp.after_failure_power": 3.0}))
     assert shards.shard_inputs(spec, thesis) != shards.shard_inputs(spec, config)
+    # A build that does not plan with them keeps the identity it had before either existed, so a
+    # dataset built then can still be added to; k = 1 believes nothing either.
+    assert set(shards.shard_inputs(spec, thesis)["config"]["mdp"]).isdisjoint({"after_failure_power", "believe_failures"})
+    no_map = config.with_overrides({"mdp.after_failure_power": 1.0})
+    assert shards.shard_inputs(spec, no_map) == shards.shard_inputs(spec, thesis.with_overrides({"mdp.after_failure_power": 1.0}))
     other = config.with_overrides({"mdp.gamma": 0.9})
     assert shards.fingerprint(shards.shard_inputs(spec, other)) != shards.fingerprint(shards.shard_inputs(spec, config))
 

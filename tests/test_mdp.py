@@ -411,10 +411,10 @@ def test_the_service_reads_q1_off_the_stored_q0():
         _, _, q0, q1 = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000, choosable)
         for x, table in enumerate(next_pose):
             p = 1.0 - np.asarray(table, dtype=float)[:, x]
-            served = retry.ranking_values(q0[x], p, v_s[x], np.nan, 2.1, True, True, GAMMA, choosable[x])
+            served = retry.ranking_values(q0[x], p, v_s[x], np.nan, 2.1, True, believes=True, gamma=GAMMA, choosable=choosable[x])
             np.testing.assert_allclose(served, q1[x], atol=1e-12)
     with pytest.raises(ValueError, match="gamma and choosable"):
-        retry.ranking_values(q0[0], p, v_s[0], np.nan, 2.1, True, True)
+        retry.ranking_values(q0[0], p, v_s[0], np.nan, 2.1, True, believes=True)
 
 
 def reference_belief_budget(next_pose, v_s, power, pushes, choosable=None):
@@ -482,6 +482,20 @@ def test_belief_budget_with_one_push_left_takes_the_likely_push_after_a_failure(
     assert np.argmax(q0s[1][0]) == 0 and np.argmax(q1s[0][0]) == 1 and np.argmax(q0s[0][0]) == 1
     with pytest.raises(ValueError, match="power >= 1"):
         belief_budget_values(next_pose, v_s, 0.9, 2)
+
+
+def test_belief_without_discount_keeps_a_push_that_never_topples_finite():
+    # gamma = 1 (the config allows it): a push that never topples is 0 / 0 in the failed state's
+    # closed form; it is worth nothing there, and the values stay finite.
+    next_pose = [np.array([[1.0, 0.0], [0.5, 0.5]]), np.zeros((0, 2))]
+    v_s = np.array([0.2, 1.0])
+    v0, v1, q0, q1 = belief_value_iteration(next_pose, v_s, 1.0, 2.1, 1e-12, 10_000)
+    assert np.isfinite(v0).all() and np.isfinite(v1).all() and all(np.isfinite(q).all() for q in q0 + q1)
+    assert v1[0] == pytest.approx(1.0) and v0[0] == pytest.approx(1.0)  # undiscounted, the sure-in-time push pays
+    from schema import retry
+
+    served = retry.failed_state_values(q0[0], np.array([0.0, 0.5]), 0.2, 1.0, 2.1, np.ones(2, dtype=bool))
+    np.testing.assert_allclose(served, q1[0])
 
 
 def test_belief_refuses_a_power_below_one():
@@ -552,7 +566,7 @@ def test_max_height_policy_rules():
 def test_pose_values_takes_retries_from_the_config():
     next_pose, v_s = long_shot()
     once = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(retry_failed=False, believe_failures=False))
-    thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig())
+    thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(believe_failures=False))
     assert once[0].policies["value_iteration"].action == 1
     assert thesis[0].policies["value_iteration"].action == 0
     assert once[0].policies["greedy"] == thesis[0].policies["greedy"]  # greedy has no retries to count

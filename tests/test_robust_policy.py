@@ -240,6 +240,19 @@ def test_untried_vi_does_not_push_again_where_a_push_failed_in_the_trial(dataset
     assert after_failure > 0, "no trial reached a pose where a push had failed: the test tests nothing"
 
 
+def test_belief_tables_try_the_long_shot_then_the_likely_push_and_k_one_is_the_thesis():
+    from pipeline.model.config import MDPConfig
+    from pipeline.studies.robust_policy import belief_tables
+    from tests.test_mdp import long_shot_and_likely_push
+
+    next_pose, v_s = long_shot_and_likely_push()
+    choosable = [np.ones(2, dtype=bool), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)]
+    first, q1 = belief_tables(v_s, next_pose, MDPConfig(), choosable)
+    assert first.tolist() == [0, NO_OP, NO_OP] and int(np.nanargmax(q1[0])) == 1  # after a failure: the likely push
+    first, q1 = belief_tables(v_s, next_pose, MDPConfig(after_failure_power=1.0), choosable)
+    assert first.tolist() == [0, NO_OP, NO_OP] and int(np.nanargmax(q1[0])) == 0  # the thesis retries the long shot
+
+
 def test_once_vi_takes_the_surer_push_where_value_iteration_counts_on_retrying_a_long_shot():
     from pipeline.model.config import MDPConfig
     from pipeline.studies.robust_policy import once_actions
@@ -310,7 +323,7 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
                     if policy == AWARE_POLICY:
                         expected = aware_choice(push.pose, v_s, c.q, c.p_topple, failed[push.pose], choosable[push.pose],
                                                 mdp.gamma, mdp.after_failure_power, mdp.retry_failed,
-                                                mdp.believe_failures)
+                                                believes=mdp.believe_failures)
                     else:
                         expected = retry.best_untried(belief_q1[push.pose], choosable[push.pose] & ~failed[push.pose],
                                                       float(v_s[push.pose]), IMPROVEMENT, scale=mdp.gamma)

@@ -395,3 +395,29 @@ def test_a_batch_item_with_an_unknown_failed_action_fails_alone(client, tables):
     results = client.post("/batch/plan", json={"items": items}).json()["results"]
     assert results[0]["error"]["status"] == 422 and "no action 10000" in results[0]["error"]["detail"]
     assert results[1]["result"]["ruled_out"] >= 1
+
+
+def test_a_build_that_does_not_believe_failures_still_ranks_by_the_belief_after_one(tables, dataset):
+    """A build with ``mdp.believe_failures`` false (the thesis preset, or one from before it) ranks
+    the untried pushes by (12.12), by hand from the analysts' tables, as before (12.13) existed."""
+    store = Store.load(dataset)
+    actions, checked = tables["actions"], 0
+    for (object_id, pose), row in tables["poses"].items():
+        first = row["value_iteration_action"]
+        if first == NO_OP:
+            continue
+        obj = store.objects[object_id]
+        rows = obj.pose_rows(pose)
+        request = PlanRequest(object_id=object_id, pose=np.eye(4).tolist(), failed_actions=[first])
+        action = untried_push(obj, pose, request, store.gamma, 2.1, believes=False)[0]
+        allowed = ~retry.ruled_out(obj.points[rows], obj.directions[rows], [first]) & obj.choosable(rows)
+        by_hand = {a: choice_value(actions[(object_id, pose, a)], row, "q", 2.1) for a in np.flatnonzero(allowed)
+                   if actions[(object_id, pose, a)]["q"] is not None}
+        if action != NO_OP:
+            checked += 1
+            assert by_hand[action] == pytest.approx(max(by_hand.values()), abs=1e-8), (object_id, pose)
+            believing = untried_push(obj, pose, request, store.gamma, 2.1, believes=True)[0]
+            v1 = failed_value(actions, object_id, row, pose, obj.choosable(rows), store.gamma, 2.1)
+            q1 = {a: choice_value(actions[(object_id, pose, a)], row, "q", 2.1, v1) for a in by_hand}
+            assert q1[believing] == pytest.approx(max(q1.values()), abs=1e-8)
+    assert checked > 0

@@ -40,16 +40,18 @@ COMPRESS_ABOVE_BYTES = 16 * 1024
 # --- identity of a shard's inputs ---------------------------------------------------------
 
 
-SERVING_ONLY = {"mdp": ("after_failure_power",)}
+SERVING_ONLY = {"mdp": ("after_failure_power", "believe_failures")}
 """Parameters the build does not use, which the manifest carries for the service (section ->
 keys): they are no part of a shard's identity, so a new value asks for no rebuild and a dataset
-built before one existed can still be added to.  ``after_failure_power`` is one only when value
-iteration does not believe failures (``mdp.believe_failures``, docs/MODEL.md (12.13))."""
+built before one existed can still be added to.  Both are used only by a build whose value
+iteration believes failures with a map (``mdp.believe_failures`` and k != 1, docs/MODEL.md
+(12.13)); any other build's shards keep the identity they had before the two existed."""
 
 
 def serving_only(config: Config) -> dict[str, tuple[str, ...]]:
-    """``SERVING_ONLY`` for this configuration: a build that believes failures plans with k."""
-    return {} if config.mdp.believe_failures else SERVING_ONLY
+    """``SERVING_ONLY`` for this configuration: a build that believes failures plans with both."""
+    believes = config.mdp.believe_failures and config.mdp.after_failure_power != 1.0
+    return {} if believes else SERVING_ONLY
 
 
 def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:

@@ -430,7 +430,7 @@ class MDPConfig:
     the pose topples less than the table thinks: in pybullet value iteration's next pushes after
     one were predicted 0.244 and toppled 0.122 on corpus objects, while its first tries were
     honest.  Value iteration also ranks the untried pushes by it after a failure
-    (docs/MODEL.md (12.12)).  Fitted on corpus objects only (docs/VALIDATION.md, "After a failed
+    (docs/MODEL.md (12.13) when ``believe_failures``, else (12.12)).  Fitted on corpus objects only (docs/VALIDATION.md, "After a failed
     push"); 1 is no map (the thesis preset: the service then serves no such probability and value
     iteration ranks by Q_T)."""
     believe_failures: bool = True

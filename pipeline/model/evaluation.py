@@ -358,6 +358,8 @@ def plan(
     ``config``'s ``mdp.after_failure_power``, none when it is 1).  Value iteration then ranks
     them by what it believes of them (``retry.ranking_values``: Q1 of docs/MODEL.md (12.13) when
     the config believes failures, the default, else (12.12)), and the plan's ``value`` is that belief.
+    ``config`` must be the one ``result`` was evaluated with: its ``mdp`` section says how the
+    stored Q was solved, and Q1 read off a Q solved otherwise is no belief.
 
     Raises ``NotResting`` when the orientation is within ``tolerance`` of no stable pose
     or the pose's support plane is more than ``height_tolerance`` from the table.
@@ -449,8 +451,8 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
         q, improvement, scale = values.greedy, retry.POLICY_IMPROVEMENT, 1.0
     else:
         q = retry.ranking_values(values.q, result.topple[pose].p_topple, stay, float(values.value),
-                                 config.mdp.after_failure_power, config.mdp.retry_failed, config.mdp.believe_failures,
-                                 config.mdp.gamma, choosable)
+                                 config.mdp.after_failure_power, config.mdp.retry_failed,
+                                 believes=config.mdp.believe_failures, gamma=config.mdp.gamma, choosable=choosable)
         improvement, scale = retry.POLICY_IMPROVEMENT, config.mdp.gamma
     action = retry.best_untried(q, allowed, stay, improvement, scale)
     return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), int((excluded & choosable).sum())

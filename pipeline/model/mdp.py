@@ -181,8 +181,9 @@ def value_iteration(
 class _BeliefRows:
     """An object's ``ok`` rows as (12.13) reads them: owner (N,) int, ok as ``_stack``; planned
     (N,) bool, the choosable rows; stay (N,) float, P(x | x, u); topple = 1 - stay; leave (N, P),
-    the rows with their own pose's entry zeroed; believed (N,) float, p^(k-1) (0^0 is 1, harmless
-    since a row that never topples leaves nothing)."""
+    the rows with their own pose's entry zeroed; failed_ratio (N,) float, p^(k-1), the ratio of a
+    push's topple chance once a push from its pose has failed to its chance fresh (0^0 is 1,
+    harmless since a row that never topples leaves nothing)."""
 
     owner: np.ndarray
     ok: np.ndarray
@@ -190,7 +191,7 @@ class _BeliefRows:
     stay: np.ndarray
     topple: np.ndarray
     leave: np.ndarray
-    believed: np.ndarray
+    failed_ratio: np.ndarray
 
     def best(self, values: np.ndarray, n_poses: int) -> np.ndarray:
         """(P,) float, per pose the largest of ``values`` over its planned rows; -inf without any."""
@@ -243,23 +244,26 @@ def belief_value_iteration(
     """
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
-    b = _belief_rows(next_pose, n_poses, power, choosable, "belief_value_iteration")
-    failed_loop = gamma * b.believed / (1.0 - gamma + gamma * b.topple * b.believed)
+    rows = _belief_rows(next_pose, n_poses, power, choosable, "belief_value_iteration")
+    # What a push from the failed state is worth per unit of S, its loop summed; 0 for a push that
+    # never topples (0 / 0 when gamma = 1).
+    loop = 1.0 - gamma + gamma * rows.topple * rows.failed_ratio
+    failed_loop = np.divide(gamma * rows.failed_ratio, loop, out=np.zeros_like(loop), where=loop > 0)
 
     value = v_s.copy()
     for _ in range(max_iterations):
-        s = b.leave @ value
-        failed_value = np.maximum(v_s, b.best(failed_loop * s, n_poses))
-        update = np.maximum(v_s, gamma * b.best(s + b.stay * failed_value[b.owner], n_poses))
+        s = rows.leave @ value
+        failed_value = np.maximum(v_s, rows.best(failed_loop * s, n_poses))
+        update = np.maximum(v_s, gamma * rows.best(s + rows.stay * failed_value[rows.owner], n_poses))
         change = float(np.max(np.abs(update - value))) if n_poses else 0.0
         value = update
         if change <= tolerance:
             break
-    s = b.leave @ value
-    failed_value = np.maximum(v_s, b.best(failed_loop * s, n_poses))
-    q0, q1 = np.full(len(b.ok), np.nan), np.full(len(b.ok), np.nan)
-    q0[b.ok] = s + b.stay * failed_value[b.owner]
-    q1[b.ok] = b.believed * s + (1.0 - b.topple * b.believed) * failed_value[b.owner]
+    s = rows.leave @ value
+    failed_value = np.maximum(v_s, rows.best(failed_loop * s, n_poses))
+    q0, q1 = np.full(len(rows.ok), np.nan), np.full(len(rows.ok), np.nan)
+    q0[rows.ok] = s + rows.stay * failed_value[rows.owner]
+    q1[rows.ok] = rows.failed_ratio * s + (1.0 - rows.topple * rows.failed_ratio) * failed_value[rows.owner]
     return value, failed_value, _split(q0, next_pose), _split(q1, next_pose)
 
 
@@ -282,17 +286,17 @@ def belief_budget_values(
     """
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
-    b = _belief_rows(next_pose, n_poses, power, choosable, "belief_budget_values")
+    rows = _belief_rows(next_pose, n_poses, power, choosable, "belief_budget_values")
     fresh, failed = v_s.copy(), v_s.copy()
     q0s, q1s = [], []
     for _ in range(pushes):
-        s = b.leave @ fresh
-        q0 = s + b.stay * failed[b.owner]
-        q1 = b.believed * s + (1.0 - b.topple * b.believed) * failed[b.owner]
-        fresh, failed = np.maximum(v_s, b.best(q0, n_poses)), np.maximum(v_s, b.best(q1, n_poses))
+        s = rows.leave @ fresh
+        q0 = s + rows.stay * failed[rows.owner]
+        q1 = rows.failed_ratio * s + (1.0 - rows.topple * rows.failed_ratio) * failed[rows.owner]
+        fresh, failed = np.maximum(v_s, rows.best(q0, n_poses)), np.maximum(v_s, rows.best(q1, n_poses))
         for stored, q in ((q0s, q0), (q1s, q1)):
-            full = np.full(len(b.ok), np.nan)
-            full[b.ok] = q
+            full = np.full(len(rows.ok), np.nan)
+            full[rows.ok] = q
             stored.append(_split(full, next_pose))
     return q0s, q1s
 

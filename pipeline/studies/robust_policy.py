@@ -150,7 +150,7 @@ def untried_choice(pose: int, v_s: np.ndarray, q: np.ndarray, failed: np.ndarray
 
 
 def aware_choice(pose: int, v_s: np.ndarray, q: np.ndarray, p_topple: np.ndarray, ruled_out: np.ndarray,
-                 choosable: np.ndarray, gamma: float, power: float, retry_failed: bool = True, believes: bool = False) -> int:
+                 choosable: np.ndarray, gamma: float, power: float, retry_failed: bool = True, *, believes: bool = False) -> int:
     """After a failure: the untried push of most believed value, pushed if it beats grasping now
     (``schema.retry.ranking_values``, what /plan serves).
 
@@ -168,7 +168,7 @@ def aware_choice(pose: int, v_s: np.ndarray, q: np.ndarray, p_topple: np.ndarray
     stay = float(v_s[pose])
     mine = np.where(choosable, q, np.nan)
     v_t = max(stay, gamma * float(np.nanmax(mine))) if np.isfinite(mine).any() else stay
-    believed = retry.ranking_values(q, p_topple, stay, v_t, power, retry_failed, believes, gamma, choosable)
+    believed = retry.ranking_values(q, p_topple, stay, v_t, power, retry_failed, believes=believes, gamma=gamma, choosable=choosable)
     return retry.best_untried(believed, choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
 
 
@@ -350,7 +350,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
             poses = [start]
             pose, transform = start, plan.transforms[start]
             choice = plan.actions[policy]
-            failed: dict[int, np.ndarray] = {}  # pose -> candidates ruled out this trial (untried_vi)
+            failed: dict[int, np.ndarray] = {}  # pose -> candidates ruled out this trial (the policies that report failures)
             for step in range(max_pushes):
                 if policy == BELIEF_HORIZON_POLICY:
                     budget = extra["belief_budget"][1 if pose in failed else 0][max_pushes - step - 1][pose]
@@ -364,7 +364,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 elif policy == AWARE_POLICY and pose in failed:
                     action = aware_choice(pose, plan.v_s, candidates[pose].q, candidates[pose].p_topple, failed[pose],
                                           choosable[pose], gamma, config.mdp.after_failure_power, config.mdp.retry_failed,
-                                          config.mdp.believe_failures)
+                                          believes=config.mdp.believe_failures)
                 else:
                     action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # horizon_vi: per pushes left
                 if action == NO_OP:
@@ -428,7 +428,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[AWARE_POLICY] = plan.actions["value_iteration"]
         plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
         plan.actions[BELIEF_POLICY], belief_q1 = belief_tables(plan.v_s, rows, config.mdp, choosable)
-        plan.actions[BELIEF_HORIZON_POLICY] = plan.actions[BELIEF_POLICY]  # unused: chosen per push left in play
+        # play_object looks every policy up in plan.actions; this one chooses per push left instead.
+        plan.actions[BELIEF_HORIZON_POLICY] = plan.actions[BELIEF_POLICY]
         belief_budget = belief_budget_values(rows, plan.v_s, config.mdp.after_failure_power, max_pushes, choosable)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
                                   "belief_q1": belief_q1, "belief_budget": belief_budget}, by_object[object_id],
