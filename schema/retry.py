@@ -80,6 +80,21 @@ def best_untried(values: np.ndarray, allowed: np.ndarray, stay: float, improveme
     return action if scale * values[action] > stay + improvement else NO_OP
 
 
+def choose_untried(values: np.ndarray, points: np.ndarray, directions: np.ndarray, failed, choosable: np.ndarray,
+                   stay: float, improvement: float, scale: float = 1.0) -> tuple[int, int]:
+    """The policy's push once ``failed`` pushes of a pose have failed: ``best_untried`` over its
+    choosable candidates that no failed push rules out (``ruled_out``), and how many choosable
+    candidates they ruled out (what /plan and the Python API's plan report as ``ruled_out``).
+
+    values : (A,) float, the policy's ranking;  points, directions, failed : as ``ruled_out``
+    choosable : (A,) bool;  stay, improvement, scale : as ``best_untried``
+    returns : (action index or NO_OP, ruled-out count)
+    """
+    excluded = ruled_out(points, directions, failed)
+    choosable = np.asarray(choosable, dtype=bool)
+    return best_untried(values, choosable & ~excluded, stay, improvement, scale), int((excluded & choosable).sum())
+
+
 def after_failure(p_topple: float, power: float) -> float:
     """A push's P(topple) once a push from the same pose has failed: p^k, k = ``power``
     (``mdp.after_failure_power``, fitted on corpus objects in pybullet).

@@ -91,23 +91,23 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
             raise UnknownAction(f"pose {pose} of '{obj.object_id}' has no action {action}: its actions are 0..{count - 1}", index)
         raise UnknownAction(f"action {action} of pose {pose} of '{obj.object_id}' is {obj.status_name(rows.start + action)}, "
                             "not ok: /plan never serves it, so it cannot have failed", index)
-    excluded = retry.ruled_out(obj.points[rows], obj.directions[rows], request.failed_actions)
     choosable = obj.choosable(rows)
-    allowed = choosable & ~excluded
-    stay, final = float(obj.v_s[pose]), None
+    stay = float(obj.v_s[pose])
     if request.pushes_left is not None:
         previous = obj.v_s if request.pushes_left == 1 else obj.budget(request.pushes_left - 1)[1]
-        q = horizon.pose_q(previous, rows, obj.transition_offsets, obj.next_pose, obj.transition_probability)
-        action = retry.best_untried(q, allowed, stay, horizon.IMPROVEMENT)
-        final = None if action == NO_OP else float(q[action])
+        values = horizon.pose_q(previous, rows, obj.transition_offsets, obj.next_pose, obj.transition_probability)
+        improvement, scale = horizon.IMPROVEMENT, 1.0
     elif request.policy == "greedy":
-        action = retry.best_untried(obj.greedy[rows], allowed, stay, retry.POLICY_IMPROVEMENT)
+        values, improvement, scale = obj.greedy[rows], retry.POLICY_IMPROVEMENT, 1.0
     else:
         believed = power if request.failed_actions else None  # nothing failed: the table's own choice
-        q = retry.ranking_values(np.asarray(obj.q[rows], dtype=float), widen(obj.p_topple[rows]), stay, float(obj.v_t[pose]), believed, retry_failed,
-                                 believes=believes, gamma=gamma, choosable=choosable)
-        action = retry.best_untried(q, allowed, stay, retry.POLICY_IMPROVEMENT, scale=gamma)
-    return action, final, int((excluded & choosable).sum())
+        values = retry.ranking_values(np.asarray(obj.q[rows], dtype=float), widen(obj.p_topple[rows]), stay, float(obj.v_t[pose]),
+                                      believed, retry_failed, believes=believes, gamma=gamma, choosable=choosable)
+        improvement, scale = retry.POLICY_IMPROVEMENT, gamma
+    action, ruled = retry.choose_untried(values, obj.points[rows], obj.directions[rows], request.failed_actions, choosable,
+                                         stay, improvement, scale)
+    final = float(values[action]) if request.pushes_left is not None and action != NO_OP else None
+    return action, final, ruled
 
 
 def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:

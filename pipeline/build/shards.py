@@ -50,8 +50,7 @@ iteration believes failures with a map (``mdp.believe_failures`` and k != 1, doc
 
 def serving_only(config: Config) -> dict[str, tuple[str, ...]]:
     """``SERVING_ONLY`` for this configuration: a build that believes failures plans with both."""
-    believes = config.mdp.believe_failures and config.mdp.after_failure_power != 1.0
-    return {} if believes else SERVING_ONLY
+    return {} if config.mdp.plans_with_failures else SERVING_ONLY
 
 
 def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:

@@ -443,6 +443,12 @@ class MDPConfig:
     fewer pushes (docs/VALIDATION.md, "Value iteration that believes its failures").  False: the
     thesis's Bellman equation, and after a failure (12.12)."""
 
+    @property
+    def plans_with_failures(self) -> bool:
+        """Whether value iteration is (12.13) with a map: ``believe_failures`` and k != 1 (k = 1
+        believes nothing, the thesis's equation to the bit)."""
+        return self.believe_failures and self.after_failure_power != 1.0
+
     def __post_init__(self) -> None:
         if self.believe_failures and not self.retry_failed:
             raise ValueError("mdp.retry_failed = false values a failure at the grasp (MODEL.md (12.9)) and "

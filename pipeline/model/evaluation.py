@@ -438,9 +438,7 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
         if not exists:
             raise ValueError(f"failed_actions [{action}] are no actions of pose {pose} (0..{count - 1})")
         raise ValueError(f"failed_actions [{action}] of pose {pose} are not ok: no policy pushes them, so they cannot have failed")
-    excluded = retry.ruled_out(actions.points, actions.directions, failed)
     choosable = np.ones(count, dtype=bool) if result.choosable is None else result.choosable[pose]
-    allowed = choosable & ~excluded
     stay = float(v_s[pose])
     if budget is not None:
         (action_offsets, transition_offsets, next_pose, probability), budget_values = budget
@@ -454,5 +452,5 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
                                  config.mdp.after_failure_power, config.mdp.retry_failed,
                                  believes=config.mdp.believe_failures, gamma=config.mdp.gamma, choosable=choosable)
         improvement, scale = retry.POLICY_IMPROVEMENT, config.mdp.gamma
-    action = retry.best_untried(q, allowed, stay, improvement, scale)
-    return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), int((excluded & choosable).sum())
+    action, ruled = retry.choose_untried(q, actions.points, actions.directions, failed, choosable, stay, improvement, scale)
+    return (PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))), ruled

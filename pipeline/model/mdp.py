@@ -180,18 +180,18 @@ def value_iteration(
 @dataclass(frozen=True)
 class _BeliefRows:
     """An object's ``ok`` rows as (12.13) reads them: owner (N,) int, ok as ``_stack``; planned
-    (N,) bool, the choosable rows; stay (N,) float, P(x | x, u); topple = 1 - stay; leave (N, P),
-    the rows with their own pose's entry zeroed; failed_ratio (N,) float, p^(k-1), the ratio of a
-    push's topple chance once a push from its pose has failed to its chance fresh (0^0 is 1,
-    harmless since a row that never topples leaves nothing)."""
+    (N,) bool, the choosable rows; stay (N,) float, P(x | x, u); leave (N, P), the rows with their
+    own pose's entry zeroed; failed_ratio (N,) float, p^(k-1), the ratio of a push's topple chance
+    once a push from its pose has failed to its chance fresh (0^0 is 1, harmless since a row that
+    never topples leaves nothing); failed_topple (N,) float, p^k, that chance."""
 
     owner: np.ndarray
     ok: np.ndarray
     planned: np.ndarray
     stay: np.ndarray
-    topple: np.ndarray
     leave: np.ndarray
     failed_ratio: np.ndarray
+    failed_topple: np.ndarray
 
     def best(self, values: np.ndarray, n_poses: int) -> np.ndarray:
         """(P,) float, per pose the largest of ``values`` over its planned rows; -inf without any."""
@@ -210,7 +210,8 @@ def _belief_rows(next_pose: list[np.ndarray], n_poses: int, power: float, choosa
     topple = np.clip(1.0 - stay, 0.0, 1.0)
     leave = rows.copy()
     leave[np.arange(len(rows)), owner] = 0.0
-    return _BeliefRows(owner, ok, planned, stay, topple, leave, np.power(topple, power - 1.0))
+    failed_ratio = np.power(topple, power - 1.0)
+    return _BeliefRows(owner, ok, planned, stay, leave, failed_ratio, topple * failed_ratio)
 
 
 def belief_value_iteration(
@@ -247,7 +248,7 @@ def belief_value_iteration(
     rows = _belief_rows(next_pose, n_poses, power, choosable, "belief_value_iteration")
     # What a push from the failed state is worth per unit of S, its loop summed; 0 for a push that
     # never topples (0 / 0 when gamma = 1).
-    loop = 1.0 - gamma + gamma * rows.topple * rows.failed_ratio
+    loop = 1.0 - gamma + gamma * rows.failed_topple
     failed_loop = np.divide(gamma * rows.failed_ratio, loop, out=np.zeros_like(loop), where=loop > 0)
 
     value = v_s.copy()
@@ -263,7 +264,7 @@ def belief_value_iteration(
     failed_value = np.maximum(v_s, rows.best(failed_loop * s, n_poses))
     q0, q1 = np.full(len(rows.ok), np.nan), np.full(len(rows.ok), np.nan)
     q0[rows.ok] = s + rows.stay * failed_value[rows.owner]
-    q1[rows.ok] = rows.failed_ratio * s + (1.0 - rows.topple * rows.failed_ratio) * failed_value[rows.owner]
+    q1[rows.ok] = rows.failed_ratio * s + (1.0 - rows.failed_topple) * failed_value[rows.owner]
     return value, failed_value, _split(q0, next_pose), _split(q1, next_pose)
 
 
@@ -292,7 +293,7 @@ def belief_budget_values(
     for _ in range(pushes):
         s = rows.leave @ fresh
         q0 = s + rows.stay * failed[rows.owner]
-        q1 = rows.failed_ratio * s + (1.0 - rows.topple * rows.failed_ratio) * failed[rows.owner]
+        q1 = rows.failed_ratio * s + (1.0 - rows.failed_topple) * failed[rows.owner]
         fresh, failed = np.maximum(v_s, rows.best(q0, n_poses)), np.maximum(v_s, rows.best(q1, n_poses))
         for stored, q in ((q0s, q0), (q1s, q1)):
             full = np.full(len(rows.ok), np.nan)
@@ -378,7 +379,7 @@ def pose_values(
       (``believe_failures`` with k > 1), q = Q0 and value = V0 of ``belief_value_iteration``
     """
     v_s = np.asarray(v_s, dtype=float)
-    if config.believe_failures and retry.has_map(config.after_failure_power):
+    if config.plans_with_failures:
         v_t, _, q, _ = belief_value_iteration(next_pose, v_s, config.gamma, config.after_failure_power, config.tolerance,
                                               config.max_iterations, choosable)
     else:

@@ -77,6 +77,9 @@ BELIEF_HORIZON_POLICY = "belief_horizon_vi"
 Q0_h in a fresh pose, Q1_h over the pushes no failure ruled out after one, h the pushes left."""
 CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY,
                BELIEF_POLICY, BELIEF_HORIZON_POLICY)
+REPORTS_FAILURES = (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY)
+"""The policies played as a client that tells /plan its failed pushes: where a push of the trial
+has failed they choose among the candidates no failure ruled out (``after_failure_choice``)."""
 """The policies each compared with value iteration, paired."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
 """Policies the study plays (common random numbers: adding one changes no other's pushes)."""
@@ -283,6 +286,17 @@ def belief_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig,
     return np.array(first, dtype=np.int64), q1
 
 
+def belief_budget_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, pushes: int,
+                         choosable: list[np.ndarray]) -> tuple[np.ndarray, list[list[np.ndarray]]]:
+    """``belief_horizon_vi``'s push per fresh pose with ``pushes - k`` pushes left (row k, as
+    ``horizon_actions``), (pushes, P) int, and Q1_h per pose in the same row order, which ranks
+    the pushes once one has failed (``pipeline.model.mdp.belief_budget_values``)."""
+    q0s, q1s = belief_budget_values(rows, v_s, mdp.after_failure_power, pushes, choosable)
+    first = [[retry.best_untried(q, allowed, float(v_s[x]), horizon.IMPROVEMENT) for x, (q, allowed) in enumerate(zip(q0, choosable))]
+             for q0 in q0s]
+    return np.array(first, dtype=np.int64).reshape(pushes, len(v_s))[::-1], q1s[::-1]
+
+
 def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int, choosable: list[np.ndarray] | None = None) -> np.ndarray:
     """(pushes, P) int: ``horizon_vi``'s push per pose with ``pushes - k`` pushes left (row k).
 
@@ -338,8 +352,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
     if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms, atol=1e-6):
         return spec.object_id, {"failure": "its stable poses differ from the dataset's"}, []
     body = body_model(obj)
-    candidates, scores, exclusion, choosable = extra["candidates"], extra["scores"], extra["exclusion"], extra["choosable"]
-    gamma = config.mdp.gamma
+    candidates, scores, exclusion = extra["candidates"], extra["scores"], extra["exclusion"]
     results: dict[int, dict[str, list[int]]] = {}
     pushes: list[Push] = []
     for trial, start in trials:
@@ -352,21 +365,10 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
             choice = plan.actions[policy]
             failed: dict[int, np.ndarray] = {}  # pose -> candidates ruled out this trial (the policies that report failures)
             for step in range(max_pushes):
-                if policy == BELIEF_HORIZON_POLICY:
-                    budget = extra["belief_budget"][1 if pose in failed else 0][max_pushes - step - 1][pose]
-                    allowed = choosable[pose] & ~failed.get(pose, np.zeros(len(budget), dtype=bool))
-                    action = retry.best_untried(budget, allowed, float(plan.v_s[pose]), horizon.IMPROVEMENT)
-                elif policy == UNTRIED_POLICY and pose in failed:
-                    action = untried_choice(pose, plan.v_s, candidates[pose].q, failed[pose] | ~choosable[pose], gamma)
-                elif policy == BELIEF_POLICY and pose in failed:
-                    action = retry.best_untried(extra["belief_q1"][pose], choosable[pose] & ~failed[pose],
-                                                float(plan.v_s[pose]), IMPROVEMENT, scale=gamma)
-                elif policy == AWARE_POLICY and pose in failed:
-                    action = aware_choice(pose, plan.v_s, candidates[pose].q, candidates[pose].p_topple, failed[pose],
-                                          choosable[pose], gamma, config.mdp.after_failure_power, config.mdp.retry_failed,
-                                          believes=config.mdp.believe_failures)
+                if policy in REPORTS_FAILURES and pose in failed:
+                    action = after_failure_choice(policy, pose, step, failed[pose], plan, extra, config)
                 else:
-                    action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # horizon_vi: per pushes left
+                    action = int(choice[step, pose] if choice.ndim == 2 else choice[pose])  # the budgets: per pushes left
                 if action == NO_OP:
                     break
                 c, s = candidates[pose], scores[pose]
@@ -382,13 +384,30 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 poses.append(after)
                 if after < 0:
                     break
-                if policy in (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY) and after == pose:
+                if policy in REPORTS_FAILURES and after == pose:
                     # What /plan's failed_actions rules out (schema.retry), the same rule.
                     ruled_out = retry.ruled_out(c.points, c.directions, [action], exclusion.radius, exclusion.max_angle)
                     failed[pose] = failed.get(pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
                 pose, transform = after, played.final_transform
             results[trial][policy] = poses
     return spec.object_id, results, pushes
+
+
+def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarray, plan: ObjectPlan, extra: dict,
+                         config: Config) -> int:
+    """The push of a ``REPORTS_FAILURES`` policy from a pose where a push of the trial has failed,
+    among the choosable candidates not in ``ruled_out`` ((A,) bool); ``step`` counts the trial's
+    pushes (the budget's row).  returns : action index, or NO_OP"""
+    candidates, choosable, gamma = extra["candidates"][pose], extra["choosable"][pose], config.mdp.gamma
+    stay = float(plan.v_s[pose])
+    if policy == UNTRIED_POLICY:
+        return untried_choice(pose, plan.v_s, candidates.q, ruled_out | ~choosable, gamma)
+    if policy == AWARE_POLICY:
+        return aware_choice(pose, plan.v_s, candidates.q, candidates.p_topple, ruled_out, choosable, gamma,
+                            config.mdp.after_failure_power, config.mdp.retry_failed, believes=config.mdp.believe_failures)
+    if policy == BELIEF_POLICY:
+        return retry.best_untried(extra["belief_q1"][pose], choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
+    return retry.best_untried(extra["belief_budget_q1"][step][pose], choosable & ~ruled_out, stay, horizon.IMPROVEMENT)
 
 
 def _mean_se(values) -> tuple[float | None, float | None]:
@@ -428,11 +447,10 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[AWARE_POLICY] = plan.actions["value_iteration"]
         plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
         plan.actions[BELIEF_POLICY], belief_q1 = belief_tables(plan.v_s, rows, config.mdp, choosable)
-        # play_object looks every policy up in plan.actions; this one chooses per push left instead.
-        plan.actions[BELIEF_HORIZON_POLICY] = plan.actions[BELIEF_POLICY]
-        belief_budget = belief_budget_values(rows, plan.v_s, config.mdp.after_failure_power, max_pushes, choosable)
+        plan.actions[BELIEF_HORIZON_POLICY], belief_budget_q1 = belief_budget_tables(plan.v_s, rows, config.mdp, max_pushes,
+                                                                                     choosable)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
-                                  "belief_q1": belief_q1, "belief_budget": belief_budget}, by_object[object_id],
+                                  "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
                       config, seed, max_pushes, world))
 
     runs: dict[int, dict[str, list[int]]] = {}
