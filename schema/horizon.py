@@ -14,6 +14,13 @@ approaches value iteration without discount.  Played in pybullet with 3 pushes, 
 -0.001 to +0.039 V_s above value iteration (two seeds, corpus and held-out objects; on
 average +0.017; docs/VALIDATION.md, "Pushes for a budget").
 
+A build that believes its failures (``mdp.believe_failures``, the default) serves the same
+budget over a fresh and a failed-here state per pose (``belief_budget_choices``, docs/MODEL.md
+(12.14)): a push that leaves the object where it was says the pose's pushes topple less than
+the table's P, so a failure is not worth a fresh retry.  It made +0.008 V_s more than the
+table's budget on corpus objects, +0.007 on held-out ones (docs/VALIDATION.md, "The budget
+believing failures").
+
 Inputs are one object's arrays in the served layout (``service.store.ObjectData``): actions
 pose after pose (``action_offsets``), transitions as CSR over action rows
 (``transition_offsets``, ``next_pose``, ``probability``), empty unless the push is ok.
@@ -78,15 +85,133 @@ def budget_choices(
     for h in range(max_pushes_left):
         q = np.full(n_rows, -np.inf)
         q[ok] = np.bincount(owner, weights=probability * value[next_pose], minlength=n_rows)[ok]
-        best = v_s.copy()
-        for x in range(n_poses):
-            start, stop = int(action_offsets[x]), int(action_offsets[x + 1])
-            if stop > start:
-                u = int(np.argmax(q[start:stop]))  # first of equal values: deterministic
-                if q[start + u] > v_s[x] + IMPROVEMENT:
-                    actions[h, x], best[x] = u, q[start + u]
-        values[h] = value = best
+        actions[h], values[h] = _best_per_pose(q, v_s, action_offsets)
+        value = values[h]
     return actions, values
+
+
+def _best_per_pose(q: np.ndarray, v_s: np.ndarray, action_offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pose the push of largest ``q`` if it beats grasping now by ``IMPROVEMENT``.
+
+    q : (N,) float, -inf for rows no choice may take;  v_s : (P,) float
+    returns : action (P,) int (index within its pose, NO_OP: grasp), value (P,) float (V_s on NO_OP)
+    """
+    actions = np.full(len(v_s), NO_OP, dtype=np.int64)
+    best = np.array(v_s, dtype=np.float64)
+    for x in range(len(v_s)):
+        start, stop = int(action_offsets[x]), int(action_offsets[x + 1])
+        if stop > start:
+            u = int(np.argmax(q[start:stop]))  # first of equal values: deterministic
+            if q[start + u] > v_s[x] + IMPROVEMENT:
+                actions[x], best[x] = u, q[start + u]
+    return actions, best
+
+
+def belief_budget_choices(
+    v_s: np.ndarray,
+    action_offsets: np.ndarray,
+    transition_offsets: np.ndarray,
+    next_pose: np.ndarray,
+    probability: np.ndarray,
+    max_pushes_left: int,
+    power: float,
+    choosable: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``budget_choices`` for a robot that reports its failures: the budget over the fresh and
+    failed-here states of each pose (docs/MODEL.md (12.14)).
+
+    A push that left the object where it was is news about the pose: from there a push of
+    P(topple) p topples with p^k (k = ``power``, ``schema.retry.after_failure``) and lands where
+    its row's topples land.  With S_h(x, u) = sum_{x' != x} P(x' | x, u) V0_{h-1}(x'):
+
+        V0_0 = V1_0 = V_s
+        Q0_h = S_h + (1 - p) V1_{h-1}(x),   Q1_h = p^(k-1) S_h + (1 - p^k) V1_{h-1}(x)
+        V_i,h(x) = max(V_s(x), max_u Q_i,h(x, u))  over the choosable pushes
+
+    k = 1 believes nothing: V1 = V0 and Q0_h is ``budget_choices``' Q_h.
+
+    v_s, action_offsets, transition_offsets, next_pose, probability, max_pushes_left,
+      choosable : as ``budget_choices``;  power : k >= 1
+    returns : actions (H, P) int, the fresh pose's push with h = row + 1 pushes left (NO_OP:
+      grasp now); fresh (H, P) float, V0_h; failed (H, P) float, V1_h, the value of a pose
+      where a push has just failed (its best push by Q1_h: ``pose_belief_q``)
+    """
+    if not power >= 1.0:
+        raise ValueError(f"belief_budget_choices needs power >= 1, got {power}")
+    v_s = np.asarray(v_s, dtype=np.float64)
+    n_poses, n_rows = len(v_s), len(transition_offsets) - 1
+    rows = _BeliefTerms.of(np.repeat(np.arange(n_poses), np.diff(action_offsets)), transition_offsets, next_pose, probability, power)
+    ok = np.flatnonzero(np.diff(transition_offsets) > 0)
+    if choosable is not None:
+        ok = ok[np.asarray(choosable, dtype=bool)[ok]]
+    actions = np.full((max_pushes_left, n_poses), NO_OP, dtype=np.int64)
+    fresh, failed = np.empty((max_pushes_left, n_poses)), np.empty((max_pushes_left, n_poses))
+    value0, value1 = v_s, v_s
+    for h in range(max_pushes_left):
+        q0, q1 = rows.q(value0, value1)
+        best0, best1 = np.full(n_rows, -np.inf), np.full(n_rows, -np.inf)
+        best0[ok], best1[ok] = q0[ok], q1[ok]
+        actions[h], fresh[h] = _best_per_pose(best0, v_s, action_offsets)
+        _, failed[h] = _best_per_pose(best1, v_s, action_offsets)
+        value0, value1 = fresh[h], failed[h]
+    return actions, fresh, failed
+
+
+def pose_belief_q(
+    fresh: np.ndarray,
+    failed: np.ndarray,
+    pose: int,
+    rows: slice,
+    transition_offsets: np.ndarray,
+    next_pose: np.ndarray,
+    probability: np.ndarray,
+    power: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Q0_h and Q1_h of one pose's candidates given V0_{h-1} and V1_{h-1} (``fresh``, ``failed``;
+    V_s for one push left), as ``belief_budget_choices`` computes them (the same bits).
+
+    pose : the pose the rows push from;  rows : its action rows;  transition_offsets,
+      next_pose, probability : the object's transitions (``budget_choices``);  power : k >= 1
+    returns : q0, q1 (A,) float, NaN for the rows with no transitions (not ok)
+    """
+    counts = np.diff(transition_offsets[rows.start : rows.stop + 1])
+    span = slice(int(transition_offsets[rows.start]), int(transition_offsets[rows.stop]))
+    terms = _BeliefTerms.of(np.full(len(counts), pose), np.concatenate([[0], np.cumsum(counts)]), next_pose[span],
+                            probability[span], power)
+    q0, q1 = terms.q(np.asarray(fresh, dtype=np.float64), np.asarray(failed, dtype=np.float64))
+    return np.where(counts > 0, q0, np.nan), np.where(counts > 0, q1, np.nan)
+
+
+class _BeliefTerms:
+    """The per-row terms of (12.14) over CSR transitions: owner (K,) int, each transition's row;
+    row_pose (N,) int, the pose each row pushes from; weight (K,) float, the row-normalised
+    probabilities of the transitions that leave the row's pose (0 for those that stay); stay
+    (N,) float, P(x | x, u); failed_ratio (N,) float, p^(k-1) (0^0 is 1, harmless: a row that
+    never topples leaves nothing); failed_topple (N,) float, p^k."""
+
+    def __init__(self, owner, row_pose, next_pose, weight, stay, failed_ratio, failed_topple):
+        self.owner, self.row_pose, self.next_pose, self.weight = owner, row_pose, next_pose, weight
+        self.stay, self.failed_ratio, self.failed_topple = stay, failed_ratio, failed_topple
+
+    @classmethod
+    def of(cls, row_pose: np.ndarray, transition_offsets: np.ndarray, next_pose: np.ndarray, probability: np.ndarray,
+           power: float) -> _BeliefTerms:
+        n_rows = len(transition_offsets) - 1
+        owner = np.repeat(np.arange(n_rows), np.diff(transition_offsets))
+        weight = np.asarray(probability, dtype=np.float64)
+        weight = weight / np.bincount(owner, weights=weight, minlength=n_rows)[owner]
+        own = np.asarray(next_pose) == row_pose[owner]
+        stay = np.bincount(owner, weights=np.where(own, weight, 0.0), minlength=n_rows)
+        topple = np.clip(1.0 - stay, 0.0, 1.0)
+        failed_ratio = np.power(topple, power - 1.0)
+        return cls(owner, row_pose, np.asarray(next_pose), np.where(own, 0.0, weight), stay, failed_ratio,
+                   topple * failed_ratio)
+
+    def q(self, fresh: np.ndarray, failed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(Q0, Q1) of every row, (N,) float each, from V0_{h-1} and V1_{h-1} ((P,) float)."""
+        leave = np.bincount(self.owner, weights=self.weight * fresh[self.next_pose], minlength=len(self.stay))
+        here = failed[self.row_pose]
+        return leave + self.stay * here, self.failed_ratio * leave + (1.0 - self.failed_topple) * here
 
 
 def pose_q(

@@ -75,7 +75,8 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
     Value iteration (no budget) ranks them by what it believes of them now: Q1 of a build
     that believes failures (``believes``, ``retry.failed_state_values``, docs/MODEL.md (12.13)),
     else ``retry.believed_values`` with k = ``power`` (12.12); the table's Q when None or 1 and
-    with nothing failed.
+    with nothing failed.  A budget ranks them by ``ObjectData.budget_q``: Q1_h of (12.14) in a
+    build that believes failures once one has failed.
 
     returns : action (NO_OP: grasp now), V_h of the push with ``pushes_left`` (else None), the
       number of candidates the policy could choose that are ruled out.  UnknownAction for a
@@ -94,8 +95,7 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
     choosable = obj.choosable(rows)
     stay = float(obj.v_s[pose])
     if request.pushes_left is not None:
-        previous = obj.v_s if request.pushes_left == 1 else obj.budget(request.pushes_left - 1)[1]
-        values = horizon.pose_q(previous, rows, obj.transition_offsets, obj.next_pose, obj.transition_probability)
+        values = obj.budget_q(pose, request.pushes_left, after_failure=bool(request.failed_actions))
         improvement, scale = horizon.IMPROVEMENT, 1.0
     elif request.policy == "greedy":
         values, improvement, scale = obj.greedy[rows], retry.POLICY_IMPROVEMENT, 1.0

@@ -65,7 +65,7 @@ class Runtime:
         )
 
     def solve_budgets(self) -> None:
-        """Solve every object's push budgets (``Store.solve_budgets``, about 0.4 s for the full
+        """Solve every object's push budgets (``Store.solve_budgets``, about 0.6 s for the full
         dataset) in a thread of its own, so that no /plan with pushes_left pays for it."""
         threading.Thread(target=self.live.store.solve_budgets, name="budgets", daemon=True).start()
 

@@ -88,6 +88,8 @@ class ObjectData:
       transition_offsets (N + 1,) int64; next_pose (K,) int32; transition_probability (K,) float32
     Hull: hull_vertices (V, 3) float64, m, object frame
     min_direction_z: the build's ``mdp.min_direction_z``: the pushes a budget's choice may take
+    failure_power: k of (12.14) when the build plans with its failures (``MDPConfig.plans_with_failures``),
+      else None: the budgets then believe a failure as value iteration does
     """
 
     object_id: str
@@ -129,23 +131,50 @@ class ObjectData:
     transition_probability: np.ndarray
     hull_vertices: np.ndarray
     min_direction_z: float = -1.0
+    failure_power: float | None = None
     _budgets: tuple | None = field(default=None, init=False, repr=False)
 
     def budget(self, pushes_left: int) -> tuple[np.ndarray, np.ndarray]:
         """Value iteration for a budget of ``pushes_left`` pushes (``schema.horizon``): per pose
-        the action (P,) int (NO_OP: grasp now) and V_h (P,) float.
+        the action (P,) int (NO_OP: grasp now) and V_h (P,) float.  A build that plans with its
+        failures (``failure_power``) solves the fresh and failed-here states
+        (``horizon.belief_budget_choices``) and this is the fresh one's.
 
         Solved for every budget at once, by ``Store.solve_budgets`` or else at the object's first
         such request, and kept: the store is read-only, a rebuilt dataset is a new store.  Reads
         only the transitions, so solving every object maps ~25 MB of the served files, not the
         candidates' geometry (the neighbourhood mean is per request: ``neighbourhood_p``).
         """
+        actions, fresh, _ = self._solved_budgets()
+        return actions[pushes_left - 1], fresh[pushes_left - 1]
+
+    def budget_q(self, pose: int, pushes_left: int, after_failure: bool) -> np.ndarray:
+        """What ranks the pushes of ``pose`` for a budget of ``pushes_left``: (A,) float, NaN unless
+        ok.  In a build that plans with its failures, Q0_h of (12.14) fresh and Q1_h once a push from
+        the pose has failed (``after_failure``); else the budget's Q_h (``horizon.pose_q``), which a
+        failure does not change."""
+        rows = self.pose_rows(pose)
+        _, fresh, failed = self._solved_budgets()
+        # V0_{h-1} and V1_{h-1}: V_s with one push left
+        fresh, failed = (self.v_s, self.v_s) if pushes_left == 1 else (fresh[pushes_left - 2], failed[pushes_left - 2])
+        if self.failure_power is None:
+            return horizon.pose_q(fresh, rows, self.transition_offsets, self.next_pose, self.transition_probability)
+        q0, q1 = horizon.pose_belief_q(fresh, failed, pose, rows, self.transition_offsets, self.next_pose,
+                                       self.transition_probability, self.failure_power)
+        return q1 if after_failure else q0
+
+    def _solved_budgets(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(actions, V0, V1), each (MAX_PUSHES_LEFT, P); V1 is V0 when the build believes nothing."""
         if self._budgets is None:
             # one assignment: a concurrent first request computes the same
-            self._budgets = horizon.budget_choices(self.v_s, self.action_offsets, self.transition_offsets, self.next_pose,
-                                                   self.transition_probability, horizon.MAX_PUSHES_LEFT, self.choosable(slice(None)))
-        actions, values = self._budgets
-        return actions[pushes_left - 1], values[pushes_left - 1]
+            csr = (self.action_offsets, self.transition_offsets, self.next_pose, self.transition_probability)
+            if self.failure_power is None:
+                actions, values = horizon.budget_choices(self.v_s, *csr, horizon.MAX_PUSHES_LEFT, self.choosable(slice(None)))
+                self._budgets = actions, values, values
+            else:
+                self._budgets = horizon.belief_budget_choices(self.v_s, *csr, horizon.MAX_PUSHES_LEFT, self.failure_power,
+                                                              self.choosable(slice(None)))
+        return self._budgets
 
     def choosable(self, rows: slice | list[int]) -> np.ndarray:
         """(n,) bool, whether greedy and value iteration may choose each action row: ``ok``
@@ -264,7 +293,8 @@ class Store:
 
     def solve_budgets(self) -> None:
         """Solve every object's budgets (``ObjectData.budget``) ahead of the requests: about
-        0.4 s for the full default dataset, 2 ms per object (6 ms at most) that a first
+        0.6 s for the full default dataset, 2.3 ms per object (8 ms at most; the table's budget
+        of a build that does not believe failures half that) that a first
         request with ``pushes_left`` would otherwise pay.  Call it off the event loop."""
         for obj in self.objects.values():
             obj.budget(1)
@@ -307,7 +337,9 @@ class Store:
                 tables = served.served_from_parquet(Dataset(root, manifest))
             except (served.ServedError, DatasetUnreadable) as err:
                 raise DatasetError(f"{root}: {err}") from None
-        objects = _objects(tables, manifest.parameters.mdp.min_direction_z)
+        mdp = manifest.parameters.mdp
+        failure_power = mdp.after_failure_power if mdp.believe_failures and mdp.after_failure_power not in (None, 1.0) else None
+        objects = _objects(tables, mdp.min_direction_z, failure_power)
         store = cls(root, manifest, objects, time.perf_counter() - started, manifest_sha256)
         expected = {k: getattr(manifest.counts, k) for k in store.counts}
         if expected != store.counts:
@@ -318,9 +350,9 @@ class Store:
         return store
 
 
-def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0) -> dict[str, ObjectData]:
+def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0, failure_power: float | None = None) -> dict[str, ObjectData]:
     """ObjectData of every object: views into the served tables' columns (no copies but
-    two small offset arrays per object); ``min_direction_z`` is the build's (``ObjectData``)."""
+    two small offset arrays per object); ``min_direction_z`` and ``failure_power`` are the build's (``ObjectData``)."""
     col = {name: {f.name: served.column(table, f.name) for f in table.schema if not pa.types.is_string(f.type)}
            for name, table in tables.items()}
     numbers, poses, matches, actions, transitions, hulls = (col[name] for name in served.NAMES)
@@ -376,6 +408,7 @@ def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0) -> dict
             transition_probability=transitions["probability"][t],
             hull_vertices=hulls["vertex"][h],
             min_direction_z=min_direction_z,
+            failure_power=failure_power,
         )
     return out
 

@@ -111,6 +111,49 @@ def test_plan_for_a_budget_is_greedy_with_one_push_left_and_never_worth_less_wit
         toppledb.plan(result, world(result.poses[0].transform, 0.0), pushes_left=0, config=CONFIG)
 
 
+def test_plan_for_a_budget_believes_failures_as_the_config_does(box):
+    """With a config that plans with its failures (the default) the budget is (12.14): argmax Q0_h
+    fresh, argmax Q1_h over the untried pushes after a failure, by explicit backward induction
+    (``tests.test_horizon``); a config that does not believe them plans the table's budget."""
+    from dataclasses import replace
+
+    from schema import horizon
+    from tests.test_horizon import reference_belief_budget
+
+    _, _, _, result = box
+    assert CONFIG.mdp.plans_with_failures
+    v_s = np.array([s.quality for s in result.suction])
+    rows = [np.asarray(t.next_pose, dtype=float) for t in result.topple]
+    q0s, q1s = reference_belief_budget(rows, v_s, CONFIG.mdp.after_failure_power, 3, result.choosable)
+    plain_config = replace(CONFIG, mdp=replace(CONFIG.mdp, believe_failures=False))
+    plain_actions, plain_values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), 3, np.concatenate(result.choosable))
+    after_failures = differs = 0
+    for pose in result.poses:
+        x, observed = pose.index, world(pose.transform, 0.3)
+        for h in (1, 2, 3):
+            q0 = np.where(result.choosable[x], q0s[h - 1][x], np.nan)
+            first = toppledb.plan(result, observed, pushes_left=h, config=CONFIG)
+            assert first.value == pytest.approx(max(v_s[x], np.nanmax(q0, initial=-np.inf)), abs=1e-12)
+            plain = toppledb.plan(result, observed, pushes_left=h, config=plain_config)
+            assert (-1 if plain.action is None else plain.action) == plain_actions[h - 1, x]
+            assert plain.value == pytest.approx(plain_values[h - 1, x], abs=1e-12)
+            differs += abs(plain.value - first.value) > 1e-9
+            if first.action is None:
+                continue
+            assert q0[first.action] == pytest.approx(first.value, abs=1e-12)
+            after = toppledb.plan(result, observed, pushes_left=h, config=CONFIG, failed_actions=[first.action])
+            actions = result.actions[x]
+            allowed = result.choosable[x] & ~retry.ruled_out(actions.points, actions.directions, [first.action])
+            q1 = np.where(allowed, q1s[h - 1][x], np.nan)
+            best = np.nanmax(q1, initial=-np.inf)
+            if after.action is None:
+                assert best <= v_s[x] + 1e-9
+            else:
+                after_failures += 1
+                assert after.value == pytest.approx(best, abs=1e-12) and q1[after.action] == pytest.approx(best, abs=1e-12)
+    assert after_failures > 0 and differs > 0
+
+
 def test_plan_after_failed_pushes_chooses_among_the_rest_and_says_how_likely_now(box):
     _, _, _, result = box
     power = CONFIG.mdp.after_failure_power

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from schema.horizon import budget_choices, choosable_pushes, csr_from_rows
+from schema.horizon import belief_budget_choices, budget_choices, choosable_pushes, csr_from_rows, pose_belief_q
 from schema.vocabulary import NO_OP
 
 
@@ -102,3 +102,116 @@ def test_choosable_pushes_compare_as_the_served_float32_directions():
     # A float64 just below -0.3 rounds to float32 -0.3, as the service reads it: choosable there, so here.
     assert choosable_pushes(np.array([-0.3 - 1e-9]), -0.3)[0]
     assert choosable_pushes(np.array([-1.0]), -1.0)[0]
+
+
+# ---------------------------------------------------------------- (12.14): a budget that believes its failures
+
+
+def reference_belief_budget(next_pose, v_s, power, pushes, choosable=None):
+    """Backward induction over (x, fresh) and (x, failed here) with explicit loops.
+    returns : Q0, Q1 for h = 1..pushes (index h - 1), per pose (A_x,) float, NaN where the row is NaN"""
+    n = len(v_s)
+    v0, v1 = np.array(v_s, dtype=float), np.array(v_s, dtype=float)
+    q0s, q1s = [], []
+    for _ in range(pushes):
+        n0, n1 = np.array(v_s, dtype=float), np.array(v_s, dtype=float)
+        q0h, q1h = [], []
+        for x, table in enumerate(next_pose):
+            a0, a1 = [], []
+            for a, row in enumerate(np.asarray(table, dtype=float)):
+                if np.isnan(row).any():
+                    a0.append(np.nan), a1.append(np.nan)
+                    continue
+                p = 1.0 - row[x]
+                leave = sum(row[y] * v0[y] for y in range(n) if y != x)
+                a0.append(leave + (1 - p) * v1[x])
+                a1.append((p ** (power - 1) * leave if p > 0 else 0.0) + (1 - p ** power) * v1[x])
+                if choosable is None or choosable[x][a]:
+                    n0[x], n1[x] = max(n0[x], a0[-1]), max(n1[x], a1[-1])
+            q0h.append(np.array(a0)), q1h.append(np.array(a1))
+        v0, v1 = n0, n1
+        q0s.append(q0h), q1s.append(q1h)
+    return q0s, q1s
+
+
+def belief_budget(next_pose, v_s, power, pushes, choosable=None):
+    """``belief_budget_choices`` and, per budget and pose, ``pose_belief_q`` from the values it solved:
+    actions (H, P), V0 (H, P), V1 (H, P), and Q0, Q1 as ``reference_belief_budget``."""
+    action_offsets, transition_offsets, targets, probability = csr = csr_from_rows(next_pose)
+    mask = None if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])
+    actions, fresh, failed = belief_budget_choices(v_s, *csr, pushes, power, mask)
+    q0s, q1s = [], []
+    for h in range(pushes):
+        before = (v_s, v_s) if h == 0 else (fresh[h - 1], failed[h - 1])
+        qs = [pose_belief_q(*before, x, slice(int(action_offsets[x]), int(action_offsets[x + 1])), transition_offsets, targets,
+                            probability, power) for x in range(len(v_s))]
+        q0s.append([q[0] for q in qs]), q1s.append([q[1] for q in qs])
+    return actions, fresh, failed, q0s, q1s
+
+
+def test_belief_budget_matches_backward_induction_and_is_the_budget_at_power_one():
+    from tests.test_mdp import random_mdp
+
+    rng = np.random.default_rng(6)
+    for n_poses, n_actions in [(2, 4), (5, 15)]:
+        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+        choosable = [rng.random(len(t)) < 0.8 for t in next_pose]
+        actions, fresh, failed, q0s, q1s = belief_budget(next_pose, v_s, 2.1, 3, choosable)
+        r0s, r1s = reference_belief_budget(next_pose, v_s, 2.1, 3, choosable)
+        for h in range(3):
+            for x in range(n_poses):
+                np.testing.assert_allclose(q0s[h][x], r0s[h][x], atol=1e-12)
+                np.testing.assert_allclose(q1s[h][x], r1s[h][x], atol=1e-12)
+                for q, chosen, value in ((q0s[h][x], actions[h, x], fresh[h, x]), (q1s[h][x], None, failed[h, x])):
+                    allowed = np.where(choosable[x], q, np.nan)
+                    finite = np.isfinite(allowed).any() and np.nanmax(allowed) > v_s[x] + 1e-9
+                    assert value == pytest.approx(np.nanmax(allowed) if finite else v_s[x], abs=1e-12)
+                    if chosen is not None:
+                        assert chosen == (int(np.nanargmax(allowed)) if finite else NO_OP), (h, x)
+        # k = 1 believes nothing: the budget's own choices and values, failed or not.
+        actions, fresh, failed, _, _ = belief_budget(next_pose, v_s, 1.0, 3, choosable)
+        mask = np.concatenate([np.zeros(0, dtype=bool), *choosable])
+        plain_actions, plain_values = budget_choices(v_s, *csr_from_rows(next_pose), 3, mask)
+        np.testing.assert_array_equal(actions, plain_actions)
+        np.testing.assert_allclose(fresh, plain_values, atol=1e-12)
+        np.testing.assert_allclose(failed, plain_values, atol=1e-12)
+
+
+def test_belief_budget_with_one_push_left_takes_the_likely_push_after_a_failure():
+    # One push left: fresh, the long shot is worth 0.1 + 0.9 * 0.2 = 0.28 and the likely push
+    # 0.45 + 0.1 * 0.2 = 0.47; after a failure 0.1^1.1 * 0.1 + (1 - 0.1^2.1) * 0.2 = 0.206 against
+    # 0.9^1.1 * 0.45 + (1 - 0.9^2.1) * 0.2 = 0.441.  Two left: the long shot first is worth
+    # 0.1 + 0.9 * 0.441 = 0.497, the likely push 0.45 + 0.1 * 0.441 = 0.494.
+    from tests.test_mdp import long_shot_and_likely_push
+
+    next_pose, v_s = long_shot_and_likely_push()
+    actions, fresh, failed, q0s, q1s = belief_budget(next_pose, v_s, 2.1, 2)
+    likely = 0.9 ** 1.1 * 0.45 + (1 - 0.9 ** 2.1) * 0.2
+    np.testing.assert_allclose(q0s[0][0], [0.28, 0.47])
+    np.testing.assert_allclose(q1s[0][0], [0.1 ** 1.1 * 0.1 + (1 - 0.1 ** 2.1) * 0.2, likely])
+    np.testing.assert_allclose(q0s[1][0], [0.1 + 0.9 * likely, 0.45 + 0.1 * likely])
+    assert list(actions[:, 0]) == [1, 0]  # the likely push with one left; the long shot first with two
+    assert failed[0, 0] == pytest.approx(likely) and fresh[1, 0] == pytest.approx(0.1 + 0.9 * likely)
+    # The thesis's budget (k = 1) takes the long shot with two left too, but values it at the fresh retry.
+    plain, values = budget_choices(v_s, *csr_from_rows(next_pose), 2)
+    assert plain[1, 0] == 0 and values[1, 0] == pytest.approx(0.1 + 0.9 * 0.47)
+    with pytest.raises(ValueError, match="power >= 1"):
+        belief_budget_choices(v_s, *csr_from_rows(next_pose), 2, 0.9)
+
+
+def test_pose_belief_q_is_the_solve_s_own_numbers_in_float32():
+    # The service stores float32 probabilities: the per-pose Q1 it ranks by after a failure must be
+    # the very numbers the solve maximised, so the V1 it reports is the Q1 of the push it chooses.
+    from tests.test_mdp import random_mdp
+
+    next_pose, v_s = random_mdp(np.random.default_rng(11), 5, 20)
+    action_offsets, transition_offsets, targets, probability = csr_from_rows(next_pose)
+    probability = probability.astype(np.float32)
+    actions, fresh, failed = belief_budget_choices(v_s, action_offsets, transition_offsets, targets, probability, 3, 2.1)
+    for x in range(5):
+        rows = slice(int(action_offsets[x]), int(action_offsets[x + 1]))
+        q0, q1 = pose_belief_q(fresh[1], failed[1], x, rows, transition_offsets, targets, probability, 2.1)
+        if actions[2, x] != NO_OP:
+            assert q0[actions[2, x]] == fresh[2, x]  # bit for bit
+        if np.isfinite(q1).any() and np.nanmax(q1) > v_s[x] + 1e-9:
+            assert np.nanmax(q1) == failed[2, x]

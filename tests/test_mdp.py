@@ -9,7 +9,6 @@ import pytest
 from pipeline.model.config import MDPConfig
 from pipeline.model.mdp import (
     IMPROVEMENT,
-    belief_budget_values,
     belief_value_iteration,
     greedy_policy,
     greedy_values,
@@ -415,73 +414,6 @@ def test_the_service_reads_q1_off_the_stored_q0():
             np.testing.assert_allclose(served, q1[x], atol=1e-12)
     with pytest.raises(ValueError, match="gamma and choosable"):
         retry.ranking_values(q0[0], p, v_s[0], np.nan, 2.1, True, believes=True)
-
-
-def reference_belief_budget(next_pose, v_s, power, pushes, choosable=None):
-    """Backward induction over (x, fresh) and (x, failed here) with explicit loops."""
-    n = len(v_s)
-    v0, v1 = np.array(v_s, dtype=float), np.array(v_s, dtype=float)
-    q0s, q1s = [], []
-    for _ in range(pushes):
-        n0, n1 = np.array(v_s, dtype=float), np.array(v_s, dtype=float)
-        q0h, q1h = [], []
-        for x, table in enumerate(next_pose):
-            a0, a1 = [], []
-            for a, row in enumerate(np.asarray(table, dtype=float)):
-                if np.isnan(row).any():
-                    a0.append(np.nan), a1.append(np.nan)
-                    continue
-                p = 1.0 - row[x]
-                leave = sum(row[y] * v0[y] for y in range(n) if y != x)
-                a0.append(leave + (1 - p) * v1[x])
-                a1.append((p ** (power - 1) * leave if p > 0 else 0.0) + (1 - p ** power) * v1[x])
-                if choosable is None or choosable[x][a]:
-                    n0[x], n1[x] = max(n0[x], a0[-1]), max(n1[x], a1[-1])
-            q0h.append(np.array(a0)), q1h.append(np.array(a1))
-        v0, v1 = n0, n1
-        q0s.append(q0h), q1s.append(q1h)
-    return q0s, q1s
-
-
-def test_belief_budget_matches_backward_induction_and_is_the_budget_at_power_one():
-    from schema import horizon
-
-    rng = np.random.default_rng(6)
-    for n_poses, n_actions in [(2, 4), (5, 15)]:
-        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
-        choosable = [rng.random(len(t)) < 0.8 for t in next_pose]
-        q0s, q1s = belief_budget_values(next_pose, v_s, 2.1, 3, choosable)
-        r0s, r1s = reference_belief_budget(next_pose, v_s, 2.1, 3, choosable)
-        for h in range(3):
-            for a, b in zip(q0s[h], r0s[h]):
-                np.testing.assert_allclose(a, b, atol=1e-12)
-            for a, b in zip(q1s[h], r1s[h]):
-                np.testing.assert_allclose(a, b, atol=1e-12)
-        # k = 1 believes nothing: Q0_h is the budget's Q_h (schema.horizon), whose choices it makes.
-        q0s, _ = belief_budget_values(next_pose, v_s, 1.0, 3, choosable)
-        mask = np.concatenate([np.zeros(0, dtype=bool), *choosable])
-        actions, _ = horizon.budget_choices(v_s, *horizon.csr_from_rows(next_pose), 3, mask)
-        for h in range(3):
-            for x, q in enumerate(q0s[h]):
-                allowed = np.where(choosable[x], q, np.nan)
-                best = NO_OP if not np.isfinite(allowed).any() or np.nanmax(allowed) <= v_s[x] + IMPROVEMENT else int(np.nanargmax(allowed))
-                assert best == actions[h, x], (h, x)
-
-
-def test_belief_budget_with_one_push_left_takes_the_likely_push_after_a_failure():
-    # One push left: fresh, the long shot is worth 0.1 + 0.9 * 0.2 = 0.28 and the likely push
-    # 0.45 + 0.1 * 0.2 = 0.47; after a failure 0.1^1.1 * 0.1 + (1 - 0.1^2.1) * 0.2 = 0.206 against
-    # 0.9^1.1 * 0.45 + (1 - 0.9^2.1) * 0.2 = 0.441.  Two left: the long shot first is worth
-    # 0.1 + 0.9 * 0.441 = 0.497, the likely push 0.45 + 0.1 * 0.441 = 0.494.
-    next_pose, v_s = long_shot_and_likely_push()
-    q0s, q1s = belief_budget_values(next_pose, v_s, 2.1, 2)
-    likely = 0.9 ** 1.1 * 0.45 + (1 - 0.9 ** 2.1) * 0.2
-    np.testing.assert_allclose(q0s[0][0], [0.28, 0.47])
-    np.testing.assert_allclose(q1s[0][0], [0.1 ** 1.1 * 0.1 + (1 - 0.1 ** 2.1) * 0.2, likely])
-    np.testing.assert_allclose(q0s[1][0], [0.1 + 0.9 * likely, 0.45 + 0.1 * likely])
-    assert np.argmax(q0s[1][0]) == 0 and np.argmax(q1s[0][0]) == 1 and np.argmax(q0s[0][0]) == 1
-    with pytest.raises(ValueError, match="power >= 1"):
-        belief_budget_values(next_pose, v_s, 0.9, 2)
 
 
 def test_belief_without_discount_keeps_a_push_that_never_topples_finite():

@@ -272,10 +272,11 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
     """Played on a tiny dataset: in a fresh pose ``aware_vi`` pushes as value iteration,
     ``belief_vi`` as argmax Q0 and ``belief_horizon_vi`` as argmax Q0_h (h pushes left); once a
     push from the pose has failed, each plays its own rule over the pushes no failure ruled out
-    (``aware_choice``; argmax Q1, ``belief_tables``; argmax Q1_h, ``belief_budget_values``)."""
+    (``aware_choice``; argmax Q1, ``belief_tables``; argmax Q1_h, the explicit backward induction
+    ``tests.test_horizon.reference_belief_budget``)."""
     from dataclasses import replace
 
-    from pipeline.model.mdp import IMPROVEMENT, belief_budget_values
+    from pipeline.model.mdp import IMPROVEMENT
     from pipeline.studies.policies_physics import object_plans, open_trials
     from pipeline.studies.robust_policy import (
         AWARE_POLICY,
@@ -287,6 +288,7 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
     )
     from schema import horizon, retry
     from schema.reader import Dataset
+    from tests.test_horizon import reference_belief_budget
 
     report, pushes = experiment(dataset, 8, seed=1, workers=1)
     assert not report["failed_objects"]
@@ -306,7 +308,7 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
             choosable = [horizon.choosable_pushes(c.directions[:, 2], mdp.min_direction_z) for c in candidates]
             v_s = object_plans(data, [object_id])[object_id].v_s
             cache[object_id] = (candidates, choosable, v_s, *belief_tables(v_s, rows, mdp_config, choosable),
-                                belief_budget_values(rows, v_s, mdp.after_failure_power, budget_pushes, choosable))
+                                reference_belief_budget(rows, v_s, mdp.after_failure_power, budget_pushes, choosable))
         candidates, choosable, v_s, belief_first, belief_q1, (q0s, q1s) = cache[object_id]
         vi = played.get("value_iteration", [])
         for policy in (AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY):

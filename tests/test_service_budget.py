@@ -85,18 +85,97 @@ def final_value(client, tables, object_id: str, pose: int, budget: int) -> float
     return answer["v_s"] if answer["action"] is None else answer["expected_v_s_final"]
 
 
-@pytest.mark.parametrize("budget", [2, 3])
-def test_the_final_value_is_the_next_poses_values_for_one_push_less(client, tables, budget):
-    checked = 0
-    for object_id, pose in list(tables["poses"])[:12]:
-        answer = plan(client, tables, object_id, pose, pushes_left=budget)
-        if answer["action"] is None:
-            continue
-        expected = sum(n["probability"] * final_value(client, tables, object_id, n["next_pose"], budget - 1) for n in answer["next_poses"])
-        assert answer["expected_v_s_final"] == pytest.approx(expected, abs=1e-5)
-        assert answer["expected_v_s_final"] > answer["v_s"]
-        checked += 1
-    assert checked > 0
+def reference(tables, object_id: str, budget: int):
+    """The budget of (12.14) by explicit backward induction over the analysts' tables
+    (``tests.test_horizon.reference_belief_budget``; k = the build's after_failure_power):
+    per pose its candidates' rows, V_s, choosable mask, and Q0, Q1 for h = 1..budget."""
+    from tests.test_horizon import reference_belief_budget
+
+    poses = sorted(p for o, p in tables["poses"] if o == object_id)
+    v_s = np.array([tables["poses"][(object_id, x)]["v_s"] for x in poses])
+    rows, choosable, candidates = [], [], []
+    for x in poses:
+        actions = sorted(a for o, p, a in tables["actions"] if (o, p) == (object_id, x))
+        matrix = np.full((len(actions), len(poses)), np.nan)
+        for a in actions:
+            row = tables["transitions"].get((object_id, x, a))
+            if tables["actions"][(object_id, x, a)]["q"] is not None and row:
+                matrix[a] = 0.0
+                for target, probability in row.items():
+                    matrix[a, target] = probability
+                matrix[a] /= matrix[a].sum()  # float32 storage, renormalised as the service does
+        rows.append(matrix)
+        choosable.append(np.array([np.float32(tables["actions"][(object_id, x, a)]["direction_z"]) >= np.float32(MIN_DIRECTION_Z)
+                                   for a in actions], dtype=bool))
+        candidates.append(actions)
+    power = tables["manifest"]["parameters"]["mdp"]["after_failure_power"]
+    q0s, q1s = reference_belief_budget(rows, v_s, power, budget, choosable)
+    return v_s, choosable, q0s, q1s
+
+
+def test_a_budget_believes_its_failures_as_the_build_does(client, tables):
+    """The default build believes failures: with h pushes left /plan takes argmax Q0_h and reports
+    V0_h, and once a push has failed argmax Q1_h over the pushes no failure rules out, reporting
+    that Q1_h (docs/MODEL.md (12.14), by hand from the analysts' tables)."""
+    from schema import retry
+
+    assert tables["manifest"]["parameters"]["mdp"]["believe_failures"] is True
+    fresh = failed = 0
+    for object_id in sorted({o for o, _ in tables["poses"]}):
+        v_s, choosable, q0s, q1s = reference(tables, object_id, 3)
+        for x in range(len(v_s)):
+            for h in (1, 2, 3):
+                q0 = np.where(choosable[x], q0s[h - 1][x], np.nan)
+                best = max(v_s[x], np.nanmax(q0, initial=-np.inf))
+                answer = plan(client, tables, object_id, x, pushes_left=h)
+                if answer["action"] is None:
+                    assert best <= v_s[x] + 1e-5, (object_id, x, h)
+                    continue
+                fresh += 1
+                # float32 transitions: equal up to their rounding
+                assert answer["expected_v_s_final"] == pytest.approx(best, abs=1e-5), (object_id, x, h)
+                assert q0[answer["action"]] == pytest.approx(best, abs=1e-5)
+                after = plan(client, tables, object_id, x, pushes_left=h, failed_actions=[answer["action"]])
+                points = np.array([[tables["actions"][(object_id, x, a)][f"point_{c}"] for c in "xyz"] for a in range(len(q0))])
+                directions = np.array([[tables["actions"][(object_id, x, a)][f"direction_{c}"] for c in "xyz"] for a in range(len(q0))])
+                allowed = choosable[x] & ~retry.ruled_out(points, directions, [answer["action"]])
+                q1 = np.where(allowed, q1s[h - 1][x], np.nan)
+                best_after = np.nanmax(q1, initial=-np.inf)
+                if after["action"] is None:
+                    assert best_after <= v_s[x] + 1e-5, (object_id, x, h)
+                else:
+                    failed += 1
+                    assert after["expected_v_s_final"] == pytest.approx(best_after, abs=1e-5), (object_id, x, h)
+                    assert q1[after["action"]] == pytest.approx(best_after, abs=1e-5)
+    assert fresh > 0 and failed > 0
+
+
+def test_a_build_that_does_not_believe_failures_serves_the_thesis_s_budget(dataset):
+    """``failure_power`` None (the thesis preset, or a build from before (12.14)): the budget is
+    (12.8) over the table, and a failure does not change how the budget ranks the untried pushes."""
+    import dataclasses
+
+    from schema import horizon
+    from service.store import Store
+
+    store = Store.load(dataset)
+    differs = 0
+    for obj in store.objects.values():
+        assert obj.failure_power == store.after_failure_power  # the default build plans with its failures
+        plain = dataclasses.replace(obj, failure_power=None)
+        csr = (obj.action_offsets, obj.transition_offsets, obj.next_pose, obj.transition_probability)
+        actions, values = horizon.budget_choices(obj.v_s, *csr, horizon.MAX_PUSHES_LEFT, obj.choosable(slice(None)))
+        for h in (1, 2, 3):
+            np.testing.assert_array_equal(plain.budget(h)[0], actions[h - 1])
+            np.testing.assert_array_equal(plain.budget(h)[1], values[h - 1])
+            differs += int(np.sum(np.abs(obj.budget(h)[1] - values[h - 1]) > 1e-9))
+            previous = obj.v_s if h == 1 else values[h - 2]
+            for x in range(obj.n_poses):
+                rows = obj.pose_rows(x)
+                expected = horizon.pose_q(previous, rows, obj.transition_offsets, obj.next_pose, obj.transition_probability)
+                np.testing.assert_array_equal(plain.budget_q(x, h, after_failure=True), expected)
+                np.testing.assert_array_equal(plain.budget_q(x, h, after_failure=False), expected)
+    assert differs > 0, "believing failures should change some pose's budget value"
 
 
 def test_a_bigger_budget_is_never_worth_less(client, tables):

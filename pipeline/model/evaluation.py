@@ -350,8 +350,9 @@ def plan(
     """What ``policy`` (``max_height``, ``greedy``, ``value_iteration``) does for the object
     of ``result`` observed at ``observed`` (4x4, object -> world, z up, table at ``table_height``).
     With ``pushes_left`` (1 to ``schema.horizon.MAX_PUSHES_LEFT``, value_iteration only), value
-    iteration's push for that budget (``schema.horizon``, as /plan's ``pushes_left``); the
-    plan's ``value`` is then the expected V_s when the budget is spent.  With
+    iteration's push for that budget (``schema.horizon``, as /plan's ``pushes_left``; over fresh
+    and failed-here states, (12.14), when ``config`` plans with failures); the plan's ``value``
+    is then the expected V_s when the budget is spent.  With
     ``failed_actions`` (actions of the matched pose that left the object in it; greedy and
     value_iteration), the policy's push among the candidates they do not rule out, and
     ``p_topple_given_failures`` (``schema.retry``, as /plan's ``failed_actions``; k is
@@ -391,14 +392,19 @@ def plan(
         grasp = (rotation @ suction.point + origin, rotation @ suction.axis)
     choice = result.values[pose].policies[policy]
     v_s = np.array([s.quality for s in result.suction], dtype=float)
-    budget = None  # with pushes_left: the tables in the budgets' layout and V_h for h = 1..pushes_left
+    budget = None  # with pushes_left: the tables in the budgets' layout, V0_h and V1_h for h = 1..pushes_left
     if pushes_left is not None:
         csr = horizon.csr_from_rows([np.asarray(t.next_pose, dtype=float) for t in result.topple])
         # The pushes the build's policies could choose (its mdp.min_direction_z, not ``config``'s).
         choosable = None if result.choosable is None else np.concatenate(result.choosable)
-        actions, values = horizon.budget_choices(v_s, *csr, pushes_left, choosable)
+        if config.mdp.plans_with_failures:
+            actions, values, failed_values = horizon.belief_budget_choices(v_s, *csr, pushes_left, config.mdp.after_failure_power,
+                                                                           choosable)
+        else:
+            actions, values = horizon.budget_choices(v_s, *csr, pushes_left, choosable)
+            failed_values = values
         choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
-        budget = csr, values
+        budget = csr, values, failed_values
     ruled = 0
     if failed:
         choice, ruled = _untried_choice(result, pose, policy, failed, v_s, budget, config)
@@ -426,9 +432,12 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
     policy's rule (/plan's ``service.planning.untried_push``, on the in-memory result).
 
     v_s : (P,) float;  budget : None, or with pushes_left h the object's tables in the budgets'
-      layout (``horizon.csr_from_rows``) and V_1..V_h ((h, P), ``horizon.budget_choices``)
+      layout (``horizon.csr_from_rows``), V0_1..V0_h and V1_1..V1_h ((h, P) each,
+      ``horizon.belief_budget_choices``; both ``horizon.budget_choices``' V_h when the config
+      does not plan with failures)
     returns : the choice (value: value iteration's Q1, (12.13), or Q'', (12.12), or Q_T when k is 1; greedy's
-      E[V_s]; V_h with a budget; V_s(x) for no push) and the number of candidates ruled out
+      E[V_s]; with a budget Q1_h (12.14), or V_h when the config does not plan with failures; V_s(x) for no push)
+      and the number of candidates ruled out
     """
     actions, values = result.actions[pose], result.values[pose]
     count = len(actions.status)
@@ -441,10 +450,16 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
     choosable = np.ones(count, dtype=bool) if result.choosable is None else result.choosable[pose]
     stay = float(v_s[pose])
     if budget is not None:
-        (action_offsets, transition_offsets, next_pose, probability), budget_values = budget
-        previous = v_s if len(budget_values) == 1 else budget_values[-2]  # V_{h-1}
+        (action_offsets, transition_offsets, next_pose, probability), fresh, failed_values = budget
+        # V0_{h-1}, V1_{h-1}
+        fresh, failed_values = (v_s, v_s) if len(fresh) == 1 else (fresh[-2], failed_values[-2])
         rows = slice(int(action_offsets[pose]), int(action_offsets[pose + 1]))
-        q, improvement, scale = horizon.pose_q(previous, rows, transition_offsets, next_pose, probability), horizon.IMPROVEMENT, 1.0
+        if config.mdp.plans_with_failures:
+            _, q = horizon.pose_belief_q(fresh, failed_values, pose, rows, transition_offsets, next_pose, probability,
+                                         config.mdp.after_failure_power)
+        else:
+            q = horizon.pose_q(fresh, rows, transition_offsets, next_pose, probability)
+        improvement, scale = horizon.IMPROVEMENT, 1.0
     elif policy == "greedy":
         q, improvement, scale = values.greedy, retry.POLICY_IMPROVEMENT, 1.0
     else:

@@ -268,40 +268,6 @@ def belief_value_iteration(
     return value, failed_value, _split(q0, next_pose), _split(q1, next_pose)
 
 
-def belief_budget_values(
-    next_pose: list[np.ndarray],
-    v_s: np.ndarray,
-    power: float,
-    pushes: int,
-    choosable: list[np.ndarray] | None = None,
-) -> tuple[list[list[np.ndarray]], list[list[np.ndarray]]]:
-    """(12.13) for a budget of pushes: the undiscounted finite-horizon value iteration of
-    ``schema.horizon`` over the fresh and failed-here states of each pose.
-
-        V0_0 = V1_0 = V_s;   S_h(x, u) = sum_{x' != x} P(x' | x, u) V0_{h-1}(x')
-        Q0_h = S_h + (1 - p) V1_{h-1}(x),   Q1_h = p^(k-1) S_h + (1 - p^k) V1_{h-1}(x)
-        V_i,h(x) = max(V_s(x), max_u Q_i,h(x, u))  over the choosable pushes
-
-    next_pose, v_s, choosable : as ``value_iteration``;  power : k >= 1;  pushes : the budget H
-    returns : Q0, Q1: for h = 1..H (index h - 1), per pose (A_x,) float, NaN where the row is NaN
-    """
-    v_s = np.asarray(v_s, dtype=float)
-    n_poses = len(v_s)
-    rows = _belief_rows(next_pose, n_poses, power, choosable, "belief_budget_values")
-    fresh, failed = v_s.copy(), v_s.copy()
-    q0s, q1s = [], []
-    for _ in range(pushes):
-        s = rows.leave @ fresh
-        q0 = s + rows.stay * failed[rows.owner]
-        q1 = rows.failed_ratio * s + (1.0 - rows.failed_topple) * failed[rows.owner]
-        fresh, failed = np.maximum(v_s, rows.best(q0, n_poses)), np.maximum(v_s, rows.best(q1, n_poses))
-        for stored, q in ((q0s, q0), (q1s, q1)):
-            full = np.full(len(rows.ok), np.nan)
-            full[rows.ok] = q
-            stored.append(_split(full, next_pose))
-    return q0s, q1s
-
-
 def greedy_values(next_pose: list[np.ndarray], v_s: np.ndarray) -> list[np.ndarray]:
     """E[V_s(x')] of every action: the suction quality expected right after the push.
 

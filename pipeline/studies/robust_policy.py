@@ -23,8 +23,9 @@ Only the dataset's tables are read (``point``, ``direction``, ``status``, ``q``,
 plays max_height, value_iteration, ``smoothed_vi``, ``horizon_vi`` (value iteration for
 the experiment's push budget, ``schema.horizon``), ``untried_vi`` (what /plan's
 ``failed_actions`` serves), ``once_vi`` (value iteration without retries, docs/MODEL.md
-(12.9)) and ``aware_vi`` (``untried_vi`` ranking the pushes after a failure by their believed
-P(topple)^k, ``aware_choice``) in pybullet from the same starts and
+(12.9)), ``aware_vi`` (``untried_vi`` ranking the pushes after a failure by their believed
+P(topple)^k, ``aware_choice``), ``belief_vi`` (12.13) and ``belief_horizon_vi`` (12.14, what
+``/plan`` serves for ``pushes_left`` in a build that believes failures) in pybullet from the same starts and
 noise draws as ``toppledb policies-physics`` (common random numbers, so max_height and
 value_iteration reproduce that report's numbers), and reports each policy's V_s gain over
 max_height on useful trials, the 'never push' baseline, and predicted (raw and smoothed)
@@ -48,7 +49,7 @@ from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
 from ..model.config import Config, MDPConfig
-from ..model.mdp import IMPROVEMENT, belief_budget_values, belief_value_iteration, pose_values, value_iteration_policy
+from ..model.mdp import IMPROVEMENT, belief_value_iteration, pose_values, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
 from .policy_experiment import best_pose_value
@@ -73,7 +74,7 @@ BELIEF_POLICY = "belief_vi"
 docs/MODEL.md (12.13)): a failure is valued at the failed state's V1, and after one the untried
 pushes are ranked by Q1."""
 BELIEF_HORIZON_POLICY = "belief_horizon_vi"
-"""``horizon_vi`` over the fresh and failed-here states of ``belief_vi`` (``belief_budget_values``):
+"""``horizon_vi`` over the fresh and failed-here states of ``belief_vi`` (``belief_budget_tables``):
 Q0_h in a fresh pose, Q1_h over the pushes no failure ruled out after one, h the pushes left."""
 CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY,
                BELIEF_POLICY, BELIEF_HORIZON_POLICY)
@@ -290,18 +291,25 @@ def belief_budget_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig
                          choosable: list[np.ndarray]) -> tuple[np.ndarray, list[list[np.ndarray]]]:
     """``belief_horizon_vi``'s push per fresh pose with ``pushes - k`` pushes left (row k, as
     ``horizon_actions``), (pushes, P) int, and Q1_h per pose in the same row order, which ranks
-    the pushes once one has failed (``pipeline.model.mdp.belief_budget_values``)."""
-    q0s, q1s = belief_budget_values(rows, v_s, mdp.after_failure_power, pushes, choosable)
-    first = [[retry.best_untried(q, allowed, float(v_s[x]), horizon.IMPROVEMENT) for x, (q, allowed) in enumerate(zip(q0, choosable))]
-             for q0 in q0s]
-    return np.array(first, dtype=np.int64).reshape(pushes, len(v_s))[::-1], q1s[::-1]
+    the pushes once one has failed: ``schema.horizon.belief_budget_choices`` and ``pose_belief_q``
+    over ``next_pose_rows``, as ``/plan`` serves ``pushes_left``."""
+    action_offsets, transition_offsets, next_pose, probability = csr = horizon.csr_from_rows(rows)
+    mask = np.concatenate([np.zeros(0, dtype=bool), *choosable])
+    actions, fresh, failed = horizon.belief_budget_choices(v_s, *csr, pushes, mdp.after_failure_power, mask)
+    q1s = []
+    for h in range(pushes):
+        before = (v_s, v_s) if h == 0 else (fresh[h - 1], failed[h - 1])  # V0_{h-1}, V1_{h-1}
+        q1s.append([horizon.pose_belief_q(*before, x, slice(int(action_offsets[x]), int(action_offsets[x + 1])),
+                                          transition_offsets, next_pose, probability, mdp.after_failure_power)[1]
+                    for x in range(len(v_s))])
+    return actions[::-1], q1s[::-1]
 
 
 def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int, choosable: list[np.ndarray] | None = None) -> np.ndarray:
     """(pushes, P) int: ``horizon_vi``'s push per pose with ``pushes - k`` pushes left (row k).
 
-    ``schema.horizon.budget_choices`` (finite-horizon value iteration, as ``/plan`` serves it
-    for ``pushes_left``) over ``next_pose_rows``.  The table's probabilities are float64, the
+    ``schema.horizon.budget_choices`` (finite-horizon value iteration, (12.8), as ``/plan``
+    serves ``pushes_left`` in a build that does not believe failures) over ``next_pose_rows``.  The table's probabilities are float64, the
     service's float32: where two pushes' values differ by less than that rounding (~1e-8; 13
     of 2,709 pose-budgets of the default dataset's first 80 objects, 3 pushes) the two may
     pick different pushes of equal value.  choosable : per pose (A_x,) bool, as ``robust_actions``.
