@@ -234,9 +234,12 @@ def test_knots_round_trip_through_dict_and_toml(tmp_path):
     assert Config.from_dict(config.to_dict()) == config
     path = tmp_path / "knots.toml"
     path.write_text("[topple]\nrecalibration_x = [0.0, 0.5, 1.0]\nrecalibration_y = [0.0, 0.7, 0.9]\n")
-    # A file with its own map and no down map gets none (MODEL.md C.15): the default's belongs to the default's map.
-    assert Config.from_toml(path) == config.with_overrides({"topple.down_map": []})
+    # A file with its own map and no down or side map gets none (MODEL.md C.15, C.16): the default's
+    # belong to the default's map.
+    assert Config.from_toml(path) == config.with_overrides({"topple.down_map": [], "topple.side_map": []})
     path.write_text(path.read_text() + f"down_map = {list(config.topple.down_map)}\n")
+    assert Config.from_toml(path) == config.with_overrides({"topple.side_map": []})
+    path.write_text(path.read_text() + f"side_map = {list(config.topple.side_map)}\n")
     assert Config.from_toml(path) == config
     assert isinstance(config.to_dict()["topple"]["recalibration_x"], list)  # as JSON reads it back (manifest)
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from . import fitted_map
-from .feature_map import check_down_weights, check_weights
+from .feature_map import check_down_weights, check_side_weights, check_weights
 from .recalibration import check_knots
 
 PRESETS = Path(__file__).with_name("presets")
@@ -73,8 +73,8 @@ def field_range(cls: type, name: str) -> Range | None:
     return next((f.metadata.get("range") for f in fields(cls) if f.name == name), None)
 
 
-MAP_FIELDS = ("recalibration_x", "recalibration_y", "feature_map", "down_map")
-"""The ``topple`` fields that hold a map of P(topple) (MODEL.md C.7, C.13, C.15); all empty: no map."""
+MAP_FIELDS = ("recalibration_x", "recalibration_y", "feature_map", "down_map", "side_map")
+"""The ``topple`` fields that hold a map of P(topple) (MODEL.md C.7, C.13, C.15, C.16); all empty: no map."""
 NO_MAP = {name: () for name in MAP_FIELDS}
 """``topple`` values of a model with no map: what a file writes to clear the default's."""
 
@@ -262,6 +262,13 @@ class ToppleConfig:
     down_map_z: float = bounded(-0.3, Range(-1.0, 1.0))
     """Pushes whose direction's z (pose frame) is below this are mapped by ``down_map``; the
     default is ``mdp.min_direction_z``'s, so no push the policies choose is ever mapped."""
+    side_map: tuple[float, ...] = bounded(fitted_map.SIDE_MAP, Range())
+    """Weights of the map of P(topple) for pushes from the side (docs/MODEL.md C.16), one per
+    feature (bias, logit_p, log_force_ratio: the noise-free force the push needs over the
+    object's weight), or empty (no map).  Applied after the recalibration map (C.7) to the pushes
+    with |u_z| < 0.3 whose P is between 0.05 and 0.95 (``feature_map.side_rows``).  The default is
+    fitted by ``toppledb recalibrate --side`` on the corpus's drawn pushes (data/logs/corpus).
+    Only the ``corrected`` variant applies it."""
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -272,6 +279,7 @@ class ToppleConfig:
         check_knots(self.recalibration_x, self.recalibration_y)
         check_weights(self.feature_map)
         check_down_weights(self.down_map)
+        check_side_weights(self.side_map)
         if self.feature_map and self.recalibration_x:
             raise ValueError("topple.feature_map and topple.recalibration_x/_y are two maps of one P(topple); set one "
                              "(the defaults carry a recalibration map: with a feature map set recalibration_x = [] and "
@@ -329,6 +337,12 @@ class ToppleConfig:
         """Weights of the down map (MODEL.md C.15) this configuration applies: empty for the
         thesis's variants, whatever the field says."""
         return self.down_map if self.variant == "corrected" else ()
+
+    @property
+    def applied_side_map(self) -> tuple[float, ...]:
+        """Weights of the side map (MODEL.md C.16) this configuration applies: empty for the
+        thesis's variants, whatever the field says."""
+        return self.side_map if self.variant == "corrected" else ()
 
     @property
     def needs_candidates(self) -> bool:
@@ -498,11 +512,11 @@ class Config:
         if isinstance(contacts, dict) and "push_depth" in contacts and not (isinstance(topple, dict) and "stroke" in topple):
             data = {**data, "topple": {**(topple if isinstance(topple, dict) else {}), "stroke": contacts["push_depth"]}}
         topple = data.get("topple")
-        if isinstance(topple, dict) and "down_map" not in topple and _own_map(topple):
+        if isinstance(topple, dict) and _own_map(topple):
             # A map belongs to the probabilities it was fitted on: a file with a map of its own,
-            # written before the down map existed (MODEL.md C.15), does not take the default's.
-            # (``--set`` changes one key of a whole configuration and keeps the down map.)
-            data = {**data, "topple": {**topple, "down_map": ()}}
+            # written before the down map (MODEL.md C.15) or the side map (C.16) existed, does not
+            # take the default's.  (``--set`` changes one key of a whole configuration and keeps them.)
+            data = {**data, "topple": {**topple, **{name: () for name in ("down_map", "side_map") if name not in topple}}}
         mdp = data.get("mdp")
         if isinstance(mdp, dict) and "after_failure_power" in mdp and mdp["after_failure_power"] is None:
             # A manifest from before the after-failure map reads it as none (schema.manifest); the

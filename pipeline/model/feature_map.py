@@ -50,14 +50,15 @@ class FeatureMapError(ValueError):
     """Weights that are no feature map; one line."""
 
 
-def check_weights(weights) -> None:
-    """Raise ``FeatureMapError`` unless ``weights`` is empty (no map) or one finite weight per feature."""
+def check_weights(weights, features: tuple[str, ...] = FEATURES, field: str = "feature_map") -> None:
+    """Raise ``FeatureMapError`` unless ``weights`` is empty (no map) or one finite weight per
+    entry of ``features`` (the map ``topple.<field>`` weighs)."""
     w = np.asarray(weights, dtype=float)
     if w.size == 0:
         return
-    if w.shape != (len(FEATURES),) or not np.all(np.isfinite(w)):
+    if w.shape != (len(features),) or not np.all(np.isfinite(w)):
         raise FeatureMapError(
-            f"topple.feature_map needs {len(FEATURES)} finite weights ({', '.join(FEATURES)}) or none, got {w.size}")
+            f"topple.{field} needs {len(features)} finite weights ({', '.join(features)}) or none, got {w.size}")
 
 
 def logit(p: np.ndarray) -> np.ndarray:
@@ -227,13 +228,8 @@ of mass is above the table, this only keeps a degenerate pose finite."""
 
 
 def check_down_weights(weights) -> None:
-    """Raise ``FeatureMapError`` unless ``weights`` is empty (no map) or one finite weight per feature."""
-    w = np.asarray(weights, dtype=float)
-    if w.size == 0:
-        return
-    if w.shape != (len(DOWN_FEATURES),) or not np.all(np.isfinite(w)):
-        raise FeatureMapError(f"topple.down_map needs {len(DOWN_FEATURES)} finite weights "
-                              f"({', '.join(DOWN_FEATURES)}) or none, got {w.size}")
+    """``check_weights`` for the down map."""
+    check_weights(weights, DOWN_FEATURES, "down_map")
 
 
 def pressed_down(direction_z: np.ndarray, cut_z: float) -> np.ndarray:
@@ -316,4 +312,89 @@ def map_down_rows(
     q = np.where(landing.sum(axis=1) > 0, q, 0.0)  # nowhere the model knows to land: no topple
     next_pose[down] = q[:, None] * landing
     next_pose[down, start] = 1.0 - q
+    return next_pose, 1.0 - next_pose[:, start]
+
+
+# --- The map for pushes from the side (docs/MODEL.md C.16) ---------------------------------------
+#
+# Physics tips a push from the side by a nearly deterministic test on the noise-free geometry: the
+# force it needs to turn the object about its easiest base edge, over its weight (on the corpus
+# log, 50 % of side pushes topple near F*/mg = 0.3).  The model spreads that threshold over its
+# broad noise, so its P moves too slowly with F*: where it is unsure it over-predicts hard pushes
+# and under-predicts easy ones.  F* is not in P; the map adds it.
+
+SIDE_FEATURES = ("bias", "logit_p", "log_force_ratio")
+"""The entries of the side map's features, in the order of ``topple.side_map``'s weights (C.16.1)."""
+SIDE_Z = 0.3
+"""The side map takes pushes with -SIDE_Z <= u_z < SIDE_Z (pose frame): the report's "side" class."""
+SIDE_BAND = (0.05, 0.95)
+"""It maps only pushes the model is unsure of, SIDE_BAND[0] < P < SIDE_BAND[1]: where it was fitted."""
+FORCE_RATIO_RANGE = (1e-3, 1e3)
+"""F*/mg is clipped to this before its log: a push with no lever about any edge needs an infinite force."""
+
+
+def check_side_weights(weights) -> None:
+    """``check_weights`` for the side map."""
+    check_weights(weights, SIDE_FEATURES, "side_map")
+
+
+def needed_force_ratio(points: np.ndarray, directions: np.ndarray, edges: EdgeGeometry) -> np.ndarray:
+    """F*/mg: the least force, over the object's weight, with which each push turns the object
+    about one of its base edges, friction and noise aside: min_e d_e / tau_e, tau_e = (p - y0_e) . (u x e)
+    the push's lever about edge e (the moment balance of section 7 with the push alone against
+    gravity).  inf where no edge has a positive lever.
+
+    points : (A, 3) float, m;  directions : (A, 3) float, unit;  edges : ``edges.edge_geometry``
+    (pose frame)  returns : (A,) float, >= 0
+    """
+    points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
+    lever = np.einsum("aek,aek->ae", points[:, None, :] - edges.start[None], np.cross(directions[:, None, :], edges.direction[None]))
+    with np.errstate(divide="ignore"):
+        ratio = np.where(lever > 0, edges.com_distance[None] / np.where(lever > 0, lever, 1.0), np.inf)  # (A, E)
+    return ratio.min(axis=1, initial=np.inf)
+
+
+def on_the_side(direction_z: np.ndarray) -> np.ndarray:
+    """(A,) bool, the pushes of the side class, -SIDE_Z <= u_z < SIDE_Z, compared in float32 as
+    the served directions (``schema.horizon.choosable_pushes``)."""
+    z = np.asarray(direction_z, dtype=np.float32)
+    return (z >= np.float32(-SIDE_Z)) & (z < np.float32(SIDE_Z))
+
+
+def side_features(p_topple: np.ndarray, points: np.ndarray, directions: np.ndarray, edges: EdgeGeometry) -> np.ndarray:
+    """g(u) of (C.16.1): (A, len(SIDE_FEATURES)) float, (1, logit P, log F*/mg); NaN rows where P is NaN.
+    p_topple : (A,) float;  points, directions, edges : as ``needed_force_ratio``"""
+    p_topple = np.asarray(p_topple, dtype=float)
+    ratio = np.clip(needed_force_ratio(points, directions, edges), *FORCE_RATIO_RANGE)
+    features = np.column_stack([np.ones(len(p_topple)), logit(p_topple), np.log(ratio)])
+    features[~np.isfinite(p_topple)] = np.nan
+    return features
+
+
+def side_rows(p_topple: np.ndarray, direction_z: np.ndarray) -> np.ndarray:
+    """(A,) bool, the pushes the side map takes: side class, SIDE_BAND[0] < P < SIDE_BAND[1]."""
+    p_topple = np.asarray(p_topple, dtype=float)
+    with np.errstate(invalid="ignore"):
+        return on_the_side(direction_z) & (p_topple > SIDE_BAND[0]) & (p_topple < SIDE_BAND[1])
+
+
+def map_side_rows(next_pose: np.ndarray, start: int, actions, edges: EdgeGeometry, weights) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the side map (C.16) to the rows ``side_rows`` takes; the rest are returned as they are.
+
+    next_pose : (A, P) float, the rows as mapped so far (C.7), NaN rows not ok
+    start : the pose the rows leave;  actions : the pose's ``outcomes.Actions`` (pose frame)
+    edges : the pose's ``edges.edge_geometry``;  weights : (len(SIDE_FEATURES),) or empty
+    returns : next_pose (A, P), a mapped row 1 - q at ``start`` and q times its own leaving part,
+      normalised (C.13.2; P > SIDE_BAND[0] > 0, so it has one); p_topple (A,)
+    """
+    next_pose = np.array(next_pose, dtype=float)
+    p = 1.0 - next_pose[:, start]
+    side = np.flatnonzero(side_rows(p, actions.directions[:, 2]))
+    if len(weights) == 0 or len(side) == 0:
+        return next_pose, p
+    q = mapped_probability(side_features(p[side], actions.points[side], actions.directions[side], edges), weights)  # (S,)
+    leaving = next_pose[side].copy()
+    leaving[:, start] = 0.0
+    next_pose[side] = q[:, None] * leaving / leaving.sum(axis=1, keepdims=True)
+    next_pose[side, start] = 1.0 - q
     return next_pose, 1.0 - next_pose[:, start]

@@ -47,3 +47,11 @@ DOWN_MAP = (
     3.3627733572815646, 0.5043682233597462, 0.2321465377401717, 0.665954464606287,
     -1.294299656366433, -0.2321465377401717, -2.37241784403425, -0.06371437980744568,
 )
+
+# The side map (docs/MODEL.md C.16; docs/VALIDATION.md, "Side pushes sharpened along the force they
+# need"): logistic weights, in the order of ``feature_map.SIDE_FEATURES``, for the pushes with
+# -0.3 <= u_z < 0.3 and 0.05 < P < 0.95, fitted on the default's P (C.7 applied) of the corpus log's
+# 137 such pushes.  Cross-validated (6 folds by object, seed 0): held-out Brier on them 0.1427
+# against 0.1537 without it.  Regenerate with ``toppledb recalibrate data/logs/corpus --folds 6
+# --seed 0 --side`` (reports/recalibrated_side.toml).
+SIDE_MAP = (-3.259649988432783, 0.8517342133875055, -2.2118633991662784)

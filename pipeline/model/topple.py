@@ -52,7 +52,7 @@ from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
 from .config import ToppleConfig
 from .edges import EdgeGeometry, edge_geometry
-from .feature_map import map_down_rows, map_rows
+from .feature_map import map_down_rows, map_rows, map_side_rows
 from .mesh import ObjectModel
 from .outcomes import Actions, StablePose, ToppleTable
 from .poses import stability_margin
@@ -752,4 +752,7 @@ def evaluate_pose(
         # MODEL.md C.15: pushes that press down, which the policies never choose, from their geometry.
         next_pose, p_topple = map_down_rows(next_pose, unmapped, pose.index, actions, edges, center_mass,
                                             config.applied_down_map, config.down_map_z, pool=n_candidates)
+    if config.applied_side_map:
+        # MODEL.md C.16: pushes from the side the model is unsure of, sharpened along the force they need.
+        next_pose, p_topple = map_side_rows(next_pose, pose.index, actions, edges, config.applied_side_map)
     return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes)

@@ -24,7 +24,17 @@ from pathlib import Path
 import numpy as np
 
 from ..model.config import MAP_FIELDS, NO_MAP, Config, ToppleConfig
-from ..model.feature_map import DOWN_FEATURES, FEATURES, FeatureMapError, fit_weights, mapped_probability, pressed_down
+from ..model.feature_map import (
+    DOWN_FEATURES,
+    FEATURES,
+    SIDE_BAND,
+    SIDE_FEATURES,
+    SIDE_Z,
+    FeatureMapError,
+    fit_weights,
+    mapped_probability,
+    pressed_down,
+)
 from ..model.recalibration import METHODS, RecalibrationError, fit, fit_logistic, predict
 from .calibrate import CalibrationError, grouped_folds, write_outputs
 from .logreader import LogError, PushLog, read_log
@@ -173,13 +183,7 @@ def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None =
     object_ids = object_ids.tolist()
     source = np.repeat(np.arange(len(parts)), [len(part["p"]) for part in parts])
     fold_objects, fold_of = push_folds(names, folds, seed)
-    held_out = np.empty(len(p))
-    for f in range(folds):
-        train, test = fold_of != f, fold_of == f
-        held_out[test] = mapped_probability(features[test], fit_weights(features[train], observed[train], weight[train]))
-    weights = fit_weights(features, observed, weight)
-    if not np.all(np.isfinite(weights)):
-        raise FeatureMapError(f"the feature map's fit did not converge (weights {weights.tolist()})")
+    held_out, weights = cross_validated_map(features, observed, weight, fold_of, folds, np.ones(len(p), dtype=bool), "feature map")
 
     def both(rows: np.ndarray) -> dict:
         return metrics_by_predictor({"identity": p, "feature_map": held_out}, rows, observed, weight, objects)
@@ -258,6 +262,83 @@ def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
     }
 
 
+def cross_validated_map(features: np.ndarray, observed: np.ndarray, weight: np.ndarray, fold_of: np.ndarray, folds: int,
+                        rows: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A logistic map (``fit_weights``) fitted on ``rows`` of each fold's training pushes and
+    predicting its held-out ones, then on all ``rows``.
+
+    features : (n, F) float;  observed, weight : (n,) float;  fold_of : (n,) int in [0, folds);  rows : (n,) bool
+    returns : held_out (n,) float, each row's q from the other folds (NaN outside ``rows``);
+      weights (F,) float, the fit on every row.  Raises ``RecalibrationError`` when a fold leaves
+      no row to fit on, ``FeatureMapError`` when the fit does not converge."""
+    held_out = np.full(len(observed), np.nan)
+    for f in range(folds):
+        train, test = (fold_of != f) & rows, (fold_of == f) & rows
+        if not train.any():
+            raise RecalibrationError(f"fold {f} leaves no push to fit the {name} on; use fewer folds")
+        held_out[test] = mapped_probability(features[test], fit_weights(features[train], observed[train], weight[train]))
+    weights = fit_weights(features[rows], observed[rows], weight[rows])
+    if not np.all(np.isfinite(weights)):
+        raise FeatureMapError(f"the {name}'s fit did not converge (weights {weights.tolist()})")
+    return held_out, weights
+
+
+def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
+    """Cross-validate the side map (docs/MODEL.md C.16) on top of ``config``'s other maps, fit it on all.
+
+    Every fold fits the weights on its training pushes the map takes (``feature_map.side_rows``:
+    side pushes with P inside ``SIDE_BAND``) and maps its held-out ones; the other pushes keep P.
+    ``identity`` is P as the model without a side map gives it: the comparison the map is adopted by.
+    returns : a JSON-ready record with ``weights`` (one per ``SIDE_FEATURES``) and pooled held-out
+      metrics of both (all pushes and the mapped ones)
+    """
+    config = config or Config()
+    started = time.perf_counter()
+    scorer = Scorer(log, config.seed, config.contacts)
+    features, p, side = scorer.side_map_inputs(config.topple)
+    observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
+    if side.sum() < 2 * len(SIDE_FEATURES):
+        raise RecalibrationError(f"{int(side.sum())} side pushes with {SIDE_BAND[0]} < P < {SIDE_BAND[1]} are too few to fit "
+                                 f"{len(SIDE_FEATURES)} weights")
+    fold_objects, fold_of = push_folds([scorer.object_ids[i] for i in objects], folds, seed)
+    held_out, weights = cross_validated_map(features, observed, weight, fold_of, folds, side, "side map")
+    mapped = np.where(side, held_out, p)
+
+    def both(rows: np.ndarray) -> dict:
+        return metrics_by_predictor({"identity": p, "side_map": mapped}, rows, observed, weight, objects)
+
+    return {
+        "variant": config.topple.variant,
+        "features": list(SIDE_FEATURES),
+        "weights": [float(w) for w in weights],
+        "band": list(SIDE_BAND),
+        "side_z": SIDE_Z,
+        "pushes": len(p),
+        "objects": len(scorer.object_ids),
+        "folds": folds,
+        "seed": seed,
+        "cross_validated": both(np.isfinite(p)),
+        "side_pushes": both(side),
+        "fold_objects": fold_objects,
+        "counts": log.counts(),
+        "wall_s": round(time.perf_counter() - started, 1),
+    }
+
+
+def format_side_record(result: dict) -> str:
+    """``side_recalibrate``'s record as the table ``toppledb recalibrate --side`` prints."""
+    lines = [(f"{result['pushes']} pushes on {result['objects']} objects ({result['side_pushes']['pushes']} side pushes with "
+              f"{result['band'][0]} < P < {result['band'][1]}); {result['folds']}-fold CV grouped by object, held-out folds pooled:"),
+             f"{'pushes':<24} {'predictor':<10} {'ECE':>6} {'Brier':>7} {'AP':>6} {'mAP':>6} {'mean pred.':>10} {'observed':>8}"]
+    for name, key in [("all", "cross_validated"), ("mapped", "side_pushes")]:
+        for predictor in ("identity", "side_map"):
+            m = result[key][predictor]
+            lines.append(f"{name:<24} {predictor:<10} {m['ece']:>6.3f} {m['brier']:>7.4f} {m['ap']:>6.3f} {m['map']:>6.3f} "
+                         f"{m['predicted']:>10.3f} {m['observed']:>8.3f}")
+    lines.append("weights: " + ", ".join(f"{n} {w:+.3f}" for n, w in zip(result["features"], result["weights"])))
+    return "\n".join(lines)
+
+
 def format_down_record(result: dict) -> str:
     """``down_recalibrate``'s record as the table ``toppledb recalibrate --down`` prints."""
     lines = [(f"{result['pushes']} pushes on {result['objects']} objects ({result['down_pushes']['pushes']} with u_z < "
@@ -317,11 +398,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="fit the feature map (docs/MODEL.md C.13) instead of a monotone map; each LOG is read on its own")
     parser.add_argument("--down", action="store_true",
                         help="fit the centred map and, for pushes with u_z < topple.down_map_z, the down map (docs/MODEL.md C.15)")
+    parser.add_argument("--side", action="store_true",
+                        help="fit the side map (docs/MODEL.md C.16) on top of the model's other maps, which are kept")
     args = parser.parse_args(argv)
 
     try:
-        if args.features and args.down:
-            raise UsageError("--features and --down fit two different maps; choose one")
+        if args.features + args.down + args.side > 1:
+            raise UsageError("--features, --down and --side fit different maps; choose one")
         config = config_from_args(args)
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
@@ -339,6 +422,8 @@ def main(argv: list[str] | None = None) -> int:
             result = feature_recalibrate(logs, config, folds=args.folds, seed=args.seed)
         elif args.down:
             result = down_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
+        elif args.side:
+            result = side_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
         else:
             result = recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, methods=tuple(args.methods))
     except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError) as err:
@@ -370,6 +455,17 @@ def main(argv: list[str] | None = None) -> int:
         # The cut travels with the weights fitted below it, whatever the defaults become.
         fitted_map = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"]),
                       "down_map": tuple(result["weights"]), "down_map_z": result["down_map_z"]}
+    elif args.side:
+        print(format_side_record(result))
+        cv = result["cross_validated"]
+        comments = [
+            "toppledb recalibrate --side: the side map of P(topple) (docs/MODEL.md C.16), the model's other maps kept",
+            logs_line,
+            (f"{args.folds}-fold CV grouped by object (seed {args.seed}), held-out ECE / Brier: without it "
+             f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, with it {cv['side_map']['ece']:.3f} / {cv['side_map']['brier']:.4f}"),
+        ]
+        fitted_map = {**{name: getattr(config.topple, name) for name in MAP_FIELDS}, "down_map_z": config.topple.down_map_z,
+                      "side_map": tuple(result["weights"])}
     else:
         print(format_record(result))
         cv = result["cross_validated"]

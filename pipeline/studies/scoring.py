@@ -33,7 +33,7 @@ from ..model.collision import collision_object
 from ..model.config import ContactConfig, ToppleConfig
 from ..model.contacts import explicit_actions, object_contacts, pose_actions
 from ..model.edges import edge_geometry
-from ..model.feature_map import DOWN_FEATURES, FEATURES, down_features, landing_rows, pose_features
+from ..model.feature_map import DOWN_FEATURES, FEATURES, SIDE_FEATURES, down_features, landing_rows, pose_features, side_features, side_rows
 from ..model.outcomes import Actions, StablePose, ToppleTable
 from ..model.rng import stream
 from ..model.topple import evaluate_pose
@@ -183,6 +183,26 @@ class Scorer:
             landing = landing_rows(table.next_pose, group.pose.index, actions.points, actions.directions, pool=pool, rows=index)
             lands[group.rows] = landing.sum(axis=1) > 0
         return out, p, lands
+
+    def side_map_inputs(self, topple: ToppleConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the side map (docs/MODEL.md C.16) reads of every push, in log order, from ``topple``
+        with no side map (what the map is fitted on: the other maps applied, as the engine has them).
+
+        returns : features (n, len(SIDE_FEATURES)) float;  p_topple (n,) float;  taken (n,) bool,
+          the pushes the map takes (``feature_map.side_rows``)"""
+        topple = replace(topple, side_map=())
+        out = np.full((len(self), len(SIDE_FEATURES)), np.nan)
+        p = np.full(len(self), np.nan)
+        taken = np.zeros(len(self), dtype=bool)
+        for group in self.groups:
+            table, actions, index = self._evaluate(group, topple)
+            model = self.log.objects[group.object_id].model
+            center_mass = transform_points(group.pose.transform, model.center_mass[None])[0]
+            edges = edge_geometry(group.pose.base_edges, center_mass)
+            p[group.rows] = table.p_topple[index]
+            out[group.rows] = side_features(table.p_topple[index], actions.points[index], actions.directions[index], edges)
+            taken[group.rows] = side_rows(table.p_topple[index], actions.directions[index, 2])
+        return out, p, taken
 
     def _evaluate(self, group: Group, topple: ToppleConfig, candidates: bool = False) -> tuple[ToppleTable, Actions, np.ndarray]:
         """``group``'s table: over its pose's candidates and its probes when the model needs them
