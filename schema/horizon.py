@@ -157,6 +157,15 @@ def belief_budget_choices(
     return actions, fresh, failed
 
 
+def values_before(v_s: np.ndarray, fresh: np.ndarray, failed: np.ndarray, pushes_left: int) -> tuple[np.ndarray, np.ndarray]:
+    """V0_{h-1} and V1_{h-1} for h = ``pushes_left`` pushes left: ``belief_budget_choices``' rows
+    h - 2 (``fresh``, ``failed``: (H, P) each), or V_s twice with one push left (nothing after it).
+    returns : two (P,) float arrays"""
+    if not 1 <= pushes_left <= len(fresh):
+        raise ValueError(f"pushes_left must be 1..{len(fresh)}, got {pushes_left}")
+    return (v_s, v_s) if pushes_left == 1 else (fresh[pushes_left - 2], failed[pushes_left - 2])
+
+
 def pose_belief_q(
     fresh: np.ndarray,
     failed: np.ndarray,
@@ -174,6 +183,8 @@ def pose_belief_q(
       next_pose, probability : the object's transitions (``budget_choices``);  power : k >= 1
     returns : q0, q1 (A,) float, NaN for the rows with no transitions (not ok)
     """
+    if not power >= 1.0:
+        raise ValueError(f"pose_belief_q needs power >= 1, got {power}")
     counts = np.diff(transition_offsets[rows.start : rows.stop + 1])
     span = slice(int(transition_offsets[rows.start]), int(transition_offsets[rows.stop]))
     terms = _BeliefTerms.of(np.full(len(counts), pose), np.concatenate([[0], np.cumsum(counts)]), next_pose[span],

@@ -69,6 +69,12 @@ class MDPParameters(_Open):
     (docs/MODEL.md (12.13)): the stored Q is Q0 and after a failure /plan ranks by Q1.  A manifest
     from before the field was built with the thesis's equation."""
 
+    @property
+    def plans_with_failures(self) -> bool:
+        """``MDPConfig.plans_with_failures`` of the build: it believed failures with a map (k != 1),
+        so its budgets are (12.14) too; k None (a manifest from before the map) believes nothing."""
+        return self.believe_failures and self.after_failure_power not in (None, 1.0)
+
 
 class Parameters(_Open):
     """``Config.to_dict()``: every model parameter of the build."""

@@ -78,7 +78,8 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
     with nothing failed.  A budget ranks them by ``ObjectData.budget_q``: Q1_h of (12.14) in a
     build that believes failures once one has failed.
 
-    returns : action (NO_OP: grasp now), V_h of the push with ``pushes_left`` (else None), the
+    returns : action (NO_OP: grasp now), with ``pushes_left`` what the budget ranked the push by
+      (V_h of (12.8), or Q1_h of (12.14) after a failure in a build that believes failures; else None), the
       number of candidates the policy could choose that are ruled out.  UnknownAction for a
       failed index the pose does not have, or of a push that is not ok: /plan never serves one,
       so it is a client's mistake, and it would silently rule out the ok pushes around it.

@@ -88,8 +88,8 @@ class ObjectData:
       transition_offsets (N + 1,) int64; next_pose (K,) int32; transition_probability (K,) float32
     Hull: hull_vertices (V, 3) float64, m, object frame
     min_direction_z: the build's ``mdp.min_direction_z``: the pushes a budget's choice may take
-    failure_power: k of (12.14) when the build plans with its failures (``MDPConfig.plans_with_failures``),
-      else None: the budgets then believe a failure as value iteration does
+    failure_power: k of (12.14) when the build plans with its failures (``MDPParameters.plans_with_failures``):
+      its budgets then believe a failure as its value iteration does; None: they are (12.8) and believe nothing
     """
 
     object_id: str
@@ -146,6 +146,8 @@ class ObjectData:
         candidates' geometry (the neighbourhood mean is per request: ``neighbourhood_p``).
         """
         actions, fresh, _ = self._solved_budgets()
+        if not 1 <= pushes_left <= len(actions):
+            raise ValueError(f"pushes_left must be 1..{len(actions)}, got {pushes_left}")
         return actions[pushes_left - 1], fresh[pushes_left - 1]
 
     def budget_q(self, pose: int, pushes_left: int, after_failure: bool) -> np.ndarray:
@@ -154,9 +156,7 @@ class ObjectData:
         the pose has failed (``after_failure``); else the budget's Q_h (``horizon.pose_q``), which a
         failure does not change."""
         rows = self.pose_rows(pose)
-        _, fresh, failed = self._solved_budgets()
-        # V0_{h-1} and V1_{h-1}: V_s with one push left
-        fresh, failed = (self.v_s, self.v_s) if pushes_left == 1 else (fresh[pushes_left - 2], failed[pushes_left - 2])
+        fresh, failed = horizon.values_before(self.v_s, *self._solved_budgets()[1:], pushes_left)
         if self.failure_power is None:
             return horizon.pose_q(fresh, rows, self.transition_offsets, self.next_pose, self.transition_probability)
         q0, q1 = horizon.pose_belief_q(fresh, failed, pose, rows, self.transition_offsets, self.next_pose,
@@ -338,7 +338,7 @@ class Store:
             except (served.ServedError, DatasetUnreadable) as err:
                 raise DatasetError(f"{root}: {err}") from None
         mdp = manifest.parameters.mdp
-        failure_power = mdp.after_failure_power if mdp.believe_failures and mdp.after_failure_power not in (None, 1.0) else None
+        failure_power = mdp.after_failure_power if mdp.plans_with_failures else None
         objects = _objects(tables, mdp.min_direction_z, failure_power)
         store = cls(root, manifest, objects, time.perf_counter() - started, manifest_sha256)
         expected = {k: getattr(manifest.counts, k) for k in store.counts}

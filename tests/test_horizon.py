@@ -3,7 +3,14 @@
 import numpy as np
 import pytest
 
-from schema.horizon import belief_budget_choices, budget_choices, choosable_pushes, csr_from_rows, pose_belief_q
+from schema.horizon import (
+    belief_budget_choices,
+    budget_choices,
+    choosable_pushes,
+    csr_from_rows,
+    pose_belief_q,
+    values_before,
+)
 from schema.vocabulary import NO_OP
 
 
@@ -141,8 +148,8 @@ def belief_budget(next_pose, v_s, power, pushes, choosable=None):
     mask = None if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])
     actions, fresh, failed = belief_budget_choices(v_s, *csr, pushes, power, mask)
     q0s, q1s = [], []
-    for h in range(pushes):
-        before = (v_s, v_s) if h == 0 else (fresh[h - 1], failed[h - 1])
+    for h in range(1, pushes + 1):
+        before = values_before(v_s, fresh, failed, h)
         qs = [pose_belief_q(*before, x, slice(int(action_offsets[x]), int(action_offsets[x + 1])), transition_offsets, targets,
                             probability, power) for x in range(len(v_s))]
         q0s.append([q[0] for q in qs]), q1s.append([q[1] for q in qs])
@@ -197,6 +204,12 @@ def test_belief_budget_with_one_push_left_takes_the_likely_push_after_a_failure(
     assert plain[1, 0] == 0 and values[1, 0] == pytest.approx(0.1 + 0.9 * 0.47)
     with pytest.raises(ValueError, match="power >= 1"):
         belief_budget_choices(v_s, *csr_from_rows(next_pose), 2, 0.9)
+    _, transition_offsets, targets, probability = csr_from_rows(next_pose)
+    with pytest.raises(ValueError, match="power >= 1"):
+        pose_belief_q(v_s, v_s, 0, slice(0, 2), transition_offsets, targets, probability, 0.9)
+    for bad in (0, 3):
+        with pytest.raises(ValueError, match="pushes_left must be 1..2"):
+            values_before(v_s, fresh, failed, bad)
 
 
 def test_pose_belief_q_is_the_solve_s_own_numbers_in_float32():

@@ -85,9 +85,10 @@ def final_value(client, tables, object_id: str, pose: int, budget: int) -> float
     return answer["v_s"] if answer["action"] is None else answer["expected_v_s_final"]
 
 
-def reference(tables, object_id: str, budget: int):
+def reference(tables, object_id: str, budget: int, power: float | None = None):
     """The budget of (12.14) by explicit backward induction over the analysts' tables
-    (``tests.test_horizon.reference_belief_budget``; k = the build's after_failure_power):
+    (``tests.test_horizon.reference_belief_budget``; k = ``power``, default the build's
+    after_failure_power; k = 1 is the table's budget, (12.8)):
     per pose its candidates' rows, V_s, choosable mask, and Q0, Q1 for h = 1..budget."""
     from tests.test_horizon import reference_belief_budget
 
@@ -108,7 +109,7 @@ def reference(tables, object_id: str, budget: int):
         choosable.append(np.array([np.float32(tables["actions"][(object_id, x, a)]["direction_z"]) >= np.float32(MIN_DIRECTION_Z)
                                    for a in actions], dtype=bool))
         candidates.append(actions)
-    power = tables["manifest"]["parameters"]["mdp"]["after_failure_power"]
+    power = tables["manifest"]["parameters"]["mdp"]["after_failure_power"] if power is None else power
     q0s, q1s = reference_belief_budget(rows, v_s, power, budget, choosable)
     return v_s, choosable, q0s, q1s
 
@@ -150,8 +151,8 @@ def test_a_budget_believes_its_failures_as_the_build_does(client, tables):
     assert fresh > 0 and failed > 0
 
 
-def test_a_build_that_does_not_believe_failures_serves_the_thesis_s_budget(dataset):
-    """``failure_power`` None (the thesis preset, or a build from before (12.14)): the budget is
+def test_a_build_that_does_not_believe_failures_serves_the_thesis_s_budget(dataset, tables):
+    """``failure_power`` None (the thesis preset, k = 1, or a build from before (12.13)): the budget is
     (12.8) over the table, and a failure does not change how the budget ranks the untried pushes."""
     import dataclasses
 
@@ -175,6 +176,11 @@ def test_a_build_that_does_not_believe_failures_serves_the_thesis_s_budget(datas
                 expected = horizon.pose_q(previous, rows, obj.transition_offsets, obj.next_pose, obj.transition_probability)
                 np.testing.assert_array_equal(plain.budget_q(x, h, after_failure=True), expected)
                 np.testing.assert_array_equal(plain.budget_q(x, h, after_failure=False), expected)
+        # (12.8) by explicit backward induction over the analysts' tables: (12.14) at k = 1.
+        v_s, choosable, q0s, _ = reference(tables, obj.object_id, 3, power=1.0)
+        for h in (1, 2, 3):
+            expected = [max(v_s[x], np.nanmax(np.where(choosable[x], q0s[h - 1][x], np.nan), initial=-np.inf)) for x in range(len(v_s))]
+            np.testing.assert_allclose(plain.budget(h)[1], expected, atol=1e-5)
     assert differs > 0, "believing failures should change some pose's budget value"
 
 
@@ -219,3 +225,31 @@ def test_bad_budgets_are_422(client, tables, extra):
     response = client.post("/plan", content=json.dumps(body), headers=JSON)
     assert response.status_code == 422, response.text
     assert "pushes_left" in response.json()["detail"] or "policy" in response.json()["detail"]
+
+
+@pytest.mark.parametrize("mdp, believes", [
+    ({}, True),  # the default build: believe_failures true, k 2.1
+    ({"believe_failures": False}, False),  # the thesis preset's rule
+    ({"after_failure_power": 1.0}, False),  # k = 1 believes nothing
+    ({"after_failure_power": None, "believe_failures": False}, False),  # a manifest from before the map
+])
+def test_the_store_reads_from_the_manifest_whether_its_budgets_believe_failures(dataset, tmp_path, mdp, believes):
+    import shutil
+
+    from schema import horizon
+    from service.store import Store
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["parameters"]["mdp"].update(mdp)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    store = Store.load(copy)
+    for obj in store.objects.values():
+        assert (obj.failure_power is not None) == believes
+        csr = (obj.action_offsets, obj.transition_offsets, obj.next_pose, obj.transition_probability)
+        plain = horizon.budget_choices(obj.v_s, *csr, 3, obj.choosable(slice(None)))[1]
+        if not believes:
+            np.testing.assert_array_equal(obj.budget(3)[1], plain[2])
+    with pytest.raises(ValueError, match="pushes_left must be 1"):
+        next(iter(store.objects.values())).budget(0)

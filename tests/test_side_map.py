@@ -144,8 +144,9 @@ def test_the_engine_maps_the_unsure_side_pushes_and_no_other(pose_and_candidates
     assert np.allclose(mapped.p_topple[taken], q[taken]) and np.array_equal(mapped.outcomes, plain.outcomes)
 
 
-def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(model_logs, tmp_path):  # noqa: F811
-    from pipeline.studies.recalibrate import main, metrics, push_folds, side_recalibrate
+def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(model_logs, tmp_path, monkeypatch):  # noqa: F811
+    from pipeline.model import feature_map
+    from pipeline.studies.recalibrate import RecalibrationError, main, metrics, push_folds, side_recalibrate
     from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
 
     path = model_logs / "reported.parquet"
@@ -188,3 +189,27 @@ def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(mode
     default = Config().topple
     assert (written.recalibration_x, written.down_map) == (default.recalibration_x, default.down_map), "the other maps are kept"
     assert main([str(path), "--side", "--down", *common]) == 2
+    out.unlink()
+    assert main([str(path), "--side", "--set", "topple.variant=robust", *common]) == 2 and not out.exists()
+    monkeypatch.setattr(feature_map, "SIDE_BAND", (0.5, 0.5))  # a band nothing is inside
+    with pytest.raises(RecalibrationError, match="too few"):
+        side_recalibrate(log, config, folds=3, seed=2)
+
+
+def test_the_side_map_and_a_down_map_never_take_the_same_push():
+    with pytest.raises(ValueError, match="would both map"):
+        Config().with_overrides({"topple.down_map_z": -0.2, "mdp.min_direction_z": 0.0})
+    assert Config().with_overrides({"topple.down_map_z": -0.2, "mdp.min_direction_z": 0.0,
+                                    "topple.side_map": ""}).topple.applied_down_map
+
+
+def test_a_file_with_only_a_feature_map_of_its_own_comes_without_the_side_map(tmp_path):
+    path = tmp_path / "features.toml"
+    path.write_text("[topple]\nrecalibration_x = []\nrecalibration_y = []\nfeature_map = [0.0, 1.0, 0.0, 0.0, 0.0, 0.0]\n")
+    assert Config.from_toml(path).topple.side_map == ()
+
+
+def test_the_side_class_compares_directions_in_float32_as_the_served_tables():
+    # A direction a hair below -0.3 in float64 is -0.3 in float32: the served tables' push is a side push.
+    z = np.array([-0.3 - 1e-9, -0.3 - 1e-6])
+    assert side_rows(np.array([0.5, 0.5]), z).tolist() == [True, False]

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from . import fitted_map
-from .feature_map import check_down_weights, check_side_weights, check_weights
+from .feature_map import SIDE_Z, check_down_weights, check_side_weights, check_weights
 from .recalibration import check_knots
 
 PRESETS = Path(__file__).with_name("presets")
@@ -265,8 +265,9 @@ class ToppleConfig:
     side_map: tuple[float, ...] = bounded(fitted_map.SIDE_MAP, Range())
     """Weights of the map of P(topple) for pushes from the side (docs/MODEL.md C.16), one per
     feature (bias, logit_p, log_force_ratio: the noise-free force the push needs over the
-    object's weight), or empty (no map).  Applied after the recalibration map (C.7) to the pushes
-    with |u_z| < 0.3 whose P is between 0.05 and 0.95 (``feature_map.side_rows``).  The default is
+    object's weight), or empty (no map).  Applied after the other maps (C.7, C.13, C.15) to the
+    pushes with -0.3 <= u_z < 0.3 whose P is strictly between 0.05 and 0.95 (``feature_map.side_rows``);
+    not with a down map whose cut ``down_map_z`` is above -0.3, which would map some of the same pushes.  The default is
     fitted by ``toppledb recalibrate --side`` on the corpus's drawn pushes (data/logs/corpus).
     Only the ``corrected`` variant applies it."""
 
@@ -280,6 +281,11 @@ class ToppleConfig:
         check_weights(self.feature_map)
         check_down_weights(self.down_map)
         check_side_weights(self.side_map)
+        if self.applied_down_map and self.applied_side_map and self.down_map_z > -SIDE_Z:
+            # Each map belongs to the pushes it was fitted on (MODEL.md C.15, C.16): none is both.
+            raise ValueError(f"topple.down_map_z ({self.down_map_z:g}) is above -{SIDE_Z:g}: the down map and the side map "
+                             "would both map the pushes between; lower topple.down_map_z or set no side map "
+                             "(topple.side_map = [], --set topple.side_map=)")
         if self.feature_map and self.recalibration_x:
             raise ValueError("topple.feature_map and topple.recalibration_x/_y are two maps of one P(topple); set one "
                              "(the defaults carry a recalibration map: with a feature map set recalibration_x = [] and "
@@ -507,7 +513,7 @@ class Config:
     def from_dict(cls, data: dict[str, Any]) -> "Config":
         """Build from nested sections; a ``contacts.push_depth`` given without ``topple.stroke``
         (a config file, or a manifest written before the stroke existed) sets the stroke too, and
-        a ``[topple]`` map of its own given without ``down_map`` comes with no down map."""
+        a ``[topple]`` map of its own given without ``down_map`` or ``side_map`` comes without that map."""
         contacts, topple = data.get("contacts"), data.get("topple")
         if isinstance(contacts, dict) and "push_depth" in contacts and not (isinstance(topple, dict) and "stroke" in topple):
             data = {**data, "topple": {**(topple if isinstance(topple, dict) else {}), "stroke": contacts["push_depth"]}}

@@ -451,8 +451,7 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
     stay = float(v_s[pose])
     if budget is not None:
         (action_offsets, transition_offsets, next_pose, probability), fresh, failed_values = budget
-        # V0_{h-1}, V1_{h-1}
-        fresh, failed_values = (v_s, v_s) if len(fresh) == 1 else (fresh[-2], failed_values[-2])
+        fresh, failed_values = horizon.values_before(v_s, fresh, failed_values, len(fresh))
         rows = slice(int(action_offsets[pose]), int(action_offsets[pose + 1]))
         if config.mdp.plans_with_failures:
             _, q = horizon.pose_belief_q(fresh, failed_values, pose, rows, transition_offsets, next_pose, probability,

@@ -345,7 +345,7 @@ def needed_force_ratio(points: np.ndarray, directions: np.ndarray, edges: EdgeGe
     gravity).  inf where no edge has a positive lever.
 
     points : (A, 3) float, m;  directions : (A, 3) float, unit;  edges : ``edges.edge_geometry``
-    (pose frame)  returns : (A,) float, >= 0
+    (pose frame)  returns : (A,) float, >= 0 for a centre of mass inside its base (d_e > 0, section 5)
     """
     points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
     lever = np.einsum("aek,aek->ae", points[:, None, :] - edges.start[None], np.cross(directions[:, None, :], edges.direction[None]))

@@ -32,7 +32,7 @@ from schema.vocabulary import STATUS_OK
 from ..model.collision import collision_object
 from ..model.config import ContactConfig, ToppleConfig
 from ..model.contacts import explicit_actions, object_contacts, pose_actions
-from ..model.edges import edge_geometry
+from ..model.edges import EdgeGeometry, edge_geometry
 from ..model.feature_map import DOWN_FEATURES, FEATURES, SIDE_FEATURES, down_features, landing_rows, pose_features, side_features, side_rows
 from ..model.outcomes import Actions, StablePose, ToppleTable
 from ..model.rng import stream
@@ -173,9 +173,7 @@ class Scorer:
         lands = np.zeros(len(self), dtype=bool)
         for group in self.groups:
             table, actions, index = self._evaluate(group, topple, candidates=True)
-            model = self.log.objects[group.object_id].model
-            center_mass = transform_points(group.pose.transform, model.center_mass[None])[0]
-            edges = edge_geometry(group.pose.base_edges, center_mass)
+            center_mass, edges = self._pose_edges(group)
             out[group.rows] = down_features(table.p_topple[index], actions.points[index], actions.normals[index],
                                             actions.directions[index], edges, center_mass)
             p[group.rows] = table.p_topple[index]
@@ -196,13 +194,18 @@ class Scorer:
         taken = np.zeros(len(self), dtype=bool)
         for group in self.groups:
             table, actions, index = self._evaluate(group, topple)
-            model = self.log.objects[group.object_id].model
-            center_mass = transform_points(group.pose.transform, model.center_mass[None])[0]
-            edges = edge_geometry(group.pose.base_edges, center_mass)
+            _, edges = self._pose_edges(group)
             p[group.rows] = table.p_topple[index]
             out[group.rows] = side_features(table.p_topple[index], actions.points[index], actions.directions[index], edges)
             taken[group.rows] = side_rows(table.p_topple[index], actions.directions[index, 2])
         return out, p, taken
+
+    def _pose_edges(self, group: Group) -> tuple[np.ndarray, EdgeGeometry]:
+        """The centre of mass of ``group``'s object in its pose's frame, (3,) float, m (not the
+        mesh's: the engine's maps read the pose frame's), and the pose's ``edge_geometry``."""
+        model = self.log.objects[group.object_id].model
+        center_mass = transform_points(group.pose.transform, model.center_mass[None])[0]
+        return center_mass, edge_geometry(group.pose.base_edges, center_mass)
 
     def _evaluate(self, group: Group, topple: ToppleConfig, candidates: bool = False) -> tuple[ToppleTable, Actions, np.ndarray]:
         """``group``'s table: over its pose's candidates and its probes when the model needs them

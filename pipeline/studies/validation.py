@@ -436,13 +436,14 @@ def report(
     recalibration = None
     applied = replace(config.topple, variant=main_variant)
     x, y = applied.applied_recalibration
-    if (len(x) or applied.applied_feature_map or applied.applied_down_map) and main_variant in variants:
-        # The configured variant without its maps (docs/MODEL.md C.7, C.13, C.15), and the paired
+    if (len(x) or applied.applied_feature_map or applied.applied_down_map or applied.applied_side_map) and main_variant in variants:
+        # The configured variant without its maps (docs/MODEL.md C.7, C.13, C.15, C.16), and the paired
         # difference: mapped minus raw, on the same resampled objects.
         raw = scorer.score_variant(config.topple.without_recalibration(), main_variant)
         recalibration = {
             **({"x": list(x), "y": list(y)} if len(x) else {"feature_map": list(applied.applied_feature_map)}),
             "down_map": list(applied.applied_down_map), "down_map_z": applied.down_map_z,
+            "side_map": list(applied.applied_side_map),
             "raw": f"{main_variant}_raw",
             "raw_metrics": predictor_summary(raw, scorer, n_resamples=n_resamples, seed=seed),
             "difference": bootstrap_metric_difference(
@@ -478,7 +479,8 @@ def report(
                 "topple": {k: getattr(other, k) for k in NOISE_KEYS},
                 "recalibration": {"x": list(other_x), "y": list(other_y),
                                   "feature_map": list(other.applied_feature_map),
-                                  "down_map": list(other.applied_down_map), "down_map_z": other.down_map_z},
+                                  "down_map": list(other.applied_down_map), "down_map_z": other.down_map_z,
+                                  "side_map": list(other.applied_side_map)},
                 "metrics": predictor_summary(other_scores, scorer, n_resamples=n_resamples, seed=seed),
                 "ranking_by_direction": ranking_by_direction(other_scores, scorer, classes),
                 "difference": bootstrap_metric_difference(
