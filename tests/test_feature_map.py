@@ -118,7 +118,7 @@ def test_the_bias_is_not_shrunk_and_a_probe_lends_no_landing_to_the_pose():
 
 def test_bad_weights_are_refused_with_the_field_named():
     check_weights(())
-    with pytest.raises(FeatureMapError, match="6 finite weights"):
+    with pytest.raises(FeatureMapError, match="topple.feature_map needs 6 finite weights"):
         check_weights((1.0, 2.0))
     with pytest.raises(ValueError, match="feature_map"):
         Config().with_overrides({"topple.feature_map": "1,2,3"})

@@ -228,3 +228,34 @@ def test_pose_belief_q_is_the_solve_s_own_numbers_in_float32():
             assert q0[actions[2, x]] == fresh[2, x]  # bit for bit
         if np.isfinite(q1).any() and np.nanmax(q1) > v_s[x] + 1e-9:
             assert np.nanmax(q1) == failed[2, x]
+
+
+def test_the_belief_budget_renormalises_rows_and_keeps_rows_with_one_outcome():
+    # Stored probabilities are float32 rows that sum to 1 only within rounding: the solve
+    # renormalises each row and computes in float64, so twice the row, or its float32 copy
+    # widened, is the same problem to the bit.  A sure push (one outcome) is a push like any other.
+    next_pose = [np.array([[0.0, 1.0, 0.0], [0.6, 0.0, 0.4], [1.0, 0.0, 0.0]]), np.zeros((0, 3)),
+                 np.array([[0.0, 0.2, 0.8], [np.nan] * 3])]
+    v_s = np.array([0.1, 0.9, 0.3])
+    action_offsets, transition_offsets, targets, probability = csr_from_rows(next_pose)
+    solved = belief_budget_choices(v_s, action_offsets, transition_offsets, targets, probability, 3, 2.1)
+    doubled = belief_budget_choices(v_s, action_offsets, transition_offsets, targets, 2.0 * probability, 3, 2.1)
+    for a, b in zip(solved, doubled):
+        np.testing.assert_array_equal(a, b)
+    single = probability.astype(np.float32)
+    widened = belief_budget_choices(v_s, action_offsets, transition_offsets, targets, single.astype(np.float64), 3, 2.1)
+    for a, b in zip(belief_budget_choices(v_s, action_offsets, transition_offsets, targets, single, 3, 2.1), widened):
+        np.testing.assert_array_equal(a, b)
+    q0, q1 = pose_belief_q(v_s, v_s, 0, slice(0, 3), transition_offsets, targets, probability, 2.1)
+    assert q0[0] == pytest.approx(0.9) and q1[0] == pytest.approx(0.9), "the sure topple onto pose 1"
+    assert q0[2] == pytest.approx(0.1) and q1[2] == pytest.approx(0.1), "the push that never topples is worth staying"
+    assert solved[0][0, 0] == 0 and solved[0][0, 2] == 0 and solved[1][0, 2] == pytest.approx(0.2 * 0.9 + 0.8 * 0.3)
+
+
+def test_a_push_must_beat_grasping_now_by_more_than_the_margin():
+    from schema.horizon import IMPROVEMENT, _best_per_pose
+
+    offsets = np.array([0, 2])
+    assert _best_per_pose(np.array([IMPROVEMENT, -np.inf]), np.array([0.0]), offsets)[0][0] == NO_OP
+    actions, values = _best_per_pose(np.array([IMPROVEMENT, 2 * IMPROVEMENT]), np.array([0.0]), offsets)
+    assert actions[0] == 1 and values[0] == 2 * IMPROVEMENT

@@ -57,6 +57,9 @@ def test_a_standing_box_needs_its_half_width_over_the_push_height():
     assert needed_force_ratio(2 * points, np.tile(SIDE, (3, 1)), doubled) == pytest.approx(0.025 / heights)
     f = side_features(np.array([0.3, np.nan]), points[:2], np.tile(SIDE, (2, 1)), BOX)
     assert f[0] == pytest.approx([1.0, np.log(0.3 / 0.7), np.log(0.025 / 0.03)]) and np.all(np.isnan(f[1]))
+    # No lever about any edge: an infinite force, clipped so the feature stays finite.
+    stuck = side_features(np.array([0.3]), np.array([[0.0, 0.0, 0.15]]), np.array([[0.0, 0.0, -1.0]]), BOX)
+    assert stuck[0, 2] == pytest.approx(np.log(1e3))
 
 
 def _pushes_and_rows():
@@ -88,6 +91,9 @@ def test_only_unsure_side_pushes_are_mapped_and_keep_where_they_land():
     assert np.allclose(identity, rows) and np.allclose(p_identity, 1.0 - rows[:, 0])
     same, _ = map_side_rows(rows, 0, actions, BOX, ())
     assert np.array_equal(same, rows), "no weights, no map"
+    one = [0, 1, 3]  # a single push the map takes is mapped too
+    alone, p_alone = map_side_rows(rows[one], 0, _actions(actions.points[one], actions.normals[one], actions.directions[one]), BOX, WEIGHTS)
+    assert p_alone[1] == pytest.approx(q[1]) and np.array_equal(alone[[0, 2]], rows[[0, 3]])
     nan_rows = rows.copy()
     nan_rows[1] = np.nan  # a push that is not ok
     out, p = map_side_rows(nan_rows, 0, actions, BOX, WEIGHTS)
@@ -104,7 +110,7 @@ def test_bad_weights_are_refused_and_only_the_corrected_variant_maps():
     check_side_weights(())
     check_side_weights(WEIGHTS)
     for bad in [(1.0, 2.0), (1.0, np.nan, 0.0)]:
-        with pytest.raises(FeatureMapError, match="topple.side_map needs 3"):
+        with pytest.raises(FeatureMapError, match=r"topple.side_map needs 3 finite weights \(bias, logit_p, log_force_ratio\)"):
             check_side_weights(bad)
     with pytest.raises(ValueError, match="side_map"):
         Config().with_overrides({"topple.side_map": "1,2"})
