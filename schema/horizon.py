@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import retry
 from .vocabulary import NO_OP
 
 MAX_PUSHES_LEFT = 10
@@ -157,6 +158,42 @@ def belief_budget_choices(
     return actions, fresh, failed
 
 
+def solve_budgets(v_s: np.ndarray, csr: tuple, max_pushes_left: int, belief_power: float | None,
+                  choosable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The budgets a build serves: (12.14) (``belief_budget_choices``) when it plans with its
+    failures (``belief_power``, its k), else (12.8) (``budget_choices``), whose V1 is its V0.
+    csr : (action_offsets, transition_offsets, next_pose, probability), ``csr_from_rows``' layout;
+    v_s, max_pushes_left, choosable : as ``budget_choices``;  returns : actions, V0, V1, (H, P) each"""
+    if belief_power is None:
+        actions, values = budget_choices(v_s, *csr, max_pushes_left, choosable)
+        return actions, values, values
+    return belief_budget_choices(v_s, *csr, max_pushes_left, belief_power, choosable)
+
+
+def budget_q(
+    v_s: np.ndarray,
+    fresh: np.ndarray,
+    failed: np.ndarray,
+    pushes_left: int,
+    pose: int,
+    rows: slice,
+    transition_offsets: np.ndarray,
+    next_pose: np.ndarray,
+    probability: np.ndarray,
+    belief_power: float | None,
+    after_failure: bool,
+) -> np.ndarray:
+    """What ranks the pushes of ``pose`` with ``pushes_left`` pushes left, given ``solve_budgets``'
+    V0 and V1 (``fresh``, ``failed``): Q0_h of (12.14) fresh and Q1_h once a push from the pose has
+    failed (``after_failure``) when the build plans with its failures (``belief_power``), else (12.8)'s
+    Q_h (``pose_q``), which a failure does not change.  returns : (A,) float, NaN unless ok"""
+    fresh, failed = values_before(v_s, fresh, failed, pushes_left)
+    if belief_power is None:
+        return pose_q(fresh, rows, transition_offsets, next_pose, probability)
+    q0, q1 = pose_belief_q(fresh, failed, pose, rows, transition_offsets, next_pose, probability, belief_power)
+    return q1 if after_failure else q0
+
+
 def values_before(v_s: np.ndarray, fresh: np.ndarray, failed: np.ndarray, pushes_left: int) -> tuple[np.ndarray, np.ndarray]:
     """V0_{h-1} and V1_{h-1} for h = ``pushes_left`` pushes left: ``belief_budget_choices``' rows
     h - 2 (``fresh``, ``failed``: (H, P) each), or V_s twice with one push left (nothing after it).
@@ -197,8 +234,8 @@ class _BeliefTerms:
     """The per-row terms of (12.14) over CSR transitions: owner (K,) int, each transition's row;
     row_pose (N,) int, the pose each row pushes from; weight (K,) float, the row-normalised
     probabilities of the transitions that leave the row's pose (0 for those that stay); stay
-    (N,) float, P(x | x, u); failed_ratio (N,) float, p^(k-1) (0^0 is 1, harmless: a row that
-    never topples leaves nothing); failed_topple (N,) float, p^k."""
+    (N,) float, P(x | x, u); failed_ratio, failed_topple (N,) float, p^(k-1) and
+    p^k (``retry.failed_ratios``)."""
 
     def __init__(self, owner, row_pose, next_pose, weight, stay, failed_ratio, failed_topple):
         self.owner, self.row_pose, self.next_pose, self.weight = owner, row_pose, next_pose, weight
@@ -213,10 +250,7 @@ class _BeliefTerms:
         weight = weight / np.bincount(owner, weights=weight, minlength=n_rows)[owner]
         own = np.asarray(next_pose) == row_pose[owner]
         stay = np.bincount(owner, weights=np.where(own, weight, 0.0), minlength=n_rows)
-        topple = np.clip(1.0 - stay, 0.0, 1.0)
-        failed_ratio = np.power(topple, power - 1.0)
-        return cls(owner, row_pose, np.asarray(next_pose), np.where(own, 0.0, weight), stay, failed_ratio,
-                   topple * failed_ratio)
+        return cls(owner, row_pose, np.asarray(next_pose), np.where(own, 0.0, weight), stay, *retry.failed_ratios(1.0 - stay, power))
 
     def q(self, fresh: np.ndarray, failed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(Q0, Q1) of every row, (N,) float each, from V0_{h-1} and V1_{h-1} ((P,) float)."""

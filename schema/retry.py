@@ -107,6 +107,18 @@ def after_failure(p_topple: float, power: float) -> float:
     return float(p_topple) ** power
 
 
+def failed_ratios(p_topple: np.ndarray, power: float) -> tuple[np.ndarray, np.ndarray]:
+    """A push's two factors in docs/MODEL.md (12.13)-(12.14) once a push from its pose has failed:
+    b = p^(k-1), the ratio of its believed topple chance to its P, and p^k, that chance (0^0 is 1,
+    harmless: a push that never topples leaves nothing).
+
+    p_topple : (N,) float, clipped to [0, 1] (rounding of 1 - P(x | x, u));  power : k
+    returns : b, p^k, (N,) float each"""
+    p = np.clip(np.asarray(p_topple, dtype=float), 0.0, 1.0)
+    ratio = np.power(p, power - 1.0)
+    return ratio, p * ratio
+
+
 def believed_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float, power: float) -> np.ndarray:
     """Value iteration's Q of a pose's pushes once a push from it has failed (docs/MODEL.md (12.12)).
 
@@ -138,8 +150,8 @@ def failed_state_values(q0: np.ndarray, p_topple: np.ndarray, stay: float, gamma
     choosable : (A,) bool, the pushes value iteration plans over
     returns : (A,) float, Q1 (NaN where q0 is)
     """
-    q0, p = np.asarray(q0, dtype=float), np.asarray(p_topple, dtype=float)
-    believed = np.power(p, power - 1.0)
+    q0 = np.asarray(q0, dtype=float)
+    believed, _ = failed_ratios(p_topple, power)
     loop = 1.0 - gamma + gamma * believed
     # A push that never topples again has no fixed point above the grasp (0 / 0 when gamma = 1).
     own = np.divide(gamma * believed * q0, loop, out=np.zeros_like(loop), where=loop > 0)

@@ -151,29 +151,19 @@ class ObjectData:
         return actions[pushes_left - 1], fresh[pushes_left - 1]
 
     def budget_q(self, pose: int, pushes_left: int, after_failure: bool) -> np.ndarray:
-        """What ranks the pushes of ``pose`` for a budget of ``pushes_left``: (A,) float, NaN unless
-        ok.  In a build that plans with its failures, Q0_h of (12.14) fresh and Q1_h once a push from
-        the pose has failed (``after_failure``); else the budget's Q_h (``horizon.pose_q``), which a
-        failure does not change."""
-        rows = self.pose_rows(pose)
-        fresh, failed = horizon.values_before(self.v_s, *self._solved_budgets()[1:], pushes_left)
-        if self.failure_power is None:
-            return horizon.pose_q(fresh, rows, self.transition_offsets, self.next_pose, self.transition_probability)
-        q0, q1 = horizon.pose_belief_q(fresh, failed, pose, rows, self.transition_offsets, self.next_pose,
-                                       self.transition_probability, self.failure_power)
-        return q1 if after_failure else q0
+        """What ranks the pushes of ``pose`` for a budget of ``pushes_left`` (``horizon.budget_q``:
+        Q1_h of (12.14) once a push from it has failed in a build that plans with its failures):
+        (A,) float, NaN unless ok."""
+        _, fresh, failed = self._solved_budgets()
+        return horizon.budget_q(self.v_s, fresh, failed, pushes_left, pose, self.pose_rows(pose), self.transition_offsets,
+                                self.next_pose, self.transition_probability, self.failure_power, after_failure)
 
     def _solved_budgets(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(actions, V0, V1), each (MAX_PUSHES_LEFT, P); V1 is V0 when the build believes nothing."""
+        """(actions, V0, V1), each (MAX_PUSHES_LEFT, P) (``horizon.solve_budgets``)."""
         if self._budgets is None:
             # one assignment: a concurrent first request computes the same
             csr = (self.action_offsets, self.transition_offsets, self.next_pose, self.transition_probability)
-            if self.failure_power is None:
-                actions, values = horizon.budget_choices(self.v_s, *csr, horizon.MAX_PUSHES_LEFT, self.choosable(slice(None)))
-                self._budgets = actions, values, values
-            else:
-                self._budgets = horizon.belief_budget_choices(self.v_s, *csr, horizon.MAX_PUSHES_LEFT, self.failure_power,
-                                                              self.choosable(slice(None)))
+            self._budgets = horizon.solve_budgets(self.v_s, csr, horizon.MAX_PUSHES_LEFT, self.failure_power, self.choosable(slice(None)))
         return self._budgets
 
     def choosable(self, rows: slice | list[int]) -> np.ndarray:

@@ -397,12 +397,7 @@ def plan(
         csr = horizon.csr_from_rows([np.asarray(t.next_pose, dtype=float) for t in result.topple])
         # The pushes the build's policies could choose (its mdp.min_direction_z, not ``config``'s).
         choosable = None if result.choosable is None else np.concatenate(result.choosable)
-        if config.mdp.plans_with_failures:
-            actions, values, failed_values = horizon.belief_budget_choices(v_s, *csr, pushes_left, config.mdp.after_failure_power,
-                                                                           choosable)
-        else:
-            actions, values = horizon.budget_choices(v_s, *csr, pushes_left, choosable)
-            failed_values = values
+        actions, values, failed_values = horizon.solve_budgets(v_s, csr, pushes_left, _belief_power(config), choosable)
         choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
         budget = csr, values, failed_values
     ruled = 0
@@ -424,6 +419,11 @@ def plan(
     # k is the caller's config's, as everything ``evaluate_object`` was given.
     given = retry.given_failures(p_topple, config.mdp.after_failure_power) if failed else None
     return Plan(match, policy, a, float(choice.value), p_topple, push, next_poses, grasp, float(near[0]), ruled, given)
+
+
+def _belief_power(config: Config) -> float | None:
+    """k of (12.14) when ``config`` plans with its failures, else None (``horizon.solve_budgets``)."""
+    return config.mdp.after_failure_power if config.mdp.plans_with_failures else None
 
 
 def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[int], v_s: np.ndarray,
@@ -451,13 +451,9 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
     stay = float(v_s[pose])
     if budget is not None:
         (action_offsets, transition_offsets, next_pose, probability), fresh, failed_values = budget
-        fresh, failed_values = horizon.values_before(v_s, fresh, failed_values, len(fresh))
         rows = slice(int(action_offsets[pose]), int(action_offsets[pose + 1]))
-        if config.mdp.plans_with_failures:
-            _, q = horizon.pose_belief_q(fresh, failed_values, pose, rows, transition_offsets, next_pose, probability,
-                                         config.mdp.after_failure_power)
-        else:
-            q = horizon.pose_q(fresh, rows, transition_offsets, next_pose, probability)
+        q = horizon.budget_q(v_s, fresh, failed_values, len(fresh), pose, rows, transition_offsets, next_pose, probability,
+                             _belief_power(config), after_failure=True)
         improvement, scale = horizon.IMPROVEMENT, 1.0
     elif policy == "greedy":
         q, improvement, scale = values.greedy, retry.POLICY_IMPROVEMENT, 1.0

@@ -141,6 +141,15 @@ def _leaving(next_pose: np.ndarray, start: int) -> np.ndarray:
     return leaving
 
 
+def _toppled_rows(q: np.ndarray, landing: np.ndarray, start: int) -> np.ndarray:
+    """(C.13.2): rows that stay in ``start`` with 1 - q and land as ``landing`` with q.
+    q : (R,) float;  landing : (R, P) float, column ``start`` zero, rows sum to 1 (or 0 with q = 0)
+    returns : (R, P) float"""
+    rows = q[:, None] * landing
+    rows[:, start] = 1.0 - q
+    return rows
+
+
 def _landing(leaving: np.ndarray, near: np.ndarray, pool: int | None, rows: np.ndarray | None = None) -> np.ndarray:
     """``landing_rows`` of ``rows`` (default all) from every push's leaving part (A, P) and the
     rows' neighbourhood means (R, P)."""
@@ -190,8 +199,7 @@ def map_rows(
     landing = _landing(leaving, near[:, 1:], pool)  # (A, P)
     ok = np.isfinite(p)
     q = np.where(landing.sum(axis=1) > 0, q, 0.0)
-    next_pose[ok] = q[ok, None] * landing[ok]
-    next_pose[ok, start] = 1.0 - q[ok]
+    next_pose[ok] = _toppled_rows(q[ok], landing[ok], start)
     return next_pose, 1.0 - next_pose[:, start]
 
 
@@ -310,8 +318,7 @@ def map_down_rows(
     q = mapped_probability(features, weights)  # (D,)
     landing = landing_rows(unmapped, start, actions.points, actions.directions, pool=pool, rows=down)  # (D, P)
     q = np.where(landing.sum(axis=1) > 0, q, 0.0)  # nowhere the model knows to land: no topple
-    next_pose[down] = q[:, None] * landing
-    next_pose[down, start] = 1.0 - q
+    next_pose[down] = _toppled_rows(q, landing, start)
     return next_pose, 1.0 - next_pose[:, start]
 
 
@@ -393,8 +400,7 @@ def map_side_rows(next_pose: np.ndarray, start: int, actions, edges: EdgeGeometr
     if len(weights) == 0 or len(side) == 0:
         return next_pose, p
     q = mapped_probability(side_features(p[side], actions.points[side], actions.directions[side], edges), weights)  # (S,)
-    leaving = next_pose[side].copy()
-    leaving[:, start] = 0.0
-    next_pose[side] = q[:, None] * leaving / leaving.sum(axis=1, keepdims=True)
+    leaving = _leaving(next_pose[side], start)  # (S, P); P > SIDE_BAND[0], so every row leaves
+    next_pose[side] = q[:, None] * leaving / leaving.sum(axis=1, keepdims=True)  # (C.13.2), its own landing
     next_pose[side, start] = 1.0 - q
     return next_pose, 1.0 - next_pose[:, start]

@@ -181,9 +181,8 @@ def value_iteration(
 class _BeliefRows:
     """An object's ``ok`` rows as (12.13) reads them: owner (N,) int, ok as ``_stack``; planned
     (N,) bool, the choosable rows; stay (N,) float, P(x | x, u); leave (N, P), the rows with their
-    own pose's entry zeroed; failed_ratio (N,) float, p^(k-1), the ratio of a push's topple chance
-    once a push from its pose has failed to its chance fresh (0^0 is 1, harmless since a row that
-    never topples leaves nothing); failed_topple (N,) float, p^k, that chance."""
+    own pose's entry zeroed; failed_ratio, failed_topple (N,) float, p^(k-1)
+    and p^k (``schema.retry.failed_ratios``)."""
 
     owner: np.ndarray
     ok: np.ndarray
@@ -207,11 +206,9 @@ def _belief_rows(next_pose: list[np.ndarray], n_poses: int, power: float, choosa
     rows, owner, ok = _stack(next_pose, n_poses)
     planned = np.ones(len(rows), dtype=bool) if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])[ok]
     stay = _self_mass(rows, owner)
-    topple = np.clip(1.0 - stay, 0.0, 1.0)
     leave = rows.copy()
     leave[np.arange(len(rows)), owner] = 0.0
-    failed_ratio = np.power(topple, power - 1.0)
-    return _BeliefRows(owner, ok, planned, stay, leave, failed_ratio, topple * failed_ratio)
+    return _BeliefRows(owner, ok, planned, stay, leave, *retry.failed_ratios(1.0 - stay, power))
 
 
 def belief_value_iteration(

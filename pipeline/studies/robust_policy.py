@@ -296,12 +296,9 @@ def belief_budget_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig
     action_offsets, transition_offsets, next_pose, probability = csr = horizon.csr_from_rows(rows)
     mask = np.concatenate([np.zeros(0, dtype=bool), *choosable])
     actions, fresh, failed = horizon.belief_budget_choices(v_s, *csr, pushes, mdp.after_failure_power, mask)
-    q1s = []
-    for h in range(1, pushes + 1):
-        before = horizon.values_before(v_s, fresh, failed, h)
-        q1s.append([horizon.pose_belief_q(*before, x, slice(int(action_offsets[x]), int(action_offsets[x + 1])),
-                                          transition_offsets, next_pose, probability, mdp.after_failure_power)[1]
-                    for x in range(len(v_s))])
+    q1s = [[horizon.budget_q(v_s, fresh, failed, h, x, slice(int(action_offsets[x]), int(action_offsets[x + 1])),
+                             transition_offsets, next_pose, probability, mdp.after_failure_power, after_failure=True)
+            for x in range(len(v_s))] for h in range(1, pushes + 1)]
     return actions[::-1], q1s[::-1]
 
 
