@@ -439,6 +439,13 @@ def test_heldout_objects_exclude_every_corpus_object():
     assert [s.object_id for s in other_seed] != [s.object_id for s in chosen]
     # Corpus mode draws from the corpus only.
     assert {s.object_id for s in playlog.select_objects("corpus", 10, 0, 0.25)} <= {s.object_id for s in corpus}
+    # --skip continues the same order: a fresh log shares no object with the one before it.
+    fresh = playlog.select_objects("heldout", 3, seed=1, default_mass=0.25, skip=len(named) + 5)
+    assert [s.object_id for s in fresh] == [s.object_id for s in longer[len(named) + 5:]]
+    with pytest.raises(playlog.PlayError, match="--skip"):
+        playlog.select_objects("heldout", 3, seed=1, default_mass=0.25, skip=-1)
+    with pytest.raises(playlog.PlayError, match="passes over all"):
+        playlog.select_objects("corpus", None, seed=1, default_mass=0.25, skip=len(corpus))
 
 
 def test_play_command_rejects_bad_input(capsys, tmp_path):
@@ -446,6 +453,8 @@ def test_play_command_rejects_bad_input(capsys, tmp_path):
     assert "--eps" in capsys.readouterr().err
     assert playlog.main(["--out", str(tmp_path / "x"), "--noise-draws", "-1", "--no-progress"]) == 2
     assert "--noise-draws" in capsys.readouterr().err
+    assert playlog.main(["--out", str(tmp_path / "x"), "--skip", "-1", "--no-progress"]) == 2
+    assert "--skip" in capsys.readouterr().err and not (tmp_path / "x").exists()
     assert playlog.main(["--out", str(tmp_path / "x"), "--set", "topple.nope=1", "--no-progress"]) == 2
     assert "nope" in capsys.readouterr().err
 

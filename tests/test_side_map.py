@@ -33,6 +33,8 @@ from tests.test_validation import model_logs  # noqa: F401 (fixture)
 
 IDENTITY = (0.0, 1.0, 0.0)
 """q = sigmoid(logit P): P itself wherever P is inside the logit's clip."""
+NARROW = (0.2, 0.8)
+"""A band inside the default one."""
 WEIGHTS = (-3.0, 0.9, -2.0)
 """The fitted map's shape: a push that needs less force topples more at the same P."""
 
@@ -104,6 +106,26 @@ def test_the_band_and_the_side_class_are_where_the_map_was_fitted():
     z = np.array([-0.3, -0.30001, 0.29999, 0.3, 0.0, 0.0, 0.0])
     p = np.array([0.5, 0.5, 0.5, 0.5, SIDE_BAND[0], SIDE_BAND[1], np.nan])
     assert side_rows(p, z).tolist() == [True, False, True, False, False, False, False]
+    # The whole open interval: every side push that leaves and is not certain; P = 0 never (no landing).
+    z, p = np.zeros(5), np.array([0.0, 1e-6, 0.97, 1.0 - 1e-9, 1.0])
+    assert side_rows(p, z, (0.0, 1.0)).tolist() == [False, True, True, True, False]
+    assert side_rows(p, z, (0.9, 0.98)).tolist() == [False, False, True, False, False]
+
+
+def test_the_band_is_configured_and_a_wider_band_maps_the_sure_pushes_too():
+    actions, rows = _pushes_and_rows()
+    wide, p_wide = map_side_rows(rows, 0, actions, BOX, WEIGHTS, (0.0, 1.0))
+    narrow, _ = map_side_rows(rows, 0, actions, BOX, WEIGHTS)
+    taken = side_rows(1.0 - rows[:, 0], actions.directions[:, 2], (0.0, 1.0))
+    assert taken.tolist() == [True, True, True, True, True, False, False]
+    q = mapped_probability(side_features(1.0 - rows[:, 0], actions.points, actions.directions, BOX), WEIGHTS)
+    assert np.allclose(p_wide[taken], q[taken]) and np.allclose(wide[taken, 1], 3.0 * wide[taken, 2])
+    assert np.array_equal(wide[[1, 2, 4]], narrow[[1, 2, 4]]) and not np.allclose(wide[[0, 3]], narrow[[0, 3]])
+    assert Config().topple.side_map_band == SIDE_BAND
+    assert Config().with_overrides({"topple.side_map_band": "0,1"}).topple.side_map_band == (0.0, 1.0)
+    for bad in ("0.5,0.5", "0.9,0.1", "0.1", "0.1,0.5,0.9", "-0.1,0.5", "0.5,1.1"):
+        with pytest.raises(ValueError, match="side_map_band"):
+            Config().with_overrides({"topple.side_map_band": bad})
 
 
 def test_bad_weights_are_refused_and_only_the_corrected_variant_maps():
@@ -150,8 +172,7 @@ def test_the_engine_maps_the_unsure_side_pushes_and_no_other(pose_and_candidates
     assert np.allclose(mapped.p_topple[taken], q[taken]) and np.array_equal(mapped.outcomes, plain.outcomes)
 
 
-def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(model_logs, tmp_path, monkeypatch):  # noqa: F811
-    from pipeline.model import feature_map
+def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(model_logs, tmp_path):  # noqa: F811
     from pipeline.studies.recalibrate import RecalibrationError, main, metrics, push_folds, side_recalibrate
     from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
 
@@ -160,6 +181,8 @@ def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(mode
     config = Config().with_overrides({"seed": 2, "contacts.n_contacts": CANDIDATES_PER_POSE, "topple.side_map": "1,2,3"})
     scorer = Scorer(log, seed=2, contacts=config.contacts)
     features, p, taken = scorer.side_map_inputs(config.topple)
+    _, _, taken_narrow = scorer.side_map_inputs(replace(config.topple, side_map_band=NARROW))  # the configured band is read
+    assert 6 <= taken_narrow.sum() < taken.sum() and not np.any(taken_narrow & ~taken)
     assert np.allclose(p, scorer.score(replace(config.topple, side_map=())).p_topple, equal_nan=True), \
         "read from the model without the side map, its other maps applied"
     for group in scorer.groups:
@@ -194,12 +217,15 @@ def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(mode
     assert np.allclose(written.side_map, result["weights"]) and json.loads(record.read_text())["weights"] == result["weights"]
     default = Config().topple
     assert (written.recalibration_x, written.down_map) == (default.recalibration_x, default.down_map), "the other maps are kept"
+    assert written.side_map_band == SIDE_BAND, "the band travels with the weights fitted inside it"
+    assert main([str(path), "--side", *common, "--set", "topple.side_map_band=" + ",".join(map(str, NARROW))]) == 0
+    assert Config.from_toml(out).topple.side_map_band == NARROW
+    assert json.loads(record.read_text())["side_pushes"]["pushes"] == int(taken_narrow.sum())
     assert main([str(path), "--side", "--down", *common]) == 2
     out.unlink()
     assert main([str(path), "--side", "--set", "topple.variant=robust", *common]) == 2 and not out.exists()
-    monkeypatch.setattr(feature_map, "SIDE_BAND", (0.5, 0.5))  # a band nothing is inside
-    with pytest.raises(RecalibrationError, match="too few"):
-        side_recalibrate(log, config, folds=3, seed=2)
+    with pytest.raises(RecalibrationError, match="too few"):  # a band nothing is inside
+        side_recalibrate(log, replace(config, topple=replace(config.topple, side_map_band=(0.0, 1e-12))), folds=3, seed=2)
 
 
 def test_the_side_map_and_a_down_map_never_take_the_same_push():

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from . import fitted_map
-from .feature_map import SIDE_Z, check_down_weights, check_side_weights, check_weights
+from .feature_map import SIDE_BAND, SIDE_Z, check_down_weights, check_side_band, check_side_weights, check_weights
 from .recalibration import check_knots
 
 PRESETS = Path(__file__).with_name("presets")
@@ -266,10 +266,14 @@ class ToppleConfig:
     """Weights of the map of P(topple) for pushes from the side (docs/MODEL.md C.16), one per
     feature (bias, logit_p, log_force_ratio: the noise-free force the push needs over the
     object's weight), or empty (no map).  Applied after the other maps (C.7, C.13, C.15) to the
-    pushes with -0.3 <= u_z < 0.3 whose P is strictly between 0.05 and 0.95 (``feature_map.side_rows``);
+    pushes with -0.3 <= u_z < 0.3 whose P is strictly inside ``side_map_band`` (``feature_map.side_rows``);
     not with a down map whose cut ``down_map_z`` is above -0.3, which would map some of the same pushes.  The default is
     fitted by ``toppledb recalibrate --side`` on the corpus's drawn pushes (data/logs/corpus).
     Only the ``corrected`` variant applies it."""
+    side_map_band: tuple[float, ...] = bounded(SIDE_BAND, FRACTION)
+    """(lo, hi): the side map takes the pushes with lo < P < hi (and P > 0), P after the other
+    maps; it is part of the fit (``recalibrate --side`` fits on the pushes inside it and writes
+    it beside the weights).  The default keeps to the pushes the model is unsure of."""
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -281,6 +285,7 @@ class ToppleConfig:
         check_weights(self.feature_map)
         check_down_weights(self.down_map)
         check_side_weights(self.side_map)
+        check_side_band(self.side_map_band)
         if self.applied_down_map and self.applied_side_map and self.down_map_z > -SIDE_Z:
             # Each map belongs to the pushes it was fitted on (MODEL.md C.15, C.16): none is both.
             raise ValueError(f"topple.down_map_z ({self.down_map_z:g}) is above -{SIDE_Z:g}: the down map and the side map "

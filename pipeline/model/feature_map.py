@@ -335,7 +335,7 @@ SIDE_FEATURES = ("bias", "logit_p", "log_force_ratio")
 SIDE_Z = 0.3
 """The side map takes pushes with -SIDE_Z <= u_z < SIDE_Z (pose frame): the report's "side" class."""
 SIDE_BAND = (0.05, 0.95)
-"""It maps only pushes the model is unsure of, SIDE_BAND[0] < P < SIDE_BAND[1]: where it was fitted."""
+"""The default ``topple.side_map_band``: the map takes only pushes with SIDE_BAND[0] < P < SIDE_BAND[1]."""
 FORCE_RATIO_RANGE = (1e-3, 1e3)
 """F*/mg is clipped to this before its log: a push with no lever about any edge needs an infinite force."""
 
@@ -343,6 +343,13 @@ FORCE_RATIO_RANGE = (1e-3, 1e3)
 def check_side_weights(weights) -> None:
     """``check_weights`` for the side map."""
     check_weights(weights, SIDE_FEATURES, "side_map")
+
+
+def check_side_band(band) -> None:
+    """A band (lo, hi) of P the side map takes, lo < P < hi: 0 <= lo < hi <= 1, so every row it
+    takes has a leaving part to keep (P > lo >= 0)."""
+    if len(band) != 2 or not 0.0 <= band[0] < band[1] <= 1.0:
+        raise ValueError(f"topple.side_map_band must be two numbers 0 <= lo < hi <= 1, got {list(band)}")
 
 
 def needed_force_ratio(points: np.ndarray, directions: np.ndarray, edges: EdgeGeometry) -> np.ndarray:
@@ -378,29 +385,31 @@ def side_features(p_topple: np.ndarray, points: np.ndarray, directions: np.ndarr
     return features
 
 
-def side_rows(p_topple: np.ndarray, direction_z: np.ndarray) -> np.ndarray:
-    """(A,) bool, the pushes the side map takes: side class, SIDE_BAND[0] < P < SIDE_BAND[1]."""
+def side_rows(p_topple: np.ndarray, direction_z: np.ndarray, band=SIDE_BAND) -> np.ndarray:
+    """(A,) bool, the pushes the side map takes: side class, band[0] < P < band[1] (and P > 0)."""
     p_topple = np.asarray(p_topple, dtype=float)
     with np.errstate(invalid="ignore"):
-        return on_the_side(direction_z) & (p_topple > SIDE_BAND[0]) & (p_topple < SIDE_BAND[1])
+        return on_the_side(direction_z) & (p_topple > band[0]) & (p_topple > 0.0) & (p_topple < band[1])
 
 
-def map_side_rows(next_pose: np.ndarray, start: int, actions, edges: EdgeGeometry, weights) -> tuple[np.ndarray, np.ndarray]:
+def map_side_rows(next_pose: np.ndarray, start: int, actions, edges: EdgeGeometry, weights,
+                  band=SIDE_BAND) -> tuple[np.ndarray, np.ndarray]:
     """Apply the side map (C.16) to the rows ``side_rows`` takes; the rest are returned as they are.
 
     next_pose : (A, P) float, the rows as mapped so far (C.7), NaN rows not ok
     start : the pose the rows leave;  actions : the pose's ``outcomes.Actions`` (pose frame)
     edges : the pose's ``edges.edge_geometry``;  weights : (len(SIDE_FEATURES),) or empty
+    band : (lo, hi), the P it takes (``topple.side_map_band``)
     returns : next_pose (A, P), a mapped row 1 - q at ``start`` and q times its own leaving part,
-      normalised (C.13.2; P > SIDE_BAND[0] > 0, so it has one); p_topple (A,)
+      normalised (C.13.2; P > 0, so it has one); p_topple (A,)
     """
     next_pose = np.array(next_pose, dtype=float)
     p = 1.0 - next_pose[:, start]
-    side = np.flatnonzero(side_rows(p, actions.directions[:, 2]))
+    side = np.flatnonzero(side_rows(p, actions.directions[:, 2], band))
     if len(weights) == 0 or len(side) == 0:
         return next_pose, p
     q = mapped_probability(side_features(p[side], actions.points[side], actions.directions[side], edges), weights)  # (S,)
-    leaving = _leaving(next_pose[side], start)  # (S, P); P > SIDE_BAND[0], so every row leaves
+    leaving = _leaving(next_pose[side], start)  # (S, P); P > 0, so every row leaves
     next_pose[side] = q[:, None] * leaving / leaving.sum(axis=1, keepdims=True)  # (C.13.2), its own landing
     next_pose[side, start] = 1.0 - q
     return next_pose, 1.0 - next_pose[:, start]

@@ -754,5 +754,6 @@ def evaluate_pose(
                                             config.applied_down_map, config.down_map_z, pool=n_candidates)
     if config.applied_side_map:
         # MODEL.md C.16: pushes from the side the model is unsure of, sharpened along the force they need.
-        next_pose, p_topple = map_side_rows(next_pose, pose.index, actions, edges, config.applied_side_map)
+        next_pose, p_topple = map_side_rows(next_pose, pose.index, actions, edges, config.applied_side_map,
+                                            config.side_map_band)
     return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes)

@@ -147,12 +147,16 @@ def heldout_specs(default_mass: float) -> tuple[ObjectSpec, ...]:
     )
 
 
-def select_objects(mode: str, count: int | None, seed: int, default_mass: float) -> list[ObjectSpec]:
+def select_objects(mode: str, count: int | None, seed: int, default_mass: float, skip: int = 0) -> list[ObjectSpec]:
     """``count`` objects (all when None) in a seeded order; a larger count extends a smaller one.
 
     corpus : the default corpus, shuffled;  heldout : the named meshes outside it first
     (there are few and they are the realistic ones), then the random objects outside it, shuffled.
+    skip : objects of that order passed over first, so a second log holds none of an earlier
+      one's (``--skip 100 --count 50`` after a log or dataset of ``--count 100``)
     """
+    if skip < 0:
+        raise PlayError(f"--skip must be 0 or more, got {skip}")
     if mode not in OBJECT_MODES:
         raise PlayError(f"unknown --objects {mode!r}; choose one of {', '.join(OBJECT_MODES)}")
     specs = corpus_specs(default_mass) if mode == "corpus" else heldout_specs(default_mass)
@@ -160,6 +164,9 @@ def select_objects(mode: str, count: int | None, seed: int, default_mass: float)
     rest = [s for s in specs if s not in named]
     order = stream(seed, f"select:{mode}", SELECTION_STREAM, PURPOSE).permutation(len(rest))
     chosen = named + [rest[i] for i in order]
+    chosen = chosen[skip:]
+    if not chosen:
+        raise PlayError(f"--skip {skip} passes over all {len(specs)} {mode} objects")
     return chosen if count is None else chosen[:count]
 
 
@@ -466,6 +473,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="'corpus': the default corpus (to calibrate on); 'heldout': pybullet_data objects outside it")
     parser.add_argument("--out", type=Path, required=True, help="log directory (one Parquet file per object)")
     parser.add_argument("--count", type=positive_int, metavar="N", help="objects to play (default: all of the mode's)")
+    parser.add_argument("--skip", type=int, default=0, metavar="N",
+                        help="pass over the first N objects of the seeded order, e.g. those an earlier log of "
+                             "--count N holds: a log on fresh objects (default: %(default)s)")
     parser.add_argument("--max-poses", type=positive_int, default=PlayParams.max_poses, metavar="P",
                         help="each object's P most probable poses (default: %(default)s)")
     parser.add_argument("--actions", type=positive_int, default=PlayParams.actions, metavar="N",
@@ -491,9 +501,9 @@ def main(argv: list[str] | None = None) -> int:
             raise UsageError(f"--noise-draws must be 0 or more, got {args.noise_draws}")
         config = make_config(args)
         params = PlayParams(args.actions, args.repeats, args.eps, args.max_poses, args.seed, config, args.noise_draws)
-        specs = select_objects(args.objects, args.count, args.seed, config.mesh.default_mass)
+        specs = select_objects(args.objects, args.count, args.seed, config.mesh.default_mass, skip=args.skip)
         summary = play(specs, params, args.out, workers=args.workers, progress=not args.no_progress, force=args.force,
-                       run_info={"objects": args.objects, "count": args.count})
+                       run_info={"objects": args.objects, "count": args.count, "skip": args.skip})
     except (UsageError, PlayError, CorpusError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -27,7 +27,6 @@ from ..model.config import MAP_FIELDS, NO_MAP, Config, ToppleConfig
 from ..model.feature_map import (
     DOWN_FEATURES,
     FEATURES,
-    SIDE_BAND,
     SIDE_FEATURES,
     SIDE_Z,
     FeatureMapError,
@@ -287,7 +286,7 @@ def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
     """Cross-validate the side map (docs/MODEL.md C.16) on top of ``config``'s other maps, fit it on all.
 
     Every fold fits the weights on its training pushes the map takes (``feature_map.side_rows``:
-    side pushes with P inside ``SIDE_BAND``) and maps its held-out ones; the other pushes keep P.
+    side pushes with P inside ``topple.side_map_band``) and maps its held-out ones; the other pushes keep P.
     ``identity`` is P as the model without a side map gives it: the comparison the map is adopted by.
     returns : a JSON-ready record with ``weights`` (one per ``SIDE_FEATURES``) and pooled held-out
       metrics of both (all pushes and the mapped ones)
@@ -296,9 +295,10 @@ def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
     started = time.perf_counter()
     scorer = Scorer(log, config.seed, config.contacts)
     features, p, side = scorer.side_map_inputs(config.topple)
+    band = config.topple.side_map_band
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
     if side.sum() < 2 * len(SIDE_FEATURES):
-        raise RecalibrationError(f"{int(side.sum())} side pushes with {SIDE_BAND[0]} < P < {SIDE_BAND[1]} are too few to fit "
+        raise RecalibrationError(f"{int(side.sum())} side pushes with {band[0]} < P < {band[1]} are too few to fit "
                                  f"{len(SIDE_FEATURES)} weights")
     fold_objects, fold_of = push_folds([scorer.object_ids[i] for i in objects], folds, seed)
     held_out, weights = cross_validated_map(features, observed, weight, fold_of, folds, side, "side map")
@@ -311,7 +311,7 @@ def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
         "variant": config.topple.variant,
         "features": list(SIDE_FEATURES),
         "weights": [float(w) for w in weights],
-        "band": list(SIDE_BAND),
+        "band": list(band),
         "side_z": SIDE_Z,
         "pushes": len(p),
         "objects": len(scorer.object_ids),
@@ -465,7 +465,7 @@ def main(argv: list[str] | None = None) -> int:
              f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, with it {cv['side_map']['ece']:.3f} / {cv['side_map']['brier']:.4f}"),
         ]
         fitted_map = {**{name: getattr(config.topple, name) for name in MAP_FIELDS}, "down_map_z": config.topple.down_map_z,
-                      "side_map": tuple(result["weights"])}
+                      "side_map": tuple(result["weights"]), "side_map_band": tuple(result["band"])}
     else:
         print(format_record(result))
         cv = result["cross_validated"]

@@ -197,7 +197,7 @@ class Scorer:
             _, edges = self._pose_edges(group)
             p[group.rows] = table.p_topple[index]
             out[group.rows] = side_features(table.p_topple[index], actions.points[index], actions.directions[index], edges)
-            taken[group.rows] = side_rows(table.p_topple[index], actions.directions[index, 2])
+            taken[group.rows] = side_rows(table.p_topple[index], actions.directions[index, 2], topple.side_map_band)
         return out, p, taken
 
     def _pose_edges(self, group: Group) -> tuple[np.ndarray, EdgeGeometry]:
