@@ -543,6 +543,7 @@ def test_report_against_other_models_pairs_them_with_the_configured_one(model_lo
     assert result["recalibration"]["down_map"] == list(Config().topple.down_map)
     assert thesis["recalibration"]["side_map"] == [] and itself["recalibration"]["side_map"] == list(Config().topple.side_map)
     assert result["recalibration"]["side_map"] == list(Config().topple.side_map) != []
+    assert result["recalibration"]["side_map_band"] == itself["recalibration"]["side_map_band"] == list(Config().topple.side_map_band)
     assert itself["ranking_by_direction"] == result["ranking_by_direction"]
     printed = capsys.readouterr().out
     assert "corrected - thesis (robust; paired" in printed and "\nthesis " in printed

@@ -443,7 +443,7 @@ def report(
         recalibration = {
             **({"x": list(x), "y": list(y)} if len(x) else {"feature_map": list(applied.applied_feature_map)}),
             "down_map": list(applied.applied_down_map), "down_map_z": applied.down_map_z,
-            "side_map": list(applied.applied_side_map),
+            "side_map": list(applied.applied_side_map), "side_map_band": list(applied.side_map_band),
             "raw": f"{main_variant}_raw",
             "raw_metrics": predictor_summary(raw, scorer, n_resamples=n_resamples, seed=seed),
             "difference": bootstrap_metric_difference(
@@ -480,7 +480,7 @@ def report(
                 "recalibration": {"x": list(other_x), "y": list(other_y),
                                   "feature_map": list(other.applied_feature_map),
                                   "down_map": list(other.applied_down_map), "down_map_z": other.down_map_z,
-                                  "side_map": list(other.applied_side_map)},
+                                  "side_map": list(other.applied_side_map), "side_map_band": list(other.side_map_band)},
                 "metrics": predictor_summary(other_scores, scorer, n_resamples=n_resamples, seed=seed),
                 "ranking_by_direction": ranking_by_direction(other_scores, scorer, classes),
                 "difference": bootstrap_metric_difference(
