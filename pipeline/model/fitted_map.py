@@ -38,14 +38,16 @@ RECALIBRATION_Y = (
 )
 """Knots g(x_k), non-decreasing in [0, 1]."""
 
-# The down map (docs/MODEL.md C.15; docs/VALIDATION.md, candidate D): logistic weights, in the
-# order of ``feature_map.DOWN_FEATURES``, for the pushes with u_z < -0.3, fitted on the unmapped P
-# of the same log's 1,026 such pushes.  Cross-validated with the centred map (6 folds by object,
-# seed 0): held-out Brier 0.1103 against the centred map's 0.1174.  Regenerate both with
-# ``toppledb recalibrate data/logs/corpus_all --folds 6 --seed 0 --down`` (reports/recalibrated_down.toml).
+# The down map (docs/MODEL.md C.15; docs/VALIDATION.md, candidates D and G_down): logistic weights,
+# in the order of ``feature_map.DOWN_FEATURES``, for the pushes with u_z < -0.3, fitted on the
+# unmapped P of the 3,828 such pushes of two corpus logs (data/logs/corpus_all and corpus_s1, all
+# 189 corpus objects).  Cross-validated (6 folds by object, seed 0) on those pushes: held-out Brier
+# 0.1255 against the centred map's 0.1403.  Regenerate with ``toppledb recalibrate
+# data/logs/corpus_all data/logs/corpus_s1 --folds 6 --seed 0 --down`` and take its ``down_map``
+# (the knots above stay: the down map reads P before them; reports/recalibrated_down_more.toml).
 DOWN_MAP = (
-    3.3627733572815646, 0.5043682233597462, 0.2321465377401717, 0.665954464606287,
-    -1.294299656366433, -0.2321465377401717, -2.37241784403425, -0.06371437980744568,
+    3.163041594904531, 0.49427114045238457, 0.19258911468034423, 0.46109132111805856,
+    -1.3065967520453632, -0.18426266743449735, -2.5616056325723697, 0.09607021387304948,
 )
 
 # The side map (docs/MODEL.md C.16; docs/VALIDATION.md, "Side pushes sharpened along the force they
