@@ -26,7 +26,7 @@ from shapes import (
 from pipeline.api import evaluate
 from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import DEFAULT_LIST, ObjectSpec, read_list
-from pipeline.model.config import Config
+from pipeline.model.config import PRESETS, Config
 from pipeline.model.contacts import explicit_actions
 from pipeline.model.mesh import model_from_mesh
 from pipeline.model.poses import stable_poses
@@ -446,6 +446,15 @@ def test_heldout_objects_exclude_every_corpus_object():
         playlog.select_objects("heldout", 3, seed=1, default_mass=0.25, skip=-1)
     with pytest.raises(playlog.PlayError, match="passes over all"):
         playlog.select_objects("corpus", None, seed=1, default_mass=0.25, skip=len(corpus))
+
+
+def test_playing_in_another_world_than_the_thesis_s_is_noted():
+    thesis = Config.from_toml(PRESETS / "thesis.toml")
+    assert playlog.world_note(thesis) is None
+    assert playlog.world_note(thesis.with_overrides({"topple.n_trials": 7, "topple.rotation_std": 0.3})) is None
+    note = playlog.world_note(Config())
+    assert note and "mu_finger_std" in note and "--config thesis" in note
+    assert "contact_std" in playlog.world_note(thesis.with_overrides({"topple.contact_std": 0.01}))
 
 
 def test_play_command_rejects_bad_input(capsys, tmp_path):

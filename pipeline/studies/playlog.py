@@ -43,7 +43,7 @@ from schema.vocabulary import STATUS_OK
 
 from ..build.atomic import write_atomic, write_text_atomic
 from ..build.corpus import DEFAULT_LIST, PYBULLET_SOURCE, CorpusError, ObjectSpec, candidate_specs, pybullet_data_dir, read_list
-from ..model.config import Config
+from ..model.config import PRESETS, Config
 from ..model.rng import stream
 from .logreader import LogError, log_files, match_downs, object_downs, read_tables
 from .pushsim import FINGER_SPEED, PlayedPush, body_model, draw_noise, play_push, player_parameters
@@ -461,6 +461,25 @@ def read_log(out: str | Path) -> pa.Table:
     return read_tables(files).drop_columns(["_file", "_row"])
 
 
+WORLD_FIELDS = ("mu_table_mean", "mu_table_std", "mu_finger_mean", "mu_finger_std", "contact_std", "direction_std")
+"""The ``topple`` fields the player draws each repeat's friction and noise from (``pushsim.draw_noise``)."""
+
+
+def world_note(config: Config) -> str | None:
+    """A note when ``config`` plays pushes in another world than the thesis's, None when it does not.
+
+    The player draws friction and noise from the configuration it is given, so a log played with
+    the default model's broad calibrated noise is another simulated world than the shipped logs'
+    (all played with ``--config thesis``), and a map fitted on one is judged on the other."""
+    thesis = Config.from_toml(PRESETS / "thesis.toml").topple
+    differ = [f for f in WORLD_FIELDS if getattr(config.topple, f) != getattr(thesis, f)]
+    if not differ:
+        return None
+    values = ", ".join(f"{f} {getattr(config.topple, f):g}" for f in differ)
+    return (f"note: the pushes are played with this configuration's friction and noise ({values}), not the "
+            "thesis's that the shipped logs are played with (--config thesis)")
+
+
 # ---------------------------------------------------------------- command line
 
 
@@ -502,6 +521,8 @@ def main(argv: list[str] | None = None) -> int:
         config = make_config(args)
         params = PlayParams(args.actions, args.repeats, args.eps, args.max_poses, args.seed, config, args.noise_draws)
         specs = select_objects(args.objects, args.count, args.seed, config.mesh.default_mass, skip=args.skip)
+        if note := world_note(config):
+            print(note, file=sys.stderr)
         summary = play(specs, params, args.out, workers=args.workers, progress=not args.no_progress, force=args.force,
                        run_info={"objects": args.objects, "count": args.count, "skip": args.skip})
     except (UsageError, PlayError, CorpusError) as err:
