@@ -444,6 +444,8 @@ def test_heldout_objects_exclude_every_corpus_object():
     assert [s.object_id for s in fresh] == [s.object_id for s in longer[len(named) + 5:]]
     with pytest.raises(playlog.PlayError, match="--skip"):
         playlog.select_objects("heldout", 3, seed=1, default_mass=0.25, skip=-1)
+    with pytest.raises(playlog.PlayError, match="choose one of corpus, heldout"):
+        playlog.select_objects("bunnies", 3, seed=1, default_mass=0.25)
     with pytest.raises(playlog.PlayError, match="passes over all"):
         playlog.select_objects("corpus", None, seed=1, default_mass=0.25, skip=len(corpus))
 
@@ -453,7 +455,10 @@ def test_playing_in_another_world_than_the_thesis_s_is_noted():
     assert playlog.world_note(thesis) is None
     assert playlog.world_note(thesis.with_overrides({"topple.n_trials": 7, "topple.rotation_std": 0.3})) is None
     note = playlog.world_note(Config())
-    assert note and "mu_finger_std" in note and "--config thesis" in note
+    default = Config().topple
+    assert note and f"mu_table_mean {default.mu_table_mean:g}, mu_table_std {default.mu_table_std:g}" in note
+    assert "mu_finger_std" in note
+    assert "not the thesis's that the shipped logs are played with (--config thesis)" in note
     assert "contact_std" in playlog.world_note(thesis.with_overrides({"topple.contact_std": 0.01}))
 
 

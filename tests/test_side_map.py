@@ -13,6 +13,7 @@ from pipeline.model.edges import edge_geometry
 from pipeline.model.feature_map import (
     SIDE_BAND,
     FeatureMapError,
+    check_side_band,
     check_side_weights,
     fit_weights,
     map_side_rows,
@@ -126,6 +127,10 @@ def test_the_band_is_configured_and_a_wider_band_maps_the_sure_pushes_too():
     for bad in ("0.5,0.5", "0.9,0.1", "0.1", "0.1,0.5,0.9", "-0.1,0.5", "0.5,1.1"):
         with pytest.raises(ValueError, match="side_map_band"):
             Config().with_overrides({"topple.side_map_band": bad})
+    for bad in ((0.5, 1.1), (-0.1, 0.5), (0.5,), (0.4, 0.4)):
+        with pytest.raises(ValueError, match="0 <= lo < hi <= 1"):
+            check_side_band(bad)
+    check_side_band((0.0, 1.0))
 
 
 def test_bad_weights_are_refused_and_only_the_corrected_variant_maps():

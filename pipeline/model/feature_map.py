@@ -386,10 +386,11 @@ def side_features(p_topple: np.ndarray, points: np.ndarray, directions: np.ndarr
 
 
 def side_rows(p_topple: np.ndarray, direction_z: np.ndarray, band=SIDE_BAND) -> np.ndarray:
-    """(A,) bool, the pushes the side map takes: side class, band[0] < P < band[1] (and P > 0)."""
+    """(A,) bool, the pushes the side map takes: side class, band[0] < P < band[1] (band[0] >= 0,
+    ``check_side_band``, so every one has P > 0 and a landing)."""
     p_topple = np.asarray(p_topple, dtype=float)
     with np.errstate(invalid="ignore"):
-        return on_the_side(direction_z) & (p_topple > band[0]) & (p_topple > 0.0) & (p_topple < band[1])
+        return on_the_side(direction_z) & (p_topple > band[0]) & (p_topple < band[1])
 
 
 def map_side_rows(next_pose: np.ndarray, start: int, actions, edges: EdgeGeometry, weights,

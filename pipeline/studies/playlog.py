@@ -167,7 +167,7 @@ def select_objects(mode: str, count: int | None, seed: int, default_mass: float,
     chosen = chosen[skip:]
     if not chosen:
         raise PlayError(f"--skip {skip} passes over all {len(specs)} {mode} objects")
-    return chosen if count is None else chosen[:count]
+    return chosen[:count]  # all of them when count is None
 
 
 # ---------------------------------------------------------------- one object
