@@ -462,6 +462,30 @@ def test_playing_in_another_world_than_the_thesis_s_is_noted():
     assert "contact_std" in playlog.world_note(thesis.with_overrides({"topple.contact_std": 0.01}))
 
 
+def test_the_play_command_passes_skip_on_and_notes_the_world(capsys, tmp_path, monkeypatch):
+    seen = {}
+
+    class Summary:
+        def __init__(self):
+            self.failed = {}
+
+        def text(self):
+            return "played"
+
+    def fake_play(specs, params, out, **kwargs):
+        seen.update(specs=[s.object_id for s in specs], run_info=kwargs["run_info"])
+        return Summary()
+
+    monkeypatch.setattr(playlog, "play", fake_play)
+    args = ["--objects", "heldout", "--count", "2", "--skip", "3", "--out", str(tmp_path / "x"), "--no-progress"]
+    assert playlog.main([*args, "--config", "thesis"]) == 0
+    assert seen["specs"] == [s.object_id for s in playlog.select_objects("heldout", 2, 0, 0.25, skip=3)]
+    assert seen["run_info"] == {"objects": "heldout", "count": 2, "skip": 3}
+    assert "note:" not in capsys.readouterr().err, "the thesis's world: nothing to note"
+    assert playlog.main(args) == 0
+    assert "note: the pushes are played with this configuration's friction and noise" in capsys.readouterr().err
+
+
 def test_play_command_rejects_bad_input(capsys, tmp_path):
     assert playlog.main(["--out", str(tmp_path / "x"), "--eps", "0", "--no-progress"]) == 2
     assert "--eps" in capsys.readouterr().err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import tomllib
 from dataclasses import replace
 
 import numpy as np
@@ -131,6 +132,8 @@ def test_the_band_is_configured_and_a_wider_band_maps_the_sure_pushes_too():
         with pytest.raises(ValueError, match="0 <= lo < hi <= 1"):
             check_side_band(bad)
     check_side_band((0.0, 1.0))
+    with pytest.raises(ValueError, match="side_map_band"):
+        side_rows(np.array([0.0, 0.5]), np.zeros(2), (-0.1, 1.0))  # P = 0 would be taken, with nothing leaving
 
 
 def test_bad_weights_are_refused_and_only_the_corrected_variant_maps():
@@ -175,6 +178,12 @@ def test_the_engine_maps_the_unsure_side_pushes_and_no_other(pose_and_candidates
     q = mapped_probability(side_features(plain.p_topple, actions.points, actions.directions, edge_geometry(pose.base_edges, com)),
                            WEIGHTS)
     assert np.allclose(mapped.p_topple[taken], q[taken]) and np.array_equal(mapped.outcomes, plain.outcomes)
+    # The engine reads the configured band: a narrower one maps fewer rows, the rest as they were.
+    narrow = table(replace(base, side_map=WEIGHTS, side_map_band=NARROW))
+    inside = side_rows(plain.p_topple, actions.directions[:, 2], NARROW)
+    assert 1 <= inside.sum() < taken.sum()
+    assert np.allclose(narrow.p_topple[inside], q[inside])
+    assert np.array_equal(narrow.next_pose[~inside], plain.next_pose[~inside], equal_nan=True)
 
 
 def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(model_logs, tmp_path):  # noqa: F811
@@ -223,6 +232,7 @@ def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(mode
     default = Config().topple
     assert (written.recalibration_x, written.down_map) == (default.recalibration_x, default.down_map), "the other maps are kept"
     assert written.side_map_band == SIDE_BAND, "the band travels with the weights fitted inside it"
+    assert tomllib.loads(out.read_text())["topple"]["side_map_band"] == list(SIDE_BAND), "written, not defaulted"
     assert main([str(path), "--side", *common, "--set", "topple.side_map_band=" + ",".join(map(str, NARROW))]) == 0
     assert Config.from_toml(out).topple.side_map_band == NARROW
     assert json.loads(record.read_text())["side_pushes"]["pushes"] == int(taken_narrow.sum())

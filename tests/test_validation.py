@@ -518,8 +518,10 @@ def test_report_against_other_models_pairs_them_with_the_configured_one(model_lo
     reported = str(model_logs / "reported.parquet")
     same = tmp_path / "same.toml"  # the defaults' [topple], spelled out: the same model
     same.write_text('[topple]\nvariant = "corrected"\n')
+    narrow = tmp_path / "narrow.toml"  # the defaults with another side-map band: recorded as its own
+    narrow.write_text('[topple]\nvariant = "corrected"\nside_map_band = [0.2, 0.8]\n')
     out = tmp_path / "validation.json"
-    assert main([reported, "--variants", "corrected", "--against", "thesis", str(same), "--corpus", "",
+    assert main([reported, "--variants", "corrected", "--against", "thesis", str(same), str(narrow), "--corpus", "",
                  "--bootstrap", "30", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
     ours, thesis, itself = result["variants"]["corrected"], result["against"]["thesis"], result["against"][str(same)]
@@ -544,6 +546,7 @@ def test_report_against_other_models_pairs_them_with_the_configured_one(model_lo
     assert thesis["recalibration"]["side_map"] == [] and itself["recalibration"]["side_map"] == list(Config().topple.side_map)
     assert result["recalibration"]["side_map"] == list(Config().topple.side_map) != []
     assert result["recalibration"]["side_map_band"] == itself["recalibration"]["side_map_band"] == list(Config().topple.side_map_band)
+    assert result["against"][str(narrow)]["recalibration"]["side_map_band"] == [0.2, 0.8]
     assert itself["ranking_by_direction"] == result["ranking_by_direction"]
     printed = capsys.readouterr().out
     assert "corrected - thesis (robust; paired" in printed and "\nthesis " in printed

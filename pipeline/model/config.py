@@ -255,8 +255,9 @@ class ToppleConfig:
     down_map: tuple[float, ...] = bounded(fitted_map.DOWN_MAP, Range())
     """Weights of the map of P(topple) for pushes that press down (docs/MODEL.md C.15), one per
     feature (bias, logit_p, direction_z, overhang, height, normal_z, stability, offset), or empty
-    (no map).  The default is fitted by ``toppledb recalibrate --down`` on the corpus's drawn
-    pushes (data/logs/corpus_all).  It replaces the recalibration map (C.7) for the pushes with
+    (no map).  The default's weights are fitted by ``toppledb recalibrate --down`` on the drawn
+    pushes of two logs of every corpus object (data/logs/corpus_all and corpus_s1; only the
+    weights are taken, ``fitted_map.DOWN_MAP``).  It replaces the recalibration map (C.7) for the pushes with
     u_z below ``down_map_z``, read from their unmapped P; the rest keep C.7's.  Only the
     ``corrected`` variant applies it."""
     down_map_z: float = bounded(-0.3, Range(-1.0, 1.0))

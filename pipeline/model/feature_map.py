@@ -388,6 +388,7 @@ def side_features(p_topple: np.ndarray, points: np.ndarray, directions: np.ndarr
 def side_rows(p_topple: np.ndarray, direction_z: np.ndarray, band=SIDE_BAND) -> np.ndarray:
     """(A,) bool, the pushes the side map takes: side class, band[0] < P < band[1] (band[0] >= 0,
     ``check_side_band``, so every one has P > 0 and a landing)."""
+    check_side_band(band)  # lo >= 0 keeps P = 0, a row with nothing leaving, out
     p_topple = np.asarray(p_topple, dtype=float)
     with np.errstate(invalid="ignore"):
         return on_the_side(direction_z) & (p_topple > band[0]) & (p_topple < band[1])

@@ -1,5 +1,5 @@
 """The maps of P(topple) the default model carries: the recalibration map (docs/MODEL.md C.7,
-"The default map"; docs/VALIDATION.md, candidates C, S and T) and the down map (C.15, candidate D).
+"The default map"; docs/VALIDATION.md, candidates C, S and T) the down map (C.15, candidates D and G_down) and the side map (C.16).
 
 Centred isotonic regression of the physical topple frequency on the default model's P(topple)
 (its corrections, stuck_finger and tip_path included, counted and smoothed as C.12 says), fitted on the
@@ -7,8 +7,9 @@ corpus's drawn pushes (data/logs/corpus_all, 2,253 pushes on 189 corpus objects,
 version 5; no held-out object was used): 6-fold cross-validation grouped by object gave
 held-out Brier 0.1174 against the identity's 0.1258.  It belongs to the default's corrections and noise: a model with others
 needs its own fit.  Regenerate with ``toppledb recalibrate data/logs/corpus_all --folds 6
---seed 0 --methods centred`` (reports/recalibrated_centred.toml is that output) or with ``--down``,
-which fits the same knots and the down map below (reports/recalibrated_down.toml).  The values
+--seed 0 --methods centred`` (reports/recalibrated_centred.toml is that output; ``--down`` on the
+same log fits the same knots, reports/recalibrated_down.toml).  The down map and the side map below
+say where theirs come from.  The values
 are the fitter's, unrounded, so the default reproduces the reports exactly.
 """
 

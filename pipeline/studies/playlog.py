@@ -403,7 +403,7 @@ def play(
     """Play every object's pushes into ``out`` (one part file per object), resuming what exists.
 
     force : remove part files of other parameters or of objects not in ``specs`` instead of refusing
-    run_info : extra parameters recorded in ``_play.json`` (the command's mode, count)
+    run_info : extra parameters recorded in ``_play.json`` (the command's mode, count, skip)
     stop_after : stop after writing this many new part files (to test resuming)
     """
     from ..build.fanout import map_unordered
@@ -494,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--count", type=positive_int, metavar="N", help="objects to play (default: all of the mode's)")
     parser.add_argument("--skip", type=int, default=0, metavar="N",
                         help="pass over the first N objects of the seeded order, e.g. those an earlier log of "
-                             "--count N holds: a log on fresh objects (default: %(default)s)")
+                             "--count N and the same --seed holds: a log on fresh objects (default: %(default)s)")
     parser.add_argument("--max-poses", type=positive_int, default=PlayParams.max_poses, metavar="P",
                         help="each object's P most probable poses (default: %(default)s)")
     parser.add_argument("--actions", type=positive_int, default=PlayParams.actions, metavar="N",
