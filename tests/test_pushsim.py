@@ -484,6 +484,10 @@ def test_the_play_command_passes_skip_on_and_notes_the_world(capsys, tmp_path, m
     assert "note:" not in capsys.readouterr().err, "the thesis's world: nothing to note"
     assert playlog.main(args) == 0
     assert "note: the pushes are played with this configuration's friction and noise" in capsys.readouterr().err
+    remaining = len(playlog.select_objects("heldout", None, 0, 0.25)) - 3
+    assert playlog.main([*args, "--config", "thesis", "--count", str(remaining + 5)]) == 0
+    assert f"note: only {remaining} heldout objects remain after --skip 3" in capsys.readouterr().err
+    assert len(seen["specs"]) == remaining
 
 
 def test_play_command_rejects_bad_input(capsys, tmp_path):

@@ -235,6 +235,11 @@ def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(mode
     assert tomllib.loads(out.read_text())["topple"]["side_map_band"] == list(SIDE_BAND), "written, not defaulted"
     assert main([str(path), "--side", *common, "--set", "topple.side_map_band=" + ",".join(map(str, NARROW))]) == 0
     assert Config.from_toml(out).topple.side_map_band == NARROW
+    # A fit of another map clears the side map, and its band with it.
+    plain = tmp_path / "plain.toml"
+    assert main([str(path), *common[:-4], "--out", str(plain), "--json", str(tmp_path / "plain.json"),
+                 "--set", "topple.side_map_band=" + ",".join(map(str, NARROW))]) == 0
+    assert "side_map_band" not in tomllib.loads(plain.read_text())["topple"]
     assert json.loads(record.read_text())["side_pushes"]["pushes"] == int(taken_narrow.sum())
     assert main([str(path), "--side", "--down", *common]) == 2
     out.unlink()

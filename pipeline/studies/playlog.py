@@ -523,6 +523,8 @@ def main(argv: list[str] | None = None) -> int:
         specs = select_objects(args.objects, args.count, args.seed, config.mesh.default_mass, skip=args.skip)
         if note := world_note(config):
             print(note, file=sys.stderr)
+        if args.count is not None and len(specs) < args.count:
+            print(f"note: only {len(specs)} {args.objects} objects remain after --skip {args.skip}", file=sys.stderr)
         summary = play(specs, params, args.out, workers=args.workers, progress=not args.no_progress, force=args.force,
                        run_info={"objects": args.objects, "count": args.count, "skip": args.skip})
     except (UsageError, PlayError, CorpusError) as err:

@@ -485,8 +485,9 @@ def main(argv: list[str] | None = None) -> int:
     default = ToppleConfig()
     # The variant and the corrections always: the file must stay the same model when the
     # defaults change (they did when stuck_finger joined them).
+    # The side map's band belongs to its weights: it travels only with them (the --side branch above).
     base = {f.name: getattr(topple, f.name) for f in dataclasses.fields(topple)
-            if f.name not in MAP_FIELDS
+            if f.name not in (*MAP_FIELDS, "side_map_band")
             and (f.name in ("variant", "corrections") or getattr(topple, f.name) != getattr(default, f.name))}
     if args.config or args.overrides:
         source = " ".join(filter(None, [str(args.config or "the defaults"), *(f"--set {o}" for o in args.overrides)]))
