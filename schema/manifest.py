@@ -75,6 +75,11 @@ class MDPParameters(_Open):
         so its budgets are (12.14) too; k None (a manifest from before the map) believes nothing."""
         return self.believe_failures and self.after_failure_power not in (None, 1.0)
 
+    @property
+    def failure_power(self) -> float | None:
+        """``MDPConfig.failure_power`` of the build: its k when it plans with its failures, else None."""
+        return self.after_failure_power if self.plans_with_failures else None
+
 
 class Parameters(_Open):
     """``Config.to_dict()``: every model parameter of the build."""

@@ -88,7 +88,7 @@ class ObjectData:
       transition_offsets (N + 1,) int64; next_pose (K,) int32; transition_probability (K,) float32
     Hull: hull_vertices (V, 3) float64, m, object frame
     min_direction_z: the build's ``mdp.min_direction_z``: the pushes a budget's choice may take
-    failure_power: k of (12.14) when the build plans with its failures (``MDPParameters.plans_with_failures``):
+    failure_power: k of (12.14) when the build plans with its failures (``MDPParameters.failure_power``):
       its budgets then believe a failure as its value iteration does; None: they are (12.8) and believe nothing
     """
 
@@ -328,8 +328,7 @@ class Store:
             except (served.ServedError, DatasetUnreadable) as err:
                 raise DatasetError(f"{root}: {err}") from None
         mdp = manifest.parameters.mdp
-        failure_power = mdp.after_failure_power if mdp.plans_with_failures else None
-        objects = _objects(tables, mdp.min_direction_z, failure_power)
+        objects = _objects(tables, mdp.min_direction_z, mdp.failure_power)
         store = cls(root, manifest, objects, time.perf_counter() - started, manifest_sha256)
         expected = {k: getattr(manifest.counts, k) for k in store.counts}
         if expected != store.counts:

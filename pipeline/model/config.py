@@ -475,6 +475,12 @@ class MDPConfig:
         believes nothing, the thesis's equation to the bit)."""
         return self.believe_failures and self.after_failure_power != 1.0
 
+    @property
+    def failure_power(self) -> float | None:
+        """k of (12.13)-(12.14) when the build plans with its failures, else None: what
+        ``schema.horizon.solve_budgets`` takes to choose between (12.14) and (12.8)."""
+        return self.after_failure_power if self.plans_with_failures else None
+
     def __post_init__(self) -> None:
         if self.believe_failures and not self.retry_failed:
             raise ValueError("mdp.retry_failed = false values a failure at the grasp (MODEL.md (12.9)) and "

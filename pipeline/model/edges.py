@@ -98,6 +98,19 @@ def edge_geometry(edges: np.ndarray, center_mass: np.ndarray) -> EdgeGeometry:
     )
 
 
+def push_torques(p_cross_u: np.ndarray, u: np.ndarray, geometry: EdgeGeometry) -> np.ndarray:
+    """tau_e = e . ((p - y0) x u): each push's moment about each edge per newton along u, m
+    (positive: it turns the object outward over the edge; thesis (7.3)).
+
+    Torque identity (10.2): e . ((p - y0) x u) = e . (p x u) - u . (e x y0), so p x u is
+    crossed once per push and e x y0 once per edge, instead of (p - y0) x u once per (push, edge).
+
+    p_cross_u : (n, 3) float, p x u (p in m, pose frame);  u : (n, 3) float, unit pushes
+    returns : (n, E) float, m
+    """
+    return p_cross_u @ geometry.direction.T - u @ np.cross(geometry.direction, geometry.start).T
+
+
 def landing_angles(geometry: EdgeGeometry, vertices: np.ndarray, tolerance: float) -> np.ndarray:
     """Rotation about each edge at which another part of the hull meets the table.
 

@@ -397,7 +397,7 @@ def plan(
         csr = horizon.csr_from_rows([np.asarray(t.next_pose, dtype=float) for t in result.topple])
         # The pushes the build's policies could choose (its mdp.min_direction_z, not ``config``'s).
         choosable = None if result.choosable is None else np.concatenate(result.choosable)
-        actions, values, failed_values = horizon.solve_budgets(v_s, csr, pushes_left, _belief_power(config), choosable)
+        actions, values, failed_values = horizon.solve_budgets(v_s, csr, pushes_left, config.mdp.failure_power, choosable)
         choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
         budget = csr, values, failed_values
     ruled = 0
@@ -419,11 +419,6 @@ def plan(
     # k is the caller's config's, as everything ``evaluate_object`` was given.
     given = retry.given_failures(p_topple, config.mdp.after_failure_power) if failed else None
     return Plan(match, policy, a, float(choice.value), p_topple, push, next_poses, grasp, float(near[0]), ruled, given)
-
-
-def _belief_power(config: Config) -> float | None:
-    """k of (12.14) when ``config`` plans with its failures, else None (``horizon.solve_budgets``)."""
-    return config.mdp.after_failure_power if config.mdp.plans_with_failures else None
 
 
 def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[int], v_s: np.ndarray,
@@ -453,7 +448,7 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
         (action_offsets, transition_offsets, next_pose, probability), fresh, failed_values = budget
         rows = slice(int(action_offsets[pose]), int(action_offsets[pose + 1]))
         q = horizon.budget_q(v_s, fresh, failed_values, len(fresh), pose, rows, transition_offsets, next_pose, probability,
-                             _belief_power(config), after_failure=True)
+                             config.mdp.failure_power, after_failure=True)
         improvement, scale = horizon.IMPROVEMENT, 1.0
     elif policy == "greedy":
         q, improvement, scale = values.greedy, retry.POLICY_IMPROVEMENT, 1.0

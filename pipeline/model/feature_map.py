@@ -361,8 +361,10 @@ def needed_force_ratio(points: np.ndarray, directions: np.ndarray, edges: EdgeGe
     points : (A, 3) float, m;  directions : (A, 3) float, unit;  edges : ``edges.edge_geometry``
     (pose frame)  returns : (A,) float, >= 0 for a centre of mass inside its base (d_e > 0, section 5)
     """
+    from .edges import push_torques  # here, not at the top: the service imports this module without the geometry
+
     points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
-    lever = np.einsum("aek,aek->ae", points[:, None, :] - edges.start[None], np.cross(directions[:, None, :], edges.direction[None]))
+    lever = push_torques(np.cross(points, directions), directions, edges)  # (A, E), tau_e, m
     with np.errstate(divide="ignore"):
         ratio = np.where(lever > 0, edges.com_distance[None] / np.where(lever > 0, lever, 1.0), np.inf)  # (A, E)
     return ratio.min(axis=1, initial=np.inf)
@@ -412,6 +414,5 @@ def map_side_rows(next_pose: np.ndarray, start: int, actions, edges: EdgeGeometr
         return next_pose, p
     q = mapped_probability(side_features(p[side], actions.points[side], actions.directions[side], edges), weights)  # (S,)
     leaving = _leaving(next_pose[side], start)  # (S, P); P > 0, so every row leaves
-    next_pose[side] = q[:, None] * leaving / leaving.sum(axis=1, keepdims=True)  # (C.13.2), its own landing
-    next_pose[side, start] = 1.0 - q
+    next_pose[side] = _toppled_rows(q, leaving / leaving.sum(axis=1, keepdims=True), start)  # (C.13.2), its own landing
     return next_pose, 1.0 - next_pose[:, start]

@@ -51,7 +51,7 @@ from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
 from .config import ToppleConfig
-from .edges import EdgeGeometry, edge_geometry
+from .edges import EdgeGeometry, edge_geometry, push_torques
 from .feature_map import map_down_rows, map_rows, map_side_rows
 from .mesh import ObjectModel
 from .outcomes import Actions, StablePose, ToppleTable
@@ -499,13 +499,10 @@ def _push_force(
     """The thesis's (7.3)-(7.5): whether a push along u rotates the object outward about each
     edge, and the force along u whose moment about the edge matches gravity's.
 
-    Torque identity (10.2): e . ((p - y0) x u) = e . (p x u) - u . (e x y0), so p x u is
-    crossed once per trial and e x y0 once per edge, instead of (p - y0) x u once per (trial, edge).
-
     p_cross_u : (n, 3) float, p x u;  u : (n, 3) float, unit push
     returns : rotates (n, E) bool, (7.4); force (n, E) float, F*_e = m g d_e / tau_e, N (inf where it does not rotate)
     """
-    torque = p_cross_u @ edges.direction.T - u @ np.cross(edges.direction, edges.start).T  # (n, E), tau_e, m
+    torque = push_torques(p_cross_u, u, edges)  # (n, E), tau_e, m
     rotates = torque > MIN_PUSH_TORQUE  # (n, E), (7.4)
     gravity_torque = mass * gravity * edges.com_distance  # (E,), m g d_e, N m
     # The inner where puts a harmless divisor (1) where the push does not rotate; those

@@ -143,6 +143,16 @@ def metrics_by_predictor(predictions: dict[str, np.ndarray], rows: np.ndarray, o
             "pushes": int(rows.sum())}
 
 
+def map_record(config: Config, features: tuple[str, ...], weights: np.ndarray, pushes: int, objects: int, folds: int,
+               seed: int, fold_objects: list[list[str]], started: float, **results) -> dict:
+    """The JSON-ready record of a cross-validated logistic map (the feature, down and side maps):
+    what was fitted, on how much, with which folds, ``results`` (its metrics and anything of its
+    own) and the wall time since ``started`` (``time.perf_counter``)."""
+    return {"variant": config.topple.variant, "features": list(features), "weights": [float(w) for w in weights],
+            "pushes": pushes, "objects": objects, "folds": folds, "seed": seed, **results,
+            "fold_objects": fold_objects, "wall_s": round(time.perf_counter() - started, 1)}
+
+
 def push_folds(objects: list[str], folds: int, seed: int) -> tuple[list[list[str]], np.ndarray]:
     """Folds grouped by object over pushes from any number of logs (``grouped_folds``).
 
@@ -187,19 +197,9 @@ def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None =
     def both(rows: np.ndarray) -> dict:
         return metrics_by_predictor({"identity": p, "feature_map": held_out}, rows, observed, weight, objects)
 
-    return {
-        "variant": config.topple.variant,
-        "features": list(FEATURES),
-        "weights": [float(w) for w in weights],
-        "pushes": len(p),
-        "objects": len(object_ids),
-        "folds": folds,
-        "seed": seed,
-        "cross_validated": both(np.ones(len(p), dtype=bool)),
-        "per_log": [{"log": part["name"], **both(source == i), "counts": part["counts"]} for i, part in enumerate(parts)],
-        "fold_objects": fold_objects,
-        "wall_s": round(time.perf_counter() - started, 1),
-    }
+    return map_record(config, FEATURES, weights, len(p), len(object_ids), folds, seed, fold_objects, started,
+                      cross_validated=both(np.ones(len(p), dtype=bool)),
+                      per_log=[{"log": part["name"], **both(source == i), "counts": part["counts"]} for i, part in enumerate(parts)])
 
 
 def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
@@ -224,41 +224,21 @@ def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
         raise RecalibrationError(f"{int(down.sum())} pushes with u_z < {config.topple.down_map_z} are too few to fit "
                                  f"{len(DOWN_FEATURES)} weights")
     fold_objects, fold_of = push_folds([scorer.object_ids[i] for i in objects], folds, seed)
-    centred, mapped = np.empty(len(p)), np.empty(len(p))
+    centred = np.empty(len(p))
     for f in range(folds):
         train, test = fold_of != f, fold_of == f
         centred[test] = predict(p[test], fit("centred", p[train], observed[train], weight[train]))
-        if not (train & down).any():
-            raise RecalibrationError(f"fold {f} leaves no push below {config.topple.down_map_z} to fit on; use fewer folds")
-        weights = fit_weights(features[train & down], observed[train & down], weight[train & down])
-        q = np.where(lands[test], mapped_probability(features[test], weights), 0.0)
-        mapped[test] = np.where(down[test], q, centred[test])
-    weights = fit_weights(features[down], observed[down], weight[down])
-    if not np.all(np.isfinite(weights)):
-        raise FeatureMapError(f"the down map's fit did not converge (weights {weights.tolist()})")
+    held_out, weights = cross_validated_map(features, observed, weight, fold_of, folds, down, "down map")
+    mapped = np.where(down, np.where(lands, held_out, 0.0), centred)  # no known landing: no topple, as the engine
     knots = fit("centred", p, observed, weight)
 
     def both(rows: np.ndarray) -> dict:
         return metrics_by_predictor({"identity": p, "centred": centred, "down_map": mapped}, rows, observed, weight, objects)
 
-    return {
-        "variant": config.topple.variant,
-        "features": list(DOWN_FEATURES),
-        "weights": [float(w) for w in weights],
-        "down_map_z": config.topple.down_map_z,
-        "knots": {"x": list(knots.x), "y": list(knots.y)},
-        "pushes": len(p),
-        "objects": len(scorer.object_ids),
-        "folds": folds,
-        "seed": seed,
-        "cross_validated": both(np.ones(len(p), dtype=bool)),
-        "pushes_without_landing": int(np.sum(down & ~lands)),
-        "down_pushes": both(down),
-        "other_pushes": both(~down),
-        "fold_objects": fold_objects,
-        "counts": log.counts(),
-        "wall_s": round(time.perf_counter() - started, 1),
-    }
+    return map_record(config, DOWN_FEATURES, weights, len(p), len(scorer.object_ids), folds, seed, fold_objects, started,
+                      down_map_z=config.topple.down_map_z, knots={"x": list(knots.x), "y": list(knots.y)},
+                      cross_validated=both(np.ones(len(p), dtype=bool)), pushes_without_landing=int(np.sum(down & ~lands)),
+                      down_pushes=both(down), other_pushes=both(~down), counts=log.counts())
 
 
 def cross_validated_map(features: np.ndarray, observed: np.ndarray, weight: np.ndarray, fold_of: np.ndarray, folds: int,
@@ -307,22 +287,9 @@ def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
     def both(rows: np.ndarray) -> dict:
         return metrics_by_predictor({"identity": p, "side_map": mapped}, rows, observed, weight, objects)
 
-    return {
-        "variant": config.topple.variant,
-        "features": list(SIDE_FEATURES),
-        "weights": [float(w) for w in weights],
-        "band": list(band),
-        "side_z": SIDE_Z,
-        "pushes": len(p),
-        "objects": len(scorer.object_ids),
-        "folds": folds,
-        "seed": seed,
-        "cross_validated": both(np.isfinite(p)),
-        "side_pushes": both(side),
-        "fold_objects": fold_objects,
-        "counts": log.counts(),
-        "wall_s": round(time.perf_counter() - started, 1),
-    }
+    return map_record(config, SIDE_FEATURES, weights, len(p), len(scorer.object_ids), folds, seed, fold_objects, started,
+                      band=list(band), side_z=SIDE_Z, cross_validated=both(np.isfinite(p)), side_pushes=both(side),
+                      counts=log.counts())
 
 
 def format_side_record(result: dict) -> str:
