@@ -460,6 +460,12 @@ def test_playing_in_another_world_than_the_thesis_s_is_noted():
     assert "mu_finger_std" in note
     assert "not the thesis's that the shipped logs are played with (--config thesis)" in note
     assert "contact_std" in playlog.world_note(thesis.with_overrides({"topple.contact_std": 0.01}))
+    # The finger, its force limit and gravity build the simulated world too; the model's trial count does not.
+    for name, value in (("topple.max_finger_force", 50.0), ("topple.gravity", 9.0), ("contacts.finger_radius", 0.01),
+                        ("contacts.push_depth", 0.05), ("contacts.approach_offset", 0.02), ("mesh.default_mass", 0.5)):
+        note = playlog.world_note(thesis.with_overrides({name: value}))
+        assert note == f"note: the pushes are played in this configuration's world ({name.split('.')[1]} {value:g}), " \
+                       "not the thesis's that the shipped logs are played with (--config thesis)"
 
 
 def test_the_play_command_passes_skip_on_and_notes_the_world(capsys, tmp_path, monkeypatch):
@@ -483,11 +489,29 @@ def test_the_play_command_passes_skip_on_and_notes_the_world(capsys, tmp_path, m
     assert seen["run_info"] == {"objects": "heldout", "count": 2, "skip": 3}
     assert "note:" not in capsys.readouterr().err, "the thesis's world: nothing to note"
     assert playlog.main(args) == 0
-    assert "note: the pushes are played with this configuration's friction and noise" in capsys.readouterr().err
+    assert "note: the pushes are played in this configuration's world" in capsys.readouterr().err
     remaining = len(playlog.select_objects("heldout", None, 0, 0.25)) - 3
     assert playlog.main([*args, "--config", "thesis", "--count", str(remaining + 5)]) == 0
     assert f"note: only {remaining} heldout objects remain after --skip 3" in capsys.readouterr().err
     assert len(seen["specs"]) == remaining
+
+
+def test_play_list_writes_the_objects_a_log_of_the_same_arguments_plays(capsys, tmp_path, monkeypatch):
+    """``--list`` writes the chosen objects as a corpus list, which reads back as the same objects,
+    paths, scales and masses, and plays nothing; --out and --list together, or neither, are refused."""
+    from pipeline.build.corpus import read_list
+
+    monkeypatch.setattr(playlog, "play", lambda *a, **k: pytest.fail("--list must not play"))
+    out = tmp_path / "heldout_b.csv"
+    assert playlog.main(["--objects", "heldout", "--count", "4", "--skip", "3", "--list", str(out)]) == 0
+    assert f"4 heldout objects -> {out}" in capsys.readouterr().out
+    chosen = playlog.select_objects("heldout", 4, 0, 0.25, skip=3)
+    listed = read_list(out, 0.25).specs
+    assert [(s.object_id, Path(s.path).resolve(), s.scale, s.mass) for s in listed] == \
+           [(s.object_id, Path(s.path).resolve(), s.scale, s.mass) for s in chosen]
+    for both in (["--list", str(out), "--out", str(tmp_path / "log")], []):
+        assert playlog.main(["--objects", "heldout", "--count", "4", *both]) == 2
+        assert "give --out (play a log) or --list" in capsys.readouterr().err
 
 
 def test_play_command_rejects_bad_input(capsys, tmp_path):

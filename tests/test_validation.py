@@ -279,6 +279,27 @@ def test_bad_rows_are_counted_by_reason_never_dropped_silently(box_file, box_pos
     assert log.counts()["rows_rejected"] == table.num_rows - 2
 
 
+def test_two_logs_that_use_the_same_push_id_keep_each_push_and_its_repeats(box_file, box_poses, tmp_path):
+    """Push ids are unique within one log: two logs that both hold push 0 of the box hold two pushes
+    (here one high that topples and one low that does not), every repeat kept, none rejected; the
+    same file named twice is refused rather than counted twice."""
+    poses, standing, lying, _ = box_poses
+    stand, lie = poses.poses[standing].transform, poses.poses[lying].transform
+    high = _object_frame(poses.poses[standing], *HIGH_PUSH)
+    low = _object_frame(poses.poses[standing], np.array([BOX[0] / 2, 0.0, 0.01]), HIGH_PUSH[1])
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    pq.write_table(_rows(box_file, [(0, stand, *high, [lie, lie, stand])]), tmp_path / "a" / "box.parquet")
+    pq.write_table(_rows(box_file, [(0, stand, *low, [stand, stand])]), tmp_path / "b" / "box.parquet")
+
+    log = read_log([tmp_path / "a", tmp_path / "b"], Config())
+    assert not log.rejected and log.rows_used == 5
+    assert [(p.log, p.push_id, len(p.outcomes)) for p in log.pushes] == [(0, 0, 3), (1, 0, 2)]
+    assert [p.topple_rate for p in log.pushes] == pytest.approx([2 / 3, 0.0])
+    with pytest.raises(LogError, match="named twice"):
+        read_log([tmp_path / "a", tmp_path / "a" / "box.parquet"], Config())
+
+
 def test_rows_pushed_with_another_stroke_are_rejected_when_the_model_reads_the_stroke(box_file, box_poses, tmp_path):
     """With the ``stroke`` correction (MODEL.md C.10) the model predicts a push of its own depth:
     a row pushed 6 cm deep is another push, counted with its reason; without it the row is read."""

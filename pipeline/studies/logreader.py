@@ -6,7 +6,8 @@ poses with the same ``config.poses`` the dataset uses, matches the observed star
 transform to a stable pose (``schema.frames.match_pose``'s rule, vectorised) and settles
 the observed final transform into one (``pipeline.model.poses.settle``'s rule; a rest pose
 outside the pose set is its own bucket).  Repeats of one push (same object and ``push_id``)
-become one empirical next-pose distribution.
+become one empirical next-pose distribution.  Push ids are unique within one log (one of
+``paths``), not across logs: the same id in two logs is two pushes (``Push.log``).
 
 Nothing is dropped silently and nothing crashes: every row that cannot be used is
 counted under a one-line reason (``PushLog.rejected``), with the first few rows of
@@ -87,6 +88,7 @@ class Push:
     object_id, push_id : identifiers;  pose : start pose index
     point, direction : (3,) float, pose frame (m, unit)
     outcomes : (R,) int, final pose of each repeat (``OUTSIDE`` when not in the pose set)
+    log : which of ``read_log``'s paths the push was read from (push ids are unique only within one)
     """
 
     object_id: str
@@ -95,6 +97,7 @@ class Push:
     point: np.ndarray
     direction: np.ndarray
     outcomes: np.ndarray
+    log: int = 0
 
     def empirical(self, n_poses: int) -> np.ndarray:
         """(n_poses + 1,) float: frequency of each final pose, the last entry for ``OUTSIDE``."""
@@ -111,7 +114,7 @@ class PushLog:
     """A log read against the model.
 
     objects : object id -> ``LoggedObject`` (only objects with at least one usable row)
-    pushes : usable pushes, sorted by (object, pose, push_id)
+    pushes : usable pushes, sorted by (object, pose, log, push_id)
     rejected : reason -> rows;  examples : reason -> [(file, row, object_id, push_id), ...]
     rows : rows read in all
     """
@@ -176,11 +179,12 @@ def log_files(paths: list[str | Path]) -> list[Path]:
     return files
 
 
-def read_tables(files: list[Path]) -> pa.Table:
-    """All files concatenated, with a ``_file`` and ``_row`` column; raises ``LogError`` on unreadable files."""
+def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
+    """All files concatenated, with a ``_file``, ``_row`` and ``_log`` column (``logs``: the log each
+    file belongs to, 0 for all when not given); raises ``LogError`` on unreadable files."""
     tables = []
     required = set(PUSHLOG.names)
-    for file in files:
+    for number, file in enumerate(files):
         try:
             table = pq.read_table(file)
         except (OSError, pa.ArrowInvalid) as err:
@@ -194,6 +198,7 @@ def read_tables(files: list[Path]) -> pa.Table:
             raise LogError(f"{file}: columns do not have the push-log types ({str(err).splitlines()[0]})") from None
         n = table.num_rows
         table = table.append_column("_file", pa.array([str(file)] * n, type=pa.string())).append_column("_row", pa.array(np.arange(n), type=pa.int64()))
+        table = table.append_column("_log", pa.array(np.full(n, logs[number] if logs else 0), type=pa.int64()))
         tables.append(table)
     return pa.concat_tables(tables)
 
@@ -238,13 +243,19 @@ def read_log(
       rejects rows of objects inside it (a held-out report)
     Raises ``LogError`` only when a file cannot be read as a push log at all.
     """
-    files = log_files(paths)
-    table = read_tables(files)
+    per_log = [log_files([path]) for path in paths]
+    files = [file for found in per_log for file in found]
+    twice = [file for file, count in Counter(f.resolve() for f in files).items() if count > 1]
+    if twice:
+        # Each log's pushes are its own (Push.log), so a file read twice would count its pushes twice.
+        raise LogError(f"{twice[0]} is named twice among the logs; name each log once")
+    table = read_tables(files, [number for number, found in enumerate(per_log) for _ in found])
     n = table.num_rows
     columns = {name: table.column(name).to_pylist() for name in ("object_id", "mesh_sha256", "mesh_source", "mesh_path", "_file")}
     scale = table.column("scale").to_numpy(zero_copy_only=False).astype(float)
     mass = table.column("mass").to_numpy(zero_copy_only=False).astype(float)
     push_id = table.column("push_id").to_numpy(zero_copy_only=False)
+    log_of_row = table.column("_log").to_numpy(zero_copy_only=False)
     row_number = table.column("_row").to_numpy(zero_copy_only=False)
     start_pose = table.column("start_pose").to_pylist()
     problems = row_problems(table)
@@ -328,13 +339,14 @@ def read_log(
             reject(i, "start_pose column disagrees with the pose start_transform matches")
             usable[i] = False
 
-    # Pushes: repeats of one (object, push_id) must describe the same push.
-    groups: dict[tuple[str, int], list[int]] = {}
+    # Pushes: repeats of one (log, object, push_id) must describe the same push.  Two logs may
+    # draw the same id for other pushes, or the same push, and each keeps its own repeats.
+    groups: dict[tuple[int, str, int], list[int]] = {}
     for i in np.flatnonzero(usable):
-        groups.setdefault((columns["object_id"][i], int(push_id[i])), []).append(int(i))
+        groups.setdefault((int(log_of_row[i]), columns["object_id"][i], int(push_id[i])), []).append(int(i))
     repeat = table.column("repeat").to_numpy(zero_copy_only=False)
     pushes = []
-    for (object_id, pid), rows in groups.items():
+    for (log, object_id, pid), rows in groups.items():
         rows = np.array(rows)
         _, first_of_repeat = np.unique(repeat[rows], return_index=True)
         for i in np.setdiff1d(np.arange(len(rows)), first_of_repeat):
@@ -361,9 +373,10 @@ def read_log(
                 point=transform_points(to_pose, points[rows[0]][None])[0],
                 direction=directions[rows[0]] @ to_pose[:3, :3].T,
                 outcomes=final_index[rows],
+                log=log,
             )
         )
-    pushes.sort(key=lambda p: (p.object_id, p.pose, p.push_id))
+    pushes.sort(key=lambda p: (p.object_id, p.pose, p.log, p.push_id))
     used = {p.object_id for p in pushes}
     return PushLog(
         objects={k: v for k, v in loaded.items() if k in used},

@@ -42,7 +42,7 @@ from schema.pushlog import PUSHLOG, PUSHLOG_VERSION, row_problems
 from schema.vocabulary import STATUS_OK
 
 from ..build.atomic import write_atomic, write_text_atomic
-from ..build.corpus import DEFAULT_LIST, PYBULLET_SOURCE, CorpusError, ObjectSpec, candidate_specs, pybullet_data_dir, read_list
+from ..build.corpus import DEFAULT_LIST, PYBULLET_SOURCE, CorpusError, ObjectSpec, candidate_specs, pybullet_data_dir, read_list, write_list
 from ..model.config import PRESETS, Config
 from ..model.rng import stream
 from .logreader import LogError, log_files, match_downs, object_downs, read_tables
@@ -458,25 +458,37 @@ def read_log(out: str | Path) -> pa.Table:
         files = log_files([out])
     except LogError:  # no part file yet
         return empty_log()
-    return read_tables(files).drop_columns(["_file", "_row"])
+    return read_tables(files).drop_columns(["_file", "_row", "_log"])
 
 
-WORLD_FIELDS = ("mu_table_mean", "mu_table_std", "mu_finger_mean", "mu_finger_std", "contact_std", "direction_std")
-"""The ``topple`` fields the player draws each repeat's friction and noise from (``pushsim.draw_noise``)."""
+WORLD_FIELDS = (
+    "topple.mu_table_mean", "topple.mu_table_std", "topple.mu_finger_mean", "topple.mu_finger_std",
+    "topple.contact_std", "topple.direction_std", "topple.max_finger_force", "topple.gravity",
+    "contacts.approach_offset", "contacts.push_depth", "contacts.finger_radius", "mesh.default_mass",
+)
+"""The settings the player builds its world from: each repeat's friction and noise
+(``pushsim.draw_noise``), the finger's force limit, size and stroke, gravity, and the mass of an
+object whose URDF gives none."""
+
+
+def _setting(config: Config, name: str):
+    section, field_name = name.split(".")
+    return getattr(getattr(config, section), field_name)
 
 
 def world_note(config: Config) -> str | None:
     """A note when ``config`` plays pushes in another world than the thesis's, None when it does not.
 
-    The player draws friction and noise from the configuration it is given, so a log played with
-    the default model's broad calibrated noise is another simulated world than the shipped logs'
-    (all played with ``--config thesis``), and a map fitted on one is judged on the other."""
-    thesis = Config.from_toml(PRESETS / "thesis.toml").topple
-    differ = [f for f in WORLD_FIELDS if getattr(config.topple, f) != getattr(thesis, f)]
+    The player builds its world from the configuration it is given, so a log played with the
+    default model's broad calibrated noise (or another finger, force limit or gravity) is another
+    simulated world than the shipped logs' (all played with ``--config thesis``), and a map fitted
+    on one is judged on the other."""
+    thesis = Config.from_toml(PRESETS / "thesis.toml")
+    differ = [name for name in WORLD_FIELDS if _setting(config, name) != _setting(thesis, name)]
     if not differ:
         return None
-    values = ", ".join(f"{f} {getattr(config.topple, f):g}" for f in differ)
-    return (f"note: the pushes are played with this configuration's friction and noise ({values}), not the "
+    values = ", ".join(f"{name.split('.')[1]} {_setting(config, name):g}" for name in differ)
+    return (f"note: the pushes are played in this configuration's world ({values}), not the "
             "thesis's that the shipped logs are played with (--config thesis)")
 
 
@@ -490,7 +502,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="toppledb play", description=__doc__.split("\n\n")[0])
     parser.add_argument("--objects", choices=OBJECT_MODES, default="corpus",
                         help="'corpus': the default corpus (to calibrate on); 'heldout': pybullet_data objects outside it")
-    parser.add_argument("--out", type=Path, required=True, help="log directory (one Parquet file per object)")
+    parser.add_argument("--out", type=Path, help="log directory (one Parquet file per object); required unless --list")
+    parser.add_argument("--list", type=Path, metavar="FILE.csv",
+                        help="write the chosen objects as a corpus list and play nothing: `toppledb dataset --corpus "
+                             "FILE.csv` then builds the dataset of the very objects a log of these arguments plays")
     parser.add_argument("--count", type=positive_int, metavar="N", help="objects to play (default: all of the mode's)")
     parser.add_argument("--skip", type=int, default=0, metavar="N",
                         help="pass over the first N objects of the seeded order, e.g. those an earlier log of "
@@ -518,13 +533,19 @@ def main(argv: list[str] | None = None) -> int:
             raise UsageError(f"--eps must be positive, got {args.eps}")
         if args.noise_draws < 0:
             raise UsageError(f"--noise-draws must be 0 or more, got {args.noise_draws}")
+        if (args.out is None) == (args.list is None):
+            raise UsageError("give --out (play a log) or --list (write the objects' corpus list), not both or neither")
         config = make_config(args)
         params = PlayParams(args.actions, args.repeats, args.eps, args.max_poses, args.seed, config, args.noise_draws)
         specs = select_objects(args.objects, args.count, args.seed, config.mesh.default_mass, skip=args.skip)
-        if note := world_note(config):
-            print(note, file=sys.stderr)
         if args.count is not None and len(specs) < args.count:
             print(f"note: only {len(specs)} {args.objects} objects remain after --skip {args.skip}", file=sys.stderr)
+        if args.list is not None:
+            write_list(specs, args.list, pybullet_data_dir())
+            print(f"{len(specs)} {args.objects} objects -> {args.list}")
+            return 0
+        if note := world_note(config):
+            print(note, file=sys.stderr)
         summary = play(specs, params, args.out, workers=args.workers, progress=not args.no_progress, force=args.force,
                        run_info={"objects": args.objects, "count": args.count, "skip": args.skip})
     except (UsageError, PlayError, CorpusError) as err:
