@@ -249,18 +249,27 @@ def run_dataset(args: argparse.Namespace) -> int:
         log=lambda line: print(line, file=sys.stderr),
     )
     print(summary.text())
-    print(f"dataset: {Path(args.out).resolve()}")
+    if summary.committed:
+        print(f"dataset: {Path(args.out).resolve()}")
     if summary.all_failed:
-        print(f"error: every object failed ({summary.manifest.counts.failed}); see the reasons above", file=sys.stderr)
+        print(f"error: every object failed ({summary.manifest.counts.failed}); see the reasons above. Nothing was "
+              f"written: {args.out} is as it was", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
 
 
 def run_verify(args: argparse.Namespace) -> int:
+    from schema.layout import MANIFEST
     from schema.manifest import read_manifest
 
     from .build.verify import verify_dataset
 
+    directory = Path(args.directory)
+    if not directory.is_dir() or not (directory / MANIFEST).is_file():
+        # Not a dataset at all is a bad path (2), as for every other command; 1 is a dataset that fails its checks.
+        what = "no such directory" if not directory.is_dir() else f"no {MANIFEST}: not a toppledb dataset"
+        print(f"error: {directory}: {what}", file=sys.stderr)
+        return EXIT_USAGE
     problems = verify_dataset(args.directory)
     for problem in problems:
         print(problem)

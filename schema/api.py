@@ -386,7 +386,7 @@ class PlanRequest(Model):
         "give this or pose"
     )
     policy: Policy = "value_iteration"
-    pushes_left: int = Field(
+    pushes_left: StrictInt = Field(
         None, ge=1, le=MAX_PUSHES_LEFT,
         description="The most pushes the robot will still make before it grasps, this one included. Given, the push "
         "is value iteration's for that budget (finite horizon, no discount: schema/horizon.py), which prefers a "

@@ -8,6 +8,7 @@ is a setting of the app also reads its ``TOPPLEDB_*`` variable (``service.settin
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from .server import DEFAULT_KEEP_ALIVE, DEFAULT_LIMIT_CONCURRENCY, DEFAULT_REQUEST_TIMEOUT
@@ -16,21 +17,36 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8000
 
 
+def _ranged(kind: type, low: float, high: float | None = None, low_open: bool = False):
+    """An argparse type: ``kind`` in [low, high] (low excluded when ``low_open``), else a one-line
+    usage error, so no option starts a service that cannot serve (workers 0, port 70000, ...)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expects {kind.__name__}, got {text!r}") from None
+        if math.isnan(value) or (value <= low if low_open else value < low) or (high is not None and value > high):
+            bound = f"{'>' if low_open else '>='} {low:g}" + (f" and <= {high:g}" if high is not None else "")
+            raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
+        return value
+    return parse
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m service", description="Serve a toppledb dataset over HTTP.")
     parser.add_argument("--dataset", default=None, help="dataset directory (default: $TOPPLEDB_DATASET or data/dataset)")
     parser.add_argument("--host", default=DEFAULT_HOST, help="address to bind (default: %(default)s, this machine only)")
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="TCP port (default: %(default)s)")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes, forked after the dataset is mapped (they share it)")
+    parser.add_argument("--port", type=_ranged(int, 1, 65535), default=DEFAULT_PORT, help="TCP port (default: %(default)s)")
+    parser.add_argument("--workers", type=_ranged(int, 1), default=1, help="worker processes, forked after the dataset is mapped (they share it)")
     parser.add_argument("--token", default=None, help="bearer token for every endpoint except /health (better: $TOPPLEDB_TOKEN)")
     parser.add_argument("--max-body-bytes", type=int, default=None, help="largest request body, else 413")
     parser.add_argument("--height-tolerance", type=float, default=None, help="m, largest |z_offset| of an observed pose")
     parser.add_argument("--finger-force-limit", type=float, default=None, help="N, overrides the manifest's")
     parser.add_argument("--frame-id", default=None, help="the table frame a ROS pose must be in (default world)")
-    parser.add_argument("--watch-seconds", type=float, default=None, help="s between checks for a rebuilt dataset; 0: SIGHUP only")
-    parser.add_argument("--limit-concurrency", type=int, default=DEFAULT_LIMIT_CONCURRENCY, help="503 beyond this many connections")
-    parser.add_argument("--timeout-keep-alive", type=int, default=DEFAULT_KEEP_ALIVE, help="s an idle connection stays open")
-    parser.add_argument("--request-timeout", type=float, default=DEFAULT_REQUEST_TIMEOUT, help="s to deliver a whole request")
+    parser.add_argument("--watch-seconds", type=_ranged(float, 0), default=None, help="s between checks for a rebuilt dataset; 0: SIGHUP only")
+    parser.add_argument("--limit-concurrency", type=_ranged(int, 1), default=DEFAULT_LIMIT_CONCURRENCY, help="503 beyond this many connections")
+    parser.add_argument("--timeout-keep-alive", type=_ranged(int, 0), default=DEFAULT_KEEP_ALIVE, help="s an idle connection stays open")
+    parser.add_argument("--request-timeout", type=_ranged(float, 0, low_open=True), default=DEFAULT_REQUEST_TIMEOUT, help="s to deliver a whole request")
     parser.add_argument("--access-log", action="store_true", help="log a line per request (off: /metrics counts them)")
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     return parser

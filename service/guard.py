@@ -64,13 +64,18 @@ def is_json(content_type: bytes) -> bool:
     return media == b"application/json" or (media.startswith(b"application/") and media.endswith(b"+json"))
 
 
+CLIENT_CLOSED = 499
+"""The status /metrics counts for a request that ended without a response because the client
+went away (nginx's "client closed request"); nothing is sent."""
+
+
 class Guard:
     """ASGI middleware: see the module docstring."""
 
     def __init__(self, app, metrics: Metrics, token: str | None, max_body_bytes: int):
         self.app = app
         self.metrics = metrics
-        self.token = None if token is None else f"Bearer {token}".encode()
+        self.token = None if token is None else token.encode()
         self.max_body_bytes = max_body_bytes
 
     async def __call__(self, scope, receive, send):
@@ -80,14 +85,20 @@ class Guard:
         started = time.perf_counter()
         status = 500
 
+        responded = False
+
         async def send_counted(message):
-            nonlocal status
+            nonlocal status, responded
             if message["type"] == "http.response.start":
-                status = message["status"]
+                status, responded = message["status"], True
             await send(message)
 
         try:
             await self._guarded(scope, receive, send_counted)
+            if status == 500 and not responded:
+                # Returned without a response: the client left (or the request timeout closed the
+                # connection) before its body arrived.  Not a server error; 499 as nginx logs it.
+                status = CLIENT_CLOSED
         finally:
             route = scope.get("route")
             self.metrics.observe(scope["method"], getattr(route, "path", None), status, time.perf_counter() - started)
@@ -96,7 +107,9 @@ class Guard:
         headers = dict(scope["headers"])
         if self.token is not None and scope["path"] not in OPEN_PATHS:
             given = headers.get(b"authorization", b"")
-            if not hmac.compare_digest(given, self.token):
+            scheme, _, credentials = given.partition(b" ")
+            # The scheme's name is case-insensitive (RFC 7235); the token is compared in constant time.
+            if not (scheme.lower() == b"bearer" and hmac.compare_digest(credentials.strip(), self.token)):
                 why = "missing bearer token" if not given else "wrong bearer token"
                 await self._reply(send, 401, f"{why}: send 'Authorization: Bearer <token>'", [(b"www-authenticate", b"Bearer")])
                 return

@@ -11,6 +11,7 @@ import time
 
 import pytest
 
+from pipeline.build.dataset import staging_dir
 from pipeline.cli import main, make_config, parser
 from pipeline.model.config import parameter_table
 
@@ -39,10 +40,10 @@ def test_parameters_come_from_defaults_toml_set_then_flags(tmp_path):
         (["dataset", "--config", "/no/such.toml"], "config file not found"),
         (["dataset", "--corpus", "/no/such/corpus", "--out", "{tmp}/out"], "corpus not found"),
         (["corpus", "--set", "suction.cup_radius=wide"], "expects float"),
-        (["dataset", "--set", "contacts.n_contacts=0"], "config key 'contacts.n_contacts' must be >= 1, got '0'"),
+        (["dataset", "--set", "contacts.n_contacts=0"], "config key 'contacts.n_contacts' must be in [1, 100000], got '0'"),
         (["dataset", "--set", "topple.mu_table_mean=-3"], "config key 'topple.mu_table_mean' must be >= 0"),
         (["dataset", "--seed", "-2"], "config key 'seed' must be >= 0"),
-        (["dataset", "--contacts", "0"], "config key 'contacts.n_contacts' must be >= 1, got 0"),
+        (["dataset", "--contacts", "0"], "config key 'contacts.n_contacts' must be in [1, 100000], got 0"),
         (["dataset", "--trials", "0"], "config key 'topple.n_trials' must be >= 1, got 0"),
         (["dataset", "--out", "{tmp}/a_file/out"], "cannot create output directory {tmp}/a_file/out: Not a directory"),
         (["dataset", "--out", "{tmp}/a_file"], "cannot create output directory {tmp}/a_file: File exists"),
@@ -77,11 +78,12 @@ def test_argparse_rejects_bad_values(argv, capsys):
     assert "error:" in capsys.readouterr().err
 
 
-def test_verify_of_a_missing_dataset_fails(tmp_path, capsys):
-    assert main(["verify", str(tmp_path / "nothing")]) == 1
-    assert "no such directory" in capsys.readouterr().out
-    assert main(["verify", str(tmp_path)]) == 1
-    assert "no manifest.json" in capsys.readouterr().out
+def test_verify_of_a_path_that_is_no_dataset_is_a_usage_error(tmp_path, capsys):
+    """Exit 2, as every command gives a bad path; 1 is kept for a dataset that fails its checks."""
+    assert main(["verify", str(tmp_path / "nothing")]) == 2
+    assert f"error: {tmp_path / 'nothing'}: no such directory" in capsys.readouterr().err
+    assert main(["verify", str(tmp_path)]) == 2
+    assert "no manifest.json: not a toppledb dataset" in capsys.readouterr().err
 
 
 def test_module_entry_point_prints_no_traceback(tmp_path):
@@ -114,11 +116,19 @@ def test_millimetre_meshes_fail_with_a_unit_hint_until_units_are_given(tmp_path,
     assert "error: every object failed (3)" in captured.err
     assert "2  too large for a tabletop (block, bracket); try --units mm" in captured.out
     assert "1  cannot read # (noise)" in captured.out
+    assert not out.exists(), "a run where every object failed writes nothing, not even the directory"
 
     assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--units", "mm", "--mass", "0.2", *FAST]) == 0
     captured = capsys.readouterr()
     assert "objects   2 (3 computed, 0 reused), failed 1" in captured.out
     assert "failed    noise: cannot read noise.obj: no triangles, not a valid OBJ file" in captured.out
+
+    # Rebuilt with --force but without --units: every object fails, and the finished dataset stays whole.
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != ".lock"}
+    assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--force", *FAST]) == 1
+    assert f"Nothing was written: {out} is as it was" in capsys.readouterr().err
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != ".lock"} == before
+    assert not staging_dir(out).exists()
 
     assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--units", "mm", "--mass", "0.2", "--strict", *FAST]) == 1
     assert "--strict: noise:" in capsys.readouterr().err

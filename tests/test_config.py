@@ -66,6 +66,10 @@ def test_round_trip_and_overrides(tmp_path):
         ({"nope.n_trials": 1}, "unknown config section"),
         ({"topple.n_trials": "many"}, "expects int"),
         ({"topple.variant": "magic"}, "unknown variant"),
+        # A TOML boolean is no number (Python's bool is an int), nor a number a switch.
+        ({"topple.mu_table_mean": True}, "expects float, got True"),
+        ({"contacts.n_contacts": True}, "expects int, got True"),
+        ({"mdp.believe_failures": 1}, "expects bool, got 1"),
     ],
 )
 def test_bad_overrides_are_clear_errors(overrides, message):
@@ -76,7 +80,8 @@ def test_bad_overrides_are_clear_errors(overrides, message):
 @pytest.mark.parametrize(
     "key, value, message",
     [
-        ("contacts.n_contacts", "0", "must be >= 1"),
+        ("contacts.n_contacts", "0", "must be in [1, 100000]"),
+        ("contacts.n_contacts", "10000000000", "must be in [1, 100000]"),
         ("topple.mu_table_mean", "-3", "must be >= 0"),
         ("topple.mu_table_mean", "nan", "must be >= 0"),
         ("mdp.gamma", "0", "must be in (0, 1]"),
@@ -97,7 +102,7 @@ def test_ranges_live_on_the_fields_and_accept_the_defaults():
     numeric = [(key, value) for key, value, _ in rows if isinstance(value, (int, float)) and not isinstance(value, bool)]
     assert all(accepted for key, value, accepted in rows if (key, value) in numeric), "every number has a range"
     assert Config.from_dict(Config().to_dict()) == Config(), "the defaults pass their own checks"
-    assert field_range(ContactConfig, "n_contacts") == Range(1, None)
+    assert field_range(ContactConfig, "n_contacts") == Range(1, 100_000)
     assert Range(0.0, 1.0, lo_open=True).contains(1.0) and not Range(0.0, 1.0, lo_open=True).contains(0.0)
 
 

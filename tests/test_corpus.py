@@ -140,6 +140,7 @@ def test_list_file_resolves_paths_and_defaults(tmp_path):
         ("object_id,path\nsame,a.obj\nsame,b.obj\n", "duplicate object ids"),
         ("object_id,path\nbad/id,a.obj\n", "bad object id"),
         ("path\n", "no objects"),
+        ("path,scale,mass\na.obj,0.015,0.1,extra\n", "row 2: 4 fields, more than the header's 3"),
     ],
 )
 def test_bad_list_files_give_one_line_errors(tmp_path, content, message):
@@ -237,10 +238,12 @@ def test_directory_sidecar_csv_and_flags_without_sidecar(tmp_path):
         ("corpus.toml", 'units = "furlong"\n', "units 'furlong' is not one of mm, cm, in, m"),
         ("corpus.toml", 'units = "mm"\nscale = 0.001\n', "units or scale, not both"),
         ("corpus.toml", "mass = -1\n", "mass must be positive"),
+        ("corpus.toml", "mass = true\n", "mass True is not a number"),
         ("corpus.toml", "colour = 1\n", "unknown key(s) ['colour']"),
         ("corpus.toml", '[objects."missing.obj"]\nmass = 1\n', "names meshes that are not there"),
         ("corpus.toml", "units = \n", "corpus.toml"),
         ("corpus.csv", "path,mass,density\na.obj,1,2\n", "mass or density, not both"),
+        ("corpus.csv", "path,mass\na.obj,1,2\n", "corpus.csv row 2: 3 fields, more than the header's 2"),
     ],
 )
 def test_bad_sidecars_give_one_line_errors(tmp_path, sidecar, text, message):

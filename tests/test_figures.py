@@ -59,3 +59,22 @@ def test_pushes_figure_and_3d_scene(evaluated, tmp_path):
     scene = trimesh.load(tmp_path / "object.glb")
     clouds = [g for g in scene.geometry.values() if isinstance(g, trimesh.PointCloud)]
     assert len(clouds) == 1 and len(clouds[0].vertices) == drawn["contacts"]
+
+
+def test_the_figures_command_reads_millimetres_as_the_dataset_command_does(tmp_path, capsys):
+    """``--units mm`` (what a too-large mesh's error suggests) scales the file as --scale 0.001
+    does; giving both is refused."""
+    import trimesh
+
+    part = tmp_path / "part.stl"
+    box = trimesh.creation.box([60.0, 40.0, 100.0])
+    box.apply_translation([0, 0, 50.0])
+    box.export(part)
+    assert figures.main([str(part), "--pose", "0", "--contacts", "20", "--trials", "2", "--out", str(tmp_path / "f")]) == 2
+    assert "--units mm" in capsys.readouterr().err
+    assert figures.main([str(part), "--units", "mm", "--pose", "0", "--contacts", "20", "--trials", "2",
+                         "--out", str(tmp_path / "f")]) == 0
+    assert (tmp_path / "f" / "pushes_0.png").is_file() and (tmp_path / "f" / "object.glb").is_file()
+    with pytest.raises(SystemExit) as refused:
+        figures.main([str(part), "--units", "mm", "--scale", "0.001"])
+    assert refused.value.code == 2

@@ -218,6 +218,8 @@ def test_without_a_budget_nothing_changes(client, tables):
 @pytest.mark.parametrize("extra", [
     {"pushes_left": 0}, {"pushes_left": MAX_PUSHES_LEFT + 1}, {"pushes_left": None}, {"pushes_left": 1.5},
     {"pushes_left": 2, "policy": "greedy"},
+    # Integers only, as failed_actions: a client's true, 2.0 or "2" is a bug to report, not a budget to guess.
+    {"pushes_left": True}, {"pushes_left": 2.0}, {"pushes_left": "2"},
 ])
 def test_bad_budgets_are_422(client, tables, extra):
     object_id, pose = next(iter(tables["poses"]))

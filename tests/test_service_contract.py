@@ -253,6 +253,10 @@ def test_a_bearer_token_guards_everything_but_health(dataset):
             assert missing.status_code == 401 and missing.headers["www-authenticate"] == "Bearer"
             assert c.get(path, headers={"authorization": "Bearer wrong-token-of-some-length"}).status_code == 401
             assert c.get(path, headers={"authorization": f"Bearer {TOKEN}"}).status_code == 200
+            # RFC 7235: the scheme's name is case-insensitive; the token and the scheme are not optional.
+            assert c.get(path, headers={"authorization": f"bearer {TOKEN}"}).status_code == 200
+            for wrong in (f"Basic {TOKEN}", TOKEN, f"Bearer{TOKEN}", f"Bearer {TOKEN}x", "Bearer "):
+                assert c.get(path, headers={"authorization": wrong}).status_code == 401, wrong
         assert c.post("/plan", json={}).status_code == 401  # before the body is looked at
         schema = c.get("/openapi.json", headers={"authorization": f"Bearer {TOKEN}"}).json()
         assert "401" in schema["paths"]["/plan"]["post"]["responses"] and "401" not in schema["paths"]["/health"]["get"]["responses"]
@@ -306,3 +310,33 @@ def test_openapi_examples_come_from_the_served_dataset(client, tables):
     assert client.post("/batch/plan", json=batch).json()["results"][0]["result"] == response.json()
     transitions = schema["components"]["schemas"]["TransitionBatch"]["examples"][0]
     assert client.post("/batch/transitions", json=transitions).json()["results"][0]["error"] is None
+
+
+def test_a_client_that_leaves_before_its_body_arrives_is_not_counted_as_a_server_error():
+    """The guard sends nothing when the connection drops mid-body (or the request timeout closes
+    it); /metrics counts such a request as 499, not as the 500 an alert on server errors watches."""
+    import asyncio
+
+    from service.guard import CLIENT_CLOSED, Guard
+    from service.metrics import Metrics
+
+    async def app(scope, receive, send):  # never reached: the body never arrived
+        raise AssertionError("the route must not run")
+
+    metrics = Metrics()
+    guard = Guard(app, metrics, token=None, max_body_bytes=4096)
+    scope = {"type": "http", "method": "POST", "path": "/plan", "headers": [(b"content-type", b"application/json"),
+                                                                           (b"content-length", b"50")]}
+    messages = iter([{"type": "http.request", "body": b"{}", "more_body": True}, {"type": "http.disconnect"}])
+    sent = []
+
+    async def receive():
+        return next(messages)
+
+    async def send(message):
+        sent.append(message)
+
+    asyncio.run(guard(scope, receive, send))
+    text = metrics.render().decode()
+    assert not sent
+    assert f'status="{CLIENT_CLOSED}"' in text and 'status="500"' not in text

@@ -140,6 +140,23 @@ def stop(process: subprocess.Popen) -> tuple[str, str]:
     return out.decode(), err.decode()
 
 
+@pytest.mark.parametrize("option, value", [
+    ("--workers", "0"), ("--workers", "-2"), ("--port", "70000"), ("--port", "0"), ("--limit-concurrency", "0"),
+    ("--request-timeout", "0"), ("--request-timeout", "nan"), ("--timeout-keep-alive", "-1"), ("--watch-seconds", "-1"),
+    ("--workers", "two"),
+])
+def test_options_that_would_start_a_service_that_cannot_serve_are_refused(option, value, capsys):
+    """Each of these used to start a service that exits at once, listens elsewhere, refuses or
+    drops every request; they are usage errors (exit 2) naming the option."""
+    with pytest.raises(SystemExit) as refused:
+        build_parser().parse_args([option, value])
+    assert refused.value.code == 2
+    assert f"argument {option}: " in capsys.readouterr().err
+    sane = {"--workers": "2", "--port": "65535", "--limit-concurrency": "1", "--request-timeout": "0.5",
+            "--timeout-keep-alive": "0", "--watch-seconds": "0"}[option]
+    assert build_parser().parse_args([option, sane]) is not None
+
+
 def test_default_host_is_localhost_and_the_server_answers(dataset):
     assert DEFAULT_HOST == "127.0.0.1" and build_parser().parse_args([]).host == "127.0.0.1"
     process, url = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--log-level", "warning"])

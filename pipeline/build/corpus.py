@@ -156,12 +156,20 @@ def read_sidecar(directory: Path) -> tuple[Units, dict[str, Units]]:
             raise CorpusError(f"{csv_path}: {err}") from None
         entries = {}
         for number, row in enumerate(rows, start=2):
-            row = {(k or "").strip(): (v or "").strip() for k, v in row.items()}
+            row = _csv_row(row, f"{SIDECAR_CSV} row {number}")
             if not row.get("path"):
                 raise CorpusError(f"{SIDECAR_CSV} row {number}: empty path")
             entries[_posix(row["path"])] = Units.parse(row, f"{SIDECAR_CSV} row {number}")
         return Units(), entries
     return Units(), {}
+
+
+def _csv_row(raw: dict, where: str) -> dict[str, str]:
+    """A ``csv.DictReader`` row with keys and values stripped; a row with more fields than the
+    header (which the reader files under the key None) is refused, naming its row."""
+    if None in raw:
+        raise CorpusError(f"{where}: {len(raw) - 1 + len(raw[None])} fields, more than the header's {len(raw) - 1}")
+    return {k.strip(): (v or "").strip() for k, v in raw.items()}
 
 
 def _posix(path: str) -> str:
@@ -353,8 +361,8 @@ def read_list(path: str | Path, default_mass: float, name: str | None = None) ->
 
     rows = []
     for number, raw in enumerate(reader, start=2):
-        row = {(k or "").strip(): (v or "").strip() for k, v in raw.items()}
         where = f"{path.name} row {number}"
+        row = _csv_row(raw, where)
         if not row.get("path"):
             raise CorpusError(f"{where}: empty path")
         source = row.get("source") or f"list:{path.name}"
@@ -394,6 +402,8 @@ def _resolve(mesh: str, source: str, list_dir: Path) -> Path:
 def _number(text: str | float | None, default: float | None, what: str, where: str) -> float | None:
     if text is None or text == "":
         return None if default is None else float(default)
+    if isinstance(text, bool):  # a TOML ``mass = true`` is not 1 kg
+        raise CorpusError(f"{where}: {what} {text!r} is not a number")
     try:
         value = float(text)
     except (TypeError, ValueError):

@@ -118,6 +118,8 @@ class Summary:
     reused: int
     wall_s: float
     repairs: dict[str, list[str]] = dataclasses.field(default_factory=dict)
+    committed: bool = True
+    """False when every object failed: nothing was written, ``out`` is as it was."""
 
     @property
     def all_failed(self) -> bool:
@@ -195,6 +197,7 @@ def build_dataset(
     """
     started = time.perf_counter()
     out = Path(out)
+    created = not out.exists()
     _make_directory(out, "output directory")
     staging = staging_dir(out)
 
@@ -273,10 +276,24 @@ def build_dataset(
             "wall_s": round(wall, 3),
         }
         written = manifest.make_manifest(config, corpus, {**records, **staged}, consolidated, failure_list, run)
-        manifest.write_manifest(staging, written)
-        commit(out, staging, staged, keep=set(order))
+        committed = bool(order) or not failures
+        if committed:
+            manifest.write_manifest(staging, written)
+            commit(out, staging, staged, keep=set(order))
+        else:
+            # Every object failed (a forgotten --units, a wrong corpus): a dataset of nothing would
+            # replace whatever ``out`` holds, so the run commits nothing and says so.
+            shutil.rmtree(staging, ignore_errors=True)
+    if not committed and created:
+        _remove_if_only_lock(out)
     order_repairs = {s.object_id: repairs[s.object_id] for s in corpus.specs if s.object_id in repairs}
-    return Summary(written, computed=len(todo), reused=reused, wall_s=wall, repairs=order_repairs)
+    return Summary(written, computed=len(todo), reused=reused, wall_s=wall, repairs=order_repairs, committed=committed)
+
+
+def _remove_if_only_lock(out: Path) -> None:
+    """Remove ``out`` when this run made it and it holds nothing but its lock file."""
+    if {p.name for p in out.iterdir()} <= {".lock"}:
+        shutil.rmtree(out, ignore_errors=True)
 
 
 def _compute(
@@ -480,9 +497,13 @@ def add_object(
     }
     corpus = Corpus(current.corpus.name, [*specs, spec])
     quiet = lambda line: None if line.startswith("resuming:") else log(line)  # noqa: E731 (every other object is reused)
-    return build_dataset(
-        corpus, config, root, workers=1, strict=True, progress=progress, log=quiet, previous_failures=previous
-    )
+    try:
+        return build_dataset(
+            corpus, config, root, workers=1, strict=True, progress=progress, log=quiet, previous_failures=previous
+        )
+    except BuildError as err:
+        # ``add`` is strict by nature (a failed object adds nothing); the user gave no --strict.
+        raise BuildError(str(err).removeprefix("--strict: ")) from None
 
 
 def _size(path: str) -> int:

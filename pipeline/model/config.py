@@ -136,8 +136,10 @@ class PoseConfig:
 class ContactConfig:
     """Candidate pushes (thesis 4.4.1) and the finger that executes them."""
 
-    n_contacts: int = bounded(1000, AT_LEAST_ONE)
-    """Candidate contact points per pose, exactly this many, spread evenly over the surface."""
+    n_contacts: int = bounded(1000, Range(1, 100_000))
+    """Candidate contact points per pose, exactly this many, spread evenly over the surface; at
+    most 100 times the thesis's 1,000 (each is evaluated in every pose, so 10^10 would only fail
+    every object for want of memory, far into the run)."""
     oversample: int = bounded(10, AT_LEAST_ONE)
     """Uniform surface samples per candidate from which the even subset is chosen."""
     min_height_fraction: float = bounded(0.15, FRACTION)
@@ -635,6 +637,9 @@ def _coerce(value: Any, default: Any, key: str) -> Any:
     kind = type(default)
     if kind is tuple:
         return _numbers(value, key)
+    if isinstance(value, bool) != (kind is bool) and not isinstance(value, str):
+        # bool is an int to Python: a TOML ``mass = true`` must not become 1.0, nor a 1 a switch.
+        raise ValueError(f"config key {key!r} expects {kind.__name__}, got {value!r}")
     if isinstance(value, kind):
         return value
     try:

@@ -128,11 +128,13 @@ def scene_file(obj, result, pose: int, path: str | Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     from ..model.config import Config
     from ..model.evaluation import evaluate_object
-    from ..model.mesh import MeshError, load_mesh
+    from ..model.mesh import UNIT_SCALES, MeshError, load_mesh
 
     parser = argparse.ArgumentParser(prog="toppledb figures", description=__doc__.split("\n\n")[0])
     parser.add_argument("mesh", type=Path, help="OBJ, STL or PLY file")
-    parser.add_argument("--scale", type=float, default=1.0, help="metres per file unit (default: %(default)s)")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--units", choices=sorted(UNIT_SCALES), help="the file's length unit (as toppledb dataset's --units)")
+    size.add_argument("--scale", type=float, help="metres per file unit (default: 1)")
     parser.add_argument("--mass", type=float, default=None, help="kg (default: mesh.default_mass)")
     parser.add_argument("--pose", type=int, default=0, help="pose of figure 4.5 (default: %(default)s)")
     parser.add_argument("--contacts", type=int, default=200, help="candidate pushes per pose (default: %(default)s)")
@@ -141,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         config = Config().with_overrides({"contacts.n_contacts": args.contacts, "topple.n_trials": args.trials})
-        obj = load_mesh(args.mesh, scale=args.scale, mass=args.mass, config=config.mesh)
+        scale = UNIT_SCALES[args.units] if args.units else 1.0 if args.scale is None else args.scale
+        obj = load_mesh(args.mesh, scale=scale, mass=args.mass, config=config.mesh)
         result = evaluate_object(obj, config)
     except (MeshError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
