@@ -278,6 +278,15 @@ class ToppleConfig:
     maps; it is part of the fit (``recalibrate --side`` fits on the pushes inside it and writes
     it beside the weights).  The default keeps to the pushes the model is unsure of."""
 
+    landing_spread: float = bounded(0.0, FRACTION)
+    """Share eps of every toppling push's landing moved to the start pose's most probable other
+    stable poses (docs/MODEL.md C.17, ``pipeline.model.landing_spread``): the model's landing is
+    sharp, and physics lands elsewhere a fifth of the time.  P(topple) is unchanged.  0: the
+    landing as the maps leave it.  Only the ``corrected`` variant applies it."""
+    landing_spread_poses: int = bounded(3, AT_LEAST_ONE)
+    """k, how many of the start pose's other stable poses, the most probable when dropped,
+    share the spread landing (``landing_spread``), in proportion to their drop probability."""
+
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
@@ -359,6 +368,12 @@ class ToppleConfig:
         return self.side_map if self.variant == "corrected" else ()
 
     @property
+    def applied_landing_spread(self) -> float:
+        """The share of landing this configuration spreads (MODEL.md C.17): 0 for the thesis's
+        variants, whatever the field says."""
+        return self.landing_spread if self.variant == "corrected" else 0.0
+
+    @property
     def needs_candidates(self) -> bool:
         """Whether a push's prediction depends on the pose's other candidates (the smoothing of
         C.12, the neighbourhood feature of C.13, the borrowed landing of C.15): a probe must then
@@ -367,8 +382,9 @@ class ToppleConfig:
 
     def without_recalibration(self) -> "ToppleConfig":
         """This model with no map: what a recalibration (MODEL.md C.7), a feature map (C.13) or the
-        down map (C.15) is fitted on, the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12)."""
-        return dataclasses.replace(self, **NO_MAP)
+        down map (C.15) is fitted on, the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12),
+        their landing not spread (C.17)."""
+        return dataclasses.replace(self, **NO_MAP, landing_spread=0.0)
 
     def counted(self) -> "ToppleConfig":
         """This model as the Monte Carlo counts of MODEL.md (9.1)-(9.2), neither smoothed (C.12) nor

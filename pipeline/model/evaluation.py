@@ -125,7 +125,8 @@ def evaluate_object(
         tables = []
         for p, a in zip(poses, actions):
             with clock("topple"):
-                tables.append(evaluate_pose(obj, p, len(poses), a, config.topple, stream(config.seed, obj.name, p.index, "trials")))
+                tables.append(evaluate_pose(obj, p, len(poses), a, config.topple, stream(config.seed, obj.name, p.index, "trials"),
+                                            drop_probabilities=pose_set.probabilities))
     with _stage(timings, "suction"):
         suction = []
         for p in poses:
@@ -222,7 +223,8 @@ def evaluate(
     else:
         contacts, normals = object_contacts(obj, contact_config, seed)
         actions = pose_actions(contacts, normals, obj.mesh, collision_object(obj.mesh), stable.transform, contact_config)
-    table = evaluate_pose(obj, stable, len(poses.poses), actions, topple_config, stream(seed, obj.name, pose, "trials"))
+    table = evaluate_pose(obj, stable, len(poses.poses), actions, topple_config, stream(seed, obj.name, pose, "trials"),
+                          drop_probabilities=poses.probabilities)
     return PoseEvaluation(pose=pose, actions=actions, table=table)
 
 

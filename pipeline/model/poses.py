@@ -171,6 +171,11 @@ class PoseSet:
     def transforms(self) -> np.ndarray:
         return np.array([p.transform for p in self.poses])
 
+    @property
+    def probabilities(self) -> np.ndarray:
+        """(P,) float, each pose's drop probability."""
+        return np.array([p.probability for p in self.poses], dtype=float)
+
 
 def stability_margin(pose: StablePose, center_mass: np.ndarray) -> tuple[float, int]:
     """How close a pose is to falling over: the least horizontal distance (m) from the

@@ -53,6 +53,7 @@ from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 from .config import ToppleConfig
 from .edges import EdgeGeometry, edge_geometry, push_torques
 from .feature_map import map_down_rows, map_rows, map_side_rows
+from .landing_spread import landing_prior, spread_landings
 from .mesh import ObjectModel
 from .outcomes import Actions, StablePose, ToppleTable
 from .poses import stability_margin
@@ -669,6 +670,7 @@ def evaluate_pose(
     config: ToppleConfig,
     rng: np.random.Generator,
     candidates: int | None = None,
+    drop_probabilities: np.ndarray | None = None,
 ) -> ToppleTable:
     """Transition table of every action of one pose.
 
@@ -679,7 +681,13 @@ def evaluate_pose(
       every candidate, so the candidates' rows are those of the candidate set alone, and with
       ``smoothing_radius`` a probe is smoothed over the candidates and itself, never over other
       probes (MODEL.md C.12).  Default: every action is a candidate.
+    drop_probabilities : (n_poses,) float, the pose set's drop probability of each pose; needed
+      only when ``config`` spreads landings (``landing_spread``, MODEL.md C.17)
     """
+    spread = config.applied_landing_spread
+    if spread and (drop_probabilities is None or len(drop_probabilities) != n_poses):
+        raise ValueError("topple.landing_spread needs the pose set's drop probabilities, one per pose "
+                         f"({n_poses}); pass drop_probabilities")
     n_actions, trials = len(actions.status), config.trials  # A, T
     n_candidates = n_actions if candidates is None else int(candidates)
     # Drawn once for all A actions, ok or not, before blocking: blocking never changes a draw.
@@ -753,4 +761,9 @@ def evaluate_pose(
         # MODEL.md C.16: pushes from the side the model is unsure of, sharpened along the force they need.
         next_pose, p_topple = map_side_rows(next_pose, pose.index, actions, edges, config.applied_side_map,
                                             config.side_map_band)
+    if spread:
+        # MODEL.md C.17: the landing, never P(topple), shared with the most stable other poses, last,
+        # so every map's landing is spread alike.
+        prior = landing_prior(drop_probabilities, pose.index, config.landing_spread_poses)
+        next_pose = spread_landings(next_pose, pose.index, prior, spread)
     return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes)

@@ -211,13 +211,15 @@ class Scorer:
         """``group``'s table: over its pose's candidates and its probes when the model needs them
         (``ToppleConfig.needs_candidates``) or ``candidates`` asks, else over its pushes alone.
         returns : the table, its actions, and (pushes,) int, the row that predicts each push"""
-        obj = self.log.objects[group.object_id].model
+        logged = self.log.objects[group.object_id]
+        obj, drop = logged.model, logged.poses.probabilities
         rng = stream(self.seed, obj.name, group.pose.index, "trials")
         if topple.needs_candidates or candidates:
             pool = self.pose_candidates(group)
-            table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, rng, candidates=pool.candidates)
+            table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, rng, candidates=pool.candidates,
+                                  drop_probabilities=drop)
             return table, pool.actions, pool.index
-        table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng)
+        table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng, drop_probabilities=drop)
         return table, group.actions, np.arange(len(group.rows))
 
     def pose_candidates(self, group: Group) -> CandidatesAndProbes:

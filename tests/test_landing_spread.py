@@ -1,0 +1,105 @@
+"""Landings spread onto the most stable poses (docs/MODEL.md C.17): the landing moves, P(topple) never."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pipeline.model.config import PRESETS, Config
+from pipeline.model.landing_spread import landing_prior, spread_landings
+from pipeline.model.rng import stream
+from pipeline.model.topple import evaluate_pose
+from pipeline.studies.logreader import read_log
+from pipeline.studies.scoring import Scorer
+from tests.test_smoothing import pose_and_candidates  # noqa: F401 (fixture: random_object(3), pose 2, 80 contacts)
+from tests.test_validation import model_logs  # noqa: F401 (fixture)
+
+DROP = np.array([0.1, 0.4, 0.3, 0.05, 0.15])
+
+
+def test_the_prior_is_the_k_most_probable_other_poses_in_proportion():
+    prior = landing_prior(DROP, start=1, poses=3)
+    # Pose 1 is the start; of the others 2 (0.3), 4 (0.15) and 0 (0.1) are the most probable.
+    assert prior == pytest.approx([0.1 / 0.55, 0.0, 0.3 / 0.55, 0.0, 0.15 / 0.55])
+    assert landing_prior(DROP, start=2, poses=1) == pytest.approx([0, 1, 0, 0, 0])
+    assert landing_prior(DROP, start=0, poses=10) == pytest.approx(np.append(0, DROP[1:] / DROP[1:].sum()))
+    # Equal probabilities: the lower index first, whatever the order they come in.
+    assert landing_prior(np.array([0.2, 0.2, 0.2, 0.4]), start=3, poses=2) == pytest.approx([0.5, 0.5, 0, 0])
+    # No other pose (or none with a drop probability): nowhere to spread to.
+    assert not landing_prior(np.array([1.0]), start=0, poses=3).any()
+    assert not landing_prior(np.array([0.0, 1.0]), start=1, poses=3).any()
+
+
+def test_spreading_moves_landing_mass_only():
+    rows = np.array([
+        [0.2, 0.8, 0.0, 0.0, 0.0],   # topples onto 0 with 0.2
+        [0.0, 1.0, 0.0, 0.0, 0.0],   # never topples
+        [np.nan] * 5,                # not ok
+        [0.5, 0.3, 0.0, 0.2, 0.0],   # topples 0.7, onto 0 and 3
+    ])
+    prior = landing_prior(DROP, 1, 3)
+    spread = spread_landings(rows, 1, prior, 0.25)
+    assert spread[:, 1] == pytest.approx(rows[:, 1], nan_ok=True), "P(topple) is untouched"
+    assert spread[[0, 1, 3]].sum(axis=1) == pytest.approx(1.0)
+    assert np.array_equal(spread[1], rows[1]) and np.isnan(spread[2]).all()
+    # (C.17.2): three quarters of the row's own landing plus a quarter of its P(topple) over the prior.
+    expected = 0.75 * np.where(np.arange(5) == 1, 0.0, rows[3]) + 0.25 * 0.7 * prior
+    expected[1] = 0.3
+    assert spread[3] == pytest.approx(expected)
+    assert np.array_equal(spread_landings(rows, 1, prior, 0.0), rows, equal_nan=True)
+    assert np.array_equal(spread_landings(rows, 1, np.zeros(5), 0.25), rows, equal_nan=True)
+    assert spread_landings(rows, 1, prior, 1.0)[0] == pytest.approx(np.where(np.arange(5) == 1, 0.8, 0.2 * prior))
+
+
+def test_the_engine_spreads_the_corrected_variant_s_landing_after_every_map(pose_and_candidates):  # noqa: F811
+    obj, pose_set, pose, actions = pose_and_candidates
+    base = replace(Config().topple, n_trials=40)
+    drop = pose_set.probabilities
+
+    def table(t, **kw):
+        return evaluate_pose(obj, pose, len(pose_set.poses), actions, t, stream(3, obj.name, pose.index, "trials"), **kw)
+
+    plain = table(base, drop_probabilities=drop)
+    spread = table(replace(base, landing_spread=0.25, landing_spread_poses=2), drop_probabilities=drop)
+    toppling = plain.p_topple > 0
+    assert toppling.sum() >= 5 and len(pose_set.poses) >= 3, "the test needs pushes that topple and poses to spread to"
+    assert np.array_equal(spread.p_topple, plain.p_topple, equal_nan=True) and np.array_equal(spread.outcomes, plain.outcomes)
+    expected = spread_landings(plain.next_pose, pose.index, landing_prior(drop, pose.index, 2), 0.25)
+    assert np.allclose(spread.next_pose, expected, equal_nan=True)
+    assert not np.array_equal(spread.next_pose[toppling], plain.next_pose[toppling])
+    with pytest.raises(ValueError, match="needs the pose set's drop probabilities"):
+        table(replace(base, landing_spread=0.25))
+    # The thesis's variants apply none, whatever the field says; without the field's value nothing is asked for.
+    thesis = replace(Config.from_toml(PRESETS / "thesis.toml").topple, n_trials=40, landing_spread=0.25)
+    assert thesis.applied_landing_spread == 0.0
+    assert np.array_equal(table(thesis).next_pose, table(replace(thesis, landing_spread=0.0)).next_pose, equal_nan=True)
+    assert np.array_equal(table(base).next_pose, plain.next_pose, equal_nan=True)
+
+
+def test_the_setting_is_checked_kept_in_manifests_and_left_out_of_what_maps_are_fitted_on():
+    configured = Config().with_overrides({"topple.landing_spread": 0.25, "topple.landing_spread_poses": 3})
+    assert Config.from_dict(configured.to_dict()) == configured
+    assert configured.topple.without_recalibration().landing_spread == 0.0
+    assert configured.topple.counted().landing_spread == 0.0
+    for key, value in (("topple.landing_spread", 1.5), ("topple.landing_spread", -0.1), ("topple.landing_spread_poses", 0)):
+        with pytest.raises(ValueError, match=key.split(".")[1]):
+            Config().with_overrides({key: value})
+
+
+def test_the_scorer_spreads_the_landing_it_predicts(model_logs):  # noqa: F811
+    from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
+
+    log = read_log([model_logs / "reported.parquet"])
+    config = Config().with_overrides({"seed": 2, "contacts.n_contacts": CANDIDATES_PER_POSE})
+    scorer = Scorer(log, seed=2, contacts=config.contacts)
+    plain = scorer.predict(config.topple)
+    spread = scorer.predict(replace(config.topple, landing_spread=0.3, landing_spread_poses=2))
+    moved = 0
+    for group, (rows, p), (spread_rows, spread_p) in zip(scorer.groups, plain, spread):
+        prior = landing_prior(log.objects[group.object_id].poses.probabilities, group.pose.index, 2)
+        expected = spread_landings(rows[:, :-1], group.pose.index, prior, 0.3)
+        assert np.allclose(spread_rows[:, :-1], expected) and np.array_equal(spread_p, p)
+        moved += int(np.any(~np.isclose(spread_rows, rows)))
+    assert moved >= 2, "the test needs groups whose landing moves"
