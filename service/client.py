@@ -11,8 +11,9 @@
 
 Every answer is the ``schema.api`` model of the route (``PlanResponse``, ``Health``, ...).
 Errors are exceptions carrying the service's ``detail``: ``NotFound`` (404),
-``NoStablePose`` and ``OffTable`` (409, by ``reason``), ``InvalidRequest`` (422), and
-``ServiceError`` for anything else.  Every request is read-only, hence safe to repeat:
+``NoStablePose`` and ``OffTable`` (409, by ``reason``), ``InvalidRequest`` (422, also a
+pose with NaN or infinite entries, refused before sending), ``Unreachable`` (no answer
+after every retry), and ``ServiceError`` (their base) for anything else.  Every request is read-only, hence safe to repeat:
 connection errors, timeouts and 503s are retried ``retries`` times with exponential
 backoff; a 4xx never is.  Needs httpx (``pip install toppledb[service]`` brings it with
 the dev extra; the client imports nothing of the server).
@@ -77,6 +78,11 @@ class InvalidRequest(ServiceError):
 
 class Unauthorized(ServiceError):
     """401: missing or wrong bearer token."""
+
+
+class Unreachable(ServiceError):
+    """No answer after every retry (refused, reset, timed out): ``status`` 0, the transport's
+    error as ``__cause__``."""
 
 
 def _error(response: httpx.Response) -> ServiceError:
@@ -172,9 +178,10 @@ class Client:
             last = attempt == self.retries
             try:
                 response = self.http.request(method, path, **kwargs)
-            except httpx.TransportError:  # connect/read/write errors and timeouts
+            except httpx.TransportError as err:  # connect/read/write errors and timeouts
                 if last:
-                    raise
+                    raise Unreachable(0, f"{method} {path}: no answer after {attempt + 1} tries "
+                                         f"({type(err).__name__}: {err})") from err
             else:
                 if response.status_code < 300:
                     return model.model_validate_json(response.content)
@@ -196,7 +203,11 @@ def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None 
     if failed_actions:
         item["failed_actions"] = [operator.index(a) for a in failed_actions]  # 1.7 or "1" raise, as the service would
     if pose is not None:
-        item["pose"] = np.asarray(pose, dtype=float).tolist()
+        matrix = np.asarray(pose, dtype=float)
+        if not np.isfinite(matrix).all():
+            # JSON has no NaN or infinity: refused here as the service would refuse it (422).
+            raise InvalidRequest(422, "pose: every entry must be a finite number")
+        item["pose"] = matrix.tolist()
     else:
         item["ros_pose"] = ros_pose.model_dump() if isinstance(ros_pose, RosPose) else ros_pose
     return item

@@ -24,7 +24,9 @@ from .metrics import Metrics
 OPEN_PATHS = frozenset({"/health"})
 """Paths answered without the bearer token (liveness probes carry no secrets)."""
 
-BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
+BODY_METHODS = frozenset({"POST"})
+"""Methods whose body the guard checks and reads: the API's only one.  A PUT or PATCH goes on
+unread to the router, which answers 405 (not a 415 about a body no route would take)."""
 
 SINGLE_BODY_BYTES = 64 * 1024
 """Largest body of a request that is not a batch (a /plan body is under 2 kB): such bodies are

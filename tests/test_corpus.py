@@ -138,6 +138,7 @@ def test_list_file_resolves_paths_and_defaults(tmp_path):
         ("path,mass\na.obj,-1\n", "mass must be positive"),
         ("path,colour\na.obj,red\n", "unknown column"),
         ("object_id,path\nsame,a.obj\nsame,b.obj\n", "duplicate object ids"),
+        ("object_id,path\nPart,a.obj\npart,b.obj\n", "duplicate object ids \\['Part', 'part'\\] \\(ids name files"),
         ("object_id,path\nbad/id,a.obj\n", "bad object id"),
         ("path\n", "no objects"),
         ("path,scale,mass\na.obj,0.015,0.1,extra\n", "row 2: 4 fields, more than the header's 3"),
@@ -163,6 +164,11 @@ def test_directory_corpus(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(CorpusError, match="no OBJ, STL or PLY"):
         scan_directory(tmp_path / "empty", default_mass=0.4)
+    # Names that differ only in case name one file on macOS or Windows: the second gets -2.
+    (tmp_path / "cased").mkdir()
+    (tmp_path / "cased" / "A.obj").write_text(CUBE_OBJ)
+    (tmp_path / "cased" / "a.STL").write_text("solid x\nendsolid x\n")
+    assert sorted(s.object_id.lower() for s in scan_directory(tmp_path / "cased", default_mass=0.4).specs) == ["a", "a-2"]
 
 
 def test_unknown_corpus_argument():

@@ -423,6 +423,7 @@ def test_broken_mesh_is_a_failure_and_strict_makes_it_fatal(tmp_path, capsys):
     assert build(strict, tmp_path / "strict", "--strict", "--workers", "1") == 1
     err = capsys.readouterr().err
     assert err.startswith("error: --strict: flat: ") and err.count("\n") == 1
+    assert not (tmp_path / "strict").exists(), "a fresh --out the failed run made is not left behind empty"
 
 
 def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_path, capsys):

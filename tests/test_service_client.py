@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 from schema.api import PlanResponse
 from schema.vocabulary import NO_OP
 from service import create_app
-from service.client import Client, InvalidRequest, NoStablePose, NotFound, OffTable, ServiceError, Unauthorized, plan_item
+from service.client import Client, InvalidRequest, NoStablePose, NotFound, OffTable, ServiceError, Unauthorized, Unreachable, plan_item
 from service.settings import Settings
 from tests.test_service import client, dataset, planar_transform, stored_transform, tables, tilted  # noqa: F401
 
@@ -93,6 +93,15 @@ def test_retries_transport_errors_and_503_but_never_4xx(dataset):
 
         flaky = Client(http=httpx.Client(transport=httpx.MockTransport(handler), base_url="http://x"), retries=2, backoff=0.0)
         assert flaky.health().status == "ok" and calls == ["connect", "503", "pass"]
+        refused = Client(http=httpx.Client(transport=httpx.MockTransport(
+            lambda r: (_ for _ in ()).throw(httpx.ConnectError("refused", request=r))), base_url="http://x"),
+            retries=1, backoff=0.0)
+        with pytest.raises(Unreachable, match="GET /health: no answer after 2 tries") as gone:
+            refused.health()
+        assert isinstance(gone.value, ServiceError) and gone.value.status == 0
+        assert isinstance(gone.value.__cause__, httpx.ConnectError)
+        with pytest.raises(InvalidRequest, match="finite"):
+            refused.plan("x", pose=np.full((4, 4), np.nan))
         with pytest.raises(NotFound):
             flaky.health()
         assert calls[3:] == ["404"], "a 404 is an answer, not a failure to retry"

@@ -220,6 +220,14 @@ def test_wrong_content_type_is_415_and_malformed_json_422(client, path):
     assert response.status_code == 422 and response.json()["detail"] == "body: Field required"
 
 
+@pytest.mark.parametrize("method", ["PUT", "PATCH", "DELETE"])
+def test_a_method_no_route_takes_is_405_with_or_without_a_body(client, method):
+    for path in ("/plan", "/health", "/objects"):
+        for headers, body in (({}, None), (JSON, b"{}"), ({"content-type": "text/plain"}, b"x")):
+            response = client.request(method, path, content=body, headers=headers)
+            assert response.status_code == 405, (method, path, headers, response.text)
+
+
 def test_single_requests_have_a_small_body_limit_batches_a_large_one(client):
     from service.guard import SINGLE_BODY_BYTES
 

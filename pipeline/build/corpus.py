@@ -273,12 +273,15 @@ def object_id_from_name(name: str) -> str:
 
 
 def _unique(ids: list[str]) -> list[str]:
-    """Make derived ids unique deterministically: the second ``x`` becomes ``x-2``."""
+    """Make derived ids unique deterministically: the second ``x`` (or ``X``) becomes ``x-2``
+    (``X-2``).  Case is ignored, since an id names files (``arrays/<id>.h5``, a partition
+    directory) that a file system ignoring case (macOS, Windows) would store as one."""
     seen: dict[str, int] = {}
     out = []
     for object_id in ids:
-        seen[object_id] = seen.get(object_id, 0) + 1
-        out.append(object_id if seen[object_id] == 1 else f"{object_id}-{seen[object_id]}")
+        key = object_id.lower()
+        seen[key] = seen.get(key, 0) + 1
+        out.append(object_id if seen[key] == 1 else f"{object_id}-{seen[key]}")
     return out
 
 
@@ -289,9 +292,10 @@ def _check_ids(ids: list[str], where: str) -> None:
             check_object_id(object_id)
         except ValueError as err:
             raise CorpusError(f"{where}: {err}") from None
-    duplicates = sorted({i for i in ids if ids.count(i) > 1})
+    lowered = [i.lower() for i in ids]
+    duplicates = sorted({i for i, low in zip(ids, lowered) if lowered.count(low) > 1})
     if duplicates:
-        raise CorpusError(f"{where}: duplicate object ids {duplicates[:5]}")
+        raise CorpusError(f"{where}: duplicate object ids {duplicates[:5]} (ids name files, so case does not tell them apart)")
 
 
 def _check_files(specs: list[ObjectSpec], expected_sha: dict[str, str]) -> dict[str, str]:

@@ -201,89 +201,96 @@ def build_dataset(
     _make_directory(out, "output directory")
     staging = staging_dir(out)
 
-    with _exclusive(out):
-        if finish_interrupted_commit(out):
-            log(f"finished the commit of an interrupted run in {out}")
-        inputs = {spec.object_id: shards.shard_inputs(spec, config) for spec in corpus.specs}
-        fingerprints = {object_id: shards.fingerprint(i) for object_id, i in inputs.items()}
-        if force:
-            shutil.rmtree(staging, ignore_errors=True)
-        else:
-            _refuse_foreign_shards(out, inputs)  # before computing anything: a refused run changes nothing
-        _discard_stale_staging(staging, fingerprints)
-        shards.remove_temp_files(out)  # left by builds of earlier versions, never part of a dataset
-
-        records: dict[str, dict] = {}
-        staged: dict[str, dict] = {}
-        failures: dict[str, Failure] = {}
-        todo: list[ObjectSpec] = []
-        for spec in corpus.specs:
-            if spec.object_id in corpus.problems:
-                failures[spec.object_id] = Failure(spec.object_id, corpus.problems[spec.object_id], "corpus")
-                continue
-            key = fingerprints[spec.object_id]
-            record = None if force else shards.is_complete(out, spec.object_id, key)
-            if record is not None:
-                records[spec.object_id] = record
-            elif (record := shards.is_complete(staging, spec.object_id, key)) is not None:
-                staged[spec.object_id] = record
+    try:
+        with _exclusive(out):
+            if finish_interrupted_commit(out):
+                log(f"finished the commit of an interrupted run in {out}")
+            inputs = {spec.object_id: shards.shard_inputs(spec, config) for spec in corpus.specs}
+            fingerprints = {object_id: shards.fingerprint(i) for object_id, i in inputs.items()}
+            if force:
+                shutil.rmtree(staging, ignore_errors=True)
             else:
-                todo.append(spec)
-        reused = len(records) + len(staged)
-        if strict and failures:
-            first = next(iter(failures.values()))
-            raise BuildError(f"--strict: {_named(first)}")
-        previous = previous_failures or {}
-        failures.update({spec.object_id: previous[spec.object_id] for spec in todo if spec.object_id in previous})
-        todo = [spec for spec in todo if spec.object_id not in previous]
+                _refuse_foreign_shards(out, inputs)  # before computing anything: a refused run changes nothing
+            _discard_stale_staging(staging, fingerprints)
+            shards.remove_temp_files(out)  # left by builds of earlier versions, never part of a dataset
 
-        current = _current_manifest(out)
-        if not todo and not staged and not force and _up_to_date(out, current, config, corpus, records, failures):
-            log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
-            return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
-        if reused:
-            log(f"resuming: {reused} of {len(corpus.specs)} objects already complete in {out}")
+            records: dict[str, dict] = {}
+            staged: dict[str, dict] = {}
+            failures: dict[str, Failure] = {}
+            todo: list[ObjectSpec] = []
+            for spec in corpus.specs:
+                if spec.object_id in corpus.problems:
+                    failures[spec.object_id] = Failure(spec.object_id, corpus.problems[spec.object_id], "corpus")
+                    continue
+                key = fingerprints[spec.object_id]
+                record = None if force else shards.is_complete(out, spec.object_id, key)
+                if record is not None:
+                    records[spec.object_id] = record
+                elif (record := shards.is_complete(staging, spec.object_id, key)) is not None:
+                    staged[spec.object_id] = record
+                else:
+                    todo.append(spec)
+            reused = len(records) + len(staged)
+            if strict and failures:
+                first = next(iter(failures.values()))
+                raise BuildError(f"--strict: {_named(first)}")
+            previous = previous_failures or {}
+            failures.update({spec.object_id: previous[spec.object_id] for spec in todo if spec.object_id in previous})
+            todo = [spec for spec in todo if spec.object_id not in previous]
 
-        _make_directory(staging, "staging directory")
-        repairs: dict[str, list[str]] = {}
-        if todo:
-            staged.update(
-                _compute(todo, config, process, staging, inputs, failures, workers, scheduler, strict, progress, reused, repairs)
-            )
+            current = _current_manifest(out)
+            if not todo and not staged and not force and _up_to_date(out, current, config, corpus, records, failures):
+                log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
+                return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
+            if reused:
+                log(f"resuming: {reused} of {len(corpus.specs)} objects already complete in {out}")
 
-        order = [spec.object_id for spec in corpus.specs if spec.object_id in records or spec.object_id in staged]
-        sources = {object_id: (staging if object_id in staged else out) for object_id in order}
-        consolidated = manifest.consolidate(staging, order, sources)
-        consolidated.update(write_served(staging, order, sources))
-        wall = time.perf_counter() - started
-        paths = {spec.object_id: spec.path for spec in corpus.specs}
-        failure_list = [
-            {
-                "object_id": f.object_id,
-                "path": paths[f.object_id],
-                "reason": f.reason,
-                "kind": f.kind,
-                **({"detail": f.detail} if f.detail else {}),
+            _make_directory(staging, "staging directory")
+            repairs: dict[str, list[str]] = {}
+            if todo:
+                staged.update(
+                    _compute(todo, config, process, staging, inputs, failures, workers, scheduler, strict, progress, reused, repairs)
+                )
+
+            order = [spec.object_id for spec in corpus.specs if spec.object_id in records or spec.object_id in staged]
+            sources = {object_id: (staging if object_id in staged else out) for object_id in order}
+            consolidated = manifest.consolidate(staging, order, sources)
+            consolidated.update(write_served(staging, order, sources))
+            wall = time.perf_counter() - started
+            paths = {spec.object_id: spec.path for spec in corpus.specs}
+            failure_list = [
+                {
+                    "object_id": f.object_id,
+                    "path": paths[f.object_id],
+                    "reason": f.reason,
+                    "kind": f.kind,
+                    **({"detail": f.detail} if f.detail else {}),
+                }
+                for f in (failures[s.object_id] for s in corpus.specs if s.object_id in failures)
+            ]
+            run = {
+                "workers": workers or (fanout.default_workers() if scheduler is None else None),
+                "backend": "dask" if scheduler else "loky",
+                "scheduler": scheduler,
+                "computed": len(todo),
+                "reused": reused,
+                "wall_s": round(wall, 3),
             }
-            for f in (failures[s.object_id] for s in corpus.specs if s.object_id in failures)
-        ]
-        run = {
-            "workers": workers or (fanout.default_workers() if scheduler is None else None),
-            "backend": "dask" if scheduler else "loky",
-            "scheduler": scheduler,
-            "computed": len(todo),
-            "reused": reused,
-            "wall_s": round(wall, 3),
-        }
-        written = manifest.make_manifest(config, corpus, {**records, **staged}, consolidated, failure_list, run)
-        committed = bool(order) or not failures
-        if committed:
-            manifest.write_manifest(staging, written)
-            commit(out, staging, staged, keep=set(order))
-        else:
-            # Every object failed (a forgotten --units, a wrong corpus): a dataset of nothing would
-            # replace whatever ``out`` holds, so the run commits nothing and says so.
-            shutil.rmtree(staging, ignore_errors=True)
+            written = manifest.make_manifest(config, corpus, {**records, **staged}, consolidated, failure_list, run)
+            committed = bool(order) or not failures
+            if committed:
+                manifest.write_manifest(staging, written)
+                commit(out, staging, staged, keep=set(order))
+            else:
+                # Every object failed (a forgotten --units, a wrong corpus): a dataset of nothing would
+                # replace whatever ``out`` holds, so the run commits nothing and says so.
+                shutil.rmtree(staging, ignore_errors=True)
+    except BaseException:
+        # --strict, an unreachable scheduler, Ctrl-C: a fresh --out this run made is not left behind
+        # empty (its staged shards stay beside it, for the same command to resume from).
+        if created:
+            _remove_if_only_lock(out)
+        raise
     if not committed and created:
         _remove_if_only_lock(out)
     order_repairs = {s.object_id: repairs[s.object_id] for s in corpus.specs if s.object_id in repairs}
