@@ -136,6 +136,7 @@ def test_list_file_resolves_paths_and_defaults(tmp_path):
         ("file,scale\na.obj,1\n", "'path' column"),
         ("path,scale\na.obj,big\n", "row 2: scale 'big' is not a number"),
         ("path,mass\na.obj,-1\n", "mass must be positive"),
+        ("path,mass\na.obj,0\n", "mass must be positive"),
         ("path,colour\na.obj,red\n", "unknown column"),
         ("object_id,path\nsame,a.obj\nsame,b.obj\n", "duplicate object ids"),
         ("object_id,path\nPart,a.obj\npart,b.obj\n", "duplicate object ids \\['Part', 'part'\\] \\(ids name files"),

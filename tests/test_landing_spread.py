@@ -27,6 +27,11 @@ def test_the_prior_is_the_k_most_probable_other_poses_in_proportion():
     assert landing_prior(DROP, start=0, poses=10) == pytest.approx(np.append(0, DROP[1:] / DROP[1:].sum()))
     # Equal probabilities: the lower index first, whatever the order they come in.
     assert landing_prior(np.array([0.2, 0.2, 0.2, 0.4]), start=3, poses=2) == pytest.approx([0.5, 0.5, 0, 0])
+    # Many poses of three probabilities: the k kept are the most probable, the lower indices among equals.
+    drop = np.random.default_rng(0).choice([0.1, 0.2, 0.3], size=40)
+    top = np.flatnonzero(drop == 0.3)
+    top = top[top != 0][:5]
+    assert np.flatnonzero(landing_prior(drop, start=0, poses=5)).tolist() == top.tolist()
     # No other pose (or none with a drop probability): nowhere to spread to.
     assert not landing_prior(np.array([1.0]), start=0, poses=3).any()
     assert not landing_prior(np.array([0.0, 1.0]), start=1, poses=3).any()
