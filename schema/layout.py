@@ -42,6 +42,13 @@ def check_object_id(object_id: str) -> str:
     return object_id
 
 
+def object_id_key(object_id: str) -> str:
+    """What tells two object ids apart: their lower case.  An id names files
+    (``arrays/<id>.h5``, a partition directory), which a file system that ignores case (macOS,
+    Windows) would store as one for ``Part`` and ``part``."""
+    return object_id.lower()
+
+
 def partition_file(table: str, object_id: str) -> str:
     """The Parquet file of one object's rows of a partitioned table."""
     return f"{table}/object_id={object_id}/part-0.parquet"

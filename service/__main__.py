@@ -25,7 +25,7 @@ def _ranged(kind: type, low: float, high: float | None = None, low_open: bool = 
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expects {kind.__name__}, got {text!r}") from None
-        if math.isnan(value) or (value <= low if low_open else value < low) or (high is not None and value > high):
+        if not math.isfinite(value) or (value <= low if low_open else value < low) or (high is not None and value > high):
             bound = f"{'>' if low_open else '>='} {low:g}" + (f" and <= {high:g}" if high is not None else "")
             raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
         return value
@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--finger-force-limit", type=float, default=None, help="N, overrides the manifest's")
     parser.add_argument("--frame-id", default=None, help="the table frame a ROS pose must be in (default world)")
     parser.add_argument("--watch-seconds", type=_ranged(float, 0), default=None, help="s between checks for a rebuilt dataset; 0: SIGHUP only")
-    parser.add_argument("--limit-concurrency", type=_ranged(int, 1), default=DEFAULT_LIMIT_CONCURRENCY, help="503 beyond this many connections")
+    parser.add_argument("--limit-concurrency", type=_ranged(int, 2), default=DEFAULT_LIMIT_CONCURRENCY, help="503 beyond this many connections (at least 2: uvicorn counts the one being served)")
     parser.add_argument("--timeout-keep-alive", type=_ranged(int, 0), default=DEFAULT_KEEP_ALIVE, help="s an idle connection stays open")
     parser.add_argument("--request-timeout", type=_ranged(float, 0, low_open=True), default=DEFAULT_REQUEST_TIMEOUT, help="s to deliver a whole request")
     parser.add_argument("--access-log", action="store_true", help="log a line per request (off: /metrics counts them)")

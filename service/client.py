@@ -199,7 +199,9 @@ def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None 
         raise ValueError("give exactly one of pose (4x4) and ros_pose")
     item: dict = {"object_id": object_id, "policy": policy}
     if pushes_left is not None:
-        item["pushes_left"] = int(pushes_left)
+        if isinstance(pushes_left, (bool, np.bool_)):
+            raise TypeError(f"pushes_left must be an integer, got {pushes_left!r}")
+        item["pushes_left"] = operator.index(pushes_left)  # 2.7 or "3" raise, as the service would
     if failed_actions:
         item["failed_actions"] = [operator.index(a) for a in failed_actions]  # 1.7 or "1" raise, as the service would
     if pose is not None:

@@ -24,9 +24,11 @@ from .metrics import Metrics
 OPEN_PATHS = frozenset({"/health"})
 """Paths answered without the bearer token (liveness probes carry no secrets)."""
 
-BODY_METHODS = frozenset({"POST"})
-"""Methods whose body the guard checks and reads: the API's only one.  A PUT or PATCH goes on
-unread to the router, which answers 405 (not a 415 about a body no route would take)."""
+BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
+"""Methods that carry a body: a declared length over the limit is 413 whatever the method."""
+READ_METHODS = frozenset({"POST"})
+"""Methods whose body the guard checks and reads: the API's only one.  A PUT or PATCH within the
+limit goes on unread to the router, which answers 405 (not a 415 about a body no route takes)."""
 
 SINGLE_BODY_BYTES = 64 * 1024
 """Largest body of a request that is not a batch (a /plan body is under 2 kB): such bodies are
@@ -124,6 +126,9 @@ class Guard:
             # connection: close, so the server does not go on reading (and discarding) the rest.
             await self._reply(send, 413, f"request body of {length.decode('latin-1')[:20]} bytes; at most {limit}",
                               [(b"connection", b"close")])
+            return
+        if scope["method"] not in READ_METHODS:
+            await self.app(scope, receive, send)
             return
         if not is_json(headers.get(b"content-type", b"")):
             given = headers.get(b"content-type", b"").decode("latin-1")[:60] or "none"

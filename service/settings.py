@@ -15,6 +15,7 @@ as ``python -m service``:
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -71,5 +72,7 @@ class Settings:
             raise ValueError(f"height_tolerance {self.height_tolerance} must be >= 0 m")
         if self.finger_force_limit is not None and not self.finger_force_limit > 0:
             raise ValueError(f"finger_force_limit {self.finger_force_limit} must be > 0 N")
+        if not (math.isfinite(self.watch_seconds) and self.watch_seconds >= 0):
+            raise ValueError(f"watch_seconds {self.watch_seconds} must be a finite number >= 0 s (0: SIGHUP only)")
         if self.token is not None and len(self.token) < 16:
             raise ValueError("the bearer token must have at least 16 characters")

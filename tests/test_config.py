@@ -3,6 +3,7 @@
 import math
 import re
 
+import numpy as np
 import pytest
 
 from pipeline.model.config import PRESETS, Config, ContactConfig, Range, field_range, parameter_table
@@ -70,6 +71,7 @@ def test_round_trip_and_overrides(tmp_path):
         ({"topple.mu_table_mean": True}, "expects float, got True"),
         ({"contacts.n_contacts": True}, "expects int, got True"),
         ({"mdp.believe_failures": 1}, "expects bool, got 1"),
+        ({"topple.landing_spread": np.True_}, "expects float, got"),
     ],
 )
 def test_bad_overrides_are_clear_errors(overrides, message):
@@ -113,3 +115,7 @@ def test_config_accepts_a_preset_name_and_lists_the_presets_when_it_is_neither()
     assert config.topple.variant == "robust" and config.topple.mu_finger_mean == 0.98
     with pytest.raises(UsageError, match=r"config file not found: nothing \(presets: thesis\)"):
         make_config(parser().parse_args(["dataset", "--config", "nothing"]))
+
+
+def test_numpy_booleans_set_switches_and_only_switches():
+    assert Config().with_overrides({"mdp.retry_failed": np.False_, "mdp.believe_failures": np.False_}).mdp.retry_failed is False

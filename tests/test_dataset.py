@@ -474,6 +474,8 @@ def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_
 
     assert main(["add", str(copy), str(mesh), "--id", "random_000"]) == 2, "an id already in the dataset"
     assert "already has an object 'random_000'; choose another --id" in capsys.readouterr().err
+    assert main(["add", str(copy), str(mesh), "--id", "Random_000"]) == 2, "the same files on macOS or Windows"
+    assert "already has an object 'random_000'; choose another --id (ids that differ only in case" in capsys.readouterr().err
     (tmp_path / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nf 1 2 3\n")
     assert main(["add", str(copy), str(tmp_path / "flat.obj"), "--no-progress"]) == 1
     err = capsys.readouterr().err

@@ -58,7 +58,9 @@ def test_spreading_moves_landing_mass_only():
     assert spread_landings(rows, 1, prior, 1.0)[0] == pytest.approx(np.where(np.arange(5) == 1, 0.8, 0.2 * prior))
 
 
-def test_the_engine_spreads_the_corrected_variant_s_landing_after_every_map(pose_and_candidates):  # noqa: F811
+def test_the_engine_spreads_the_corrected_variant_s_landing(pose_and_candidates):  # noqa: F811
+    """Every toppling row, those only the down map makes topple (borrowing their neighbours'
+    landing) included; the maps and the spread commute, so the order is not what is tested."""
     obj, pose_set, pose, actions = pose_and_candidates
     base = replace(Config().topple, n_trials=40)
     drop = pose_set.probabilities
@@ -74,6 +76,9 @@ def test_the_engine_spreads_the_corrected_variant_s_landing_after_every_map(pose
     expected = spread_landings(plain.next_pose, pose.index, landing_prior(drop, pose.index, 2), 0.25)
     assert np.allclose(spread.next_pose, expected, equal_nan=True)
     assert not np.array_equal(spread.next_pose[toppling], plain.next_pose[toppling])
+    unmapped = table(replace(base, down_map=()), drop_probabilities=drop)
+    born = (np.nan_to_num(unmapped.p_topple) == 0) & toppling
+    assert born.sum() >= 3 and np.all(np.abs(spread.next_pose[born] - plain.next_pose[born]).max(axis=1) > 0)
     with pytest.raises(ValueError, match="needs the pose set's drop probabilities"):
         table(replace(base, landing_spread=0.25))
     # The thesis's variants apply none, whatever the field says; without the field's value nothing is asked for.
@@ -108,3 +113,37 @@ def test_the_scorer_spreads_the_landing_it_predicts(model_logs):  # noqa: F811
         assert np.allclose(spread_rows[:, :-1], expected) and np.array_equal(spread_p, p)
         moved += int(np.any(~np.isclose(spread_rows, rows)))
     assert moved >= 2, "the test needs groups whose landing moves"
+
+
+def test_a_build_that_spreads_nothing_keeps_the_shard_identity_it_had_before_the_setting():
+    """Off (0, or a thesis variant that ignores it), the spread changes no shard, so it is no part of
+    a shard's identity: a dataset built before the setting existed can still be resumed and added to."""
+    from pipeline.build.corpus import ObjectSpec
+    from pipeline.build.shards import fingerprint, shard_inputs
+
+    spec = ObjectSpec("box", "/nowhere/box.stl", 1.0, 0.2, "list:x", "0" * 64)
+    default = shard_inputs(spec, Config())
+    assert not {"landing_spread", "landing_spread_poses"} & set(default["config"]["topple"])
+    assert shard_inputs(spec, Config().with_overrides({"topple.landing_spread_poses": 5})) == default
+    spreading = shard_inputs(spec, Config().with_overrides({"topple.landing_spread": 0.25}))
+    assert spreading["config"]["topple"]["landing_spread"] == 0.25 and fingerprint(spreading) != fingerprint(default)
+    thesis = Config.from_toml(PRESETS / "thesis.toml")
+    assert shard_inputs(spec, thesis.with_overrides({"topple.landing_spread": 0.25})) == shard_inputs(spec, thesis)
+
+
+def test_the_build_spreads_every_pose_s_landing(pose_and_candidates):  # noqa: F811
+    """evaluate_object (what the dataset job runs) hands the pose set's drop probabilities to the engine."""
+    from pipeline.model.evaluation import evaluate_object
+
+    obj = pose_and_candidates[0]
+    config = Config().with_overrides({"contacts.n_contacts": 40, "topple.n_trials": 20, "suction.n_candidates": 10,
+                                      "suction.n_samples": 3})
+    plain = evaluate_object(obj, config)
+    spread = evaluate_object(obj, config.with_overrides({"topple.landing_spread": 0.25}))
+    drop = np.array([p.probability for p in plain.poses])
+    moved = 0
+    for pose, a, b in zip(plain.poses, plain.topple, spread.topple):
+        expected = spread_landings(a.next_pose, pose.index, landing_prior(drop, pose.index, 3), 0.25)
+        assert np.allclose(b.next_pose, expected, equal_nan=True) and np.array_equal(a.p_topple, b.p_topple, equal_nan=True)
+        moved += int(not np.allclose(a.next_pose, b.next_pose, equal_nan=True))
+    assert moved >= 1

@@ -69,6 +69,10 @@ def test_errors_are_exceptions_by_status_and_reason(typed, tables):
         typed.plan(object_id, pose=np.diag([2.0, 1, 1, 1]))
     with pytest.raises(ValueError, match="exactly one"):
         plan_item(object_id)
+    for budget in (2.7, "3", True, np.True_):  # the service takes integers only; the client sends what it was given
+        with pytest.raises(TypeError):
+            plan_item(object_id, pose=np.eye(4), pushes_left=budget)
+    assert plan_item(object_id, pose=np.eye(4), pushes_left=np.int64(2))["pushes_left"] == 2
     with pytest.raises(Unauthorized):
         Client(http=typed.http, retries=0, token="another-token-of-length").objects()
 

@@ -226,6 +226,9 @@ def test_a_method_no_route_takes_is_405_with_or_without_a_body(client, method):
         for headers, body in (({}, None), (JSON, b"{}"), ({"content-type": "text/plain"}, b"x")):
             response = client.request(method, path, content=body, headers=headers)
             assert response.status_code == 405, (method, path, headers, response.text)
+    if method != "DELETE":  # a declared body over the limit is refused before anything reads it
+        huge = client.request(method, "/plan", headers={"content-length": str(10**10)}, content=b"")
+        assert huge.status_code == 413 and huge.headers["connection"] == "close"
 
 
 def test_single_requests_have_a_small_body_limit_batches_a_large_one(client):
@@ -270,6 +273,9 @@ def test_a_bearer_token_guards_everything_but_health(dataset):
         assert "401" in schema["paths"]["/plan"]["post"]["responses"] and "401" not in schema["paths"]["/health"]["get"]["responses"]
     with pytest.raises(ValueError, match="at least 16 characters"):
         Settings(token="short").check()
+    for bad in (-1.0, float("inf"), float("nan")):  # TOPPLEDB_WATCH_SECONDS as --watch-seconds
+        with pytest.raises(ValueError, match="watch_seconds"):
+            Settings(watch_seconds=bad).check()
 
 
 # --- operations: health, metrics, docs, examples -------------------------------------------

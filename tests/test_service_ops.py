@@ -142,8 +142,10 @@ def stop(process: subprocess.Popen) -> tuple[str, str]:
 
 @pytest.mark.parametrize("option, value", [
     ("--workers", "0"), ("--workers", "-2"), ("--port", "70000"), ("--port", "0"), ("--limit-concurrency", "0"),
-    ("--request-timeout", "0"), ("--request-timeout", "nan"), ("--timeout-keep-alive", "-1"), ("--watch-seconds", "-1"),
-    ("--workers", "two"),
+    # uvicorn counts the connection it serves: a limit of 1 answers every request 503.
+    ("--limit-concurrency", "1"),
+    ("--request-timeout", "0"), ("--request-timeout", "nan"), ("--request-timeout", "inf"), ("--timeout-keep-alive", "-1"),
+    ("--watch-seconds", "-1"), ("--watch-seconds", "inf"), ("--workers", "two"),
 ])
 def test_options_that_would_start_a_service_that_cannot_serve_are_refused(option, value, capsys):
     """Each of these used to start a service that exits at once, listens elsewhere, refuses or
@@ -152,7 +154,7 @@ def test_options_that_would_start_a_service_that_cannot_serve_are_refused(option
         build_parser().parse_args([option, value])
     assert refused.value.code == 2
     assert f"argument {option}: " in capsys.readouterr().err
-    sane = {"--workers": "2", "--port": "65535", "--limit-concurrency": "1", "--request-timeout": "0.5",
+    sane = {"--workers": "2", "--port": "65535", "--limit-concurrency": "2", "--request-timeout": "0.5",
             "--timeout-keep-alive": "0", "--watch-seconds": "0"}[option]
     assert build_parser().parse_args([option, sane]) is not None
 

@@ -298,6 +298,29 @@ def test_two_logs_that_use_the_same_push_id_keep_each_push_and_its_repeats(box_f
     assert [p.topple_rate for p in log.pushes] == pytest.approx([2 / 3, 0.0])
     with pytest.raises(LogError, match="named twice"):
         read_log([tmp_path / "a", tmp_path / "a" / "box.parquet"], Config())
+    # A log that is part of another (the same rows in a second file) adds nothing and says so.
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "box.parquet").write_bytes((tmp_path / "a" / "box.parquet").read_bytes())
+    both = read_log([tmp_path / "a", tmp_path / "c"], Config())
+    assert [(p.log, len(p.outcomes)) for p in both.pushes] == [(0, 3)]
+    assert both.rejected == {"the same row (push, repeat, start, point, direction, final) as in an earlier log": 3}
+
+
+def test_a_replay_of_two_logs_is_matched_log_by_log(box_file, box_poses, tmp_path):
+    """The same push id in two logs is two pushes; their replay must name the logs in the same order."""
+    poses, standing, lying, _ = box_poses
+    stand, lie = poses.poses[standing].transform, poses.poses[lying].transform
+    high = _object_frame(poses.poses[standing], *HIGH_PUSH)
+    low = _object_frame(poses.poses[standing], np.array([BOX[0] / 2, 0.0, 0.01]), HIGH_PUSH[1])
+    for name, push, finals in (("a", high, [lie, lie]), ("b", low, [stand, stand]), ("ra", high, [lie, stand]),
+                               ("rb", low, [stand, stand])):
+        (tmp_path / name).mkdir()
+        pq.write_table(_rows(box_file, [(0, stand, *push, finals)]), tmp_path / name / "box.parquet")
+    scorer = Scorer(read_log([tmp_path / "a", tmp_path / "b"], Config()))
+    replayed = scorer.replay(read_log([tmp_path / "ra", tmp_path / "rb"], Config()))
+    assert replayed.p_topple == pytest.approx([0.5, 0.0]), "each push predicted by its own replay"
+    with pytest.raises(LogError, match="is another push in the replay"):
+        scorer.replay(read_log([tmp_path / "rb", tmp_path / "ra"], Config()))
 
 
 def test_rows_pushed_with_another_stroke_are_rejected_when_the_model_reads_the_stroke(box_file, box_poses, tmp_path):

@@ -35,7 +35,7 @@ import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from schema.layout import check_object_id
+from schema.layout import check_object_id, object_id_key
 
 from .atomic import file_sha256, write_text_atomic
 
@@ -274,12 +274,11 @@ def object_id_from_name(name: str) -> str:
 
 def _unique(ids: list[str]) -> list[str]:
     """Make derived ids unique deterministically: the second ``x`` (or ``X``) becomes ``x-2``
-    (``X-2``).  Case is ignored, since an id names files (``arrays/<id>.h5``, a partition
-    directory) that a file system ignoring case (macOS, Windows) would store as one."""
+    (``X-2``); case does not tell ids apart (``schema.layout.object_id_key``)."""
     seen: dict[str, int] = {}
     out = []
     for object_id in ids:
-        key = object_id.lower()
+        key = object_id_key(object_id)
         seen[key] = seen.get(key, 0) + 1
         out.append(object_id if seen[key] == 1 else f"{object_id}-{seen[key]}")
     return out
@@ -292,7 +291,7 @@ def _check_ids(ids: list[str], where: str) -> None:
             check_object_id(object_id)
         except ValueError as err:
             raise CorpusError(f"{where}: {err}") from None
-    lowered = [i.lower() for i in ids]
+    lowered = [object_id_key(i) for i in ids]
     duplicates = sorted({i for i, low in zip(ids, lowered) if lowered.count(low) > 1})
     if duplicates:
         raise CorpusError(f"{where}: duplicate object ids {duplicates[:5]} (ids name files, so case does not tell them apart)")

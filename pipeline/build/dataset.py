@@ -40,14 +40,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from schema import layout, served, tables
+from schema.layout import object_id_key
 from schema.manifest import Manifest, ManifestError, read_manifest
 
+from ..model.config import Config
+from ..model.outcomes import ObjectResult
 from . import fanout, manifest, rows, shards
 from .atomic import fsync_directory, write_text_atomic
-from .served import write_served
-from ..model.config import Config
 from .corpus import Corpus, ObjectSpec
-from ..model.outcomes import ObjectResult
+from .served import write_served
 
 Process = Callable[[ObjectSpec, Config], ObjectResult]
 
@@ -201,8 +202,8 @@ def build_dataset(
     _make_directory(out, "output directory")
     staging = staging_dir(out)
 
-    try:
-        with _exclusive(out):
+    with _exclusive(out):
+        try:
             if finish_interrupted_commit(out):
                 log(f"finished the commit of an interrupted run in {out}")
             inputs = {spec.object_id: shards.shard_inputs(spec, config) for spec in corpus.specs}
@@ -285,22 +286,25 @@ def build_dataset(
                 # Every object failed (a forgotten --units, a wrong corpus): a dataset of nothing would
                 # replace whatever ``out`` holds, so the run commits nothing and says so.
                 shutil.rmtree(staging, ignore_errors=True)
-    except BaseException:
-        # --strict, an unreachable scheduler, Ctrl-C: a fresh --out this run made is not left behind
-        # empty (its staged shards stay beside it, for the same command to resume from).
-        if created:
+        except BaseException:
+            # --strict, an unreachable scheduler, Ctrl-C: a fresh --out this run made is not left behind
+            # empty (its staged shards stay beside it, for the same command to resume from).  Only
+            # while holding the lock: a run that never got it must not remove the one that has it.
+            if created:
+                _remove_if_only_lock(out)
+            raise
+        if not committed and created:
             _remove_if_only_lock(out)
-        raise
-    if not committed and created:
-        _remove_if_only_lock(out)
     order_repairs = {s.object_id: repairs[s.object_id] for s in corpus.specs if s.object_id in repairs}
     return Summary(written, computed=len(todo), reused=reused, wall_s=wall, repairs=order_repairs, committed=committed)
 
 
 def _remove_if_only_lock(out: Path) -> None:
-    """Remove ``out`` when this run made it and it holds nothing but its lock file."""
-    if {p.name for p in out.iterdir()} <= {".lock"}:
-        shutil.rmtree(out, ignore_errors=True)
+    """Remove ``out`` (which this run made, and whose lock it holds) when it holds nothing but
+    its lock file; a file another process wrote there since keeps it."""
+    with contextlib.suppress(OSError):
+        (out / ".lock").unlink()
+        out.rmdir()
 
 
 def _compute(
@@ -486,8 +490,10 @@ def add_object(
     except ValueError as err:
         raise BuildError(f"{root}: its parameters do not fit this code ({err}); rebuild it") from None
     specs = [ObjectSpec(**o.model_dump()) for o in current.corpus.objects]
-    if any(s.object_id == spec.object_id for s in specs):
-        raise OutputError(f"{root} already has an object {spec.object_id!r}; choose another --id")
+    same = [s.object_id for s in specs if object_id_key(s.object_id) == object_id_key(spec.object_id)]
+    if same:
+        raise OutputError(f"{root} already has an object {same[0]!r}; choose another --id"
+                          + (" (ids that differ only in case name the same files)" if same[0] != spec.object_id else ""))
     if specs and current.shards:
         # Code that added or changed parameters since the build cannot extend it consistently.
         first = next(iter(current.shards))

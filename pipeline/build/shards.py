@@ -48,9 +48,19 @@ iteration believes failures with a map (``mdp.believe_failures`` and k != 1, doc
 (12.13)); any other build's shards keep the identity they had before the two existed."""
 
 
+UNUSED_WHEN_OFF = {"topple": ("landing_spread", "landing_spread_poses")}
+"""Parameters of a correction that, switched off (``topple.applied_landing_spread`` 0, which the
+thesis's variants always are), change no shard: left out of a shard's identity then, so the
+shards of a dataset built before they existed keep theirs (docs/MODEL.md C.17)."""
+
+
 def serving_only(config: Config) -> dict[str, tuple[str, ...]]:
-    """``SERVING_ONLY`` for this configuration: a build that believes failures plans with both."""
-    return {} if config.mdp.plans_with_failures else SERVING_ONLY
+    """The parameters this configuration's shards do not depend on (section -> keys):
+    ``SERVING_ONLY`` unless the build plans with failures, and the landing spread's while it is off."""
+    unused = {} if config.mdp.plans_with_failures else dict(SERVING_ONLY)
+    if not config.topple.applied_landing_spread:
+        unused.update(UNUSED_WHEN_OFF)
+    return unused
 
 
 def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from . import fitted_map
 from .feature_map import SIDE_BAND, SIDE_Z, check_down_weights, check_side_band, check_side_weights, check_weights
 from .recalibration import check_knots
@@ -653,11 +655,13 @@ def _coerce(value: Any, default: Any, key: str) -> Any:
     kind = type(default)
     if kind is tuple:
         return _numbers(value, key)
-    if isinstance(value, bool) != (kind is bool) and not isinstance(value, str):
+    if isinstance(value, (bool, np.bool_)) != (kind is bool) and not isinstance(value, str):
         # bool is an int to Python: a TOML ``mass = true`` must not become 1.0, nor a 1 a switch.
         raise ValueError(f"config key {key!r} expects {kind.__name__}, got {value!r}")
     if isinstance(value, kind):
         return value
+    if kind is bool and isinstance(value, np.bool_):
+        return bool(value)
     try:
         if kind is bool and isinstance(value, str):
             if value.lower() in ("1", "true", "yes", "on"):

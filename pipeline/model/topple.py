@@ -762,8 +762,9 @@ def evaluate_pose(
         next_pose, p_topple = map_side_rows(next_pose, pose.index, actions, edges, config.applied_side_map,
                                             config.side_map_band)
     if spread:
-        # MODEL.md C.17: the landing, never P(topple), shared with the most stable other poses, last,
-        # so every map's landing is spread alike.
+        # MODEL.md C.17: the landing, never P(topple), shared with the most stable other poses.  Last,
+        # though the maps keep a row's landing in proportion or borrow its neighbours' (both commute
+        # with the spread, which is linear in the toppled mass).
         prior = landing_prior(drop_probabilities, pose.index, config.landing_spread_poses)
         next_pose = spread_landings(next_pose, pose.index, prior, spread)
     return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes)

@@ -7,7 +7,9 @@ transform to a stable pose (``schema.frames.match_pose``'s rule, vectorised) and
 the observed final transform into one (``pipeline.model.poses.settle``'s rule; a rest pose
 outside the pose set is its own bucket).  Repeats of one push (same object and ``push_id``)
 become one empirical next-pose distribution.  Push ids are unique within one log (one of
-``paths``), not across logs: the same id in two logs is two pushes (``Push.log``).
+``paths``: a log's directory, or a file), not across logs: the same id in two logs is two
+pushes (``Push.log``), unless they are the very same rows (a log that is part of another),
+which are read once.  A directory that holds several logs is read as one log.
 
 Nothing is dropped silently and nothing crashes: every row that cannot be used is
 counted under a one-line reason (``PushLog.rejected``), with the first few rows of
@@ -337,6 +339,18 @@ def read_log(
             usable[i] = False
         elif start_pose[i] is not None and start_pose[i] != start_index[i]:
             reject(i, "start_pose column disagrees with the pose start_transform matches")
+            usable[i] = False
+
+    # A row an earlier log already holds, the very same play (a log that is part of another, or a
+    # copy of one file in two logs), would count its push twice: it is rejected, and counted.
+    played: dict[tuple, int] = {}
+    repeat_of_row = table.column("repeat").to_numpy(zero_copy_only=False)
+    for i in np.flatnonzero(usable):
+        signature = (columns["object_id"][i], int(push_id[i]), int(repeat_of_row[i]),
+                     start[i].tobytes(), final[i].tobytes(), points[i].tobytes(), directions[i].tobytes())
+        first = played.setdefault(signature, int(log_of_row[i]))
+        if first != log_of_row[i]:
+            reject(i, "the same row (push, repeat, start, point, direction, final) as in an earlier log")
             usable[i] = False
 
     # Pushes: repeats of one (log, object, push_id) must describe the same push.  Two logs may
