@@ -36,6 +36,8 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
         data = json.loads(body)
     except (ValueError, UnicodeDecodeError) as err:
         raise BatchInvalid([{"type": "json_invalid", "loc": ("body", getattr(err, "pos", 0)), "msg": "JSON decode error"}]) from None
+    except RecursionError:  # thousands of nested brackets: malformed input, not a server error
+        raise BatchInvalid([{"type": "json_invalid", "loc": ("body",), "msg": "JSON decode error (nested too deeply)"}]) from None
     try:
         parsed = request_model.model_validate(data)
     except ValidationError as err:

@@ -23,12 +23,13 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
 
 
 FASTAPI_PARSE_ERROR = "There was an error parsing the body"
-"""FastAPI's 400 for a JSON body it cannot decode (not UTF-8); served as the 422 every other malformed JSON gets."""
+"""FastAPI's 400 for a JSON body it cannot decode (not UTF-8, or nested past Python's recursion limit);
+served as the 422 every other malformed JSON gets."""
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     if exc.status_code == 400 and exc.detail == FASTAPI_PARSE_ERROR:
-        return JSONResponse(validation_body([{"loc": ("body",), "msg": "JSON decode error (not UTF-8 text)", "type": "json_invalid"}]),
+        return JSONResponse(validation_body([{"loc": ("body",), "msg": "JSON decode error (not UTF-8 text, or nested too deeply)", "type": "json_invalid"}]),
                             status_code=422)
     return JSONResponse({"detail": str(exc.detail)}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
 

@@ -498,3 +498,19 @@ def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_
     expected = compute_shard(spec, Config.from_dict(manifest.parameters.model_dump()))
     stored = pq.read_table(copy / layout.partition_file("actions", "extra"))
     assert stored.equals(expected.rows["actions"])
+
+
+def test_a_damaged_completion_record_is_redone_not_blamed_on_other_inputs(reference, corpus, tmp_path, capsys):
+    """A record that reads as JSON but holds no fingerprint is a shard without a record: the same
+    command redoes it (the others reused) instead of asking for --force over 'other inputs'."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    (copy / layout.completion_record(OBJECTS[1])).write_text("{}")
+    assert build(corpus, copy, "--workers", "1") == 0, capsys.readouterr().err
+    manifest = read_manifest(copy)
+    assert (manifest.run["computed"], manifest.run["reused"]) == (1, len(OBJECTS) - 1)
+    assert verify_dataset(copy) == []
+    assert_same_dataset(reference, copy)
+    assert build(corpus, copy, "--workers", "1") == 0
+    out = capsys.readouterr().out  # up to date: the cpu line says whose time it is
+    assert "objects   3 (0 computed, 3 reused)" in out and "(when the shards were computed; none was this run)" in out

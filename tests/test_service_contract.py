@@ -218,6 +218,9 @@ def test_wrong_content_type_is_415_and_malformed_json_422(client, path):
         assert response.status_code == 422 and "JSON decode error" in response.json()["detail"], (broken, response.text)
     response = client.post(path, content=b"", headers=JSON)
     assert response.status_code == 422 and response.json()["detail"] == "body: Field required"
+    deep = b'{"items": ' + b"[" * 5000 + b"]" * 5000 + b"}"  # ASCII, past the decoder's recursion limit
+    response = client.post(path, content=deep, headers=JSON)
+    assert response.status_code == 422 and "nested too deeply" in response.json()["detail"], response.text
 
 
 @pytest.mark.parametrize("method", ["PUT", "PATCH", "DELETE"])

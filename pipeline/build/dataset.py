@@ -134,7 +134,9 @@ class Summary:
             f"actions   {counts.actions} ({counts.ok_actions} ok), transitions {counts.transitions}",
             f"wall      {self.wall_s:.1f} s",
             f"cpu       {timings.cpu_s_total:.1f} s over all objects: "
-            + ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in timings.cpu_s_by_stage.items()),
+            + ", ".join(f"{stage} {seconds:.1f}" for stage, seconds in timings.cpu_s_by_stage.items())
+            # Nothing computed: the manifest's timings are those of the run that built the shards.
+            + ("" if self.computed else " (when the shards were computed; none was this run)"),
         ]
         for object_id, repairs in self.repairs.items():
             # Merging duplicate vertices is routine (every STL stores each triangle's own);

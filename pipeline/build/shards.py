@@ -183,11 +183,13 @@ def _expected_attributes(attributes: dict, poses: pa.Table) -> dict:
 
 
 def read_record(root: str | Path, object_id: str) -> dict | None:
-    """The shard's completion record, or None when absent or unreadable."""
+    """The shard's completion record, or None when absent, unreadable or damaged (no
+    fingerprint): such a shard is redone like one a killed run left without a record."""
     try:
-        return json.loads((Path(root) / layout.completion_record(object_id)).read_text())
+        record = json.loads((Path(root) / layout.completion_record(object_id)).read_text())
     except (OSError, ValueError):
         return None
+    return record if isinstance(record, dict) and isinstance(record.get("fingerprint"), str) else None
 
 
 def checksum_problems(root: str | Path, record: dict) -> list[str]:
