@@ -287,10 +287,10 @@ KILLABLE = (
 (same results; an object takes ~50 ms, too short a window to kill in on a busy machine)."""
 
 
-def run_killed(stop: str, corpus: Path, out: Path) -> str:
+def run_killed(stop: str, corpus: Path, out: Path, *extra: str) -> str:
     """Run a build that is SIGKILLed once a shard is staged (``stop="compute"``).  Returns its stderr."""
     staged = staging_dir(out) / layout.SHARDS_DIR
-    command = ["dataset", "--corpus", str(corpus), "--out", str(out), *PARAMS, "--workers", "1"]
+    command = ["dataset", "--corpus", str(corpus), "--out", str(out), *PARAMS, "--workers", "1", *extra]
     process = subprocess.Popen(
         [sys.executable, "-c", KILLABLE, stop, *command],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
@@ -514,3 +514,25 @@ def test_a_damaged_completion_record_is_redone_not_blamed_on_other_inputs(refere
     assert build(corpus, copy, "--workers", "1") == 0
     out = capsys.readouterr().out  # up to date: the cpu line says whose time it is
     assert "objects   3 (0 computed, 3 reused)" in out and "(when the shards were computed; none was this run)" in out
+
+
+def test_a_killed_force_run_resumes_when_run_again_and_a_new_one_starts_over(reference, corpus, tmp_path, capsys):
+    """--force recomputes every shard; killed part-way, the same command run again by the same code
+    keeps what it had staged.  Staged shards of other code (another forced.json) are recomputed."""
+    from pipeline.build.dataset import FORCED_RUN
+
+    out = tmp_path / "dataset"
+    shutil.copytree(reference, out)
+    run_killed("compute", corpus, out, "--force")
+    staged = sorted(p.parent.name for p in (staging_dir(out) / layout.SHARDS_DIR).glob("*/complete.json"))
+    assert 1 <= len(staged) < len(OBJECTS) and (staging_dir(out) / FORCED_RUN).is_file()
+    assert build(corpus, out, "--force", "--workers", "1") == 0
+    assert f"resuming: {len(staged)} of {len(OBJECTS)}" in capsys.readouterr().err
+    assert (read_manifest(out).run["computed"], read_manifest(out).run["reused"]) == (len(OBJECTS) - len(staged), len(staged))
+    assert_same_dataset(reference, out)
+
+    run_killed("compute", corpus, out, "--force")
+    (staging_dir(out) / FORCED_RUN).write_text('{"code_version": "another"}')
+    assert build(corpus, out, "--force", "--workers", "1") == 0
+    assert read_manifest(out).run["computed"] == len(OBJECTS), "another code's staged shards are not reused"
+    assert_same_dataset(reference, out)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import hashlib
 import json
 import os
 import re
@@ -210,7 +211,9 @@ def build_dataset(
                 log(f"finished the commit of an interrupted run in {out}")
             inputs = {spec.object_id: shards.shard_inputs(spec, config) for spec in corpus.specs}
             fingerprints = {object_id: shards.fingerprint(i) for object_id, i in inputs.items()}
-            if force:
+            forced = _forced_run(staging) if force else None
+            if force and not _resumes(staging, forced):
+                # A new --force run recomputes everything; only the same code's killed --force run resumes.
                 shutil.rmtree(staging, ignore_errors=True)
             else:
                 _refuse_foreign_shards(out, inputs)  # before computing anything: a refused run changes nothing
@@ -249,6 +252,8 @@ def build_dataset(
                 log(f"resuming: {reused} of {len(corpus.specs)} objects already complete in {out}")
 
             _make_directory(staging, "staging directory")
+            if forced is not None:
+                write_text_atomic(staging / FORCED_RUN, json.dumps(forced, sort_keys=True))
             repairs: dict[str, list[str]] = {}
             if todo:
                 staged.update(
@@ -365,6 +370,29 @@ CONSOLIDATED_FILES = (layout.OBJECTS_FILE, layout.POSES_FILE, *served.FILES.valu
 COMMIT_PLAN = "commit.json"
 """In the staging directory: written when everything is staged; its presence means
 the commit has begun and must be finished (rolled forward)."""
+
+
+FORCED_RUN = "forced.json"
+"""In the staging directory of a --force run: the code that computed its shards (``_forced_run``).
+The same command, killed and run again by the same code, reuses them; any other --force run starts over."""
+
+
+def _forced_run(staging: Path) -> dict:
+    """What a --force run's staged shards were computed by: the package and git commit
+    (``manifest.code_version``) and a digest of the source files, which an uncommitted edit changes."""
+    root = Path(__file__).resolve().parents[2]
+    digest = hashlib.sha256()
+    for path in sorted([*root.glob("pipeline/**/*.py"), *root.glob("schema/**/*.py")]):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return {"code_version": manifest.code_version(), "sources_sha256": digest.hexdigest()}
+
+
+def _resumes(staging: Path, forced: dict) -> bool:
+    """Whether ``staging`` holds the shards of a killed --force run of this very code."""
+    try:
+        return json.loads((staging / FORCED_RUN).read_text()) == json.loads(json.dumps(forced, sort_keys=True))
+    except (OSError, ValueError):
+        return False
 
 
 def staging_dir(out: str | Path) -> Path:
