@@ -53,6 +53,7 @@ logs: venv
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 150 --out data/logs/heldout_c $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 200 --out data/logs/heldout_d $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 250 --out data/logs/heldout_e $(ARGS)
+	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 300 --out data/logs/heldout_f $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects corpus --count 42 --repeats 40 --noise-draws 1 --out data/logs/corpus_replay $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --repeats 40 --noise-draws 1 --out data/logs/heldout_replay $(ARGS)
 
