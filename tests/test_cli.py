@@ -109,14 +109,14 @@ def test_millimetre_meshes_fail_with_a_unit_hint_until_units_are_given(tmp_path,
     for name, size in (("bracket", [120.0, 60.0, 30.0]), ("block", [50.0, 40.0, 90.0])):
         trimesh.creation.box(size).export(meshes / f"{name}.stl")
     (meshes / "noise.obj").write_bytes(bytes(range(256)) * 4)
-    out = tmp_path / "out"
+    out = tmp_path / "new" / "out"
 
     assert main(["dataset", "--corpus", str(meshes), "--out", str(out), *FAST]) == 1, "every object failed"
     captured = capsys.readouterr()
     assert "error: every object failed (3)" in captured.err
     assert "2  too large for a tabletop (block, bracket); try --units mm" in captured.out
     assert "1  cannot read # (noise)" in captured.out
-    assert not out.exists(), "a run where every object failed writes nothing, not even the directory"
+    assert not (tmp_path / "new").exists(), "a run where every object failed writes nothing, not even the directories"
 
     assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--units", "mm", "--mass", "0.2", *FAST]) == 0
     captured = capsys.readouterr()

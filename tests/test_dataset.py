@@ -420,10 +420,12 @@ def test_broken_mesh_is_a_failure_and_strict_makes_it_fatal(tmp_path, capsys):
     assert pq.read_metadata(out / "objects.parquet").num_rows == 1
 
     strict = write_corpus(tmp_path, [], "flat,,meshes/flat.obj,1,0.1\n")
-    assert build(strict, tmp_path / "strict", "--strict", "--workers", "1") == 1
+    assert build(strict, tmp_path / "new" / "strict", "--strict", "--workers", "1") == 1
     err = capsys.readouterr().err
     assert err.startswith("error: --strict: flat: ") and err.count("\n") == 1
-    assert not (tmp_path / "strict").exists(), "a fresh --out the failed run made is not left behind empty"
+    assert not (tmp_path / "new" / "strict").exists(), "a fresh --out the failed run made is not left behind empty"
+    # Its parent, made by the run too, keeps only the staged shards beside it, for the same command to resume from.
+    assert {p.name for p in (tmp_path / "new").iterdir()} <= {staging_dir(tmp_path / "new" / "strict").name}
 
 
 def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_path, capsys):

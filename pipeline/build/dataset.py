@@ -201,7 +201,8 @@ def build_dataset(
     """
     started = time.perf_counter()
     out = Path(out)
-    created = not out.exists()
+    # The directories this run makes (--out and any missing parent), removed again if it writes nothing.
+    created = [d for d in (out, *out.parents) if not d.exists()]
     _make_directory(out, "output directory")
     staging = staging_dir(out)
 
@@ -298,20 +299,22 @@ def build_dataset(
             # empty (its staged shards stay beside it, for the same command to resume from).  Only
             # while holding the lock: a run that never got it must not remove the one that has it.
             if created:
-                _remove_if_only_lock(out)
+                _remove_if_only_lock(out, created)
             raise
         if not committed and created:
-            _remove_if_only_lock(out)
+            _remove_if_only_lock(out, created)
     order_repairs = {s.object_id: repairs[s.object_id] for s in corpus.specs if s.object_id in repairs}
     return Summary(written, computed=len(todo), reused=reused, wall_s=wall, repairs=order_repairs, committed=committed)
 
 
-def _remove_if_only_lock(out: Path) -> None:
+def _remove_if_only_lock(out: Path, created: list[Path]) -> None:
     """Remove ``out`` (which this run made, and whose lock it holds) when it holds nothing but
-    its lock file; a file another process wrote there since keeps it."""
+    its lock file, then the parents this run made, deepest first, while they are empty; a file
+    another process wrote there since keeps it."""
     with contextlib.suppress(OSError):
         (out / ".lock").unlink()
-        out.rmdir()
+        for directory in created:  # out first, then its parents
+            directory.rmdir()
 
 
 def _compute(
