@@ -21,6 +21,8 @@ import importlib.util
 import logging
 import os
 
+import orjson
+from uvicorn.protocols.http import httptools_impl
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 DEFAULT_LIMIT_CONCURRENCY = 256
@@ -99,6 +101,15 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
         self._cancel_request_timer()
         super().connection_lost(exc)
 
+    def send_400_response(self, msg: str) -> None:
+        """uvicorn's answer to bytes that are no HTTP request, as JSON like every other error."""
+        body = orjson.dumps({"detail": msg})
+        self.transport.write(b"".join([
+            b"HTTP/1.1 400 Bad Request\r\n", *(name + b": " + value + b"\r\n" for name, value in self.server_state.default_headers),
+            b"content-type: application/json\r\ncontent-length: ", str(len(body)).encode(), b"\r\nconnection: close\r\n\r\n", body,
+        ]))
+        self.transport.close()
+
     def _cancel_request_timer(self) -> None:
         timer = getattr(self, "_request_timer", None)
         if timer is not None:
@@ -109,6 +120,17 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
         self._request_timer = None
         if not self.transport.is_closing():
             self.transport.close()
+
+
+BUSY_BODY = orjson.dumps({"detail": "the service is at its connection limit (--limit-concurrency); retry shortly"})
+
+
+async def json_service_unavailable(scope, receive, send) -> None:
+    """uvicorn's 503 beyond ``limit_concurrency``, as JSON like every other error."""
+    await send({"type": "http.response.start", "status": 503, "headers": [
+        (b"content-type", b"application/json"), (b"content-length", str(len(BUSY_BODY)).encode()),
+        (b"connection", b"close"), (b"retry-after", b"1")]})
+    await send({"type": "http.response.body", "body": BUSY_BODY, "more_body": False})
 
 
 def run(
@@ -131,6 +153,9 @@ def run(
 
     tune_interpreter()
     GuardedHttpToolsProtocol.request_timeout = request_timeout
+    # uvicorn's protocol answers its concurrency limit with the module's text/plain app; the
+    # service's errors are JSON (docs/SERVICE.md), so the module is given this one.
+    httptools_impl.service_unavailable = json_service_unavailable
     has_httptools = importlib.util.find_spec("httptools") is not None
     if not has_httptools:
         log.warning("httptools is not installed: h11 parser, no request timeout for incomplete requests")

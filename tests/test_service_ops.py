@@ -383,3 +383,41 @@ def test_a_sighup_while_a_worker_starts_does_not_kill_it(dataset):
             time.sleep(0.005)
         time.sleep(0.5)
     assert server.err.count("starting another") == 1, server.err[-2000:]
+
+
+def _raw_exchange(url: str, request: bytes, idle: int = 0) -> bytes:
+    """Send ``request`` on a fresh TCP connection (after opening ``idle`` connections that send
+    nothing) and return everything the server answers before it closes."""
+    import socket
+
+    host, port = url.removeprefix("http://").split(":")
+    held = [socket.create_connection((host, int(port)), timeout=5) for _ in range(idle)]
+    time.sleep(0.2)  # let the server accept them before the request that counts
+    try:
+        with socket.create_connection((host, int(port)), timeout=5) as conn:
+            conn.sendall(request)
+            chunks = []
+            while chunk := conn.recv(65536):
+                chunks.append(chunk)
+            return b"".join(chunks)
+    finally:
+        for conn in held:
+            conn.close()
+
+
+def test_uvicorn_s_own_refusals_are_json_too(dataset):
+    """Bytes that are no HTTP request get a 400, and a request over the connection limit a 503
+    (with Retry-After), each with a JSON detail as every other error (docs/SERVICE.md)."""
+    process, url = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--log-level", "warning",
+                          "--limit-concurrency", "2"])
+    try:
+        garbage = _raw_exchange(url, b"NOT AN HTTP REQUEST\r\n\r\n")
+        head, _, body = garbage.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 400") and b"content-type: application/json" in head.lower()
+        assert "detail" in json.loads(body)
+        busy = _raw_exchange(url, b"GET /health HTTP/1.1\r\nhost: x\r\n\r\n", idle=2)
+        head, _, body = busy.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 503") and b"retry-after: 1" in head.lower()
+        assert "connection limit" in json.loads(body)["detail"]
+    finally:
+        stop(process)
