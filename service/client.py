@@ -192,6 +192,14 @@ class Client:
         raise AssertionError("unreachable")
 
 
+def _integer(value: Any, name: str) -> int:
+    """``value`` as an int when it is one (numpy's too), else TypeError: 2.7, "3" and True are
+    refused here as the service refuses them (422), not rounded or read into another request."""
+    if isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be an integer, got {value!r}")
+    return operator.index(value)
+
+
 def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None = None, policy: str = "value_iteration",
               pushes_left: int | None = None, failed_actions: list[int] | None = None) -> dict:
     """One /plan body (also one /batch/plan item) from a matrix or a ROS pose."""
@@ -199,11 +207,9 @@ def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None 
         raise ValueError("give exactly one of pose (4x4) and ros_pose")
     item: dict = {"object_id": object_id, "policy": policy}
     if pushes_left is not None:
-        if isinstance(pushes_left, (bool, np.bool_)):
-            raise TypeError(f"pushes_left must be an integer, got {pushes_left!r}")
-        item["pushes_left"] = operator.index(pushes_left)  # 2.7 or "3" raise, as the service would
+        item["pushes_left"] = _integer(pushes_left, "pushes_left")
     if failed_actions:
-        item["failed_actions"] = [operator.index(a) for a in failed_actions]  # 1.7 or "1" raise, as the service would
+        item["failed_actions"] = [_integer(a, "failed_actions") for a in failed_actions]
     if pose is not None:
         matrix = np.asarray(pose, dtype=float)
         if not np.isfinite(matrix).all():

@@ -87,25 +87,25 @@ class Guard:
             await self.app(scope, receive, send)
             return
         started = time.perf_counter()
-        status = 500
-
-        responded = False
+        status = None  # the response's, once one starts
 
         async def send_counted(message):
-            nonlocal status, responded
+            nonlocal status
             if message["type"] == "http.response.start":
-                status, responded = message["status"], True
+                status = message["status"]
             await send(message)
 
         try:
             await self._guarded(scope, receive, send_counted)
-            if status == 500 and not responded:
+            if status is None:
                 # Returned without a response: the client left (or the request timeout closed the
                 # connection) before its body arrived.  Not a server error; 499 as nginx logs it.
                 status = CLIENT_CLOSED
         finally:
             route = scope.get("route")
-            self.metrics.observe(scope["method"], getattr(route, "path", None), status, time.perf_counter() - started)
+            # No status after an exception: the server sends 500.
+            self.metrics.observe(scope["method"], getattr(route, "path", None), 500 if status is None else status,
+                                 time.perf_counter() - started)
 
     async def _guarded(self, scope, receive, send):
         headers = dict(scope["headers"])

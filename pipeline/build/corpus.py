@@ -32,6 +32,7 @@ import io
 import os
 import re
 import xml.etree.ElementTree as ElementTree
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -291,8 +292,8 @@ def _check_ids(ids: list[str], where: str) -> None:
             check_object_id(object_id)
         except ValueError as err:
             raise CorpusError(f"{where}: {err}") from None
-    lowered = [object_id_key(i) for i in ids]
-    duplicates = sorted({i for i, low in zip(ids, lowered) if lowered.count(low) > 1})
+    counts = Counter(object_id_key(i) for i in ids)
+    duplicates = sorted({i for i in ids if counts[object_id_key(i)] > 1})
     if duplicates:
         raise CorpusError(f"{where}: duplicate object ids {duplicates[:5]} (ids name files, so case does not tell them apart)")
 

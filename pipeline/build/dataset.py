@@ -62,6 +62,14 @@ class OutputError(BuildError):
     """The output directory cannot be created or written (a bad path, permissions)."""
 
 
+class StrictFailure(BuildError):
+    """``strict``: an object failed, and the build stopped there (``failure``: which, and why)."""
+
+    def __init__(self, failure: Failure):
+        super().__init__(f"--strict: {_named(failure)}")
+        self.failure = failure
+
+
 @dataclass
 class Failure:
     """An object that has no shard, and why."""
@@ -208,92 +216,8 @@ def build_dataset(
 
     with _exclusive(out):
         try:
-            if finish_interrupted_commit(out):
-                log(f"finished the commit of an interrupted run in {out}")
-            inputs = {spec.object_id: shards.shard_inputs(spec, config) for spec in corpus.specs}
-            fingerprints = {object_id: shards.fingerprint(i) for object_id, i in inputs.items()}
-            forced = _forced_run(staging) if force else None
-            if force and not _resumes(staging, forced):
-                # A new --force run recomputes everything; only the same code's killed --force run resumes.
-                shutil.rmtree(staging, ignore_errors=True)
-            else:
-                _refuse_foreign_shards(out, inputs)  # before computing anything: a refused run changes nothing
-            _discard_stale_staging(staging, fingerprints)
-            shards.remove_temp_files(out)  # left by builds of earlier versions, never part of a dataset
-
-            records: dict[str, dict] = {}
-            staged: dict[str, dict] = {}
-            failures: dict[str, Failure] = {}
-            todo: list[ObjectSpec] = []
-            for spec in corpus.specs:
-                if spec.object_id in corpus.problems:
-                    failures[spec.object_id] = Failure(spec.object_id, corpus.problems[spec.object_id], "corpus")
-                    continue
-                key = fingerprints[spec.object_id]
-                record = None if force else shards.is_complete(out, spec.object_id, key)
-                if record is not None:
-                    records[spec.object_id] = record
-                elif (record := shards.is_complete(staging, spec.object_id, key)) is not None:
-                    staged[spec.object_id] = record
-                else:
-                    todo.append(spec)
-            reused = len(records) + len(staged)
-            if strict and failures:
-                first = next(iter(failures.values()))
-                raise BuildError(f"--strict: {_named(first)}")
-            previous = previous_failures or {}
-            failures.update({spec.object_id: previous[spec.object_id] for spec in todo if spec.object_id in previous})
-            todo = [spec for spec in todo if spec.object_id not in previous]
-
-            current = _current_manifest(out)
-            if not todo and not staged and not force and _up_to_date(out, current, config, corpus, records, failures):
-                log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
-                return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
-            if reused:
-                log(f"resuming: {reused} of {len(corpus.specs)} objects already complete in {out}")
-
-            _make_directory(staging, "staging directory")
-            if forced is not None:
-                write_text_atomic(staging / FORCED_RUN, json.dumps(forced, sort_keys=True))
-            repairs: dict[str, list[str]] = {}
-            if todo:
-                staged.update(
-                    _compute(todo, config, process, staging, inputs, failures, workers, scheduler, strict, progress, reused, repairs)
-                )
-
-            order = [spec.object_id for spec in corpus.specs if spec.object_id in records or spec.object_id in staged]
-            sources = {object_id: (staging if object_id in staged else out) for object_id in order}
-            consolidated = manifest.consolidate(staging, order, sources)
-            consolidated.update(write_served(staging, order, sources))
-            wall = time.perf_counter() - started
-            paths = {spec.object_id: spec.path for spec in corpus.specs}
-            failure_list = [
-                {
-                    "object_id": f.object_id,
-                    "path": paths[f.object_id],
-                    "reason": f.reason,
-                    "kind": f.kind,
-                    **({"detail": f.detail} if f.detail else {}),
-                }
-                for f in (failures[s.object_id] for s in corpus.specs if s.object_id in failures)
-            ]
-            run = {
-                "workers": workers or (fanout.default_workers() if scheduler is None else None),
-                "backend": "dask" if scheduler else "loky",
-                "scheduler": scheduler,
-                "computed": len(todo),
-                "reused": reused,
-                "wall_s": round(wall, 3),
-            }
-            written = manifest.make_manifest(config, corpus, {**records, **staged}, consolidated, failure_list, run)
-            committed = bool(order) or not failures
-            if committed:
-                manifest.write_manifest(staging, written)
-                commit(out, staging, staged, keep=set(order))
-            else:
-                # Every object failed (a forgotten --units, a wrong corpus): a dataset of nothing would
-                # replace whatever ``out`` holds, so the run commits nothing and says so.
-                shutil.rmtree(staging, ignore_errors=True)
+            summary = _build_locked(corpus, config, out, staging, started, workers, scheduler, force, strict, progress,
+                                    process, log, previous_failures or {})
         except BaseException:
             # --strict, an unreachable scheduler, Ctrl-C: a fresh --out this run made is not left behind
             # empty (its staged shards stay beside it, for the same command to resume from).  Only
@@ -301,8 +225,111 @@ def build_dataset(
             if created:
                 _remove_if_only_lock(out, created)
             raise
-        if not committed and created:
+        if not summary.committed and created:
             _remove_if_only_lock(out, created)
+    return summary
+
+
+def _build_locked(
+    corpus: Corpus,
+    config: Config,
+    out: Path,
+    staging: Path,
+    started: float,
+    workers: int | None,
+    scheduler: str | None,
+    force: bool,
+    strict: bool,
+    progress: bool,
+    process: Process | None,
+    log: Callable[[str], None],
+    previous: dict[str, Failure],
+) -> Summary:
+    """``build_dataset``'s work once it holds the lock on ``out``: reuse, compute, commit."""
+    if finish_interrupted_commit(out):
+        log(f"finished the commit of an interrupted run in {out}")
+    inputs = {spec.object_id: shards.shard_inputs(spec, config) for spec in corpus.specs}
+    fingerprints = {object_id: shards.fingerprint(i) for object_id, i in inputs.items()}
+    forced = _forced_run() if force else None
+    if force and not _resumes(staging, forced):
+        # A new --force run recomputes everything; only the same code's killed --force run resumes.
+        shutil.rmtree(staging, ignore_errors=True)
+    else:
+        _refuse_foreign_shards(out, inputs)  # before computing anything: a refused run changes nothing
+    _discard_stale_staging(staging, fingerprints)
+    shards.remove_temp_files(out)  # left by builds of earlier versions, never part of a dataset
+
+    records: dict[str, dict] = {}
+    staged: dict[str, dict] = {}
+    failures: dict[str, Failure] = {}
+    todo: list[ObjectSpec] = []
+    for spec in corpus.specs:
+        if spec.object_id in corpus.problems:
+            failures[spec.object_id] = Failure(spec.object_id, corpus.problems[spec.object_id], "corpus")
+            continue
+        key = fingerprints[spec.object_id]
+        record = None if force else shards.is_complete(out, spec.object_id, key)
+        if record is not None:
+            records[spec.object_id] = record
+        elif (record := shards.is_complete(staging, spec.object_id, key)) is not None:
+            staged[spec.object_id] = record
+        else:
+            todo.append(spec)
+    reused = len(records) + len(staged)
+    if strict and failures:
+        raise StrictFailure(next(iter(failures.values())))
+    failures.update({spec.object_id: previous[spec.object_id] for spec in todo if spec.object_id in previous})
+    todo = [spec for spec in todo if spec.object_id not in previous]
+
+    current = _current_manifest(out)
+    if not todo and not staged and not force and _up_to_date(out, current, config, corpus, records, failures):
+        log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
+        return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
+    if reused:
+        log(f"resuming: {reused} of {len(corpus.specs)} objects already complete in {out}")
+
+    _make_directory(staging, "staging directory")
+    if forced is not None:
+        write_text_atomic(staging / FORCED_RUN, forced)
+    repairs: dict[str, list[str]] = {}
+    if todo:
+        staged.update(
+            _compute(todo, config, process, staging, inputs, failures, workers, scheduler, strict, progress, reused, repairs)
+        )
+
+    order = [spec.object_id for spec in corpus.specs if spec.object_id in records or spec.object_id in staged]
+    sources = {object_id: (staging if object_id in staged else out) for object_id in order}
+    consolidated = manifest.consolidate(staging, order, sources)
+    consolidated.update(write_served(staging, order, sources))
+    wall = time.perf_counter() - started
+    paths = {spec.object_id: spec.path for spec in corpus.specs}
+    failure_list = [
+        {
+            "object_id": f.object_id,
+            "path": paths[f.object_id],
+            "reason": f.reason,
+            "kind": f.kind,
+            **({"detail": f.detail} if f.detail else {}),
+        }
+        for f in (failures[s.object_id] for s in corpus.specs if s.object_id in failures)
+    ]
+    run = {
+        "workers": workers or (fanout.default_workers() if scheduler is None else None),
+        "backend": "dask" if scheduler else "loky",
+        "scheduler": scheduler,
+        "computed": len(todo),
+        "reused": reused,
+        "wall_s": round(wall, 3),
+    }
+    written = manifest.make_manifest(config, corpus, {**records, **staged}, consolidated, failure_list, run)
+    committed = bool(order) or not failures
+    if committed:
+        manifest.write_manifest(staging, written)
+        commit(out, staging, staged, keep=set(order))
+    else:
+        # Every object failed (a forgotten --units, a wrong corpus): a dataset of nothing would
+        # replace whatever ``out`` holds, so the run commits nothing and says so.
+        shutil.rmtree(staging, ignore_errors=True)
     order_repairs = {s.object_id: repairs[s.object_id] for s in corpus.specs if s.object_id in repairs}
     return Summary(written, computed=len(todo), reused=reused, wall_s=wall, repairs=order_repairs, committed=committed)
 
@@ -350,7 +377,7 @@ def _compute(
                 if isinstance(outcome, Failure):
                     _remove_object_files(staging, outcome.object_id)
                     if strict:
-                        raise BuildError(f"--strict: {_named(outcome)}")
+                        raise StrictFailure(outcome)
                     failures[outcome.object_id] = outcome
                     bar.object_done(0, failed=True)
                     continue
@@ -380,21 +407,22 @@ FORCED_RUN = "forced.json"
 The same command, killed and run again by the same code, reuses them; any other --force run starts over."""
 
 
-def _forced_run(staging: Path) -> dict:
-    """What a --force run's staged shards were computed by: the package and git commit
-    (``manifest.code_version``) and a digest of the source files, which an uncommitted edit changes."""
+def _forced_run() -> str:
+    """What a --force run's staged shards are computed by, as the JSON text of ``FORCED_RUN``: the
+    package and git commit (``manifest.code_version``) and a digest of the source files, which an
+    uncommitted edit changes."""
     root = Path(__file__).resolve().parents[2]
     digest = hashlib.sha256()
     for path in sorted([*root.glob("pipeline/**/*.py"), *root.glob("schema/**/*.py")]):
         digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
-    return {"code_version": manifest.code_version(), "sources_sha256": digest.hexdigest()}
+    return json.dumps({"code_version": manifest.code_version(), "sources_sha256": digest.hexdigest()}, sort_keys=True)
 
 
-def _resumes(staging: Path, forced: dict) -> bool:
+def _resumes(staging: Path, forced: str) -> bool:
     """Whether ``staging`` holds the shards of a killed --force run of this very code."""
     try:
-        return json.loads((staging / FORCED_RUN).read_text()) == json.loads(json.dumps(forced, sort_keys=True))
-    except (OSError, ValueError):
+        return (staging / FORCED_RUN).read_text() == forced
+    except OSError:
         return False
 
 
@@ -547,9 +575,9 @@ def add_object(
         return build_dataset(
             corpus, config, root, workers=1, strict=True, progress=progress, log=quiet, previous_failures=previous
         )
-    except BuildError as err:
+    except StrictFailure as err:
         # ``add`` is strict by nature (a failed object adds nothing); the user gave no --strict.
-        raise BuildError(str(err).removeprefix("--strict: ")) from None
+        raise BuildError(_named(err.failure)) from None
 
 
 def _size(path: str) -> int:

@@ -54,7 +54,7 @@ thesis's variants always are), change no shard: left out of a shard's identity t
 shards of a dataset built before they existed keep theirs (docs/MODEL.md C.17)."""
 
 
-def serving_only(config: Config) -> dict[str, tuple[str, ...]]:
+def unused_by_shards(config: Config) -> dict[str, tuple[str, ...]]:
     """The parameters this configuration's shards do not depend on (section -> keys):
     ``SERVING_ONLY`` unless the build plans with failures, and the landing spread's while it is off."""
     unused = {} if config.mdp.plans_with_failures else dict(SERVING_ONLY)
@@ -65,11 +65,11 @@ def serving_only(config: Config) -> dict[str, tuple[str, ...]]:
 
 def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:
     """Everything that determines a shard's content: schema version, every parameter the
-    build uses (``SERVING_ONLY`` left out), and the object (mesh checksum, scale, mass, id,
+    build uses (``unused_by_shards`` left out), and the object (mesh checksum, scale, mass, id,
     source).  The mesh's location is left out: the same file elsewhere gives the same shard."""
     identity = {k: v for k, v in dataclasses.asdict(spec).items() if k != "path"}
     parameters = config.to_dict()
-    for section, keys in serving_only(config).items():
+    for section, keys in unused_by_shards(config).items():
         parameters[section] = {k: v for k, v in parameters[section].items() if k not in keys}
     return {"schema_version": SCHEMA_VERSION, "config": parameters, "object": identity}
 

@@ -101,6 +101,11 @@ class Push:
     outcomes: np.ndarray
     log: int = 0
 
+    @property
+    def key(self) -> tuple[int, str, int]:
+        """(log, object id, push id): what names this push among the logs read together."""
+        return self.log, self.object_id, self.push_id
+
     def empirical(self, n_poses: int) -> np.ndarray:
         """(n_poses + 1,) float: frequency of each final pose, the last entry for ``OUTSIDE``."""
         return empirical_distribution(self.outcomes, n_poses)
@@ -341,24 +346,20 @@ def read_log(
             reject(i, "start_pose column disagrees with the pose start_transform matches")
             usable[i] = False
 
-    # A row an earlier log already holds, the very same play (a log that is part of another, or a
-    # copy of one file in two logs), would count its push twice: it is rejected, and counted.
-    played: dict[tuple, int] = {}
-    repeat_of_row = table.column("repeat").to_numpy(zero_copy_only=False)
-    for i in np.flatnonzero(usable):
-        signature = (columns["object_id"][i], int(push_id[i]), int(repeat_of_row[i]),
-                     start[i].tobytes(), final[i].tobytes(), points[i].tobytes(), directions[i].tobytes())
-        first = played.setdefault(signature, int(log_of_row[i]))
-        if first != log_of_row[i]:
-            reject(i, "the same row (push, repeat, start, point, direction, final) as in an earlier log")
-            usable[i] = False
-
     # Pushes: repeats of one (log, object, push_id) must describe the same push.  Two logs may
-    # draw the same id for other pushes, or the same push, and each keeps its own repeats.
+    # draw the same id for other pushes, or the same push, and each keeps its own repeats; but a
+    # row an earlier log already holds, the very same play (a log that is part of another, or a
+    # copy of one file in two logs), would count its push twice: it is rejected, and counted.
+    repeat = table.column("repeat").to_numpy(zero_copy_only=False)
+    played: dict[tuple, int] = {}
     groups: dict[tuple[int, str, int], list[int]] = {}
     for i in np.flatnonzero(usable):
+        signature = (columns["object_id"][i], int(push_id[i]), int(repeat[i]),
+                     start[i].tobytes(), final[i].tobytes(), points[i].tobytes(), directions[i].tobytes())
+        if played.setdefault(signature, int(log_of_row[i])) != log_of_row[i]:
+            reject(i, "the same row (push, repeat, start, point, direction, final) as in an earlier log")
+            continue
         groups.setdefault((int(log_of_row[i]), columns["object_id"][i], int(push_id[i])), []).append(int(i))
-    repeat = table.column("repeat").to_numpy(zero_copy_only=False)
     pushes = []
     for (log, object_id, pid), rows in groups.items():
         rows = np.array(rows)
@@ -390,7 +391,7 @@ def read_log(
                 log=log,
             )
         )
-    pushes.sort(key=lambda p: (p.object_id, p.pose, p.log, p.push_id))
+    pushes.sort(key=lambda p: (p.object_id, p.pose, p.log, p.push_id))  # by object and pose, then ``Push.key``
     used = {p.object_id for p in pushes}
     return PushLog(
         objects={k: v for k, v in loaded.items() if k in used},

@@ -43,7 +43,7 @@ from schema.vocabulary import STATUS_OK
 
 from ..build.atomic import write_atomic, write_text_atomic
 from ..build.corpus import DEFAULT_LIST, PYBULLET_SOURCE, CorpusError, ObjectSpec, candidate_specs, pybullet_data_dir, read_list, write_list
-from ..model.config import PRESETS, Config
+from ..model.config import PRESETS, Config, parameter_table
 from ..model.rng import stream
 from .logreader import LogError, log_files, match_downs, object_downs, read_tables
 from .pushsim import FINGER_SPEED, PlayedPush, body_model, draw_noise, play_push, player_parameters
@@ -471,11 +471,6 @@ WORLD_FIELDS = (
 object whose URDF gives none."""
 
 
-def _setting(config: Config, name: str):
-    section, field_name = name.split(".")
-    return getattr(getattr(config, section), field_name)
-
-
 def world_note(config: Config) -> str | None:
     """A note when ``config`` plays pushes in another world than the thesis's, None when it does not.
 
@@ -483,11 +478,12 @@ def world_note(config: Config) -> str | None:
     default model's broad calibrated noise (or another finger, force limit or gravity) is another
     simulated world than the shipped logs' (all played with ``--config thesis``), and a map fitted
     on one is judged on the other."""
-    thesis = Config.from_toml(PRESETS / "thesis.toml")
-    differ = [name for name in WORLD_FIELDS if _setting(config, name) != _setting(thesis, name)]
+    mine = {key: value for key, value, _ in parameter_table(config)}
+    thesis = {key: value for key, value, _ in parameter_table(Config.from_toml(PRESETS / "thesis.toml"))}
+    differ = [key for key in WORLD_FIELDS if mine[key] != thesis[key]]
     if not differ:
         return None
-    values = ", ".join(f"{name.split('.')[1]} {_setting(config, name):g}" for name in differ)
+    values = ", ".join(f"{key.split('.')[1]} {mine[key]:g}" for key in differ)
     return (f"note: the pushes are played in this configuration's world ({values}), not the "
             "thesis's that the shipped logs are played with (--config thesis)")
 

@@ -285,21 +285,21 @@ class Scorer:
         Raises ``LogError`` when a push has no replay, or its replay is another push.
         """
         # Push ids are unique within one log, so a replay of several logs names them in the same order.
-        replayed = {(p.log, p.object_id, p.push_id): p for p in replay.pushes}
-        missing = [p for p in self.log.pushes if (p.log, p.object_id, p.push_id) not in replayed]
+        replayed = {p.key: p for p in replay.pushes}
+        missing = [p for p in self.log.pushes if p.key not in replayed]
         if missing:
             raise LogError(f"the replay has no usable rows for {len(missing)} of the log's {len(self)} pushes "
                            f"(first: object {missing[0].object_id}, push_id {missing[0].push_id}, log {missing[0].log + 1}); "
                            "replay the same objects and pushes, one replay per log in the logs' order")
         for push in self.log.pushes:
-            twin = replayed[(push.log, push.object_id, push.push_id)]
+            twin = replayed[push.key]
             if twin.pose != push.pose or not (np.allclose(twin.point, push.point, rtol=0, atol=SAME_PUSH_TOLERANCE)
                                               and np.allclose(twin.direction, push.direction, rtol=0, atol=SAME_PUSH_TOLERANCE)):
                 raise LogError(f"push_id {push.push_id} of object {push.object_id} is another push in the replay "
                                "(start pose, point or direction differ); replay with the log's own seed and parameters")
 
         def prediction(group: Group) -> tuple[np.ndarray, np.ndarray]:
-            twins = [replayed[(self.log.pushes[r].log, group.object_id, self.log.pushes[r].push_id)] for r in group.rows]
+            twins = [replayed[self.log.pushes[r].key] for r in group.rows]
             predicted = np.array([t.empirical(group.n_poses) for t in twins])
             return predicted, 1.0 - predicted[:, group.pose.index]
 
