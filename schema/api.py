@@ -592,13 +592,19 @@ class HeapObject(Model):
         return np.asarray(self.pose, dtype=np.float64) if self.pose is not None else self.ros_pose.matrix()
 
 
+MAX_SEED = 2**53 - 1
+"""The largest ``HeapPlanRequest.seed``."""
+
+
 class HeapPlanRequest(Model):
     """A heap of objects in a bin and the push policy to plan with."""
 
     bin: HeapBin = Field(default_factory=HeapBin, description="The bin; omitted: the default tote")
     objects: list[HeapObject] = Field(min_length=1, max_length=MAX_HEAP_OBJECTS, description="The objects in the bin (an id may repeat)")
     policy: HeapPolicy = Field("boundary_shear", description="Push policy (thesis 3.2); boundary_shear ran on the physical robot (3.3.2)")
-    seed: StrictInt = Field(0, ge=0, le=2**63 - 1, description="Seed of quasi_random's draws (the same seed, the same push)")
+    # At most 2**53 - 1: the largest integer a JSON number keeps exactly in every client (a
+    # JavaScript number, a float64), and so in FastAPI's OpenAPI document, which writes bounds as floats.
+    seed: StrictInt = Field(0, ge=0, le=MAX_SEED, description="Seed of quasi_random's draws (the same seed, the same push)")
 
 
 class HeapPush(Model):

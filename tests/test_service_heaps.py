@@ -117,6 +117,7 @@ def test_quasi_random_follows_the_seed(client, store, tables):
     answers = [post(client, objects, "quasi_random", seed=s).json()["push"] for s in (3, 3, 4, 5, 6)]
     assert answers[0] == answers[1]
     assert len({json.dumps(a) for a in answers}) >= 3
+    assert post(client, objects, "quasi_random", seed=2**53 - 1).status_code == 200, "the largest seed is served"
 
 
 def quaternion(rotation: np.ndarray) -> dict:
@@ -218,6 +219,7 @@ MALFORMED = [
     (json.dumps({"objects": [ONE], "bin": {"width": 50}}), "body.bin.width: Input should be less than or equal to 5"),
     (json.dumps({"objects": [ONE], "bin": {"depth": 0.2}}), "body.bin.depth: Extra inputs"),
     (json.dumps({"objects": [ONE], "seed": -1}), "body.seed: Input should be greater than or equal to 0"),
+    (json.dumps({"objects": [ONE], "seed": 2**53}), "body.seed: Input should be less than or equal to 9007199254740991"),
     (json.dumps({"objects": [ONE], "seed": "7"}), "body.seed: Input should be a valid integer"),
     (json.dumps({"objects": [ONE], "seed": 1.5}), "body.seed"),
     (json.dumps({"objects": [{"object_id": "random_001", "ros_pose": {"position": {"x": 0, "y": 0, "z": 0},
@@ -233,8 +235,12 @@ def test_malformed_heap_requests_are_422_with_a_message(client, body, message):
 
 
 def test_openapi_documents_the_heap_planner(client):
-    operation = client.get("/openapi.json").json()["paths"]["/heaps/plan"]["post"]
+    document = client.get("/openapi.json").json()
+    operation = document["paths"]["/heaps/plan"]["post"]
     assert {"200", "404", "409", "422"} <= set(operation["responses"])
+    # The seed's bound is written as a float: it must be one a float holds exactly, so the document
+    # and the service refuse the same seeds (a bound of 2**63 - 1 read back as 2**63).
+    assert int(document["components"]["schemas"]["HeapPlanRequest"]["properties"]["seed"]["maximum"]) == 2**53 - 1
 
 
 # --- the Python API gives the service's push -------------------------------------------------
