@@ -54,6 +54,8 @@ logs: venv
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 200 --out data/logs/heldout_d $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 250 --out data/logs/heldout_e $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 300 --out data/logs/heldout_f $(ARGS)
+	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 350 --out data/logs/heldout_g $(ARGS)
+	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 400 --out data/logs/heldout_h $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects corpus --count 42 --repeats 40 --noise-draws 1 --out data/logs/corpus_replay $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --repeats 40 --noise-draws 1 --out data/logs/heldout_replay $(ARGS)
 
