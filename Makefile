@@ -56,6 +56,9 @@ logs: venv
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 300 --out data/logs/heldout_f $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 350 --out data/logs/heldout_g $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 400 --out data/logs/heldout_h $(ARGS)
+	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 450 --out data/logs/heldout_i $(ARGS)
+	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 500 --out data/logs/heldout_j $(ARGS)
+	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 550 --out data/logs/heldout_k $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects corpus --count 42 --repeats 40 --noise-draws 1 --out data/logs/corpus_replay $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --repeats 40 --noise-draws 1 --out data/logs/heldout_replay $(ARGS)
 
