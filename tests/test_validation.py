@@ -304,6 +304,10 @@ def test_two_logs_that_use_the_same_push_id_keep_each_push_and_its_repeats(box_f
     both = read_log([tmp_path / "a", tmp_path / "c"], Config())
     assert [(p.log, len(p.outcomes)) for p in both.pushes] == [(0, 3)]
     assert both.rejected == {"the same row (push, repeat, start, point, direction, final) as in an earlier log": 3}
+    # A directory of several logs (as data/logs is) is read as those logs, in path order, not as one.
+    parent = read_log([tmp_path], Config())
+    assert [(p.log, p.push_id, len(p.outcomes)) for p in parent.pushes] == [(0, 0, 3), (1, 0, 2)]
+    assert parent.rejected == both.rejected and parent.rows_used == 5
 
 
 def test_a_replay_of_two_logs_is_matched_log_by_log(box_file, box_poses, tmp_path):

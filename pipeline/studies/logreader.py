@@ -9,7 +9,8 @@ outside the pose set is its own bucket).  Repeats of one push (same object and `
 become one empirical next-pose distribution.  Push ids are unique within one log (one of
 ``paths``: a log's directory, or a file), not across logs: the same id in two logs is two
 pushes (``Push.log``), unless they are the very same rows (a log that is part of another),
-which are read once.  A directory that holds several logs is read as one log.
+which are read once.  A directory that holds several logs (subdirectories of Parquet files, such as
+``data/logs``) is read as those logs, one per directory that holds files.
 
 Nothing is dropped silently and nothing crashes: every row that cannot be used is
 counted under a one-line reason (``PushLog.rejected``), with the first few rows of
@@ -90,7 +91,8 @@ class Push:
     object_id, push_id : identifiers;  pose : start pose index
     point, direction : (3,) float, pose frame (m, unit)
     outcomes : (R,) int, final pose of each repeat (``OUTSIDE`` when not in the pose set)
-    log : which of ``read_log``'s paths the push was read from (push ids are unique only within one)
+    log : which log the push was read from, numbered in the order of ``read_log``'s paths, each
+      directory of a path that holds several logs counting as one (push ids are unique only within one)
     """
 
     object_id: str
@@ -186,6 +188,15 @@ def log_files(paths: list[str | Path]) -> list[Path]:
     return files
 
 
+def logs_under(path: str | Path) -> list[list[Path]]:
+    """The logs ``path`` names, each a list of its Parquet files (``log_files``): a file is one
+    log, and so is each directory under ``path`` that holds files, in path order."""
+    by_directory: dict[Path, list[Path]] = {}
+    for file in log_files([path]):
+        by_directory.setdefault(file.parent, []).append(file)
+    return [by_directory[directory] for directory in sorted(by_directory)]
+
+
 def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
     """All files concatenated, with a ``_file``, ``_row`` and ``_log`` column (``logs``: the log each
     file belongs to, 0 for all when not given); raises ``LogError`` on unreadable files."""
@@ -250,7 +261,8 @@ def read_log(
       rejects rows of objects inside it (a held-out report)
     Raises ``LogError`` only when a file cannot be read as a push log at all.
     """
-    per_log = [log_files([path]) for path in paths]
+    # Push ids are unique within one log: a directory of several logs is read as those logs.
+    per_log = [found for path in paths for found in logs_under(path)]
     files = [file for found in per_log for file in found]
     twice = [file for file, count in Counter(f.resolve() for f in files).items() if count > 1]
     if twice:
