@@ -142,7 +142,7 @@ def test_the_engine_maps_the_smoothed_rows_with_the_pushes_own_features(pose_and
     weights = (-0.4, 0.5, 0.6, -0.2, -1.0, 0.7)
 
     def table(t):
-        return evaluate_pose(obj, pose, len(pose_set.poses), actions, t, stream(3, obj.name, pose.index, "trials"))
+        return evaluate_pose(obj, pose, pose_set.probabilities, actions, t, stream(3, obj.name, pose.index, "trials"))
 
     plain, mapped = table(topple), table(replace(topple, feature_map=weights))
     ok = actions.status == STATUS_OK
@@ -161,7 +161,7 @@ def test_probes_are_mapped_over_the_candidates_and_leave_their_rows(pose_and_can
     topple = replace(Config().topple.without_recalibration(), n_trials=40, feature_map=(-0.4, 0.5, 0.6, -0.2, -1.0, 0.7))
     ok = np.flatnonzero(pool.status == STATUS_OK)
     n = len(pool.status)
-    counted = evaluate_pose(obj, pose, len(pose_set.poses), pool, topple.counted(), stream(3, obj.name, pose.index, "trials"))
+    counted = evaluate_pose(obj, pose, pose_set.probabilities, pool, topple.counted(), stream(3, obj.name, pose.index, "trials"))
     best = ok[np.argmax(counted.p_topple[ok])]
     probes = [best, best]  # the likeliest push asked about twice: two probes, each other's neighbours but for the pool
     asked = Actions(points=np.vstack([pool.points, pool.points[probes]]), normals=np.vstack([pool.normals, pool.normals[probes]]),
@@ -169,7 +169,7 @@ def test_probes_are_mapped_over_the_candidates_and_leave_their_rows(pose_and_can
                     status=np.concatenate([pool.status, pool.status[probes]]).astype(pool.status.dtype), max_height=pool.max_height)
 
     def table(actions, t, candidates=None):
-        return evaluate_pose(obj, pose, len(pose_set.poses), actions, t, stream(3, obj.name, pose.index, "trials"), candidates=candidates)
+        return evaluate_pose(obj, pose, pose_set.probabilities, actions, t, stream(3, obj.name, pose.index, "trials"), candidates=candidates)
 
     alone, probed = table(pool, topple), table(asked, topple, candidates=n)
     assert np.array_equal(probed.next_pose[:n], alone.next_pose, equal_nan=True), "probes change no candidate's row"
@@ -211,7 +211,7 @@ def test_the_scorer_gives_features_of_logged_candidates_and_the_fit_is_written(m
     for group, (_, p_topple) in zip(scorer.groups, predictions):
         pool = scorer.pose_candidates(group)
         obj = log.objects[group.object_id].model
-        table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, mapped, stream(2, obj.name, group.pose.index, "trials"))
+        table = evaluate_pose(obj, group.pose, log.objects[group.object_id].poses.probabilities, pool.actions, mapped, stream(2, obj.name, group.pose.index, "trials"))
         assert np.allclose(p_topple, table.p_topple[pool.index])
     out, record = tmp_path / "fm.toml", tmp_path / "fm.json"
     code = main([str(path), str(path), "--features", "--corpus", "none", "--folds", "3", "--set", "contacts.n_contacts="

@@ -65,23 +65,21 @@ def test_the_engine_spreads_the_corrected_variant_s_landing(pose_and_candidates)
     base = replace(Config().topple, n_trials=40)
     drop = pose_set.probabilities
 
-    def table(t, **kw):
-        return evaluate_pose(obj, pose, len(pose_set.poses), actions, t, stream(3, obj.name, pose.index, "trials"), **kw)
+    def table(t):
+        return evaluate_pose(obj, pose, drop, actions, t, stream(3, obj.name, pose.index, "trials"))
 
-    plain = table(base, drop_probabilities=drop)
-    spread = table(replace(base, landing_spread=0.25, landing_spread_poses=2), drop_probabilities=drop)
+    plain = table(base)
+    spread = table(replace(base, landing_spread=0.25, landing_spread_poses=2))
     toppling = plain.p_topple > 0
     assert toppling.sum() >= 5 and len(pose_set.poses) >= 3, "the test needs pushes that topple and poses to spread to"
     assert np.array_equal(spread.p_topple, plain.p_topple, equal_nan=True) and np.array_equal(spread.outcomes, plain.outcomes)
     expected = spread_landings(plain.next_pose, pose.index, landing_prior(drop, pose.index, 2), 0.25)
     assert np.allclose(spread.next_pose, expected, equal_nan=True)
     assert not np.array_equal(spread.next_pose[toppling], plain.next_pose[toppling])
-    unmapped = table(replace(base, down_map=()), drop_probabilities=drop)
+    unmapped = table(replace(base, down_map=()))
     born = (np.nan_to_num(unmapped.p_topple) == 0) & toppling
     assert born.sum() >= 3 and np.all(np.abs(spread.next_pose[born] - plain.next_pose[born]).max(axis=1) > 0)
-    with pytest.raises(ValueError, match="needs the pose set's drop probabilities"):
-        table(replace(base, landing_spread=0.25))
-    # The thesis's variants apply none, whatever the field says; without the field's value nothing is asked for.
+    # The thesis's variants apply none, whatever the field says.
     thesis = replace(Config.from_toml(PRESETS / "thesis.toml").topple, n_trials=40, landing_spread=0.25)
     assert thesis.applied_landing_spread == 0.0
     assert np.array_equal(table(thesis).next_pose, table(replace(thesis, landing_spread=0.0)).next_pose, equal_nan=True)

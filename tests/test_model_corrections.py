@@ -39,7 +39,7 @@ def _push(box, points, direction, topple):
     obj, pose_set, index = box
     pose = pose_set.poses[index]
     actions = explicit_actions(obj, pose.transform, np.asarray(points, float), np.tile(direction, (len(points), 1)))
-    return evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, "box", index, "trials"))
+    return evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(0, "box", index, "trials"))
 
 
 def _box_far_edge(box):
@@ -231,7 +231,7 @@ def test_limited_forces_are_positive_and_below_the_limit_on_a_random_object():
 
     actions = explicit_actions(obj, pose.transform, transform_points(pose.transform, points), None)
     topple = replace(Config().topple, variant="corrected", n_trials=20, max_finger_force=1.5, recalibration_x=(), recalibration_y=(), down_map=())
-    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, obj.name, 0, "trials"))
+    table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(0, obj.name, 0, "trials"))
     forces = table.mean_force[np.isfinite(table.mean_force)]
     assert len(forces) > 0 and np.all(forces > 0) and np.all(forces <= 1.5)
 
@@ -271,13 +271,13 @@ def test_a_marginal_pose_falls_over_its_nearest_edge_whatever_the_push():
     actions = explicit_actions(obj, pose.transform, points, None)
     falls = replace(Config().topple, variant="corrected", corrections="stability_margin,finger_friction", n_trials=5,
                     recalibration_x=(), recalibration_y=(), down_map=())
-    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, falls, stream(0, "m", pose.index, "trials"))
+    table = evaluate_pose(obj, pose, pose_set.probabilities, actions, falls, stream(0, "m", pose.index, "trials"))
     landing = pose.edge_final_pose[edge]
     assert landing != pose.index
     np.testing.assert_array_equal(table.next_pose[:, landing], 1.0)
     np.testing.assert_array_equal(table.mean_force, 0.0)
     stands = replace(falls, min_stability_margin=4e-4)  # 0.5 mm is not marginal at 0.4 mm
-    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, stands, stream(0, "m", pose.index, "trials"))
+    table = evaluate_pose(obj, pose, pose_set.probabilities, actions, stands, stream(0, "m", pose.index, "trials"))
     assert table.p_topple[2] == 0.0  # pushed down onto the top, inside the base: it stays
 
 
@@ -326,7 +326,7 @@ def test_a_blocked_topple_rolls_on_to_the_far_side_with_rolling(elliptic_prism):
     for corrections, lands in [("finger_friction,force_limit,rolling", rolled), ("finger_friction,force_limit", index)]:
         # k mu_f = 0.245: with the whole Coulomb friction (0.98) this low push jams instead of tipping.
         topple = noise_free(corrections=corrections, finger_friction_scale=0.25)
-        table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, "e", index, "trials"))
+        table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(0, "e", index, "trials"))
         assert table.outcomes[0, 0] == edge, corrections
         assert table.next_pose[0, lands] == 1.0, corrections
     # The thesis's variants ignore every correction: their topples over an edge land as in 4.2.4.
@@ -435,7 +435,7 @@ def test_the_balance_on_the_way_only_removes_topples_and_stops_some():
     stopped = 0
     for pose in pose_set.poses[:4]:
         actions = pose_actions(points, normals, obj.mesh, collision, pose.transform, contacts)
-        tables = [evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(5, obj.name, pose.index, "trials"))
+        tables = [evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(5, obj.name, pose.index, "trials"))
                   for topple in (base, replace(base, corrections="finger_friction,force_limit,tip_path"))]
         start, path = (t.outcomes for t in tables)
         changed = start != path

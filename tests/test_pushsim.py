@@ -210,9 +210,9 @@ def test_the_upside_down_frustum_tips_in_physics_where_the_stuck_finger_says(dir
     topple = noise_free(corrections="finger_friction,force_limit,momentum,stuck_finger", stuck_finger_share=1.0)
     pose = pose_set.poses[index]
     actions = explicit_actions(obj, pose.transform, point[None], direction[None])
-    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, obj.name, index, "trials"))
+    table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(0, obj.name, index, "trials"))
     assert table.p_topple.tolist() == [1.0 if toppled else 0.0]
-    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, replace(topple, corrections="finger_friction,force_limit,momentum"),
+    table = evaluate_pose(obj, pose, pose_set.probabilities, actions, replace(topple, corrections="finger_friction,force_limit,momentum"),
                           stream(0, obj.name, index, "trials"))
     assert table.p_topple.tolist() == [0.0]
 

@@ -70,7 +70,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
     compared = agreed = toppled = capped = rolled = stuck = 0
     for pose in pose_set.poses:
         actions = pose_actions(points, normals, obj.mesh, mesh_collision, pose.transform, contacts)
-        table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(11, obj.name, pose.index, "trials"))
+        table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(11, obj.name, pose.index, "trials"))
         noise = sample_noise(stream(11, obj.name, pose.index, "trials"), len(actions.status), topple)
         scene = scene_from_pose(obj, pose, topple.gravity)
         # 25 actions per pose with noise; every ok action of a noise-free variant (one trial each).
@@ -129,7 +129,7 @@ def test_reference_required_force_matches_engine_on_box():
 
     actions = explicit_actions(obj, pose.transform, np.array([[0.025, 0.01, 0.1], [0.025, -0.02, 0.13]]), None)
     topple = replace(THESIS.topple, variant="rotations")  # the thesis's friction
-    table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, stream(0, "box", pose.index, "trials"))
+    table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(0, "box", pose.index, "trials"))
     noise = sample_noise(stream(0, "box", pose.index, "trials"), 2, topple)
     scene = scene_from_pose(obj, pose, topple.gravity)
     for action in range(2):

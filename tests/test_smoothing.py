@@ -45,7 +45,7 @@ def pose_and_candidates():
 
 def _evaluate(setup, topple, actions=None, candidates=None):
     obj, pose_set, pose, pool = setup
-    return evaluate_pose(obj, pose, len(pose_set.poses), pool if actions is None else actions, topple,
+    return evaluate_pose(obj, pose, pose_set.probabilities, pool if actions is None else actions, topple,
                          stream(3, obj.name, pose.index, "trials"), candidates=candidates)
 
 
@@ -188,7 +188,7 @@ def test_the_scorer_reads_a_logged_candidate_from_the_smoothed_candidate_set(box
         pool = scorer.pose_candidates(group)
         assert pool.candidates == len(pool.actions.status) and np.all(pool.index < pool.candidates), "all are candidates"
         obj = log.objects[group.object_id].model
-        table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, stream(2, obj.name, group.pose.index, "trials"))
+        table = evaluate_pose(obj, group.pose, log.objects[group.object_id].poses.probabilities, pool.actions, topple, stream(2, obj.name, group.pose.index, "trials"))
         assert np.allclose(predicted[:, :-1], table.next_pose[pool.index]) and np.all(predicted[:, -1] == 0)
         assert np.allclose(p_topple, table.p_topple[pool.index])
     # Made with another seed, the candidates are other points: every logged push is a probe.

@@ -125,8 +125,8 @@ def evaluate_object(
         tables = []
         for p, a in zip(poses, actions):
             with clock("topple"):
-                tables.append(evaluate_pose(obj, p, len(poses), a, config.topple, stream(config.seed, obj.name, p.index, "trials"),
-                                            drop_probabilities=pose_set.probabilities))
+                tables.append(evaluate_pose(obj, p, pose_set.probabilities, a, config.topple,
+                                            stream(config.seed, obj.name, p.index, "trials")))
     with _stage(timings, "suction"):
         suction = []
         for p in poses:
@@ -223,8 +223,7 @@ def evaluate(
     else:
         contacts, normals = object_contacts(obj, contact_config, seed)
         actions = pose_actions(contacts, normals, obj.mesh, collision_object(obj.mesh), stable.transform, contact_config)
-    table = evaluate_pose(obj, stable, len(poses.poses), actions, topple_config, stream(seed, obj.name, pose, "trials"),
-                          drop_probabilities=poses.probabilities)
+    table = evaluate_pose(obj, stable, poses.probabilities, actions, topple_config, stream(seed, obj.name, pose, "trials"))
     return PoseEvaluation(pose=pose, actions=actions, table=table)
 
 

@@ -665,29 +665,27 @@ def landed_poses(pose: StablePose, corrections: frozenset[str]) -> np.ndarray:
 def evaluate_pose(
     obj: ObjectModel,
     pose: StablePose,
-    n_poses: int,
+    drop_probabilities: np.ndarray,
     actions: Actions,
     config: ToppleConfig,
     rng: np.random.Generator,
     candidates: int | None = None,
-    drop_probabilities: np.ndarray | None = None,
 ) -> ToppleTable:
     """Transition table of every action of one pose.
 
-    obj : the object;  pose : one of its stable poses;  n_poses : size of its pose set
+    obj : the object;  pose : one of its stable poses
+    drop_probabilities : (P,) float, the drop probability of each pose of its pose set
+      (``PoseSet.probabilities``): P is the width of the rows; the probabilities themselves are
+      read only when ``config`` spreads landings (``landing_spread``, MODEL.md C.17)
     actions : candidate pushes of this pose;  rng : stream for this (object, pose)
     candidates : the first ``candidates`` actions are the pose's candidate set, the rest are
       probes (pushes someone asks about, such as logged ones).  Probes draw their noise after
       every candidate, so the candidates' rows are those of the candidate set alone, and with
       ``smoothing_radius`` a probe is smoothed over the candidates and itself, never over other
       probes (MODEL.md C.12).  Default: every action is a candidate.
-    drop_probabilities : (n_poses,) float, the pose set's drop probability of each pose; needed
-      only when ``config`` spreads landings (``landing_spread``, MODEL.md C.17)
     """
     spread = config.applied_landing_spread
-    if spread and (drop_probabilities is None or len(drop_probabilities) != n_poses):
-        raise ValueError("topple.landing_spread needs the pose set's drop probabilities, one per pose "
-                         f"({n_poses}); pass drop_probabilities")
+    n_poses = len(drop_probabilities)  # P
     n_actions, trials = len(actions.status), config.trials  # A, T
     n_candidates = n_actions if candidates is None else int(candidates)
     # Drawn once for all A actions, ok or not, before blocking: blocking never changes a draw.

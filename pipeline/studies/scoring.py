@@ -216,10 +216,9 @@ class Scorer:
         rng = stream(self.seed, obj.name, group.pose.index, "trials")
         if topple.needs_candidates or candidates:
             pool = self.pose_candidates(group)
-            table = evaluate_pose(obj, group.pose, group.n_poses, pool.actions, topple, rng, candidates=pool.candidates,
-                                  drop_probabilities=drop)
+            table = evaluate_pose(obj, group.pose, drop, pool.actions, topple, rng, candidates=pool.candidates)
             return table, pool.actions, pool.index
-        table = evaluate_pose(obj, group.pose, group.n_poses, group.actions, topple, rng, drop_probabilities=drop)
+        table = evaluate_pose(obj, group.pose, drop, group.actions, topple, rng)
         return table, group.actions, np.arange(len(group.rows))
 
     def pose_candidates(self, group: Group) -> CandidatesAndProbes:

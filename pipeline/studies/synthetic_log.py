@@ -85,8 +85,7 @@ def model_log(
             chosen = rng.choice(ok, size=min(pushes_per_pose, len(ok)), replace=False)
             actions = Actions(candidates.points[chosen], candidates.normals[chosen], candidates.directions[chosen],
                               np.full(len(chosen), STATUS_OK, dtype=np.int8))
-            table = evaluate_pose(obj, pose, len(pose_set.poses), actions, topple, np.random.default_rng([seed, push_id, 7]),
-                                  drop_probabilities=pose_set.probabilities)
+            table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, np.random.default_rng([seed, push_id, 7]))
             final_pose = np.append(pose.edge_final_pose, pose.index)[table.outcomes]  # -1 (no edge): stays
             to_object = np.linalg.inv(pose.transform)
             for a in range(len(chosen)):
