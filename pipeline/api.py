@@ -25,7 +25,7 @@ import numpy as np
 from clutter.policies import PushConfig, outside_bin, plan_push
 from clutter.state import Bin, HeapState, Push
 from schema import frames
-from schema.api import BIN_TOLERANCE
+from schema.api import BIN_TOLERANCE, MAX_SEED
 from schema.reader import Dataset
 
 from . import _PUBLIC
@@ -79,9 +79,12 @@ def plan_heap(object_ids: Sequence[str], poses, objects: Mapping[str, ObjectMode
 
     Returns a ``clutter.state.Push`` (world start and end of the finger's line, target index),
     or None when the policy finds no collision-free push.  ValueError for an unknown id or
-    policy, malformed poses, or an object more than ``schema.api.BIN_TOLERANCE`` past a wall
-    or below the floor.
+    policy, malformed poses, a seed that is no integer in [0, ``schema.api.MAX_SEED``] (the
+    service's range), or an object more than ``schema.api.BIN_TOLERANCE`` past a wall or below
+    the floor.
     """
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed must be an integer from 0 to {MAX_SEED}, got {seed!r}")
     ids = tuple(object_ids)
     state = HeapState(bin or Bin(), ids, np.asarray(poses, dtype=np.float64))
     if isinstance(objects, Mapping):

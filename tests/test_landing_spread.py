@@ -79,6 +79,9 @@ def test_the_engine_spreads_the_corrected_variant_s_landing(pose_and_candidates)
     unmapped = table(replace(base, down_map=()))
     born = (np.nan_to_num(unmapped.p_topple) == 0) & toppling
     assert born.sum() >= 3 and np.all(np.abs(spread.next_pose[born] - plain.next_pose[born]).max(axis=1) > 0)
+    # The rows are as wide as the pose set: probabilities of another (smaller) set are refused.
+    with pytest.raises(ValueError, match="drop_probabilities must be the pose set's"):
+        evaluate_pose(obj, pose, drop[:pose.index], actions, base, stream(3, obj.name, pose.index, "trials"))
     # The thesis's variants apply none, whatever the field says.
     thesis = replace(Config.from_toml(PRESETS / "thesis.toml").topple, n_trials=40, landing_spread=0.25)
     assert thesis.applied_landing_spread == 0.0

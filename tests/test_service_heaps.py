@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from clutter import footprints as fp
 from clutter.policies import POLICIES, PushConfig, plan_push
 from clutter.state import Bin, HeapState
-from schema.api import BIN_TOLERANCE, HeapBin, HeapPolicy, RosPose
+from schema.api import BIN_TOLERANCE, MAX_SEED, HeapBin, HeapPolicy, RosPose
 from tests.test_service import (  # noqa: F401 (fixtures)
     JSON,
     assert_malformed,
@@ -117,7 +117,7 @@ def test_quasi_random_follows_the_seed(client, store, tables):
     answers = [post(client, objects, "quasi_random", seed=s).json()["push"] for s in (3, 3, 4, 5, 6)]
     assert answers[0] == answers[1]
     assert len({json.dumps(a) for a in answers}) >= 3
-    assert post(client, objects, "quasi_random", seed=2**53 - 1).status_code == 200, "the largest seed is served"
+    assert post(client, objects, "quasi_random", seed=MAX_SEED).status_code == 200, "the largest seed is served"
 
 
 def quaternion(rotation: np.ndarray) -> dict:
@@ -219,7 +219,7 @@ MALFORMED = [
     (json.dumps({"objects": [ONE], "bin": {"width": 50}}), "body.bin.width: Input should be less than or equal to 5"),
     (json.dumps({"objects": [ONE], "bin": {"depth": 0.2}}), "body.bin.depth: Extra inputs"),
     (json.dumps({"objects": [ONE], "seed": -1}), "body.seed: Input should be greater than or equal to 0"),
-    (json.dumps({"objects": [ONE], "seed": 2**53}), "body.seed: Input should be less than or equal to 9007199254740991"),
+    (json.dumps({"objects": [ONE], "seed": MAX_SEED + 1}), f"body.seed: Input should be less than or equal to {MAX_SEED}"),
     (json.dumps({"objects": [ONE], "seed": "7"}), "body.seed: Input should be a valid integer"),
     (json.dumps({"objects": [ONE], "seed": 1.5}), "body.seed"),
     (json.dumps({"objects": [{"object_id": "random_001", "ros_pose": {"position": {"x": 0, "y": 0, "z": 0},
@@ -240,7 +240,8 @@ def test_openapi_documents_the_heap_planner(client):
     assert {"200", "404", "409", "422"} <= set(operation["responses"])
     # The seed's bound is written as a float: it must be one a float holds exactly, so the document
     # and the service refuse the same seeds (a bound of 2**63 - 1 read back as 2**63).
-    assert int(document["components"]["schemas"]["HeapPlanRequest"]["properties"]["seed"]["maximum"]) == 2**53 - 1
+    maximum = document["components"]["schemas"]["HeapPlanRequest"]["properties"]["seed"]["maximum"]
+    assert maximum == MAX_SEED and int(maximum) == MAX_SEED and float(MAX_SEED) == MAX_SEED
 
 
 # --- the Python API gives the service's push -------------------------------------------------
@@ -270,3 +271,6 @@ def test_plan_heap_refuses_what_the_service_refuses(dataset, store, tables):
         toppledb.plan_heap(["random_000", "random_001"], poses, dataset)
     with pytest.raises(ValueError, match="unknown push policy"):
         toppledb.plan_heap(["random_000"], poses[:1], dataset, "shove")
+    for seed in (-1, MAX_SEED + 1, 1.5, True):  # the service's 422s
+        with pytest.raises(ValueError, match=f"seed must be an integer from 0 to {MAX_SEED}"):
+            toppledb.plan_heap(["random_000"], poses[:1], dataset, "quasi_random", seed=seed)

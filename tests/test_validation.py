@@ -1,6 +1,7 @@
 """The validation report: metrics on hand-made cases, the log reader's per-row checks, the report end to end."""
 
 import json
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -12,7 +13,7 @@ from shapes import THESIS
 
 from pipeline.build.atomic import file_sha256
 from pipeline.model.config import VARIANTS, Config
-from pipeline.studies.logreader import OUTSIDE, LogError, PushLog, read_log
+from pipeline.studies.logreader import OUTSIDE, LogError, PushLog, logs_under, read_log
 from pipeline.studies.scoring import Scorer, Scores, brier_floor, brier_score, sup_tv, topple_spread
 from pipeline.studies.synthetic_log import planar
 from pipeline.studies.validation import (
@@ -304,10 +305,40 @@ def test_two_logs_that_use_the_same_push_id_keep_each_push_and_its_repeats(box_f
     both = read_log([tmp_path / "a", tmp_path / "c"], Config())
     assert [(p.log, len(p.outcomes)) for p in both.pushes] == [(0, 3)]
     assert both.rejected == {"the same row (push, repeat, start, point, direction, final) as in an earlier log": 3}
-    # A directory of several logs (as data/logs is) is read as those logs, in path order, not as one.
+    # A directory of several logs (as data/logs is) is read as those logs, in name order, not as one.
     parent = read_log([tmp_path], Config())
     assert [(p.log, p.push_id, len(p.outcomes)) for p in parent.pushes] == [(0, 0, 3), (1, 0, 2)]
     assert parent.rejected == both.rejected and parent.rows_used == 5
+    assert parent.logs == [str(tmp_path / name) for name in ("a", "b", "c")]
+
+
+def test_which_files_make_one_log(tmp_path):
+    """A file is a log, and so is a directory with files of its own, with every file under it (a log
+    kept by session); a directory with none of its own is its subdirectories' logs, in name order,
+    hidden and writer's ("_") directories and files left out."""
+    def touch(*parts):
+        path = tmp_path.joinpath(*parts)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"")
+        return path
+
+    one = touch("single.parquet")
+    assert logs_under(one) == [(one, [one])]
+    # A log with its own files and a session subdirectory is one log, its repeats kept together.
+    own, session = touch("mylog", "a.parquet"), touch("mylog", "day2", "b.parquet")
+    touch("mylog", "_play.json")
+    assert logs_under(tmp_path / "mylog") == [(tmp_path / "mylog", [own, session])]
+    # A directory of logs: one log per subdirectory, each with every file under it.
+    b, c = touch("logs", "b", "x.parquet"), touch("logs", "b", "day1", "y.parquet")
+    a = touch("logs", "a", "z.parquet")
+    touch("logs", ".old_a", "z.parquet")
+    touch("logs", "_tmp", "w.parquet")
+    touch("logs", "b", "_part.parquet")
+    (tmp_path / "logs" / "empty").mkdir()
+    assert logs_under(tmp_path / "logs") == [(tmp_path / "logs" / "a", [a]), (tmp_path / "logs" / "b", [c, b])]
+    (tmp_path / "none" / "sub").mkdir(parents=True)
+    with pytest.raises(LogError, match="no .parquet files"):
+        logs_under(tmp_path / "none")
 
 
 def test_a_replay_of_two_logs_is_matched_log_by_log(box_file, box_poses, tmp_path):
@@ -325,6 +356,8 @@ def test_a_replay_of_two_logs_is_matched_log_by_log(box_file, box_poses, tmp_pat
     assert replayed.p_topple == pytest.approx([0.5, 0.0]), "each push predicted by its own replay"
     with pytest.raises(LogError, match="is another push in the replay"):
         scorer.replay(read_log([tmp_path / "rb", tmp_path / "ra"], Config()))
+    with pytest.raises(LogError, match=re.escape(f"log {tmp_path / 'b'})")):  # a replay of the first log only names the other
+        scorer.replay(read_log([tmp_path / "ra"], Config()))
 
 
 def test_rows_pushed_with_another_stroke_are_rejected_when_the_model_reads_the_stroke(box_file, box_poses, tmp_path):

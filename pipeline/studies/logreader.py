@@ -6,11 +6,11 @@ poses with the same ``config.poses`` the dataset uses, matches the observed star
 transform to a stable pose (``schema.frames.match_pose``'s rule, vectorised) and settles
 the observed final transform into one (``pipeline.model.poses.settle``'s rule; a rest pose
 outside the pose set is its own bucket).  Repeats of one push (same object and ``push_id``)
-become one empirical next-pose distribution.  Push ids are unique within one log (one of
-``paths``: a log's directory, or a file), not across logs: the same id in two logs is two
-pushes (``Push.log``), unless they are the very same rows (a log that is part of another),
-which are read once.  A directory that holds several logs (subdirectories of Parquet files, such as
-``data/logs``) is read as those logs, one per directory that holds files.
+become one empirical next-pose distribution.  Push ids are unique within one log (a file, or a
+directory and every Parquet file under it), not across logs: the same id in two logs is two pushes
+(``Push.log``), unless they are the very same rows (a log that is part of another), which are read
+once.  A directory that holds no Parquet file of its own but directories that do (``data/logs``) is
+read as those logs, one per subdirectory (``logs_under``).
 
 Nothing is dropped silently and nothing crashes: every row that cannot be used is
 counted under a one-line reason (``PushLog.rejected``), with the first few rows of
@@ -91,8 +91,8 @@ class Push:
     object_id, push_id : identifiers;  pose : start pose index
     point, direction : (3,) float, pose frame (m, unit)
     outcomes : (R,) int, final pose of each repeat (``OUTSIDE`` when not in the pose set)
-    log : which log the push was read from, numbered in the order of ``read_log``'s paths, each
-      directory of a path that holds several logs counting as one (push ids are unique only within one)
+    log : which log the push was read from, an index into ``PushLog.logs`` (push ids are unique only
+      within one)
     """
 
     object_id: str
@@ -125,7 +125,8 @@ class PushLog:
     objects : object id -> ``LoggedObject`` (only objects with at least one usable row)
     pushes : usable pushes, sorted by (object, pose, log, push_id)
     rejected : reason -> rows;  examples : reason -> [(file, row, object_id, push_id), ...]
-    rows : rows read in all
+    rows : rows read in all;  files : the files read
+    logs : the logs read, each a file or directory (``logs_under``), in ``Push.log``'s numbering
     """
 
     objects: dict[str, LoggedObject]
@@ -134,6 +135,7 @@ class PushLog:
     examples: dict[str, list[tuple[str, int, str, int]]] = field(default_factory=dict)
     rows: int = 0
     files: list[str] = field(default_factory=list)
+    logs: list[str] = field(default_factory=list)
 
     @property
     def rows_used(self) -> int:
@@ -164,6 +166,7 @@ class PushLog:
             self.examples,
             self.rows,
             self.files,
+            self.logs,
         )
 
 
@@ -176,8 +179,7 @@ def log_files(paths: list[str | Path]) -> list[Path]:
     files: list[Path] = []
     for path in map(Path, paths):
         if path.is_dir():
-            # Names starting with "_" or "." are the writer's own (run records, temporaries).
-            found = sorted(p for p in path.rglob("*.parquet") if p.is_file() and not p.name.startswith(("_", ".")))
+            found = _files_under(path)
             if not found:
                 raise LogError(f"no .parquet files under {path}")
             files += found
@@ -188,13 +190,31 @@ def log_files(paths: list[str | Path]) -> list[Path]:
     return files
 
 
-def logs_under(path: str | Path) -> list[list[Path]]:
-    """The logs ``path`` names, each a list of its Parquet files (``log_files``): a file is one
-    log, and so is each directory under ``path`` that holds files, in path order."""
-    by_directory: dict[Path, list[Path]] = {}
-    for file in log_files([path]):
-        by_directory.setdefault(file.parent, []).append(file)
-    return [by_directory[directory] for directory in sorted(by_directory)]
+def logs_under(path: str | Path) -> list[tuple[Path, list[Path]]]:
+    """The logs ``path`` names, each (its file or directory, its Parquet files per ``log_files``).
+
+    A file is one log, and so is a directory with Parquet files of its own, with every file under
+    it.  A directory with none of its own but subdirectories that hold them (``data/logs``) is its
+    subdirectories' logs, one each with every file under it, in name order; subdirectories whose
+    names start with "_" or "." are skipped, as such files are.
+    """
+    path = Path(path)
+    if not path.is_dir() or any(_is_log_file(p) for p in path.glob("*.parquet")):
+        return [(path, log_files([path]))]
+    children = sorted(p for p in path.iterdir() if p.is_dir() and not p.name.startswith(("_", ".")))
+    logs = [(child, files) for child in children if (files := _files_under(child))]
+    if not logs:
+        raise LogError(f"no .parquet files under {path}")
+    return logs
+
+
+def _is_log_file(path: Path) -> bool:
+    """A Parquet file of a log: not one of the writer's own ("_" or "." names, run records and temporaries)."""
+    return path.is_file() and not path.name.startswith(("_", "."))
+
+
+def _files_under(directory: Path) -> list[Path]:
+    return sorted(p for p in directory.rglob("*.parquet") if _is_log_file(p))
 
 
 def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
@@ -254,7 +274,7 @@ def read_log(
 ) -> PushLog:
     """Read push logs and match every row to the model's stable poses.
 
-    paths : Parquet files or directories of them
+    paths : logs: Parquet files, directories of them, or directories of such directories (``logs_under``)
     config : ``config.mesh`` loads the meshes, ``config.poses`` gives the stable poses
     corpus : when given, each object is looked up in it (``LoggedObject.in_corpus``);
       ``corpus_only`` rejects rows of objects outside it (calibration), ``exclude_corpus``
@@ -262,7 +282,8 @@ def read_log(
     Raises ``LogError`` only when a file cannot be read as a push log at all.
     """
     # Push ids are unique within one log: a directory of several logs is read as those logs.
-    per_log = [found for path in paths for found in logs_under(path)]
+    logs = [log for path in paths for log in logs_under(path)]
+    per_log = [found for _, found in logs]
     files = [file for found in per_log for file in found]
     twice = [file for file, count in Counter(f.resolve() for f in files).items() if count > 1]
     if twice:
@@ -412,6 +433,7 @@ def read_log(
         examples=rejections.examples,
         rows=n,
         files=[str(f) for f in files],
+        logs=[str(name) for name, _ in logs],
     )
 
 

@@ -287,8 +287,10 @@ class Scorer:
         replayed = {p.key: p for p in replay.pushes}
         missing = [p for p in self.log.pushes if p.key not in replayed]
         if missing:
+            first = missing[0]
+            log = self.log.logs[first.log] if first.log < len(self.log.logs) else f"number {first.log + 1}"
             raise LogError(f"the replay has no usable rows for {len(missing)} of the log's {len(self)} pushes "
-                           f"(first: object {missing[0].object_id}, push_id {missing[0].push_id}, log {missing[0].log + 1}); "
+                           f"(first: object {first.object_id}, push_id {first.push_id}, log {log}); "
                            "replay the same objects and pushes, one replay per log in the logs' order")
         for push in self.log.pushes:
             twin = replayed[push.key]
