@@ -334,6 +334,7 @@ def test_which_files_make_one_log(tmp_path):
     touch("logs", ".old_a", "z.parquet")
     touch("logs", "_tmp", "w.parquet")
     touch("logs", "b", "_part.parquet")
+    touch("logs", "b", ".temp.parquet")
     (tmp_path / "logs" / "empty").mkdir()
     assert logs_under(tmp_path / "logs") == [(tmp_path / "logs" / "a", [a]), (tmp_path / "logs" / "b", [c, b])]
     (tmp_path / "none" / "sub").mkdir(parents=True)
