@@ -244,7 +244,7 @@ def test_the_scorer_reads_what_the_engine_maps(model_logs):  # noqa: F811
     for group in scorer.groups:
         obj = log.objects[group.object_id].model
         pool = scorer.pose_candidates(group)
-        table = evaluate_pose(obj, group.pose, log.objects[group.object_id].poses.probabilities, pool.actions, topple.without_recalibration(),
+        table = evaluate_pose(obj, group.pose, group.drop_probabilities, pool.actions, topple.without_recalibration(),
                               stream(2, obj.name, group.pose.index, "trials"), candidates=pool.candidates)
         com = transform_points(group.pose.transform, obj.center_mass[None])[0]  # the pose frame's, not the mesh's
         expected = down_features(table.p_topple, pool.actions.points, pool.actions.normals, pool.actions.directions,

@@ -211,7 +211,7 @@ def test_the_scorer_gives_features_of_logged_candidates_and_the_fit_is_written(m
     for group, (_, p_topple) in zip(scorer.groups, predictions):
         pool = scorer.pose_candidates(group)
         obj = log.objects[group.object_id].model
-        table = evaluate_pose(obj, group.pose, log.objects[group.object_id].poses.probabilities, pool.actions, mapped, stream(2, obj.name, group.pose.index, "trials"))
+        table = evaluate_pose(obj, group.pose, group.drop_probabilities, pool.actions, mapped, stream(2, obj.name, group.pose.index, "trials"))
         assert np.allclose(p_topple, table.p_topple[pool.index])
     out, record = tmp_path / "fm.toml", tmp_path / "fm.json"
     code = main([str(path), str(path), "--features", "--corpus", "none", "--folds", "3", "--set", "contacts.n_contacts="

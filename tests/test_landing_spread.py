@@ -109,7 +109,7 @@ def test_the_scorer_spreads_the_landing_it_predicts(model_logs):  # noqa: F811
     spread = scorer.predict(replace(config.topple, landing_spread=0.3, landing_spread_poses=2))
     moved = 0
     for group, (rows, p), (spread_rows, spread_p) in zip(scorer.groups, plain, spread):
-        prior = landing_prior(log.objects[group.object_id].poses.probabilities, group.pose.index, 2)
+        prior = landing_prior(group.drop_probabilities, group.pose.index, 2)
         expected = spread_landings(rows[:, :-1], group.pose.index, prior, 0.3)
         assert np.allclose(spread_rows[:, :-1], expected) and np.array_equal(spread_p, p)
         moved += int(np.any(~np.isclose(spread_rows, rows)))

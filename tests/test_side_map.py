@@ -202,7 +202,7 @@ def test_the_scorer_reads_what_the_engine_maps_and_recalibrate_side_fits_it(mode
     for group in scorer.groups:
         obj = log.objects[group.object_id].model
         pool = scorer.pose_candidates(group)
-        table = evaluate_pose(obj, group.pose, log.objects[group.object_id].poses.probabilities, pool.actions, replace(config.topple, side_map=()),
+        table = evaluate_pose(obj, group.pose, group.drop_probabilities, pool.actions, replace(config.topple, side_map=()),
                               stream(2, obj.name, group.pose.index, "trials"), candidates=pool.candidates)
         com = transform_points(group.pose.transform, obj.center_mass[None])[0]
         expected = side_features(table.p_topple, pool.actions.points, pool.actions.directions, edge_geometry(group.pose.base_edges, com))

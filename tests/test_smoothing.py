@@ -188,7 +188,7 @@ def test_the_scorer_reads_a_logged_candidate_from_the_smoothed_candidate_set(box
         pool = scorer.pose_candidates(group)
         assert pool.candidates == len(pool.actions.status) and np.all(pool.index < pool.candidates), "all are candidates"
         obj = log.objects[group.object_id].model
-        table = evaluate_pose(obj, group.pose, log.objects[group.object_id].poses.probabilities, pool.actions, topple, stream(2, obj.name, group.pose.index, "trials"))
+        table = evaluate_pose(obj, group.pose, group.drop_probabilities, pool.actions, topple, stream(2, obj.name, group.pose.index, "trials"))
         assert np.allclose(predicted[:, :-1], table.next_pose[pool.index]) and np.all(predicted[:, -1] == 0)
         assert np.allclose(p_topple, table.p_topple[pool.index])
     # Made with another seed, the candidates are other points: every logged push is a probe.

@@ -44,16 +44,22 @@ from .logreader import SAME_PUSH_TOLERANCE, LogError, Push, PushLog
 class Group:
     """The pushes of one (object, start pose): what the engine needs, built once.
 
-    rows : (n,) int, positions of these pushes in ``PushLog.pushes``
+    drop_probabilities : (P,) float, the object's pose set's (``PoseSet.probabilities``), what
+      ``evaluate_pose`` takes;  rows : (n,) int, positions of these pushes in ``PushLog.pushes``
     empirical : (n, P + 1) float, observed next-pose frequencies (last: outside the pose set)
     """
 
     object_id: str
     pose: StablePose
-    n_poses: int
+    drop_probabilities: np.ndarray
     actions: Actions
     rows: np.ndarray
     empirical: np.ndarray
+
+    @property
+    def n_poses(self) -> int:
+        """P, the size of the object's pose set."""
+        return len(self.drop_probabilities)
 
 
 @dataclass
@@ -118,7 +124,7 @@ class Scorer:
                 Group(
                     object_id=object_id,
                     pose=pose,
-                    n_poses=n_poses,
+                    drop_probabilities=logged.poses.probabilities,
                     actions=explicit_actions(logged.model, pose.transform, points, directions),
                     rows=np.array(rows),
                     empirical=np.array([p.empirical(n_poses) for p in pushes]),
@@ -211,8 +217,7 @@ class Scorer:
         """``group``'s table: over its pose's candidates and its probes when the model needs them
         (``ToppleConfig.needs_candidates``) or ``candidates`` asks, else over its pushes alone.
         returns : the table, its actions, and (pushes,) int, the row that predicts each push"""
-        logged = self.log.objects[group.object_id]
-        obj, drop = logged.model, logged.poses.probabilities
+        obj, drop = self.log.objects[group.object_id].model, group.drop_probabilities
         rng = stream(self.seed, obj.name, group.pose.index, "trials")
         if topple.needs_candidates or candidates:
             pool = self.pose_candidates(group)
