@@ -49,16 +49,11 @@ logs: venv
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --out data/logs/heldout $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects corpus --out data/logs/corpus_all $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects corpus --actions 8 --seed 1 --out data/logs/corpus_s1 $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 100 --out data/logs/heldout_b $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 150 --out data/logs/heldout_c $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 200 --out data/logs/heldout_d $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 250 --out data/logs/heldout_e $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 300 --out data/logs/heldout_f $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 350 --out data/logs/heldout_g $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 400 --out data/logs/heldout_h $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 450 --out data/logs/heldout_i $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 500 --out data/logs/heldout_j $(ARGS)
-	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip 550 --out data/logs/heldout_k $(ARGS)
+	@# heldout_b to _k: held-out objects 101-600, fifty to a log, each judged by one candidate at most.
+	skip=100; for log in b c d e f g h i j k; do \
+		$(PY) -m pipeline play --config thesis --objects heldout --count 50 --skip $$skip --out data/logs/heldout_$$log $(ARGS) || exit 1; \
+		skip=$$((skip + 50)); \
+	done
 	$(PY) -m pipeline play --config thesis --objects corpus --count 42 --repeats 40 --noise-draws 1 --out data/logs/corpus_replay $(ARGS)
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --repeats 40 --noise-draws 1 --out data/logs/heldout_replay $(ARGS)
 

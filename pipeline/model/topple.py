@@ -697,7 +697,7 @@ def evaluate_pose(
     center_mass = transform_points(pose.transform, obj.center_mass[None])[0]  # (3,), pose frame
     edges = edge_geometry(pose.base_edges, center_mass)  # (E, ...) fields
     final_pose = np.append(landed_poses(pose, config.applied_corrections), pose.index)  # (E + 1,); -1: stays
-    if np.ndim(drop_probabilities) != 1 or max(pose.index, final_pose.max()) >= n_poses:
+    if np.ndim(drop_probabilities) != 1 or final_pose.max() >= n_poses:  # final_pose ends with pose.index
         # A row's width is the pose set's size: another set's probabilities would spill a topple into the next row.
         raise ValueError(f"drop_probabilities must be the pose set's, one per pose: pose {pose.index} lands in poses up to "
                          f"{final_pose.max()}, and {np.shape(drop_probabilities)} probabilities were given")

@@ -137,6 +137,10 @@ class PushLog:
     files: list[str] = field(default_factory=list)
     logs: list[str] = field(default_factory=list)
 
+    def log_name(self, number: int) -> str:
+        """How to name log ``number`` (``Push.log``) to a user: its file or directory, when known."""
+        return self.logs[number] if number < len(self.logs) else f"number {number + 1}"
+
     @property
     def rows_used(self) -> int:
         return int(sum(len(p.outcomes) for p in self.pushes))

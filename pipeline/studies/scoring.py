@@ -119,12 +119,13 @@ class Scorer:
             pushes = [log.pushes[r] for r in rows]
             points = np.array([p.point for p in pushes])
             directions = np.array([p.direction for p in pushes])
-            n_poses = len(logged.poses.poses)
+            drop = logged.poses.probabilities
+            n_poses = len(drop)
             self.groups.append(
                 Group(
                     object_id=object_id,
                     pose=pose,
-                    drop_probabilities=logged.poses.probabilities,
+                    drop_probabilities=drop,
                     actions=explicit_actions(logged.model, pose.transform, points, directions),
                     rows=np.array(rows),
                     empirical=np.array([p.empirical(n_poses) for p in pushes]),
@@ -293,9 +294,8 @@ class Scorer:
         missing = [p for p in self.log.pushes if p.key not in replayed]
         if missing:
             first = missing[0]
-            log = self.log.logs[first.log] if first.log < len(self.log.logs) else f"number {first.log + 1}"
             raise LogError(f"the replay has no usable rows for {len(missing)} of the log's {len(self)} pushes "
-                           f"(first: object {first.object_id}, push_id {first.push_id}, log {log}); "
+                           f"(first: object {first.object_id}, push_id {first.push_id}, log {self.log.log_name(first.log)}); "
                            "replay the same objects and pushes, one replay per log in the logs' order")
         for push in self.log.pushes:
             twin = replayed[push.key]
