@@ -78,10 +78,10 @@ BELIEF_HORIZON_POLICY = "belief_horizon_vi"
 Q0_h in a fresh pose, Q1_h over the pushes no failure ruled out after one, h the pushes left."""
 CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY,
                BELIEF_POLICY, BELIEF_HORIZON_POLICY)
+"""The policies each compared with value iteration, paired."""
 REPORTS_FAILURES = (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY)
 """The policies played as a client that tells /plan its failed pushes: where a push of the trial
 has failed they choose among the candidates no failure ruled out (``after_failure_choice``)."""
-"""The policies each compared with value iteration, paired."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
 """Policies the study plays (common random numbers: adding one changes no other's pushes)."""
 
@@ -337,11 +337,12 @@ class Push:
 
 
 def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], config: Config, seed: int, max_pushes: int,
-                world: Config | None) -> tuple[str, dict, list[Push]]:
-    """Play the compared policies from each (trial, start) of one object (runs in a worker).
+                world: Config | None, policies: tuple[str, ...] = COMPARED) -> tuple[str, dict, list[Push]]:
+    """Play ``policies`` (each one of ``plan.actions``) from each (trial, start) of one object (runs in a worker).
 
     The noise of push k of a trial is the k-th draw of the stream ``policies-physics`` uses,
-    shared by all policies (common random numbers).
+    shared by all policies (common random numbers).  An action table of shape (pushes, P) is a
+    budget's: row k is played with ``pushes - k`` pushes left.
     returns : (object id, {trial: {policy: visited poses}} or {"failure": reason}, pushes)
     """
     from ..model.evaluation import load_object
@@ -357,14 +358,14 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
     if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms, atol=1e-6):
         return spec.object_id, {"failure": "its stable poses differ from the dataset's"}, []
     body = body_model(obj)
-    candidates, scores, exclusion = extra["candidates"], extra["scores"], extra["exclusion"]
+    candidates, scores = extra["candidates"], extra["scores"]
     results: dict[int, dict[str, list[int]]] = {}
     pushes: list[Push] = []
     for trial, start in trials:
         rng = stream(seed, f"{spec.object_id}/trial/{trial}", start, PURPOSE)
         noises = [draw_noise(world or config, rng, noise=True) for _ in range(max_pushes)]
         results[trial] = {}
-        for policy in COMPARED:
+        for policy in policies:
             poses = [start]
             pose, transform = start, plan.transforms[start]
             choice = plan.actions[policy]
@@ -391,7 +392,8 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                     break
                 if policy in REPORTS_FAILURES and after == pose:
                     # What /plan's failed_actions rules out (schema.retry), the same rule.
-                    ruled_out = retry.ruled_out(c.points, c.directions, [action], exclusion.radius, exclusion.max_angle)
+                    ruled_out = retry.ruled_out(c.points, c.directions, [action], extra["exclusion"].radius,
+                                                extra["exclusion"].max_angle)
                     failed[pose] = failed.get(pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
                 pose, transform = after, played.final_transform
             results[trial][policy] = poses
@@ -474,17 +476,29 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     return report, pushes
 
 
-def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dict:
-    """Per policy: V_s gain on useful trials, paired gain over max_height (and never push), topple rates."""
+def trial_gains(tables, starts: np.ndarray, runs: dict, policies: tuple[str, ...]) -> tuple[np.ndarray, dict, np.ndarray, int]:
+    """Each policy's V_s gain per trial, over the trials no policy left outside the pose set.
+
+    runs : {trial: {policy: visited poses}}
+    returns : kept trials (T,) int;  gains : policy -> (T,) float, V_s at the end minus at the
+      start;  useful : (T,) bool, the start is not its object's best pose and greedy would push;
+      how many trials were left out
+    """
     played = np.array(sorted(runs), dtype=np.int64)
     outside = np.array([any(r[-1] < 0 for r in runs[t].values()) for t in played], dtype=bool)
     kept = played[~outside]
     rows = starts[kept]
     first = tables.first_pose[np.searchsorted(tables.first_pose, rows, side="right") - 1]
     useful = (tables.v_s[rows] < best_pose_value(tables)[rows]) & (tables.actions["greedy"][rows] != NO_OP)
-    gains = {p: tables.v_s[first + np.array([runs[t][p][-1] for t in kept], dtype=np.int64)] - tables.v_s[rows] for p in COMPARED}
+    gains = {p: tables.v_s[first + np.array([runs[t][p][-1] for t in kept], dtype=np.int64)] - tables.v_s[rows] for p in policies}
+    return kept, gains, useful, int(outside.sum())
+
+
+def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dict:
+    """Per policy: V_s gain on useful trials, paired gain over max_height (and never push), topple rates."""
+    kept, gains, useful, outside = trial_gains(tables, starts, runs, COMPARED)
     gains["never_push"] = np.zeros(len(kept))
-    report = {"played_trials": len(played), "outside_trials": int(outside.sum()), "useful_trials": int(useful.sum()), "policies": {}}
+    report = {"played_trials": len(runs), "outside_trials": outside, "useful_trials": int(useful.sum()), "policies": {}}
     for policy, gain in gains.items():
         mine = [p for p in pushes if p.policy == policy and p.trial in set(kept.tolist())]
         gain_mean, gain_se = _mean_se(gain[useful])

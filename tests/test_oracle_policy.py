@@ -1,0 +1,95 @@
+"""The oracle budget study: its candidates, its physics rows, and its budgets against the model's."""
+
+import numpy as np
+import pytest
+
+from pipeline.studies.oracle_policy import estimated_topple, landing_row, restricted_budgets, top_pushes
+from pipeline.studies.robust_policy import horizon_actions
+from schema.vocabulary import NO_OP
+from tests.test_policies_physics import dataset  # noqa: F401 (fixture)
+
+
+def test_top_pushes_are_the_choosable_ok_pushes_of_highest_q_best_first():
+    q = np.array([0.5, np.nan, 0.9, 0.7, 0.95, 0.7])
+    choosable = np.array([True, True, True, True, False, True])
+    assert top_pushes(q, choosable, 3).tolist() == [2, 3, 5]  # 4 is not choosable, 1 not ok; the tie goes to 3
+    assert top_pushes(q, choosable, 10).tolist() == [2, 3, 5, 0]
+    assert top_pushes(q, ~choosable | np.isnan(q), 2).tolist() == [4]
+
+
+def test_landing_row_counts_outside_as_staying_and_sums_to_one():
+    row = landing_row(np.array([2, 2, 0, -1, 1, 2, 2, 2]), pose=1, n_poses=4)
+    assert row.tolist() == [1 / 8, 2 / 8, 5 / 8, 0.0]
+    # The estimate's P(topple) is the same reading: everything but staying (or leaving the set).
+    assert estimated_topple(np.array([2, 2, 0, -1, 1, 2, 2, 2]), 1) == pytest.approx(1 - row[1])
+
+
+def two_pose_world():
+    """Pose 0 (V_s 0.2) has three pushes towards pose 1 (V_s 0.9); pose 1 has one push back.
+
+    The model ranks push 0 first (0.8), push 1 second (0.5), push 2 third (0.3); physics
+    topples push 0 once in four and push 1 and push 2 every time."""
+    v_s = np.array([0.2, 0.9])
+    rows = [np.array([[0.2, 0.8], [0.5, 0.5], [0.7, 0.3]]), np.array([[1.0, 0.0]])]
+    choosable = [np.ones(3, dtype=bool), np.ones(1, dtype=bool)]
+    landed = {0: {0: np.array([0, 0, 1, 0]), 1: np.array([1, 1, 1, 1]), 2: np.array([1, 1, 1, 1])}}
+    return v_s, rows, choosable, landed
+
+
+def test_the_oracle_takes_the_push_physics_topples_and_the_model_budget_the_push_it_believes():
+    v_s, rows, choosable, landed = two_pose_world()
+    starts = {0: (top_pushes(np.array([0.8, 0.5, 0.3]), choosable[0], 3), np.zeros(0, dtype=np.int64))}
+    # One push left (with two, push 0 and then the sure push 1 would be worth as much as push 1 now).
+    tables = restricted_budgets(v_s, rows, choosable, starts, landed, (1, 2), max_pushes=1)
+    assert tables["candidates_1"][0, 0] == tables["candidates_2"][0, 0] == 0  # the model's favourite
+    assert tables["oracle_1"][0, 0] == 0  # the only candidate it knows
+    assert tables["oracle_2"][0, 0] == 1  # knows push 1 topples every time; push 2 is not a candidate
+    for name, table in tables.items():  # the best pose: grasp
+        assert table[0, 1] == NO_OP, name
+
+
+def test_always_pushes_are_candidates_whatever_k():
+    v_s, rows, choosable, landed = two_pose_world()
+    starts = {0: (np.array([0]), np.array([2]))}  # only the top push is ranked; push 2 is always there
+    tables = restricted_budgets(v_s, rows, choosable, starts, landed, (1,), max_pushes=1)
+    assert tables["candidates_1"][0, 0] == 0 and tables["oracle_1"][0, 0] == 2
+
+
+def test_with_every_push_a_candidate_and_physics_agreeing_both_are_the_unrestricted_budget():
+    v_s, rows, choosable, _ = two_pose_world()
+    # Four plays that land as the model says (0.5 / 0.5 is exact; 0.8 and 0.3 are not, so give
+    # the model rows four-play fractions).
+    rows = [np.array([[0.25, 0.75], [0.5, 0.5], [0.75, 0.25]]), np.array([[1.0, 0.0]])]
+    landed = {0: {0: np.array([0, 1, 1, 1]), 1: np.array([0, 0, 1, 1]), 2: np.array([0, 0, 0, 1])}}
+    starts = {0: (top_pushes(np.array([0.8, 0.5, 0.3]), choosable[0], 3), np.zeros(0, dtype=np.int64))}
+    tables = restricted_budgets(v_s, rows, choosable, starts, landed, (3,), max_pushes=3)
+    free = horizon_actions(v_s, rows, 3, choosable)
+    assert np.array_equal(tables["candidates_3"], free) and np.array_equal(tables["oracle_3"], free)
+
+
+def test_a_small_run_reproduces_the_experiments_policies_and_keeps_the_oracle_to_its_candidates(dataset):  # noqa: F811
+    from pipeline.studies import policies_physics
+    from pipeline.studies.oracle_policy import experiment
+
+    report, pushes, landed = experiment(dataset, 8, seed=1, repeats=2, ks=(1, 2), workers=1)
+    assert not report["failed_objects"] and report["useful_trials"] > 0
+    assert report["estimate_plays"] > 0 and report["estimate_plays"] % 2 == 0
+    reference = policies_physics.experiment(dataset, 8, seed=1, workers=1)
+    for policy in ("max_height", "value_iteration"):  # common random numbers: the same pushes, the same outcomes
+        assert report["policies"][policy]["physical_gain_useful"] == pytest.approx(
+            reference["policies"][policy]["physical_gain_useful"])
+    assert {p.policy for p in pushes} <= set(report["policies"])
+    # At an estimated start pose the restricted budgets push only candidates, at most k of them
+    # beyond the pushes always there (Max-Height's, value iteration's, the budget's first).
+    for k in (1, 2):
+        for kind in ("candidates", "oracle"):
+            at_starts = [p for p in pushes if p.policy == f"{kind}_{k}" and p.pose in landed[p.object_id]]
+            assert at_starts and all(p.action in landed[p.object_id][p.pose] for p in at_starts)
+            assert report["policies"][f"{kind}_{k}"]["estimated_pushes"] == len(at_starts)
+    assert all(len(actions) <= 2 + 3 for poses in landed.values() for actions in poses.values())
+    assert all(len(plays) == 2 for poses in landed.values() for actions in poses.values() for plays in actions.values())
+    again, _, landed_again = experiment(dataset, 8, seed=1, repeats=2, ks=(1, 2), workers=2)
+    for policy, r in report["policies"].items():  # the estimate's own stream: the same for any worker count
+        assert again["policies"][policy] == r, policy
+    assert {o: {p: {a: v.tolist() for a, v in x.items()} for p, x in poses.items()} for o, poses in landed.items()} == \
+        {o: {p: {a: v.tolist() for a, v in x.items()} for p, x in poses.items()} for o, poses in landed_again.items()}
