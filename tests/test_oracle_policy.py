@@ -93,3 +93,43 @@ def test_a_small_run_reproduces_the_experiments_policies_and_keeps_the_oracle_to
         assert again["policies"][policy] == r, policy
     assert {o: {p: {a: v.tolist() for a, v in x.items()} for p, x in poses.items()} for o, poses in landed.items()} == \
         {o: {p: {a: v.tolist() for a, v in x.items()} for p, x in poses.items()} for o, poses in landed_again.items()}
+
+
+def test_candidates_are_the_choosable_pushes_unless_every_ok_push_is_asked_for(dataset):  # noqa: F811 (fixture)
+    from pipeline.studies.oracle_policy import experiment
+    from pipeline.studies.robust_policy import read_candidates
+    from schema import horizon
+    from schema.reader import Dataset
+
+    data = Dataset.open(dataset)
+    min_z = data.manifest.parameters.mdp.min_direction_z
+    report, _, landed = experiment(dataset, 8, seed=1, repeats=1, ks=(30,), workers=1)
+    wide, _, landed_wide = experiment(dataset, 8, seed=1, repeats=1, ks=(30,), workers=1, every_ok=True)
+    assert report["every_ok"] is False and wide["every_ok"] is True
+    policies = {"max_height", "value_iteration", "horizon_vi", "candidates_30", "oracle_30"}
+    assert set(report["policies"]) == set(wide["policies"]) == policies
+    poses_table = data.table("poses", columns=["object_id", "pose", "max_height_action"]).to_pydict()
+    max_height = {(o, p): a for o, p, a in zip(poses_table["object_id"], poses_table["pose"], poses_table["max_height_action"])}
+    from_above = 0
+    for object_id, poses in landed.items():
+        candidates = read_candidates(data, object_id)
+        for pose, actions in poses.items():
+            c = candidates[pose]
+            choosable = horizon.choosable_pushes(c.directions[:, 2], min_z)
+            ranked = np.argsort(-np.where(np.isfinite(c.q), c.q, -np.inf), kind="stable")
+            ranked = ranked[np.isfinite(c.q[ranked])]  # ok pushes only, best first
+            wide_top = set(ranked[:30].tolist())
+            assert wide_top <= set(landed_wide[object_id][pose])  # the best ok pushes, from above or not
+            assert set(ranked[choosable[ranked]][:30].tolist()) <= set(actions)  # the best choosable ones
+            from_above += sum(not choosable[a] for a in wide_top)
+            # Beyond the ranked ones, only the policies' own pushes; of those only Max-Height's may be unchoosable.
+            assert all(choosable[a] or a == max_height[(object_id, pose)] for a in actions), "a push from above"
+    assert from_above > 0, "no start pose ranks a push from above among its best: the test tests nothing"
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    from pipeline.studies.oracle_policy import main
+
+    assert main([str(tmp_path / "missing"), "--trials", "4"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "\n" not in err

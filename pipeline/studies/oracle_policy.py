@@ -160,11 +160,13 @@ def restricted_budgets(v_s: np.ndarray, rows: list[np.ndarray], choosable: list[
 
 
 def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int = REPEATS, ks: tuple[int, ...] = KS,
-               max_pushes: int = 3, workers: int | None = 1, world: Config | None = None,
+               max_pushes: int = 3, workers: int | None = 1, world: Config | None = None, every_ok: bool = False,
                progress: bool = False) -> tuple[dict, list[Push], dict[str, dict[int, dict[int, np.ndarray]]]]:
     """Estimate the candidates' physics, then play every budget from the useful trials.
 
     world : the simulated world's noise (the CLI passes the thesis preset, as ``policies-physics``)
+    every_ok : rank every ok push for the candidates, those the policies may not choose (pushes
+      from above, ``mdp.min_direction_z``) included: what knowing them would be worth
     returns : the report (JSON-ready), every push played, and the estimate: object -> start
       pose -> candidate action -> (repeats,) int, where its plays settled
     """
@@ -192,7 +194,8 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
         for pose in sorted({p for _, p in trials[object_id]}):
             always = [int(plan.actions[p][pose]) for p in ALWAYS] + [int(plan.actions[HORIZON_POLICY][0, pose])]
             always = np.unique([a for a in always if a != NO_OP]).astype(np.int64)
-            start_candidates[pose] = (top_pushes(candidates[pose].q, choosable[pose], max(ks)), always)
+            pool = np.ones(len(choosable[pose]), dtype=bool) if every_ok else choosable[pose]
+            start_candidates[pose] = (top_pushes(candidates[pose].q, pool, max(ks)), always)
             played = np.union1d(*start_candidates[pose]).astype(np.int64)
             pushes[pose] = (played, candidates[pose].points[played], candidates[pose].directions[played])
         extras[object_id] = (candidates, rows, choosable, start_candidates, pushes)
@@ -227,7 +230,7 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
         played.extend(object_pushes)
     report = summarise(tables, starts, runs, played, landed, policies)
     report.update({"dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(trials),
-                   "failed_objects": failures, "seed": seed, "max_pushes": max_pushes, "repeats": repeats, "ks": list(ks),
+                   "failed_objects": failures, "seed": seed, "every_ok": every_ok, "max_pushes": max_pushes, "repeats": repeats, "ks": list(ks),
                    "estimate_plays": int(sum(len(p[0]) for e in estimates for p in e[1].values()) * repeats),
                    "estimate_wall_s": round(estimated_wall, 1), "wall_s": round(time.perf_counter() - started, 1)})
     return report, played, landed
@@ -293,13 +296,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeats", type=positive_int, default=REPEATS, help="plays per candidate (default: %(default)s)")
     parser.add_argument("--ks", type=positive_int, nargs="+", default=list(KS), help="candidates per start pose (default: %(default)s)")
+    parser.add_argument("--every-ok", action="store_true",
+                        help="candidates from every ok push, those from above included (default: the choosable ones)")
     parser.add_argument("--workers", type=positive_int, default=1)
     parser.add_argument("--world", default="thesis")
     parser.add_argument("--json", type=Path, help="write the report here")
     args = parser.parse_args(argv)
     try:
         report, _, _ = experiment(args.dataset, args.trials, seed=args.seed, repeats=args.repeats, ks=tuple(sorted(set(args.ks))),
-                               max_pushes=args.max_pushes, workers=args.workers, world=world_config(args.world))
+                                  max_pushes=args.max_pushes, workers=args.workers, world=world_config(args.world),
+                                  every_ok=args.every_ok)
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
