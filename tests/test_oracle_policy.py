@@ -15,6 +15,10 @@ def test_top_pushes_are_the_choosable_ok_pushes_of_highest_q_best_first():
     assert top_pushes(q, choosable, 3).tolist() == [2, 3, 5]  # 4 is not choosable, 1 not ok; the tie goes to 3
     assert top_pushes(q, choosable, 10).tolist() == [2, 3, 5, 0]
     assert top_pushes(q, ~choosable | np.isnan(q), 2).tolist() == [4]
+    # Ties go to the lower id however many there are (numpy's default sort is not stable past 16).
+    q = np.random.default_rng(0).integers(0, 3, 300).astype(float)
+    top = top_pushes(q, np.ones(300, dtype=bool), 150)
+    assert np.all(np.diff(q[top]) <= 0) and all(a < b for a, b in zip(top, top[1:]) if q[a] == q[b])
 
 
 def test_landing_row_counts_outside_as_staying_and_sums_to_one():
@@ -53,6 +57,14 @@ def test_always_pushes_are_candidates_whatever_k():
     starts = {0: (np.array([0]), np.array([2]))}  # only the top push is ranked; push 2 is always there
     tables = restricted_budgets(v_s, rows, choosable, starts, landed, (1,), max_pushes=1)
     assert tables["candidates_1"][0, 0] == 0 and tables["oracle_1"][0, 0] == 2
+
+
+def test_the_model_budget_keeps_to_the_candidates_too():
+    v_s, rows, choosable, landed = two_pose_world()
+    starts = {0: (np.array([2]), np.zeros(0, dtype=np.int64))}  # the model's favourite, push 0, is not a candidate
+    tables = restricted_budgets(v_s, rows, choosable, starts, landed, (1,), max_pushes=1)
+    assert tables["candidates_1"][0, 0] == 2 and tables["oracle_1"][0, 0] == 2
+    assert horizon_actions(v_s, rows, 1, choosable)[0, 0] == 0
 
 
 def test_with_every_push_a_candidate_and_physics_agreeing_both_are_the_unrestricted_budget():
