@@ -79,13 +79,25 @@ def test_with_every_push_a_candidate_and_physics_agreeing_both_are_the_unrestric
     assert np.array_equal(tables["candidates_3"], free) and np.array_equal(tables["oracle_3"], free)
 
 
-def test_a_small_run_reproduces_the_experiments_policies_and_keeps_the_oracle_to_its_candidates(dataset):  # noqa: F811
-    from pipeline.studies import policies_physics
+def test_a_small_run_reproduces_the_experiments_policies_and_keeps_the_oracle_to_its_candidates(dataset, tmp_path):  # noqa: F811
+    from pipeline.studies import playlog, policies_physics
     from pipeline.studies.oracle_policy import experiment
+    from pipeline.studies.policy_experiment import ACTION_SPAN
+    from schema.pushlog import row_problems
 
-    report, pushes, landed = experiment(dataset, 8, seed=1, repeats=2, ks=(1, 2), workers=1)
+    report, pushes, landed = experiment(dataset, 8, seed=1, repeats=2, ks=(1, 2), workers=1, log=tmp_path / "log")
     assert not report["failed_objects"] and report["useful_trials"] > 0
     assert report["estimate_plays"] > 0 and report["estimate_plays"] % 2 == 0
+    # The estimate's plays as a push log: one row per play, each push's repeats under its id.
+    table = playlog.read_log(tmp_path / "log").to_pydict()
+    assert len(table["push_id"]) == report["estimate_plays"]
+    assert all(problem is None for problem in row_problems(playlog.read_log(tmp_path / "log")))
+    logged: dict[tuple, list[int]] = {}
+    for object_id, push_id, pose, action, repeat in zip(table["object_id"], table["push_id"], table["start_pose"],
+                                                        table["action"], table["repeat"]):
+        assert (pose, action) == (push_id // ACTION_SPAN, push_id % ACTION_SPAN)
+        logged.setdefault((object_id, pose, action), []).append(repeat)
+    assert logged == {(o, p, a): [0, 1] for o, poses in landed.items() for p, actions in poses.items() for a in actions}
     reference = policies_physics.experiment(dataset, 8, seed=1, workers=1)
     for policy in ("max_height", "value_iteration"):  # common random numbers: the same pushes, the same outcomes
         assert report["policies"][policy]["physical_gain_useful"] == pytest.approx(

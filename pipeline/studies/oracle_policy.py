@@ -38,16 +38,19 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 
 from schema import horizon
+from schema.pushlog import PUSHLOG
 from schema.vocabulary import NO_OP
 
 from ..build.atomic import write_text_atomic
 from ..model.config import Config
 from ..model.rng import stream
+from .playlog import ObjectLog, append_row, mesh_location, write_part
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
-from .policy_experiment import best_pose_value
-from .pushsim import body_model, draw_noise, play_push
+from .policy_experiment import ACTION_SPAN, best_pose_value
+from .pushsim import body_model, draw_noise, play_push, player_parameters
 from .robust_policy import (
     HORIZON_POLICY,
     Push,
@@ -97,25 +100,31 @@ def estimated_topple(landed: np.ndarray, pose: int) -> float:
 
 
 def estimate_object(plan: ObjectPlan, pushes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]], config: Config,
-                    world: Config, repeats: int, seed: int) -> tuple[str, dict[int, np.ndarray] | str]:
+                    world: Config, repeats: int, seed: int) -> tuple[str, dict[int, np.ndarray] | str, ObjectLog]:
     """Play each candidate push of each start pose ``repeats`` times (runs in a worker).
 
     pushes : start pose -> (actions (k,) int, points (k, 3) float m, directions (k, 3) float),
       pose frame
     returns : (object id, start pose -> (k, repeats) int, the pose each play settled in (-1:
-      outside the pose set); or a one-line reason the object cannot be played)
+      outside the pose set), or a one-line reason the object cannot be played; the plays as a
+      push log, push_id = pose * ``ACTION_SPAN`` + action, one row per repeat)
     """
     from ..model.evaluation import load_object
     from ..model.mesh import MeshError
     from ..model.poses import settle, stable_poses
 
-    object_id = plan.spec.object_id
+    spec = plan.spec
+    object_id = spec.object_id
+    key = {"object_id": object_id, "mesh_sha256": spec.sha256, "experiment": "oracle-policy", "seed": seed,
+           "repeats": repeats, "player": player_parameters()}
     try:
-        obj = load_object(plan.spec, config)
+        obj = load_object(spec, config)
         pose_set = stable_poses(obj, config.poses)
     except MeshError as err:
-        return object_id, str(err)
+        return object_id, str(err), ObjectLog(object_id, PUSHLOG.empty_table(), key, {"pushes": 0})
     body = body_model(obj)
+    source, path = mesh_location(spec)
+    columns: dict[str, list] = {f.name: [] for f in PUSHLOG}
     landed = {}
     for pose, (actions, points, directions) in pushes.items():
         to_object = np.linalg.inv(plan.transforms[pose])
@@ -127,8 +136,11 @@ def estimate_object(plan: ObjectPlan, pushes: dict[int, tuple[np.ndarray, np.nda
             for r in range(repeats):
                 played = play_push(body, plan.transforms[pose], point, direction, config, draw_noise(world, rng, noise=True))
                 outcome[i, r] = settle(pose_set, obj, played.final_transform[:3, :3])
+                append_row(columns, spec, source, path, pose * ACTION_SPAN + int(action), r, pose, int(action), point,
+                           direction, played, config, seed)
         landed[pose] = outcome
-    return object_id, landed
+    table = pa.Table.from_pydict(columns, schema=PUSHLOG)
+    return object_id, landed, ObjectLog(object_id, table, key, {"pushes": table.num_rows // repeats, "repeats": repeats})
 
 
 def restricted_budgets(v_s: np.ndarray, rows: list[np.ndarray], choosable: list[np.ndarray],
@@ -161,12 +173,14 @@ def restricted_budgets(v_s: np.ndarray, rows: list[np.ndarray], choosable: list[
 
 def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int = REPEATS, ks: tuple[int, ...] = KS,
                max_pushes: int = 3, workers: int | None = 1, world: Config | None = None, every_ok: bool = False,
-               progress: bool = False) -> tuple[dict, list[Push], dict[str, dict[int, dict[int, np.ndarray]]]]:
+               log: str | Path | None = None, progress: bool = False) -> tuple[dict, list[Push], dict[str, dict[int, dict[int, np.ndarray]]]]:
     """Estimate the candidates' physics, then play every budget from the useful trials.
 
     world : the simulated world's noise (the CLI passes the thesis preset, as ``policies-physics``)
     every_ok : rank every ok push for the candidates, those the policies may not choose (pushes
       from above, ``mdp.min_direction_z``) included: what knowing them would be worth
+    log : write the estimate's plays here as a push log (one part file per object), which
+      ``toppledb report`` scores: the model on the pushes its planner weighs
     returns : the report (JSON-ready), every push played, and the estimate: object -> start
       pose -> candidate action -> (repeats,) int, where its plays settled
     """
@@ -203,10 +217,13 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
 
     failures: dict[str, str] = {}
     landed: dict[str, dict[int, dict[int, np.ndarray]]] = {}
-    for object_id, outcome in map_unordered(estimate_object, estimates, workers, description="estimate", progress=progress):
+    for object_id, outcome, object_log in map_unordered(estimate_object, estimates, workers, description="estimate",
+                                                        progress=progress):
         if isinstance(outcome, str):
             failures[object_id] = outcome
             continue
+        if log is not None:
+            write_part(Path(log), object_log)
         pushes = extras[object_id][4]
         landed[object_id] = {pose: dict(zip(pushes[pose][0].tolist(), plays)) for pose, plays in outcome.items()}
     estimated_wall = time.perf_counter() - started
@@ -301,11 +318,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=positive_int, default=1)
     parser.add_argument("--world", default="thesis")
     parser.add_argument("--json", type=Path, help="write the report here")
+    parser.add_argument("--log", type=Path, help="write the estimate's plays here as a push log")
     args = parser.parse_args(argv)
     try:
         report, _, _ = experiment(args.dataset, args.trials, seed=args.seed, repeats=args.repeats, ks=tuple(sorted(set(args.ks))),
                                   max_pushes=args.max_pushes, workers=args.workers, world=world_config(args.world),
-                                  every_ok=args.every_ok)
+                                  every_ok=args.every_ok, log=args.log)
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
