@@ -1,5 +1,7 @@
 """The oracle budget study: its candidates, its physics rows, and its budgets against the model's."""
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -18,7 +20,7 @@ def test_top_pushes_are_the_choosable_ok_pushes_of_highest_q_best_first():
     # Ties go to the lower id however many there are (numpy's default sort is not stable past 16).
     q = np.random.default_rng(0).integers(0, 3, 300).astype(float)
     top = top_pushes(q, np.ones(300, dtype=bool), 150)
-    assert np.all(np.diff(q[top]) <= 0) and all(a < b for a, b in zip(top, top[1:]) if q[a] == q[b])
+    assert np.all(np.diff(q[top]) <= 0) and all(a < b for a, b in itertools.pairwise(top) if q[a] == q[b])
 
 
 def test_landing_row_counts_outside_as_staying_and_sums_to_one():
@@ -59,6 +61,22 @@ def test_always_pushes_are_candidates_whatever_k():
     assert tables["candidates_1"][0, 0] == 0 and tables["oracle_1"][0, 0] == 2
 
 
+def test_a_pose_that_topples_into_a_start_pose_is_valued_at_what_the_budget_knows_there():
+    """Pose 2 (not a start) can push into start pose 0 or grasp; the model thinks pose 0's best
+    push a sure topple to pose 1, physics that it never topples: with two pushes left the model's
+    budget pushes from pose 2 (on to pose 0, then pose 1), the oracle grasps."""
+    v_s = np.array([0.2, 0.9, 0.5])
+    rows = [np.array([[0.0, 1.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]), np.array([[1.0, 0.0, 0.0]])]
+    choosable = [np.ones(1, dtype=bool)] * 3
+    starts = {0: (np.array([0]), np.zeros(0, dtype=np.int64))}
+    landed = {0: {0: np.array([0, 0, 0, 0])}}
+    tables = restricted_budgets(v_s, rows, choosable, starts, landed, (1,), max_pushes=2)
+    free = horizon_actions(v_s, rows, 2, choosable)
+    assert free[0, 2] == 0 and tables["candidates_1"][0, 2] == 0  # the model: via pose 0 to pose 1
+    assert tables["oracle_1"][0, 2] == NO_OP  # knowing pose 0's push fails, grasp at 0.5
+    assert tables["oracle_1"][0, 0] == NO_OP and tables["candidates_1"][0, 0] == 0
+
+
 def test_the_model_budget_keeps_to_the_candidates_too():
     v_s, rows, choosable, landed = two_pose_world()
     starts = {0: (np.array([2]), np.zeros(0, dtype=np.int64))}  # the model's favourite, push 0, is not a candidate
@@ -85,7 +103,7 @@ def test_a_small_run_reproduces_the_experiments_policies_and_keeps_the_oracle_to
     from pipeline.studies.policy_experiment import ACTION_SPAN
     from schema.pushlog import row_problems
 
-    report, pushes, landed = experiment(dataset, 8, seed=1, repeats=2, ks=(1, 2), workers=1, log=tmp_path / "log")
+    report, pushes, landed = experiment(dataset, 24, seed=1, repeats=2, ks=(1, 2), workers=1, log=tmp_path / "log")
     assert not report["failed_objects"] and report["useful_trials"] > 0
     assert report["estimate_plays"] > 0 and report["estimate_plays"] % 2 == 0
     # The estimate's plays as a push log: one row per play, each push's repeats under its id.
@@ -98,7 +116,33 @@ def test_a_small_run_reproduces_the_experiments_policies_and_keeps_the_oracle_to
         assert (pose, action) == (push_id // ACTION_SPAN, push_id % ACTION_SPAN)
         logged.setdefault((object_id, pose, action), []).append(repeat)
     assert logged == {(o, p, a): [0, 1] for o, poses in landed.items() for p, actions in poses.items() for a in actions}
-    reference = policies_physics.experiment(dataset, 8, seed=1, workers=1)
+    # Each play's landing is filed under its own push: the logged final pose settles where the estimate says.
+    from pipeline.model.config import Config
+    from pipeline.model.evaluation import load_object
+    from pipeline.model.poses import settle, stable_poses
+    from pipeline.studies.robust_policy import horizon_actions, next_pose_rows, read_candidates
+    from schema import horizon
+    from schema.reader import Dataset
+
+    data = Dataset.open(dataset)
+    config = Config.from_dict(data.manifest.parameters.model_dump())
+    plans = policies_physics.object_plans(data, sorted(landed))
+    for object_id, poses in landed.items():
+        obj = load_object(plans[object_id].spec, config)
+        pose_set = stable_poses(obj, config.poses)
+        for i in np.flatnonzero(np.array(table["object_id"]) == object_id):
+            final = np.reshape(table["final_transform"][i], (4, 4))
+            assert settle(pose_set, obj, final[:3, :3]) == poses[table["start_pose"][i]][table["action"][i]][
+                table["repeat"][i]]
+        # The pushes always among a start pose's candidates: Max-Height's, value iteration's, the budget's first.
+        candidates = read_candidates(data, object_id)
+        rows = next_pose_rows(data, object_id, [len(c.q) for c in candidates])
+        choosable = [horizon.choosable_pushes(c.directions[:, 2], config.mdp.min_direction_z) for c in candidates]
+        budget = horizon_actions(plans[object_id].v_s, rows, 3, choosable)
+        for pose, actions in poses.items():
+            always = {int(plans[object_id].actions[p][pose]) for p in ("max_height", "value_iteration")} | {int(budget[0, pose])}
+            assert always - {NO_OP} <= set(actions), (object_id, pose)
+    reference = policies_physics.experiment(dataset, 24, seed=1, workers=1)
     for policy in ("max_height", "value_iteration"):  # common random numbers: the same pushes, the same outcomes
         assert report["policies"][policy]["physical_gain_useful"] == pytest.approx(
             reference["policies"][policy]["physical_gain_useful"])
@@ -112,7 +156,7 @@ def test_a_small_run_reproduces_the_experiments_policies_and_keeps_the_oracle_to
             assert report["policies"][f"{kind}_{k}"]["estimated_pushes"] == len(at_starts)
     assert all(len(actions) <= 2 + 3 for poses in landed.values() for actions in poses.values())
     assert all(len(plays) == 2 for poses in landed.values() for actions in poses.values() for plays in actions.values())
-    again, _, landed_again = experiment(dataset, 8, seed=1, repeats=2, ks=(1, 2), workers=2)
+    again, _, landed_again = experiment(dataset, 24, seed=1, repeats=2, ks=(1, 2), workers=2)
     for policy, r in report["policies"].items():  # the estimate's own stream: the same for any worker count
         assert again["policies"][policy] == r, policy
     assert {o: {p: {a: v.tolist() for a, v in x.items()} for p, x in poses.items()} for o, poses in landed.items()} == \

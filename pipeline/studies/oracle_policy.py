@@ -18,7 +18,8 @@ were replaced, for the pushes it would consider, by what physics does:
    candidates (the policies' own pushes always among them), the model's probabilities for each;
    and ``oracle_k``, the same budget reading each candidate's row from the physics estimate
    (the fraction of its plays that came to rest in each pose; one that left the pose set counts
-   as staying).  Every other pose, and every other push, keeps the model's rows.
+   as staying).  Every other pose, and every other push, keeps the model's rows.  The restriction
+   holds at every useful start pose of the object, whichever trial the budget is played in.
 
 ``oracle_k`` is not a model: its knowledge comes from the objects it is judged on.  Its gain
 over ``candidates_k`` is what knowing those pushes' physics is worth, and its gain over
@@ -35,6 +36,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -48,14 +50,24 @@ from ..build.atomic import write_text_atomic
 from ..model.config import Config
 from ..model.rng import stream
 from .playlog import ObjectLog, append_row, mesh_location, write_part
-from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
+from .policies_physics import (
+    PURPOSE,
+    TRANSFORM_TOLERANCE,
+    ExperimentError,
+    ObjectPlan,
+    object_plans,
+    open_trials,
+    world_config,
+)
 from .policy_experiment import ACTION_SPAN, best_pose_value
 from .pushsim import body_model, draw_noise, play_push, player_parameters
 from .robust_policy import (
     HORIZON_POLICY,
+    PoseCandidates,
     Push,
     Smoothing,
     horizon_actions,
+    mean_se,
     next_pose_rows,
     play_object,
     pose_scores,
@@ -117,11 +129,15 @@ def estimate_object(plan: ObjectPlan, pushes: dict[int, tuple[np.ndarray, np.nda
     object_id = spec.object_id
     key = {"object_id": object_id, "mesh_sha256": spec.sha256, "experiment": "oracle-policy", "seed": seed,
            "repeats": repeats, "player": player_parameters()}
+    empty = ObjectLog(object_id, PUSHLOG.empty_table(), key, {"pushes": 0})
     try:
         obj = load_object(spec, config)
         pose_set = stable_poses(obj, config.poses)
     except MeshError as err:
-        return object_id, str(err), ObjectLog(object_id, PUSHLOG.empty_table(), key, {"pushes": 0})
+        return object_id, str(err), empty
+    if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms,
+                                                                      atol=TRANSFORM_TOLERANCE):
+        return object_id, f"{object_id}: its stable poses differ from the dataset's (other code or parameters)", empty
     body = body_model(obj)
     source, path = mesh_location(spec)
     columns: dict[str, list] = {f.name: [] for f in PUSHLOG}
@@ -143,6 +159,23 @@ def estimate_object(plan: ObjectPlan, pushes: dict[int, tuple[np.ndarray, np.nda
     return object_id, landed, ObjectLog(object_id, table, key, {"pushes": table.num_rows // repeats, "repeats": repeats})
 
 
+@dataclass
+class ObjectCandidates:
+    """What the estimate and the budgets need of one object.
+
+    candidates : per pose, its pushes (``read_candidates``);  rows : per pose (A_x, P) float,
+    the model's P(x' | x, u);  choosable : per pose (A_x,) bool;  starts : start pose -> (top
+    pushes best first, always-actions);  pushes : start pose -> (played actions (k,) int,
+    points (k, 3), directions (k, 3)), pose frame, what ``estimate_object`` plays
+    """
+
+    candidates: list[PoseCandidates]
+    rows: list[np.ndarray]
+    choosable: list[np.ndarray]
+    starts: dict[int, tuple[np.ndarray, np.ndarray]]
+    pushes: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
 def restricted_budgets(v_s: np.ndarray, rows: list[np.ndarray], choosable: list[np.ndarray],
                        starts: dict[int, tuple[np.ndarray, np.ndarray]], landed: dict[int, dict[int, np.ndarray]],
                        ks: tuple[int, ...], max_pushes: int) -> dict[str, np.ndarray]:
@@ -153,7 +186,9 @@ def restricted_budgets(v_s: np.ndarray, rows: list[np.ndarray], choosable: list[
       the actions always among its candidates);  landed : start pose -> action -> (R,) int,
       where that candidate's plays settled (every candidate of every k)
     At a start pose the budget chooses among the top k and the always-actions only; ``oracle_k``
-    reads their rows from ``landing_row``.  Everywhere else both are ``horizon_vi``.
+    reads their rows from ``landing_row``.  Every other pose keeps ``horizon_vi``'s inputs (the
+    model's rows, every choosable push), but not always its choice: a push there that can topple
+    into a start pose is valued at what the restricted budget makes of that pose.
     """
     out = {}
     for k in ks:
@@ -173,7 +208,8 @@ def restricted_budgets(v_s: np.ndarray, rows: list[np.ndarray], choosable: list[
 
 def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int = REPEATS, ks: tuple[int, ...] = KS,
                max_pushes: int = 3, workers: int | None = 1, world: Config | None = None, every_ok: bool = False,
-               log: str | Path | None = None, progress: bool = False) -> tuple[dict, list[Push], dict[str, dict[int, dict[int, np.ndarray]]]]:
+               log: str | Path | None = None,
+               progress: bool = False) -> tuple[dict, list[Push], dict[str, dict[int, dict[int, np.ndarray]]]]:
     """Estimate the candidates' physics, then play every budget from the useful trials.
 
     world : the simulated world's noise (the CLI passes the thesis preset, as ``policies-physics``)
@@ -212,7 +248,7 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
             start_candidates[pose] = (top_pushes(candidates[pose].q, pool, max(ks)), always)
             played = np.union1d(*start_candidates[pose]).astype(np.int64)
             pushes[pose] = (played, candidates[pose].points[played], candidates[pose].directions[played])
-        extras[object_id] = (candidates, rows, choosable, start_candidates, pushes)
+        extras[object_id] = ObjectCandidates(candidates, rows, choosable, start_candidates, pushes)
         estimates.append((plan, pushes, config, world, repeats, seed))
 
     failures: dict[str, str] = {}
@@ -224,19 +260,19 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
             continue
         if log is not None:
             write_part(Path(log), object_log)
-        pushes = extras[object_id][4]
+        pushes = extras[object_id].pushes
         landed[object_id] = {pose: dict(zip(pushes[pose][0].tolist(), plays)) for pose, plays in outcome.items()}
     estimated_wall = time.perf_counter() - started
 
     policies = ("max_height", "value_iteration", HORIZON_POLICY, *(f"{kind}_{k}" for k in ks for kind in ("candidates", "oracle")))
     tasks = []
     for object_id in sorted(landed):
-        plan = plans[object_id]
-        candidates, rows, choosable, start_candidates, _ = extras[object_id]
-        plan.actions.update(restricted_budgets(plan.v_s, rows, choosable, start_candidates, landed[object_id], ks, max_pushes))
-        scores = [pose_scores(c, Smoothing(), r) for c, r in zip(candidates, rows)]
-        tasks.append((plan, {"candidates": candidates, "scores": scores}, trials[object_id], config, seed, max_pushes, world,
-                      policies))
+        plan, mine = plans[object_id], extras[object_id]
+        plan.actions.update(restricted_budgets(plan.v_s, mine.rows, mine.choosable, mine.starts, landed[object_id], ks,
+                                               max_pushes))
+        scores = [pose_scores(c, Smoothing()) for c in mine.candidates]  # the pushes' records want them; rows unsmoothed
+        tasks.append((plan, {"candidates": mine.candidates, "scores": scores}, trials[object_id], config, seed, max_pushes,
+                      world, policies))
     runs: dict[int, dict[str, list[int]]] = {}
     played: list[Push] = []
     for object_id, results, object_pushes in map_unordered(play_object, tasks, workers, description="play", progress=progress):
@@ -247,17 +283,11 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
         played.extend(object_pushes)
     report = summarise(tables, starts, runs, played, landed, policies)
     report.update({"dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(trials),
-                   "failed_objects": failures, "seed": seed, "every_ok": every_ok, "max_pushes": max_pushes, "repeats": repeats, "ks": list(ks),
+                   "failed_objects": failures, "seed": seed, "every_ok": every_ok, "max_pushes": max_pushes,
+                   "repeats": repeats, "ks": list(ks),
                    "estimate_plays": int(sum(len(p[0]) for e in estimates for p in e[1].values()) * repeats),
                    "estimate_wall_s": round(estimated_wall, 1), "wall_s": round(time.perf_counter() - started, 1)})
     return report, played, landed
-
-
-def _mean_se(values) -> tuple[float | None, float | None]:
-    values = np.asarray(values, dtype=float)
-    if len(values) == 0:
-        return None, None
-    return float(values.mean()), (float(values.std(ddof=1) / np.sqrt(len(values))) if len(values) > 1 else None)
 
 
 def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push], landed: dict, policies: tuple[str, ...]) -> dict:
@@ -271,17 +301,17 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push], landed
         mine = [p for p in pushes if p.policy == policy and p.trial in kept_trials]
         estimated = [estimated_topple(landed[p.object_id][p.pose][p.action], p.pose) for p in mine
                      if p.action in landed.get(p.object_id, {}).get(p.pose, {})]
-        over, over_se = _mean_se(gains[policy][useful] - gains["max_height"][useful])
-        over_h, over_h_se = _mean_se(gains[policy][useful] - gains[HORIZON_POLICY][useful])
-        gain, gain_se = _mean_se(gains[policy][useful])
+        over, over_se = mean_se(gains[policy][useful] - gains["max_height"][useful])
+        over_h, over_h_se = mean_se(gains[policy][useful] - gains[HORIZON_POLICY][useful])
+        gain, gain_se = mean_se(gains[policy][useful])
         report["policies"][policy] = {
             "physical_gain_useful": gain, "physical_gain_useful_se": gain_se,
             "gain_over_max_height": over, "gain_over_max_height_se": over_se,
             "gain_over_horizon_vi": over_h, "gain_over_horizon_vi_se": over_h_se,
             "pushes": len(mine),
-            "predicted_topple_rate": _mean_se([p.p_topple for p in mine])[0],
-            "estimated_pushes": len(estimated), "estimated_topple_rate": _mean_se(estimated)[0],
-            "physical_topple_rate": _mean_se([p.toppled for p in mine])[0],
+            "predicted_topple_rate": mean_se([p.p_topple for p in mine])[0],
+            "estimated_pushes": len(estimated), "estimated_topple_rate": mean_se(estimated)[0],
+            "physical_topple_rate": mean_se([p.toppled for p in mine])[0],
         }
     return report
 

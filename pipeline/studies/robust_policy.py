@@ -417,7 +417,8 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
     return retry.best_untried(extra["belief_budget_q1"][step][pose], choosable & ~ruled_out, stay, horizon.IMPROVEMENT)
 
 
-def _mean_se(values) -> tuple[float | None, float | None]:
+def mean_se(values) -> tuple[float | None, float | None]:
+    """Mean and its standard error; None for an empty sample (JSON null), no error for one value."""
     values = np.asarray(values, dtype=float)
     if len(values) == 0:
         return None, None
@@ -501,23 +502,23 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
     report = {"played_trials": len(runs), "outside_trials": outside, "useful_trials": int(useful.sum()), "policies": {}}
     for policy, gain in gains.items():
         mine = [p for p in pushes if p.policy == policy and p.trial in set(kept.tolist())]
-        gain_mean, gain_se = _mean_se(gain[useful])
-        over, over_se = _mean_se(gain[useful] - gains["max_height"][useful])
+        gain_mean, gain_se = mean_se(gain[useful])
+        over, over_se = mean_se(gain[useful] - gains["max_height"][useful])
         report["policies"][policy] = {
             "physical_gain_useful": gain_mean, "physical_gain_useful_se": gain_se,
             "gain_over_max_height": over, "gain_over_max_height_se": over_se,
-            "physical_gain_all": _mean_se(gain)[0],
+            "physical_gain_all": mean_se(gain)[0],
             "pushes": len(mine),
-            "predicted_topple_rate": _mean_se([p.p_topple for p in mine])[0],
-            "smoothed_topple_rate": _mean_se([p.smoothed_p for p in mine])[0],
-            "physical_topple_rate": _mean_se([p.toppled for p in mine])[0],
-            "physical_topple_rate_se": _mean_se([p.toppled for p in mine])[1],
+            "predicted_topple_rate": mean_se([p.p_topple for p in mine])[0],
+            "smoothed_topple_rate": mean_se([p.smoothed_p for p in mine])[0],
+            "physical_topple_rate": mean_se([p.toppled for p in mine])[0],
+            "physical_topple_rate_se": mean_se([p.toppled for p in mine])[1],
         }
     for policy in CHALLENGERS:
-        mean, error = _mean_se(gains[policy][useful] - gains["value_iteration"][useful])
+        mean, error = mean_se(gains[policy][useful] - gains["value_iteration"][useful])
         report["policies"][policy].update({"gain_over_value_iteration": mean, "gain_over_value_iteration_se": error})
     # The budget believing failures against the budget that does not (the same pushes left).
-    mean, error = _mean_se(gains[BELIEF_HORIZON_POLICY][useful] - gains[HORIZON_POLICY][useful])
+    mean, error = mean_se(gains[BELIEF_HORIZON_POLICY][useful] - gains[HORIZON_POLICY][useful])
     report["policies"][BELIEF_HORIZON_POLICY].update({"gain_over_horizon_vi": mean, "gain_over_horizon_vi_se": error})
     return report
 
