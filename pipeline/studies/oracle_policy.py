@@ -27,6 +27,10 @@ Max-Height is how far the goal is from what such knowledge reaches.  A budget th
 ``repeats``-sample estimate suffers the winner's curse, and only the top ``k_max`` pushes are
 known, so it is a floor under the ceiling, not the ceiling.
 
+``--every-ok`` ranks every ok push for the candidates, pushes from above included (the policies
+may not choose them); ``--log DIR`` writes the estimate's plays as a push log, which ``toppledb
+report`` scores like any other: the model on the pushes its planner weighs.
+
     python -m pipeline.studies.oracle_policy DATASET --trials 600 --seed S --repeats 16 --workers 2 --json F
 """
 
