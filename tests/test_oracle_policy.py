@@ -201,3 +201,23 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert main([str(tmp_path / "missing"), "--trials", "4"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "\n" not in err
+
+
+def test_an_object_whose_poses_differ_from_the_datasets_is_reported_not_played(dataset):  # noqa: F811 (fixture)
+    from dataclasses import replace
+
+    from pipeline.model.config import Config
+    from pipeline.studies import policies_physics
+    from pipeline.studies.oracle_policy import estimate_object
+    from schema.reader import Dataset
+
+    data = Dataset.open(dataset)
+    config = Config.from_dict(data.manifest.parameters.model_dump())
+    object_id = data.manifest.corpus.objects[0].object_id
+    plan = policies_physics.object_plans(data, [object_id])[object_id]
+    pushes = {0: (np.array([0]), np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]))}
+    moved = replace(plan, transforms=plan.transforms + 1e-3)  # another code's pose frames
+    _, outcome, log = estimate_object(moved, pushes, config, config, 1, 0)
+    assert isinstance(outcome, str) and "stable poses differ" in outcome and log.table.num_rows == 0
+    _, outcome, log = estimate_object(plan, pushes, config, config, 1, 0)
+    assert set(outcome) == {0} and outcome[0].shape == (1, 1) and log.table.num_rows == 1
