@@ -36,7 +36,6 @@ report`` scores like any other: the model on the pushes its planner weighs.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -63,19 +62,21 @@ from .policies_physics import (
     open_trials,
     world_config,
 )
-from .policy_experiment import ACTION_SPAN, best_pose_value
+from .policy_experiment import ACTION_SPAN, useful_starts
 from .pushsim import body_model, draw_noise, play_push, player_parameters
 from .robust_policy import (
     HORIZON_POLICY,
     PoseCandidates,
     Push,
     Smoothing,
+    cell,
     horizon_actions,
     mean_se,
     next_pose_rows,
     play_object,
     pose_scores,
     read_candidates,
+    study_parser,
     trial_gains,
 )
 
@@ -231,10 +232,8 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
     started = time.perf_counter()
     dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
     world = world or config
-    best = best_pose_value(tables)
-    useful = (tables.v_s[starts] < best[starts]) & (tables.actions["greedy"][starts] != NO_OP)
-    trials = {o: [(t, p) for t, p in pairs if useful[t]] for o, pairs in by_object.items()}
-    trials = {o: pairs for o, pairs in trials.items() if pairs}
+    useful = useful_starts(tables, starts)
+    trials = {o: mine for o, pairs in by_object.items() if (mine := [(t, p) for t, p in pairs if useful[t]])}
     plans = object_plans(dataset, sorted(trials))
 
     extras, estimates = {}, []
@@ -321,9 +320,6 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push], landed
 
 
 def text(report: dict) -> str:
-    def cell(v, signed=True):
-        return "    -" if v is None else (f"{v:+.3f}" if signed else f"{v:.3f}")
-
     lines = [(f"{report['useful_trials']} useful trials on {report['objects']} objects, {report['outside_trials']} outside; "
               f"{report['estimate_plays']} estimate plays ({report['estimate_wall_s']} s); {report['wall_s']} s"),
              (f"{'policy':<18} {'gain':>7} {'over max_height':>18} {'over horizon_vi':>16} {'pushes':>7} {'P table':>8} "
@@ -340,18 +336,11 @@ def text(report: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     from ..cli import positive_int
 
-    parser = argparse.ArgumentParser(prog="python -m pipeline.studies.oracle_policy", description=__doc__.split("\n\n")[0])
-    parser.add_argument("dataset")
-    parser.add_argument("--trials", type=positive_int, default=600)
-    parser.add_argument("--max-pushes", type=positive_int, default=3)
-    parser.add_argument("--seed", type=int, default=0)
+    parser = study_parser("python -m pipeline.studies.oracle_policy", __doc__)
     parser.add_argument("--repeats", type=positive_int, default=REPEATS, help="plays per candidate (default: %(default)s)")
     parser.add_argument("--ks", type=positive_int, nargs="+", default=list(KS), help="candidates per start pose (default: %(default)s)")
     parser.add_argument("--every-ok", action="store_true",
                         help="candidates from every ok push, those from above included (default: the choosable ones)")
-    parser.add_argument("--workers", type=positive_int, default=1)
-    parser.add_argument("--world", default="thesis")
-    parser.add_argument("--json", type=Path, help="write the report here")
     parser.add_argument("--log", type=Path, help="write the estimate's plays here as a push log")
     args = parser.parse_args(argv)
     try:

@@ -53,7 +53,7 @@ from ..build.corpus import PYBULLET_SOURCE, ObjectSpec, pybullet_data_dir
 from ..model.config import Config
 from ..model.rng import stream
 from .playlog import ObjectLog, append_row, mesh_location, write_part
-from .policy_experiment import ACTION_SPAN, PolicyTables, best_pose_value, draw_starts, load_tables
+from .policy_experiment import ACTION_SPAN, PolicyTables, draw_starts, load_tables, useful_starts
 from .pushsim import body_model, draw_noise, play_push, player_parameters
 from .validation import direction_classes
 
@@ -290,8 +290,7 @@ def experiment(
             write_part(Path(log), object_log)
 
     predicted = {p: predicted_values(tables, p, max_pushes) for p in POLICIES}
-    best = best_pose_value(tables)
-    report = summarise(tables, starts, runs, predicted, best, max_pushes)
+    report = summarise(tables, starts, runs, predicted, max_pushes)
     report.update({
         "dataset": str(Path(root).resolve()),
         "trials": n_trials,
@@ -314,14 +313,14 @@ def _mean_and_error(values: np.ndarray) -> tuple[float | None, float | None]:
 
 
 def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str, PolicyRun]],
-              predicted: dict[str, np.ndarray], best: np.ndarray, max_pushes: int) -> dict:
+              predicted: dict[str, np.ndarray], max_pushes: int) -> dict:
     """Per policy: physical and predicted V_s gains (all and useful trials), pushes, topple rates."""
     played = np.array(sorted(runs), dtype=np.int64)
     outside = np.array([any(r.poses[-1] < 0 for r in runs[t].values()) for t in played], dtype=bool)
     kept = played[~outside]
     rows = starts[kept]
     first_of = np.searchsorted(tables.first_pose, rows, side="right") - 1
-    useful = (tables.v_s[rows] < best[rows]) & (tables.actions["greedy"][rows] != NO_OP)
+    useful = useful_starts(tables, rows)
     report: dict = {"max_pushes": max_pushes, "played_trials": len(played), "outside_trials": int(outside.sum()),
                     "useful_trials": int(useful.sum()), "policies": {}}
     gains = {}

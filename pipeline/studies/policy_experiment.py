@@ -137,13 +137,19 @@ def best_pose_value(tables: PolicyTables) -> np.ndarray:
     return np.repeat(per_object, np.diff(tables.first_pose))
 
 
+def useful_starts(tables: PolicyTables, rows: np.ndarray) -> np.ndarray:
+    """(n,) bool: the start rows where pushing can pay (thesis 4.4.3's useful trials): the object
+    is not in its best pose and the Greedy policy would push."""
+    return (tables.v_s[rows] < best_pose_value(tables)[rows]) & (tables.actions["greedy"][rows] != NO_OP)
+
+
 def experiment(root: str | Path | Dataset, n_trials: int = 20_000, max_steps: int = 5, seed: int = 0) -> dict:
     """Run every policy on the same trials; mean V_s gains over the useful ones."""
     tables = load_tables(root)
     rng = np.random.default_rng(seed)
     starts = draw_starts(tables, n_trials, rng)
     uniforms = rng.random((max_steps, n_trials))
-    useful = (tables.v_s[starts] < best_pose_value(tables)[starts]) & (tables.actions["greedy"][starts] != NO_OP)
+    useful = useful_starts(tables, starts)
     result = {"trials": n_trials, "useful_trials": int(useful.sum()), "max_steps": max_steps, "policies": {}}
     for policy in POLICIES:
         final, pushes = run_policy(tables, policy, starts, uniforms)

@@ -52,7 +52,7 @@ from ..model.config import Config, MDPConfig
 from ..model.mdp import IMPROVEMENT, belief_value_iteration, pose_values, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
-from .policy_experiment import best_pose_value
+from .policy_experiment import useful_starts
 from .pushsim import body_model, draw_noise, play_push
 
 ROBUST_POLICY = "smoothed_vi"
@@ -490,7 +490,7 @@ def trial_gains(tables, starts: np.ndarray, runs: dict, policies: tuple[str, ...
     kept = played[~outside]
     rows = starts[kept]
     first = tables.first_pose[np.searchsorted(tables.first_pose, rows, side="right") - 1]
-    useful = (tables.v_s[rows] < best_pose_value(tables)[rows]) & (tables.actions["greedy"][rows] != NO_OP)
+    useful = useful_starts(tables, rows)
     gains = {p: tables.v_s[first + np.array([runs[t][p][-1] for t in kept], dtype=np.int64)] - tables.v_s[rows] for p in policies}
     return kept, gains, useful, int(outside.sum())
 
@@ -500,8 +500,9 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
     kept, gains, useful, outside = trial_gains(tables, starts, runs, COMPARED)
     gains["never_push"] = np.zeros(len(kept))
     report = {"played_trials": len(runs), "outside_trials": outside, "useful_trials": int(useful.sum()), "policies": {}}
+    kept_trials = set(kept.tolist())
     for policy, gain in gains.items():
-        mine = [p for p in pushes if p.policy == policy and p.trial in set(kept.tolist())]
+        mine = [p for p in pushes if p.policy == policy and p.trial in kept_trials]
         gain_mean, gain_se = mean_se(gain[useful])
         over, over_se = mean_se(gain[useful] - gains["max_height"][useful])
         report["policies"][policy] = {
@@ -523,10 +524,28 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
     return report
 
 
-def text(report: dict) -> str:
-    def cell(v, signed=True):
-        return "    -" if v is None else (f"{v:+.3f}" if signed else f"{v:.3f}")
+def cell(value: float | None, signed: bool = True) -> str:
+    """A report's number in a text table: three decimals, signed unless a rate, '-' for none."""
+    return "    -" if value is None else (f"{value:+.3f}" if signed else f"{value:.3f}")
 
+
+def study_parser(prog: str, doc: str) -> argparse.ArgumentParser:
+    """The arguments every physics study of the policies shares: the dataset, its trials and
+    their seed, the push budget, workers, the simulated world, and the JSON report."""
+    from ..cli import positive_int
+
+    parser = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
+    parser.add_argument("dataset")
+    parser.add_argument("--trials", type=positive_int, default=600)
+    parser.add_argument("--max-pushes", type=positive_int, default=3)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=positive_int, default=1)
+    parser.add_argument("--world", default="thesis")
+    parser.add_argument("--json", type=Path, help="write the report here")
+    return parser
+
+
+def text(report: dict) -> str:
     lines = [(f"{report['played_trials']} trials on {report['objects']} objects, {report['useful_trials']} useful, "
               f"{report['outside_trials']} outside; smoothing {report['smoothing']}; {report['wall_s']} s"),
              f"{'policy':<20} {'gain useful':>12} {'over max_height':>18} {'pushes':>7} {'P raw':>6} {'P smooth':>8} {'physics':>8}"]
@@ -546,20 +565,13 @@ def text(report: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     from ..cli import positive_int
 
-    parser = argparse.ArgumentParser(prog="python -m pipeline.studies.robust_policy", description=__doc__.split("\n\n")[0])
-    parser.add_argument("dataset")
-    parser.add_argument("--trials", type=positive_int, default=600)
-    parser.add_argument("--max-pushes", type=positive_int, default=3)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--workers", type=positive_int, default=1)
+    parser = study_parser("python -m pipeline.studies.robust_policy", __doc__)
     parser.add_argument("--radius", type=float, default=Smoothing.radius, help="m (default: %(default)s)")
     parser.add_argument("--max-angle", type=float, default=Smoothing.max_angle, help="rad (default: %(default)s)")
     parser.add_argument("--min-neighbours", type=positive_int, default=Smoothing.min_neighbours)
     parser.add_argument("--exclude-radius", type=float, default=Exclusion.radius,
                         help="m, what a failed push rules out for untried_vi (default: %(default)s)")
     parser.add_argument("--exclude-angle", type=float, default=Exclusion.max_angle, help="rad (default: %(default)s)")
-    parser.add_argument("--world", default="thesis")
-    parser.add_argument("--json", type=Path, help="write the report here")
     parser.add_argument("--pushes", type=Path, help="write every push played (diagnostics) here, JSON lines")
     args = parser.parse_args(argv)
     try:
