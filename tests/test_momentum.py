@@ -206,6 +206,23 @@ def test_landing_summary_counts_each_predictor_against_physics():
     assert result["momentum_differs"] == 2
     assert result["agreement"] == {"quasi_static": 0.25, "momentum x 0": 0.25, "momentum x 1": 0.5}
     assert result["agreement_where_they_differ"] == {"quasi_static": 0.0, "momentum": 0.5}
+    assert "marginal_landings" not in result  # rows of a record written before C.18
+
+
+def test_landing_summary_says_where_marginal_landings_rest():
+    """Rows whose model landing (scale 1) has drop probability <= MARGINAL and an onward pose
+    elsewhere: the share resting in the landing and one fall beyond it."""
+    from pipeline.studies.landing import MARGINAL, summarise
+
+    def row(obj, physics, landing, onward, drop):
+        return {"object": obj, "pose": 0, "edge": 0, "physics": physics, "quasi_static": landing, "momentum": [landing],
+                "onward": onward, "landing_drop": drop}
+
+    rows = [row("a", 3, 2, 3, MARGINAL), row("a", 2, 2, 3, 0.01), row("b", 3, 2, 3, 0.02), row("b", 4, 2, 3, 0.05),
+            row("c", 3, 2, 3, MARGINAL + 0.01),  # not marginal
+            row("c", 2, 2, 2, 0.01)]  # nowhere onward
+    assert summarise(rows, scales=(1.0,))["marginal_landings"] == {
+        "released": 4, "objects": 2, "rest_in_landing": 0.25, "rest_onward": 0.5}
 
 
 def test_toppledb_landing_writes_a_record_that_reads_back(tmp_path, capsys):

@@ -48,18 +48,24 @@ iteration believes failures with a map (``mdp.believe_failures`` and k != 1, doc
 (12.13)); any other build's shards keep the identity they had before the two existed."""
 
 
-UNUSED_WHEN_OFF = {"topple": ("landing_spread", "landing_spread_poses")}
-"""Parameters of a correction that, switched off (``topple.applied_landing_spread`` 0, which the
-thesis's variants always are), change no shard: left out of a shard's identity then, so the
-shards of a dataset built before they existed keep theirs (docs/MODEL.md C.17)."""
+UNUSED_WHEN_OFF = {
+    "landing_spread": ("landing_spread", "landing_spread_poses"),
+    "landing_onward": ("landing_onward", "landing_onward_below"),
+}
+"""``topple`` parameters of a correction that, switched off (its ``topple.applied_*`` 0, which the
+thesis's variants always are), change no shard (correction -> keys): left out of a shard's
+identity then, so the shards of a dataset built before they existed keep theirs (docs/MODEL.md
+C.17, C.18)."""
 
 
 def unused_by_shards(config: Config) -> dict[str, tuple[str, ...]]:
     """The parameters this configuration's shards do not depend on (section -> keys):
-    ``SERVING_ONLY`` unless the build plans with failures, and the landing spread's while it is off."""
+    ``SERVING_ONLY`` unless the build plans with failures, and those of each landing correction
+    that is off."""
     unused = {} if config.mdp.plans_with_failures else dict(SERVING_ONLY)
-    if not config.topple.applied_landing_spread:
-        unused.update(UNUSED_WHEN_OFF)
+    off = [keys for name, keys in UNUSED_WHEN_OFF.items() if not getattr(config.topple, f"applied_{name}")]
+    if off:
+        unused["topple"] = tuple(key for keys in off for key in keys)
     return unused
 
 

@@ -288,6 +288,15 @@ class ToppleConfig:
     landing_spread_poses: int = bounded(3, AT_LEAST_ONE)
     """k, how many of the start pose's other stable poses, the most probable when dropped,
     share the spread landing (``landing_spread``), in proportion to their drop probability."""
+    landing_onward: float = bounded(0.0, FRACTION)
+    """Share alpha of a topple's landing carried on one fall further when the momentum chain
+    (C.8) ends in a marginal pose, one of drop probability at most ``landing_onward_below``
+    (docs/MODEL.md C.18): in physics such landings often roll on.  P(topple) is unchanged.  0:
+    the landing as C.8 leaves it.  Needs the ``momentum`` correction; only the ``corrected``
+    variant applies it."""
+    landing_onward_below: float = bounded(0.1, FRACTION)
+    """tau: a landing pose whose drop probability is at most this is marginal for
+    ``landing_onward``."""
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -298,6 +307,9 @@ class ToppleConfig:
         check_knots(self.recalibration_x, self.recalibration_y)
         check_weights(self.feature_map)
         check_down_weights(self.down_map)
+        if self.applied_landing_onward and "momentum" not in self.applied_corrections:
+            raise ValueError("topple.landing_onward carries on the landings of the momentum correction (C.8); "
+                             "add momentum to topple.corrections")
         check_side_weights(self.side_map)
         check_side_band(self.side_map_band)
         if self.applied_down_map and self.applied_side_map and self.down_map_z > -SIDE_Z:
@@ -376,6 +388,12 @@ class ToppleConfig:
         return self.landing_spread if self.variant == "corrected" else 0.0
 
     @property
+    def applied_landing_onward(self) -> float:
+        """The share of a marginal landing this configuration carries on (MODEL.md C.18): 0 for
+        the thesis's variants, whatever the field says."""
+        return self.landing_onward if self.variant == "corrected" else 0.0
+
+    @property
     def needs_candidates(self) -> bool:
         """Whether a push's prediction depends on the pose's other candidates (the smoothing of
         C.12, the neighbourhood feature of C.13, the borrowed landing of C.15): a probe must then
@@ -385,8 +403,8 @@ class ToppleConfig:
     def without_recalibration(self) -> "ToppleConfig":
         """This model with no map: what a recalibration (MODEL.md C.7), a feature map (C.13) or the
         down map (C.15) is fitted on, the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12),
-        their landing not spread (C.17)."""
-        return dataclasses.replace(self, **NO_MAP, landing_spread=0.0)
+        their landing neither spread (C.17) nor carried on (C.18)."""
+        return dataclasses.replace(self, **NO_MAP, landing_spread=0.0, landing_onward=0.0)
 
     def counted(self) -> "ToppleConfig":
         """This model as the Monte Carlo counts of MODEL.md (9.1)-(9.2), neither smoothed (C.12) nor

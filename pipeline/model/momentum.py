@@ -111,17 +111,23 @@ def momentum_poses(
     final_pose, blocked : per pose (E_p,), the quasi-static outcome of each edge and whether it is blocked
     center_mass : (3,) float, m, object frame;  inertia : (3, 3) float, m^2 per unit mass, object frame
     energy_scale : multiplies the share an impact keeps (at most all of it); 1 is Housner's
-    returns : per pose (E_p,) int, the pose each edge's topple ends in (``final_pose`` where
-      nothing rolls on)
+    returns : two lists, per pose (E_p,) int:
+      - the pose each edge's topple ends in (``final_pose`` where nothing rolls on);
+      - the onward pose: where that end pose's edge ahead would have taken the object had the
+        impact kept enough energy to rise over it (the next fall the chain stopped short of;
+        MODEL.md C.18), or the end pose itself where nothing lies ahead (no travel, no edge
+        ahead, a blocked edge ahead, a topple back into the pose) and for edges that do not
+        leave the start pose
     """
     com = transforms[:, :3, :3] @ center_mass + transforms[:, :3, 3]  # (P, 3), pose frames
     geometry = [edge_geometry(edges, c) for edges, c in zip(base_edges, com)]
     apex_height = [np.hypot(g.com_distance, c[2]) for g, c in zip(geometry, com)]  # per pose (E_p,), m
     to_object = np.linalg.inv(transforms)
 
-    def roll_on(pose: int, pivot: np.ndarray, energy: float) -> int:
+    def roll_on(pose: int, pivot: np.ndarray, energy: float) -> tuple[int, int]:
         """Pose a fall ends in that lands in ``pose`` turning about ``pivot`` ((2, 3), object
-        frame) with ``energy`` (m) to spare.
+        frame) with ``energy`` (m) to spare, and its onward pose (the one the edge ahead leads
+        to when the energy kept falls short of the rise; else the end pose itself).
 
         It stays in the pose it has reached when the centre of mass lies right over the pivot
         line there (no travel, so no edge ahead), when ``exit_edge`` finds none (-1; a closed
@@ -140,28 +146,49 @@ def momentum_poses(
             travel = travel - (travel @ old_axis) * old_axis  # away from the pivot line, horizontal
             travel[2] = 0.0
             if travel @ travel < 1e-18:
-                return pose
+                return pose, pose
             ahead = exit_edge(pose_edges.outward, pose_edges.com_distance, unit(travel))
             if ahead < 0 or blocked[pose][ahead] or final_pose[pose][ahead] == pose:
-                return pose
+                return pose, pose
             kept = energy * min(1.0, energy_scale * impact_energy_ratio(
                 rotation @ inertia @ rotation.T, com[pose], old[0], old_axis, pose_edges.start[ahead], pose_edges.direction[ahead]
             ))
             rise = apex_height[pose][ahead] - com[pose][2]
-            if kept <= rise:
-                return pose
             following = int(final_pose[pose][ahead])
+            if kept <= rise:
+                return pose, following
             energy = kept - rise + apex_height[pose][ahead] - com[following][2]
             pivot = transform_points(to_object[pose], base_edges[pose][ahead])
             pose = following
-        return pose
+        return pose, pose
 
-    result = []
+    ends, onwards = [], []
     for start, finals in enumerate(final_pose):
-        ended = finals.copy()
+        ended, onward = finals.copy(), finals.copy()
         for edge in np.flatnonzero(~blocked[start] & (finals != start)):
             landing = int(finals[edge])
             pivot = transform_points(to_object[start], base_edges[start][edge])  # (2, 3), object frame
-            ended[edge] = roll_on(landing, pivot, apex_height[start][edge] - com[landing][2])
-        result.append(ended)
-    return result
+            ended[edge], onward[edge] = roll_on(landing, pivot, apex_height[start][edge] - com[landing][2])
+        ends.append(ended)
+        onwards.append(onward)
+    return ends, onwards
+
+
+def onward_shares(landed: np.ndarray, onward: np.ndarray, start: int, drop_probabilities: np.ndarray, share: float,
+                  below: float) -> np.ndarray:
+    """Share of each edge's topples carried on to its onward pose (docs/MODEL.md C.18).
+
+    A landing in a marginal pose, one whose drop probability is at most ``below``, carries
+    ``share`` of its mass on to the pose one fall further (``StablePose.edge_onward_pose``); the
+    object falls shallowly into such a pose and in physics often rolls on.  Landings in other
+    poses keep their mass, as do edges whose onward pose is their landing (nothing lies ahead)
+    or the start pose (two falls back into it, on a symmetric object whose poses were merged):
+    so P(topple) never changes.
+
+    landed, onward : (E,) int, each edge's landing and onward pose (indices into the pose set)
+    start : the pose the object leaves
+    drop_probabilities : (P,) float, the pose set's;  share : alpha in [0, 1];  below : tau
+    returns : (E,) float in [0, share]
+    """
+    marginal = np.asarray(drop_probabilities, dtype=float)[landed] <= below
+    return np.where(marginal & (onward != landed) & (onward != start) & (landed != start), float(share), 0.0)

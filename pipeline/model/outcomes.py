@@ -32,6 +32,9 @@ class StablePose:
       as ``edge_final_pose``, but a blocked topple rolls on while the finger pushes
     edge_momentum_pose : (E,) int, pose reached with the ``momentum`` correction (MODEL.md C.8):
       as ``edge_final_pose``, but the energy of the fall may roll the object on past shallow poses
+    edge_onward_pose : (E,) int, the pose one fall beyond ``edge_momentum_pose``, over its edge
+      ahead, where the fall's energy fell short of the rise (MODEL.md C.18); ``edge_momentum_pose``
+      itself where nothing lies ahead, for blocked edges and for edges back into this pose
     """
 
     index: int
@@ -46,6 +49,7 @@ class StablePose:
     apex_angle: np.ndarray
     edge_rolled_pose: np.ndarray
     edge_momentum_pose: np.ndarray
+    edge_onward_pose: np.ndarray
 
 
 @dataclass

@@ -294,7 +294,7 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
     geometry = [_pose_geometry(obj, down, face_candidate, i, config) for i, down in enumerate(downs)]
     # C.8 (``momentum``) on every candidate, before symmetric ones merge: a roll-on chain needs
     # each landing orientation's own frame.
-    rolled_on = momentum_poses(
+    rolled_on, onward = momentum_poses(
         np.array([g["transform"] for g in geometry]),
         [g["base_edges"] for g in geometry],
         [g["edge_final_pose"] for g in geometry],
@@ -302,8 +302,9 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
         com,
         inertia_per_mass(obj.mesh, hull, com),
     )
-    for g, poses_after in zip(geometry, rolled_on):
+    for g, poses_after, poses_onward in zip(geometry, rolled_on, onward):
         g["edge_momentum_pose"] = poses_after
+        g["edge_onward_pose"] = poses_onward
 
     # Symmetric objects: candidates whose hulls coincide after a yaw are one pose.
     representative = np.arange(len(downs))
@@ -323,6 +324,7 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
             g["edge_final_pose"] = representative[g["edge_final_pose"]]
             g["edge_rolled_pose"] = representative[g["edge_rolled_pose"]]
             g["edge_momentum_pose"] = representative[g["edge_momentum_pose"]]
+            g["edge_onward_pose"] = representative[g["edge_onward_pose"]]
         candidate_probability[representative != np.arange(len(downs))] = -1.0  # never kept
 
     # Keep probable poses and close the set under toppling.
@@ -342,6 +344,10 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
     poses = []
     for i, old in enumerate(kept):
         g = geometry[old]
+        # A pose the fall rolls on into (C.8) but the set left out: the thesis's outcome.
+        momentum_pose = np.where(
+            new_index[g["edge_momentum_pose"]] >= 0, new_index[g["edge_momentum_pose"]], new_index[g["edge_final_pose"]]
+        )
         poses.append(
             StablePose(
                 index=i,
@@ -359,10 +365,9 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
                 edge_rolled_pose=np.where(
                     new_index[g["edge_rolled_pose"]] >= 0, new_index[g["edge_rolled_pose"]], new_index[g["edge_final_pose"]]
                 ),
-                # Likewise for C.8: a pose the fall rolls on into but the set left out.
-                edge_momentum_pose=np.where(
-                    new_index[g["edge_momentum_pose"]] >= 0, new_index[g["edge_momentum_pose"]], new_index[g["edge_final_pose"]]
-                ),
+                edge_momentum_pose=momentum_pose,
+                # C.18: an onward pose the set left out carries nothing on (the end pose itself).
+                edge_onward_pose=np.where(new_index[g["edge_onward_pose"]] >= 0, new_index[g["edge_onward_pose"]], momentum_pose),
             )
         )
     equivalents = None

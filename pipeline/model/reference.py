@@ -281,6 +281,22 @@ def landed_pose(pose, edge: int, corrections: frozenset = frozenset()) -> int:
     return int(landed_poses(pose, corrections)[edge])
 
 
+def landed_masses(pose, edge: int, corrections: frozenset, drop_probabilities, onward_share: float = 0.0,
+                  onward_below: float = 0.0) -> dict[int, float]:
+    """Where one trial's unit mass rests (pose -> mass): all of it in ``landed_pose``, or with a
+    ``landing_onward`` share (MODEL.md C.18) that share carried on to the edge's onward pose
+    when the landing pose's drop probability is at most ``onward_below`` and the onward pose is
+    neither the landing nor the start pose; unblocked edges only, one trial at a time (the
+    engine: ``momentum.onward_shares``)."""
+    landed = landed_pose(pose, edge, corrections)
+    if edge < 0 or not onward_share or pose.edge_blocked[edge]:
+        return {landed: 1.0}
+    onward = int(pose.edge_onward_pose[edge])
+    if onward in (landed, pose.index) or landed == pose.index or drop_probabilities[landed] > onward_below:
+        return {landed: 1.0}
+    return {landed: 1.0 - onward_share, onward: onward_share}
+
+
 def marginal_edge(scene: Scene, min_margin: float):
     """The edge a marginal pose falls over (C.3): the one the centre of mass is nearest to, if
     nearer than ``min_margin`` (m); None for a pose that stands."""

@@ -55,6 +55,7 @@ from .edges import EdgeGeometry, edge_geometry, push_torques
 from .feature_map import map_down_rows, map_rows, map_side_rows
 from .landing_spread import landing_prior, spread_landings
 from .mesh import ObjectModel
+from .momentum import onward_shares
 from .outcomes import Actions, StablePose, ToppleTable
 from .poses import stability_margin
 from .recalibration import recalibrate_rows
@@ -676,7 +677,8 @@ def evaluate_pose(
     obj : the object;  pose : one of its stable poses
     drop_probabilities : (P,) float, the drop probability of each pose of its pose set
       (``PoseSet.probabilities``): P is the width of the rows; the probabilities themselves are
-      read only when ``config`` spreads landings (``landing_spread``, MODEL.md C.17)
+      read only when ``config`` spreads landings (``landing_spread``, MODEL.md C.17) or carries
+      marginal ones on (``landing_onward``, C.18)
     actions : candidate pushes of this pose;  rng : stream for this (object, pose)
     candidates : the first ``candidates`` actions are the pose's candidate set, the rest are
       probes (pushes someone asks about, such as logged ones).  Probes draw their noise after
@@ -684,7 +686,7 @@ def evaluate_pose(
       ``smoothing_radius`` a probe is smoothed over the candidates and itself, never over other
       probes (MODEL.md C.12).  Default: every action is a candidate.
     """
-    spread = config.applied_landing_spread
+    spread, onward = config.applied_landing_spread, config.applied_landing_onward
     n_poses = len(drop_probabilities)  # P
     n_actions, trials = len(actions.status), config.trials  # A, T
     n_candidates = n_actions if candidates is None else int(candidates)
@@ -735,9 +737,17 @@ def evaluate_pose(
     # (9.1) via (10.7): pose landed in per (ok action, trial), counted per (action, pose) cell.
     next_pose = np.full((n_actions, n_poses), np.nan)  # (A, P)
     landed = final_pose[outcomes[ok]]  # (n_ok, T) pose indices; outcome -1 reads the last entry (stays)
-    cells = np.repeat(np.arange(len(ok)), trials) * n_poses + landed.ravel()  # (n_ok T,), row * P + pose
-    counts = np.bincount(cells, minlength=len(ok) * n_poses).reshape(len(ok), n_poses)  # (n_ok, P)
-    next_pose[ok] = counts / trials
+    row_start = np.repeat(np.arange(len(ok)), trials) * n_poses  # (n_ok T,), each trial's row * P
+    counts = np.bincount(row_start + landed.ravel(), minlength=len(ok) * n_poses).astype(float)  # (n_ok P,)
+    if onward:
+        # MODEL.md C.18: a share of each landing in a marginal pose goes one fall further.
+        # Per edge, so per trial: the rows' P(topple) is unchanged.
+        onward_pose = np.append(np.where(pose.edge_blocked, final_pose[:-1], pose.edge_onward_pose), pose.index)  # (E + 1,)
+        share = np.append(onward_shares(final_pose[:-1], onward_pose[:-1], pose.index, drop_probabilities, onward,
+                                        config.landing_onward_below), 0.0)[outcomes[ok]].ravel()  # (n_ok T,)
+        counts -= np.bincount(row_start + landed.ravel(), weights=share, minlength=len(ok) * n_poses)
+        counts += np.bincount(row_start + onward_pose[outcomes[ok]].ravel(), weights=share, minlength=len(ok) * n_poses)
+    next_pose[ok] = counts.reshape(len(ok), n_poses) / trials
     if config.applied_smoothing > 0:
         # MODEL.md C.12: a push's row is its neighbourhood's mean row. Taking the best of ~1,000
         # candidates picks those whose count is most inflated; the mean over neighbours is not.

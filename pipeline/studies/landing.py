@@ -10,7 +10,10 @@ left to fall and settle (``pushsim.rest_on_table``), and the pose it rests in
 * ``quasi-static``: the thesis's landing (``StablePose.edge_final_pose``, 4.2.4);
 * ``momentum x s``: the ``momentum`` correction (docs/MODEL.md C.8), the energy an
   impact keeps scaled by s (s = 1 is Housner's impact, the model's; s = 0 never rolls on,
-  which is the quasi-static landing again up to the chain's first step).
+  which is the quasi-static landing again up to the chain's first step);
+* ``onward``: one fall beyond the momentum landing (s = 1), where ``landing_onward``
+  (C.18) carries a share of the landings in marginal poses, those of drop probability at
+  most ``MARGINAL``.
 
 Blocked edges (the hull meets the table before the apex) are not released: nothing
 falls from them.  Objects come from the same selection as ``toppledb play``.
@@ -39,6 +42,9 @@ FALL_TIME = 3.0
 """s of simulated time to fall and settle (a fall takes well under 1 s)."""
 ENERGY_SCALES = (0.0, 0.5, 1.0, 1.5, 2.0)
 """Scales of the impact's kept energy that the study compares (1: the model)."""
+MARGINAL = 0.1
+"""Drop probability at or below which a landing pose is marginal (the default's
+``topple.landing_onward_below``), for the summary of where such landings rest."""
 
 
 def apex_transform(pose: StablePose, edge: int, margin: float = APEX_MARGIN) -> np.ndarray:
@@ -68,7 +74,9 @@ def land_object(object_id: str, obj, pose_set, config: Config, scales: tuple[flo
     body = body_model(obj)
     pose_tables = (np.array([p.transform for p in poses]), [p.base_edges for p in poses], [p.edge_final_pose for p in poses],
                    [p.edge_blocked for p in poses], obj.center_mass, inertia_per_mass(obj.mesh, obj.hull, obj.center_mass))
-    tables = [momentum_poses(*pose_tables, energy_scale=scale) for scale in scales]
+    tables = [momentum_poses(*pose_tables, energy_scale=scale)[0] for scale in scales]
+    model, onward = momentum_poses(*pose_tables)  # the model's (scale 1) landing and its onward pose
+    drop = pose_set.probabilities
     rows = []
     for pose in poses:
         for edge in np.flatnonzero(~pose.edge_blocked & (pose.edge_final_pose != pose.index)).tolist():
@@ -80,13 +88,16 @@ def land_object(object_id: str, obj, pose_set, config: Config, scales: tuple[flo
                 "physics": settle(pose_set, obj, rest[:3, :3]),
                 "quasi_static": int(pose.edge_final_pose[edge]),
                 "momentum": [int(table[pose.index][edge]) for table in tables],
+                "onward": int(onward[pose.index][edge]),
+                "landing_drop": round(float(drop[model[pose.index][edge]]), 6),
             })
     return rows
 
 
 def summarise(rows: list[dict], scales: tuple[float, ...] = ENERGY_SCALES) -> dict:
     """Share of released topples each predictor lands right, overall and where the model's
-    momentum landing (scale 1) differs from the quasi-static one."""
+    momentum landing (scale 1) differs from the quasi-static one; and where the topples whose
+    momentum landing is marginal (drop probability <= ``MARGINAL``, somewhere onward) rest."""
     physics = np.array([r["physics"] for r in rows])
     quasi = np.array([r["quasi_static"] for r in rows])
     momentum = np.array([r["momentum"] for r in rows]).reshape(len(rows), len(scales))
@@ -105,10 +116,25 @@ def summarise(rows: list[dict], scales: tuple[float, ...] = ENERGY_SCALES) -> di
             "quasi_static": _share((quasi == physics)[differ]),
             "momentum": _share((model == physics)[differ]),
         },
+        **_marginal_landings(rows, model, physics),
     }
 
 
-ROW_FIELDS = ("object", "pose", "edge", "physics", "quasi_static", "momentum")
+def _marginal_landings(rows: list[dict], model: np.ndarray, physics: np.ndarray) -> dict:
+    """Where topples rest whose model landing is marginal and has an onward pose (C.18)."""
+    if not rows or "onward" not in rows[0]:
+        return {}
+    onward = np.array([r["onward"] for r in rows])
+    marginal = (np.array([r["landing_drop"] for r in rows]) <= MARGINAL) & (onward != model)
+    return {"marginal_landings": {
+        "released": int(marginal.sum()),
+        "objects": len({r["object"] for r, m in zip(rows, marginal) if m}),
+        "rest_in_landing": _share((physics == model)[marginal]),
+        "rest_onward": _share((physics == onward)[marginal]),
+    }}
+
+
+ROW_FIELDS = ("object", "pose", "edge", "physics", "quasi_static", "momentum", "onward", "landing_drop")
 
 
 def record_text(summary: dict, rows: list[dict]) -> str:

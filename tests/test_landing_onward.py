@@ -1,0 +1,150 @@
+"""Marginal landings carried on one fall further (docs/MODEL.md C.18): the landing moves, P(topple) never."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from shapes import box_object, pose_with_down, random_object
+
+from pipeline.model.collision import collision_object
+from pipeline.model.config import PRESETS, Config, ContactConfig
+from pipeline.model.contacts import object_contacts, pose_actions
+from pipeline.model.momentum import onward_shares
+from pipeline.model.poses import stable_poses
+from pipeline.model.reference import landed_masses
+from pipeline.model.rng import stream
+from pipeline.model.topple import evaluate_pose
+from tests.test_momentum import QUADRILATERAL, pivot_edge, planar_roll_on, quad, side_down  # noqa: F401 (fixture)
+
+DROP = np.array([0.3, 0.05, 0.1, 0.4, 0.15])
+
+
+@pytest.fixture(scope="module")
+def marginal_pose():
+    """random_object(4), 14 poses, 12 of drop probability <= 0.1; from its pose 9, 8 of 12 edges
+    that leave it land in a pose of drop probability <= 0.2 with an onward pose elsewhere."""
+    obj = random_object(4)
+    pose_set = stable_poses(obj)
+    contacts = ContactConfig(n_contacts=80)
+    points, normals = object_contacts(obj, contacts, 4)
+    pose = pose_set.poses[9]
+    return obj, pose_set, pose, pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
+
+
+def test_a_box_s_onward_pose_is_the_face_opposite_its_start():
+    """A box's cross-section about any base edge is a rectangle: toppled onto the next face, the
+    edge ahead of its travel is that face's far edge, and over it lies the face opposite the start.
+    The box never rolls on (Housner), so that is one fall beyond every landing."""
+    obj = box_object(size=(0.05, 0.08, 0.15))
+    pose_set = stable_poses(obj, merge_symmetric=False)
+    for pose in pose_set.poses:
+        opposite = pose_with_down(pose_set, -pose.down, atol=1e-6)
+        np.testing.assert_array_equal(pose.edge_momentum_pose, pose.edge_final_pose)
+        np.testing.assert_array_equal(pose.edge_onward_pose, np.full(len(pose.base_edges), opposite))
+
+
+def test_the_prism_s_onward_pose_is_the_side_its_fall_stops_short_of(quad):  # noqa: F811
+    """Where the planar closed form clearly keeps too little energy to roll on over the far end of
+    the landing side, the onward pose is the side beyond it; where it rolls on, the onward pose is
+    one beyond wherever the chain ends, never the landing side."""
+    _, pose_set = quad
+    n = len(QUADRILATERAL)
+    poses = [pose_with_down(pose_set, side_down(QUADRILATERAL, side), atol=1e-6) for side in range(n)]
+    stops_short = 0
+    for side in range(n):
+        kept, needed = planar_roll_on(QUADRILATERAL, side)
+        pose = pose_set.poses[poses[side]]
+        edge = pivot_edge(pose, np.array([QUADRILATERAL[(side + 1) % n][0], 0.0, QUADRILATERAL[(side + 1) % n][1]]))
+        if kept < needed / 1.5:
+            assert pose.edge_momentum_pose[edge] == poses[(side + 1) % n], side
+            assert pose.edge_onward_pose[edge] == poses[(side + 2) % n], side
+            stops_short += 1
+        elif kept > needed * 1.5:
+            assert pose.edge_onward_pose[edge] != poses[(side + 1) % n], side
+    assert stops_short >= 1
+
+
+def test_only_marginal_landings_with_somewhere_to_go_are_carried_on():
+    landed = np.array([1, 2, 3, 4, 1, 1, 0])
+    onward = np.array([3, 0, 4, 2, 1, 0, 1])
+    # Edge 0: marginal (0.05) onto 3; 1: marginal at the bound (0.1) onto 0; 2: landing 3 is not
+    # marginal; 3: nor is 4; 4: nothing ahead; 5: back into the start pose 0; 6: never left it.
+    shares = onward_shares(landed, onward, 0, DROP, 0.4, 0.1)
+    np.testing.assert_array_equal(shares, [0.4, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    # Starting from 3: edges 1 and 5 may now go on to 0, and edge 0's onward pose is the start.
+    shares = onward_shares(landed, onward, 3, DROP, 0.4, 0.1)
+    np.testing.assert_array_equal(shares, [0.0, 0.4, 0.0, 0.0, 0.0, 0.4, 0.0])
+    np.testing.assert_array_equal(onward_shares(landed, onward, 3, DROP, 0.4, 0.2)[[2, 3]], [0.0, 0.4])
+    assert not onward_shares(landed, onward, 3, DROP, 0.0, 0.1).any()
+
+
+def test_the_engine_carries_marginal_landings_on_trial_by_trial(marginal_pose):
+    """Each counted row is the reference's per-trial masses (``landed_masses``) over the engine's
+    own edges; P(topple) and every other row are those without the correction."""
+    obj, pose_set, pose, actions = marginal_pose
+    drop = pose_set.probabilities
+    counted = replace(Config().topple.counted(), n_trials=40)
+    onward = replace(counted, landing_onward=0.4, landing_onward_below=0.2)
+
+    def table(t):
+        return evaluate_pose(obj, pose, drop, actions, t, stream(4, obj.name, pose.index, "trials"))
+
+    plain, carried = table(counted), table(onward)
+    np.testing.assert_array_equal(plain.outcomes, carried.outcomes)
+    np.testing.assert_array_equal(plain.p_topple, carried.p_topple)
+    moved = 0
+    for action in np.flatnonzero(~np.isnan(plain.next_pose[:, 0])):
+        expected = np.zeros(len(drop))
+        for edge in carried.outcomes[action]:
+            for landed, mass in landed_masses(pose, int(edge), onward.applied_corrections, drop, 0.4, 0.2).items():
+                expected[landed] += mass / onward.trials
+        np.testing.assert_allclose(carried.next_pose[action], expected, atol=1e-12)
+        moved += not np.allclose(carried.next_pose[action], plain.next_pose[action])
+    assert moved >= 3, "the test needs pushes that land in a marginal pose"
+
+
+def test_the_maps_keep_the_carried_landing_and_the_thesis_ignores_it(marginal_pose):
+    """The default's maps move P(topple) and keep the landing in proportion: rows are linear in
+    the share, and P(topple) is the default's.  The thesis's variants apply nothing."""
+    obj, pose_set, pose, actions = marginal_pose
+    base = replace(Config().topple, n_trials=40)
+
+    def table(t):
+        return evaluate_pose(obj, pose, pose_set.probabilities, actions, t, stream(4, obj.name, pose.index, "trials"))
+
+    none, half, whole = (table(replace(base, landing_onward=a, landing_onward_below=0.2)) for a in (0.0, 0.5, 1.0))
+    np.testing.assert_array_equal(none.p_topple, half.p_topple)
+    np.testing.assert_allclose(half.next_pose, (none.next_pose + whole.next_pose) / 2, atol=1e-12)
+    assert not np.allclose(none.next_pose, whole.next_pose, equal_nan=True)
+    thesis = replace(Config.from_toml(PRESETS / "thesis.toml").topple, n_trials=40, landing_onward=0.5)
+    assert thesis.applied_landing_onward == 0.0
+    np.testing.assert_array_equal(table(thesis).next_pose, table(replace(thesis, landing_onward=0.0)).next_pose)
+
+
+def test_the_setting_is_checked_and_kept_out_of_what_maps_are_fitted_on():
+    configured = Config().with_overrides({"topple.landing_onward": 0.4, "topple.landing_onward_below": 0.1})
+    assert configured.topple.applied_landing_onward == 0.4
+    assert configured.topple.without_recalibration().landing_onward == 0.0
+    assert Config.from_dict(configured.to_dict()).topple.landing_onward == 0.4
+    for key, value in (("topple.landing_onward", 1.5), ("topple.landing_onward_below", -0.1)):
+        with pytest.raises(ValueError, match=key.split(".")[1]):
+            Config().with_overrides({key: value})
+    with pytest.raises(ValueError, match="add momentum"):
+        Config().with_overrides({"topple.landing_onward": 0.4, "topple.corrections": "finger_friction,force_limit"})
+
+
+def test_a_build_that_carries_nothing_on_keeps_the_shard_identity_it_had_before_the_setting():
+    from pipeline.build.corpus import ObjectSpec
+    from pipeline.build.shards import fingerprint, shard_inputs
+
+    spec = ObjectSpec("box", "/nowhere/box.stl", 1.0, 0.2, "list:x", "0" * 64)
+    default = shard_inputs(spec, Config())
+    assert not {"landing_onward", "landing_onward_below"} & set(default["config"]["topple"])
+    assert shard_inputs(spec, Config().with_overrides({"topple.landing_onward_below": 0.3})) == default
+    carrying = shard_inputs(spec, Config().with_overrides({"topple.landing_onward": 0.4}))
+    assert carrying["config"]["topple"]["landing_onward"] == 0.4 and fingerprint(carrying) != fingerprint(default)
+    assert "landing_spread" not in carrying["config"]["topple"], "the spread, still off, stays out"
+    both = shard_inputs(spec, Config().with_overrides({"topple.landing_onward": 0.4, "topple.landing_spread": 0.25}))
+    assert {"landing_onward", "landing_spread", "landing_spread_poses"} <= set(both["config"]["topple"])
