@@ -281,8 +281,8 @@ def landed_pose(pose, edge: int, corrections: frozenset = frozenset()) -> int:
     return int(landed_poses(pose, corrections)[edge])
 
 
-def landed_masses(pose, edge: int, corrections: frozenset, drop_probabilities, onward_share: float = 0.0,
-                  onward_below: float = 0.0) -> dict[int, float]:
+def landed_masses(pose, edge: int, corrections: frozenset, drop_probabilities, onward_share: float,
+                  onward_below: float) -> dict[int, float]:
     """Where one trial's unit mass rests (pose -> mass): all of it in ``landed_pose``, or with a
     ``landing_onward`` share (MODEL.md C.18) that share carried on to the edge's onward pose
     when the landing pose's drop probability is at most ``onward_below`` and the onward pose is
