@@ -11,12 +11,13 @@ from shapes import box_object, pose_with_down, random_object
 from pipeline.model.collision import collision_object
 from pipeline.model.config import PRESETS, Config, ContactConfig
 from pipeline.model.contacts import object_contacts, pose_actions
-from pipeline.model.momentum import onward_shares
-from pipeline.model.poses import stable_poses
+from pipeline.model.landing_onward import onward_shares
+from pipeline.model.mesh import model_from_mesh
+from pipeline.model.poses import settle, stable_poses
 from pipeline.model.reference import landed_masses
 from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose
-from tests.test_momentum import QUADRILATERAL, pivot_edge, planar_roll_on, quad, side_down  # noqa: F401 (fixture)
+from tests.test_momentum import QUADRILATERAL, pivot_edge, planar_roll_on, prism, quad, side_down  # noqa: F401 (fixture)
 
 DROP = np.array([0.3, 0.05, 0.1, 0.4, 0.15])
 
@@ -77,10 +78,13 @@ def test_only_marginal_landings_with_somewhere_to_go_are_carried_on():
     shares = onward_shares(landed, onward, 3, DROP, 0.4, 0.1)
     np.testing.assert_array_equal(shares, [0.0, 0.4, 0.0, 0.0, 0.0, 0.4, 0.0])
     np.testing.assert_array_equal(onward_shares(landed, onward, 3, DROP, 0.4, 0.2)[[2, 3]], [0.0, 0.4])
+    # A chain that rolled back into the start pose (marginal, with somewhere onward) is no topple.
+    assert not onward_shares(np.array([1]), np.array([3]), 1, DROP, 0.4, 0.1).any()
     assert not onward_shares(landed, onward, 3, DROP, 0.0, 0.1).any()
 
 
-def test_the_engine_carries_marginal_landings_on_trial_by_trial(marginal_pose):
+@pytest.mark.parametrize("corrections", [None, "finger_friction,force_limit,momentum,rolling,stability_margin,stuck_finger,tip_path"])
+def test_the_engine_carries_marginal_landings_on_trial_by_trial(marginal_pose, corrections):
     """Each counted row is the reference's per-trial masses (``landed_masses``) over the engine's
     own edges; P(topple) and the outcomes are those without the correction.  tau is one pose's
     drop probability exactly, which is marginal (at most tau)."""
@@ -88,6 +92,8 @@ def test_the_engine_carries_marginal_landings_on_trial_by_trial(marginal_pose):
     drop = pose_set.probabilities
     below = float(drop[4])  # the pose most of its marginal landings go to
     counted = replace(Config().topple.counted(), n_trials=40)
+    if corrections:  # blocked topples roll on (C.6), marginal start poses fall over (C.3)
+        counted = replace(counted, corrections=corrections)
     onward = replace(counted, landing_onward=0.4, landing_onward_below=below)
 
     def table(t):
@@ -160,3 +166,37 @@ def test_a_build_that_carries_nothing_on_keeps_the_shard_identity_it_had_before_
     assert {"landing_onward", "landing_spread", "landing_spread_poses"} <= set(both["config"]["topple"])
     thesis = Config.from_toml(PRESETS / "thesis.toml")
     assert "landing_onward" not in shard_inputs(spec, thesis)["config"]["topple"]
+
+
+def test_a_chain_back_into_the_start_pose_leaves_p_topple_alone():
+    """random_object(44), pose 6: its edge 4's C.8 chain rolls back into the start pose, a marginal
+    one with an onward pose elsewhere.  Such trials stay, so nothing of theirs is carried."""
+    obj = random_object(44)
+    pose_set = stable_poses(obj)
+    pose = pose_set.poses[6]
+    back = np.flatnonzero(~pose.edge_blocked & (pose.edge_momentum_pose == pose.index) & (pose.edge_final_pose != pose.index))
+    assert len(back) and (pose.edge_onward_pose[back] != pose.index).any() and pose_set.probabilities[6] <= 0.1
+    contacts = ContactConfig(n_contacts=200)  # such topples are rare: 3 trials of these pushes
+    points, normals = object_contacts(obj, contacts, 44)
+    actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
+    tables = [evaluate_pose(obj, pose, pose_set.probabilities, actions, replace(Config().topple, n_trials=40, landing_onward=a),
+                            stream(44, obj.name, pose.index, "trials")) for a in (0.0, 0.4)]
+    assert np.isin(tables[0].outcomes, back).any(), "the test needs trials over those edges"
+    np.testing.assert_array_equal(tables[0].p_topple, tables[1].p_topple)
+    np.testing.assert_array_equal(tables[0].next_pose[:, pose.index], tables[1].next_pose[:, pose.index])
+
+
+def test_merged_symmetric_poses_carry_on_to_the_representative_of_the_unmerged_onward_pose():
+    """An extruded trapezoid is mirror-symmetric: its turned copies merge.  Each merged pose's onward
+    table is, edge by edge, its unmerged twin's, read as the merged pose that orientation rests in."""
+    obj = model_from_mesh(prism(np.array([[0.0, 0.0], [0.09, 0.0], [0.06, 0.04], [0.03, 0.04]]), depth=0.05),
+                          mass=0.2, name="trapezoid")
+    merged, unmerged = stable_poses(obj), stable_poses(obj, merge_symmetric=False)
+    assert len(merged.poses) < len(unmerged.poses)
+    moved = 0
+    for pose in merged.poses:
+        twin = next(u for u in unmerged.poses if np.allclose(u.transform, pose.transform))
+        expected = [settle(merged, obj, unmerged.poses[q].transform[:3, :3]) for q in twin.edge_onward_pose]
+        np.testing.assert_array_equal(pose.edge_onward_pose, expected)
+        moved += int((pose.edge_onward_pose != pose.edge_momentum_pose).sum())
+    assert moved >= 1

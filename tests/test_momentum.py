@@ -210,17 +210,15 @@ def test_landing_summary_counts_each_predictor_against_physics():
 
 
 def test_landing_summary_says_where_marginal_landings_rest():
-    """Rows whose model landing (scale 1) has drop probability <= MARGINAL and an onward pose
-    elsewhere: the share resting in the landing and one fall beyond it."""
-    from pipeline.studies.landing import MARGINAL, summarise
+    """Rows whose landing C.18 carries on: the share resting in the landing and in its onward pose."""
+    from pipeline.studies.landing import summarise
 
-    def row(obj, physics, landing, onward, drop):
+    def row(obj, physics, landing, onward, carried):
         return {"object": obj, "pose": 0, "edge": 0, "physics": physics, "quasi_static": landing, "momentum": [landing],
-                "onward": onward, "landing_drop": drop}
+                "onward": onward, "carried": carried}
 
-    rows = [row("a", 3, 2, 3, MARGINAL), row("a", 2, 2, 3, 0.01), row("b", 3, 2, 3, 0.02), row("b", 4, 2, 3, 0.05),
-            row("c", 3, 2, 3, MARGINAL + 0.01),  # not marginal
-            row("c", 2, 2, 2, 0.01)]  # nowhere onward
+    rows = [row("a", 3, 2, 3, True), row("a", 2, 2, 3, True), row("b", 3, 2, 3, True), row("b", 4, 2, 3, True),
+            row("c", 3, 2, 3, False)]
     assert summarise(rows, scales=(1.0,))["marginal_landings"] == {
         "released": 4, "objects": 2, "rest_in_landing": 0.25, "rest_onward": 0.5}
 
@@ -239,6 +237,10 @@ def test_toppledb_landing_writes_a_record_that_reads_back(tmp_path, capsys):
     assert tuple(record["row_fields"]) == ROW_FIELDS and record["released"] == len(rows) > 0
     assert record["objects"] == 1 and not record["failed"]
     assert all(len(row["momentum"]) == len(ENERGY_SCALES) for row in rows)
+    # C.18's verdict, edge by edge, is the engine's (``onward_shares`` over the pose's own tables).
+    assert all(not row["carried"] or row["onward"] not in (row["momentum"][ENERGY_SCALES.index(1.0)], row["pose"])
+               for row in rows)
+    assert record["marginal_landings"]["released"] == sum(row["carried"] for row in rows)
     agree = np.mean([row["physics"] == row["quasi_static"] for row in rows])
     assert record["agreement"]["quasi_static"] == pytest.approx(agree, abs=1e-4)
     with pytest.raises(SystemExit) as exit_info:

@@ -97,8 +97,9 @@ def momentum_poses(
     center_mass: np.ndarray,
     inertia: np.ndarray,
     energy_scale: float = 1.0,
-) -> list[np.ndarray]:
-    """Pose each topple ends in once the energy of its fall is counted (C.8).
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Pose each topple ends in once the energy of its fall is counted (C.8), and the pose one
+    fall beyond it (its onward pose, C.18).
 
     From the apex of edge e of pose s the centre of mass falls to the landing pose q
     (``final_pose[s][e]``).  The impact keeps ``impact_energy_ratio`` of that energy;
@@ -173,22 +174,3 @@ def momentum_poses(
         onwards.append(onward)
     return ends, onwards
 
-
-def onward_shares(landed: np.ndarray, onward: np.ndarray, start: int, drop_probabilities: np.ndarray, share: float,
-                  below: float) -> np.ndarray:
-    """Share of each edge's topples carried on to its onward pose (docs/MODEL.md C.18).
-
-    A landing in a marginal pose, one whose drop probability is at most ``below``, carries
-    ``share`` of its mass on to the pose one fall further (``StablePose.edge_onward_pose``); the
-    object falls shallowly into such a pose and in physics often rolls on.  Landings in other
-    poses keep their mass, as do edges whose onward pose is their landing (nothing lies ahead)
-    or the start pose (two falls back into it, on a symmetric object whose poses were merged):
-    so P(topple) never changes.
-
-    landed, onward : (E,) int, each edge's landing and onward pose (indices into the pose set)
-    start : the pose the object leaves
-    drop_probabilities : (P,) float, the pose set's;  share : alpha in [0, 1];  below : tau
-    returns : (E,) float in [0, share]
-    """
-    marginal = np.asarray(drop_probabilities, dtype=float)[landed] <= below
-    return np.where(marginal & (onward != landed) & (onward != start) & (landed != start), float(share), 0.0)

@@ -34,7 +34,8 @@ class StablePose:
       as ``edge_final_pose``, but the energy of the fall may roll the object on past shallow poses
     edge_onward_pose : (E,) int, the pose one fall beyond ``edge_momentum_pose``, over its edge
       ahead, where the fall's energy fell short of the rise (MODEL.md C.18); ``edge_momentum_pose``
-      itself where nothing lies ahead, for blocked edges and for edges back into this pose
+      itself where nothing lies ahead, where the pose set left out the onward pose (or the
+      momentum pose), for blocked edges and for edges back into this pose
     """
 
     index: int

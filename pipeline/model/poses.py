@@ -366,8 +366,10 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
                     new_index[g["edge_rolled_pose"]] >= 0, new_index[g["edge_rolled_pose"]], new_index[g["edge_final_pose"]]
                 ),
                 edge_momentum_pose=momentum_pose,
-                # C.18: an onward pose the set left out carries nothing on (the end pose itself).
-                edge_onward_pose=np.where(new_index[g["edge_onward_pose"]] >= 0, new_index[g["edge_onward_pose"]], momentum_pose),
+                # C.18: an onward pose the set left out, or one beyond a momentum pose it left out (the
+                # trial then lands where the thesis says), carries nothing on: the landing itself.
+                edge_onward_pose=np.where((new_index[g["edge_onward_pose"]] >= 0) & (new_index[g["edge_momentum_pose"]] >= 0),
+                                          new_index[g["edge_onward_pose"]], momentum_pose),
             )
         )
     equivalents = None

@@ -286,10 +286,11 @@ def landed_masses(pose, edge: int, corrections: frozenset, drop_probabilities, o
     """Where one trial's unit mass rests (pose -> mass): all of it in ``landed_pose``, or with a
     ``landing_onward`` share (MODEL.md C.18) that share carried on to the edge's onward pose
     when the landing pose's drop probability is at most ``onward_below`` and the onward pose is
-    neither the landing nor the start pose; unblocked edges only, one trial at a time (the
-    engine: ``momentum.onward_shares``)."""
+    neither the landing nor the start pose; with ``momentum`` (the chain whose landings it
+    carries on) and unblocked edges only, one trial at a time (the engine:
+    ``landing_onward.onward_shares``)."""
     landed = landed_pose(pose, edge, corrections)
-    if edge < 0 or not onward_share or pose.edge_blocked[edge]:
+    if edge < 0 or not onward_share or "momentum" not in corrections or pose.edge_blocked[edge]:
         return {landed: 1.0}
     onward = int(pose.edge_onward_pose[edge])
     if onward in (landed, pose.index) or landed == pose.index or drop_probabilities[landed] > onward_below:

@@ -53,9 +53,9 @@ from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 from .config import ToppleConfig
 from .edges import EdgeGeometry, edge_geometry, push_torques
 from .feature_map import map_down_rows, map_rows, map_side_rows
+from .landing_onward import onward_shares
 from .landing_spread import landing_prior, spread_landings
 from .mesh import ObjectModel
-from .momentum import onward_shares
 from .outcomes import Actions, StablePose, ToppleTable
 from .poses import stability_margin
 from .recalibration import recalibrate_rows
@@ -686,7 +686,7 @@ def evaluate_pose(
       ``smoothing_radius`` a probe is smoothed over the candidates and itself, never over other
       probes (MODEL.md C.12).  Default: every action is a candidate.
     """
-    spread, onward = config.applied_landing_spread, config.applied_landing_onward
+    spread, onward_share = config.applied_landing_spread, config.applied_landing_onward
     n_poses = len(drop_probabilities)  # P
     n_actions, trials = len(actions.status), config.trials  # A, T
     n_candidates = n_actions if candidates is None else int(candidates)
@@ -699,10 +699,12 @@ def evaluate_pose(
     center_mass = transform_points(pose.transform, obj.center_mass[None])[0]  # (3,), pose frame
     edges = edge_geometry(pose.base_edges, center_mass)  # (E, ...) fields
     final_pose = np.append(landed_poses(pose, config.applied_corrections), pose.index)  # (E + 1,); -1: stays
-    if np.ndim(drop_probabilities) != 1 or final_pose.max() >= n_poses:  # final_pose ends with pose.index
+    # C.18: a blocked edge's onward pose is the start pose (its edge_final_pose), so it never carries.
+    onward_pose = np.append(pose.edge_onward_pose, pose.index)  # (E + 1,)
+    if np.ndim(drop_probabilities) != 1 or max(final_pose.max(), onward_pose.max()) >= n_poses:
         # A row's width is the pose set's size: another set's probabilities would spill a topple into the next row.
         raise ValueError(f"drop_probabilities must be the pose set's, one per pose: pose {pose.index} lands in poses up to "
-                         f"{final_pose.max()}, and {np.shape(drop_probabilities)} probabilities were given")
+                         f"{max(final_pose.max(), onward_pose.max())}, and {np.shape(drop_probabilities)} probabilities were given")
 
     outcomes = np.full((n_actions, trials), OUTCOME_NOT_EVALUATED, dtype=np.int16)  # (A, T)
     forces = np.full((n_actions, trials), np.inf)  # (A, T), N
@@ -738,15 +740,16 @@ def evaluate_pose(
     next_pose = np.full((n_actions, n_poses), np.nan)  # (A, P)
     landed = final_pose[outcomes[ok]]  # (n_ok, T) pose indices; outcome -1 reads the last entry (stays)
     row_start = np.repeat(np.arange(len(ok)), trials) * n_poses  # (n_ok T,), each trial's row * P
-    counts = np.bincount(row_start + landed.ravel(), minlength=len(ok) * n_poses).astype(float)  # (n_ok P,)
-    if onward:
-        # MODEL.md C.18: a share of each landing in a marginal pose goes one fall further.
-        # Per edge, so per trial: the rows' P(topple) is unchanged.
-        onward_pose = np.append(np.where(pose.edge_blocked, final_pose[:-1], pose.edge_onward_pose), pose.index)  # (E + 1,)
-        share = np.append(onward_shares(final_pose[:-1], onward_pose[:-1], pose.index, drop_probabilities, onward,
-                                        config.landing_onward_below), 0.0)[outcomes[ok]].ravel()  # (n_ok T,)
-        counts -= np.bincount(row_start + landed.ravel(), weights=share, minlength=len(ok) * n_poses)
-        counts += np.bincount(row_start + onward_pose[outcomes[ok]].ravel(), weights=share, minlength=len(ok) * n_poses)
+    if onward_share:
+        # MODEL.md C.18: a share of each landing in a marginal pose goes one fall further, per
+        # trial.  Trials that stay have share 0, so the start column keeps whole counts: P(topple)
+        # is unchanged.
+        share = onward_shares(final_pose, onward_pose, pose.index, drop_probabilities, onward_share,
+                              config.landing_onward_below)[outcomes[ok]].ravel()  # (n_ok T,)
+        cells = np.concatenate([row_start + landed.ravel(), row_start + onward_pose[outcomes[ok]].ravel()])
+        counts = np.bincount(cells, weights=np.concatenate([1.0 - share, share]), minlength=len(ok) * n_poses)
+    else:
+        counts = np.bincount(row_start + landed.ravel(), minlength=len(ok) * n_poses)  # (n_ok P,)
     next_pose[ok] = counts.reshape(len(ok), n_poses) / trials
     if config.applied_smoothing > 0:
         # MODEL.md C.12: a push's row is its neighbourhood's mean row. Taking the best of ~1,000

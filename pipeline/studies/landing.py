@@ -12,8 +12,10 @@ left to fall and settle (``pushsim.rest_on_table``), and the pose it rests in
   impact keeps scaled by s (s = 1 is Housner's impact, the model's; s = 0 never rolls on,
   which is the quasi-static landing again up to the chain's first step);
 * ``onward``: one fall beyond the momentum landing (s = 1), where ``landing_onward``
-  (C.18) carries a share of the landings in marginal poses, those of drop probability at
-  most ``MARGINAL``.
+  (C.18) carries a share of the landings in marginal poses (drop probability at most the
+  config's ``topple.landing_onward_below``); ``carried`` says whether C.18 carries the edge's
+  landing.  The pose set here is unmerged (below), so a symmetric object's drop probability
+  is split over its turned copies and more of its poses count as marginal than in the engine.
 
 Blocked edges (the hull meets the table before the apex) are not released: nothing
 falls from them.  Objects come from the same selection as ``toppledb play``.
@@ -32,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model.config import Config
+from ..model.landing_onward import onward_shares
 from ..model.momentum import inertia_per_mass, momentum_poses
 from ..model.outcomes import StablePose
 from schema.frames import axis_angle_matrices
@@ -42,9 +45,6 @@ FALL_TIME = 3.0
 """s of simulated time to fall and settle (a fall takes well under 1 s)."""
 ENERGY_SCALES = (0.0, 0.5, 1.0, 1.5, 2.0)
 """Scales of the impact's kept energy that the study compares (1: the model)."""
-MARGINAL = 0.1
-"""Drop probability at or below which a landing pose is marginal (the default's
-``topple.landing_onward_below``), for the summary of where such landings rest."""
 
 
 def apex_transform(pose: StablePose, edge: int, margin: float = APEX_MARGIN) -> np.ndarray:
@@ -65,7 +65,8 @@ def land_object(object_id: str, obj, pose_set, config: Config, scales: tuple[flo
     """Release every unblocked topple of ``pose_set`` in pybullet; one row per (pose, edge).
 
     returns : dicts with object, pose, edge, physics (pose it rests in, -1 outside the set),
-      quasi_static, and momentum (one predicted pose per scale)
+      quasi_static, momentum (one predicted pose per scale), onward (C.18's onward pose) and
+      carried (whether C.18 carries this edge's landing on, with ``config``'s tau)
     """
     from ..model.poses import settle
     from .pushsim import body_model, rest_on_table
@@ -75,10 +76,10 @@ def land_object(object_id: str, obj, pose_set, config: Config, scales: tuple[flo
     pose_tables = (np.array([p.transform for p in poses]), [p.base_edges for p in poses], [p.edge_final_pose for p in poses],
                    [p.edge_blocked for p in poses], obj.center_mass, inertia_per_mass(obj.mesh, obj.hull, obj.center_mass))
     tables = [momentum_poses(*pose_tables, energy_scale=scale)[0] for scale in scales]
-    model, onward = momentum_poses(*pose_tables)  # the model's (scale 1) landing and its onward pose
-    drop = pose_set.probabilities
     rows = []
     for pose in poses:
+        carried = onward_shares(pose.edge_momentum_pose, pose.edge_onward_pose, pose.index, pose_set.probabilities, 1.0,
+                                config.topple.landing_onward_below) > 0
         for edge in np.flatnonzero(~pose.edge_blocked & (pose.edge_final_pose != pose.index)).tolist():
             rest = rest_on_table(body, apex_transform(pose, edge), config, FALL_TIME)
             rows.append({
@@ -88,8 +89,8 @@ def land_object(object_id: str, obj, pose_set, config: Config, scales: tuple[flo
                 "physics": settle(pose_set, obj, rest[:3, :3]),
                 "quasi_static": int(pose.edge_final_pose[edge]),
                 "momentum": [int(table[pose.index][edge]) for table in tables],
-                "onward": int(onward[pose.index][edge]),
-                "landing_drop": round(float(drop[model[pose.index][edge]]), 6),
+                "onward": int(pose.edge_onward_pose[edge]),
+                "carried": bool(carried[edge]),
             })
     return rows
 
@@ -97,7 +98,7 @@ def land_object(object_id: str, obj, pose_set, config: Config, scales: tuple[flo
 def summarise(rows: list[dict], scales: tuple[float, ...] = ENERGY_SCALES) -> dict:
     """Share of released topples each predictor lands right, overall and where the model's
     momentum landing (scale 1) differs from the quasi-static one; and where the topples whose
-    momentum landing is marginal (drop probability <= ``MARGINAL``, somewhere onward) rest."""
+    landing C.18 carries on (``carried``) rest."""
     physics = np.array([r["physics"] for r in rows])
     quasi = np.array([r["quasi_static"] for r in rows])
     momentum = np.array([r["momentum"] for r in rows]).reshape(len(rows), len(scales))
@@ -121,11 +122,11 @@ def summarise(rows: list[dict], scales: tuple[float, ...] = ENERGY_SCALES) -> di
 
 
 def _marginal_landings(rows: list[dict], model: np.ndarray, physics: np.ndarray) -> dict:
-    """Where topples rest whose model landing is marginal and has an onward pose (C.18)."""
-    if not rows or "onward" not in rows[0]:
+    """Where topples rest whose model landing C.18 carries on: in it, or in its onward pose."""
+    if not rows or "carried" not in rows[0]:
         return {}
     onward = np.array([r["onward"] for r in rows])
-    marginal = (np.array([r["landing_drop"] for r in rows]) <= MARGINAL) & (onward != model)
+    marginal = np.array([r["carried"] for r in rows], dtype=bool)
     return {"marginal_landings": {
         "released": int(marginal.sum()),
         "objects": len({r["object"] for r, m in zip(rows, marginal) if m}),
@@ -134,7 +135,7 @@ def _marginal_landings(rows: list[dict], model: np.ndarray, physics: np.ndarray)
     }}
 
 
-ROW_FIELDS = ("object", "pose", "edge", "physics", "quasi_static", "momentum", "onward", "landing_drop")
+ROW_FIELDS = ("object", "pose", "edge", "physics", "quasi_static", "momentum", "onward", "carried")
 
 
 def record_text(summary: dict, rows: list[dict]) -> str:
