@@ -293,8 +293,9 @@ class ToppleConfig:
     (C.8) ends in a marginal pose, one of drop probability at most ``landing_onward_below``
     (docs/MODEL.md C.18): in physics such landings often roll on.  P(topple) is unchanged.  0:
     the landing as C.8 leaves it.  It carries on C.8's landings: only the ``corrected`` variant
-    with the ``momentum`` correction applies it.  The default is fitted by object-grouped cross-validation of the Brier
-    score on the corpus's drawn pushes (data/logs/corpus_all and corpus_s1), the default since stop 35."""
+    with the ``momentum`` correction applies it.  The value is fitted by object-grouped
+    cross-validation of the Brier score on the corpus's drawn pushes (data/logs/corpus_all and
+    corpus_s1); on since stop 35."""
     landing_onward_below: float = bounded(0.1, FRACTION)
     """tau: a landing pose whose drop probability is at most this is marginal for
     ``landing_onward``."""

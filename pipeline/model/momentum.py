@@ -173,4 +173,3 @@ def momentum_poses(
         ends.append(ended)
         onwards.append(onward)
     return ends, onwards
-
