@@ -45,6 +45,18 @@ def random_object(index: int):
     return load_mesh(f"{DATA}/random_urdfs/{index:03d}/{index:03d}.obj", scale=0.015, mass=0.1, name=f"random_{index:03d}")
 
 
+def candidate_pushes(obj, pose, n_contacts, seed):
+    """The candidate pushes (``Actions``) of one stable pose from ``n_contacts`` contacts drawn with
+    ``seed``, as the dataset job makes them."""
+    from pipeline.model.collision import collision_object
+    from pipeline.model.config import ContactConfig
+    from pipeline.model.contacts import object_contacts, pose_actions
+
+    contacts = ContactConfig(n_contacts=n_contacts)
+    points, normals = object_contacts(obj, contacts, seed)
+    return pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
+
+
 def pose_with_down(pose_set, down, atol=1e-6):
     """Index of the pose whose object-frame down vector is ``down``."""
     for pose in pose_set.poses:

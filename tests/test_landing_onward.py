@@ -6,11 +6,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from shapes import box_object, pose_with_down, random_object
+from shapes import box_object, candidate_pushes, pose_with_down, random_object
 
-from pipeline.model.collision import collision_object
-from pipeline.model.config import PRESETS, Config, ContactConfig
-from pipeline.model.contacts import object_contacts, pose_actions
+from pipeline.model.config import PRESETS, Config
 from pipeline.model.landing_onward import onward_shares
 from pipeline.model.mesh import model_from_mesh
 from pipeline.model.poses import settle, stable_poses
@@ -28,10 +26,13 @@ def marginal_pose():
     leave it, some land (by C.8) in marginal poses, some in the two probable ones, and five roll on."""
     obj = random_object(4)
     pose_set = stable_poses(obj)
-    contacts = ContactConfig(n_contacts=80)
-    points, normals = object_contacts(obj, contacts, 4)
-    pose = pose_set.poses[0]
-    return obj, pose_set, pose, pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
+    return obj, pose_set, pose_set.poses[0], candidate_pushes(obj, pose_set.poses[0], 80, 4)
+
+
+def _table(setup, topple, seed=4):
+    """``evaluate_pose`` of a (object, pose set, pose, actions) setup on its (seed, object, pose) stream."""
+    obj, pose_set, pose, actions = setup
+    return evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(seed, obj.name, pose.index, "trials"))
 
 
 def test_a_box_s_onward_pose_is_the_face_opposite_its_start():
@@ -88,18 +89,14 @@ def test_the_engine_carries_marginal_landings_on_trial_by_trial(marginal_pose, c
     """Each counted row is the reference's per-trial masses (``landed_masses``) over the engine's
     own edges; P(topple) and the outcomes are those without the correction.  tau is one pose's
     drop probability exactly, which is marginal (at most tau)."""
-    obj, pose_set, pose, actions = marginal_pose
+    _, pose_set, pose, _ = marginal_pose
     drop = pose_set.probabilities
     below = float(drop[4])  # the pose most of its marginal landings go to
     counted = replace(Config().topple.counted(), n_trials=40)
     if corrections:  # blocked topples roll on (C.6), marginal start poses fall over (C.3)
         counted = replace(counted, corrections=corrections)
     onward = replace(counted, landing_onward=0.4, landing_onward_below=below)
-
-    def table(t):
-        return evaluate_pose(obj, pose, drop, actions, t, stream(4, obj.name, pose.index, "trials"))
-
-    plain, carried = table(counted), table(onward)
+    plain, carried = _table(marginal_pose, counted), _table(marginal_pose, onward)
     np.testing.assert_array_equal(plain.outcomes, carried.outcomes)
     np.testing.assert_array_equal(plain.p_topple, carried.p_topple)
     kinds = {"carried": 0, "kept": 0, "rolled": 0, "at tau": 0}
@@ -121,19 +118,15 @@ def test_the_engine_carries_marginal_landings_on_trial_by_trial(marginal_pose, c
 def test_the_maps_keep_the_carried_landing_and_the_thesis_ignores_it(marginal_pose):
     """The default's maps move P(topple) and keep the landing in proportion: rows are linear in
     the share, and P(topple) is the default's.  The thesis's variants apply nothing."""
-    obj, pose_set, pose, actions = marginal_pose
     base = replace(Config().topple, n_trials=40)
-
-    def table(t):
-        return evaluate_pose(obj, pose, pose_set.probabilities, actions, t, stream(4, obj.name, pose.index, "trials"))
-
-    none, half, whole = (table(replace(base, landing_onward=a, landing_onward_below=0.2)) for a in (0.0, 0.5, 1.0))
+    none, half, whole = (_table(marginal_pose, replace(base, landing_onward=a, landing_onward_below=0.2)) for a in (0.0, 0.5, 1.0))
     np.testing.assert_array_equal(none.p_topple, half.p_topple)
     np.testing.assert_allclose(half.next_pose, (none.next_pose + whole.next_pose) / 2, atol=1e-12)
     assert not np.allclose(none.next_pose, whole.next_pose, equal_nan=True)
     thesis = replace(Config.from_toml(PRESETS / "thesis.toml").topple, n_trials=40, landing_onward=0.5)
     assert thesis.applied_landing_onward == 0.0
-    np.testing.assert_array_equal(table(thesis).next_pose, table(replace(thesis, landing_onward=0.0)).next_pose)
+    np.testing.assert_array_equal(_table(marginal_pose, thesis).next_pose,
+                                  _table(marginal_pose, replace(thesis, landing_onward=0.0)).next_pose)
 
 
 def test_the_setting_is_checked_and_kept_out_of_what_maps_are_fitted_on():
@@ -176,11 +169,8 @@ def test_a_chain_back_into_the_start_pose_leaves_p_topple_alone():
     pose = pose_set.poses[6]
     back = np.flatnonzero(~pose.edge_blocked & (pose.edge_momentum_pose == pose.index) & (pose.edge_final_pose != pose.index))
     assert len(back) and (pose.edge_onward_pose[back] != pose.index).any() and pose_set.probabilities[6] <= 0.1
-    contacts = ContactConfig(n_contacts=200)  # such topples are rare: 3 trials of these pushes
-    points, normals = object_contacts(obj, contacts, 44)
-    actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
-    tables = [evaluate_pose(obj, pose, pose_set.probabilities, actions, replace(Config().topple, n_trials=40, landing_onward=a),
-                            stream(44, obj.name, pose.index, "trials")) for a in (0.0, 0.4)]
+    setup = obj, pose_set, pose, candidate_pushes(obj, pose, 200, 44)  # such topples are rare: 3 trials of these pushes
+    tables = [_table(setup, replace(Config().topple, n_trials=40, landing_onward=a), seed=44) for a in (0.0, 0.4)]
     assert np.isin(tables[0].outcomes, back).any(), "the test needs trials over those edges"
     np.testing.assert_array_equal(tables[0].p_topple, tables[1].p_topple)
     np.testing.assert_array_equal(tables[0].next_pose[:, pose.index], tables[1].next_pose[:, pose.index])

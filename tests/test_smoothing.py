@@ -8,11 +8,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from shapes import random_object
+from shapes import candidate_pushes, random_object
 
-from pipeline.model.collision import collision_object
 from pipeline.model.config import Config, ContactConfig
-from pipeline.model.contacts import object_contacts, pose_actions
 from pipeline.model.outcomes import Actions
 from pipeline.model.poses import stable_poses
 from pipeline.model.rng import stream
@@ -34,13 +32,10 @@ def _topple(radius: float, variant: str = "corrected", n_trials: int = 40):
 def pose_and_candidates():
     obj = random_object(3)
     pose_set = stable_poses(obj)
-    contacts = ContactConfig(n_contacts=80)
-    points, normals = object_contacts(obj, contacts, 3)
     # Pose 2: 26 of its pushes topple under the default model (pose 0, on which these tests were
     # written, has none once tip_path stops its few stalling tips, MODEL.md C.14).
     pose = pose_set.poses[2]
-    actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
-    return obj, pose_set, pose, actions
+    return obj, pose_set, pose, candidate_pushes(obj, pose, 80, 3)
 
 
 def _evaluate(setup, topple, actions=None, candidates=None):

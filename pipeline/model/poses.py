@@ -345,9 +345,8 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
     for i, old in enumerate(kept):
         g = geometry[old]
         # A pose the fall rolls on into (C.8) but the set left out: the thesis's outcome.
-        momentum_pose = np.where(
-            new_index[g["edge_momentum_pose"]] >= 0, new_index[g["edge_momentum_pose"]], new_index[g["edge_final_pose"]]
-        )
+        rolled_on_to, onward_to = new_index[g["edge_momentum_pose"]], new_index[g["edge_onward_pose"]]  # -1: left out
+        momentum_pose = np.where(rolled_on_to >= 0, rolled_on_to, new_index[g["edge_final_pose"]])
         poses.append(
             StablePose(
                 index=i,
@@ -368,8 +367,7 @@ def stable_poses(obj: ObjectModel, config: PoseConfig = PoseConfig(), merge_symm
                 edge_momentum_pose=momentum_pose,
                 # C.18: an onward pose the set left out, or one beyond a momentum pose it left out (the
                 # trial then lands where the thesis says), carries nothing on: the landing itself.
-                edge_onward_pose=np.where((new_index[g["edge_onward_pose"]] >= 0) & (new_index[g["edge_momentum_pose"]] >= 0),
-                                          new_index[g["edge_onward_pose"]], momentum_pose),
+                edge_onward_pose=np.where((onward_to >= 0) & (rolled_on_to >= 0), onward_to, momentum_pose),
             )
         )
     equivalents = None

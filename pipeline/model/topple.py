@@ -738,18 +738,19 @@ def evaluate_pose(
 
     # (9.1) via (10.7): pose landed in per (ok action, trial), counted per (action, pose) cell.
     next_pose = np.full((n_actions, n_poses), np.nan)  # (A, P)
-    landed = final_pose[outcomes[ok]]  # (n_ok, T) pose indices; outcome -1 reads the last entry (stays)
+    edge_of_trial = outcomes[ok].ravel()  # (n_ok T,) edge or -1; -1 reads the tables' last entry (stays)
     row_start = np.repeat(np.arange(len(ok)), trials) * n_poses  # (n_ok T,), each trial's row * P
+    landed_cells = row_start + final_pose[edge_of_trial]  # (n_ok T,), row * P + pose landed in
     if onward_share:
         # MODEL.md C.18: a share of each landing in a marginal pose goes one fall further, per
         # trial.  Trials that stay have share 0, so the start column keeps whole counts: P(topple)
         # is unchanged.
         share = onward_shares(final_pose, onward_pose, pose.index, drop_probabilities, onward_share,
-                              config.landing_onward_below)[outcomes[ok]].ravel()  # (n_ok T,)
-        cells = np.concatenate([row_start + landed.ravel(), row_start + onward_pose[outcomes[ok]].ravel()])
+                              config.landing_onward_below)[edge_of_trial]  # (n_ok T,)
+        cells = np.concatenate([landed_cells, row_start + onward_pose[edge_of_trial]])
         counts = np.bincount(cells, weights=np.concatenate([1.0 - share, share]), minlength=len(ok) * n_poses)
     else:
-        counts = np.bincount(row_start + landed.ravel(), minlength=len(ok) * n_poses)  # (n_ok P,)
+        counts = np.bincount(landed_cells, minlength=len(ok) * n_poses)  # (n_ok P,)
     next_pose[ok] = counts.reshape(len(ok), n_poses) / trials
     if config.applied_smoothing > 0:
         # MODEL.md C.12: a push's row is its neighbourhood's mean row. Taking the best of ~1,000
