@@ -304,12 +304,12 @@ def experiment(
     return report
 
 
-def _mean_and_error(values: np.ndarray) -> tuple[float | None, float | None]:
-    """Mean and its standard error; None for an empty sample (JSON null)."""
+def mean_se(values) -> tuple[float | None, float | None]:
+    """Mean and its standard error; None for an empty sample (JSON null), no error for one value."""
+    values = np.asarray(values, dtype=float)
     if len(values) == 0:
         return None, None
-    error = float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else None
-    return float(np.mean(values)), error
+    return float(values.mean()), (float(values.std(ddof=1) / np.sqrt(len(values))) if len(values) > 1 else None)
 
 
 def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str, PolicyRun]],
@@ -336,22 +336,22 @@ def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str
         again = np.array([x for r in pushes for x in after_a_failure(r.toppled)], dtype=bool)
         n_pushes = np.array([len(runs[t][policy].predicted) for t in kept])
         entry = {
-            "physical_gain_all": _mean_and_error(physical)[0],
-            "model_gain_all": _mean_and_error(model)[0],
-            "physical_gain_useful": _mean_and_error(physical[useful])[0],
-            "physical_gain_useful_se": _mean_and_error(physical[useful])[1],
-            "model_gain_useful": _mean_and_error(model[useful])[0],
-            "mean_pushes_useful": _mean_and_error(n_pushes[useful])[0],
+            "physical_gain_all": mean_se(physical)[0],
+            "model_gain_all": mean_se(model)[0],
+            "physical_gain_useful": mean_se(physical[useful])[0],
+            "physical_gain_useful_se": mean_se(physical[useful])[1],
+            "model_gain_useful": mean_se(model[useful])[0],
+            "mean_pushes_useful": mean_se(n_pushes[useful])[0],
             "pushes": len(p_hat),
-            "predicted_topple_rate": _mean_and_error(p_hat)[0],
-            "physical_topple_rate": _mean_and_error(toppled)[0],
+            "predicted_topple_rate": mean_se(p_hat)[0],
+            "physical_topple_rate": mean_se(toppled)[0],
             "by_direction": topple_rates_by_direction(p_hat, toppled, direction_z),
             "by_attempt": topple_rates_by_attempt(p_hat, toppled, again),
         }
         report["policies"][policy] = entry
     for policy in ("greedy", "value_iteration"):
         difference = gains[policy][useful] - gains["max_height"][useful]
-        mean, error = _mean_and_error(difference)
+        mean, error = mean_se(difference)
         model_difference = report["policies"][policy]["model_gain_useful"], report["policies"]["max_height"]["model_gain_useful"]
         report["policies"][policy]["physical_gain_over_max_height"] = mean
         report["policies"][policy]["physical_gain_over_max_height_se"] = error

@@ -51,7 +51,7 @@ from ..build.atomic import write_text_atomic
 from ..model.config import Config, MDPConfig
 from ..model.mdp import IMPROVEMENT, belief_value_iteration, pose_values, value_iteration_policy
 from ..model.rng import stream
-from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, object_plans, open_trials, world_config
+from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, mean_se, object_plans, open_trials, world_config
 from .policy_experiment import useful_starts
 from .pushsim import body_model, draw_noise, play_push
 
@@ -415,14 +415,6 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
     if policy == BELIEF_POLICY:
         return retry.best_untried(extra["belief_q1"][pose], choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
     return retry.best_untried(extra["belief_budget_q1"][step][pose], choosable & ~ruled_out, stay, horizon.IMPROVEMENT)
-
-
-def mean_se(values) -> tuple[float | None, float | None]:
-    """Mean and its standard error; None for an empty sample (JSON null), no error for one value."""
-    values = np.asarray(values, dtype=float)
-    if len(values) == 0:
-        return None, None
-    return float(values.mean()), (float(values.std(ddof=1) / np.sqrt(len(values))) if len(values) > 1 else None)
 
 
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
