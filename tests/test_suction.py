@@ -10,13 +10,17 @@ import pytest
 import trimesh
 
 from pipeline.model.collision import collision_object
-from pipeline.model.config import SuctionConfig
+from pipeline.model.config import SuctionConfig, ToppleConfig
 from pipeline.model.suction import (
     body_collisions,
+    cast_depths,
+    grasp_qualities,
+    perturb,
     sample_candidates,
     seal_contacts,
     suction_quality,
     table_collisions,
+    upward_faces,
     wrench_resisted,
 )
 
@@ -177,10 +181,124 @@ def test_same_generator_state_gives_the_same_result():
 def test_no_face_within_reach_means_no_grasp():
     # A steep spike (72 degree slopes) offers no face within 45 degrees of vertical.
     mesh = resting(trimesh.creation.cone(radius=0.02, height=0.06, sections=32))
-    points, _ = sample_candidates(mesh, CONFIG.n_candidates, CONFIG.max_approach_angle, np.random.default_rng(0))
-    assert len(points) == 0
+    points, axes = sample_candidates(mesh, CONFIG.n_candidates, CONFIG.max_approach_angle, np.random.default_rng(0))
+    assert points.shape == (0, 3) and axes.shape == (0, 3)
     result = quality(mesh)
     assert result.quality == 0.0 and np.isnan(result.point).all()
+    assert result.point.shape == (3,) and result.axis.shape == (3,)
+
+
+def test_a_face_at_exactly_the_largest_approach_angle_is_within_reach():
+    angle = CONFIG.max_approach_angle
+    normals = np.array([[np.sin(a), 0.0, np.cos(a)] for a in (0.0, angle, angle + 1e-6, np.pi / 2)])
+    np.testing.assert_array_equal(upward_faces(normals, angle), [True, True, False, False])
+
+
+@pytest.mark.parametrize("count", [1, 7])
+def test_candidates_are_as_many_as_asked_and_lie_on_the_upward_faces(count):
+    box = resting(trimesh.creation.box([0.06, 0.04, 0.03]))
+    points, axes = sample_candidates(box, count, CONFIG.max_approach_angle, np.random.default_rng(2))
+    assert points.shape == axes.shape == (count, 3)
+    np.testing.assert_allclose(points[:, 2], 0.03, atol=1e-12)  # the box's only upward face is its top
+    np.testing.assert_allclose(axes, np.tile([0.0, 0.0, -1.0], (count, 1)), atol=1e-12)
+    assert np.all(np.abs(points[:, :2]) <= [0.03, 0.02])
+
+
+def test_rays_find_their_distance_to_every_face_the_first_included():
+    # Face indices start at 0; a hit on face 0 is a hit like any other.
+    box = resting(trimesh.creation.box([0.1, 0.08, 0.06]))
+    gap = 0.01
+    origins = box.triangles_center + gap * box.face_normals
+    depths = cast_depths(box, origins, -box.face_normals)
+    np.testing.assert_allclose(depths, gap, atol=1e-9)
+    away = cast_depths(box, origins[:1], box.face_normals[:1])
+    assert np.isnan(away).all()
+
+
+def test_perturbations_draw_the_configured_noise_around_each_grasp():
+    config = dataclasses.replace(CONFIG, n_samples=20000, friction_std=0.05)
+    tilt, mass = 0.4, 0.3
+    points = np.array([[0.01, -0.02, 0.05], [0.0, 0.03, 0.1]])
+    axes = np.array([[0.0, 0.0, -1.0], [np.sin(tilt), 0.0, -np.cos(tilt)]])
+    p, a, mu, m = perturb(points, axes, mass, config, np.random.default_rng(0))
+    n = config.n_samples
+    assert p.shape == a.shape == (2, n, 3) and mu.shape == m.shape == (2, n)
+    # Each draw is independent, so the sample means sit within a few standard errors.
+    np.testing.assert_allclose(p.mean(axis=1), points, atol=5 * config.position_std / np.sqrt(n))
+    np.testing.assert_allclose((p - points[:, None]).std(axis=1), config.position_std, rtol=0.05)
+    assert mu.mean() == pytest.approx(config.friction, abs=5 * config.friction_std / np.sqrt(mu.size))
+    assert mu.std() == pytest.approx(config.friction_std, rel=0.05)
+    spread = mass * config.mass_std_fraction
+    assert m.mean() == pytest.approx(mass, abs=5 * spread / np.sqrt(m.size))
+    assert m.std() == pytest.approx(spread, rel=0.05)
+    # Axes stay unit and tilt by axis_std about each of the two perpendicular directions.
+    np.testing.assert_allclose(np.linalg.norm(a, axis=-1), 1.0)
+    angle = np.arccos(np.clip(np.sum(a * axes[:, None], axis=-1), -1.0, 1.0))
+    np.testing.assert_allclose(np.sqrt(np.mean(angle**2, axis=1)), np.sqrt(2) * config.axis_std, rtol=0.05)
+
+
+def test_perturbed_friction_and_mass_are_never_negative():
+    config = dataclasses.replace(CONFIG, n_samples=5000, friction_std=1.0, mass_std_fraction=2.0)
+    _, _, mu, m = perturb(np.zeros((1, 3)), np.array([[0.0, 0.0, -1.0]]), 0.2, config, np.random.default_rng(1))
+    assert mu.min() == 0.0 and m.min() == 0.0  # the draws below zero are held at zero, not redrawn
+    assert (mu > 0).mean() > 0.5 and (m > 0).mean() > 0.5
+
+
+def test_grasp_qualities_has_one_value_per_candidate():
+    box = resting(trimesh.creation.box([0.1, 0.1, 0.05]))
+    rng = np.random.default_rng(0)
+    one = grasp_qualities(box, box.center_mass, LIGHT, np.array([[0.0, 0.0, 0.05]]), np.array([[0.0, 0.0, -1.0]]), CONFIG, rng)
+    none = grasp_qualities(box, box.center_mass, LIGHT, np.zeros((0, 3)), np.zeros((0, 3)), CONFIG, rng)
+    assert one.shape == (1,) and one[0] == 1.0
+    assert none.shape == (0,)
+
+
+def test_the_chosen_grasp_is_the_tied_one_nearest_the_centre_of_mass():
+    # Every candidate on a light box's wide top holds in every sample: a 100-way tie, which the
+    # grasp nearest the centre of mass in plan wins (1.5 cm covers 7 % of the top: the nearest
+    # of 100 uniform candidates is that close unless about 1 in 1,400 draws).
+    box = resting(trimesh.creation.box([0.1, 0.1, 0.05]))
+    for seed in range(5):
+        result = quality(box, seed=seed)
+        assert result.quality == 1.0
+        assert np.linalg.norm(result.point[:2] - box.center_mass[:2]) < 0.015
+
+
+def test_the_grasp_moves_with_the_object_across_the_table():
+    box = resting(trimesh.creation.box([0.1, 0.07, 0.05]))
+    shift = np.array([0.3, -0.2, 0.0])
+    moved = box.copy()
+    moved.apply_translation(shift)
+    here, there = quality(box, mass=0.4, seed=4), quality(moved, mass=0.4, seed=4)
+    assert here.quality > 0.5
+    assert there.quality == here.quality
+    np.testing.assert_allclose(there.point, here.point + shift, atol=1e-9)
+    np.testing.assert_allclose(there.axis, here.axis, atol=1e-12)
+
+
+def test_gravity_is_what_the_grasp_holds_against():
+    # 40 kg on a 250 N cup: held on the moon, not on earth.
+    box = resting(trimesh.creation.box([0.1, 0.1, 0.05]))
+    heavy, moon = 40.0, 1.62
+    assert quality(box, mass=heavy).quality == 0.0
+    on_the_moon = suction_quality(box, box.center_mass, heavy, NO_BENDING, np.random.default_rng(0), moon)
+    assert on_the_moon.quality == 1.0
+
+
+def test_without_a_gravity_argument_the_grasp_holds_against_the_models_gravity():
+    # A cup that pulls 250 N holds 25.5 kg on earth: masses just either side of that, with no
+    # perturbation of the mass, decide every function called without ``gravity``.
+    g = ToppleConfig().gravity
+    exact = dataclasses.replace(NO_BENDING, mass_std_fraction=0.0, axis_std=0.0, position_std=0.0)
+    light, heavy = np.array([0.99, 1.01]) * exact.vacuum_force / g
+    contact, down = np.array([0.0, 0.0, 0.05]), np.array([0.0, 0.0, -1.0])
+    held = wrench_resisted(np.tile(contact, (2, 1)), np.tile(down, (2, 1)), contact, np.array([light, heavy]), np.full(2, 0.5), exact)
+    np.testing.assert_array_equal(held, [True, False])
+    box = resting(trimesh.creation.box([0.1, 0.1, 0.05]))
+    for mass, expected in ((light, 1.0), (heavy, 0.0)):
+        rng = np.random.default_rng(0)
+        assert grasp_qualities(box, box.center_mass, mass, contact[None], down[None], exact, rng)[0] == expected
+        assert suction_quality(box, box.center_mass, mass, exact, np.random.default_rng(0)).quality == expected
 
 
 # ----------------------------------------------------------------------------- seal
@@ -257,6 +375,36 @@ def test_friction_on_a_tilted_approach_uses_the_vacuum_augmented_normal_force():
     contact = np.array([0.0, 0.0, 0.05])
     held = wrench_resisted(np.tile(contact, (2, 1)), np.tile(axis, (2, 1)), contact, mass, np.full(2, 0.5), config, g)
     np.testing.assert_array_equal(held, [True, False])
+
+
+def test_friction_limit_follows_a_normal_force_below_one_newton():
+    # The same balance when the vacuum barely outpulls the weight: the normal force is a
+    # fraction of a newton, and the friction limit is mu times that fraction.
+    g, theta, m, mu = 9.81, np.radians(40), 0.1, 0.9
+    critical = m * g * (np.sin(theta) / mu + np.cos(theta))  # N of vacuum
+    assert critical - m * g * np.cos(theta) < 1.0
+    axis = np.array([np.sin(theta), 0.0, -np.cos(theta)])
+    contact = np.array([0.0, 0.0, 0.05])
+    held = [
+        wrench_resisted(contact, axis, contact, np.array(m), np.array(mu), dataclasses.replace(CONFIG, vacuum_force=v), g).item()
+        for v in (0.9 * critical, 1.1 * critical)
+    ]
+    assert held == [False, True]
+
+
+def test_bending_limit_reads_only_the_torque_about_the_tangent_axes():
+    # Tilted approach, centre of mass y beside the contact: gravity's torque (y m g, 0, 0) splits
+    # into tau_z = y m g sin(theta) about the approach and y m g cos(theta) about a tangent.
+    theta, g, m, y = np.radians(30), 9.81, 0.2, 0.01
+    bending = y * m * g * np.cos(theta)
+    config = dataclasses.replace(CONFIG, torsional_friction=1.0, friction=1.0, vacuum_force=1e3)
+    axis = np.array([np.sin(theta), 0.0, -np.cos(theta)])
+    held = [
+        wrench_resisted(np.zeros(3), axis, np.array([0.0, y, 0.0]), np.array(m), np.array(1.0),
+                        dataclasses.replace(config, elastic_limit=limit), g).item()
+        for limit in (0.9 * bending, 1.1 * bending)
+    ]
+    assert held == [False, True]
 
 
 def test_vacuum_force_limits_the_pull():
