@@ -1,13 +1,22 @@
 """Candidate pushes: exactly N, evenly spread, statuses, Max-Height action."""
 
 import numpy as np
+import pytest
 import trimesh
 from scipy.spatial import cKDTree
 from shapes import box_object, pose_with_down, random_object
 
 from pipeline.model.collision import collision_object
 from pipeline.model.config import ContactConfig
-from pipeline.model.contacts import pose_actions, surface_points
+from pipeline.model.contacts import (
+    explicit_actions,
+    farthest_point_subset,
+    finger_collisions,
+    max_height_contact,
+    pose_actions,
+    surface_points,
+)
+from pipeline.model.sampling import points_in_triangles
 from pipeline.model.mesh import model_from_mesh
 from pipeline.model.poses import stable_poses
 from schema.vocabulary import (
@@ -92,3 +101,74 @@ def test_max_height_action_is_highest_near_vertical_point():
         steep = np.abs(obj.mesh.face_normals @ pose.transform[:3, :3].T)[:, 2] <= np.sin(config.max_height_normal_angle)
         assert point[2] >= vertices[obj.mesh.faces[steep]][:, :, 2].max() - 1e-3
         assert np.allclose(actions.directions[50], -normal)
+
+
+def test_points_fill_their_triangle_uniformly():
+    # Uniform over a triangle: every point inside it, their mean at its centroid.
+    triangle = np.array([[0.0, 0.0, 0.0], [0.04, 0.0, 0.01], [0.01, 0.03, 0.02]])
+    n = 20000
+    points = points_in_triangles(np.broadcast_to(triangle, (n, 3, 3)), np.random.default_rng(0).random((n, 2)))
+    edges = np.stack([triangle[1] - triangle[0], triangle[2] - triangle[0]], axis=1)  # (3, 2)
+    weights = np.linalg.lstsq(edges, (points - triangle[0]).T, rcond=None)[0]  # (2, n) barycentric u, v
+    assert np.all(weights >= -1e-12) and np.all(weights.sum(axis=0) <= 1 + 1e-12)
+    np.testing.assert_allclose(edges @ weights + triangle[0][:, None], points.T, atol=1e-15)  # in the plane
+    np.testing.assert_allclose(points.mean(axis=0), triangle.mean(axis=0), atol=5 * 0.02 / np.sqrt(n))
+
+
+def test_farthest_point_subset_starts_at_point_0_and_takes_the_farthest_next():
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 2.0], [0.0, 0.0, 10.0], [0.0, 0.0, 4.0]])
+    # From {0, 10} the nearest-neighbour distances are 1, 2 and 4: z = 4 is taken third.
+    np.testing.assert_array_equal(farthest_point_subset(points, 3), [0, 3, 4])
+    assert sorted(farthest_point_subset(points, 5)) == [0, 1, 2, 3, 4]
+    with pytest.raises(ValueError, match="cannot choose 6 points from 5"):
+        farthest_point_subset(points, 6)
+
+
+def test_max_height_contact_lies_on_its_face_a_hair_below_the_top():
+    obj = box_object((0.05, 0.08, 0.15))
+    mesh = obj.mesh
+    point, normal = max_height_contact(mesh.vertices, mesh.faces, mesh.face_normals, ContactConfig().max_height_normal_angle)
+    assert normal[2] == pytest.approx(0.0, abs=1e-12)
+    assert 0.15 - 1.5e-3 < point[2] < 0.15
+    # On the side face the normal names, inside its rectangle.
+    side = np.abs(normal).argmax()
+    assert abs(point[side]) == pytest.approx((0.025, 0.04)[side], abs=1e-12)
+    assert abs(point[1 - side]) < (0.025, 0.04)[1 - side]
+
+
+def test_max_height_contact_needs_one_steep_face_and_no_more():
+    wall = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, 0.1]])  # one vertical triangle
+    point, _ = max_height_contact(wall, np.array([[0, 1, 2]]), np.array([[0.0, -1.0, 0.0]]), np.radians(15))
+    assert 0.098 < point[2] < 0.1
+    assert max_height_contact(wall, np.array([[0, 1, 2]]), np.array([[0.0, 0.0, 1.0]]), np.radians(15)) is None
+
+
+def test_a_pose_with_no_face_near_vertical_has_no_max_height_action():
+    # A squat cone: its sides slope 45 degrees, its base faces down; no face within 15 degrees of vertical.
+    cone = trimesh.creation.cone(radius=0.05, height=0.05, sections=32)
+    points, normals = surface_points(cone, 20, np.random.default_rng(0))
+    actions = pose_actions(points, normals, cone, collision_object(cone), np.eye(4), ContactConfig())
+    assert actions.max_height == -1 and len(actions.status) == 20
+    assert actions.status.dtype == np.int8
+
+
+def test_the_finger_hits_the_table_under_a_low_contact():
+    # A horizontal push whose finger (radius 4 mm) would reach below the table; the object is far away.
+    far = collision_object(trimesh.creation.box([0.01, 0.01, 0.01]))
+    config = ContactConfig()
+    heights = np.array([0.5, 1.5]) * config.finger_radius
+    points = np.column_stack([np.full(2, 1.0), np.zeros(2), heights])
+    hits = finger_collisions(far, np.eye(4), points, np.tile([1.0, 0.0, 0.0], (2, 1)), config)
+    np.testing.assert_array_equal(hits, [True, False])
+
+
+def test_explicit_pushes_default_to_the_inward_normal():
+    obj = box_object((0.05, 0.08, 0.15))
+    points = np.array([[0.025, 0.0, 0.1], [0.0, 0.0, 0.15]])  # a side face, the top
+    actions = explicit_actions(obj, np.eye(4), points, None)
+    np.testing.assert_allclose(actions.normals, [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], atol=1e-12)
+    np.testing.assert_allclose(actions.directions, -actions.normals)
+    assert actions.max_height == -1
+    assert actions.status.dtype == np.int8 and np.all(actions.status == STATUS_OK)
+    pushed = explicit_actions(obj, np.eye(4), points[:1], np.array([[-2.0, 0.0, -2.0]]))
+    np.testing.assert_allclose(pushed.directions, [[-np.sqrt(0.5), 0.0, -np.sqrt(0.5)]])
