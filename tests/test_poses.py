@@ -6,7 +6,15 @@ import trimesh
 from shapes import boot_object, box_object, pose_with_down, random_object
 
 from pipeline.model.config import PoseConfig
-from pipeline.model.poses import face_solid_angles, settle, stable_poses
+from pipeline.model.poses import (
+    congruent_yaw,
+    face_neighbors,
+    face_solid_angles,
+    settle,
+    sink_faces,
+    stable_poses,
+    topple_graph,
+)
 from schema.frames import axis_angle_matrices, match_pose, transform_points
 
 
@@ -211,3 +219,138 @@ def test_a_sphere_has_no_stable_pose_worth_pushing():
             stable_poses(model_from_mesh(mesh, name="ball"))
     assert len(stable_poses(_cylinder(12), merge_symmetric=False).poses) == 14, "a can is not a ball"
     assert len(stable_poses(box_object((0.1, 0.1, 0.1)), merge_symmetric=True).poses) == 1, "a cube is one pose"
+
+
+@pytest.mark.parametrize("index", [0, 3])
+def test_face_neighbours_share_the_edge_opposite_each_vertex(index):
+    hull = random_object(index).hull
+    neighbours = face_neighbors(hull)
+    for f, face in enumerate(hull.faces):
+        for k in range(3):
+            edge = {face[(k + 1) % 3], face[(k + 2) % 3]}
+            assert neighbours[f, k] != f and edge <= set(hull.faces[neighbours[f, k]])
+
+
+def test_an_open_surface_has_no_face_neighbours():
+    lid = trimesh.creation.box([0.1, 0.1, 0.1])
+    lid.update_faces(np.arange(len(lid.faces)) != 0)  # one triangle gone: three edges with one face
+    with pytest.raises(ValueError, match="not a closed two-manifold"):
+        face_neighbors(lid)
+
+
+@pytest.mark.parametrize("index", [0, 1, 2, 5])
+def test_a_face_topples_across_the_edge_its_centre_of_mass_path_crosses_first(index):
+    # The path from the face's centroid to the centre of mass's projection on its plane, crossed
+    # with each edge's segment in the plane: the nearest crossing names the edge, and the face
+    # across it is the next one.  Faces whose projection lies beyond a corner (two edges
+    # crossed) are where the order matters.
+    obj = random_object(index)
+    hull, com = obj.hull, obj.center_mass
+    following = topple_graph(hull, com)
+    corners = 0
+    for f, (triangle, normal) in enumerate(zip(hull.triangles, hull.face_normals)):
+        if following[f] == f:
+            continue
+        start = triangle.mean(axis=0)
+        target = com - np.dot(com - triangle[0], normal) * normal
+        crossings = []
+        for k in range(3):
+            a, b = triangle[(k + 1) % 3], triangle[(k + 2) % 3]
+            # start + t (target - start) = a + s (b - a), solved in the plane
+            (t, s), *_ = np.linalg.lstsq(np.column_stack([target - start, a - b]), a - start, rcond=None)
+            if t > 0 and -1e-9 <= s <= 1 + 1e-9:
+                crossings.append((t, k))
+        # Edge lines that separate the centroid from the target: two when it lies beyond a corner.
+        separating = 0
+        for k in range(3):
+            a, b = triangle[(k + 1) % 3], triangle[(k + 2) % 3]
+            side = [np.dot(np.cross(b - a, point - a), normal) for point in (start, target)]
+            separating += side[0] * side[1] < 0
+        corners += separating == 2
+        _, k = min(crossings)
+        shared = {hull.faces[f][(k + 1) % 3], hull.faces[f][(k + 2) % 3]}
+        across = [g for g, face in enumerate(hull.faces) if g != f and shared <= set(face)]
+        assert following[f] == across[0]
+    assert corners > 0
+
+
+def test_sinks_are_found_at_the_end_of_long_chains_and_cycles_are_refused():
+    chain = np.append(np.arange(1, 100), 99)  # face i rolls onto i + 1; the last rests
+    np.testing.assert_array_equal(sink_faces(chain), np.full(100, 99))
+    with pytest.raises(ValueError, match="the topple graph has a cycle"):
+        sink_faces(np.array([1, 2, 0, 3]))
+
+
+@pytest.mark.parametrize("min_probability", [0.3, 0.99])
+def test_improbable_poses_are_kept_when_a_kept_pose_topples_onto_them(min_probability):
+    # A 5 x 8 x 15 cm box, each face its own pose: none reaches 0.3, so the most probable is kept,
+    # and with it every pose its topples reach, however improbable.
+    pose_set = stable_poses(box_object((0.05, 0.08, 0.15)), PoseConfig(min_probability=min_probability), merge_symmetric=False)
+    n = len(pose_set.poses)
+    assert n > 1 and all(p.probability < min_probability for p in pose_set.poses)
+    assert pose_set.poses[0].probability == max(p.probability for p in pose_set.poses)
+    for pose in pose_set.poses:
+        assert np.all((pose.edge_final_pose >= 0) & (pose.edge_final_pose < n))
+
+
+@pytest.mark.parametrize("index", [0, 8, 16])
+def test_faces_draining_into_a_left_out_pose_have_none(index):
+    obj = random_object(index)
+    pose_set = stable_poses(obj)
+    sink = sink_faces(topple_graph(obj.hull, obj.center_mass))
+    assert np.any(pose_set.face_pose < 0) and pose_set.face_pose.min() == -1
+    for f, pose in enumerate(pose_set.face_pose):
+        resting = obj.hull.face_normals[sink[f]]  # the down vector of the face it comes to rest on
+        angles = [np.arccos(np.clip(np.dot(p.down, resting), -1, 1)) for p in pose_set.poses]
+        if pose >= 0:
+            assert angles[pose] <= PoseConfig().same_pose_angle + 1e-9
+        else:
+            assert min(angles) > PoseConfig().same_pose_angle
+
+
+def test_symmetry_is_to_a_millionth_of_the_size():
+    # A 5 x 8 x 15 cm box (diagonal 17.7 cm) with one corner moved 5 um: not symmetric any more
+    # (3e-5 of the diagonal), while a move of 0.01 um (6e-8) still is.
+    def nudged(by):
+        mesh = trimesh.creation.box([0.05, 0.08, 0.15])
+        corner = np.flatnonzero(np.all(mesh.vertices > 0, axis=1))[0]
+        vertices = mesh.vertices.copy()
+        vertices[corner, 0] += by
+        mesh = trimesh.Trimesh(vertices, mesh.faces)
+        mesh.apply_translation([0, 0, 0.075])
+        from pipeline.model.mesh import model_from_mesh
+
+        return model_from_mesh(mesh, mass=0.25, name="nudged")
+
+    assert len(stable_poses(nudged(1e-8), merge_symmetric=True).poses) == 3
+    assert len(stable_poses(nudged(5e-6), merge_symmetric=True).poses) > 3
+
+
+def test_a_ball_anywhere_is_refused_with_its_margin():
+    from pipeline.model.mesh import MeshError, model_from_mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    ball.apply_translation([1.0, 2.0, 3.0])
+    with pytest.raises(MeshError, match="within 5% of its farthest point"):
+        stable_poses(model_from_mesh(ball, name="ball"))
+
+
+def test_match_arrays_list_every_orientation_that_is_a_pose():
+    obj = box_object((0.05, 0.08, 0.15))
+    plain = stable_poses(obj, merge_symmetric=False)
+    assert plain.equivalents is None
+    downs, transforms, owner = plain.match_arrays()
+    np.testing.assert_array_equal(owner, np.arange(6))
+    merged = stable_poses(obj, merge_symmetric=True)
+    downs, transforms, owner = merged.match_arrays()
+    np.testing.assert_array_equal(owner, [0, 0, 1, 1, 2, 2])
+    # Each orientation's transform turns its down vector straight down.
+    np.testing.assert_allclose(np.einsum("mij,mj->mi", transforms[:, :3, :3], downs), np.tile([0.0, 0.0, -1.0], (6, 1)), atol=1e-12)
+
+
+def test_congruent_yaw_anchors_on_a_point_off_the_axis():
+    # A square pyramid listed apex first: the apex is on the axis, where azimuth means nothing.
+    pyramid = np.array([[0.0, 0.0, 0.05], [0.03, 0.0, 0.0], [0.0, 0.03, 0.0], [-0.03, 0.0, 0.0], [0.0, -0.03, 0.0]])
+    turned = pyramid @ trimesh.transformations.rotation_matrix(0.4, [0, 0, 1])[:3, :3].T
+    yaw = congruent_yaw(pyramid, turned, 1e-9)
+    assert yaw is not None and np.isclose(np.mod(yaw - 0.4 + 1e-12, np.pi / 2), 0, atol=1e-9)
