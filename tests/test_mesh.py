@@ -8,7 +8,7 @@ import trimesh
 from shapes import DATA
 
 from pipeline.model.config import MeshConfig
-from pipeline.model.mesh import MeshError, load_mesh, model_from_mesh
+from pipeline.model.mesh import MeshError, _one_line, load_mesh, model_from_mesh, unit_hint
 
 
 def test_loads_corpus_mesh_in_metres_with_mass():
@@ -122,3 +122,103 @@ def test_size_errors_name_the_likely_unit():
     assert "probably in centimetres or inches" in _reason(inches)
     assert "units" not in _reason(trimesh.creation.box([3000.0, 1, 1])), "no unit makes a 3 km object fit"
     assert "check the file's units" in _reason(trimesh.creation.box([0.1] * 3), scale=0.01)
+
+
+def _box(size=(0.05, 0.06, 0.07)):
+    return trimesh.creation.box(size)
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("clean", []),
+    ("soup", ["merged 28 duplicate vertices"]),  # 12 separate triangles: 36 corners for 8
+    ("duplicate and degenerate faces", ["removed 2 degenerate or duplicate faces"]),
+    ("one face wound backwards", ["fixed face winding and normals"]),
+    ("one face missing", ["filled holes"]),
+])
+def test_the_repair_log_says_what_was_repaired_and_nothing_else(case, expected):
+    box = _box()
+    faces = box.faces.copy()
+    vertices = box.vertices
+    if case == "soup":
+        vertices, faces = box.triangles.reshape(-1, 3), np.arange(36).reshape(-1, 3)
+    elif case == "duplicate and degenerate faces":
+        faces = np.vstack([faces, faces[:1], [[0, 0, 1]]])
+    elif case == "one face wound backwards":
+        faces[0] = faces[0][::-1]
+    elif case == "one face missing":
+        faces = faces[1:]
+    obj = model_from_mesh(trimesh.Trimesh(vertices, faces, process=False))
+    assert obj.repairs == expected
+    assert obj.mesh.is_watertight and np.isclose(obj.mesh.volume, 0.05 * 0.06 * 0.07)
+
+
+def test_a_file_is_read_as_written_and_repaired_with_a_record(tmp_path):
+    # trimesh must not merge the file's vertices on load: the repair log would lose them.
+    box = _box()
+    lines = [f"v {x} {y} {z}" for x, y, z in box.triangles.reshape(-1, 3)]
+    lines += [f"f {3 * i + 1} {3 * i + 2} {3 * i + 3}" for i in range(12)]
+    (tmp_path / "soup.obj").write_text("\n".join(lines) + "\n")
+    obj = load_mesh(tmp_path / "soup.obj", mass=0.3)
+    assert obj.repairs == ["merged 28 duplicate vertices"]
+    np.testing.assert_allclose(obj.mesh.extents, [0.05, 0.06, 0.07])  # scale 1 unless told
+    inside = [0.01, -0.02, 0.005]
+    chosen = load_mesh(tmp_path / "soup.obj", center_mass=inside, scale=2.0)
+    np.testing.assert_allclose(chosen.center_mass, inside)
+    np.testing.assert_allclose(chosen.mesh.extents, [0.1, 0.12, 0.14])
+    with pytest.raises(MeshError, match="too small for a tabletop"):
+        load_mesh(tmp_path / "soup.obj", config=MeshConfig(min_extent=0.1))
+
+
+@pytest.mark.parametrize("mass", [0.0, -1.0, float("nan")])
+def test_rejects_a_mass_that_is_not_positive(mass):
+    assert f"mass must be a positive number of kg, got {float(mass)}" in _reason(_box(), mass=mass)
+
+
+@pytest.mark.parametrize("scale", [0.0, -0.01, float("nan"), float("inf")])
+def test_rejects_a_scale_that_is_not_positive_and_finite(scale):
+    assert f"scale must be positive, got {scale}" in _reason(_box(), scale=scale)
+
+
+def test_one_triangle_is_flat_not_empty():
+    triangle = trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0.02]], [[0, 1, 2]], process=False)
+    message = _reason(triangle)
+    assert "zero volume: the mesh is flat or degenerate" in message or "zero or negative volume" in message
+    assert "While executing" not in message
+
+
+def test_a_chosen_centre_of_mass_inside_is_kept_and_one_outside_is_named():
+    inside = [0.02, -0.02, 0.03]
+    np.testing.assert_allclose(model_from_mesh(_box(), center_mass=inside).center_mass, inside)
+    assert "centre of mass [0.1235, 0.0, 0.01] is outside the convex hull" in _reason(_box(), center_mass=[0.123456, 0, 0.01])
+
+
+def test_an_error_is_one_line_of_at_most_200_characters_or_its_type():
+    assert _one_line(ValueError("first line\n   second\tline ")) == "first line second line"
+    assert _one_line(ValueError("x" * 500)) == "x" * 200
+    assert _one_line(KeyError()) == "KeyError"
+
+
+def test_no_unit_hint_when_no_unit_would_fit():
+    config = MeshConfig()
+    assert unit_hint(1e-9, config) == ""  # too small in any unit
+    assert unit_hint(1e6, config) == ""  # too large in any unit
+    assert "check the file's units" in unit_hint(0.001, config)  # 1 mm: 2.5 cm if it were inches
+
+
+def test_a_mesh_of_degenerate_triangles_only_is_refused_with_the_reason():
+    # Repair removes every zero-area face; what is left has no extent to measure.
+    collinear = trimesh.Trimesh([[0, 0, 0], [0.05, 0, 0], [0.1, 0, 0]], [[0, 1, 2]], process=False)
+    assert "no triangle with an area: every face is degenerate" in _reason(collinear)
+    repeated = trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0]], [[0, 1, 1], [1, 0, 0]], process=False)
+    assert "no triangle with an area" in _reason(repeated)
+
+
+def test_rejects_a_chosen_centre_of_mass_that_is_not_finite():
+    assert "non-finite centre of mass" in _reason(_box(), center_mass=[np.nan, 0.0, 0.0])
+
+
+def test_a_point_cloud_file_has_no_triangles(tmp_path):
+    header = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    (tmp_path / "points.ply").write_text(header + "0 0 0\n1 0 0\n0 1 0\n")
+    with pytest.raises(MeshError, match="points: cannot read points.ply: no triangles, not a valid PLY file"):
+        load_mesh(tmp_path / "points.ply")

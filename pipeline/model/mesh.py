@@ -137,6 +137,8 @@ def model_from_mesh(
     mesh = mesh.copy()
     mesh.apply_scale(scale)
     repairs = repair(mesh, config)
+    if len(mesh.faces) == 0:
+        raise MeshError(f"{name}: no triangle with an area: every face is degenerate (repeated or collinear corners)")
 
     extent = float(mesh.extents.max())
     if extent < config.min_extent:
