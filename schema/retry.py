@@ -104,7 +104,8 @@ def after_failure(p_topple: float, power: float) -> float:
     0.244 on corpus objects), least so for the pushes the table is sure of.  Greedy and the
     budgets only report it; value iteration also ranks its pushes by it (``believed_values``).
     """
-    return float(p_topple) ** power
+    # Clipped as ``failed_ratios`` clips: a rounding of 1 - P(x | x, u) below 0 would make p^k complex.
+    return float(np.clip(float(p_topple), 0.0, 1.0)) ** power
 
 
 def failed_ratios(p_topple: np.ndarray, power: float) -> tuple[np.ndarray, np.ndarray]:
@@ -133,7 +134,7 @@ def believed_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float
       or V_s(x) without retries
     power : k;  returns : (A,) float, Q'' (NaN where q is)
     """
-    q, p = np.asarray(q, dtype=float), np.asarray(p_topple, dtype=float)
+    q, p = np.asarray(q, dtype=float), np.clip(np.asarray(p_topple, dtype=float), 0.0, 1.0)
     return stay + np.power(p, power - 1.0) * (q - (1.0 - p) * v_t) - np.power(p, power) * stay
 
 

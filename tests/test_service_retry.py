@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from pipeline.model import mdp
-from schema import horizon, retry
+from schema import horizon, neighbourhood, retry
 from schema.api import MAX_FAILED_ACTIONS, PlanRequest
 from schema.vocabulary import NO_OP
 from service.planning import untried_push
@@ -92,6 +92,98 @@ def test_the_after_failure_map_keeps_certainty_and_order():
     assert mapped[0] == 0.0 and mapped[-1] == 1.0
     assert np.all(np.diff(mapped) > 0) and np.all(mapped[1:-1] < p[1:-1]), "lower, in the same order"
     assert retry.after_failure(0.6, 1.0) == 0.6 and retry.after_failure(0.5, 2.0) == 0.25
+
+
+def unit_rows(vectors: np.ndarray) -> np.ndarray:
+    return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+
+
+def test_float32_candidates_are_ruled_out_as_their_float64_values_are():
+    # The service passes the store's float32 points.  A failed push's neighbours at the radius,
+    # within float32's rounding of it (~40 nm here, far above neighbourhood.TOLERANCE), are what
+    # the same candidates widened to float64 say they are: the tables, not their storage, decide.
+    rng = np.random.default_rng(8)
+    offsets = unit_rows(rng.normal(size=(400, 3))) * (neighbourhood.RADIUS + rng.uniform(-3e-8, 3e-8, (400, 1)))
+    points = (np.array([0.1, 0.05, 0.03]) + np.vstack([np.zeros(3), offsets])).astype(np.float32)
+    directions = np.tile(np.float32([1.0, 0.0, 0.0]), (len(points), 1))
+    widened = retry.ruled_out(points.astype(float), directions.astype(float), [0])
+    assert 0 < widened[1:].sum() < 400, "both sides of the radius"
+    np.testing.assert_array_equal(retry.ruled_out(points, directions, [0]), widened)
+
+
+def test_choose_untried_by_default_pushes_only_what_beats_grasping_by_its_value_alone():
+    points = np.array([[0.0, 0.0, 0.05], [0.1, 0.0, 0.05], [0.2, 0.0, 0.05]])
+    directions = np.tile([1.0, 0.0, 0.0], (3, 1))
+    values, choosable = np.array([0.9, 0.3, 0.45]), np.ones(3, dtype=bool)
+    # Push 0 failed: of the rest, 0.45 does not beat grasping at 0.5; discounted by 2 it would.
+    assert retry.choose_untried(values, points, directions, [0], choosable, 0.5, 1e-12) == (NO_OP, 1)
+    assert retry.choose_untried(values, points, directions, [0], choosable, 0.5, 1e-12, scale=2.0) == (2, 1)
+    assert retry.choose_untried(values, points, directions, [0], choosable, 0.4, 1e-12) == (2, 1)
+
+
+def test_failed_ratios_clip_rounded_probabilities_into_0_1():
+    # 1 - P(x | x, u) rounds a hair outside [0, 1]; further out is clipped the same way.
+    p = np.array([-1e-17, -0.2, 1.0 + 2e-16, 1.3, 0.5])
+    for power in (2.1, 1.0):
+        ratio, believed = retry.failed_ratios(p, power)
+        clipped = np.array([0.0, 0.0, 1.0, 1.0, 0.5])
+        expected_ratio = np.array([0.0 ** (power - 1.0)] * 2 + [1.0, 1.0, 0.5 ** (power - 1.0)])
+        np.testing.assert_allclose(ratio, expected_ratio, rtol=1e-15, atol=0)
+        np.testing.assert_allclose(believed, clipped ** power, rtol=1e-15, atol=0)
+
+
+def test_a_probability_rounded_outside_0_1_is_believed_as_its_clipped_value():
+    # The served p_topple_given_failures and value iteration's ranking read the same clipped p as
+    # failed_ratios: a hair below 0 is not a complex power, a hair above 1 not more than certain.
+    assert retry.after_failure(-1e-17, 2.1) == 0.0
+    assert retry.after_failure(1.0 + 2e-16, 2.1) == 1.0
+    assert np.isnan(retry.after_failure(float("nan"), 2.1))
+    q = np.array([0.4, 0.6])
+    rounded = retry.believed_values(q, np.array([-1e-17, 1.0 + 2e-16]), 0.3, 0.5, 2.1)
+    np.testing.assert_array_equal(rounded, retry.believed_values(q, np.array([0.0, 1.0]), 0.3, 0.5, 2.1))
+
+
+def test_believed_values_are_the_grasp_plus_the_believed_chance_of_the_topple_gain():
+    # Q_T = p T + (1 - p) F  ->  Q'' = V_s + p^k (T - V_s), docs/MODEL.md (12.12).
+    rng = np.random.default_rng(9)
+    p, topple = rng.uniform(0.05, 1.0, 50), rng.uniform(0.0, 1.0, 50)
+    stay, failure, k = 0.35, 0.6, 2.1
+    q = p * topple + (1.0 - p) * failure
+    np.testing.assert_allclose(retry.believed_values(q, p, stay, failure, k), stay + p**k * (topple - stay), atol=1e-14)
+    # k = 1 with failures counted at the grasp believes the table.
+    q = p * topple + (1.0 - p) * stay
+    np.testing.assert_allclose(retry.believed_values(q, p, stay, stay, 1.0), q, atol=1e-14)
+
+
+def test_without_discount_a_push_that_never_topples_again_adds_no_fixed_point():
+    # gamma = 1: a push with p = 0 (b = 0) is 0 / 0 in its own fixed point and must count as
+    # nothing; the others' fixed points are their Q0 (gamma b Q0 / b), so V1 is the largest
+    # choosable Q0 of a push that can still topple, or the grasp.
+    rng = np.random.default_rng(10)
+    p = np.where(np.arange(100) % 2 == 0, 0.0, rng.uniform(0.1, 0.9, 100))
+    q0 = rng.uniform(0.2, 0.6, 100)
+    choosable = rng.random(100) < 0.8
+    k, stay = 2.1, 0.3
+    b = p ** (k - 1.0)
+    v1 = max(stay, q0[choosable & (p > 0)].max())
+    with np.errstate(all="raise"):
+        q1 = retry.failed_state_values(q0, p, stay, 1.0, k, choosable)
+    np.testing.assert_allclose(q1, b * q0 + (1.0 - b) * v1, atol=1e-14)
+    np.testing.assert_allclose(q1[p == 0], v1, atol=0)
+    # Only pushes that never topple: the grasp.
+    with np.errstate(all="raise"):
+        np.testing.assert_array_equal(retry.failed_state_values(q0[::2], p[::2], stay, 1.0, k, choosable[::2]), stay)
+
+
+def test_a_build_that_believes_failures_needs_both_its_gamma_and_its_choosable_pushes():
+    q, p, choosable = np.array([0.5, 0.7]), np.array([0.9, 0.2]), np.ones(2, dtype=bool)
+    for missing in ({"gamma": 0.95}, {"choosable": choosable}):
+        with pytest.raises(ValueError, match="gamma and choosable"):
+            retry.ranking_values(q, p, 0.3, 0.6, 2.1, True, believes=True, **missing)
+    np.testing.assert_array_equal(
+        retry.ranking_values(q, p, 0.3, 0.6, 2.1, True, believes=True, gamma=0.95, choosable=choosable),
+        retry.failed_state_values(q, p, 0.3, 0.95, 2.1, choosable),
+    )
 
 
 def test_a_poses_q_is_the_budgets_own_bits():
