@@ -257,6 +257,54 @@ def test_verify_fails_after_a_shard_is_corrupted(reference, tmp_path, capsys):
     assert OBJECTS[0] not in out
 
 
+def test_verify_names_each_kind_of_damage(reference, tmp_path):
+    assert verify_dataset(tmp_path / "nowhere") == [f"{tmp_path / 'nowhere'}: no such directory"]
+    (tmp_path / "a_file").write_text("")
+    assert verify_dataset(tmp_path / "a_file") == [f"{tmp_path / 'a_file'}: not a directory"]
+
+    def damaged(name: str, edit) -> list[str]:
+        copy = tmp_path / name
+        shutil.copytree(reference, copy)
+        edit(copy)
+        return verify_dataset(copy)
+
+    def manifest_edit(change):
+        def edit(root):
+            manifest = json.loads((root / layout.MANIFEST).read_text())
+            change(manifest)
+            (root / layout.MANIFEST).write_text(json.dumps(manifest))
+        return edit
+
+    def more_transitions(manifest):
+        manifest["counts"]["transitions"] += 1
+
+    def one_more_object(manifest):
+        manifest["counts"]["objects"] += 1
+
+    transitions = json.loads((reference / layout.MANIFEST).read_text())["counts"]["transitions"]
+    assert damaged("counts", manifest_edit(more_transitions)) == [
+        f"manifest: transitions total {transitions + 1} but the shards add up to {transitions}"]
+    assert damaged("objects", manifest_edit(one_more_object)) == ["manifest: 4 objects but 3 shards"]
+    unreadable = damaged("unreadable", lambda root: (root / layout.MANIFEST).write_text("{"))
+    assert len(unreadable) == 1 and "manifest" in unreadable[0]
+
+    def flip_a_byte(root):
+        data = bytearray((root / layout.POSES_FILE).read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        (root / layout.POSES_FILE).write_bytes(bytes(data))
+
+    flipped = damaged("poses", flip_a_byte)
+    assert len(flipped) == 1 and flipped[0].startswith(f"{layout.POSES_FILE}: sha256 ")
+
+    def recount(root):
+        record_path = root / layout.completion_record(OBJECTS[0])
+        record = json.loads(record_path.read_text())
+        record["counts"]["transitions"] += 1
+        record_path.write_text(json.dumps(record))
+
+    assert damaged("record", recount) == [f"{layout.completion_record(OBJECTS[0])}: differs from the manifest's entry for {OBJECTS[0]}"]
+
+
 def test_one_worker_gives_the_same_dataset_as_two(reference, corpus, tmp_path):
     assert build(corpus, tmp_path / "one", "--workers", "1") == 0
     assert_same_dataset(reference, tmp_path / "one")
