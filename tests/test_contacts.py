@@ -16,9 +16,9 @@ from pipeline.model.contacts import (
     pose_actions,
     surface_points,
 )
-from pipeline.model.sampling import points_in_triangles
 from pipeline.model.mesh import model_from_mesh
 from pipeline.model.poses import stable_poses
+from pipeline.model.sampling import points_in_triangles
 from schema.vocabulary import (
     STATUS_FINGER_COLLISION,
     STATUS_OK,
