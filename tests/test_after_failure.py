@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.studies.after_failure import after_failed_pushes, breakdown, brier, fit_power, main, score, told
+from pipeline.studies.after_failure import after_failed_pushes, breakdown, brier, fit_power, main, mapped, score, told
 
 
 def push(trial, policy, p, toppled, action=0):
@@ -91,3 +91,14 @@ def test_the_command_fits_and_scores(tmp_path, capsys):
     with pytest.raises(SystemExit) as nothing:
         main(["fit", str(path), "--policy", "greedy"])
     assert nothing.value.code == 2
+
+
+def test_the_fit_reads_probabilities_rounded_outside_0_1_as_their_clipped_values():
+    # As the service does (schema.retry.after_failure): a NaN or complex power would make the
+    # least-Brier search return its first power whatever the outcomes say.
+    rounded = np.array([-1e-17, 1.0 + 2e-16, 0.5])
+    np.testing.assert_allclose(mapped(rounded, 2.1), [0.0, 1.0, 0.5**2.1], rtol=1e-15, atol=0)
+    rng = np.random.default_rng(3)
+    p = np.append(rng.uniform(0.05, 0.95, 4000), -1e-17)
+    toppled = np.append(rng.random(4000) < p[:-1] ** 3.0, False)
+    assert fit_power(p, toppled) == pytest.approx(3.0, abs=0.3)

@@ -202,7 +202,7 @@ def test_no_unit_hint_when_no_unit_would_fit():
     config = MeshConfig()
     assert unit_hint(1e-9, config) == ""  # too small in any unit
     assert unit_hint(1e6, config) == ""  # too large in any unit
-    assert "check the file's units" in unit_hint(0.001, config)  # 1 mm: 2.5 cm if it were inches
+    assert "check the file's units" in unit_hint(0.001, config)  # 1 mm: 3.9 cm if it were inches
 
 
 def test_a_mesh_of_degenerate_triangles_only_is_refused_with_the_reason():

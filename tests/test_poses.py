@@ -239,10 +239,10 @@ def test_an_open_surface_has_no_face_neighbours():
 
 
 @pytest.mark.parametrize("index", [0, 1, 2, 5])
-def test_a_face_topples_across_the_edge_its_centre_of_mass_path_crosses_first(index):
+def test_a_face_topples_across_the_edge_its_centre_of_mass_path_leaves_it_by(index):
     # The path from the face's centroid to the centre of mass's projection on its plane, crossed
-    # with each edge's segment in the plane: the nearest crossing names the edge, and the face
-    # across it is the next one.  Faces whose projection lies beyond a corner (two edges
+    # with each edge's segment in the plane: the edge it leaves the face by, and the face across
+    # it is the next one.  Faces whose projection lies beyond a corner (two edges
     # crossed) are where the order matters.
     obj = random_object(index)
     hull, com = obj.hull, obj.center_mass
@@ -309,8 +309,8 @@ def test_faces_draining_into_a_left_out_pose_have_none(index):
 
 
 def test_symmetry_is_to_a_millionth_of_the_size():
-    # A 5 x 8 x 15 cm box (diagonal 17.7 cm) with one corner moved 5 um: not symmetric any more
-    # (3e-5 of the diagonal), while a move of 0.01 um (6e-8) still is.
+    # A 5 x 8 x 15 cm box (diagonal 17.7 cm) with one corner moved 0.35 um, twice a millionth of
+    # the diagonal: not symmetric any more, while a move of half a millionth still is.
     def nudged(by):
         mesh = trimesh.creation.box([0.05, 0.08, 0.15])
         corner = np.flatnonzero(np.all(mesh.vertices > 0, axis=1))[0]
@@ -322,8 +322,9 @@ def test_symmetry_is_to_a_millionth_of_the_size():
 
         return model_from_mesh(mesh, mass=0.25, name="nudged")
 
-    assert len(stable_poses(nudged(1e-8), merge_symmetric=True).poses) == 3
-    assert len(stable_poses(nudged(5e-6), merge_symmetric=True).poses) > 3
+    millionth = 1e-6 * np.linalg.norm([0.05, 0.08, 0.15])
+    assert len(stable_poses(nudged(0.5 * millionth), merge_symmetric=True).poses) == 3
+    assert len(stable_poses(nudged(2.0 * millionth), merge_symmetric=True).poses) > 3
 
 
 def test_a_ball_anywhere_is_refused_with_its_margin():

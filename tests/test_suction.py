@@ -254,12 +254,13 @@ def test_grasp_qualities_has_one_value_per_candidate():
 
 
 def test_the_chosen_grasp_is_the_tied_one_nearest_the_centre_of_mass():
-    # Every candidate on a light box's wide top holds in every sample: a 100-way tie, which the
-    # grasp nearest the centre of mass in plan wins (1.5 cm covers 7 % of the top: the nearest
+    # With no perturbation every candidate on a light box's wide top holds: a 100-way tie, which
+    # the grasp nearest the centre of mass in plan wins (1.5 cm covers 7 % of the top: the nearest
     # of 100 uniform candidates is that close unless about 1 in 1,400 draws).
     box = resting(trimesh.creation.box([0.1, 0.1, 0.05]))
+    exact = dataclasses.replace(CONFIG, position_std=0.0, axis_std=0.0)
     for seed in range(5):
-        result = quality(box, seed=seed)
+        result = quality(box, config=exact, seed=seed)
         assert result.quality == 1.0
         assert np.linalg.norm(result.point[:2] - box.center_mass[:2]) < 0.015
 
@@ -280,7 +281,8 @@ def test_gravity_is_what_the_grasp_holds_against():
     # 40 kg on a 250 N cup: held on the moon, not on earth.
     box = resting(trimesh.creation.box([0.1, 0.1, 0.05]))
     heavy, moon = 40.0, 1.62
-    assert quality(box, mass=heavy).quality == 0.0
+    on_earth = suction_quality(box, box.center_mass, heavy, NO_BENDING, np.random.default_rng(0), 9.81)
+    assert on_earth.quality == 0.0
     on_the_moon = suction_quality(box, box.center_mass, heavy, NO_BENDING, np.random.default_rng(0), moon)
     assert on_the_moon.quality == 1.0
 

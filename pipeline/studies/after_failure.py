@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from schema import retry
+
 from ..build.atomic import write_text_atomic
 
 POWERS = np.round(np.arange(1.0, 6.0 + 1e-9, 0.05), 2)
@@ -55,8 +57,9 @@ def brier(predicted: np.ndarray, toppled: np.ndarray) -> float:
 
 
 def mapped(p_topple: np.ndarray, power: float) -> np.ndarray:
-    """``schema.retry.after_failure`` over an array: p^k.  p_topple : (n,) float"""
-    return np.asarray(p_topple, dtype=float) ** power
+    """``schema.retry.after_failure`` over an array: p^k, p clipped to [0, 1] as it clips.
+    p_topple : (n,) float"""
+    return np.clip(np.asarray(p_topple, dtype=float), 0.0, 1.0) ** power
 
 
 def fit_power(p_topple: np.ndarray, toppled: np.ndarray, powers: np.ndarray = POWERS) -> float:
@@ -114,7 +117,7 @@ def told(pushes: list[dict], policy: str, power: float) -> dict:
     for push in pushes:
         if push["policy"] == policy:
             p = push["p_topple"]
-            said.append(p ** power if (power is not None and id(push) in failed) else p)
+            said.append(retry.after_failure(p, power) if (power is not None and id(push) in failed) else p)
             did.append(push["toppled"])
     return {"pushes": len(said), "told": float(np.mean(said)), "toppled": float(np.mean(did)),
             "gap": float(np.mean(said) - np.mean(did))}
