@@ -103,6 +103,7 @@ def after_failure(p_topple: float, power: float) -> float:
     iteration's next pushes after one toppled half as often as their P(topple) (0.122 against
     0.244 on corpus objects), least so for the pushes the table is sure of.  Greedy and the
     budgets only report it; value iteration also ranks its pushes by it (``believed_values``).
+    p_topple : float, clipped to [0, 1] (as ``failed_ratios``), NaN kept;  returns : float
     """
     # Clipped as ``failed_ratios`` clips: a rounding of 1 - P(x | x, u) below 0 would make p^k complex.
     return float(np.clip(float(p_topple), 0.0, 1.0)) ** power
@@ -130,7 +131,7 @@ def believed_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float
     grasp here, so Q'' = V_s(x) + p^k (T - V_s(x)): the believed chance of a topple times what
     it gains.  A long shot that the table values for its retries loses to a likelier push, and
     a pose whose pushes are all unlikely now is grasped.
-    q, p_topple : (A,) float, NaN unless ok;  stay : V_s(x);  v_t : F, V_T(x) (the pose's stored value)
+    q, p_topple : (A,) float, NaN unless ok, p clipped to [0, 1];  stay : V_s(x);  v_t : F, V_T(x) (the pose's stored value)
       or V_s(x) without retries
     power : k;  returns : (A,) float, Q'' (NaN where q is)
     """

@@ -182,7 +182,7 @@ def test_rejects_a_scale_that_is_not_positive_and_finite(scale):
 def test_one_triangle_is_flat_not_empty():
     triangle = trimesh.Trimesh([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0.02]], [[0, 1, 2]], process=False)
     message = _reason(triangle)
-    assert "zero volume: the mesh is flat or degenerate" in message or "zero or negative volume" in message
+    assert "zero volume: the mesh is flat or degenerate (QH" in message  # qhull's reason, cut before its trace
     assert "While executing" not in message
 
 

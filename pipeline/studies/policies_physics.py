@@ -305,7 +305,8 @@ def experiment(
 
 
 def mean_se(values) -> tuple[float | None, float | None]:
-    """Mean and its standard error; None for an empty sample (JSON null), no error for one value."""
+    """Mean and its standard error; None for an empty sample (JSON null), no error for one value.
+    values : (n,) float or a sequence of numbers;  returns : (mean, standard error)"""
     values = np.asarray(values, dtype=float)
     if len(values) == 0:
         return None, None
