@@ -243,3 +243,70 @@ def test_match_pose_defaults_height_offset_and_refusals(box):
     # The array form (README) is unchanged.
     old = toppledb.match_pose(world(transform, 0.2), poses.downs, poses.transforms, np.radians(10))
     assert isinstance(old, PoseMatch) and old.pose == standing
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_plan_says_where_to_grasp_in_the_world(box, policy):
+    # The pose's best suction grasp, carried to the world as the push is: turned by the yaw and
+    # moved to where the object stands; the policy's name whether it pushes or not.
+    _, _, _, result = box
+    yaw, xy, table = -1.1, (0.4, 0.25), 0.7
+    turn = world(np.eye(4), yaw, xy=xy, z=table)
+    for pose in result.poses:
+        planned = toppledb.plan(result, world(pose.transform, yaw, xy=xy, z=table), policy=policy, table_height=table,
+                                config=CONFIG)
+        assert planned.policy == policy
+        suction = result.suction[pose.index]
+        if not np.all(np.isfinite(suction.point)):
+            assert planned.grasp is None
+            continue
+        point, axis = planned.grasp
+        np.testing.assert_allclose(point, turn[:3, :3] @ suction.point + turn[:3, 3], atol=1e-12)
+        np.testing.assert_allclose(axis, turn[:3, :3] @ suction.axis, atol=1e-12)
+
+
+def test_observe_returns_where_the_object_stands_and_refuses_what_is_not_a_pose(box):
+    _, poses, standing, _ = box
+    observed = world(poses.poses[standing].transform, 0.4, xy=(0.2, -0.3))
+    match = toppledb.match_pose(observed, poses)
+    np.testing.assert_allclose(match.translation, [0.2, -0.3], atol=1e-12)
+    np.testing.assert_allclose(match.pose_to_world, world(np.eye(4), 0.4, xy=(0.2, -0.3)), atol=1e-12)
+    assert match.z_offset == pytest.approx(0.0, abs=1e-12)  # the table is at z = 0 unless told
+    for bad in (np.eye(3), np.full((4, 4), np.nan)):
+        with pytest.raises(ValueError, match=r"observed must be a finite \(4, 4\) object-to-world transform"):
+            toppledb.match_pose(bad, poses)
+
+
+def test_evaluate_takes_its_overrides_and_explicit_pushes(box):
+    obj, poses, pose, _ = box
+    few = toppledb.evaluate(obj, poses, pose, n_contacts=12, n_trials=3, config=CONFIG, seed=CONFIG.seed)
+    assert len(few.actions.status) in (12, 13)  # the contacts, and Max-Height's push where the pose has one
+    assert few.table.outcomes.shape == (len(few.actions.status), 3)
+    thesis = toppledb.evaluate(obj, poses, pose, n_contacts=12, n_trials=3, variant="baseline", config=CONFIG, seed=CONFIG.seed)
+    np.testing.assert_array_equal(thesis.actions.points, few.actions.points)
+    assert thesis.table.outcomes.shape == (len(thesis.actions.status), 1), "the thesis's baseline draws no noise: one trial"
+    # Explicit pushes: snapped to the surface, pushed along the given direction or else the inward normal.
+    surface = few.actions.points[:2]
+    given = toppledb.evaluate(obj, poses, pose, points=surface, directions=-few.actions.normals[:2], config=CONFIG)
+    np.testing.assert_allclose(given.actions.points, surface, atol=1e-9)
+    np.testing.assert_allclose(given.actions.directions, -few.actions.normals[:2], atol=1e-9)
+    inward = toppledb.evaluate(obj, poses, pose, points=surface, config=CONFIG)
+    np.testing.assert_allclose(inward.actions.directions, -inward.actions.normals, atol=1e-12)
+    assert given.table.p_topple.shape == (2,)
+
+
+def test_an_objects_result_carries_its_identity_and_what_each_stage_cost(box):
+    obj, poses, _, _ = box
+    timings, per_pose = {}, {}
+    result = toppledb.evaluate_object(obj, CONFIG, object_id="renamed", timings=timings, pose_seconds=per_pose)
+    assert result.object_id == "renamed" and toppledb.evaluate_object(obj, CONFIG).object_id == obj.name
+    assert result.mass == obj.mass and result.repairs == obj.repairs
+    np.testing.assert_array_equal(result.center_mass, obj.center_mass)
+    np.testing.assert_array_equal(result.hull_vertices, obj.hull.vertices)
+    np.testing.assert_array_equal(result.hull_faces, obj.hull.faces)
+    assert result.timings is timings and set(timings) == {"poses", "contacts", "topple", "suction", "mdp"}
+    assert all(seconds >= 0 for seconds in timings.values())
+    # make bench's wall seconds: per pose for three stages, per object for the other two.
+    n = len(poses.poses)
+    assert {name: len(seconds) for name, seconds in per_pose.items()} == {
+        "shared_contacts": 1, "actions": n, "topple": n, "suction": n, "mdp": 1}
