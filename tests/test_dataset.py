@@ -586,3 +586,18 @@ def test_a_killed_force_run_resumes_when_run_again_and_a_new_one_starts_over(ref
     assert build(corpus, out, "--force", "--workers", "1") == 0
     assert read_manifest(out).run["computed"] == len(OBJECTS), "another code's staged shards are not reused"
     assert_same_dataset(reference, out)
+
+
+def test_input_differences_name_every_changed_added_and_removed_key():
+    long = [0.125] * 30
+    exactly_40 = "x" * 38  # its repr, quotes included, is 40 characters: shown whole
+    old = {"topple": {"n_trials": 100, "variant": "robust"}, "seed": 0, "gone": 1, "map": {"a": 1}, "note": "a"}
+    new = {"topple": {"n_trials": 50, "variant": "robust"}, "seed": 0, "added": long, "map": 3, "note": exactly_40}
+    assert shards.input_differences(old, new) == [
+        f"added: None -> {repr(long)[:37]}...",  # longer values are cut to 40 characters
+        "gone: 1 -> None",
+        "map: {'a': 1} -> 3",
+        f"note: 'a' -> {exactly_40!r}",
+        "topple.n_trials: 100 -> 50",
+    ]
+    assert shards.input_differences(new, new) == []
