@@ -103,10 +103,16 @@ def after_failure(p_topple: float, power: float) -> float:
     iteration's next pushes after one toppled half as often as their P(topple) (0.122 against
     0.244 on corpus objects), least so for the pushes the table is sure of.  Greedy and the
     budgets only report it; value iteration also ranks its pushes by it (``believed_values``).
-    p_topple : float, clipped to [0, 1] (as ``failed_ratios``), NaN kept;  returns : float
+    p_topple : float, clipped to [0, 1] (``clip_probability``);  returns : float
     """
-    # Clipped as ``failed_ratios`` clips: a rounding of 1 - P(x | x, u) below 0 would make p^k complex.
-    return float(np.clip(float(p_topple), 0.0, 1.0)) ** power
+    return float(clip_probability(p_topple)) ** power
+
+
+def clip_probability(p_topple) -> np.ndarray:
+    """P(topple) held to [0, 1], NaN kept: 1 - P(x | x, u) can round a hair outside, and every
+    belief here raises p to a power, which a negative base would make complex.
+    p_topple : float or (N,) float;  returns : float array of the same shape"""
+    return np.clip(np.asarray(p_topple, dtype=float), 0.0, 1.0)
 
 
 def failed_ratios(p_topple: np.ndarray, power: float) -> tuple[np.ndarray, np.ndarray]:
@@ -114,9 +120,9 @@ def failed_ratios(p_topple: np.ndarray, power: float) -> tuple[np.ndarray, np.nd
     b = p^(k-1), the ratio of its believed topple chance to its P, and p^k, that chance (0^0 is 1,
     harmless: a push that never topples leaves nothing).
 
-    p_topple : (N,) float, clipped to [0, 1] (rounding of 1 - P(x | x, u));  power : k
+    p_topple : (N,) float, clipped to [0, 1] (``clip_probability``);  power : k
     returns : b, p^k, (N,) float each"""
-    p = np.clip(np.asarray(p_topple, dtype=float), 0.0, 1.0)
+    p = clip_probability(p_topple)
     ratio = np.power(p, power - 1.0)
     return ratio, p * ratio
 
@@ -135,7 +141,7 @@ def believed_values(q: np.ndarray, p_topple: np.ndarray, stay: float, v_t: float
       or V_s(x) without retries
     power : k;  returns : (A,) float, Q'' (NaN where q is)
     """
-    q, p = np.asarray(q, dtype=float), np.clip(np.asarray(p_topple, dtype=float), 0.0, 1.0)
+    q, p = np.asarray(q, dtype=float), clip_probability(p_topple)
     return stay + np.power(p, power - 1.0) * (q - (1.0 - p) * v_t) - np.power(p, power) * stay
 
 

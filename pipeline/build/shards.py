@@ -63,8 +63,7 @@ def unused_by_shards(config: Config) -> dict[str, tuple[str, ...]]:
     ``SERVING_ONLY`` unless the build plans with failures, and those of each landing correction
     that is off."""
     unused = {} if config.mdp.plans_with_failures else dict(SERVING_ONLY)
-    applied = {"landing_spread": config.topple.applied_landing_spread, "landing_onward": config.topple.applied_landing_onward}
-    off = tuple(key for name, keys in UNUSED_WHEN_OFF.items() if not applied[name] for key in keys)
+    off = tuple(key for name, keys in UNUSED_WHEN_OFF.items() if not getattr(config.topple, f"applied_{name}") for key in keys)
     if off:
         unused["topple"] = unused.get("topple", ()) + off
     return unused

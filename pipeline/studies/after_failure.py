@@ -57,9 +57,8 @@ def brier(predicted: np.ndarray, toppled: np.ndarray) -> float:
 
 
 def mapped(p_topple: np.ndarray, power: float) -> np.ndarray:
-    """``schema.retry.after_failure`` over an array: p^k, p clipped to [0, 1] as it clips.
-    p_topple : (n,) float"""
-    return np.clip(np.asarray(p_topple, dtype=float), 0.0, 1.0) ** power
+    """``schema.retry.after_failure`` over an array: p^k, p clipped as it clips.  p_topple : (n,) float"""
+    return retry.clip_probability(p_topple) ** power
 
 
 def fit_power(p_topple: np.ndarray, toppled: np.ndarray, powers: np.ndarray = POWERS) -> float:

@@ -336,11 +336,12 @@ def summarise(tables: PolicyTables, starts: np.ndarray, runs: dict[int, dict[str
         direction_z = np.array([z for r in pushes for z in r.direction_z])
         again = np.array([x for r in pushes for x in after_a_failure(r.toppled)], dtype=bool)
         n_pushes = np.array([len(runs[t][policy].predicted) for t in kept])
+        gain_useful, gain_useful_se = mean_se(physical[useful])
         entry = {
             "physical_gain_all": mean_se(physical)[0],
             "model_gain_all": mean_se(model)[0],
-            "physical_gain_useful": mean_se(physical[useful])[0],
-            "physical_gain_useful_se": mean_se(physical[useful])[1],
+            "physical_gain_useful": gain_useful,
+            "physical_gain_useful_se": gain_useful_se,
             "model_gain_useful": mean_se(model[useful])[0],
             "mean_pushes_useful": mean_se(n_pushes[useful])[0],
             "pushes": len(p_hat),
