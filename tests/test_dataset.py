@@ -268,23 +268,17 @@ def test_verify_names_each_kind_of_damage(reference, tmp_path):
         edit(copy)
         return verify_dataset(copy)
 
-    def manifest_edit(change):
+    def one_more(count):
         def edit(root):
             manifest = json.loads((root / layout.MANIFEST).read_text())
-            change(manifest)
+            manifest["counts"][count] += 1
             (root / layout.MANIFEST).write_text(json.dumps(manifest))
         return edit
 
-    def more_transitions(manifest):
-        manifest["counts"]["transitions"] += 1
-
-    def one_more_object(manifest):
-        manifest["counts"]["objects"] += 1
-
     transitions = json.loads((reference / layout.MANIFEST).read_text())["counts"]["transitions"]
-    assert damaged("counts", manifest_edit(more_transitions)) == [
+    assert damaged("counts", one_more("transitions")) == [
         f"manifest: transitions total {transitions + 1} but the shards add up to {transitions}"]
-    assert damaged("objects", manifest_edit(one_more_object)) == ["manifest: 4 objects but 3 shards"]
+    assert damaged("objects", one_more("objects")) == ["manifest: 4 objects but 3 shards"]
     unreadable = damaged("unreadable", lambda root: (root / layout.MANIFEST).write_text("{"))
     assert len(unreadable) == 1 and "manifest" in unreadable[0]
 

@@ -6,6 +6,7 @@ import trimesh
 from shapes import boot_object, box_object, pose_with_down, random_object
 
 from pipeline.model.config import PoseConfig
+from pipeline.model.mesh import MeshError, model_from_mesh
 from pipeline.model.poses import (
     congruent_yaw,
     face_neighbors,
@@ -158,8 +159,6 @@ def test_settle_is_consistent_with_canonical_transforms():
 
 
 def _cylinder(sections=32):
-    from pipeline.model.mesh import model_from_mesh
-
     return model_from_mesh(trimesh.creation.cylinder(radius=0.03, height=0.1, sections=sections), name="can")
 
 
@@ -212,8 +211,6 @@ def test_congruent_yaw_finds_the_turn_or_none():
 
 
 def test_a_sphere_has_no_stable_pose_worth_pushing():
-    from pipeline.model.mesh import MeshError, model_from_mesh
-
     for mesh in (trimesh.creation.uv_sphere(radius=0.05), trimesh.creation.icosphere(subdivisions=2, radius=0.05)):
         with pytest.raises(MeshError, match="ball: no stable pose worth pushing: nearly a sphere"):
             stable_poses(model_from_mesh(mesh, name="ball"))
@@ -318,8 +315,6 @@ def test_symmetry_is_to_a_millionth_of_the_size():
         vertices[corner, 0] += by
         mesh = trimesh.Trimesh(vertices, mesh.faces)
         mesh.apply_translation([0, 0, 0.075])
-        from pipeline.model.mesh import model_from_mesh
-
         return model_from_mesh(mesh, mass=0.25, name="nudged")
 
     millionth = 1e-6 * np.linalg.norm([0.05, 0.08, 0.15])
@@ -328,8 +323,6 @@ def test_symmetry_is_to_a_millionth_of_the_size():
 
 
 def test_a_ball_anywhere_is_refused_with_its_margin():
-    from pipeline.model.mesh import MeshError, model_from_mesh
-
     ball = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
     ball.apply_translation([1.0, 2.0, 3.0])
     with pytest.raises(MeshError, match="within 5% of its farthest point"):

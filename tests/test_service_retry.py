@@ -13,6 +13,7 @@ import pytest
 from pipeline.model import mdp
 from schema import horizon, neighbourhood, retry
 from schema.api import MAX_FAILED_ACTIONS, PlanRequest
+from schema.frames import unit
 from schema.vocabulary import NO_OP
 from service.planning import untried_push
 from service.store import Store
@@ -94,16 +95,12 @@ def test_the_after_failure_map_keeps_certainty_and_order():
     assert retry.after_failure(0.6, 1.0) == 0.6 and retry.after_failure(0.5, 2.0) == 0.25
 
 
-def unit_rows(vectors: np.ndarray) -> np.ndarray:
-    return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
-
-
 def test_float32_candidates_are_ruled_out_as_their_float64_values_are():
     # The service passes the store's float32 points.  A failed push's neighbours at the radius,
     # within float32's rounding of it (~40 nm here, far above neighbourhood.TOLERANCE), are what
     # the same candidates widened to float64 say they are: the tables, not their storage, decide.
     rng = np.random.default_rng(8)
-    offsets = unit_rows(rng.normal(size=(400, 3))) * (neighbourhood.RADIUS + rng.uniform(-3e-8, 3e-8, (400, 1)))
+    offsets = unit(rng.normal(size=(400, 3))) * (neighbourhood.RADIUS + rng.uniform(-3e-8, 3e-8, (400, 1)))
     points = (np.array([0.1, 0.05, 0.03]) + np.vstack([np.zeros(3), offsets])).astype(np.float32)
     directions = np.tile(np.float32([1.0, 0.0, 0.0]), (len(points), 1))
     widened = retry.ruled_out(points.astype(float), directions.astype(float), [0])
