@@ -30,7 +30,7 @@ from schema.vocabulary import (
 def test_exactly_n_points_on_the_surface_evenly_spread():
     obj = random_object(5)
     for n in (1, 37, 1000):
-        points, normals = surface_points(obj.mesh, n, np.random.default_rng(0))
+        points, normals = surface_points(obj.mesh, n, np.random.default_rng(0), ContactConfig().oversample)
         assert points.shape == (n, 3) and normals.shape == (n, 3)
     _, distance, _ = trimesh.proximity.closest_point(obj.mesh, points)
     assert distance.max() < 1e-9
@@ -90,7 +90,7 @@ def test_max_height_action_is_highest_near_vertical_point():
     obj = random_object(2)
     pose_set = stable_poses(obj)
     config = ContactConfig(n_contacts=50)
-    points, normals = surface_points(obj.mesh, 50, np.random.default_rng(0))
+    points, normals = surface_points(obj.mesh, 50, np.random.default_rng(0), config.oversample)
     for pose in pose_set.poses:
         actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, config)
         assert len(actions.status) == 51 and actions.max_height == 50
@@ -146,7 +146,7 @@ def test_max_height_contact_needs_one_steep_face_and_no_more():
 def test_a_pose_with_no_face_near_vertical_has_no_max_height_action():
     # A squat cone: its sides slope 45 degrees, its base faces down; no face within 15 degrees of vertical.
     cone = trimesh.creation.cone(radius=0.05, height=0.05, sections=32)
-    points, normals = surface_points(cone, 20, np.random.default_rng(0))
+    points, normals = surface_points(cone, 20, np.random.default_rng(0), ContactConfig().oversample)
     actions = pose_actions(points, normals, cone, collision_object(cone), np.eye(4), ContactConfig())
     assert actions.max_height == -1 and len(actions.status) == 20
     assert actions.status.dtype == np.int8

@@ -62,7 +62,7 @@ def farthest_point_subset(points: np.ndarray, count: int) -> np.ndarray:
 
 
 def surface_points(
-    mesh: trimesh.Trimesh, count: int, rng: np.random.Generator, oversample: int = 20
+    mesh: trimesh.Trimesh, count: int, rng: np.random.Generator, oversample: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Exactly ``count`` points spread evenly over the surface, with their face normals.
 

@@ -88,7 +88,20 @@ def _not_a_mesh(path: str | Path) -> str:
         data.decode("utf-8")
     except UnicodeDecodeError:
         return f"not a valid {kind} file (binary data that is neither {kind} nor UTF-8 text)"
+    points = _point_count(path)
+    if points:
+        # Forced to a mesh, trimesh drops vertices no face uses: read again to say what the file holds.
+        return f"{points} vertices but no faces (points, not a surface)"
     return f"not a valid {kind} file (text without vertices and faces)"
+
+
+def _point_count(path: str | Path) -> int:
+    """How many vertices a file holds when read as points (0 when it cannot be read so)."""
+    try:
+        loaded = trimesh.load(str(path), process=False)
+    except Exception:  # noqa: BLE001 (only a message depends on it)
+        return 0
+    return len(loaded.vertices) if isinstance(loaded, trimesh.PointCloud) else 0
 
 
 UNIT_SCALES = {"mm": 0.001, "cm": 0.01, "in": 0.0254, "m": 1.0}
