@@ -141,8 +141,9 @@ def _xyz(prefix: str, vectors) -> dict[str, np.ndarray]:
 def _action_columns(pose_index: int, actions, topple, values) -> dict[str, Any]:
     n = len(actions.status)
     status = np.asarray(actions.status)
-    if n and (status.min() < 0 or status.max() >= len(STATUS_NAMES)):
-        raise ShardError(f"pose {pose_index}: unknown action status code {int(status.max())}")
+    unknown = status[(status < 0) | (status >= len(STATUS_NAMES))]
+    if len(unknown):
+        raise ShardError(f"pose {pose_index}: unknown action status code {int(unknown[0])}")
     return {
         "pose": np.full(n, pose_index, dtype=np.int32),
         "action": np.arange(n, dtype=np.int32),

@@ -105,6 +105,9 @@ def _unexpected_files(root: Path, object_ids: set[str]) -> list[str]:
                 if extra:
                     problems.append(f"{table}/{directory.name}: unexpected files {extra}")
     for path in sorted((root / layout.ARRAYS_DIR).glob("*")):
+        # A dot-file is a temporary file (named above) or hidden: no reader takes it for a shard.
+        if path.name.startswith("."):
+            continue
         if path.suffix != ".h5" or path.stem not in object_ids:
             problems.append(f"{layout.ARRAYS_DIR}/{path.name}: not a shard in the manifest")
     return problems
