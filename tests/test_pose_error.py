@@ -86,9 +86,11 @@ def test_after_another_is_its_pairwise_definition(seed):
             assert row[name]["toppled"] == pytest.approx(np.sum(w * observed[b]) / w.sum())
 
 
-def test_a_band_without_pushes_has_no_rates():
-    rows = after_another(np.array([0.1, 0.2]), np.array([0.0, 1.0]), np.array([0, 0]))
+def test_a_band_without_pushes_has_no_rates_and_a_light_one_has():
+    rows = after_another(np.array([0.1, 0.2]), np.array([0.5, 1.0]), np.array([0, 0]))
     assert rows[0]["pairs"] == 2 and rows[2]["pairs"] == 0 and np.isnan(rows[2]["failed"]["predicted"])
+    # only the first push ever fails, half the time: the second is all the failed weight there is
+    assert rows[0]["failed"] == {"predicted": 0.2, "toppled": 1.0}
 
 
 def test_the_oracle_gains_where_poses_err_together_and_the_trivial_predictors_are_shown():
@@ -97,7 +99,15 @@ def test_the_oracle_gains_where_poses_err_together_and_the_trivial_predictors_ar
     p = rng.uniform(0.2, 0.8, len(pose))
     observed = np.clip(p + rng.normal(0, 0.25, 300)[pose] + rng.normal(0, 0.05, len(pose)), 0, 1)
     result = summarise(p, observed, pose, pose // 3)
+    residual = observed - p
+    assert result["mean_residual"] == pytest.approx(residual.mean())
+    assert result["residual_variance"] == pytest.approx(residual.var())
+    assert result["same_pose_covariance"] == pair_covariance(residual, pose)
+    assert result["same_object_other_pose_covariance"] == other_group_covariance(residual, pose, pose // 3)
+    assert result["after_another"] == after_another(p, observed, pose)
     brier = result["brier"]
+    oracle = np.clip(p + leave_one_out_shift(residual, pose), 0, 1)  # a probability, clipped at both ends
+    assert brier["pose_oracle"] == pytest.approx(np.mean((oracle - observed) ** 2))
     assert brier["pose_oracle"] < 0.5 * brier["model"]
     assert brier["never_topples"] == pytest.approx(np.mean(observed ** 2))
     assert brier["constant_rate"] == pytest.approx(np.var(observed))
@@ -114,3 +124,44 @@ def test_an_unknown_config_is_a_usage_error(capsys, tmp_path):
         main([str(tmp_path), "--config", "no_such_preset"])
     assert exit_.value.code == 2
     assert "config file not found: no_such_preset" in capsys.readouterr().err
+
+
+def test_the_pushes_of_a_log_are_read_as_the_scorer_predicts_them(tmp_path):
+    """Two boxes' log made by the model itself: every push read, grouped by (object, pose), with
+    the scorer's P and the log's own topple rate."""
+    import pyarrow.parquet as pq
+    import trimesh
+
+    from pipeline.model.config import Config
+    from pipeline.studies.logreader import read_log
+    from pipeline.studies.pose_error import read_pushes
+    from pipeline.studies.scoring import Scorer
+    from pipeline.studies.synthetic_log import MeshSpec, model_log
+
+    specs = []
+    for i, size in enumerate([(0.05, 0.08, 0.15), (0.06, 0.06, 0.12)]):
+        trimesh.creation.box(size).export(tmp_path / f"box{i}.stl")
+        specs.append(MeshSpec(f"box{i}", str(tmp_path / f"box{i}.stl"), 1.0, 0.25))
+    pq.write_table(model_log(specs, Config(), pushes_per_pose=3, repeats=4, seed=1), tmp_path / "log.parquet")
+    p, observed, group, obj = read_pushes([str(tmp_path / "log.parquet")], Config())
+    scorer = Scorer(read_log([tmp_path / "log.parquet"], Config()))
+    expected = np.full(len(scorer), np.nan)
+    for members, (_, predicted) in zip(scorer.groups, scorer.predict(Config().topple)):
+        expected[members.rows] = predicted
+    usable = np.isfinite(expected)
+    assert len(p) == usable.sum() > 0
+    assert p == pytest.approx(expected[usable]) and observed == pytest.approx(scorer.empirical_topple[usable])
+    pushes = [push for push, ok in zip(scorer.log.pushes, usable) if ok]
+    keys = [(push.object_id, push.pose) for push in pushes]
+    # one group per (object, pose), one object index per object
+    assert len(set(zip(keys, group))) == len(set(keys)) == len(set(group))
+    assert len(set(zip([k[0] for k in keys], obj))) == len(set(obj)) == 2
+    assert group.dtype.kind == obj.dtype.kind == "i"
+    # Given a corpus, its objects' pushes only (the study reads calibration data).
+    from pipeline.build.corpus import Corpus, ObjectSpec
+
+    corpus = Corpus("test", [ObjectSpec("box0", specs[0].path, 1.0, 0.25, "file", "")])
+    p0, observed0, _, obj0 = read_pushes([str(tmp_path / "log.parquet")], Config(), corpus)
+    box0 = np.array([key[0] == "box0" for key in keys])
+    assert 0 < len(p0) == box0.sum() < len(p) and len(set(obj0)) == 1
+    assert p0 == pytest.approx(p[box0]) and observed0 == pytest.approx(observed[box0])

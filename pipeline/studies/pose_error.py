@@ -50,17 +50,13 @@ def other_group_covariance(residual: np.ndarray, group: np.ndarray, outer: np.nd
     """``pair_covariance`` over pairs in the same ``outer`` group (an object) but different
     ``group``s (its poses).  residual : (n,) float;  group, outer : (n,) int, each group inside one outer"""
     residual, group, outer = np.asarray(residual, dtype=float), np.asarray(group), np.asarray(outer)
-
-    def within(index: np.ndarray) -> tuple[float, float]:
-        total, squares, count = np.bincount(index, residual), np.bincount(index, residual ** 2), np.bincount(index)
-        return float(np.sum(total ** 2 - squares)), float(np.sum(count * (count - 1)))
-
-    outer_sum, outer_pairs = within(outer)
-    group_sum, group_pairs = within(group)
-    pairs = outer_pairs - group_pairs
+    # Pairs within an object less pairs within a pose; each push paired with itself is in both
+    # sums and cancels, so the products' and the counts' squares are all it takes.
+    products = float(np.sum(np.bincount(outer, residual) ** 2) - np.sum(np.bincount(group, residual) ** 2))
+    pairs = float(np.sum(np.bincount(outer) ** 2) - np.sum(np.bincount(group) ** 2))
     if pairs == 0:
         return float("nan")
-    return (outer_sum - group_sum) / pairs - float(residual.mean()) ** 2
+    return products / pairs - float(residual.mean()) ** 2
 
 
 def leave_one_out_shift(residual: np.ndarray, group: np.ndarray) -> np.ndarray:
@@ -90,9 +86,9 @@ def after_another(p_topple: np.ndarray, observed: np.ndarray, group: np.ndarray,
     out = []
     for low, high in bands:
         in_band = (p_topple >= low) & ((p_topple <= high) if high >= 1.0 else (p_topple < high))
-        failed_weight = np.bincount(group, np.where(in_band, 1.0 - observed, 0.0), minlength=group.max() + 1)
-        toppled_weight = np.bincount(group, np.where(in_band, observed, 0.0), minlength=group.max() + 1)
-        in_band_count = np.bincount(group, in_band.astype(float), minlength=group.max() + 1)
+        failed_weight = np.bincount(group, np.where(in_band, 1.0 - observed, 0.0))
+        toppled_weight = np.bincount(group, np.where(in_band, observed, 0.0))
+        in_band_count = np.bincount(group, in_band.astype(float))
         row = {"band": [low, high], "pairs": int(np.sum(in_band_count[group] - in_band))}
         for name, weight in (("failed", failed_weight), ("toppled", toppled_weight)):
             # b's weight: the band's pushes of its group but itself
@@ -130,13 +126,15 @@ def summarise(p_topple: np.ndarray, observed: np.ndarray, group: np.ndarray, out
     }
 
 
-def read_pushes(logs: list[str], config) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(P, observed rate, pose group, object index) of every usable push of corpus objects in ``logs``."""
-    from ..build.corpus import load_corpus
+def read_pushes(logs: list[str], config, corpus=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(P, observed rate, pose group, object index) of every usable push in ``logs``, by the model
+    of ``config``; given a ``corpus``, of its objects only (the study's: calibration data).
+
+    returns : (n,) float, (n,) float, (n,) int, (n,) int"""
     from .logreader import read_log
     from .scoring import Scorer
 
-    log = read_log(logs, config, load_corpus("default", config.mesh.default_mass), corpus_only=True)
+    log = read_log(logs, config, corpus, corpus_only=corpus is not None)
     scorer = Scorer(log)
     p_topple = np.full(len(scorer), np.nan)
     group = np.zeros(len(scorer), dtype=int)
@@ -148,6 +146,7 @@ def read_pushes(logs: list[str], config) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ..build.corpus import load_corpus
     from ..cli import UsageError, make_config
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.pose_error", description=__doc__.split("\n\n")[0])
@@ -159,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         config = make_config(argparse.Namespace(config=args.config, overrides=[], seed=None))
     except UsageError as err:
         parser.exit(2, f"{err}\n")
-    result = summarise(*read_pushes(args.logs, config))
+    result = summarise(*read_pushes(args.logs, config, load_corpus("default", config.mesh.default_mass)))
     text = json.dumps(result, indent=1)
     if args.json:
         write_text_atomic(Path(args.json), text + "\n")
