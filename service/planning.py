@@ -138,7 +138,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
     z_offset = float(pose_to_world[2, 3])
     if not abs(z_offset) <= settings.height_tolerance:
         raise OffTable(
-            f"'{obj.object_id}' is observed {z_offset * 1000:.1f} mm {'above' if z_offset > 0 else 'below'} the table "
+            f"'{obj.object_id}' is observed {abs(z_offset) * 1000:.1f} mm {'above' if z_offset > 0 else 'below'} the table "
             f"(pose {pose}'s support point at z = {z_offset:.4g} m, tolerance {settings.height_tolerance * 1000:.1f} mm): "
             "it is not resting on the table z = 0, so no stored push applies; is the world frame's origin on the table?",
             object_id=obj.object_id,

@@ -259,3 +259,66 @@ def test_a_push_must_beat_grasping_now_by_more_than_the_margin():
     assert _best_per_pose(np.array([IMPROVEMENT, -np.inf]), np.array([0.0]), offsets)[0][0] == NO_OP
     actions, values = _best_per_pose(np.array([IMPROVEMENT, 2 * IMPROVEMENT]), np.array([0.0]), offsets)
     assert actions[0] == 1 and values[0] == 2 * IMPROVEMENT
+
+
+def test_budget_q_is_the_solve_s_own_numbers_with_or_without_belief():
+    # After a failure the service ranks a pose's pushes by budget_q: (12.8)'s Q_h (pose_q), which a
+    # failure does not change, in a build that does not believe failures; Q0_h fresh and Q1_h failed
+    # in one that does.  The push it serves must be valued as the solve valued it, to the bit, from
+    # float32 probabilities that sum to 1 only within rounding; a push that is not ok has no value
+    # (NaN), and a sure push (one outcome) has one.
+    from schema.horizon import IMPROVEMENT, budget_q
+    from tests.test_mdp import random_mdp
+
+    next_pose, v_s = random_mdp(np.random.default_rng(12), 5, 12)
+    next_pose[0][0] = [0.0, 0.0, 0.0, 1.0, 0.0]  # a sure push onto pose 3
+    action_offsets, transition_offsets, targets, probability = csr_from_rows(next_pose)
+    probability = (1.5 * probability).astype(np.float32)
+    csr = (transition_offsets, targets, probability)
+    plain, values = budget_choices(v_s, action_offsets, *csr, 3)
+    actions, fresh, failed = belief_budget_choices(v_s, action_offsets, *csr, 3, 2.1)
+    for h in range(1, 4):
+        for x in range(5):
+            rows = slice(int(action_offsets[x]), int(action_offsets[x + 1]))
+            ok = np.diff(transition_offsets[rows.start : rows.stop + 1]) > 0
+            q = budget_q(v_s, values, values, h, x, rows, *csr, None, False)
+            assert q.dtype == np.float64 and np.array_equal(np.isnan(q), ~ok), (h, x)
+            np.testing.assert_array_equal(budget_q(v_s, values, values, h, x, rows, *csr, None, True), q)
+            q0 = budget_q(v_s, fresh, failed, h, x, rows, *csr, 2.1, False)
+            q1 = budget_q(v_s, fresh, failed, h, x, rows, *csr, 2.1, True)
+            for solved, chosen, value in ((q, plain, values), (q0, actions, fresh)):
+                if chosen[h - 1, x] != NO_OP:
+                    assert solved[chosen[h - 1, x]] == value[h - 1, x], (h, x)  # bit for bit
+                else:
+                    assert not ok.any() or np.nanmax(solved) <= v_s[x] + IMPROVEMENT
+            best = np.nanmax(q1) if ok.any() else -np.inf
+            assert failed[h - 1, x] == (best if best > v_s[x] + IMPROVEMENT else v_s[x]), (h, x)
+    first = budget_q(v_s, values, values, 1, 0, slice(0, 12), *csr, None, False)
+    assert first[0] == v_s[3], "the sure push is worth its pose's V_s with one push left"
+
+
+def test_a_push_within_the_margin_of_a_float32_v_s_is_not_chosen():
+    # V_s read as float32 must be compared in float64: a push that reaches a pose one float32 step
+    # better a hundredth of the time gains 6e-10, less than the margin, so grasping now stays best.
+    v_s = np.array([0.5, np.nextafter(np.float32(0.5), np.float32(1.0))], dtype=np.float32)
+    rows = [np.array([[0.99, 0.01]]), np.zeros((0, 2))]
+    actions, values = budget_choices(v_s, *csr_from_rows(rows), 2)
+    assert (actions == NO_OP).all() and values[1, 0] == 0.5
+    believing, fresh, _ = belief_budget_choices(v_s, *csr_from_rows(rows), 2, 2.1)
+    assert (believing == NO_OP).all() and fresh[1, 0] == 0.5
+
+
+def test_a_float64_direction_that_rounds_onto_the_limit_is_choosable():
+    # The dataset job holds float64 directions and the service float32 ones: one just below the
+    # float32 limit in float64 is the limit in float32, so both must call it choosable.
+    limit = np.float32(-0.3)
+    below = float(limit) - 1e-10
+    assert below < float(limit) and np.float32(below) == limit
+    assert choosable_pushes(np.array([below]), -0.3)[0]
+
+
+def test_csr_from_rows_of_no_poses_and_of_a_partly_nan_row():
+    action_offsets, transition_offsets, targets, probability = csr_from_rows([])
+    assert action_offsets.tolist() == [0] and transition_offsets.tolist() == [0] and len(targets) == len(probability) == 0
+    _, transition_offsets, targets, _ = csr_from_rows([np.array([[np.nan, 0.5, 0.5], [0.5, 0.5, 0.0]])])
+    assert transition_offsets.tolist() == [0, 0, 2] and targets.tolist() == [0, 1], "any NaN: a push that is not ok"

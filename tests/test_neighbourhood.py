@@ -54,3 +54,101 @@ def test_plan_reports_the_mean_p_topple_around_its_push(client, tables):
         assert f"({body['p_topple_neighbourhood']:.3g} around it)" in body["reason"]
         checked += 1
     assert checked >= 5
+
+
+def test_boundaries_are_neighbours_within_rounding_and_a_hair_beyond_is_not():
+    # Exactly RADIUS apart and exactly MAX_ANGLE turned are neighbours though |a - b|^2 and the
+    # cosine round either way; a micrometre or a microradian more is not.
+    def heading(angle):
+        return [math.cos(angle), math.sin(angle), 0.0]
+
+    x = heading(0.3)  # 0.3 rad: the cosine at MAX_ANGLE rounds below cos(MAX_ANGLE), 0.1 m the distance above
+    points = np.array([[0.1, 0.2, 0.0], [0.1 + RADIUS, 0.2, 0.0], [0.1 + RADIUS + 1e-6, 0.2, 0.0], [0.1, 0.2, 0.0],
+                       [0.1, 0.2, 0.0]])
+    directions = np.array([x, x, x, heading(0.3 + MAX_ANGLE), heading(0.3 + MAX_ANGLE + 1e-6)])
+    assert neighbours(points, directions, 0).tolist() == [True, True, False, True, False]
+    mean, count = neighbour_mean(points, directions, np.array([0.0, 0.3, 0.9, 0.6, 0.9]), rows=[0])
+    assert count.tolist() == [3] and mean[0] == pytest.approx(0.3)
+
+
+def test_a_candidate_is_its_own_neighbour_whatever_its_direction():
+    # A degenerate (zero) direction has cosine 0 with itself: still its own neighbourhood.
+    points, directions = np.zeros((2, 3)), np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    assert neighbours(points, directions, 0).tolist() == [True, False]
+    mean, count = neighbour_mean(points, directions, np.array([0.25, 0.75]))
+    assert count.tolist() == [1, 1] and mean.tolist() == [0.25, 0.75]
+
+
+def test_k_values_per_candidate_average_column_by_column_and_need_all_finite():
+    x = np.array([1.0, 0.0, 0.0])
+    points, directions = np.zeros((3, 3)), np.array([x, x, x])
+    values = np.array([[0.2, 1.0], [0.4, 3.0], [np.nan, 5.0]])  # the last row is not finite: nobody's neighbour
+    mean, count = neighbour_mean(points, directions, values)
+    assert mean.shape == (3, 2) and count.tolist() == [2, 2, 0]
+    np.testing.assert_allclose(mean[:2], [[0.3, 2.0], [0.3, 2.0]])
+    assert np.isnan(mean[2]).all()
+    one, n = neighbour_mean(points, directions, values, rows=[1])
+    assert one.shape == (1, 2) and n.tolist() == [2] and one[0].tolist() == mean[1].tolist()
+
+
+def test_a_row_past_the_pool_averages_over_the_pool_and_itself_only():
+    # Rows 0, 1: the pose's candidates; row 2: a probe (a logged push) at the same place, in no one's mean.
+    x = np.array([1.0, 0.0, 0.0])
+    points, directions = np.zeros((3, 3)), np.array([x, x, x])
+    values = np.array([0.2, 0.4, 0.9])
+    mean, count = neighbour_mean(points, directions, values, pool=2)
+    assert count.tolist() == [2, 2, 3]
+    np.testing.assert_allclose(mean, [0.3, 0.3, 0.5])
+    probe, n = neighbour_mean(points, directions, values, rows=[2], pool=2)
+    assert n.tolist() == [3] and probe[0] == pytest.approx(0.5)
+    everyone, _ = neighbour_mean(points, directions, values)
+    np.testing.assert_allclose(everyone, [0.5, 0.5, 0.5])
+
+
+def test_chosen_means_average_around_each_pose_s_own_candidates():
+    from schema.neighbourhood import chosen_means
+    from schema.vocabulary import NO_OP
+
+    x, turned = [1.0, 0.0, 0.0], [math.cos(0.6), math.sin(0.6), 0.0]  # 0.6 rad > MAX_ANGLE apart
+    # Pose 0: rows 0, 1 (10 mm, 0.6 rad apart); pose 1: rows 2, 3, 4 (row 4 30 mm away); pose 2: no candidates.
+    points = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0, 0], [0.01, 0, 0], [0.04, 0, 0]], dtype=float)
+    directions = np.array([x, turned, x, x, x])
+    p_topple = np.array([0.2, 0.4, 0.6, np.nan, 1.0])
+    chosen = np.array([[1, NO_OP], [0, 2], [NO_OP, NO_OP]])
+    offsets = np.array([0, 2, 5, 5])
+    means = chosen_means(offsets, points, directions, p_topple, chosen)
+    assert means.shape == (3, 2) and np.isnan(means[0, 1]) and np.isnan(means[2]).all()
+    np.testing.assert_allclose([means[0, 0], means[1, 0], means[1, 1]], [0.4, 0.6, 1.0])
+    wider = chosen_means(offsets, points, directions, p_topple, chosen, radius=0.05)
+    np.testing.assert_allclose([wider[0, 0], wider[1, 0]], [0.4, 0.8])
+    turning = chosen_means(offsets, points, directions, p_topple, chosen, max_angle=0.7)
+    np.testing.assert_allclose([turning[0, 0], turning[1, 0]], [0.3, 0.6])
+
+
+def test_float32_candidates_have_the_neighbourhoods_and_means_of_their_float64_values():
+    # The service holds float32 contacts, directions and P(topple), the pipeline float64 ones: both
+    # must find the same neighbours and the same mean, computed in float64.
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-0.03, 0.03, (60, 3)).astype(np.float32)
+    directions = rng.normal(size=(60, 3))
+    directions = (directions / np.linalg.norm(directions, axis=1, keepdims=True)).astype(np.float32)
+    directions[:20] = directions[0]  # enough neighbours that the float32 and float64 sums differ
+    p_topple = rng.random(60).astype(np.float32)
+    wide = [a.astype(np.float64) for a in (points, directions, p_topple)]
+    mean, count = neighbour_mean(points, directions, p_topple)
+    expected, expected_count = neighbour_mean(*wide)
+    assert mean.dtype == np.float64 and mean.tolist() == expected.tolist() and count.tolist() == expected_count.tolist()
+    assert (count > 1).sum() >= 10
+    # Half a metre from the origin, |a|^2 + |b|^2 - 2 a.b loses ~1e-7 m^2 in float32: a ring of
+    # contacts within 2 um of RADIUS around the first must be split as in float64.
+    ring = rng.normal(size=(40, 3))
+    ring = 0.02 * ring / np.linalg.norm(ring, axis=1, keepdims=True) * (1 + np.linspace(-1e-4, 1e-4, 40))[:, None]
+    points = (np.array([0.5, 0.4, 0.3]) + np.vstack([np.zeros(3), ring])).astype(np.float32)
+    directions = np.tile(np.float32([0.0, 0.0, 1.0]), (41, 1))
+    near = neighbours(points, directions, 0)
+    assert near.tolist() == neighbours(points.astype(np.float64), directions.astype(np.float64), 0).tolist()
+    assert 5 <= near.sum() <= 36, "the ring straddles the limit"
+    values = np.linspace(0.0, 1.0, 41, dtype=np.float32)
+    _, count = neighbour_mean(points, directions, values, rows=[0])
+    _, expected_count = neighbour_mean(points.astype(np.float64), directions.astype(np.float64), values.astype(np.float64), rows=[0])
+    assert count.tolist() == expected_count.tolist() == [near.sum()]

@@ -9,12 +9,14 @@ ROS poses, unknown objects and malformed bodies alike.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 from fastapi.testclient import TestClient
 
 from service import create_app, fastplan
+from service.store import Store
 from tests.test_service import JSON, dataset, planar_transform, rotation_about, stored_transform, tables  # noqa: F401 (fixtures)
 
 
@@ -115,3 +117,89 @@ def test_plan_answers_are_the_response_model_exactly(dataset, tables):
         assert json.loads(answer_json(answer)) == model.model_dump(mode="json")
         kinds.add(answer["decision"])
     assert {"push", "grasp"} <= kinds
+
+
+# --- the middleware by itself: which requests it answers, and how it hands the others on ---------
+
+
+DISCONNECT = {"type": "http.disconnect"}
+
+
+class Inner:
+    """The app behind FastPlan: records what it is handed, reads the body and then waits for a
+    disconnect as a route may, and answers 599 (a stand-in for FastAPI)."""
+
+    def __init__(self):
+        self.calls = []
+
+    async def __call__(self, scope, receive, send):
+        self.calls.append((scope, receive, [await receive(), await receive()] if scope["type"] == "http" else []))
+        await send({"type": "http.response.start", "status": 599, "headers": []})
+
+
+def call(middleware, scope: dict, *messages: dict) -> list[dict]:
+    """Run one request through ``middleware``; returns what it sent.  ``messages``: what receive yields."""
+    import asyncio
+
+    queue = list(messages) + [DISCONNECT]
+    sent = []
+
+    async def receive():
+        return queue.pop(0)
+
+    async def send(message):
+        sent.append(message)
+
+    asyncio.run(middleware(scope, receive, send))
+    return sent
+
+
+def http(path="/plan", method="POST") -> dict:
+    return {"type": "http", "path": path, "method": method, "headers": []}
+
+
+def test_the_middleware_answers_a_valid_plan_itself_with_the_planned_bytes(dataset, tables):
+    """A valid POST /plan never reaches the framework: 200, JSON, its length, the plan's own bytes,
+    and the route label the guard's metrics read."""
+    from schema.api import PlanRequest
+    from service.planning import answer_json, plan
+    from service.settings import Settings
+    from service.store import LiveStore
+
+    store, settings, inner = Store.load(dataset), Settings(), Inner()
+    middleware = fastplan.FastPlan(inner, LiveStore(store), settings)
+    object_id, pose = next(iter(tables["poses"]))
+    body = json.dumps({"object_id": object_id, "pose": stored_transform(tables, object_id, pose).tolist()}).encode()
+    scope = http()
+    sent = call(middleware, scope, {"type": "http.request", "body": body})  # no more_body: the whole body (ASGI)
+    expected = answer_json(plan(store, PlanRequest.model_validate_json(body), settings))
+    assert inner.calls == []
+    assert sent == [{"type": "http.response.start", "status": 200,
+                     "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(expected)).encode())]},
+                    {"type": "http.response.body", "body": expected}]
+    assert scope["route"].path == "/plan"
+
+
+def test_the_middleware_hands_everything_else_on_whole(dataset, tables):
+    """Other routes, methods and scope types reach the app untouched, even with a body that would
+    plan; a POST /plan body that does not plan, or comes in pieces, reaches it replayed from its
+    first message."""
+    from service.settings import Settings
+    from service.store import LiveStore
+
+    live = LiveStore(Store.load(dataset))
+    object_id, pose = next(iter(tables["poses"]))
+    valid = json.dumps({"object_id": object_id, "pose": stored_transform(tables, object_id, pose).tolist()}).encode()
+    request = {"type": "http.request", "body": valid, "more_body": False}
+    for scope in (http("/objects"), http("/plan", "GET"), http("/plan", "PUT"), http("/plan/", "POST"), {"type": "lifespan"}):
+        inner = Inner()
+        sent = call(fastplan.FastPlan(inner, live, Settings()), scope, request)
+        assert len(inner.calls) == 1 and inner.calls[0][0] is scope and "route" not in scope
+        assert inner.calls[0][2] == ([request, DISCONNECT] if scope["type"] == "http" else []), scope  # its own messages
+        assert sent[0]["status"] == 599
+    unknown = {"type": "http.request", "body": b'{"object_id": "no_such_object", "pose": []}', "more_body": False}
+    for message in (unknown, {"type": "http.request", "body": valid, "more_body": True}, {"type": "http.request"}):
+        inner, scope = Inner(), http()
+        sent = call(fastplan.FastPlan(inner, live, Settings()), scope, message)
+        assert len(inner.calls) == 1 and inner.calls[0][2] == [message, DISCONNECT] and "route" not in scope
+        assert [m.get("status") for m in sent] == [599]
