@@ -220,5 +220,9 @@ def test_rejects_a_chosen_centre_of_mass_that_is_not_finite():
 def test_a_point_cloud_file_has_no_triangles(tmp_path):
     header = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
     (tmp_path / "points.ply").write_text(header + "0 0 0\n1 0 0\n0 1 0\n")
-    with pytest.raises(MeshError, match="points: cannot read points.ply: no triangles, 3 vertices but no faces"):
-        load_mesh(tmp_path / "points.ply")
+    (tmp_path / "points.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n")
+    trimesh.PointCloud(np.random.default_rng(0).random((5, 3))).export(tmp_path / "binary.ply", encoding="binary")
+    for file, count in (("points.ply", 3), ("points.obj", 4), ("binary.ply", 5)):
+        stem = file.split(".")[0]
+        with pytest.raises(MeshError, match=rf"{stem}: cannot read {file}: a point cloud \({count} vertices, no faces\), not a surface"):
+            load_mesh(tmp_path / file)

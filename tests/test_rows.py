@@ -319,7 +319,7 @@ def test_results_that_cannot_be_stored_are_refused_by_name(box):
     for code in (len(STATUS_NAMES), -1):
         bad = status.copy()
         bad[1] = code
-        refused(rf"^pose 0: unknown action status code {code}$", **edited("actions", 0, status=bad))
+        refused(rf"^box pose 0: unknown action status code {code}$", **edited("actions", 0, status=bad))
     # A policy the vocabulary does not know is not stored, and the rest still is.
     extra = {**result.values[0].policies, "other": PolicyChoice(0, 1.0)}
     poses = build_shard(spec, dataclasses.replace(result, **edited("values", 0, policies=extra)), TRIALS).rows["poses"]

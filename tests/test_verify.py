@@ -205,6 +205,7 @@ def test_files_no_shard_owns_are_named(copy):
         "arrays/stranger.h5",
         f"arrays/{first}.txt",
         f"arrays/.{first}.h5.89ab.tmp",  # named once, as a temporary file
+        "arrays/.hidden",  # readers skip dot-files here too
     ]
     for relative in strays:
         (copy / relative).parent.mkdir(parents=True, exist_ok=True)

@@ -78,7 +78,7 @@ def build_shard(spec: ObjectSpec, result: ObjectResult, n_trials: int) -> ShardD
             raise ShardError(f"{where}: no choice of policy {sorted(missing)}")
 
         ok = np.asarray(actions.status) == STATUS_OK
-        action_parts.append(_action_columns(i, actions, topple, values))
+        action_parts.append(_action_columns(where, i, actions, topple, values))
         transition_parts.append(_transition_columns(i, topple.next_pose, ok))
         equivalents = pose.transform[None] if result.equivalent_transforms is None else result.equivalent_transforms[i]
         pose_rows.append(_pose_row(spec.object_id, pose, equivalents, len(actions.status), int(ok.sum()), suction, values))
@@ -138,12 +138,12 @@ def _xyz(prefix: str, vectors) -> dict[str, np.ndarray]:
     return {f"{prefix}_{axis}": vectors[:, k] for k, axis in enumerate("xyz")}
 
 
-def _action_columns(pose_index: int, actions, topple, values) -> dict[str, Any]:
+def _action_columns(where: str, pose_index: int, actions, topple, values) -> dict[str, Any]:
     n = len(actions.status)
     status = np.asarray(actions.status)
     unknown = status[(status < 0) | (status >= len(STATUS_NAMES))]
     if len(unknown):
-        raise ShardError(f"pose {pose_index}: unknown action status code {int(unknown[0])}")
+        raise ShardError(f"{where}: unknown action status code {int(unknown[0])}")
     return {
         "pose": np.full(n, pose_index, dtype=np.int32),
         "action": np.arange(n, dtype=np.int32),

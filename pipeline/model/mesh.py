@@ -74,7 +74,10 @@ def load_mesh(
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"{name}: {file} holds no triangle mesh")
     if len(loaded.faces) == 0:
-        raise MeshError(f"{name}: cannot read {file}: no triangles, {_not_a_mesh(path)}")
+        # Forced to a mesh, trimesh drops vertices no face uses: read again to say what the file holds.
+        points = _point_count(path)
+        why = f"a point cloud ({points} vertices, no faces), not a surface" if points else f"no triangles, {_not_a_mesh(path)}"
+        raise MeshError(f"{name}: cannot read {file}: {why}")
     return model_from_mesh(loaded, scale=scale, mass=mass, center_mass=center_mass, name=name, config=config)
 
 
@@ -88,10 +91,6 @@ def _not_a_mesh(path: str | Path) -> str:
         data.decode("utf-8")
     except UnicodeDecodeError:
         return f"not a valid {kind} file (binary data that is neither {kind} nor UTF-8 text)"
-    points = _point_count(path)
-    if points:
-        # Forced to a mesh, trimesh drops vertices no face uses: read again to say what the file holds.
-        return f"{points} vertices but no faces (points, not a surface)"
     return f"not a valid {kind} file (text without vertices and faces)"
 
 
