@@ -10,8 +10,10 @@ what one failed push says about the pose's other pushes is the table ``after_ano
 
     python -m pipeline.studies.pose_error data/logs/corpus_all data/logs/corpus_s1 --json F.json
 
-reads the logs against the default model (``--config`` for another) on corpus objects only, as a
-calibration does (docs/VALIDATION.md, "The error that belongs to the pose").
+reads the logs against the default model (``--config`` for another) on the default corpus's objects
+only, as a calibration does (``--corpus`` for another list, ``none`` for every object), and gives each
+statistic a 95 % interval over resamples of the objects (docs/VALIDATION.md, "The error that belongs
+to the pose").
 """
 
 from __future__ import annotations
