@@ -10,6 +10,7 @@ import pytest
 from schema.vocabulary import NO_OP
 from service.planning import _decision
 from tests.test_service import dataset, planar_transform, stored_transform, tables  # noqa: F401 (fixtures)
+from tests.test_service_retry import long_shot_pose
 
 GRASP = {"point": [0.0, 0.0, 0.1], "axis": [0.0, 0.0, -1.0]}
 
@@ -121,36 +122,12 @@ def request(tables, object_id: str, pose: int, lift: float = 0.0, **extra):
 
 
 def long_shot_store(dataset):
-    """The test dataset with one pose rearranged (as tests/test_service_retry.py's long shot): three
-    far-apart candidates, ``failed``, a sure push onto a fair pose and a long shot onto a better one
-    that the table values for its retries.  returns : store, object_id, pose, failed, sure, long_shot, q_once
-    (the long shot's and the sure push's Q had a failure counted at V_s, as a build without retries)."""
-    import dataclasses
-
-    from service.store import Store
-
-    store = Store.load(dataset)
-    obj = next(iter(store.objects.values()))
-    pose = int(np.argmin(obj.v_s))
-    rows = obj.pose_rows(pose)
-    failed, sure, long_shot = (int(i) for i in np.flatnonzero(obj.choosable(rows))[:3])
-    points = obj.points.copy()
-    for action, offset in ((failed, 0.0), (sure, 0.2), (long_shot, -0.2)):
-        points[rows.start + action] = np.float32([offset, 0.3, 0.05])
-    stay, gamma = float(obj.v_s[pose]), store.gamma
-    p = {sure: 0.9, long_shot: 0.3}
-    landing = {sure: stay + 0.4, long_shot: stay + 0.75}
-    v_t = gamma * (0.3 * landing[long_shot]) / (1 - gamma * 0.7)  # the long shot's fixed point
-    q, p_topple, v_t_all = np.full(len(obj.q), np.nan), np.full(len(obj.q), np.nan, dtype=np.float32), obj.v_t.copy()
-    q[rows.start + failed], p_topple[rows.start + failed] = stay, 0.0
-    q_once = q.copy()
-    for action in (sure, long_shot):
-        q[rows.start + action] = p[action] * landing[action] + (1 - p[action]) * v_t
-        q_once[rows.start + action] = p[action] * landing[action] + (1 - p[action]) * stay
-        p_topple[rows.start + action] = p[action]
-    v_t_all[pose] = v_t
-    store.objects[obj.object_id] = dataclasses.replace(obj, points=points, q=q, p_topple=p_topple, v_t=v_t_all)
-    return store, obj.object_id, pose, failed, sure, long_shot, q_once
+    """The test dataset's store with tests/test_service_retry.py's long-shot pose in it.
+    returns : store, object_id, pose, failed, sure, long_shot, q_once (the long shot's and the sure
+    push's Q had a failure counted at V_s, as a build without retries)"""
+    s = long_shot_pose(dataset)
+    s.store.objects[s.moved.object_id] = s.moved
+    return s.store, s.moved.object_id, s.pose, s.failed, s.sure, s.long_shot, s.q_once
 
 
 def test_after_a_failure_plan_ranks_by_the_build_s_own_belief(dataset, tables):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -279,10 +280,15 @@ def test_the_neighbours_of_a_failed_push_are_ruled_out_and_each_policy_ranks_by_
     assert choose("value_iteration", [a, c])[0] == d and choose("value_iteration", [a, c, d])[0] == NO_OP
 
 
-def test_after_a_failure_value_iteration_prefers_a_likely_push_to_a_long_shot(dataset):
-    """Two far-apart candidates: a sure push onto a fair pose and a long shot onto a better one
-    that the table values for its retries.  After an unrelated failure, value iteration with
-    the map takes the sure push; without it (k = 1, or a build from before it) the long shot."""
+def long_shot_pose(dataset) -> SimpleNamespace:
+    """The test dataset's worst pose rearranged: three far-apart candidates, ``failed`` (never topples),
+    a ``sure`` push (P 0.9) onto a fair pose and a ``long_shot`` (P 0.3) onto a better one that the
+    table values for its retries.
+
+    returns : store (as loaded), moved (the object with the pose rearranged), pose, rows, failed, sure,
+      long_shot, q (Q_T counting retries, as the thesis), q_once (a failure counted at V_s, a build
+      without retries), p_topple, stay (V_s), v_t (the pose's V_T, the long shot's fixed point), gamma
+    """
     store = Store.load(dataset)
     obj = next(iter(store.objects.values()))
     pose = int(np.argmin(obj.v_s))
@@ -297,27 +303,38 @@ def test_after_a_failure_value_iteration_prefers_a_likely_push_to_a_long_shot(da
     v_t = gamma * (0.3 * landing[long_shot]) / (1 - gamma * 0.7)  # the long shot's fixed point
     q, p_topple, v_t_all = np.full(len(obj.q), np.nan), np.full(len(obj.q), np.nan, dtype=np.float32), obj.v_t.copy()
     q[rows.start + failed], p_topple[rows.start + failed] = stay, 0.0
+    q_once = q.copy()
     for action in (sure, long_shot):
         q[rows.start + action] = p[action] * landing[action] + (1 - p[action]) * v_t
+        q_once[rows.start + action] = p[action] * landing[action] + (1 - p[action]) * stay
         p_topple[rows.start + action] = p[action]
     v_t_all[pose] = v_t
-    assert q[rows.start + long_shot] > q[rows.start + sure], "the table prefers the long shot"
     moved = dataclasses.replace(obj, points=points, q=q, p_topple=p_topple, v_t=v_t_all)
-    request = PlanRequest(object_id=obj.object_id, pose=np.eye(4).tolist(), failed_actions=[failed])
+    return SimpleNamespace(store=store, moved=moved, pose=pose, rows=rows, failed=failed, sure=sure, long_shot=long_shot,
+                           q=q, q_once=q_once, p_topple=p_topple, stay=stay, v_t=v_t, gamma=gamma)
+
+
+def test_after_a_failure_value_iteration_prefers_a_likely_push_to_a_long_shot(dataset):
+    """Two far-apart candidates: a sure push onto a fair pose and a long shot onto a better one
+    that the table values for its retries.  After an unrelated failure, value iteration with
+    the map takes the sure push; without it (k = 1, or a build from before it) the long shot."""
+    s = long_shot_pose(dataset)
+    moved, pose, rows, gamma, stay = s.moved, s.pose, s.rows, s.gamma, s.stay
+    failed, sure, long_shot = s.failed, s.sure, s.long_shot
+    assert s.q[rows.start + long_shot] > s.q[rows.start + sure], "the table prefers the long shot"
+    request = PlanRequest(object_id=moved.object_id, pose=np.eye(4).tolist(), failed_actions=[failed])
     assert untried_push(moved, pose, request, gamma, 2.1)[0] == sure
     assert untried_push(moved, pose, request, gamma, 1.0)[0] == long_shot
     assert untried_push(moved, pose, request, gamma, None)[0] == long_shot
     # A build without retries counts a failure at V_s in Q_T: the same landings, so the same belief.
-    q_once = q.copy()
-    for action in (sure, long_shot):
-        q_once[rows.start + action] = p[action] * landing[action] + (1 - p[action]) * stay
-    once = dataclasses.replace(moved, q=q_once)
+    once = dataclasses.replace(moved, q=s.q_once)
     assert untried_push(once, pose, request, gamma, 2.1, retry_failed=False)[0] == sure
     # The long shot alone is still worth a try; read as if Q counted retries (V_T), it would not be.
-    both = PlanRequest(object_id=obj.object_id, pose=np.eye(4).tolist(), failed_actions=[failed, sure])
+    both = PlanRequest(object_id=moved.object_id, pose=np.eye(4).tolist(), failed_actions=[failed, sure])
     assert untried_push(once, pose, both, gamma, 2.1, retry_failed=False)[0] == long_shot
-    believed_once = retry.believed_values(q_once[rows], p_topple[rows].astype(float), stay, stay, 2.1)
-    expected = retry.believed_values(q[rows], p_topple[rows].astype(float), stay, v_t, 2.1)
+    p_topple = s.p_topple[rows].astype(float)
+    believed_once = retry.believed_values(s.q_once[rows], p_topple, stay, stay, 2.1)
+    expected = retry.believed_values(s.q[rows], p_topple, stay, s.v_t, 2.1)
     np.testing.assert_allclose(believed_once[[sure, long_shot]], expected[[sure, long_shot]], rtol=1e-6)  # float32 P
     assert expected[sure] == pytest.approx(stay + 0.9 ** 2.1 * 0.4) and expected[long_shot] == pytest.approx(stay + 0.3 ** 2.1 * 0.75)
 

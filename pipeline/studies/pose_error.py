@@ -25,16 +25,13 @@ from pathlib import Path
 import numpy as np
 
 from ..build.atomic import write_text_atomic
+from .validation import BOOTSTRAP, percentile_interval, to_json
 
 BANDS = ((0.0, 0.3), (0.3, 0.6), (0.6, 1.0))
 """The failed push's P(topple) bands of ``after_another``, each [low, high); the last one includes 1."""
 
 LIKELY = 0.6
 """``after_another``'s second table: only the other pushes this likely (those a planner weighs)."""
-
-BOOTSTRAP = 1000
-"""Resamples of the objects for the intervals."""
-
 
 def _groups(*labels) -> list[np.ndarray]:
     """Group labels as non-negative integer arrays (an empty list is an empty int array)."""
@@ -175,8 +172,7 @@ def summarise(p_topple: np.ndarray, observed: np.ndarray, group: np.ndarray, out
         "mean_residual": float(residual.mean()),
         "residual_variance": float(residual.var()),
         **found,
-        "intervals": {key: (np.percentile([d[key] for d in draws], [2.5, 97.5]).tolist() if draws else None)
-                      for key in found},
+        "intervals": {key: percentile_interval([d[key] for d in draws]) if draws else None for key in found},
         "brier": {
             "model": float(np.mean(residual ** 2)),
             "pose_oracle": float(np.mean(residual ** 2)) + found["oracle_gain"],
@@ -198,10 +194,9 @@ def read_pushes(logs: list[str], config, corpus=None) -> tuple[np.ndarray, np.nd
 
     log = read_log(logs, config, corpus, corpus_only=corpus is not None)
     scorer = Scorer(log, seed=config.seed, contacts=config.contacts)
-    p_topple = np.full(len(scorer), np.nan)
+    p_topple = scorer.score(config.topple).p_topple  # in log order
     group = np.zeros(len(scorer), dtype=int)
-    for index, (members, (_, p)) in enumerate(zip(scorer.groups, scorer.predict(config.topple))):
-        p_topple[members.rows] = p
+    for index, members in enumerate(scorer.groups):
         group[members.rows] = index
     usable = np.isfinite(p_topple)
     return p_topple[usable], scorer.empirical_topple[usable], group[usable], scorer.object_index[usable]
@@ -210,7 +205,6 @@ def read_pushes(logs: list[str], config, corpus=None) -> tuple[np.ndarray, np.nd
 def main(argv: list[str] | None = None) -> int:
     from ..build.corpus import load_corpus
     from ..cli import UsageError, make_config
-    from .validation import to_json
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.pose_error", description=__doc__.split("\n\n")[0])
     parser.add_argument("logs", nargs="+", help="push logs (toppledb play)")
