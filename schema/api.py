@@ -43,6 +43,17 @@ stable pose's support point (the pose frame's origin, on the bottom under the ce
 Further off, the object is not resting on the table (stacked, held, or a perception error) and
 /plan answers 409; the service's ``--height-tolerance`` / ``TOPPLEDB_HEIGHT_TOLERANCE`` overrides it."""
 
+HEIGHT_ROUNDING = 1e-9
+"""m, slack on ``HEIGHT_TOLERANCE``: an observed height comes out of a product of 4x4 transforms a few
+ulps either side of the true one, and an object lifted by exactly the tolerance is within it."""
+
+
+def rests_on_table(z_offset: float, height_tolerance: float) -> bool:
+    """Whether an observed pose's support point is within ``height_tolerance`` (m) of the table,
+    the edge included (``HEIGHT_ROUNDING``); NaN is not."""
+    return bool(abs(z_offset) <= height_tolerance + HEIGHT_ROUNDING)
+
+
 FINGER_FORCE_LIMIT = 20.0
 """N, default largest push force the finger may apply, used when the manifest has no
 ``parameters.topple.max_finger_force``.  An assumed budget for a thin finger on a

@@ -28,7 +28,7 @@ import numpy as np
 import orjson
 
 from schema import horizon, retry
-from schema.api import PlanRequest
+from schema.api import PlanRequest, rests_on_table
 from schema.frames import match_pose, place_push
 from schema.vocabulary import NO_OP, STATUS_OK
 
@@ -136,7 +136,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         )
     pose_to_world = observed @ obj.match_inverses[match.pose]
     z_offset = float(pose_to_world[2, 3])
-    if not abs(z_offset) <= settings.height_tolerance:
+    if not rests_on_table(z_offset, settings.height_tolerance):
         raise OffTable(
             f"'{obj.object_id}' is observed {abs(z_offset) * 1000:.1f} mm {'above' if z_offset > 0 else 'below'} the table "
             f"(pose {pose}'s support point at z = {z_offset:.4g} m, tolerance {settings.height_tolerance * 1000:.1f} mm): "

@@ -229,6 +229,15 @@ def test_match_pose_defaults_height_offset_and_refusals(box):
     assert toppledb.match_pose(lifted, poses, table_height=0.05).z_offset == pytest.approx(0.0)
     with pytest.raises(toppledb.NotResting, match="50.0 mm off the table"):
         toppledb.plan(result, lifted)
+    edge = 0
+    for pose in result.poses:  # lifted by exactly the tolerance: on the table, whatever the rounding
+        for z in (0.005, -0.005):
+            at_edge = world(pose.transform, 0.7, z=z)
+            edge += abs(toppledb.match_pose(at_edge, poses).z_offset) > 0.005
+            assert toppledb.plan(result, at_edge, height_tolerance=0.005).match.pose == pose.index
+        with pytest.raises(toppledb.NotResting, match=" 5.0 mm off the table"):
+            toppledb.plan(result, world(pose.transform, 0.7, z=0.005 + 1e-6), height_tolerance=0.005)
+    assert edge > 0, "some pose rounds past the edge, or this would not test it"
 
     tilt = np.eye(4)
     tilt[:3, :3] = [[1, 0, 0], [0, np.cos(0.35), -np.sin(0.35)], [0, np.sin(0.35), np.cos(0.35)]]  # 20 deg

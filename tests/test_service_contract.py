@@ -357,3 +357,14 @@ def test_a_client_that_leaves_before_its_body_arrives_is_not_counted_as_a_server
     text = metrics.render().decode()
     assert not sent
     assert f'status="{CLIENT_CLOSED}"' in text and 'status="500"' not in text
+
+
+def test_an_object_lifted_by_exactly_the_height_tolerance_rests_on_the_table(client, tables):
+    # Its height comes out of a matrix product, a few ulps either side of the lift; the edge is inside.
+    codes = {}
+    for object_id, pose, _ in pushing_poses(tables)[:12]:
+        for lift in (HEIGHT_TOLERANCE, -HEIGHT_TOLERANCE):
+            codes[object_id, pose, lift] = post_plan(client, object_id, observe(tables, object_id, pose, lift=lift)).status_code
+        beyond = post_plan(client, object_id, observe(tables, object_id, pose, lift=HEIGHT_TOLERANCE + 1e-6))
+        assert beyond.status_code == 409 and beyond.json()["reason"] == "off_table", "a micrometre further is off"
+    assert set(codes.values()) == {200}, {k: v for k, v in codes.items() if v != 200}
