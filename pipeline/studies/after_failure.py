@@ -27,28 +27,52 @@ import numpy as np
 from schema import retry
 
 from ..build.atomic import write_text_atomic
+from .validation import BOOTSTRAP, percentile_interval
 
 POWERS = np.round(np.arange(1.0, 6.0 + 1e-9, 0.05), 2)
 """The k tried by ``fit``: 1 (the table's P) to 6."""
 
+SLOPES = np.round(np.arange(0.0, 6.0 + 1e-9, 0.1), 1)
+"""The s tried by ``fit-slope``: 0 (one k whatever failed) to 6."""
 
-def after_failed_pushes(pushes: list[dict], policy: str) -> list[dict]:
-    """The pushes of ``policy`` made right after one of its pushes failed in the same trial.
+FAILED_P_CENTRE = 0.5
+"""The failed push's P(topple) at which ``slope_power`` is k: the slope tilts k about it."""
+
+FAILED_BANDS = (("P_f < 0.6", -np.inf, 0.6), ("P_f >= 0.6", 0.6, np.inf))
+"""Bands of the failed pushes' largest P that ``score`` reports apart: unlikely and likely pushes failed."""
+
+
+def failed_before(pushes: list[dict], policy: str) -> dict[int, list[float]]:
+    """The P(topple) of the pushes that had failed in its pose, for each push of ``policy`` made
+    right after one of its pushes failed in the same trial.
 
     pushes : one run's records in play order (``trial``, ``policy``, ``p_topple``, ``toppled``,
-      ``object_id``); a failed push leaves the object in its pose, so the next one starts there.
-    returns : those records
+      ``object_id``); a failed push leaves the object in its pose, so the next one starts there,
+      and a topple brings it to a pose where nothing has failed yet.
+    returns : id(record) -> the failed pushes' P in play order, for those records
     """
     previous: dict[int, dict] = {}
-    chosen = []
+    failed: dict[int, list[float]] = {}
+    found = {}
     for push in pushes:
         if push["policy"] != policy:
             continue
-        before = previous.get(push["trial"])
+        trial = push["trial"]
+        before = previous.get(trial)
         if before is not None and not before["toppled"]:
-            chosen.append(push)
-        previous[push["trial"]] = push
-    return chosen
+            failed[trial] = failed.get(trial, []) + [before["p_topple"]]
+            found[id(push)] = failed[trial]
+        else:
+            failed[trial] = []
+        previous[trial] = push
+    return found
+
+
+def after_failed_pushes(pushes: list[dict], policy: str) -> list[dict]:
+    """The pushes of ``policy`` made right after one of its pushes failed in the same trial
+    (``failed_before``'s records, in play order)."""
+    found = failed_before(pushes, policy)
+    return [push for push in pushes if id(push) in found]
 
 
 def brier(predicted: np.ndarray, toppled: np.ndarray) -> float:
@@ -56,9 +80,29 @@ def brier(predicted: np.ndarray, toppled: np.ndarray) -> float:
     return float(np.mean((np.asarray(predicted, float) - np.asarray(toppled, float)) ** 2))
 
 
-def mapped(p_topple: np.ndarray, power: float) -> np.ndarray:
-    """``schema.retry.after_failure`` over an array: p^k, p clipped as it clips.  p_topple : (n,) float"""
-    return retry.clip_probability(p_topple) ** power
+def mapped(p_topple: np.ndarray, power: float, slope: float = 0.0, failed_p: np.ndarray | None = None) -> np.ndarray:
+    """``schema.retry.after_failure`` over an array: p^k, p clipped as it clips, k the build's
+    (``failed_p`` None) or each push's candidate ``slope_power``.
+
+    p_topple : (n,) float;  failed_p : (n,) float, the largest P that had failed in each push's pose
+    returns : (n,) float
+    """
+    p = retry.clip_probability(p_topple)
+    if failed_p is None:
+        return p**power
+    return p ** slope_power(power, slope, failed_p)
+
+
+def slope_power(power: float, slope: float, failed_p: np.ndarray) -> np.ndarray:
+    """The candidate k_f = max(1, k + s (P_f - 1/2)) of a push once pushes of largest P(topple)
+    P_f have failed (docs/VALIDATION.md, "A failure weighed by its push"; measured, not served).
+
+    A likely push that fails might say more about the pose than a long shot that fails; the
+    floor keeps P^k_f at or below P, so a failure never makes a push likelier.
+    failed_p : (n,) float, clipped to [0, 1] as P is;  returns : (n,) float
+    """
+    failed = retry.clip_probability(failed_p)
+    return np.maximum(1.0, power + slope * (failed - FAILED_P_CENTRE))
 
 
 def fit_power(p_topple: np.ndarray, toppled: np.ndarray, powers: np.ndarray = POWERS) -> float:
@@ -67,16 +111,67 @@ def fit_power(p_topple: np.ndarray, toppled: np.ndarray, powers: np.ndarray = PO
     return float(powers[int(np.argmin(scores))])
 
 
-def score(p_topple: np.ndarray, toppled: np.ndarray, power: float, constant: float | None) -> dict:
-    """Mean prediction and Brier score of the map, the table's P, never topples and a constant rate."""
+def fit_slope(p_topple: np.ndarray, failed_p: np.ndarray, toppled: np.ndarray, power: float,
+              slopes: np.ndarray = SLOPES) -> float:
+    """The s of least Brier score for this k (the smallest of equal scores).
+    p_topple, failed_p, toppled : (n,) as ``mapped`` takes them"""
+    scores = [brier(mapped(p_topple, power, s, failed_p), toppled) for s in slopes]
+    return float(slopes[int(np.argmin(scores))])
+
+
+def score(p_topple: np.ndarray, toppled: np.ndarray, power: float, constant: float | None,
+          slope: float = 0.0, failed_p: np.ndarray | None = None) -> dict:
+    """Mean prediction and Brier score of the map, the table's P, never topples and a constant
+    rate; with ``failed_p``, the map at ``slope`` too, and every predictor per band of P_f
+    (``FAILED_BANDS``)."""
     p_topple, toppled = np.asarray(p_topple, float), np.asarray(toppled, float)
     predictors = {f"p^{power:g}": mapped(p_topple, power), "table P": p_topple, "never topples": np.zeros(len(p_topple))}
+    if failed_p is not None:
+        predictors[f"p^k_f, k {power:g}, slope {slope:g}"] = mapped(p_topple, power, slope, failed_p)
     if constant is not None:
         predictors[f"constant {constant:.3f}"] = np.full(len(p_topple), constant)
+    result = _scored(predictors, toppled, np.ones(len(toppled), bool))
+    if failed_p is not None:
+        failed_p = np.asarray(failed_p, float)
+        result["bands"] = {name: _scored(predictors, toppled, (failed_p >= lo) & (failed_p < hi)) for name, lo, hi in FAILED_BANDS}
+    return result
+
+
+def brier_differences(p_topple: np.ndarray, toppled: np.ndarray, objects: np.ndarray, power: float,
+                      slope: float | None = None, failed_p: np.ndarray | None = None,
+                      n_resamples: int = BOOTSTRAP, seed: int = 0) -> dict:
+    """Brier score differences per push, with 95 % intervals over objects resampled with
+    replacement (the pushes of one object, over all runs, err together): p^k minus the table's
+    P, and with ``slope`` the candidate p^k_f minus p^k.  Negative: the first is better.
+
+    p_topple, toppled, objects : (n,) float, bool, str;  failed_p : (n,) float, with ``slope``
+    returns : {name: {"difference", "interval"}}, and the number of objects
+    """
+    p_topple, toppled = np.asarray(p_topple, float), np.asarray(toppled, float)
+    squared = {"table": (p_topple - toppled) ** 2, "map": (mapped(p_topple, power) - toppled) ** 2}
+    pairs = {f"p^{power:g} minus table P": ("map", "table")}
+    if slope is not None:
+        squared["slope"] = (mapped(p_topple, power, slope, failed_p) - toppled) ** 2
+        pairs[f"p^k_f (slope {slope:g}) minus p^{power:g}"] = ("slope", "map")
+    names, owner = np.unique(np.asarray(objects), return_inverse=True)
+    counts = np.bincount(owner, minlength=len(names)).astype(float)
+    draws = np.random.default_rng(seed).integers(0, len(names), size=(n_resamples, len(names)))
+    result: dict = {"objects": len(names)}
+    for label, (first, second) in pairs.items():
+        per_object = np.bincount(owner, weights=squared[first] - squared[second], minlength=len(names))
+        resampled = per_object[draws].sum(axis=1) / counts[draws].sum(axis=1)
+        result[label] = {"difference": float(per_object.sum() / counts.sum()), "interval": percentile_interval(resampled)}
+    return result
+
+
+def _scored(predictors: dict[str, np.ndarray], toppled: np.ndarray, rows: np.ndarray) -> dict:
+    """Pushes, topple rate, and each predictor's mean and Brier score over ``rows`` ((n,) bool)."""
+    if not rows.any():
+        return {"pushes": 0, "toppled": None, "predictors": {}}
     return {
-        "pushes": len(p_topple),
-        "toppled": float(toppled.mean()) if len(toppled) else None,
-        "predictors": {name: {"mean": float(v.mean()), "brier": brier(v, toppled)} for name, v in predictors.items()},
+        "pushes": int(rows.sum()),
+        "toppled": float(toppled[rows].mean()),
+        "predictors": {name: {"mean": float(v[rows].mean()), "brier": brier(v[rows], toppled[rows])} for name, v in predictors.items()},
     }
 
 
@@ -130,9 +225,9 @@ def read_runs(paths: list[str]) -> list[list[dict]]:
 def report(fit_paths: list[str], judge_paths: list[str], gain_paths: list[str], policy: str) -> dict:
     """The whole study: k fitted on ``fit_paths``, scored on ``judge_paths``, each set's pushes
     broken down per policy, what re-planning clients are told, and the runs' V_s gains."""
-    p, toppled = read_pushes(fit_paths, policy)
+    p, toppled, _, _ = read_pushes(fit_paths, policy)
     power = fit_power(p, toppled)
-    judged_p, judged_toppled = read_pushes(judge_paths, policy)
+    judged_p, judged_toppled, _, _ = read_pushes(judge_paths, policy)
     sets = {"fit": read_runs(fit_paths), "judge": read_runs(judge_paths)}
     pooled = {name: [push for i, run in enumerate(runs) for push in _tagged(run, i)] for name, runs in sets.items()}
     return {
@@ -155,49 +250,69 @@ def _tagged(run: list[dict], index: int) -> list[dict]:
     return [{**push, "trial": (index, push["trial"])} for push in run]
 
 
-def read_pushes(paths: list[str], policy: str) -> tuple[np.ndarray, np.ndarray]:
-    """P(topple) and outcome of ``policy``'s after-failure pushes over the runs in ``paths``."""
-    chosen = []
-    for path in paths:
-        records = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
-        chosen += after_failed_pushes(records, policy)
-    return np.array([r["p_topple"] for r in chosen], float), np.array([r["toppled"] for r in chosen], bool)
+def read_pushes(paths: list[str], policy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """P(topple), outcome, P_f (the largest P that had failed in the pose) and object id of
+    ``policy``'s after-failure pushes over the runs in ``paths``; (n,) each."""
+    p, toppled, failed_p, objects = [], [], [], []
+    for records in read_runs(paths):
+        found = failed_before(records, policy)
+        for push in records:
+            if id(push) in found:
+                p.append(push["p_topple"])
+                toppled.append(push["toppled"])
+                failed_p.append(max(found[id(push)]))
+                objects.append(push["object_id"])
+    return np.array(p, float), np.array(toppled, bool), np.array(failed_p, float), np.array(objects, dtype=str)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.after_failure", description=__doc__.split("\n\n")[0])
-    parser.add_argument("mode", choices=["fit", "score", "report"])
-    parser.add_argument("pushes", nargs="*", help="robust_policy --pushes files (fit, score)")
+    parser.add_argument("mode", choices=["fit", "fit-slope", "score", "report"])
+    parser.add_argument("pushes", nargs="*", help="robust_policy --pushes files (fit, fit-slope, score)")
     parser.add_argument("--policy", default="untried_vi")
-    parser.add_argument("--power", type=float, help="k to score (score)")
+    parser.add_argument("--power", type=float, help="k to score (score) or to fit the slope for (fit-slope)")
+    parser.add_argument("--slope", type=float, help="s to score beside k alone (score): k + s (P_f - 1/2)")
     parser.add_argument("--constant", type=float, help="a constant rate to show beside it (score), e.g. the fit's rate")
     parser.add_argument("--fit", nargs="+", default=[], metavar="FILE", help="report: the pushes k is fitted on")
     parser.add_argument("--judge", nargs="+", default=[], metavar="FILE", help="report: the pushes it is judged on")
     parser.add_argument("--gains", nargs="*", default=[], metavar="FILE", help="report: robust_policy --json files")
-    parser.add_argument("--json", metavar="FILE", help="report: write it here too")
+    parser.add_argument("--json", metavar="FILE", help="write the result here too")
     args = parser.parse_intermixed_args(argv)  # files before or after the options
     if args.mode == "report":
         if not (args.fit and args.judge):
             parser.exit(2, "report needs --fit FILE... and --judge FILE...\n")
-        result = report(args.fit, args.judge, args.gains, args.policy)
-        text = json.dumps(result, indent=1)
-        if args.json:
-            write_text_atomic(args.json, text + "\n")
-        print(text)
-        return 0
+        return _emitted(report(args.fit, args.judge, args.gains, args.policy), args.json)
     if not args.pushes:
         parser.exit(2, f"{args.mode} needs robust_policy --pushes files\n")
-    p_topple, toppled = read_pushes(args.pushes, args.policy)
+    p_topple, toppled, failed_p, objects = read_pushes(args.pushes, args.policy)
     if len(p_topple) == 0:
         parser.exit(2, f"no {args.policy} push follows a failed one in {args.pushes}\n")
     if args.mode == "fit":
         power = fit_power(p_topple, toppled)
-        result = {"power": power, **score(p_topple, toppled, power, float(toppled.mean()))}
-    else:
-        if args.power is None or args.power < 1:
-            parser.exit(2, "score needs --power K, K >= 1\n")
+        return _emitted({"power": power, **score(p_topple, toppled, power, float(toppled.mean()))}, args.json)
+    if args.power is None or args.power < 1:
+        parser.exit(2, f"{args.mode} needs --power K, K >= 1\n")
+    if args.slope is not None and args.slope < 0:
+        parser.exit(2, f"--slope must be 0 or more, got {args.slope:g}\n")
+    if args.mode == "fit-slope":
+        slope = fit_slope(p_topple, failed_p, toppled, args.power)
+        result = {"power": args.power, "slope": slope,
+                  **score(p_topple, toppled, args.power, float(toppled.mean()), slope, failed_p)}
+    elif args.slope is None:
         result = score(p_topple, toppled, args.power, args.constant)
-    print(json.dumps(result, indent=1))
+        result["differences"] = brier_differences(p_topple, toppled, objects, args.power)
+    else:
+        result = score(p_topple, toppled, args.power, args.constant, args.slope, failed_p)
+        result["differences"] = brier_differences(p_topple, toppled, objects, args.power, args.slope, failed_p)
+    return _emitted(result, args.json)
+
+
+def _emitted(result: dict, path: str | None) -> int:
+    """Print ``result`` as JSON, and write it to ``path`` too when given; the exit status."""
+    text = json.dumps(result, indent=1)
+    if path:
+        write_text_atomic(path, text + "\n")
+    print(text)
     return 0
 
 
