@@ -164,6 +164,11 @@ def test_the_slope_is_scored_per_band_of_the_failed_push(tmp_path, capsys):
     assert low["predictors"]["p^2"]["mean"] == 0.25 and high["predictors"]["never topples"]["brier"] == 0.0
     assert report["predictors"][name]["mean"] == pytest.approx((0.5**1.4 + 0.5**1.6 + 0.8**2.8 + 0.8**2.4) / 4)
     assert "bands" not in score(p, toppled, 2.0, None)
+    edge = score(p, toppled, 2.0, None, failed_p=np.array([0.6, 0.6, 0.1, 0.1]))  # no slope given: k alone
+    assert edge["bands"]["P_f >= 0.6"]["pushes"] == 2 and edge["bands"]["P_f < 0.6"]["pushes"] == 2, "0.6 is the likely band's"
+    assert edge["predictors"]["p^k_f, k 2, slope 0"]["mean"] == pytest.approx(edge["predictors"]["p^2"]["mean"], abs=1e-15)
+    empty = score(p, toppled, 2.0, None, 1.0, np.array([0.1, 0.2, 0.3, 0.4]))["bands"]["P_f >= 0.6"]
+    assert empty == {"pushes": 0, "toppled": None, "predictors": {}}
 
     path = tmp_path / "pushes.jsonl"
     run = [push(0, "belief_vi", 0.9, False, 1), push(0, "belief_vi", 0.2, False, 2), push(0, "belief_vi", 0.7, True, 3)]
@@ -172,6 +177,7 @@ def test_the_slope_is_scored_per_band_of_the_failed_push(tmp_path, capsys):
     np.testing.assert_array_equal(read[0], [0.2, 0.7])
     np.testing.assert_array_equal(read[1], [False, True])
     np.testing.assert_array_equal(read[2], [0.9, 0.9])
+    np.testing.assert_array_equal(read[3], ["box", "box"])
     assert main(["fit-slope", "--power", "2", "--policy", "belief_vi", str(path)]) == 0
     fitted = json.loads(capsys.readouterr().out)
     assert fitted["power"] == 2 and 0 <= fitted["slope"] <= 6 and fitted["bands"]["P_f >= 0.6"]["pushes"] == 2
@@ -197,9 +203,101 @@ def test_brier_differences_are_per_push_with_intervals_over_objects():
     low, high = found["p^2 minus table P"]["interval"]
     per_object = [np.mean((power - table)[objects == o]) for o in "ab"]
     assert min(per_object) - 1e-12 <= low <= high <= max(per_object) + 1e-12, "within the objects' own means"
+    assert low < high, "two objects that differ: the resamples differ"
+    assert brier_differences(p, toppled, objects, 2.0) == found, "seeded: the same intervals every time"
     alone = brier_differences(p[:3], toppled[:3], objects[:3], 2.0)["p^2 minus table P"]
     assert alone["interval"] == pytest.approx([alone["difference"]] * 2, abs=1e-15), "one object: nothing to resample"
     failed_p = np.array([0.9, 0.9, 0.1, 0.5, 0.5])
     sloped = brier_differences(p, toppled, objects, 2.0, 2.0, failed_p)
     expected = (mapped(p, 2.0, 2.0, failed_p) - toppled) ** 2 - power
     assert sloped["p^k_f (slope 2) minus p^2"]["difference"] == pytest.approx(expected.mean(), abs=1e-15)
+
+
+def synthetic_runs(tmp_path, power: float, slope: float, n_trials: int = 3000, seed: int = 7) -> list[str]:
+    """Two robust_policy --pushes files whose belief_vi pushes after a failure topple with
+    P^k_f (k_f = max(1, power + slope (P_f - 1/2))), trial ids repeated across the files."""
+    rng = np.random.default_rng(seed)
+    paths = []
+    for run in range(2):
+        lines = []
+        for trial in range(n_trials):
+            failed_p, p = rng.uniform(0.05, 0.95, 2)
+            k = max(1.0, power + slope * (failed_p - 0.5))
+            lines.append(push(trial, "belief_vi", float(failed_p), False, 1))
+            lines.append(push(trial, "belief_vi", float(p), bool(rng.random() < p**k), 2))
+            lines.append(push(trial, "value_iteration", float(failed_p), False, 1))
+            lines.append(push(trial, "value_iteration", float(failed_p), bool(rng.random() < 0.3), 1))
+        path = tmp_path / f"run{run}.jsonl"
+        path.write_text("\n".join(json.dumps(r) for r in lines) + "\n")
+        paths.append(str(path))
+    return paths
+
+
+def test_the_command_finds_what_made_the_outcomes(tmp_path, capsys):
+    paths = synthetic_runs(tmp_path, 2.0, 3.0)
+
+    def out() -> dict:
+        return json.loads(capsys.readouterr().out)
+
+    written = tmp_path / "fitted.json"
+    assert main(["fit", "--policy", "belief_vi", *paths, "--json", str(written)]) == 0
+    fitted = out()
+    assert json.loads(written.read_text()) == fitted
+    rate = fitted["toppled"]
+    assert fitted["pushes"] == 6000 and 1.5 < fitted["power"] < 3.0, "one k: the slope's average"
+    assert fitted["predictors"][f"constant {rate:.3f}"]["mean"] == pytest.approx(rate)
+    assert main(["fit-slope", "--power", "2", "--policy", "belief_vi", *paths]) == 0
+    sloped = out()
+    assert sloped["power"] == 2.0 and sloped["slope"] == pytest.approx(3.0, abs=0.4)
+    assert f"constant {rate:.3f}" in sloped["predictors"] and set(sloped["bands"]) == {"P_f < 0.6", "P_f >= 0.6"}
+    assert main(["score", "--power", "1", "--slope", "0", "--policy", "belief_vi", *paths]) == 0, "the edges are allowed"
+    edges = out()
+    assert edges["predictors"]["p^1"]["brier"] == edges["predictors"]["table P"]["brier"]
+    assert edges["differences"]["p^1 minus table P"] == {"difference": 0.0, "interval": [0.0, 0.0]}
+    assert main(["score", "--power", "2", "--constant", "0.5", "--policy", "belief_vi", *paths]) == 0
+    plain = out()
+    assert "bands" not in plain and plain["predictors"]["constant 0.500"]["brier"] == pytest.approx(0.25)
+    assert plain["differences"]["objects"] == 1 and plain["differences"]["p^2 minus table P"]["difference"] < 0
+    assert main(["score", "--power", "2", "--slope", "3", "--constant", "0.4", "--policy", "belief_vi", *paths]) == 0
+    sloped_score = out()
+    assert sloped_score["bands"]["P_f < 0.6"]["predictors"]["constant 0.400"]["mean"] == pytest.approx(0.4)
+    assert sloped_score["differences"]["p^k_f (slope 3) minus p^2"]["difference"] < 0, "the true slope scores better"
+    for wrong, words in ((["score", "--power", "0.99"], "score needs --power K, K >= 1"),
+                         (["fit-slope"], "fit-slope needs --power K, K >= 1"),
+                         (["score", "--power", "2", "--slope", "-0.1"], "--slope must be 0 or more, got -0.1"),
+                         (["fit", "--policy", "greedy"], "no greedy push follows a failed one")):
+        with pytest.raises(SystemExit) as refused:
+            main([*wrong, *paths] if "--policy" in wrong else [*wrong, "--policy", "belief_vi", *paths])
+        assert refused.value.code == 2 and words in capsys.readouterr().err, wrong
+    for wrong, words in ((["score", "--power", "2"], "score needs robust_policy --pushes files"),
+                         (["report", "--fit", paths[0]], "report needs --fit FILE... and --judge FILE...\n"),
+                         (["refit", *paths], "invalid choice: 'refit'")):
+        with pytest.raises(SystemExit) as refused:
+            main(wrong)
+        err = capsys.readouterr().err
+        assert refused.value.code == 2 and (err == words if words.endswith("\n") else words in err), (wrong, err)
+
+
+def test_the_report_fits_on_one_set_judges_on_another_and_keeps_runs_apart(tmp_path, capsys):
+    (tmp_path / "fit").mkdir()
+    (tmp_path / "judge").mkdir()
+    fit_paths = synthetic_runs(tmp_path / "fit", 2.0, 0.0, n_trials=1500)
+    judge_paths = synthetic_runs(tmp_path / "judge", 3.0, 0.0, n_trials=800, seed=8)
+    assert main(["report", "--policy", "belief_vi", "--fit", *fit_paths, "--judge", *judge_paths]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["power"] == pytest.approx(2.0, abs=0.3) and result["fit"]["pushes"] == 3000 and result["judged"]["pushes"] == 1600
+    rate = round(result["fit"]["toppled"], 3)
+    assert result["judged"]["predictors"][f"constant {rate:.3f}"]["mean"] == pytest.approx(rate, abs=1e-15), "the fit's rate"
+    fit_rate = result["fit"]["toppled"]
+    assert result["fit"]["predictors"][f"constant {fit_rate:.3f}"]["mean"] == pytest.approx(fit_rate, abs=1e-15)
+    assert result["judged"]["toppled"] < result["fit"]["toppled"], "k = 3 topples less"
+    # Trial ids repeat across runs: pooled, each run's trial 0 is its own (a failure in one is no failure in the other).
+    for name, n in (("fit", 3000), ("judge", 1600)):
+        belief = result["breakdown"][name]["belief_vi"]
+        assert belief["first try"]["pushes"] == belief["another push"]["pushes"] == n, name
+        assert result["breakdown"][name]["value_iteration"]["same push again"]["pushes"] == n
+        told_them = result["told"][name]
+        assert told_them["re-asking (value_iteration)"]["pushes"] == 2 * n
+        reported = told_them["reporting failures (belief_vi)"]
+        assert reported["pushes"] == 2 * n and reported["told"] < belief["first try"]["p_topple"] / 2 + belief["another push"]["p_topple"] / 2
+        assert reported["toppled"] == pytest.approx(belief["another push"]["toppled"] / 2)
