@@ -361,10 +361,23 @@ def test_a_client_that_leaves_before_its_body_arrives_is_not_counted_as_a_server
 
 def test_an_object_lifted_by_exactly_the_height_tolerance_rests_on_the_table(client, tables):
     # Its height comes out of a matrix product, a few ulps either side of the lift; the edge is inside.
-    codes = {}
+    codes, crossed = {}, 0
     for object_id, pose, _ in pushing_poses(tables)[:12]:
         for lift in (HEIGHT_TOLERANCE, -HEIGHT_TOLERANCE):
-            codes[object_id, pose, lift] = post_plan(client, object_id, observe(tables, object_id, pose, lift=lift)).status_code
-        beyond = post_plan(client, object_id, observe(tables, object_id, pose, lift=HEIGHT_TOLERANCE + 1e-6))
-        assert beyond.status_code == 409 and beyond.json()["reason"] == "off_table", "a micrometre further is off"
+            response = post_plan(client, object_id, observe(tables, object_id, pose, lift=lift))
+            codes[object_id, pose, lift] = response.status_code
+            crossed += abs(response.json()["match"]["z_offset"]) > HEIGHT_TOLERANCE if response.status_code == 200 else 1
+        for beyond in (HEIGHT_TOLERANCE + 1e-6, -HEIGHT_TOLERANCE - 1e-6):
+            off = post_plan(client, object_id, observe(tables, object_id, pose, lift=beyond))
+            assert off.status_code == 409 and off.json()["reason"] == "off_table", "a micrometre further is off"
     assert set(codes.values()) == {200}, {k: v for k, v in codes.items() if v != 200}
+    assert crossed > 0, "some observation rounds past the edge, or this would not test it"
+
+
+def test_the_edge_of_the_table_is_inside_and_a_nan_height_is_not():
+    from schema.api import HEIGHT_ROUNDING, rests_on_table
+
+    assert rests_on_table(0.005, 0.005) and rests_on_table(-0.005, 0.005) and rests_on_table(0.0, 0.0)
+    assert rests_on_table(0.005 + HEIGHT_ROUNDING / 2, 0.005), "a few ulps past the edge"
+    assert not rests_on_table(0.005 + 2 * HEIGHT_ROUNDING, 0.005) and not rests_on_table(-0.005 - 2e-9, 0.005)
+    assert not rests_on_table(float("nan"), 0.005) and not rests_on_table(float("inf"), 0.005)

@@ -365,7 +365,8 @@ def plan(
     stored Q was solved, and Q1 read off a Q solved otherwise is no belief.
 
     Raises ``NotResting`` when the orientation is within ``tolerance`` of no stable pose
-    or the pose's support plane is more than ``height_tolerance`` from the table.
+    or the pose's support plane is more than ``height_tolerance`` from the table (the edge
+    included, ``schema.api.rests_on_table``).
     """
     if policy not in POLICIES:
         raise ValueError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")

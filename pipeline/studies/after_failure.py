@@ -5,9 +5,15 @@ the pushes played after a push has left the object in its pose topple far less (
 VALIDATION.md, "After a failed push").  ``schema.retry.after_failure`` maps P to p^k; this
 study fits k on the pushes of ``robust_policy`` runs (``--pushes FILE``, one JSON object per
 push played, in play order) and scores a k on others, beside the trivial predictors.
+``fit-slope`` fits, for a given k, the slope s of a candidate k_f = max(1, k + s (P_f - 1/2))
+(``slope_power``; P_f the largest P of the pushes that failed in the pose), and ``score --slope S``
+scores it beside P^k, also per band of P_f (measured, not served: docs/VALIDATION.md, "A failure
+weighed by its push").  ``score`` gives Brier differences with intervals over resampled objects.
 
     python -m pipeline.studies.after_failure fit /tmp/rp0.jsonl /tmp/rp1.jsonl          # corpus objects
     python -m pipeline.studies.after_failure score --power K /tmp/hrp0.jsonl /tmp/hrp1.jsonl
+    python -m pipeline.studies.after_failure fit-slope --power K --policy belief_vi C*.jsonl --json FIT.json
+    python -m pipeline.studies.after_failure score --power K --slope S --policy belief_vi H*.jsonl --json JUDGED.json
     python -m pipeline.studies.after_failure report --fit C0.jsonl C1.jsonl --judge H0.jsonl H1.jsonl \
         --gains C0.json C1.json H0.json H1.json --json reports/after_failure.json
 
@@ -48,7 +54,9 @@ def failed_before(pushes: list[dict], policy: str) -> dict[int, list[float]]:
 
     pushes : one run's records in play order (``trial``, ``policy``, ``p_topple``, ``toppled``,
       ``object_id``); a failed push leaves the object in its pose, so the next one starts there,
-      and a topple brings it to a pose where nothing has failed yet.
+      and a topple brings it to a pose where nothing has failed yet.  (The player remembers a
+      pose's failures for the whole trial; with its 3 pushes a trial cannot come back to a pose
+      after a failure there, which a longer ``--max-pushes`` would allow and this would miss.)
     returns : id(record) -> the failed pushes' P in play order, for those records
     """
     previous: dict[int, dict] = {}
@@ -89,6 +97,8 @@ def mapped(p_topple: np.ndarray, power: float, slope: float = 0.0, failed_p: np.
     """
     p = retry.clip_probability(p_topple)
     if failed_p is None:
+        if slope:
+            raise ValueError("a slope needs each push's failed P (failed_p)")
         return p**power
     return p ** slope_power(power, slope, failed_p)
 
@@ -151,6 +161,8 @@ def brier_differences(p_topple: np.ndarray, toppled: np.ndarray, objects: np.nda
     squared = {"table": (p_topple - toppled) ** 2, "map": (mapped(p_topple, power) - toppled) ** 2}
     pairs = {f"p^{power:g} minus table P": ("map", "table")}
     if slope is not None:
+        if failed_p is None:
+            raise ValueError("a slope needs each push's failed P (failed_p)")
         squared["slope"] = (mapped(p_topple, power, slope, failed_p) - toppled) ** 2
         pairs[f"p^k_f (slope {slope:g}) minus p^{power:g}"] = ("slope", "map")
     names, owner = np.unique(np.asarray(objects), return_inverse=True)
