@@ -48,6 +48,13 @@ HEIGHT_ROUNDING = 1e-9
 ulps either side of the true one, and an object lifted by exactly the tolerance is within it."""
 
 
+def height_in_mm(z_offset: float, height_tolerance: float) -> str:
+    """|z_offset| in millimetres for a refusal: one decimal, or four where one would read as the
+    tolerance itself ("5.0 mm ... tolerance 5.0 mm" for an object 5.001 mm up)."""
+    height, tolerance = abs(z_offset) * 1000, height_tolerance * 1000
+    return f"{height:.1f}" if f"{height:.1f}" != f"{tolerance:.1f}" else f"{height:.4f}"
+
+
 def rests_on_table(z_offset: float, height_tolerance: float) -> bool:
     """Whether an observed pose's support point is within ``height_tolerance`` (m) of the table,
     the edge included (``HEIGHT_ROUNDING``); NaN is not."""

@@ -28,7 +28,7 @@ import numpy as np
 import orjson
 
 from schema import horizon, retry
-from schema.api import PlanRequest, rests_on_table
+from schema.api import PlanRequest, height_in_mm, rests_on_table
 from schema.frames import match_pose, place_push
 from schema.vocabulary import NO_OP, STATUS_OK
 
@@ -138,7 +138,8 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
     z_offset = float(pose_to_world[2, 3])
     if not rests_on_table(z_offset, settings.height_tolerance):
         raise OffTable(
-            f"'{obj.object_id}' is observed {abs(z_offset) * 1000:.1f} mm {'above' if z_offset > 0 else 'below'} the table "
+            f"'{obj.object_id}' is observed {height_in_mm(z_offset, settings.height_tolerance)} mm "
+            f"{'above' if z_offset > 0 else 'below'} the table "
             f"(pose {pose}'s support point at z = {z_offset:.4g} m, tolerance {settings.height_tolerance * 1000:.1f} mm): "
             "it is not resting on the table z = 0, so no stored push applies; is the world frame's origin on the table?",
             object_id=obj.object_id,

@@ -370,6 +370,8 @@ def test_an_object_lifted_by_exactly_the_height_tolerance_rests_on_the_table(cli
         for beyond in (HEIGHT_TOLERANCE + 1e-6, -HEIGHT_TOLERANCE - 1e-6):
             off = post_plan(client, object_id, observe(tables, object_id, pose, lift=beyond))
             assert off.status_code == 409 and off.json()["reason"] == "off_table", "a micrometre further is off"
+            words = f"is observed 5.0010 mm {'above' if beyond > 0 else 'below'} the table"
+            assert words in off.json()["detail"] and "tolerance 5.0 mm" in off.json()["detail"], "not '5.0 mm', as the tolerance"
     assert set(codes.values()) == {200}, {k: v for k, v in codes.items() if v != 200}
     assert crossed > 0, "some observation rounds past the edge, or this would not test it"
 
@@ -381,3 +383,8 @@ def test_the_edge_of_the_table_is_inside_and_a_nan_height_is_not():
     assert rests_on_table(0.005 + HEIGHT_ROUNDING / 2, 0.005), "a few ulps past the edge"
     assert not rests_on_table(0.005 + 2 * HEIGHT_ROUNDING, 0.005) and not rests_on_table(-0.005 - 2e-9, 0.005)
     assert not rests_on_table(float("nan"), 0.005) and not rests_on_table(float("inf"), 0.005)
+    from schema.api import height_in_mm
+
+    assert height_in_mm(0.25, 0.1) == "250.0" and height_in_mm(-0.0125, 0.005) == "12.5"
+    assert height_in_mm(0.005001, 0.005) == "5.0010" and height_in_mm(-0.00504, 0.005) == "5.0400", "not the tolerance's 5.0"
+    assert height_in_mm(0.0051, 0.005) == "5.1"

@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from schema import horizon, retry
-from schema.api import rests_on_table
+from schema.api import height_in_mm, rests_on_table
 from schema.frames import PoseMatch, match_pose, place_push, transform_points
 from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
@@ -386,7 +386,7 @@ def plan(
             f"(nearest {np.degrees(match.angle_error):.1f} deg away)"
         )
     if not rests_on_table(match.z_offset, height_tolerance):
-        raise NotResting(f"{result.object_id}: observed {match.z_offset * 1000:.1f} mm off the table")
+        raise NotResting(f"{result.object_id}: observed {height_in_mm(match.z_offset, height_tolerance)} mm off the table")
     pose = match.pose
     rotation, origin = match.pose_to_world[:3, :3], match.pose_to_world[:3, 3]
     suction = result.suction[pose]
