@@ -25,19 +25,19 @@ from pipeline.studies.after_failure import (
 )
 
 
-def push(trial, policy, p, toppled, action=0):
-    return {"trial": trial, "policy": policy, "object_id": "box", "p_topple": p, "toppled": toppled, "action": action}
+def push(trial, policy, p, toppled, action=0, pose=0):
+    return {"trial": trial, "policy": policy, "object_id": "box", "pose": pose, "p_topple": p, "toppled": toppled, "action": action}
 
 
 RUN = [
     push(0, "untried_vi", 0.9, False, 7),
     push(0, "value_iteration", 0.9, False, 7),
     push(0, "untried_vi", 0.6, True, 8),   # after a failure: kept
-    push(0, "untried_vi", 0.5, False, 9),  # after a topple: not
+    push(0, "untried_vi", 0.5, False, 9, pose=1),  # after a topple, in a new pose: not
     push(1, "untried_vi", 0.2, True, 3),
     push(1, "value_iteration", 0.9, False, 7),
     push(1, "value_iteration", 0.9, False, 7),  # value iteration's, after its own failure: the same push
-    push(0, "untried_vi", 0.4, True, 2),   # after trial 0's failed third push
+    push(0, "untried_vi", 0.4, True, 2, pose=1),   # after trial 0's failed third push
 ]
 
 
@@ -124,15 +124,16 @@ def test_each_push_after_a_failure_knows_what_failed_in_its_pose():
         push(0, "belief_vi", 0.9, False, 1),
         push(0, "belief_vi", 0.2, False, 2),  # after 0.9 failed
         push(0, "belief_vi", 0.7, True, 3),   # after 0.9 and 0.2 failed: topples to a new pose
-        push(0, "belief_vi", 0.4, False, 4),  # a first try in the new pose
-        push(0, "belief_vi", 0.6, True, 5),   # after 0.4 failed there only
+        push(0, "belief_vi", 0.4, False, 4, pose=1),  # a first try in the new pose
+        push(0, "belief_vi", 0.6, True, 5, pose=1),   # after 0.4 failed there only: back to pose 0
+        push(0, "belief_vi", 0.8, True, 6),   # back where 0.9 and 0.2 failed: the player remembers them
         push(1, "belief_vi", 0.3, False, 6),
         push(1, "greedy", 0.8, False, 6),     # another policy's trial 1: no part of it
         push(1, "belief_vi", 0.5, False, 7),  # after trial 1's 0.3
     ]
     found = failed_before(run, "belief_vi")
-    assert [found.get(id(r)) for r in run] == [None, [0.9], [0.9, 0.2], None, [0.4], None, None, [0.3]]
-    assert after_failed_pushes(run, "belief_vi") == [run[i] for i in (1, 2, 4, 7)]
+    assert [found.get(id(r)) for r in run] == [None, [0.9], [0.9, 0.2], None, [0.4], [0.9, 0.2], None, None, [0.3]]
+    assert after_failed_pushes(run, "belief_vi") == [run[i] for i in (1, 2, 4, 5, 8)]
 
 
 def test_the_candidate_slope_tilts_k_about_a_failed_push_of_one_half():

@@ -50,34 +50,30 @@ FAILED_BANDS = (("P_f < 0.6", -np.inf, 0.6), ("P_f >= 0.6", 0.6, np.inf))
 
 def failed_before(pushes: list[dict], policy: str) -> dict[int, list[float]]:
     """The P(topple) of the pushes that had failed in its pose, for each push of ``policy`` made
-    right after one of its pushes failed in the same trial.
+    in a pose where one of its pushes failed earlier in the same trial.
 
-    pushes : one run's records in play order (``trial``, ``policy``, ``p_topple``, ``toppled``,
-      ``object_id``); a failed push leaves the object in its pose, so the next one starts there,
-      and a topple brings it to a pose where nothing has failed yet.  (The player remembers a
-      pose's failures for the whole trial; with its 3 pushes a trial cannot come back to a pose
-      after a failure there, which a longer ``--max-pushes`` would allow and this would miss.)
+    pushes : one run's records in play order (``trial``, ``policy``, ``pose``, ``p_topple``,
+      ``toppled``, ``object_id``).  A failed push leaves the object in its pose; the player keeps
+      a pose's failures for the whole trial (``robust_policy.play_object``), so a push there after
+      the object toppled away and came back is an after-failure push too (with the default 3
+      pushes a trial cannot come back, so then these are the pushes right after a failure).
     returns : id(record) -> the failed pushes' P in play order, for those records
     """
-    previous: dict[int, dict] = {}
-    failed: dict[int, list[float]] = {}
+    failed: dict[tuple, list[float]] = {}
     found = {}
     for push in pushes:
         if push["policy"] != policy:
             continue
-        trial = push["trial"]
-        before = previous.get(trial)
-        if before is not None and not before["toppled"]:
-            failed[trial] = failed.get(trial, []) + [before["p_topple"]]
-            found[id(push)] = failed[trial]
-        else:
-            failed[trial] = []
-        previous[trial] = push
+        where = (push["trial"], push["pose"])
+        if where in failed:
+            found[id(push)] = list(failed[where])
+        if not push["toppled"]:
+            failed.setdefault(where, []).append(push["p_topple"])
     return found
 
 
 def after_failed_pushes(pushes: list[dict], policy: str) -> list[dict]:
-    """The pushes of ``policy`` made right after one of its pushes failed in the same trial
+    """The pushes of ``policy`` made where one of its pushes had failed in the same trial
     (``failed_before``'s records, in play order)."""
     found = failed_before(pushes, policy)
     return [push for push in pushes if id(push) in found]
