@@ -33,7 +33,8 @@ import numpy as np
 from schema import retry
 
 from ..build.atomic import write_text_atomic
-from .validation import BOOTSTRAP, percentile_interval
+from .scoring import Scores
+from .validation import BOOTSTRAP, bootstrap_difference
 
 POWERS = np.round(np.arange(1.0, 6.0 + 1e-9, 0.05), 2)
 """The k tried by ``fit``: 1 (the table's P) to 6."""
@@ -147,28 +148,26 @@ def brier_differences(p_topple: np.ndarray, toppled: np.ndarray, objects: np.nda
                       slope: float | None = None, failed_p: np.ndarray | None = None,
                       n_resamples: int = BOOTSTRAP, seed: int = 0) -> dict:
     """Brier score differences per push, with 95 % intervals over objects resampled with
-    replacement (the pushes of one object, over all runs, err together): p^k minus the table's
-    P, and with ``slope`` the candidate p^k_f minus p^k.  Negative: the first is better.
+    replacement (``validation.bootstrap_difference``, paired: the pushes of one object, over all
+    runs, err together): p^k minus the table's P, and with ``slope`` the candidate p^k_f minus p^k.
+    Negative: the first is better.
 
     p_topple, toppled, objects : (n,) float, bool, str;  failed_p : (n,) float, with ``slope``
     returns : {name: {"difference", "interval"}}, and the number of objects
     """
     p_topple, toppled = np.asarray(p_topple, float), np.asarray(toppled, float)
-    squared = {"table": (p_topple - toppled) ** 2, "map": (mapped(p_topple, power) - toppled) ** 2}
+    predicted = {"table": p_topple, "map": mapped(p_topple, power)}
     pairs = {f"p^{power:g} minus table P": ("map", "table")}
     if slope is not None:
         if failed_p is None:
             raise ValueError("a slope needs each push's failed P (failed_p)")
-        squared["slope"] = (mapped(p_topple, power, slope, failed_p) - toppled) ** 2
+        predicted["slope"] = mapped(p_topple, power, slope, failed_p)
         pairs[f"p^k_f (slope {slope:g}) minus p^{power:g}"] = ("slope", "map")
-    names, owner = np.unique(np.asarray(objects), return_inverse=True)
-    counts = np.bincount(owner, minlength=len(names)).astype(float)
-    draws = np.random.default_rng(seed).integers(0, len(names), size=(n_resamples, len(names)))
-    result: dict = {"objects": len(names)}
+    scores = {name: Scores(tv=np.zeros(len(p)), p_topple=p, brier=(p - toppled) ** 2) for name, p in predicted.items()}
+    result: dict = {"objects": len(np.unique(objects))}
     for label, (first, second) in pairs.items():
-        per_object = np.bincount(owner, weights=squared[first] - squared[second], minlength=len(names))
-        resampled = per_object[draws].sum(axis=1) / counts[draws].sum(axis=1)
-        result[label] = {"difference": float(per_object.sum() / counts.sum()), "interval": percentile_interval(resampled)}
+        paired = bootstrap_difference(scores[first], scores[second], toppled, objects, n_resamples, seed)["brier"]
+        result[label] = {"difference": paired["difference"], "interval": paired["ci"]}
     return result
 
 
@@ -190,7 +189,7 @@ def breakdown(pushes: list[dict], policy: str, power: float) -> dict:
 
     pushes : one run's records in play order;  returns : per kind, pushes, mean P, rate
     """
-    failed = {id(r) for r in after_failed_pushes(pushes, policy)}
+    failed = failed_before(pushes, policy)
     previous: dict[int, dict] = {}
     kinds: dict[str, list[tuple[float, bool]]] = {"first try": [], "same push again": [], "another push": []}
     for push in pushes:
@@ -214,7 +213,7 @@ def told(pushes: list[dict], policy: str, power: float) -> dict:
     """What a re-planning client is told about every push it makes, against what they did: the
     table's P of first tries, and after a failure P^k when it reports the failure (``policy``
     chooses among untried pushes) or the table's P when it does not (``power`` None)."""
-    failed = {id(r) for r in after_failed_pushes(pushes, policy)}
+    failed = failed_before(pushes, policy)
     said, did = [], []
     for push in pushes:
         if push["policy"] == policy:
@@ -233,10 +232,10 @@ def read_runs(paths: list[str]) -> list[list[dict]]:
 def report(fit_paths: list[str], judge_paths: list[str], gain_paths: list[str], policy: str) -> dict:
     """The whole study: k fitted on ``fit_paths``, scored on ``judge_paths``, each set's pushes
     broken down per policy, what re-planning clients are told, and the runs' V_s gains."""
-    p, toppled, _, _ = read_pushes(fit_paths, policy)
-    power = fit_power(p, toppled)
-    judged_p, judged_toppled, _, _ = read_pushes(judge_paths, policy)
     sets = {"fit": read_runs(fit_paths), "judge": read_runs(judge_paths)}
+    p, toppled, _, _ = after_failure_arrays(sets["fit"], policy)
+    power = fit_power(p, toppled)
+    judged_p, judged_toppled, _, _ = after_failure_arrays(sets["judge"], policy)
     pooled = {name: [push for i, run in enumerate(runs) for push in _tagged(run, i)] for name, runs in sets.items()}
     return {
         "power": power,
@@ -259,10 +258,15 @@ def _tagged(run: list[dict], index: int) -> list[dict]:
 
 
 def read_pushes(paths: list[str], policy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``after_failure_arrays`` of the runs in ``paths``."""
+    return after_failure_arrays(read_runs(paths), policy)
+
+
+def after_failure_arrays(runs: list[list[dict]], policy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """P(topple), outcome, P_f (the largest P that had failed in the pose) and object id of
-    ``policy``'s after-failure pushes over the runs in ``paths``; (n,) each."""
+    ``policy``'s after-failure pushes over ``runs`` (``read_runs``); (n,) each."""
     p, toppled, failed_p, objects = [], [], [], []
-    for records in read_runs(paths):
+    for records in runs:
         found = failed_before(records, policy)
         for push in records:
             if id(push) in found:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..build.atomic import write_text_atomic
+from .after_failure import mapped
 from .validation import BOOTSTRAP, percentile_interval, to_json
 
 BANDS = ((0.0, 0.3), (0.3, 0.6), (0.6, 1.0))
@@ -32,6 +33,7 @@ BANDS = ((0.0, 0.3), (0.3, 0.6), (0.6, 1.0))
 
 LIKELY = 0.6
 """``after_another``'s second table: only the other pushes this likely (those a planner weighs)."""
+
 
 def _groups(*labels) -> list[np.ndarray]:
     """Group labels as non-negative integer arrays (an empty list is an empty int array)."""
@@ -96,7 +98,7 @@ def after_another(p_topple: np.ndarray, observed: np.ndarray, group: np.ndarray,
     """What a push's failure, or its topple, says about the other pushes of its pose.
 
     Over ordered pairs (a, b) of different pushes in one group, with a's P in the band and b's
-    P at least ``others_from``, b's predicted, believed (P^``power``, what docs/MODEL.md (12.11)
+    P at least ``others_from``, b's predicted, believed (P^``power``, ``after_failure.mapped``, what docs/MODEL.md (12.11)
     believes once a push of the pose has failed) and observed topple rates, averaged with
     weight 1 - observed(a) (how often one repeat of a failed) and with weight observed(a) (how
     often it toppled).
@@ -108,7 +110,7 @@ def after_another(p_topple: np.ndarray, observed: np.ndarray, group: np.ndarray,
     p_topple, observed = np.asarray(p_topple, dtype=float), np.asarray(observed, dtype=float)
     (group,) = _groups(group)
     other = p_topple >= others_from
-    believed = np.power(np.clip(p_topple, 0.0, 1.0), power)
+    believed = mapped(p_topple, power)
     out = []
     for low, high in bands:
         in_band = (p_topple >= low) & ((p_topple <= high) if high >= 1.0 else (p_topple < high))
