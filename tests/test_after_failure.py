@@ -266,16 +266,16 @@ def test_the_command_finds_what_made_the_outcomes(tmp_path, capsys):
     sloped_score = out()
     assert sloped_score["bands"]["P_f < 0.6"]["predictors"]["constant 0.400"]["mean"] == pytest.approx(0.4)
     assert sloped_score["differences"]["p^k_f (slope 3) minus p^2"]["difference"] < 0, "the true slope scores better"
-    for wrong, words in ((["score", "--power", "0.99"], "score needs --power K, K >= 1"),
-                         (["fit-slope"], "fit-slope needs --power K, K >= 1"),
-                         (["score", "--power", "2", "--slope", "-0.1"], "--slope must be 0 or more, got -0.1"),
-                         (["fit", "--policy", "greedy"], "no greedy push follows a failed one")):
-        with pytest.raises(SystemExit) as refused:
-            main([*wrong, *paths] if "--policy" in wrong else [*wrong, "--policy", "belief_vi", *paths])
-        assert refused.value.code == 2 and words in capsys.readouterr().err, wrong
-    for wrong, words in ((["score", "--power", "2"], "score needs robust_policy --pushes files"),
-                         (["report", "--fit", paths[0]], "report needs --fit FILE... and --judge FILE...\n"),
-                         (["refit", *paths], "invalid choice: 'refit'")):
+    (tmp_path / "tiny").mkdir()
+    tiny = synthetic_runs(tmp_path / "tiny", 2.0, 3.0, n_trials=2)  # refusals need no 12,000 pushes read
+    belief = ["--policy", "belief_vi", *tiny]
+    for wrong, words in ((["score", "--power", "0.99", *belief], "score needs --power K, K >= 1"),
+                         (["fit-slope", *belief], "fit-slope needs --power K, K >= 1"),
+                         (["score", "--power", "2", "--slope", "-0.1", *belief], "--slope must be 0 or more, got -0.1"),
+                         (["fit", "--policy", "greedy", *tiny], "no greedy push follows a failed one"),
+                         (["score", "--power", "2"], "score needs robust_policy --pushes files"),
+                         (["report", "--fit", tiny[0]], "report needs --fit FILE... and --judge FILE...\n"),
+                         (["refit", *tiny], "invalid choice: 'refit'")):
         with pytest.raises(SystemExit) as refused:
             main(wrong)
         err = capsys.readouterr().err
