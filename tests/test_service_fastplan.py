@@ -9,14 +9,18 @@ ROS poses, unknown objects and malformed bodies alike.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 
 import numpy as np
 from fastapi.testclient import TestClient
 
+from schema.api import PlanRequest, PlanResponse
 from service import create_app, fastplan
-from service.store import Store
+from service.planning import answer_json, plan
+from service.settings import Settings
+from service.store import LiveStore, Store
 from tests.test_service import JSON, dataset, planar_transform, rotation_about, stored_transform, tables  # noqa: F401 (fixtures)
 
 
@@ -37,8 +41,6 @@ def quaternion(rotation: np.ndarray) -> list[float]:
 
 
 def requests(tables) -> list[bytes]:
-    import json
-
     rng = np.random.default_rng(11)
     bodies = []
     for object_id, pose in tables["poses"]:
@@ -97,12 +99,7 @@ def test_fast_path_requests_are_counted_under_the_plan_route(dataset, tables):
 def test_plan_answers_are_the_response_model_exactly(dataset, tables):
     """planning.plan builds plain dicts for speed: they must be PlanResponse, field for field
     and byte for byte as the model would serialise them."""
-    import json
 
-    from schema.api import PlanRequest, PlanResponse
-    from service.planning import answer_json, plan
-    from service.settings import Settings
-    from service.store import Store
 
     store, settings = Store.load(dataset), Settings()
     kinds = set()
@@ -128,7 +125,6 @@ DISCONNECT = {"type": "http.disconnect"}
 class Inner:
     """The app behind FastPlan: records what it is handed, reads the body and then waits for a
     disconnect as a route may, and answers 599 (a stand-in for FastAPI)."""
-
     def __init__(self):
         self.calls = []
 
@@ -139,8 +135,6 @@ class Inner:
 
 def call(middleware, scope: dict, *messages: dict) -> list[dict]:
     """Run one request through ``middleware``; returns what it sent.  ``messages``: what receive yields."""
-    import asyncio
-
     queue = list(messages) + [DISCONNECT]
     sent = []
 
@@ -161,11 +155,6 @@ def http(path="/plan", method="POST") -> dict:
 def test_the_middleware_answers_a_valid_plan_itself_with_the_planned_bytes(dataset, tables):
     """A valid POST /plan never reaches the framework: 200, JSON, its length, the plan's own bytes,
     and the route label the guard's metrics read."""
-    from schema.api import PlanRequest
-    from service.planning import answer_json, plan
-    from service.settings import Settings
-    from service.store import LiveStore
-
     store, settings, inner = Store.load(dataset), Settings(), Inner()
     middleware = fastplan.FastPlan(inner, LiveStore(store), settings)
     object_id, pose = next(iter(tables["poses"]))
@@ -184,9 +173,6 @@ def test_the_middleware_hands_everything_else_on_whole(dataset, tables):
     """Other routes, methods and scope types reach the app untouched, even with a body that would
     plan; a POST /plan body that does not plan, or comes in pieces, reaches it replayed from its
     first message."""
-    from service.settings import Settings
-    from service.store import LiveStore
-
     live = LiveStore(Store.load(dataset))
     object_id, pose = next(iter(tables["poses"]))
     valid = json.dumps({"object_id": object_id, "pose": stored_transform(tables, object_id, pose).tolist()}).encode()

@@ -4,12 +4,21 @@ one-sentence reason a robot operator reads (budget, failures, force), and the fr
 
 from __future__ import annotations
 
+import dataclasses
+import math
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
+from schema.api import PlanRequest
 from schema.vocabulary import NO_OP
-from service.planning import _decision
-from tests.test_service import dataset, planar_transform, stored_transform, tables  # noqa: F401 (fixtures)
+from service.errors import NoStablePose, OffTable, UnknownFrame
+from service.planning import _decision, observed_pose, plan, world_grasp
+from service.settings import Settings
+from service.store import Store
+from tests.test_service import dataset, planar_transform, stored_transform, tables, tilted  # noqa: F401 (fixtures)
+from tests.test_service_contract import observe, pushing_poses
 from tests.test_service_retry import long_shot_pose
 
 GRASP = {"point": [0.0, 0.0, 0.1], "axis": [0.0, 0.0, -1.0]}
@@ -74,11 +83,6 @@ def test_without_a_push_the_reason_is_grasp_or_no_grasp(grasp, v_s, failed, expe
 
 
 def test_a_grasp_is_mapped_through_the_observed_pose_or_is_none_when_either_part_is_unknown():
-    import math
-    from types import SimpleNamespace
-
-    from service.planning import world_grasp
-
     pose_to_world = np.eye(4)
     pose_to_world[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]  # a quarter turn about z
     pose_to_world[:3, 3] = [0.3, -0.2, 0.01]
@@ -91,11 +95,6 @@ def test_a_grasp_is_mapped_through_the_observed_pose_or_is_none_when_either_part
 
 
 def test_a_ros_pose_in_another_frame_is_refused_with_what_to_do():
-    from schema.api import PlanRequest
-    from service.errors import UnknownFrame
-    from service.planning import observed_pose
-    from service.settings import Settings
-
     pose = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
     request = PlanRequest.model_validate({"object_id": "a", "ros_pose": {**pose, "frame_id": "camera_link"}})
     with pytest.raises(UnknownFrame) as error:
@@ -109,15 +108,7 @@ def test_a_ros_pose_in_another_frame_is_refused_with_what_to_do():
 # --- plan() end to end on the test dataset: what it hands the pieces above ----------------------
 
 
-def observe(tables, object_id: str, pose: int, lift: float = 0.0) -> np.ndarray:
-    observed = planar_transform(0.7, 0.3, -0.2) @ stored_transform(tables, object_id, pose)
-    observed[2, 3] += lift
-    return observed
-
-
 def request(tables, object_id: str, pose: int, lift: float = 0.0, **extra):
-    from schema.api import PlanRequest
-
     return PlanRequest(object_id=object_id, pose=observe(tables, object_id, pose, lift).tolist(), **extra)
 
 
@@ -136,10 +127,7 @@ def test_after_a_failure_plan_ranks_by_the_build_s_own_belief(dataset, tables):
     (12.13)): the long shot, whose Q0 counts its retries.  Without that belief but with the map,
     the sure push after an unrelated failure; without the map (k = 1) the long shot the table
     prefers; a build without retries, the long shot alone still worth a try once the sure push failed too."""
-    import dataclasses
 
-    from service.planning import plan
-    from service.settings import Settings
 
     store, object_id, pose, failed, sure, long_shot, q_once = long_shot_store(dataset)
     assert (store.after_failure_power, store.believe_failures, store.retry_failed) == (2.1, True, True)
@@ -167,9 +155,6 @@ def test_after_a_failure_plan_ranks_by_the_build_s_own_belief(dataset, tables):
 
 def test_a_plan_s_reason_is_made_of_its_own_answer(dataset, tables):
     """The sentence names the request's policy, budget and failures and the answer's numbers."""
-    from service.planning import plan
-    from service.settings import Settings
-
     store, object_id, pose, failed, _, long_shot, _ = long_shot_store(dataset)
     answer = plan(store, request(tables, object_id, pose, failed_actions=[failed]), Settings())
     ruled = answer["ruled_out"]
@@ -188,12 +173,8 @@ def test_a_plan_s_reason_is_made_of_its_own_answer(dataset, tables):
 
 
 def test_a_push_needing_exactly_the_finger_s_limit_is_within_it(dataset, tables):
-    from service.planning import plan
-    from service.settings import Settings
-    from service.store import Store
-
     store = Store.load(dataset)
-    object_id, pose = next((o, p) for (o, p), row in sorted(tables["poses"].items()) if row["value_iteration_action"] != NO_OP)
+    object_id, pose, _ = pushing_poses(tables)[0]
     force = plan(store, request(tables, object_id, pose), Settings())["push"]["required_force"]
     answer = plan(store, request(tables, object_id, pose), Settings(finger_force_limit=force))
     assert answer["push"]["finger_force_limit"] == force and answer["push"]["within_force_limit"] is True
@@ -202,11 +183,6 @@ def test_a_push_needing_exactly_the_finger_s_limit_is_within_it(dataset, tables)
 
 @pytest.mark.parametrize("lift, tolerance, words", [(0.25, 0.1, "250.0 mm above"), (-0.0125, 0.005, "12.5 mm below")])
 def test_an_object_off_the_table_is_refused_with_its_height_in_millimetres(dataset, tables, lift, tolerance, words):
-    from service.errors import OffTable
-    from service.planning import plan
-    from service.settings import Settings
-    from service.store import Store
-
     object_id, pose = next(iter(sorted(tables["poses"])))
     with pytest.raises(OffTable) as error:
         plan(Store.load(dataset), request(tables, object_id, pose, lift=lift), Settings(height_tolerance=tolerance))
@@ -219,15 +195,6 @@ def test_an_object_off_the_table_is_refused_with_its_height_in_millimetres(datas
 
 
 def test_an_orientation_that_is_no_stable_pose_is_refused_with_the_nearest_and_what_to_check(dataset, tables):
-    import math
-
-    from schema.api import PlanRequest
-    from service.errors import NoStablePose
-    from service.planning import plan
-    from service.settings import Settings
-    from service.store import Store
-    from tests.test_service import tilted
-
     observed, nearest = tilted(tables, "random_001", 0, math.radians(30))
     with pytest.raises(NoStablePose) as error:
         plan(Store.load(dataset), PlanRequest(object_id="random_001", pose=observed.tolist()), Settings())
