@@ -523,9 +523,8 @@ class PlanResponse(Model):
         "'After a failed push'). A failure says the pose topples less than the table thinks: value iteration's first "
         "tries are honest, the pushes after a failure topple far less than p_topple (p_topple^k ran 0.04 under the topple "
         "rate of value iteration's 943 after-failure pushes on 205 held-out objects, p_topple 0.10 over: docs/VALIDATION.md, "
-        "'A failure weighed by its push'). "
-        "Null without failed_actions, "
-        "without a push, or for a build without the map (k = 1, as the thesis preset, or from before it)"
+        "'A failure weighed by its push'). Null without failed_actions, without a push, or for a build without the map "
+        "(k = 1, as the thesis preset, or from before it)"
     )
     push: WorldPush | None = Field(description="The push in world coordinates; null when no push")
     next_poses: list[NextPose] = Field(description="Where the push leads; empty when no push")
