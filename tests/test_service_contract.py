@@ -28,6 +28,7 @@ from tests.test_service import (  # noqa: F401 (fixtures)
     tilted,
     xyz,
 )
+from tests.test_service_fastplan import call
 
 JSON = {"content-type": "application/json"}
 TOKEN = "s3cret-token-for-tests"
@@ -332,8 +333,6 @@ def test_openapi_examples_come_from_the_served_dataset(client, tables):
 def test_a_client_that_leaves_before_its_body_arrives_is_not_counted_as_a_server_error():
     """The guard sends nothing when the connection drops mid-body (or the request timeout closes
     it); /metrics counts such a request as 499, not as the 500 an alert on server errors watches."""
-    import asyncio
-
     from service.guard import CLIENT_CLOSED, Guard
     from service.metrics import Metrics
 
@@ -344,16 +343,7 @@ def test_a_client_that_leaves_before_its_body_arrives_is_not_counted_as_a_server
     guard = Guard(app, metrics, token=None, max_body_bytes=4096)
     scope = {"type": "http", "method": "POST", "path": "/plan", "headers": [(b"content-type", b"application/json"),
                                                                            (b"content-length", b"50")]}
-    messages = iter([{"type": "http.request", "body": b"{}", "more_body": True}, {"type": "http.disconnect"}])
-    sent = []
-
-    async def receive():
-        return next(messages)
-
-    async def send(message):
-        sent.append(message)
-
-    asyncio.run(guard(scope, receive, send))
+    sent = call(guard, scope, {"type": "http.request", "body": b"{}", "more_body": True})  # then the client leaves
     text = metrics.render().decode()
     assert not sent
     assert f'status="{CLIENT_CLOSED}"' in text and 'status="500"' not in text
