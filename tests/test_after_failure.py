@@ -10,15 +10,20 @@ import pytest
 from pipeline.studies.after_failure import (
     SLOPES,
     after_failed_pushes,
+    after_failure_arrays,
     breakdown,
     brier,
     brier_differences,
     failed_before,
+    fit_landing,
     fit_power,
     fit_slope,
+    landing_arrays,
+    landing_mapped,
+    landing_score,
     main,
     mapped,
-    read_pushes,
+    read_runs,
     score,
     slope_power,
     told,
@@ -175,7 +180,7 @@ def test_the_slope_is_scored_per_band_of_the_failed_push(tmp_path, capsys):
     path = tmp_path / "pushes.jsonl"
     run = [push(0, "belief_vi", 0.9, False, 1), push(0, "belief_vi", 0.2, False, 2), push(0, "belief_vi", 0.7, True, 3)]
     path.write_text("\n".join(json.dumps(r) for r in run) + "\n")
-    read = read_pushes([str(path)], "belief_vi")
+    read = after_failure_arrays(read_runs([str(path)]), "belief_vi")
     np.testing.assert_array_equal(read[0], [0.2, 0.7])
     np.testing.assert_array_equal(read[1], [False, True])
     np.testing.assert_array_equal(read[2], [0.9, 0.9])
@@ -338,7 +343,107 @@ def test_the_likeliest_failure_is_the_one_that_counts(tmp_path):
            push(1, "belief_vi", 0.8, False, 1), push(1, "belief_vi", 0.1, False, 2), push(1, "belief_vi", 0.5, False, 3)]
     path = tmp_path / "pushes.jsonl"
     path.write_text("\n".join(json.dumps(r) for r in run) + "\n")
-    p, toppled, failed_p, _ = read_pushes([str(path)], "belief_vi")
+    p, toppled, failed_p, _ = after_failure_arrays(read_runs([str(path)]), "belief_vi")
     np.testing.assert_array_equal(p, [0.9, 0.4, 0.1, 0.5])
     np.testing.assert_array_equal(toppled, [False, True, False, False])
     np.testing.assert_array_equal(failed_p, [0.2, 0.9, 0.8, 0.8])  # the largest, not the first nor the last
+
+
+def landed(trial, p, toppled, landing, pose=0, object_id="box", policy="belief_vi"):
+    return {"trial": trial, "policy": policy, "object_id": object_id, "pose": pose, "p_topple": p,
+            "toppled": toppled, "action": 0, "landing": landing}
+
+
+def test_a_push_after_a_failure_is_told_apart_by_where_the_failed_pushes_land():
+    run = [
+        landed(0, 0.9, False, 2),
+        landed(0, 0.8, False, 2),        # after a failure that lands in 2: same
+        landed(0, 0.7, False, 3),        # another landing: not the same
+        landed(1, 0.6, False, -1),       # nothing leaves its pose in the model
+        landed(0, 0.5, True, 3),         # after the failure that lands in 3 (trial 0): same
+        landed(1, 0.4, True, -1),        # after a failure that lands nowhere either: never the same
+        landed(1, 0.3, True, -1, pose=1),  # another pose: not after a failure
+        landed(0, 0.2, True, 5, policy="value_iteration"),
+    ]
+    p, toppled, same, objects = landing_arrays([run], "belief_vi")
+    assert p.tolist() == [0.8, 0.7, 0.5, 0.4]
+    assert same.tolist() == [True, False, True, False]
+    assert toppled.tolist() == [False, False, True, True] and objects.tolist() == ["box"] * 4
+    assert failed_before(run, "belief_vi", "landing")[id(run[4])] == [2, 2, 3], "every failed push of the pose, in order"
+    with pytest.raises(ValueError, match="carry no model landing"):
+        landing_arrays([RUN], "untried_vi")
+
+
+def test_the_landing_candidate_takes_one_power_where_a_failed_push_lands_and_another_elsewhere():
+    p, same = np.array([0.5, 0.5, 1.0 + 1e-9, -1e-9]), np.array([True, False, True, False])
+    assert landing_mapped(p, same, 3.0, 1.5).tolist() == pytest.approx([0.125, 0.5**1.5, 1.0, 0.0])
+    assert landing_mapped(p[:2], same[:2], 2.0, 2.0).tolist() == mapped(p[:2], 2.0).tolist(), "one power: the map"
+    rng = np.random.default_rng(4)
+    p = rng.random(40_000)
+    same = rng.random(len(p)) < 0.6
+    toppled = rng.random(len(p)) < np.where(same, p**3.0, p**1.2)
+    k_same, k_other = fit_landing(p, same, toppled)
+    assert k_same == pytest.approx(3.0, abs=0.2) and k_other == pytest.approx(1.2, abs=0.1)
+    for one_group in (np.ones(10, bool), np.zeros(10, bool)):
+        with pytest.raises(ValueError, match="both where a failed push would and elsewhere"):
+            fit_landing(np.full(10, 0.5), one_group, np.zeros(10, bool))
+    scored = landing_score(p, toppled, same, 2.0, (3.0, 1.2), 0.3)
+    groups = scored["groups"]
+    assert groups["landing where a failed push would"]["pushes"] == same.sum()
+    assert groups["landing elsewhere"]["pushes"] == (~same).sum()
+    for name, group in (("landing where a failed push would", same), ("landing elsewhere", ~same)):
+        candidate = groups[name]["predictors"]["by landing, k 3 / 1.2"]
+        assert candidate["brier"] == pytest.approx(np.mean((landing_mapped(p, same, 3.0, 1.2)[group] - toppled[group]) ** 2))
+    everyone = scored["predictors"]
+    assert set(everyone) == {"p^2", "by landing, k 3 / 1.2", "table P", "never topples", "constant 0.300"}
+    assert everyone["by landing, k 3 / 1.2"]["brier"] < everyone["p^2"]["brier"], "what made the outcomes scores better"
+
+
+def test_the_command_fits_and_scores_a_power_per_landing(tmp_path, capsys):
+    rng = np.random.default_rng(5)
+    runs = []
+    for r in range(2):
+        records = []
+        for trial in range(3000):
+            first_landing = int(rng.integers(0, 3))
+            records.append(landed(trial, 0.9, False, first_landing, object_id=f"o{trial % 30}"))
+            p, landing = float(rng.random()), int(rng.integers(0, 3))
+            believed = p**3.0 if landing == first_landing else p**1.2
+            records.append(landed(trial, p, bool(rng.random() < believed), landing, object_id=f"o{trial % 30}"))
+        path = tmp_path / f"run{r}.jsonl"
+        path.write_text("".join(json.dumps(x) + "\n" for x in records))
+        runs.append(str(path))
+
+    def out() -> dict:
+        return json.loads(capsys.readouterr().out)
+
+    assert main(["fit-landing", "--power", "2", "--policy", "belief_vi", *runs]) == 0
+    fitted = out()
+    assert fitted["powers"] == [pytest.approx(3.0, abs=0.35), pytest.approx(1.2, abs=0.15)] and fitted["pushes"] == 6000
+    assert f"constant {fitted['toppled']:.3f}" in fitted["predictors"]
+    judged = tmp_path / "judged.json"
+    assert main(["score", "--power", "2", "--landing-powers", "3", "1.2", "--policy", "belief_vi", *runs,
+                 "--json", str(judged)]) == 0
+    scored = out()
+    assert json.loads(judged.read_text()) == scored and scored["powers"] == [3.0, 1.2]
+    gap = scored["differences"]["by landing (k 3 / 1.2) minus p^2"]
+    assert scored["differences"]["objects"] == 30 and gap["interval"][0] < gap["difference"] < gap["interval"][1] < 0
+    assert gap["difference"] == pytest.approx(scored["predictors"]["by landing, k 3 / 1.2"]["brier"]
+                                              - scored["predictors"]["p^2"]["brier"])
+    assert main(["score", "--power", "1", "--landing-powers", "1", "1", "--policy", "belief_vi", *runs]) == 0, "the edge is allowed"
+    edge = out()
+    assert edge["predictors"]["by landing, k 1 / 1"]["brier"] == edge["predictors"]["table P"]["brier"]
+    old = tmp_path / "old.jsonl"
+    old.write_text("".join(json.dumps(x) + "\n" for x in RUN))
+    for wrong, words in ((["fit-landing", "--power", "2", str(old)], "carry no model landing"),
+                         (["fit-landing", "--power", "2", "--landing-powers", "3", "1", *runs], "--landing-powers is for score\n"),
+                         (["fit", "--landing-powers", "0", "0", *runs], "--landing-powers is for score\n"),
+                         (["score", "--power", "2", "--landing-powers", "3", "0.99", *runs], "--landing-powers must be 1 or more, got 3 0.99\n"),
+                         (["score", "--power", "2", "--slope", "1", "--landing-powers", "3", "1", *runs],
+                          "--landing-powers and --slope are two candidates: score one at a time\n"),
+                         (["fit-landing", "--power", "2", "--slope", "1", *runs], "--slope is for score and fit-slope\n"),
+                         (["fit-landing", *runs], "fit-landing needs --power K")):
+        with pytest.raises(SystemExit) as refused:
+            main(["--policy", "belief_vi", *wrong] if wrong[-1] != str(old) else wrong)
+        err = capsys.readouterr().err
+        assert refused.value.code == 2 and (err == words if words.endswith("\n") else words in err), (wrong, err)

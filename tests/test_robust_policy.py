@@ -1,16 +1,21 @@
 """The robust (neighbourhood-smoothed) push choice on hand-made candidate tables."""
 
+import itertools
+
 import numpy as np
 import pyarrow as pa
 import pytest
 
 from pipeline.studies.robust_policy import (
     PoseCandidates,
+    Push,
     Smoothing,
     aware_choice,
     horizon_actions,
+    landing_summary,
     neighbour_mean,
     next_pose_rows,
+    pose_landings,
     pose_scores,
     robust_actions,
     smoothed_choice,
@@ -339,3 +344,75 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
                     failed[push.pose] = failed.get(push.pose, np.zeros(len(c.q), dtype=bool)) | ruled_out
     assert min(checked.values()) > 0, f"no push after a failure for some policy: {checked}"
 
+
+def test_the_model_lands_a_push_where_its_row_leaves_the_pose_most():
+    nan = np.nan
+    rows = np.array([
+        [0.4, 0.0, 0.45, 0.15],  # pose 0 is the start: 0.6 leaves, 3 : 1 between poses 2 and 3
+        [1.0, 0.0, 0.0, 0.0],    # never leaves
+        [nan, nan, nan, nan],    # not ok
+        [0.0, 0.5, 0.0, 0.5],    # a tie: the first
+    ])
+    v_s = np.array([0.1, 0.2, 0.8, 0.4])
+    landings = pose_landings(rows, 0, v_s)
+    assert landings.pose.tolist() == [2, -1, -1, 1]
+    assert landings.share[0].tolist() == pytest.approx([0.0, 0.0, 0.75, 0.25]) and not landings.share[1:3].any()
+    assert landings.v_s[0] == pytest.approx(0.75 * 0.8 + 0.25 * 0.4) and landings.v_s[3] == pytest.approx(0.3)
+    assert np.isnan(landings.v_s[1:3]).all()
+
+
+def played(toppled, after, landing, p_after, after_v_s=0.5, landing_v_s=0.7, pose=0):
+    return Push(0, "box", "value_iteration", pose, 1, 0.5, 0.5, 5, 1.0, 0.5, toppled, after, after_v_s, landing, landing_v_s,
+                p_after)
+
+
+def test_the_landing_summary_counts_only_topples_into_the_pose_set():
+    pushes = [played(True, 2, 2, 0.75, 0.8, 0.7), played(True, 3, 2, 0.0, 0.2, 0.6),
+              played(True, 0, 0, 0.25, 0.5, 0.5, pose=1),  # into pose 0
+              played(True, 1, -1, 0.0, 0.9, np.nan),  # the model lands it nowhere
+              played(False, 0, 2, np.nan), played(True, -1, 2, np.nan, np.nan)]
+    summary = landing_summary(pushes)
+    assert summary == pytest.approx({"toppled": 4, "no_landing": 1, "likeliest_share": 2 / 4, "unforeseen_share": 2 / 4,
+                                     "expected_v_s": 0.6, "landed_v_s": 0.5})
+    assert landing_summary(pushes[4:]) == {"toppled": 0, "no_landing": 0, "likeliest_share": None, "unforeseen_share": None,
+                                          "expected_v_s": None, "landed_v_s": None}
+
+
+def test_each_push_played_records_where_it_came_to_rest_and_where_the_model_lands_it(dataset):  # noqa: F811 (fixture)
+    from pipeline.studies.policies_physics import object_plans
+    from pipeline.studies.robust_policy import experiment, read_candidates
+    from schema.reader import Dataset
+
+    report, pushes = experiment(dataset, 8, seed=1, workers=1)
+    data = Dataset.open(dataset)
+    objects = sorted({p.object_id for p in pushes})
+    plans = object_plans(data, objects)
+    landings = {}
+    for o in objects:
+        rows = next_pose_rows(data, o, [len(c.q) for c in read_candidates(data, o)])
+        landings[o] = [pose_landings(r, x, plans[o].v_s) for x, r in enumerate(rows)]
+    by_run: dict[tuple, list] = {}
+    for push in pushes:
+        by_run.setdefault((push.object_id, push.trial, push.policy), []).append(push)
+    followed = 0
+    for run in by_run.values():
+        for push, following in itertools.pairwise(run):
+            assert following.pose == push.after, "the next push starts where the last one came to rest"
+            followed += 1
+        for push in run:
+            mine = landings[push.object_id][push.pose]
+            assert push.toppled == (push.after != push.pose)
+            assert push.landing == mine.pose[push.action]
+            assert push.landing_v_s == pytest.approx(mine.v_s[push.action], nan_ok=True)
+            if push.after >= 0:
+                assert push.after_v_s == plans[push.object_id].v_s[push.after]
+            else:
+                assert np.isnan(push.after_v_s)
+            if push.toppled and push.after >= 0:
+                assert push.p_after == mine.share[push.action, push.after]
+            else:
+                assert np.isnan(push.p_after)
+    assert followed > 0 and any(p.toppled and p.after >= 0 for p in pushes), "nothing toppled: the test tests nothing"
+    assert report["outside_trials"] == 0, "every trial is summarised"
+    for policy, row in report["policies"].items():
+        assert row["landings"] == landing_summary([p for p in pushes if p.policy == policy]), policy

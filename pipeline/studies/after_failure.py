@@ -8,12 +8,18 @@ push played, in play order) and scores a k on others, beside the trivial predict
 ``fit-slope`` fits, for a given k, the slope s of a candidate k_f = max(1, k + s (P_f - 1/2))
 (``slope_power``; P_f the largest P of the pushes that failed in the pose), and ``score --slope S``
 scores it beside P^k, also per band of P_f (measured, not served: docs/VALIDATION.md, "A failure
-weighed by its push").  ``score`` gives Brier differences with intervals over resampled objects.
+weighed by its push").  ``fit-landing`` fits a power for each of two groups of the pushes after a
+failure, those the model lands where it lands a failed push of the pose and the rest
+(``landing_mapped``; the records' ``landing``), and ``score --landing-powers KS KO`` scores them
+beside P^k (measured, not served: docs/VALIDATION.md, "Where the failed push lands").  ``score``
+gives Brier differences with intervals over resampled objects.
 
     python -m pipeline.studies.after_failure fit /tmp/rp0.jsonl /tmp/rp1.jsonl          # corpus objects
     python -m pipeline.studies.after_failure score --power K /tmp/hrp0.jsonl /tmp/hrp1.jsonl
     python -m pipeline.studies.after_failure fit-slope --power K --policy belief_vi C*.jsonl --json FIT.json
     python -m pipeline.studies.after_failure score --power K --slope S --policy belief_vi H*.jsonl --json JUDGED.json
+    python -m pipeline.studies.after_failure fit-landing --power K --policy belief_vi C*.jsonl --json FIT.json
+    python -m pipeline.studies.after_failure score --power K --landing-powers KS KO --policy belief_vi H*.jsonl
     python -m pipeline.studies.after_failure report --fit C0.jsonl C1.jsonl --judge H0.jsonl H1.jsonl \
         --gains C0.json C1.json H0.json H1.json --json reports/after_failure.json
 
@@ -49,18 +55,19 @@ FAILED_BANDS = (("P_f < 0.6", -np.inf, 0.6), ("P_f >= 0.6", 0.6, np.inf))
 """Bands of the failed pushes' largest P that ``score`` reports apart: unlikely and likely pushes failed."""
 
 
-def failed_before(pushes: list[dict], policy: str) -> dict[int, list[float]]:
-    """The P(topple) of the pushes that had failed in its pose, for each push of ``policy`` made
-    in a pose where one of its pushes failed earlier in the same trial.
+def failed_before(pushes: list[dict], policy: str, field: str = "p_topple") -> dict[int, list]:
+    """The P(topple) (or another ``field`` of the records, e.g. ``landing``) of the pushes that had
+    failed in its pose, for each push of ``policy`` made in a pose where one of its pushes failed
+    earlier in the same trial.
 
     pushes : one run's records in play order (``trial``, ``policy``, ``pose``, ``p_topple``,
       ``toppled``, ``object_id``).  A failed push leaves the object in its pose; the player keeps
       a pose's failures for the whole trial (``robust_policy.play_object``), so a push there after
       the object toppled away and came back is an after-failure push too (with the default 3
       pushes a trial cannot come back, so then these are the pushes right after a failure).
-    returns : id(record) -> the failed pushes' P in play order, for those records
+    returns : id(record) -> the failed pushes' P (``field``) in play order, for those records
     """
-    failed: dict[tuple, list[float]] = {}
+    failed: dict[tuple, list] = {}
     found = {}
     for push in pushes:
         if push["policy"] != policy:
@@ -69,7 +76,7 @@ def failed_before(pushes: list[dict], policy: str) -> dict[int, list[float]]:
         if where in failed:
             found[id(push)] = list(failed[where])
         if not push["toppled"]:
-            failed.setdefault(where, []).append(push["p_topple"])
+            failed.setdefault(where, []).append(push[field])
     return found
 
 
@@ -112,6 +119,17 @@ def slope_power(power: float, slope: float, failed_p: np.ndarray) -> np.ndarray:
     return np.maximum(1.0, power + slope * (failed - FAILED_P_CENTRE))
 
 
+def landing_mapped(p_topple: np.ndarray, same: np.ndarray, power_same: float, power_other: float) -> np.ndarray:
+    """The candidate belief by where the model lands a push (docs/VALIDATION.md, "Where the failed
+    push lands"; measured, not served): P^``power_same`` for a push the model lands where it lands a
+    push that failed in the pose, P^``power_other`` for any other; P clipped as ``mapped`` clips it.
+
+    p_topple : (n,) float;  same : (n,) bool;  returns : (n,) float
+    """
+    p = retry.clip_probability(p_topple)
+    return np.where(np.asarray(same, dtype=bool), p**power_same, p**power_other)
+
+
 def fit_power(p_topple: np.ndarray, toppled: np.ndarray, powers: np.ndarray = POWERS) -> float:
     """The k of least Brier score (the smallest of equal scores)."""
     scores = [brier(mapped(p_topple, k), toppled) for k in powers]
@@ -126,17 +144,38 @@ def fit_slope(p_topple: np.ndarray, failed_p: np.ndarray, toppled: np.ndarray, p
     return float(slopes[int(np.argmin(scores))])
 
 
+def fit_landing(p_topple: np.ndarray, same: np.ndarray, toppled: np.ndarray) -> tuple[float, float]:
+    """(k_same, k_other) of least Brier score: the two groups' squared errors add, so each power is
+    ``fit_power`` over its own group's pushes.  Raises ``ValueError`` when a group has none.
+    p_topple, same, toppled : (n,) float, bool, bool (``landing_arrays``)"""
+    p_topple, toppled, same = np.asarray(p_topple, float), np.asarray(toppled, float), np.asarray(same, dtype=bool)
+    if same.all() or not same.any():
+        raise ValueError("fitting a power per landing needs pushes landing both where a failed push would and elsewhere")
+    return fit_power(p_topple[same], toppled[same]), fit_power(p_topple[~same], toppled[~same])
+
+
+def landing_score(p_topple: np.ndarray, toppled: np.ndarray, same: np.ndarray, power: float,
+                  powers: tuple[float, float], constant: float | None) -> dict:
+    """``score``'s predictors with the candidate by landing at ``powers`` (k_same, k_other) beside
+    P^k, over all pushes and per group: those the model lands where it lands a failed push of the
+    pose, and the rest.  p_topple, toppled, same : (n,) float, bool, bool (``landing_arrays``)"""
+    p_topple, toppled, same = np.asarray(p_topple, float), np.asarray(toppled, float), np.asarray(same, dtype=bool)
+    predictors = _predictors(p_topple, power, constant,
+                             (f"by landing, k {powers[0]:g} / {powers[1]:g}", landing_mapped(p_topple, same, *powers)))
+    result = _scored(predictors, toppled, np.ones(len(toppled), bool))
+    result["groups"] = {"landing where a failed push would": _scored(predictors, toppled, same),
+                        "landing elsewhere": _scored(predictors, toppled, ~same)}
+    return result
+
+
 def score(p_topple: np.ndarray, toppled: np.ndarray, power: float, constant: float | None,
           slope: float = 0.0, failed_p: np.ndarray | None = None) -> dict:
     """Mean prediction and Brier score of the map, the table's P, never topples and a constant
     rate; with ``failed_p``, the map at ``slope`` too, and every predictor per band of P_f
     (``FAILED_BANDS``)."""
     p_topple, toppled = np.asarray(p_topple, float), np.asarray(toppled, float)
-    predictors = {f"p^{power:g}": mapped(p_topple, power), "table P": p_topple, "never topples": np.zeros(len(p_topple))}
-    if failed_p is not None:
-        predictors[f"p^k_f, k {power:g}, slope {slope:g}"] = mapped(p_topple, power, slope, failed_p)
-    if constant is not None:
-        predictors[f"constant {constant:.3f}"] = np.full(len(p_topple), constant)
+    candidate = None if failed_p is None else (f"p^k_f, k {power:g}, slope {slope:g}", mapped(p_topple, power, slope, failed_p))
+    predictors = _predictors(p_topple, power, constant, candidate)
     result = _scored(predictors, toppled, np.ones(len(toppled), bool))
     if failed_p is not None:
         failed_p = np.asarray(failed_p, float)
@@ -144,12 +183,27 @@ def score(p_topple: np.ndarray, toppled: np.ndarray, power: float, constant: flo
     return result
 
 
+def _predictors(p_topple: np.ndarray, power: float, constant: float | None,
+                candidate: tuple[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """The predictors every score shows: the map P^k, a (name, prediction) candidate beside it, the
+    table's P, never topples, and a constant rate when given; (n,) float each."""
+    predictors = {f"p^{power:g}": mapped(p_topple, power)}
+    if candidate is not None:
+        predictors[candidate[0]] = candidate[1]
+    predictors.update({"table P": p_topple, "never topples": np.zeros(len(p_topple))})
+    if constant is not None:
+        predictors[f"constant {constant:.3f}"] = np.full(len(p_topple), constant)
+    return predictors
+
+
 def brier_differences(p_topple: np.ndarray, toppled: np.ndarray, objects: np.ndarray, power: float,
                       slope: float | None = None, failed_p: np.ndarray | None = None,
-                      n_resamples: int = BOOTSTRAP, seed: int = 0) -> dict:
+                      n_resamples: int = BOOTSTRAP, seed: int = 0,
+                      landing: tuple[np.ndarray, float, float] | None = None) -> dict:
     """Brier score differences per push, with 95 % intervals over objects resampled with
     replacement (``validation.bootstrap_difference``, paired: the pushes of one object, over all
-    runs, err together): p^k minus the table's P, and with ``slope`` the candidate p^k_f minus p^k.
+    runs, err together): p^k minus the table's P, with ``slope`` the candidate p^k_f minus p^k, and
+    with ``landing`` (same, k_same, k_other) the candidate ``landing_mapped`` minus p^k.
     Negative: the first is better.
 
     p_topple, toppled, objects : (n,) float, bool, str;  failed_p : (n,) float, with ``slope``
@@ -163,6 +217,10 @@ def brier_differences(p_topple: np.ndarray, toppled: np.ndarray, objects: np.nda
             raise ValueError("a slope needs each push's failed P (failed_p)")
         predicted["slope"] = mapped(p_topple, power, slope, failed_p)
         pairs[f"p^k_f (slope {slope:g}) minus p^{power:g}"] = ("slope", "map")
+    if landing is not None:
+        same, power_same, power_other = landing
+        predicted["landing"] = landing_mapped(p_topple, same, power_same, power_other)
+        pairs[f"by landing (k {power_same:g} / {power_other:g}) minus p^{power:g}"] = ("landing", "map")
     scores = {name: Scores(tv=np.zeros(len(p)), p_topple=p, brier=(p - toppled) ** 2) for name, p in predicted.items()}
     result: dict = {"objects": len(np.unique(objects))}
     for label, (first, second) in pairs.items():
@@ -257,33 +315,51 @@ def _tagged(run: list[dict], index: int) -> list[dict]:
     return [{**push, "trial": (index, push["trial"])} for push in run]
 
 
-def read_pushes(paths: list[str], policy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``after_failure_arrays`` of the runs in ``paths``."""
-    return after_failure_arrays(read_runs(paths), policy)
+def _after_failure_records(runs: list[list[dict]], policy: str, field: str):
+    """Each after-failure push of ``policy`` over ``runs`` with ``failed_before``'s list of its
+    failed pushes' ``field``, in play order."""
+    for records in runs:
+        found = failed_before(records, policy, field)
+        for push in records:
+            if id(push) in found:
+                yield push, found[id(push)]
 
 
 def after_failure_arrays(runs: list[list[dict]], policy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """P(topple), outcome, P_f (the largest P that had failed in the pose) and object id of
     ``policy``'s after-failure pushes over ``runs`` (``read_runs``); (n,) each."""
-    p, toppled, failed_p, objects = [], [], [], []
-    for records in runs:
-        found = failed_before(records, policy)
-        for push in records:
-            if id(push) in found:
-                p.append(push["p_topple"])
-                toppled.append(push["toppled"])
-                failed_p.append(max(found[id(push)]))
-                objects.append(push["object_id"])
-    return np.array(p, float), np.array(toppled, bool), np.array(failed_p, float), np.array(objects, dtype=str)
+    pushes, failed = _unzipped(_after_failure_records(runs, policy, "p_topple"))
+    return (np.array([p["p_topple"] for p in pushes], float), np.array([p["toppled"] for p in pushes], bool),
+            np.array([max(f) for f in failed], float), np.array([p["object_id"] for p in pushes], dtype=str))
+
+
+def landing_arrays(runs: list[list[dict]], policy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """P(topple), outcome, whether the model lands the push where it lands a push that failed in the
+    pose (both landings known, not -1), and object id of ``policy``'s after-failure pushes over
+    ``runs``; (n,) each.  The records need ``landing`` (``robust_policy`` since stop 39): ``ValueError`` if not."""
+    if any("landing" not in push for records in runs for push in records):
+        raise ValueError("these pushes carry no model landing ('landing'): play them again with robust_policy")
+    pushes, failed = _unzipped(_after_failure_records(runs, policy, "landing"))
+    return (np.array([p["p_topple"] for p in pushes], float), np.array([p["toppled"] for p in pushes], bool),
+            np.array([p["landing"] >= 0 and p["landing"] in f for p, f in zip(pushes, failed)], bool),
+            np.array([p["object_id"] for p in pushes], dtype=str))
+
+
+def _unzipped(pairs) -> tuple[list, list]:
+    """(pushes, their failed lists) from ``_after_failure_records``; two empty lists for none."""
+    pairs = list(pairs)
+    return [push for push, _ in pairs], [failed for _, failed in pairs]
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.after_failure", description=__doc__.split("\n\n")[0])
-    parser.add_argument("mode", choices=["fit", "fit-slope", "score", "report"])
-    parser.add_argument("pushes", nargs="*", help="robust_policy --pushes files (fit, fit-slope, score)")
+    parser.add_argument("mode", choices=["fit", "fit-slope", "fit-landing", "score", "report"])
+    parser.add_argument("pushes", nargs="*", help="robust_policy --pushes files (fit, fit-slope, fit-landing, score)")
     parser.add_argument("--policy", default="untried_vi")
-    parser.add_argument("--power", type=float, help="k to score (score) or to fit the slope for (fit-slope)")
+    parser.add_argument("--power", type=float, help="k to score (score, fit-landing) or to fit the slope for (fit-slope)")
     parser.add_argument("--slope", type=float, help="s to score beside k alone (score): k + s (P_f - 1/2)")
+    parser.add_argument("--landing-powers", type=float, nargs=2, metavar=("K_SAME", "K_OTHER"),
+                        help="score beside k alone: K_SAME where a failed push of the pose lands, K_OTHER elsewhere")
     parser.add_argument("--constant", type=float, help="a constant rate to show beside it (score), e.g. the fit's rate")
     parser.add_argument("--fit", nargs="+", default=[], metavar="FILE", help="report: the pushes k is fitted on")
     parser.add_argument("--judge", nargs="+", default=[], metavar="FILE", help="report: the pushes it is judged on")
@@ -296,7 +372,18 @@ def main(argv: list[str] | None = None) -> int:
         return _emitted(report(args.fit, args.judge, args.gains, args.policy), args.json)
     if not args.pushes:
         parser.exit(2, f"{args.mode} needs robust_policy --pushes files\n")
-    p_topple, toppled, failed_p, objects = read_pushes(args.pushes, args.policy)
+    # The options before any file is read: each refusal names the one it refuses.
+    if args.landing_powers is not None:
+        if args.mode != "score":
+            parser.exit(2, "--landing-powers is for score\n")
+        if args.slope is not None:
+            parser.exit(2, "--landing-powers and --slope are two candidates: score one at a time\n")
+        if min(args.landing_powers) < 1:
+            parser.exit(2, f"--landing-powers must be 1 or more, got {' '.join(f'{k:g}' for k in args.landing_powers)}\n")
+    if args.slope is not None and args.mode not in ("score", "fit-slope"):
+        parser.exit(2, "--slope is for score and fit-slope\n")
+    runs = read_runs(args.pushes)
+    p_topple, toppled, failed_p, objects = after_failure_arrays(runs, args.policy)
     if len(p_topple) == 0:
         parser.exit(2, f"no {args.policy} push follows a failed one in {args.pushes}\n")
     if args.mode == "fit":
@@ -306,6 +393,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.exit(2, f"{args.mode} needs --power K, K >= 1\n")
     if args.slope is not None and args.slope < 0:
         parser.exit(2, f"--slope must be 0 or more, got {args.slope:g}\n")
+    if args.mode == "fit-landing" or args.landing_powers is not None:
+        try:
+            p_topple, toppled, same, objects = landing_arrays(runs, args.policy)
+            powers = tuple(args.landing_powers or fit_landing(p_topple, same, toppled))
+        except ValueError as err:
+            parser.exit(2, f"{err}\n")
+        constant = float(toppled.mean()) if args.mode == "fit-landing" else args.constant
+        result = {"powers": list(powers), **landing_score(p_topple, toppled, same, args.power, powers, constant)}
+        if args.mode == "score":
+            result["differences"] = brier_differences(p_topple, toppled, objects, args.power, landing=(same, *powers))
+        return _emitted(result, args.json)
     if args.mode == "fit-slope":
         slope = fit_slope(p_topple, failed_p, toppled, args.power)
         result = {"power": args.power, "slope": slope,

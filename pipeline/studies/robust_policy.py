@@ -316,12 +316,43 @@ def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int, choosa
     return actions[::-1]  # row k: pushes - k left, the order the pushes are played in
 
 
+@dataclass
+class Landings:
+    """Where the model lands each candidate push of one pose when it topples.
+
+    share : (A, P) float, P(x' | x, u) over the leaving part of the row, 0 at x and on rows
+      where nothing leaves;  pose : (A,) int, the likeliest x' (the first of equal shares), -1
+      where nothing leaves;  v_s : (A,) float, the mean V_s of x' under ``share``, NaN there"""
+
+    share: np.ndarray
+    pose: np.ndarray
+    v_s: np.ndarray
+
+
+def pose_landings(rows: np.ndarray, pose: int, v_s: np.ndarray) -> Landings:
+    """``Landings`` of pose ``pose`` from its next-pose rows.
+
+    rows : (A, P) float, P(x' | x, u), NaN rows unless ok (``next_pose_rows``);  v_s : (P,) float"""
+    leaving = np.nan_to_num(np.asarray(rows, dtype=float), nan=0.0)
+    leaving[:, pose] = 0.0
+    total = leaving.sum(axis=1)
+    leaves = total > 0
+    share = np.divide(leaving, total[:, None], out=np.zeros_like(leaving), where=leaves[:, None])
+    return Landings(share, np.where(leaves, np.argmax(share, axis=1), -1),
+                    np.where(leaves, share @ np.asarray(v_s, dtype=float), np.nan))
+
+
 # ---------------------------------------------------------------- physics
 
 
 @dataclass
 class Push:
-    """One push played: where, what the model said, what happened."""
+    """One push played: where, what the model said, what happened.
+
+    after : the pose it came to rest in (-1: none of the pose set), ``after_v_s`` its V_s (NaN for -1);
+    landing : the model's likeliest landing, ``landing_v_s`` the model's mean V_s of where it lands
+    (``pose_landings``; -1 and NaN where nothing leaves the pose);  p_after :
+    the model's probability of ``after`` given a topple (NaN unless it toppled into the pose set)"""
 
     trial: int
     object_id: str
@@ -334,6 +365,11 @@ class Push:
     mean_force: float
     height: float
     toppled: bool
+    after: int
+    after_v_s: float
+    landing: int
+    landing_v_s: float
+    p_after: float
 
 
 def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], config: Config, seed: int, max_pushes: int,
@@ -384,9 +420,13 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 played = play_push(body, transform, point, direction, config, noises[step])
                 after = settle(pose_set, obj, played.final_transform[:3, :3])
                 top = float(np.nanmax(c.points[:, 2]))
+                landing = extra["landings"][pose]
                 pushes.append(Push(trial, spec.object_id, policy, pose, action, float(c.p_topple[action]),
                                    float(s.smoothed_p[action]), int(s.count[action]), float(c.mean_force[action]),
-                                   float(c.points[action, 2] / top) if top > 0 else float("nan"), bool(after != pose)))
+                                   float(c.points[action, 2] / top) if top > 0 else float("nan"), bool(after != pose),
+                                   int(after), float(plan.v_s[after]) if after >= 0 else float("nan"),
+                                   int(landing.pose[action]), float(landing.v_s[action]),
+                                   float(landing.share[action, after]) if after >= 0 and after != pose else float("nan")))
                 poses.append(after)
                 if after < 0:
                     break
@@ -438,6 +478,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         candidates = read_candidates(dataset, object_id)
         rows = next_pose_rows(dataset, object_id, [len(c.q) for c in candidates])
         scores = [pose_scores(c, smoothing, r) for c, r in zip(candidates, rows)]
+        landings = [pose_landings(r, x, plan.v_s) for x, r in enumerate(rows)]
         # The pushes the dataset's own policies could choose (mdp.min_direction_z), for every rule here.
         choosable = [horizon.choosable_pushes(c.directions[:, 2], config.mdp.min_direction_z) for c in candidates]
         plan.actions[ROBUST_POLICY] = robust_actions(plan.v_s, scores, config.mdp.gamma, smoothing, choosable)
@@ -450,7 +491,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[BELIEF_HORIZON_POLICY], belief_budget_q1 = belief_budget_tables(plan.v_s, rows, config.mdp, max_pushes,
                                                                                      choosable)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
-                                  "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
+                                  "landings": landings, "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
                       config, seed, max_pushes, world))
 
     runs: dict[int, dict[str, list[int]]] = {}
@@ -487,6 +528,24 @@ def trial_gains(tables, starts: np.ndarray, runs: dict, policies: tuple[str, ...
     return kept, gains, useful, int(outside.sum())
 
 
+def landing_summary(pushes: list[Push]) -> dict:
+    """Where a policy's pushes that toppled into the pose set came to rest, against the model: how
+    many, and of those how many the model lands nowhere (its row never leaves the pose, or the push
+    has no row); the share that rested in the model's likeliest landing and in a pose it gives no
+    probability (those included); over the rest, the model's mean V_s of their landings and the V_s
+    they rested at."""
+    landed = [p for p in pushes if p.toppled and p.after >= 0]
+    foreseen = [p for p in landed if p.landing >= 0]
+    return {
+        "toppled": len(landed),
+        "no_landing": len(landed) - len(foreseen),
+        "likeliest_share": mean_se([p.after == p.landing for p in landed])[0],
+        "unforeseen_share": mean_se([p.p_after == 0 for p in landed])[0],
+        "expected_v_s": mean_se([p.landing_v_s for p in foreseen])[0],
+        "landed_v_s": mean_se([p.after_v_s for p in foreseen])[0],
+    }
+
+
 def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dict:
     """Per policy: V_s gain on useful trials, paired gain over max_height (and never push), topple rates."""
     kept, gains, useful, outside = trial_gains(tables, starts, runs, COMPARED)
@@ -506,6 +565,7 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
             "smoothed_topple_rate": mean_se([p.smoothed_p for p in mine])[0],
             "physical_topple_rate": mean_se([p.toppled for p in mine])[0],
             "physical_topple_rate_se": mean_se([p.toppled for p in mine])[1],
+            "landings": landing_summary(mine),
         }
     for policy in CHALLENGERS:
         mean, error = mean_se(gains[policy][useful] - gains["value_iteration"][useful])
@@ -551,6 +611,12 @@ def text(report: dict) -> str:
         r = report["policies"][policy]
         lines.append(f"{policy} - value_iteration on useful trials: {cell(r['gain_over_value_iteration'])} +/- "
                      f"{r['gain_over_value_iteration_se'] or 0:.3f}")
+    lines.append(f"{'toppled into the set':<20} {'pushes':>7} {'at likeliest':>12} {'unforeseen':>10} {'V_s model':>9} {'V_s got':>8}")
+    for policy, r in report["policies"].items():
+        land = r["landings"]
+        lines.append(f"{policy:<20} {land['toppled']:>7} {cell(land['likeliest_share'], False):>12} "
+                     f"{cell(land['unforeseen_share'], False):>10} {cell(land['expected_v_s'], False):>9} "
+                     f"{cell(land['landed_v_s'], False):>8}")
     return "\n".join(lines)
 
 
