@@ -74,6 +74,7 @@ from .robust_policy import (
     horizon_actions,
     next_pose_rows,
     play_object,
+    pose_landings,
     pose_scores,
     read_candidates,
     study_parser,
@@ -274,8 +275,9 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
         plan.actions.update(restricted_budgets(plan.v_s, mine.rows, mine.choosable, mine.starts, landed[object_id], ks,
                                                max_pushes))
         scores = [pose_scores(c, Smoothing()) for c in mine.candidates]  # the pushes' records want them; rows unsmoothed
-        tasks.append((plan, {"candidates": mine.candidates, "scores": scores}, trials[object_id], config, seed, max_pushes,
-                      world, policies))
+        landings = [pose_landings(r, x, plan.v_s) for x, r in enumerate(mine.rows)]  # and these
+        tasks.append((plan, {"candidates": mine.candidates, "scores": scores, "landings": landings}, trials[object_id], config,
+                      seed, max_pushes, world, policies))
     runs: dict[int, dict[str, list[int]]] = {}
     played: list[Push] = []
     for object_id, results, object_pushes in map_unordered(play_object, tasks, workers, description="play", progress=progress):
