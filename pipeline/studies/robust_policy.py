@@ -29,7 +29,8 @@ P(topple)^k, ``aware_choice``), ``belief_vi`` (12.13) and ``belief_horizon_vi`` 
 noise draws as ``toppledb policies-physics`` (common random numbers, so max_height and
 value_iteration reproduce that report's numbers), and reports each policy's V_s gain over
 max_height on useful trials, the 'never push' baseline, and predicted (raw and smoothed)
-against physical topple rates of the chosen pushes, with per-push diagnostics.
+against physical topple rates of the chosen pushes, where their topples came to rest against where
+the model lands them (``landing_summary``), with per-push diagnostics.
 """
 
 from __future__ import annotations
