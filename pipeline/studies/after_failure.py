@@ -359,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--power", type=float, help="k to score (score, fit-landing) or to fit the slope for (fit-slope)")
     parser.add_argument("--slope", type=float, help="s to score beside k alone (score): k + s (P_f - 1/2)")
     parser.add_argument("--landing-powers", type=float, nargs=2, metavar=("K_SAME", "K_OTHER"),
-                        help="score beside k alone: K_SAME where a failed push of the pose lands, K_OTHER elsewhere")
+                        help="score beside k alone: K_SAME where the model lands a failed push of the pose, K_OTHER elsewhere")
     parser.add_argument("--constant", type=float, help="a constant rate to show beside it (score), e.g. the fit's rate")
     parser.add_argument("--fit", nargs="+", default=[], metavar="FILE", help="report: the pushes k is fitted on")
     parser.add_argument("--judge", nargs="+", default=[], metavar="FILE", help="report: the pushes it is judged on")
