@@ -83,8 +83,7 @@ def failed_before(pushes: list[dict], policy: str, field: str = "p_topple") -> d
 def after_failed_pushes(pushes: list[dict], policy: str) -> list[dict]:
     """The pushes of ``policy`` made where one of its pushes had failed in the same trial
     (``failed_before``'s records, in play order)."""
-    found = failed_before(pushes, policy)
-    return [push for push in pushes if id(push) in found]
+    return _after_failure_records([pushes], policy, "p_topple")[0]
 
 
 def brier(predicted: np.ndarray, toppled: np.ndarray) -> float:
@@ -315,22 +314,31 @@ def _tagged(run: list[dict], index: int) -> list[dict]:
     return [{**push, "trial": (index, push["trial"])} for push in run]
 
 
-def _after_failure_records(runs: list[list[dict]], policy: str, field: str):
-    """Each after-failure push of ``policy`` over ``runs`` with ``failed_before``'s list of its
-    failed pushes' ``field``, in play order."""
+def _after_failure_records(runs: list[list[dict]], policy: str, field: str) -> tuple[list[dict], list[list]]:
+    """The after-failure pushes of ``policy`` over ``runs``, in play order, and for each the list of
+    its failed pushes' ``field`` (``failed_before``)."""
+    pushes, failed = [], []
     for records in runs:
         found = failed_before(records, policy, field)
         for push in records:
             if id(push) in found:
-                yield push, found[id(push)]
+                pushes.append(push)
+                failed.append(found[id(push)])
+    return pushes, failed
+
+
+def _arrays(pushes: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """P(topple), outcome and object id of ``pushes``; (n,) each."""
+    return (np.array([p["p_topple"] for p in pushes], float), np.array([p["toppled"] for p in pushes], bool),
+            np.array([p["object_id"] for p in pushes], dtype=str))
 
 
 def after_failure_arrays(runs: list[list[dict]], policy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """P(topple), outcome, P_f (the largest P that had failed in the pose) and object id of
     ``policy``'s after-failure pushes over ``runs`` (``read_runs``); (n,) each."""
-    pushes, failed = _unzipped(_after_failure_records(runs, policy, "p_topple"))
-    return (np.array([p["p_topple"] for p in pushes], float), np.array([p["toppled"] for p in pushes], bool),
-            np.array([max(f) for f in failed], float), np.array([p["object_id"] for p in pushes], dtype=str))
+    pushes, failed = _after_failure_records(runs, policy, "p_topple")
+    p_topple, toppled, objects = _arrays(pushes)
+    return p_topple, toppled, np.array([max(f) for f in failed], float), objects
 
 
 def landing_arrays(runs: list[list[dict]], policy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -339,16 +347,9 @@ def landing_arrays(runs: list[list[dict]], policy: str) -> tuple[np.ndarray, np.
     ``runs``; (n,) each.  The records need ``landing`` (``robust_policy`` since stop 39): ``ValueError`` if not."""
     if any("landing" not in push for records in runs for push in records):
         raise ValueError("these pushes carry no model landing ('landing'): play them again with robust_policy")
-    pushes, failed = _unzipped(_after_failure_records(runs, policy, "landing"))
-    return (np.array([p["p_topple"] for p in pushes], float), np.array([p["toppled"] for p in pushes], bool),
-            np.array([p["landing"] >= 0 and p["landing"] in f for p, f in zip(pushes, failed)], bool),
-            np.array([p["object_id"] for p in pushes], dtype=str))
-
-
-def _unzipped(pairs) -> tuple[list, list]:
-    """(pushes, their failed lists) from ``_after_failure_records``; two empty lists for none."""
-    pairs = list(pairs)
-    return [push for push, _ in pairs], [failed for _, failed in pairs]
+    pushes, failed = _after_failure_records(runs, policy, "landing")
+    p_topple, toppled, objects = _arrays(pushes)
+    return p_topple, toppled, np.array([p["landing"] >= 0 and p["landing"] in f for p, f in zip(pushes, failed)], bool), objects
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -382,8 +383,13 @@ def main(argv: list[str] | None = None) -> int:
             parser.exit(2, f"--landing-powers must be 1 or more, got {' '.join(f'{k:g}' for k in args.landing_powers)}\n")
     if args.slope is not None and args.mode not in ("score", "fit-slope"):
         parser.exit(2, "--slope is for score and fit-slope\n")
-    runs = read_runs(args.pushes)
-    p_topple, toppled, failed_p, objects = after_failure_arrays(runs, args.policy)
+    by_landing = args.mode == "fit-landing" or args.landing_powers is not None
+    arrays = landing_arrays if by_landing else after_failure_arrays
+    try:
+        p_topple, toppled, grouping, objects = arrays(read_runs(args.pushes), args.policy)
+    except ValueError as err:
+        parser.exit(2, f"{err}\n")
+    failed_p, same = (None, grouping) if by_landing else (grouping, None)  # P_f per push, or where it lands
     if len(p_topple) == 0:
         parser.exit(2, f"no {args.policy} push follows a failed one in {args.pushes}\n")
     if args.mode == "fit":
@@ -393,9 +399,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.exit(2, f"{args.mode} needs --power K, K >= 1\n")
     if args.slope is not None and args.slope < 0:
         parser.exit(2, f"--slope must be 0 or more, got {args.slope:g}\n")
-    if args.mode == "fit-landing" or args.landing_powers is not None:
+    if by_landing:
         try:
-            p_topple, toppled, same, objects = landing_arrays(runs, args.policy)
             powers = tuple(args.landing_powers or fit_landing(p_topple, same, toppled))
         except ValueError as err:
             parser.exit(2, f"{err}\n")
