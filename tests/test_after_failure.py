@@ -350,8 +350,7 @@ def test_the_likeliest_failure_is_the_one_that_counts(tmp_path):
 
 
 def landed(trial, p, toppled, landing, pose=0, object_id="box", policy="belief_vi"):
-    return {"trial": trial, "policy": policy, "object_id": object_id, "pose": pose, "p_topple": p,
-            "toppled": toppled, "action": 0, "landing": landing}
+    return {**push(trial, policy, p, toppled, pose=pose), "object_id": object_id, "landing": landing}
 
 
 def test_a_push_after_a_failure_is_told_apart_by_where_the_failed_pushes_land():
@@ -438,7 +437,8 @@ def test_the_command_fits_and_scores_a_power_per_landing(tmp_path, capsys):
     for wrong, words in ((["fit-landing", "--power", "2", str(old)], "carry no model landing"),
                          (["fit-landing", "--power", "2", "--landing-powers", "3", "1", *runs], "--landing-powers is for score\n"),
                          (["fit", "--landing-powers", "0", "0", *runs], "--landing-powers is for score\n"),
-                         (["score", "--power", "2", "--landing-powers", "3", "0.99", *runs], "--landing-powers must be 1 or more, got 3 0.99\n"),
+                         (["score", "--power", "2", "--landing-powers", "3", "0.99", *runs],
+                          "--landing-powers must be 1 or more, got 3 0.99\n"),
                          (["score", "--power", "2", "--slope", "1", "--landing-powers", "3", "1", *runs],
                           "--landing-powers and --slope are two candidates: score one at a time\n"),
                          (["fit-landing", "--power", "2", "--slope", "1", *runs], "--slope is for score and fit-slope\n"),

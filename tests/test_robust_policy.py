@@ -25,6 +25,15 @@ from schema import neighbourhood
 from schema.vocabulary import NO_OP
 from tests.test_policies_physics import dataset  # noqa: F401 (fixture)
 
+
+@pytest.fixture(scope="module")
+def study_run(dataset):  # noqa: F811 (fixture)
+    """The study played once on the tiny dataset (8 trials, seed 1): (report, pushes), read by the tests below."""
+    from pipeline.studies.robust_policy import experiment
+
+    return experiment(dataset, 8, seed=1, workers=1)
+
+
 X = np.array([1.0, 0.0, 0.0])
 Y = np.array([0.0, 1.0, 0.0])
 
@@ -212,13 +221,13 @@ def test_after_a_failure_aware_choice_weighs_each_push_by_its_believed_topple_ch
     assert aware_choice(0, higher, q, p, np.array([True, False, True]), choosable, gamma, 6.0) == NO_OP
 
 
-def test_untried_vi_does_not_push_again_where_a_push_failed_in_the_trial(dataset):  # noqa: F811 (fixture)
+def test_untried_vi_does_not_push_again_where_a_push_failed_in_the_trial(dataset, study_run):  # noqa: F811 (fixture)
     """Played on a tiny dataset: ``untried_vi`` pushes as value iteration until a push leaves the
     object in its pose, then never within that push's neighbourhood (``Exclusion``) from that pose."""
-    from pipeline.studies.robust_policy import UNTRIED_POLICY, Exclusion, experiment, read_candidates
+    from pipeline.studies.robust_policy import UNTRIED_POLICY, Exclusion, read_candidates
     from schema.reader import Dataset
 
-    report, pushes = experiment(dataset, 8, seed=1, workers=1)
+    report, pushes = study_run
     assert not report["failed_objects"] and report["exclusion"] == vars(Exclusion())
     candidates = {o: read_candidates(Dataset.open(dataset), o) for o in {p.object_id for p in pushes}}
     # Every rule chooses among the pushes the dataset's policies may choose (mdp.min_direction_z).
@@ -273,7 +282,7 @@ def test_once_vi_takes_the_surer_push_where_value_iteration_counts_on_retrying_a
     assert once_actions(np.array([0.9, 1.0, 0.5]), [rows[0][:1], rows[1], rows[2]], MDPConfig()).tolist() == [NO_OP] * 3
 
 
-def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # noqa: F811 (fixture)
+def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset, study_run):  # noqa: F811 (fixture)
     """Played on a tiny dataset: in a fresh pose ``aware_vi`` pushes as value iteration,
     ``belief_vi`` as argmax Q0 and ``belief_horizon_vi`` as argmax Q0_h (h pushes left); once a
     push from the pose has failed, each plays its own rule over the pushes no failure ruled out
@@ -288,14 +297,13 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset):  # no
         BELIEF_HORIZON_POLICY,
         BELIEF_POLICY,
         belief_tables,
-        experiment,
         read_candidates,
     )
     from schema import horizon, retry
     from schema.reader import Dataset
     from tests.test_horizon import reference_belief_budget
 
-    report, pushes = experiment(dataset, 8, seed=1, workers=1)
+    report, pushes = study_run
     assert not report["failed_objects"]
     data, config, _, _, _ = open_trials(dataset, 8, 1)
     mdp = data.manifest.parameters.mdp
@@ -378,12 +386,12 @@ def test_the_landing_summary_counts_only_topples_into_the_pose_set():
                                           "expected_v_s": None, "landed_v_s": None}
 
 
-def test_each_push_played_records_where_it_came_to_rest_and_where_the_model_lands_it(dataset):  # noqa: F811 (fixture)
+def test_each_push_played_records_where_it_came_to_rest_and_where_the_model_lands_it(dataset, study_run):  # noqa: F811 (fixture)
     from pipeline.studies.policies_physics import object_plans
-    from pipeline.studies.robust_policy import experiment, read_candidates
+    from pipeline.studies.robust_policy import read_candidates
     from schema.reader import Dataset
 
-    report, pushes = experiment(dataset, 8, seed=1, workers=1)
+    report, pushes = study_run
     data = Dataset.open(dataset)
     objects = sorted({p.object_id for p in pushes})
     plans = object_plans(data, objects)
