@@ -12,6 +12,7 @@ from pipeline.studies.robust_policy import (
     Smoothing,
     aware_choice,
     horizon_actions,
+    landing_prior_rows,
     landing_summary,
     neighbour_mean,
     next_pose_rows,
@@ -424,3 +425,52 @@ def test_each_push_played_records_where_it_came_to_rest_and_where_the_model_land
     assert report["outside_trials"] == 0, "every trial is summarised"
     for policy, row in report["policies"].items():
         assert row["landings"] == landing_summary([p for p in pushes if p.policy == policy]), policy
+
+
+def test_a_landing_from_few_topples_leans_on_the_pose_s_mean_landing():
+    nan = np.nan
+    rows = np.array([
+        [0.9, 0.1, 0.0],   # 10 of 100 trials topple, all into pose 1
+        [0.2, 0.0, 0.8],   # 80 topple, all into pose 2
+        [nan, nan, nan],   # not ok
+        [1.0, 0.0, 0.0],   # never leaves
+        [0.5, 0.5, 0.0],   # not choosable: shrunk, but not part of the mean
+    ])
+    choosable = np.array([True, True, True, True, False])
+    shrunk = landing_prior_rows(rows, 0, 10.0, choosable, 100)
+    # The mean landing of the choosable pushes that leave: (0, 1/2, 1/2); weights 10 / (n + 10).
+    np.testing.assert_allclose(shrunk[0], [0.9, 0.1 * 0.75, 0.1 * 0.25])
+    np.testing.assert_allclose(shrunk[1], [0.2, 0.8 * (10 / 90) * 0.5, 0.8 * (80 / 90 + (10 / 90) * 0.5)])
+    np.testing.assert_allclose(shrunk[4], [0.5, 0.5 * (50 / 60 + (10 / 60) * 0.5), 0.5 * (10 / 60) * 0.5])
+    assert np.isnan(shrunk[2]).all() and shrunk[3].tolist() == [1.0, 0.0, 0.0]
+    np.testing.assert_allclose(np.nansum(shrunk, axis=1), np.nansum(rows, axis=1))
+    assert landing_prior_rows(rows, 0, 0.0, choosable, 100) is rows
+    assert landing_prior_rows(rows, 0, 10.0, np.array([False, False, True, True, False]), 100) is rows
+    # Many topples keep the push's own landing; a prior that outweighs them all gives the pose's mean.
+    np.testing.assert_allclose(landing_prior_rows(rows, 0, 1e-9, choosable, 100), rows, atol=1e-9)
+    np.testing.assert_allclose(landing_prior_rows(rows, 0, 1e12, choosable, 100)[:2], [[0.9, 0.05, 0.05], [0.2, 0.4, 0.4]])
+
+
+def test_a_prior_of_no_trials_plays_exactly_what_each_counterpart_plays(dataset):  # noqa: F811 (fixture)
+    from pipeline.studies.robust_policy import PRIOR_POLICIES, experiment
+
+    report, pushes = experiment(dataset, 8, seed=1, workers=1, landing_prior=0.0)
+    assert report["landing_prior"] == 0.0
+    played_by = {}
+    for push in pushes:
+        played_by.setdefault(push.policy, []).append((push.trial, push.object_id, push.pose, push.action, push.after))
+    for policy, counterpart in PRIOR_POLICIES.items():
+        assert sorted(played_by[policy]) == sorted(played_by[counterpart])
+        assert report["policies"][policy]["counterpart"] == counterpart
+        assert report["policies"][policy]["gain_over_counterpart"] == 0.0
+    assert played_by["prior_vi"], "the tiny dataset's trials push"
+
+
+def test_the_study_plays_no_prior_policy_unless_asked_and_refuses_a_negative_prior(dataset, study_run, capsys):  # noqa: F811
+    from pipeline.studies.robust_policy import PRIOR_POLICIES, main
+
+    report, pushes = study_run
+    assert report["landing_prior"] is None and not set(PRIOR_POLICIES) & set(report["policies"])
+    assert not {p.policy for p in pushes} & set(PRIOR_POLICIES)
+    assert main([str(dataset), "--trials", "2", "--landing-prior", "-1"]) == 2
+    assert "the landing prior is a count of trials, >= 0; got -1.0" in capsys.readouterr().err

@@ -30,7 +30,10 @@ noise draws as ``toppledb policies-physics`` (common random numbers, so max_heig
 value_iteration reproduce that report's numbers), and reports each policy's V_s gain over
 max_height on useful trials, the 'never push' baseline, and predicted (raw and smoothed)
 against physical topple rates of the chosen pushes, where their topples came to rest against where
-the model lands them (``landing_summary``), with per-push diagnostics.
+the model lands them (``landing_summary``), with per-push diagnostics.  With ``--landing-prior ALPHA``
+it also plays value iteration, ``belief_vi`` and ``belief_horizon_vi`` planned over rows whose landings
+are shrunk toward their pose's mean landing by their topple count (``landing_prior_rows``,
+``PRIOR_POLICIES``), each against its counterpart.
 """
 
 from __future__ import annotations
@@ -80,7 +83,15 @@ Q0_h in a fresh pose, Q1_h over the pushes no failure ruled out after one, h the
 CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY,
                BELIEF_POLICY, BELIEF_HORIZON_POLICY)
 """The policies each compared with value iteration, paired."""
-REPORTS_FAILURES = (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY)
+PRIOR_POLICY = "prior_vi"
+PRIOR_BELIEF_POLICY = "prior_belief_vi"
+PRIOR_BELIEF_HORIZON_POLICY = "prior_belief_horizon_vi"
+PRIOR_POLICIES = {PRIOR_POLICY: "value_iteration", PRIOR_BELIEF_POLICY: BELIEF_POLICY,
+                  PRIOR_BELIEF_HORIZON_POLICY: BELIEF_HORIZON_POLICY}
+"""Played only with a landing prior (``--landing-prior``): each the policy it maps to, planned over
+``landing_prior_rows``, and compared with that policy, paired (stop 40; measured, not served)."""
+REPORTS_FAILURES = (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY, PRIOR_BELIEF_POLICY,
+                    PRIOR_BELIEF_HORIZON_POLICY)
 """The policies played as a client that tells /plan its failed pushes: where a push of the trial
 has failed they choose among the candidates no failure ruled out (``after_failure_choice``)."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
@@ -268,12 +279,18 @@ def next_pose_rows(dataset: Dataset, object_id: str, n_actions: list[int]) -> li
     return rows
 
 
+def value_iteration_actions(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig,
+                            choosable: list[np.ndarray] | None = None) -> np.ndarray:
+    """(P,) int: value iteration's push per pose under ``mdp`` (``pipeline.model.mdp.pose_values``)
+    over ``next_pose_rows`` or rows made from them; NO_OP: grasp.  choosable : as ``robust_actions``."""
+    values = pose_values(rows, v_s, [-1] * len(rows), mdp, choosable)
+    return np.array([v.policies["value_iteration"].action for v in values], dtype=np.int64)
+
+
 def once_actions(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray] | None = None) -> np.ndarray:
     """(P,) int: value iteration's push per pose without retries (``mdp`` with
-    ``retry_failed = False``, ``pipeline.model.mdp.pose_values``) over ``next_pose_rows``;
-    NO_OP: grasp.  choosable : as ``robust_actions``."""
-    values = pose_values(rows, v_s, [-1] * len(rows), replace(mdp, retry_failed=False, believe_failures=False), choosable)
-    return np.array([v.policies["value_iteration"].action for v in values], dtype=np.int64)
+    ``retry_failed = False``, docs/MODEL.md (12.9)); NO_OP: grasp."""
+    return value_iteration_actions(v_s, rows, replace(mdp, retry_failed=False, believe_failures=False), choosable)
 
 
 def belief_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig,
@@ -330,17 +347,51 @@ class Landings:
     v_s: np.ndarray
 
 
+def leaving_shares(rows: np.ndarray, pose: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each push's landing and how likely it leaves: (A, P) float, P(x' | x, u) over the leaving
+    part of the row (0 at x and on rows where nothing leaves), and (A,) float, the leaving mass
+    (P(topple); 0 on rows that are not ok).
+
+    rows : (A, P) float, P(x' | x, u), NaN rows unless ok (``next_pose_rows``)"""
+    leaving = np.nan_to_num(np.asarray(rows, dtype=float), nan=0.0)
+    leaving[:, pose] = 0.0
+    total = leaving.sum(axis=1)
+    return np.divide(leaving, total[:, None], out=np.zeros_like(leaving), where=total[:, None] > 0), total
+
+
 def pose_landings(rows: np.ndarray, pose: int, v_s: np.ndarray) -> Landings:
     """``Landings`` of pose ``pose`` from its next-pose rows.
 
     rows : (A, P) float, P(x' | x, u), NaN rows unless ok (``next_pose_rows``);  v_s : (P,) float"""
-    leaving = np.nan_to_num(np.asarray(rows, dtype=float), nan=0.0)
-    leaving[:, pose] = 0.0
-    total = leaving.sum(axis=1)
+    share, total = leaving_shares(rows, pose)
     leaves = total > 0
-    share = np.divide(leaving, total[:, None], out=np.zeros_like(leaving), where=leaves[:, None])
     return Landings(share, np.where(leaves, np.argmax(share, axis=1), -1),
                     np.where(leaves, share @ np.asarray(v_s, dtype=float), np.nan))
+
+
+def landing_prior_rows(rows: np.ndarray, pose: int, alpha: float, choosable: np.ndarray, trials: int) -> np.ndarray:
+    """``rows`` with each push's landing shrunk toward its pose's mean landing by its topple count.
+
+    A push's landing is estimated from the trials that toppled, n = ``trials`` x its leaving mass,
+    and the planners prefer the pushes whose landing reads best, so a landing from a few topples is
+    chosen for its noise as much as for its mechanics (the landing's winner's curse,
+    docs/VALIDATION.md stop 39).  share' = (n share + alpha m) / (n + alpha), m the mean landing of
+    the pose's choosable pushes that leave; each row keeps its leaving mass and its stay.  A measured
+    challenger (docs/VALIDATION.md, "A landing trusted as far as its topples"), not served.
+
+    rows : (A, P) float, NaN rows unless ok;  alpha : pseudo-count of the pose's mean landing, >= 0;
+    choosable : (A,) bool;  trials : the model's trials per push
+    returns : (A, P) float; ``rows`` itself when alpha is 0 or no choosable push leaves"""
+    share, total = leaving_shares(rows, pose)
+    leaves = total > 0
+    if alpha == 0 or not (leaves & choosable).any():
+        return rows
+    mean = share[leaves & choosable].mean(axis=0)
+    weight = alpha / (trials * total[leaves] + alpha)
+    shrunk = np.array(rows, dtype=float)
+    shrunk[leaves] = total[leaves, None] * ((1 - weight)[:, None] * share[leaves] + weight[:, None] * mean)
+    shrunk[leaves, pose] = np.asarray(rows, dtype=float)[leaves, pose]
+    return shrunk
 
 
 # ---------------------------------------------------------------- physics
@@ -453,24 +504,28 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
     if policy == AWARE_POLICY:
         return aware_choice(pose, plan.v_s, candidates.q, candidates.p_topple, ruled_out, choosable, gamma,
                             config.mdp.after_failure_power, config.mdp.retry_failed, believes=config.mdp.believe_failures)
-    if policy == BELIEF_POLICY:
-        return retry.best_untried(extra["belief_q1"][pose], choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
-    return retry.best_untried(extra["belief_budget_q1"][step][pose], choosable & ~ruled_out, stay, horizon.IMPROVEMENT)
+    if policy in extra["belief_q1"]:
+        return retry.best_untried(extra["belief_q1"][policy][pose], choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
+    return retry.best_untried(extra["belief_budget_q1"][policy][step][pose], choosable & ~ruled_out, stay, horizon.IMPROVEMENT)
 
 
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
                workers: int | None = 1, world: Config | None = None, progress: bool = False,
-               exclusion: Exclusion = Exclusion()) -> tuple[dict, list[Push]]:
+               exclusion: Exclusion = Exclusion(), landing_prior: float | None = None) -> tuple[dict, list[Push]]:
     """Play the ``COMPARED`` policies; the report (JSON-ready) and every push played.
 
     world : the simulated world's noise; default the dataset's own.  The CLI passes the thesis
       preset (``policies_physics.world_config("thesis")``), as ``toppledb policies-physics`` and
       ``make logs`` do: pass it too, or the numbers are not the CLI's (a call without it played
       value iteration at +0.127 over Max-Height where the CLI's seed 0 gives +0.115)
-    exclusion : what a failed push rules out for ``untried_vi``"""
+    exclusion : what a failed push rules out for ``untried_vi``
+    landing_prior : alpha of ``landing_prior_rows``; given, the ``PRIOR_POLICIES`` are played too"""
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
+    if landing_prior is not None and not landing_prior >= 0:
+        raise ValueError(f"the landing prior is a count of trials, >= 0; got {landing_prior}")
+    policies = COMPARED + (tuple(PRIOR_POLICIES) if landing_prior is not None else ())
     dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
     plans: dict[str, ObjectPlan] = object_plans(dataset, sorted(by_object))
     tasks = []
@@ -488,12 +543,20 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[UNTRIED_POLICY] = plan.actions["value_iteration"]  # until a push fails
         plan.actions[AWARE_POLICY] = plan.actions["value_iteration"]
         plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
-        plan.actions[BELIEF_POLICY], belief_q1 = belief_tables(plan.v_s, rows, config.mdp, choosable)
-        plan.actions[BELIEF_HORIZON_POLICY], belief_budget_q1 = belief_budget_tables(plan.v_s, rows, config.mdp, max_pushes,
-                                                                                     choosable)
+        belief_q1, belief_budget_q1 = {}, {}
+        plan.actions[BELIEF_POLICY], belief_q1[BELIEF_POLICY] = belief_tables(plan.v_s, rows, config.mdp, choosable)
+        plan.actions[BELIEF_HORIZON_POLICY], belief_budget_q1[BELIEF_HORIZON_POLICY] = belief_budget_tables(
+            plan.v_s, rows, config.mdp, max_pushes, choosable)
+        if landing_prior is not None:
+            prior = [landing_prior_rows(r, x, landing_prior, choosable[x], config.topple.trials) for x, r in enumerate(rows)]
+            plan.actions[PRIOR_POLICY] = value_iteration_actions(plan.v_s, prior, config.mdp, choosable)
+            plan.actions[PRIOR_BELIEF_POLICY], belief_q1[PRIOR_BELIEF_POLICY] = belief_tables(plan.v_s, prior, config.mdp,
+                                                                                              choosable)
+            plan.actions[PRIOR_BELIEF_HORIZON_POLICY], belief_budget_q1[PRIOR_BELIEF_HORIZON_POLICY] = belief_budget_tables(
+                plan.v_s, prior, config.mdp, max_pushes, choosable)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
                                   "landings": landings, "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
-                      config, seed, max_pushes, world))
+                      config, seed, max_pushes, world, policies))
 
     runs: dict[int, dict[str, list[int]]] = {}
     pushes: list[Push] = []
@@ -504,8 +567,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
             continue
         runs.update(results)
         pushes.extend(object_pushes)
-    report = summarise(tables, starts, runs, pushes)
-    report.update({"dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
+    report = summarise(tables, starts, runs, pushes, policies)
+    report.update({"landing_prior": landing_prior, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
                    "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
     return report, pushes
@@ -547,9 +610,10 @@ def landing_summary(pushes: list[Push]) -> dict:
     }
 
 
-def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dict:
-    """Per policy: V_s gain on useful trials, paired gain over max_height (and never push), topple rates."""
-    kept, gains, useful, outside = trial_gains(tables, starts, runs, COMPARED)
+def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push], policies: tuple[str, ...] = COMPARED) -> dict:
+    """Per policy: V_s gain on useful trials, paired gain over max_height (and never push), topple rates;
+    the ``CHALLENGERS`` against value iteration and the ``PRIOR_POLICIES`` played against theirs, paired."""
+    kept, gains, useful, outside = trial_gains(tables, starts, runs, policies)
     gains["never_push"] = np.zeros(len(kept))
     report = {"played_trials": len(runs), "outside_trials": outside, "useful_trials": int(useful.sum()), "policies": {}}
     kept_trials = set(kept.tolist())
@@ -574,6 +638,11 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push]) -> dic
     # The budget believing failures against the budget that does not (the same pushes left).
     mean, error = mean_se(gains[BELIEF_HORIZON_POLICY][useful] - gains[HORIZON_POLICY][useful])
     report["policies"][BELIEF_HORIZON_POLICY].update({"gain_over_horizon_vi": mean, "gain_over_horizon_vi_se": error})
+    for policy, counterpart in PRIOR_POLICIES.items():
+        if policy in gains:
+            mean, error = mean_se(gains[policy][useful] - gains[counterpart][useful])
+            report["policies"][policy].update({"counterpart": counterpart, "gain_over_counterpart": mean,
+                                               "gain_over_counterpart_se": error})
     return report
 
 
@@ -612,6 +681,11 @@ def text(report: dict) -> str:
         r = report["policies"][policy]
         lines.append(f"{policy} - value_iteration on useful trials: {cell(r['gain_over_value_iteration'])} +/- "
                      f"{r['gain_over_value_iteration_se'] or 0:.3f}")
+    for policy in PRIOR_POLICIES:
+        if policy in report["policies"]:
+            r = report["policies"][policy]
+            lines.append(f"{policy} - {r['counterpart']} on useful trials: {cell(r['gain_over_counterpart'])} +/- "
+                         f"{r['gain_over_counterpart_se'] or 0:.3f}")
     lines.append(f"{'toppled into the set':<20} {'pushes':>7} {'at likeliest':>12} {'unforeseen':>10} {'V_s model':>9} {'V_s got':>8}")
     for policy, r in report["policies"].items():
         land = r["landings"]
@@ -632,12 +706,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="m, what a failed push rules out for untried_vi (default: %(default)s)")
     parser.add_argument("--exclude-angle", type=float, default=Exclusion.max_angle, help="rad (default: %(default)s)")
     parser.add_argument("--pushes", type=Path, help="write every push played (diagnostics) here, JSON lines")
+    parser.add_argument("--landing-prior", type=float, metavar="ALPHA",
+                        help="also play value iteration, belief_vi and belief_horizon_vi over rows whose landings are "
+                             "shrunk toward the pose's mean landing with this pseudo-count (landing_prior_rows)")
     args = parser.parse_args(argv)
     try:
         smoothing = Smoothing(args.radius, args.max_angle, args.min_neighbours)
         report, pushes = experiment(args.dataset, args.trials, smoothing, max_pushes=args.max_pushes, seed=args.seed,
                                     workers=args.workers, world=world_config(args.world),
-                                    exclusion=Exclusion(args.exclude_radius, args.exclude_angle))
+                                    exclusion=Exclusion(args.exclude_radius, args.exclude_angle),
+                                    landing_prior=args.landing_prior)
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
