@@ -15,9 +15,8 @@ Errors are exceptions carrying the service's ``detail``: ``NotFound`` (404),
 pose with NaN or infinite entries, refused before sending), ``Unreachable`` (no answer
 after every retry), and ``ServiceError`` (their base) for anything else.  Every request is read-only, hence safe to repeat:
 connection errors, timeouts and 503s are retried ``retries`` times with exponential
-backoff; a 4xx never is.  Needs httpx (``pip install toppledb[service]`` brings it with
-the dev extra; the client imports nothing of the server).
-"""
+backoff; a 4xx never is.  Needs httpx: ``pip install "toppledb[client]"`` brings it and
+nothing of the server, which the client does not import."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""Packaging: the console command, the wheel, and an install with only the service extra.
+"""Packaging: the console command, the distributions each extra declares against what its
+modules import (the server's and the client's), the wheel, and an install with only the service extra.
 
 The slow tests build the wheel once from a copy of the source tree (what ``pip install .``
 builds; the copy keeps build/ and *.egg-info out of the working tree), check what it ships,
@@ -84,6 +85,64 @@ def test_toppledb_bench_help_is_the_bench_parser():
     description = " ".join(bench.__doc__.split("\n\n")[0].split())
     assert description in " ".join(out.split()), "toppledb bench --help is not the bench module's own help"
     assert "{dataset" not in out, "the top-level parser answered instead of the bench module"
+
+
+# --- what each extra declares against what its modules import ------------------------
+
+SERVICE_TOOLS = {"bench.py"}
+"""service/ modules run on the full install only: the load generator of ``make bench-service``
+(psutil, and a dataset it builds with the pipeline when there is none)."""
+COMES_WITH = {"starlette": "fastapi"}
+"""Imported directly, installed by the declared distribution it is built into."""
+
+
+def third_party_imports(path: Path) -> set[str]:
+    """Top-level names of the absolute imports in ``path`` outside the standard library and this project."""
+    import ast
+
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {alias.name.split(".")[0] for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0:
+            names.add(node.module.split(".")[0])
+    return {n for n in names if n not in sys.stdlib_module_names and n not in PACKAGES}
+
+
+def declared(*extras: str) -> set[str]:
+    """Normalised distribution names of pyproject's dependencies and the given extras."""
+    import re
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    requirements = project["dependencies"] + [r for e in extras for r in project["optional-dependencies"][e]]
+    return {re.split(r"[<>=!~;\[ ]", r, maxsplit=1)[0].lower().replace("_", "-") for r in requirements}
+
+
+def distribution(name: str) -> str:
+    from importlib.metadata import packages_distributions
+
+    (found, *_) = packages_distributions()[COMES_WITH.get(name, name)]
+    return found.lower().replace("_", "-")
+
+
+@pytest.mark.parametrize(("modules", "extras"), [("server", ("service",)), ("client", ("client",))])
+def test_each_install_declares_every_distribution_its_modules_import(modules, extras):
+    client = ROOT / "service" / "client.py"
+    paths = [client] if modules == "client" else [
+        p for p in (ROOT / "service").rglob("*.py") if p != client and p.name not in SERVICE_TOOLS]
+    missing = {f"{p.relative_to(ROOT)}: {name}" for p in paths for name in third_party_imports(p)
+               if distribution(name) not in declared(*extras)}
+    assert not missing, f"imported but not in pyproject's dependencies or {extras}: {sorted(missing)}"
+
+
+def test_the_client_imports_nothing_of_the_server():
+    import ast
+
+    tree = ast.parse((ROOT / "service" / "client.py").read_text())
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.module}
+    imported |= {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
+    assert not {m for m in imported if m.split(".")[0] in ("service", "pipeline", "fastapi", "uvicorn")}, imported
 
 
 # --- the wheel ---------------------------------------------------------------------
