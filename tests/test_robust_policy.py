@@ -16,6 +16,7 @@ from pipeline.studies.robust_policy import (
     landing_summary,
     neighbour_mean,
     next_pose_rows,
+    once_actions,
     pose_landings,
     pose_scores,
     robust_actions,
@@ -472,5 +473,86 @@ def test_the_study_plays_no_prior_policy_unless_asked_and_refuses_a_negative_pri
     report, pushes = study_run
     assert report["landing_prior"] is None and not set(PRIOR_POLICIES) & set(report["policies"])
     assert not {p.policy for p in pushes} & set(PRIOR_POLICIES)
-    assert main([str(dataset), "--trials", "2", "--landing-prior", "-1"]) == 2
-    assert "the landing prior is a count of trials, >= 0; got -1.0" in capsys.readouterr().err
+    for bad in ("-1", "inf"):
+        assert main([str(dataset), "--trials", "2", "--landing-prior", bad]) == 2
+        assert f"the landing prior is a count of trials, finite and >= 0; got {float(bad)}" in capsys.readouterr().err
+
+
+def shaky_landing_pose():
+    """V_s per pose and rows: from pose 0 a long shot (P 0.05, all into the best pose 2), a likely push
+    (P 0.9, half into the worthless pose 1, half into pose 3) and a poor one; poses 1-3 never leave."""
+    v_s = np.array([0.2, 0.0, 1.0, 0.6])
+    rows = [np.array([[0.95, 0.0, 0.05, 0.0], [0.1, 0.45, 0.0, 0.45], [0.7, 0.3, 0.0, 0.0]]),
+            *(np.eye(4)[x][None, :] for x in (1, 2, 3))]
+    return v_s, rows, [np.ones(len(r), dtype=bool) for r in rows]
+
+
+def test_the_prior_turns_the_planners_from_a_long_shot_whose_landing_rests_on_five_topples():
+    from pipeline.model.config import MDPConfig
+    from pipeline.studies.robust_policy import PRIOR_POLICIES, belief_budget_tables, belief_tables, prior_plan, value_iteration_actions
+
+    v_s, rows, choosable = shaky_landing_pose()
+    mdp = MDPConfig()
+    actions, q1, budget_q1 = prior_plan(v_s, rows, mdp, choosable, 10.0, 100, 3)
+    assert set(actions) == set(PRIOR_POLICIES) and set(q1) == {"prior_belief_vi"} and set(budget_q1) == {"prior_belief_horizon_vi"}
+    # On the model's rows the planners take the long shot; its landing shrunk, the likely push.
+    assert value_iteration_actions(v_s, rows, mdp, choosable)[0] == belief_tables(v_s, rows, mdp, choosable)[0][0] == 0
+    assert actions["prior_vi"].tolist() == actions["prior_belief_vi"].tolist() == [1, NO_OP, NO_OP, NO_OP]
+    assert belief_budget_tables(v_s, rows, mdp, 3, choosable)[0][:, 0].tolist() == [0, 0, 1]
+    assert actions["prior_belief_horizon_vi"][:, 0].tolist() == [0, 1, 1]  # with 3, 2 and 1 pushes left
+    prior = [landing_prior_rows(r, x, 10.0, choosable[x], 100) for x, r in enumerate(rows)]
+    np.testing.assert_allclose(q1["prior_belief_vi"][0], belief_tables(v_s, prior, mdp, choosable)[1][0])
+    # The thesis's equation counts on retrying the long shot, prior or not (no-retry planning would not).
+    thesis = MDPConfig(believe_failures=False)
+    assert prior_plan(v_s, rows, thesis, choosable, 10.0, 100, 3)[0]["prior_vi"][0] == 0
+    assert once_actions(v_s, prior, thesis, choosable)[0] == 1
+
+
+def test_after_a_failure_each_believing_policy_ranks_by_its_own_q1():
+    from types import SimpleNamespace
+
+    from pipeline.model.config import Config
+    from pipeline.studies.robust_policy import after_failure_choice
+
+    q_first, q_second = np.array([0.9, 0.5, 0.1]), np.array([0.1, 0.5, 0.9])
+    extra = {"choosable": [np.ones(3, dtype=bool)], "candidates": [None],
+             "belief_q1": {"belief_vi": [q_first], "prior_belief_vi": [q_second]},
+             "belief_budget_q1": {"belief_horizon_vi": [[q_second], [q_first]],
+                                  "prior_belief_horizon_vi": [[q_first], [q_second]]}}
+    plan, config, ruled_out = SimpleNamespace(v_s=np.array([0.05])), Config(), np.zeros(3, dtype=bool)
+
+    def choice(policy, step=0, out=ruled_out):
+        return after_failure_choice(policy, 0, step, out, plan, extra, config)
+
+    assert (choice("belief_vi"), choice("prior_belief_vi")) == (0, 2)
+    assert (choice("belief_horizon_vi"), choice("belief_horizon_vi", 1)) == (2, 0)
+    assert (choice("prior_belief_horizon_vi"), choice("prior_belief_horizon_vi", 1)) == (0, 2)
+    assert choice("prior_belief_vi", out=np.array([False, False, True])) == 1
+    with pytest.raises(ValueError, match="value_iteration has no rule after a failure"):
+        choice("value_iteration")
+
+
+def test_each_prior_policy_is_paired_with_its_own_counterpart(dataset):  # noqa: F811 (fixture)
+    from pipeline.studies.policies_physics import open_trials
+    from pipeline.studies.policy_experiment import useful_starts
+    from pipeline.studies.robust_policy import COMPARED, PRIOR_POLICIES, summarise
+
+    _, _, tables, starts, _ = open_trials(dataset, 8, 1)
+    first = tables.first_pose[np.searchsorted(tables.first_pose, starts, side="right") - 1]
+    last = np.append(tables.first_pose[1:], len(tables.v_s))[np.searchsorted(tables.first_pose, starts, side="right") - 1] - 1
+    best = np.array([f + np.argmax(tables.v_s[f:l + 1]) for f, l in zip(first, last)])
+    useful = useful_starts(tables, starts)
+    assert useful.any()
+    # Every policy stays put except belief_vi and prior_vi, which reach the object's best pose.
+    runs = {t: {p: [int(starts[t] - first[t])] for p in COMPARED + tuple(PRIOR_POLICIES)} for t in range(len(starts))}
+    for t in range(len(starts)):
+        runs[t]["belief_vi"] = runs[t]["prior_vi"] = [int(starts[t] - first[t]), int(best[t] - first[t])]
+    report = summarise(tables, starts, runs, [], COMPARED + tuple(PRIOR_POLICIES))
+    rise = float(np.mean(tables.v_s[best[useful]] - tables.v_s[starts[useful]]))
+    assert rise > 0
+    policies = report["policies"]
+    assert policies["prior_vi"]["gain_over_counterpart"] == pytest.approx(rise)
+    assert policies["prior_belief_vi"]["gain_over_counterpart"] == pytest.approx(-rise)
+    assert policies["prior_belief_horizon_vi"]["gain_over_counterpart"] == 0.0
+    assert [policies[p]["counterpart"] for p in PRIOR_POLICIES] == list(PRIOR_POLICIES.values())
+    assert "counterpart" not in policies["belief_vi"]

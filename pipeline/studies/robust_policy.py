@@ -95,7 +95,8 @@ REPORTS_FAILURES = (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_
 """The policies played as a client that tells /plan its failed pushes: where a push of the trial
 has failed they choose among the candidates no failure ruled out (``after_failure_choice``)."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
-"""Policies the study plays (common random numbers: adding one changes no other's pushes)."""
+"""Policies the study plays (common random numbers: adding one changes no other's pushes, though a
+trial that any played policy leaves the pose set in is dropped for all, ``trial_gains``)."""
 
 
 @dataclass(frozen=True)
@@ -394,6 +395,20 @@ def landing_prior_rows(rows: np.ndarray, pose: int, alpha: float, choosable: np.
     return shrunk
 
 
+def prior_plan(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray], alpha: float,
+               trials: int, max_pushes: int) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
+    """The ``PRIOR_POLICIES``' tables over ``landing_prior_rows`` of every pose: their actions (as
+    ``value_iteration_actions``, ``belief_tables`` and ``belief_budget_tables``), and the Q1 tables
+    the two that report failures rank by after one, keyed by policy.
+
+    rows : per pose (A_x, P) float (``next_pose_rows``);  choosable : per pose (A_x,) bool"""
+    prior = [landing_prior_rows(r, x, alpha, choosable[x], trials) for x, r in enumerate(rows)]
+    actions = {PRIOR_POLICY: value_iteration_actions(v_s, prior, mdp, choosable)}
+    actions[PRIOR_BELIEF_POLICY], q1 = belief_tables(v_s, prior, mdp, choosable)
+    actions[PRIOR_BELIEF_HORIZON_POLICY], budget_q1 = belief_budget_tables(v_s, prior, mdp, max_pushes, choosable)
+    return actions, {PRIOR_BELIEF_POLICY: q1}, {PRIOR_BELIEF_HORIZON_POLICY: budget_q1}
+
+
 # ---------------------------------------------------------------- physics
 
 
@@ -504,27 +519,34 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
     if policy == AWARE_POLICY:
         return aware_choice(pose, plan.v_s, candidates.q, candidates.p_topple, ruled_out, choosable, gamma,
                             config.mdp.after_failure_power, config.mdp.retry_failed, believes=config.mdp.believe_failures)
-    if policy in extra["belief_q1"]:
+    if policy in (BELIEF_POLICY, PRIOR_BELIEF_POLICY):
         return retry.best_untried(extra["belief_q1"][policy][pose], choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
-    return retry.best_untried(extra["belief_budget_q1"][policy][step][pose], choosable & ~ruled_out, stay, horizon.IMPROVEMENT)
+    if policy in (BELIEF_HORIZON_POLICY, PRIOR_BELIEF_HORIZON_POLICY):
+        return retry.best_untried(extra["belief_budget_q1"][policy][step][pose], choosable & ~ruled_out, stay,
+                                  horizon.IMPROVEMENT)
+    raise ValueError(f"{policy} has no rule after a failure")
 
 
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
                workers: int | None = 1, world: Config | None = None, progress: bool = False,
                exclusion: Exclusion = Exclusion(), landing_prior: float | None = None) -> tuple[dict, list[Push]]:
-    """Play the ``COMPARED`` policies; the report (JSON-ready) and every push played.
+    """Play the ``COMPARED`` policies (and the ``PRIOR_POLICIES`` with a landing prior); the report
+    (JSON-ready) and every push played.
 
     world : the simulated world's noise; default the dataset's own.  The CLI passes the thesis
       preset (``policies_physics.world_config("thesis")``), as ``toppledb policies-physics`` and
       ``make logs`` do: pass it too, or the numbers are not the CLI's (a call without it played
       value iteration at +0.127 over Max-Height where the CLI's seed 0 gives +0.115)
     exclusion : what a failed push rules out for ``untried_vi``
-    landing_prior : alpha of ``landing_prior_rows``; given, the ``PRIOR_POLICIES`` are played too"""
+    landing_prior : alpha of ``landing_prior_rows``; given, the ``PRIOR_POLICIES`` are played too.  A
+      trial any of them leaves the pose set in is dropped for every policy, as for any played policy,
+      so the others' counted trials can differ from a run without it (pushes never do).  Their
+      pushes' landing records (``Push.landing``...) are the model's rows', not the shrunk ones."""
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
-    if landing_prior is not None and not landing_prior >= 0:
-        raise ValueError(f"the landing prior is a count of trials, >= 0; got {landing_prior}")
+    if landing_prior is not None and not 0 <= landing_prior < float("inf"):
+        raise ValueError(f"the landing prior is a count of trials, finite and >= 0; got {landing_prior}")
     policies = COMPARED + (tuple(PRIOR_POLICIES) if landing_prior is not None else ())
     dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
     plans: dict[str, ObjectPlan] = object_plans(dataset, sorted(by_object))
@@ -548,12 +570,11 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[BELIEF_HORIZON_POLICY], belief_budget_q1[BELIEF_HORIZON_POLICY] = belief_budget_tables(
             plan.v_s, rows, config.mdp, max_pushes, choosable)
         if landing_prior is not None:
-            prior = [landing_prior_rows(r, x, landing_prior, choosable[x], config.topple.trials) for x, r in enumerate(rows)]
-            plan.actions[PRIOR_POLICY] = value_iteration_actions(plan.v_s, prior, config.mdp, choosable)
-            plan.actions[PRIOR_BELIEF_POLICY], belief_q1[PRIOR_BELIEF_POLICY] = belief_tables(plan.v_s, prior, config.mdp,
-                                                                                              choosable)
-            plan.actions[PRIOR_BELIEF_HORIZON_POLICY], belief_budget_q1[PRIOR_BELIEF_HORIZON_POLICY] = belief_budget_tables(
-                plan.v_s, prior, config.mdp, max_pushes, choosable)
+            actions, q1, budget_q1 = prior_plan(plan.v_s, rows, config.mdp, choosable, landing_prior, config.topple.trials,
+                                                max_pushes)
+            plan.actions.update(actions)
+            belief_q1.update(q1)
+            belief_budget_q1.update(budget_q1)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
                                   "landings": landings, "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
                       config, seed, max_pushes, world, policies))
