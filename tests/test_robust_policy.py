@@ -534,13 +534,13 @@ def test_after_a_failure_each_believing_policy_ranks_by_its_own_q1():
 
 def test_each_prior_policy_is_paired_with_its_own_counterpart(dataset):  # noqa: F811 (fixture)
     from pipeline.studies.policies_physics import open_trials
-    from pipeline.studies.policy_experiment import useful_starts
+    from pipeline.studies.policy_experiment import best_pose_value, useful_starts
     from pipeline.studies.robust_policy import COMPARED, PRIOR_POLICIES, summarise
 
     _, _, tables, starts, _ = open_trials(dataset, 8, 1)
-    first = tables.first_pose[np.searchsorted(tables.first_pose, starts, side="right") - 1]
-    last = np.append(tables.first_pose[1:], len(tables.v_s))[np.searchsorted(tables.first_pose, starts, side="right") - 1] - 1
-    best = np.array([f + np.argmax(tables.v_s[f:l + 1]) for f, l in zip(first, last)])
+    objects = np.searchsorted(tables.first_pose, starts, side="right") - 1
+    first, end = tables.first_pose[objects], tables.first_pose[objects + 1]
+    best = np.array([f + np.argmax(tables.v_s[f:e]) for f, e in zip(first, end)])
     useful = useful_starts(tables, starts)
     assert useful.any()
     # Every policy stays put except belief_vi and prior_vi, which reach the object's best pose.
@@ -548,7 +548,7 @@ def test_each_prior_policy_is_paired_with_its_own_counterpart(dataset):  # noqa:
     for t in range(len(starts)):
         runs[t]["belief_vi"] = runs[t]["prior_vi"] = [int(starts[t] - first[t]), int(best[t] - first[t])]
     report = summarise(tables, starts, runs, [], COMPARED + tuple(PRIOR_POLICIES))
-    rise = float(np.mean(tables.v_s[best[useful]] - tables.v_s[starts[useful]]))
+    rise = float(np.mean(best_pose_value(tables)[starts[useful]] - tables.v_s[starts[useful]]))
     assert rise > 0
     policies = report["policies"]
     assert policies["prior_vi"]["gain_over_counterpart"] == pytest.approx(rise)

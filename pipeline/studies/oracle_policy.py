@@ -275,7 +275,7 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
         plan.actions.update(restricted_budgets(plan.v_s, mine.rows, mine.choosable, mine.starts, landed[object_id], ks,
                                                max_pushes))
         scores = [pose_scores(c, Smoothing()) for c in mine.candidates]  # the pushes' records want them; rows unsmoothed
-        landings = [pose_landings(r, x, plan.v_s) for x, r in enumerate(mine.rows)]  # and these
+        landings = [pose_landings(r, x, plan.v_s) for x, r in enumerate(mine.rows)]  # so do their landing fields
         tasks.append((plan, {"candidates": mine.candidates, "scores": scores, "landings": landings}, trials[object_id], config,
                       seed, max_pushes, world, policies))
     runs: dict[int, dict[str, list[int]]] = {}

@@ -395,18 +395,30 @@ def landing_prior_rows(rows: np.ndarray, pose: int, alpha: float, choosable: np.
     return shrunk
 
 
-def prior_plan(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray], alpha: float,
-               trials: int, max_pushes: int) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
-    """The ``PRIOR_POLICIES``' tables over ``landing_prior_rows`` of every pose: their actions (as
-    ``value_iteration_actions``, ``belief_tables`` and ``belief_budget_tables``), and the Q1 tables
-    the two that report failures rank by after one, keyed by policy.
+def believing_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray], max_pushes: int,
+                     names: tuple[str, str] = (BELIEF_POLICY, BELIEF_HORIZON_POLICY)
+                     ) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
+    """The two policies that believe their failures, planned over ``rows``: ``belief_tables`` as
+    ``names[0]`` and ``belief_budget_tables`` as ``names[1]``.  returns : their actions, and the Q1
+    tables each ranks by after a failure (``after_failure_choice``), keyed by name.
 
     rows : per pose (A_x, P) float (``next_pose_rows``);  choosable : per pose (A_x,) bool"""
+    first, budget = names
+    actions, q1, budget_q1 = {}, {}, {}
+    actions[first], q1[first] = belief_tables(v_s, rows, mdp, choosable)
+    actions[budget], budget_q1[budget] = belief_budget_tables(v_s, rows, mdp, max_pushes, choosable)
+    return actions, q1, budget_q1
+
+
+def prior_plan(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray], alpha: float,
+               trials: int, max_pushes: int) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
+    """``believing_tables`` of the ``PRIOR_POLICIES`` over ``landing_prior_rows`` of every pose, with
+    ``prior_vi``'s actions (``value_iteration_actions``) among the actions."""
     prior = [landing_prior_rows(r, x, alpha, choosable[x], trials) for x, r in enumerate(rows)]
-    actions = {PRIOR_POLICY: value_iteration_actions(v_s, prior, mdp, choosable)}
-    actions[PRIOR_BELIEF_POLICY], q1 = belief_tables(v_s, prior, mdp, choosable)
-    actions[PRIOR_BELIEF_HORIZON_POLICY], budget_q1 = belief_budget_tables(v_s, prior, mdp, max_pushes, choosable)
-    return actions, {PRIOR_BELIEF_POLICY: q1}, {PRIOR_BELIEF_HORIZON_POLICY: budget_q1}
+    actions, q1, budget_q1 = believing_tables(v_s, prior, mdp, choosable, max_pushes,
+                                              (PRIOR_BELIEF_POLICY, PRIOR_BELIEF_HORIZON_POLICY))
+    actions[PRIOR_POLICY] = value_iteration_actions(v_s, prior, mdp, choosable)
+    return actions, q1, budget_q1
 
 
 # ---------------------------------------------------------------- physics
@@ -565,10 +577,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         plan.actions[UNTRIED_POLICY] = plan.actions["value_iteration"]  # until a push fails
         plan.actions[AWARE_POLICY] = plan.actions["value_iteration"]
         plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
-        belief_q1, belief_budget_q1 = {}, {}
-        plan.actions[BELIEF_POLICY], belief_q1[BELIEF_POLICY] = belief_tables(plan.v_s, rows, config.mdp, choosable)
-        plan.actions[BELIEF_HORIZON_POLICY], belief_budget_q1[BELIEF_HORIZON_POLICY] = belief_budget_tables(
-            plan.v_s, rows, config.mdp, max_pushes, choosable)
+        actions, belief_q1, belief_budget_q1 = believing_tables(plan.v_s, rows, config.mdp, choosable, max_pushes)
+        plan.actions.update(actions)
         if landing_prior is not None:
             actions, q1, budget_q1 = prior_plan(plan.v_s, rows, config.mdp, choosable, landing_prior, config.topple.trials,
                                                 max_pushes)
