@@ -280,6 +280,12 @@ class ToppleConfig:
     maps; it is part of the fit (``recalibrate --side`` fits on the pushes inside it and writes
     it beside the weights).  The default keeps to the pushes the model is unsure of."""
 
+    boosted_map: str = ""
+    """A gradient-boosted map of P(topple) applied after every other map (docs/MODEL.md C.19,
+    ``pipeline.model.boosted_map``): the name of a packaged map (``presets/<name>.json``, e.g.
+    ``boosted_map_s41``, fitted on the corpus's drawn pushes under this default) or a path to a
+    ``.json`` one; empty (the default): none.  Only the ``corrected`` variant applies it."""
+
     landing_spread: float = bounded(0.0, FRACTION)
     """Share eps of every toppling push's landing moved to the start pose's most probable other
     stable poses (docs/MODEL.md C.17, ``pipeline.model.landing_spread``): the model's landing is
@@ -381,6 +387,12 @@ class ToppleConfig:
         return self.side_map if self.variant == "corrected" else ()
 
     @property
+    def applied_boosted_map(self) -> str:
+        """The boosted map (MODEL.md C.19) this configuration applies: empty for the thesis's
+        variants, whatever the field says."""
+        return self.boosted_map if self.variant == "corrected" else ""
+
+    @property
     def applied_landing_spread(self) -> float:
         """The share of landing this configuration spreads (MODEL.md C.17): 0 for the thesis's
         variants, whatever the field says."""
@@ -397,13 +409,14 @@ class ToppleConfig:
         """Whether a push's prediction depends on the pose's other candidates (the smoothing of
         C.12, the neighbourhood feature of C.13, the borrowed landing of C.15): a probe must then
         be evaluated beside them."""
-        return self.applied_smoothing > 0 or bool(self.applied_feature_map) or bool(self.applied_down_map)
+        return (self.applied_smoothing > 0 or bool(self.applied_feature_map) or bool(self.applied_down_map)
+                or bool(self.applied_boosted_map))
 
     def without_recalibration(self) -> "ToppleConfig":
         """This model with no map: what a recalibration (MODEL.md C.7), a feature map (C.13) or the
         down map (C.15) is fitted on, the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12),
         their landing neither spread (C.17) nor carried on (C.18)."""
-        return dataclasses.replace(self, **NO_MAP, landing_spread=0.0, landing_onward=0.0)
+        return dataclasses.replace(self, **NO_MAP, boosted_map="", landing_spread=0.0, landing_onward=0.0)
 
     def counted(self) -> "ToppleConfig":
         """This model as the Monte Carlo counts of MODEL.md (9.1)-(9.2), neither smoothed (C.12) nor

@@ -50,6 +50,7 @@ from schema.frames import axis_angle_matrices, transform_points, unit
 from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
+from .boosted_map import boosted_features, load_trees, map_boosted_rows
 from .config import ToppleConfig
 from .edges import EdgeGeometry, edge_geometry, push_torques
 from .feature_map import map_down_rows, map_rows, map_side_rows
@@ -777,6 +778,12 @@ def evaluate_pose(
         # MODEL.md C.16: pushes from the side the model is unsure of, sharpened along the force they need.
         next_pose, p_topple = map_side_rows(next_pose, pose.index, actions, edges, config.applied_side_map,
                                             config.side_map_band)
+    if config.applied_boosted_map:
+        # MODEL.md C.19: P(topple) from boosted trees over what the model computes, last of the maps.
+        features = boosted_features(p_topple, 1.0 - unmapped[:, pose.index], mean_force, actions, edges, center_mass,
+                                    drop_probabilities, pose.index, obj, config.gravity, pool=n_candidates)
+        next_pose, p_topple = map_boosted_rows(next_pose, features, pose.index, actions,
+                                               load_trees(config.applied_boosted_map), pool=n_candidates)
     if spread:
         # MODEL.md C.17: the landing, never P(topple), shared with the most stable other poses.  Last,
         # though the maps keep a row's landing in proportion or borrow its neighbours' (both commute

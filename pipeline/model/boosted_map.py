@@ -1,0 +1,279 @@
+"""P(topple) from a gradient-boosted map of what the model computes (docs/MODEL.md C.19).
+
+Every earlier map of P(topple) was a logistic regression on a few features (C.7, C.13, C.15,
+C.16), and what is left of the model's error is shared by a pose's pushes (docs/VALIDATION.md,
+stop 37): it depends on the pose and the object, and on how they combine with the push, which a
+sum of a few weighted features cannot carry.  Boosted trees over the same kinds of features and
+some of the object's shape can.  The map
+
+    q(u) = sigmoid(b + sum_t tree_t(g(u)))                                                   (C.19.1)
+
+replaces the push's P(topple) after every other map, and its row keeps where it lands (C.13.2,
+``feature_map.landing_rows``): q times the landing, 1 - q stays; a push the model knows no landing
+for keeps its row.  g(u) is ``FEATURES``, all from the model and the geometry, none from physics.
+
+The trees are fitted elsewhere (``fit_trees``, scikit-learn's ``HistGradientBoostingClassifier``,
+on logged pushes) and read here from a JSON file: the engine needs numpy only.  A file is named by
+``topple.boosted_map``: a packaged map by its name (``presets/<name>.json``) or a path to one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .feature_map import FORCE_RATIO_RANGE, LOGIT_FLOOR, down_features, landing_rows, needed_force_ratio, pose_features
+
+if TYPE_CHECKING:  # the service imports the config, which names this module's files, without the geometry
+    from .edges import EdgeGeometry
+    from .mesh import ObjectModel
+
+PRESETS = Path(__file__).with_name("presets")
+
+FEATURES = (
+    "logit_p", "logit_p_unmapped", "logit_neighbourhood", "log_force_ratio", "no_own_topple", "direction_z",
+    "down_direction_z", "overhang", "height", "normal_z", "stability", "offset",
+    "log_needed_force_ratio", "drop_probability", "log_poses", "base_edges", "widest_edge", "height_over_size",
+    "flatness", "middle_over_size", "log_mass", "log_size", "horizontal", "contact_height_over_size",
+)
+"""g(u) of (C.19.1), in the column order the trees read.  P is the push's P(topple) after the other
+maps, "unmapped" before any (C.12's smoothed counts); the next four are C.13's f(u) without its
+bias and P; the next six C.15's g(u) without its bias and P; then log F*/mg (C.16, clipped to
+``FORCE_RATIO_RANGE``); the start pose's drop probability, the log of the number of poses, the
+number of base edges and the largest d_e over the centre of mass's height; the object: that height
+over its longest extent, its shortest and middle extents over the longest, log mass (kg) and log
+longest extent (m); the push: its direction's horizontal length and the contact's height over the
+longest extent."""
+MIN_HEIGHT = 1e-3
+"""m, the centre of mass's height is taken at least this in the ratios (a marginal pose's can be 0)."""
+
+
+class BoostedMapError(ValueError):
+    """A file that is no boosted map; one line."""
+
+
+@dataclass(frozen=True)
+class BoostedTrees:
+    """The trees of (C.19.1), padded to one node count.
+
+    baseline : float, b (logit);  feature : (T, N) int, the column of ``FEATURES`` a node splits on
+    threshold : (T, N) float, x <= threshold goes left;  left, right : (T, N) int, child nodes
+    missing_left : (T, N) bool, where NaN goes;  leaf : (T, N) bool;  value : (T, N) float, a leaf's
+      logit;  depth : int, the longest root-to-leaf path;  sha256 : str, of the file it was read from
+    """
+
+    baseline: float
+    feature: np.ndarray
+    threshold: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    missing_left: np.ndarray
+    leaf: np.ndarray
+    value: np.ndarray
+    depth: int
+    sha256: str = ""
+
+
+def map_file(name: str) -> Path:
+    """The file ``topple.boosted_map`` names: a path when it ends in .json, else a packaged map."""
+    return Path(name) if name.endswith(".json") else PRESETS / f"{name}.json"
+
+
+@lru_cache(maxsize=4)
+def load_trees(name: str) -> BoostedTrees:
+    """Read and check the map ``name`` names (``map_file``).  Raises ``BoostedMapError``."""
+    path = map_file(name)
+    try:
+        raw = path.read_bytes()
+        data = json.loads(raw)
+    except (OSError, ValueError) as err:
+        raise BoostedMapError(f"topple.boosted_map {name!r}: cannot read {path}: {err}") from None
+    return trees_from_dict(data, hashlib.sha256(raw).hexdigest(), name)
+
+
+def trees_from_dict(data: dict, sha256: str = "", name: str = "") -> BoostedTrees:
+    """``BoostedTrees`` from the JSON layout ``fit_trees`` writes: {"features": [...], "baseline": b,
+    "trees": [{"feature", "threshold", "left", "right", "missing_left", "leaf", "value"}, ...]}."""
+    where = f"topple.boosted_map {name!r}"
+    if not isinstance(data, dict) or list(data.get("features", [])) != list(FEATURES):
+        raise BoostedMapError(f"{where}: its features are not this version's ({len(FEATURES)}, from {FEATURES[0]})")
+    trees = data.get("trees")
+    if not trees or not np.isfinite(data.get("baseline", np.nan)):
+        raise BoostedMapError(f"{where}: no trees or no finite baseline")
+    size = max(len(t["value"]) for t in trees)
+    fields = {}
+    for key, dtype, fill in (("feature", np.int64, 0), ("threshold", float, 0.0), ("left", np.int64, 0),
+                             ("right", np.int64, 0), ("missing_left", bool, True), ("leaf", bool, True), ("value", float, 0.0)):
+        fields[key] = np.array([np.pad(np.asarray(t[key], dtype=dtype), (0, size - len(t[key])), constant_values=fill)
+                                for t in trees])  # (T, N)
+    inner = ~fields["leaf"]
+    if (np.any(fields["feature"][inner] < 0) or np.any(fields["feature"][inner] >= len(FEATURES))
+            or np.any(fields["left"][inner] >= size) or np.any(fields["right"][inner] >= size)
+            or not np.all(np.isfinite(fields["value"]))):
+        raise BoostedMapError(f"{where}: a node points outside its tree or a leaf is not finite")
+    return BoostedTrees(baseline=float(data["baseline"]), depth=_depth(fields["left"], fields["right"], fields["leaf"]),
+                        sha256=sha256, **fields)
+
+
+def _depth(left: np.ndarray, right: np.ndarray, leaf: np.ndarray) -> int:
+    """The longest root-to-leaf path over all trees (T, N); raises on a node reached twice."""
+    deepest = 0
+    for tree in range(len(leaf)):
+        seen, stack = set(), [(0, 0)]
+        while stack:
+            node, depth = stack.pop()
+            if node in seen:
+                raise BoostedMapError(f"topple.boosted_map: tree {tree} reaches node {node} twice")
+            seen.add(node)
+            if leaf[tree, node]:
+                deepest = max(deepest, depth)
+            else:
+                stack += [(int(left[tree, node]), depth + 1), (int(right[tree, node]), depth + 1)]
+    return deepest
+
+
+def boosted_probability(features: np.ndarray, trees: BoostedTrees) -> np.ndarray:
+    """q of (C.19.1), every push through every tree at once.
+
+    features : (A, len(FEATURES)) float (NaN follows each node's ``missing_left``)
+    returns : (A,) float in (0, 1)
+    """
+    features = np.asarray(features, dtype=float)
+    n_trees = len(trees.leaf)
+    tree = np.arange(n_trees)[:, None]  # (T, 1)
+    push = np.arange(len(features))[None, :]  # (1, A)
+    node = np.zeros((n_trees, len(features)), dtype=np.int64)  # (T, A)
+    for _ in range(trees.depth):
+        x = features[push, trees.feature[tree, node]]  # (T, A)
+        with np.errstate(invalid="ignore"):
+            go_left = np.where(np.isnan(x), trees.missing_left[tree, node], x <= trees.threshold[tree, node])
+        step = np.where(go_left, trees.left[tree, node], trees.right[tree, node])
+        node = np.where(trees.leaf[tree, node], node, step)
+    raw = trees.baseline + trees.value[tree, node].sum(axis=0)  # (A,)
+    return 1.0 / (1.0 + np.exp(-raw))
+
+
+def boosted_features(
+    p_topple: np.ndarray,
+    unmapped_p: np.ndarray,
+    mean_force: np.ndarray,
+    actions,
+    edges: EdgeGeometry,
+    center_mass: np.ndarray,
+    drop_probabilities: np.ndarray,
+    start: int,
+    obj: ObjectModel,
+    gravity: float,
+    pool: int | None = None,
+) -> np.ndarray:
+    """g(u) (``FEATURES``) of every push of one pose.
+
+    p_topple : (A,) float, P after the other maps;  unmapped_p : (A,) float, before any (NaN: not ok)
+    mean_force : (A,) float, N, (9.3) of the push's own topples, NaN where none
+    actions : the pose's pushes (points, normals, directions (A, 3), pose frame)
+    edges : ``edges.edge_geometry`` of the pose;  center_mass : (3,) float, m, pose frame
+    drop_probabilities : (P,) float, the pose set's;  start : the pose's index;  obj : the object
+    gravity : m/s^2;  pool : the pose's candidates, over which N is taken (``pose_features``)
+    returns : (A, len(FEATURES)) float, NaN rows where ``unmapped_p`` is NaN
+    """
+    n = len(p_topple)
+    points, directions = np.asarray(actions.points, dtype=float), np.asarray(actions.directions, dtype=float)
+    push = pose_features(unmapped_p, points, directions, mean_force, obj.mass * gravity, pool=pool)  # (A, 6)
+    down = down_features(unmapped_p, points, actions.normals, directions, edges, center_mass)  # (A, 8)
+    height = max(float(center_mass[2]), MIN_HEIGHT)  # m
+    extents = np.sort(np.asarray(obj.mesh.extents, dtype=float))[::-1]  # (3,), m, longest first
+
+    def each(value: float) -> np.ndarray:
+        return np.full(n, value)
+
+    features = np.column_stack([
+        fitted_logit(p_topple),
+        fitted_logit(unmapped_p),
+        push[:, 2:],
+        down[:, 2:],
+        np.log(np.clip(needed_force_ratio(points, directions, edges), *FORCE_RATIO_RANGE)),
+        each(drop_probabilities[start]),
+        each(np.log(len(drop_probabilities))),
+        each(len(edges.com_distance)),
+        each(edges.com_distance.max() / height),
+        each(height / extents[0]),
+        each(extents[2] / extents[0]),
+        each(extents[1] / extents[0]),
+        each(np.log(obj.mass)),
+        each(np.log(extents[0])),
+        np.hypot(directions[:, 0], directions[:, 1]),
+        points[:, 2] / extents[0],
+    ])  # (A, F)
+    features[~np.isfinite(np.asarray(unmapped_p, dtype=float))] = np.nan
+    return features
+
+
+def fitted_logit(p: np.ndarray) -> np.ndarray:
+    """logit of P clipped to [LOGIT_FLOOR, 1 - LOGIT_FLOOR], as log(p / (1 - p)): the form the map
+    was fitted on.  A third of pushes sit at the floor, and a tree's threshold can be the floor's value
+    itself, so ``feature_map.logit``'s form, one rounding away, sends them down the other branch."""
+    p = np.clip(np.asarray(p, dtype=float), LOGIT_FLOOR, 1.0 - LOGIT_FLOOR)
+    return np.log(p / (1.0 - p))
+
+
+def map_boosted_rows(next_pose: np.ndarray, features: np.ndarray, start: int, actions, trees: BoostedTrees,
+                     pool: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Apply (C.19.1) to every ok row of one pose.
+
+    next_pose : (A, P) float, the rows after the other maps (NaN rows: not ok)
+    features : (A, len(FEATURES)) float, ``boosted_features``;  pool : as ``landing_rows``
+    returns : next_pose (A, P), an ok row (1 - q) at ``start`` plus q times its landing (C.13.2),
+      a row with no known landing unchanged;  p_topple (A,)
+    """
+    next_pose = np.array(next_pose, dtype=float)
+    ok = np.flatnonzero(np.isfinite(next_pose[:, start]))  # (K,)
+    if len(ok) == 0:
+        return next_pose, 1.0 - next_pose[:, start]
+    landing = landing_rows(next_pose, start, actions.points, actions.directions, pool=pool, rows=ok)  # (K, P)
+    lands = landing.sum(axis=1) > 0
+    q = boosted_probability(features[ok[lands]], trees)  # (L,)
+    rows = landing[lands] * q[:, None]
+    rows[:, start] = 1.0 - q
+    next_pose[ok[lands]] = rows
+    return next_pose, 1.0 - next_pose[:, start]
+
+
+def fit_trees(features: np.ndarray, observed: np.ndarray, repeats: np.ndarray, seed: int = 0, **params) -> dict:
+    """Fit (C.19.1) on logged pushes and return it in the layout ``trees_from_dict`` reads.
+
+    features : (n, len(FEATURES)) float;  observed : (n,) float, each push's topple rate
+    repeats : (n,) int, its repeats (each push is two weighted rows: the toppled and the stayed)
+    params : ``HistGradientBoostingClassifier``'s, over ``FIT_PARAMS``
+    Needs scikit-learn (the ``pipeline`` extra); the engine does not.
+    """
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    features = np.asarray(features, dtype=float)
+    repeats = np.asarray(repeats, dtype=float)
+    toppled = np.round(np.asarray(observed, dtype=float) * repeats)
+    weight = np.concatenate([toppled, repeats - toppled])
+    keep = weight > 0
+    x = np.vstack([features, features])[keep]
+    y = np.concatenate([np.ones(len(features)), np.zeros(len(features))])[keep]
+    model = HistGradientBoostingClassifier(**{**FIT_PARAMS, **params, "random_state": seed})
+    model.fit(x, y, sample_weight=weight[keep])
+    trees = []
+    for (predictor,) in model._predictors:  # sklearn's fitted nodes: the only place its trees are kept
+        nodes = predictor.nodes
+        trees.append({"feature": nodes["feature_idx"].tolist(), "threshold": nodes["num_threshold"].tolist(),
+                      "left": nodes["left"].tolist(), "right": nodes["right"].tolist(),
+                      "missing_left": nodes["missing_go_to_left"].astype(bool).tolist(),
+                      "leaf": nodes["is_leaf"].astype(bool).tolist(), "value": nodes["value"].tolist()})
+    return {"features": list(FEATURES), "baseline": float(np.ravel(model._baseline_prediction)[0]), "trees": trees}
+
+
+FIT_PARAMS = {"max_leaf_nodes": 20, "max_depth": None, "learning_rate": 0.03, "max_iter": 300,
+              "min_samples_leaf": 200, "l2_regularization": 1.0}
+"""Candidate B's setting (reports/boosted_map_rule_s41.md): the best of five on the corpus logs'
+object-grouped cross-validation; scikit-learn's defaults otherwise."""
