@@ -226,9 +226,19 @@ def make_config(args: argparse.Namespace) -> Config:
     }
     overrides.update({k: v for k, v in flags.items() if v is not None})
     try:
-        return config.with_overrides(overrides) if overrides else config
+        config = config.with_overrides(overrides) if overrides else config
     except ValueError as err:  # unknown key, wrong type, bad variant: the user's input
         raise UsageError(str(err)) from None
+    if config.topple.applied_boosted_map:
+        # Read the map the model names now, so a missing or broken file is the user's one-line error,
+        # not a traceback from the first worker that evaluates a pose.
+        from .model.boosted_map import BoostedMapError, load_trees
+
+        try:
+            load_trees(config.topple.applied_boosted_map)
+        except BoostedMapError as err:
+            raise UsageError(str(err)) from None
+    return config
 
 
 def run_dataset(args: argparse.Namespace) -> int:

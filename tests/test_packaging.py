@@ -175,7 +175,8 @@ def wheel(source, tmp_path_factory) -> Path:
 @pytest.mark.slow
 def test_wheel_ships_every_module_the_default_corpus_and_type_markers(wheel, source):
     names = set(zipfile.ZipFile(wheel).namelist())
-    for required in ("pipeline/build/corpus_default.csv", *(f"{p}/py.typed" for p in PACKAGES)):
+    for required in ("pipeline/build/corpus_default.csv", "pipeline/model/presets/thesis.toml",
+                     "pipeline/model/presets/boosted_map_s41.json", *(f"{p}/py.typed" for p in PACKAGES)):
         assert required in names, f"{wheel.name} lacks {required}"
     with zipfile.ZipFile(wheel) as archive:
         assert archive.read("pipeline/build/corpus_default.csv") == (source / "pipeline/build/corpus_default.csv").read_bytes()

@@ -263,18 +263,21 @@ def test_a_shards_identity_is_its_object_and_the_parameters_it_uses():
     assert {k: v for k, v in inputs["config"].items() if k != "topple"} == {k: v for k, v in every.items() if k != "topple"}
 
 
-def test_landing_corrections_that_are_off_are_no_part_of_a_shards_identity():
+def test_corrections_and_maps_that_are_off_are_no_part_of_a_shards_identity():
     def unused(**overrides) -> dict:
         return shards.unused_by_shards(SMALL.with_overrides(overrides))
 
     spread, onward = shards.UNUSED_WHEN_OFF["landing_spread"], shards.UNUSED_WHEN_OFF["landing_onward"]
-    # The default plans with failures (its map is used) and carries landings onward, but spreads none.
+    boosted = shards.UNUSED_WHEN_OFF["boosted_map"]
+    # The default plans with failures (its map is used) and carries landings onward, but spreads none
+    # and has no boosted map.
     assert SMALL.mdp.plans_with_failures and SMALL.topple.applied_landing_onward and not SMALL.topple.applied_landing_spread
-    assert unused() == {"topple": spread}
-    assert unused(**{"topple.landing_spread": 0.3}) == {}
-    assert unused(**{"topple.variant": "robust"}) == {"topple": spread + onward}
-    assert unused(**{"mdp.believe_failures": False}) == {**shards.SERVING_ONLY, "topple": spread}
-    assert unused(**{"mdp.believe_failures": False, "topple.landing_spread": 0.3}) == shards.SERVING_ONLY
+    assert unused() == {"topple": spread + boosted}
+    assert unused(**{"topple.landing_spread": 0.3}) == {"topple": boosted}
+    assert unused(**{"topple.landing_spread": 0.3, "topple.boosted_map": "boosted_map_s41"}) == {}
+    assert unused(**{"topple.variant": "robust"}) == {"topple": spread + onward + boosted}
+    assert unused(**{"mdp.believe_failures": False}) == {**shards.SERVING_ONLY, "topple": spread + boosted}
+    assert unused(**{"mdp.believe_failures": False, "topple.landing_spread": 0.3}) == {**shards.SERVING_ONLY, "topple": boosted}
 
     base = shards.shard_inputs(spec_of("box"), SMALL)
     assert not set(spread) & set(base["config"]["topple"]) and set(onward) <= set(base["config"]["topple"])

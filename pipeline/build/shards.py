@@ -26,6 +26,7 @@ import pyarrow.parquet as pq
 from schema import hdf5, layout, tables
 from schema.version import SCHEMA_VERSION
 
+from ..model.boosted_map import load_trees
 from ..model.config import Config
 from .atomic import file_sha256, write_atomic, write_text_atomic
 from .corpus import ObjectSpec
@@ -51,11 +52,12 @@ iteration believes failures with a map (``mdp.believe_failures`` and k != 1, doc
 UNUSED_WHEN_OFF = {
     "landing_spread": ("landing_spread", "landing_spread_poses"),
     "landing_onward": ("landing_onward", "landing_onward_below"),
+    "boosted_map": ("boosted_map",),
 }
-"""``topple`` parameters of a correction that, switched off (its ``topple.applied_*`` 0, which the
-thesis's variants always are), change no shard (correction -> keys): left out of a shard's
+"""``topple`` parameters of a correction or map that, switched off (its ``topple.applied_*`` 0 or empty,
+which the thesis's variants always are), change no shard (correction or map -> keys): left out of a shard's
 identity then, so the shards of a dataset built before they existed keep theirs (docs/MODEL.md
-C.17, C.18)."""
+C.17, C.18, C.19)."""
 
 
 def unused_by_shards(config: Config) -> dict[str, tuple[str, ...]]:
@@ -77,7 +79,12 @@ def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:
     parameters = config.to_dict()
     for section, keys in unused_by_shards(config).items():
         parameters[section] = {k: v for k, v in parameters[section].items() if k not in keys}
-    return {"schema_version": SCHEMA_VERSION, "config": parameters, "object": identity}
+    inputs = {"schema_version": SCHEMA_VERSION, "config": parameters, "object": identity}
+    if config.topple.applied_boosted_map:
+        # The parameter names a file: its content, not its name or place, makes the shard (docs/MODEL.md C.19).
+        parameters["topple"].pop("boosted_map")
+        inputs["boosted_map_sha256"] = load_trees(config.topple.applied_boosted_map).sha256
+    return inputs
 
 
 def fingerprint(inputs: dict[str, Any]) -> str:

@@ -60,15 +60,17 @@ class BoostedMapError(ValueError):
 
 @dataclass(frozen=True)
 class BoostedTrees:
-    """The trees of (C.19.1), padded to one node count.
+    """The trees of (C.19.1), their nodes in one array, each tree's after the one before.
 
-    baseline : float, b (logit);  feature : (T, N) int, the column of ``FEATURES`` a node splits on
-    threshold : (T, N) float, x <= threshold goes left;  left, right : (T, N) int, child nodes
-    missing_left : (T, N) bool, where NaN goes;  leaf : (T, N) bool;  value : (T, N) float, a leaf's
-      logit;  depth : int, the longest root-to-leaf path;  sha256 : str, of the file it was read from
+    baseline : float, b (logit);  roots : (T,) int, each tree's first node
+    feature : (N,) int, the column of ``FEATURES`` a node splits on;  threshold : (N,) float, x <= threshold
+      goes left;  left, right : (N,) int, child nodes (indices into the same arrays)
+    missing_left : (N,) bool, where NaN goes;  leaf : (N,) bool;  value : (N,) float, a leaf's logit
+    sha256 : str, of the file it was read from
     """
 
     baseline: float
+    roots: np.ndarray
     feature: np.ndarray
     threshold: np.ndarray
     left: np.ndarray
@@ -76,7 +78,6 @@ class BoostedTrees:
     missing_left: np.ndarray
     leaf: np.ndarray
     value: np.ndarray
-    depth: int
     sha256: str = ""
 
 
@@ -87,7 +88,8 @@ def map_file(name: str) -> Path:
 
 @lru_cache(maxsize=4)
 def load_trees(name: str) -> BoostedTrees:
-    """Read and check the map ``name`` names (``map_file``).  Raises ``BoostedMapError``."""
+    """Read and check the map ``name`` names (``map_file``), once per process (cached by name: a file
+    changed under a running job is not re-read).  Raises ``BoostedMapError``."""
     path = map_file(name)
     try:
         raw = path.read_bytes()
@@ -97,65 +99,109 @@ def load_trees(name: str) -> BoostedTrees:
     return trees_from_dict(data, hashlib.sha256(raw).hexdigest(), name)
 
 
+NODE_FIELDS = (("feature", int), ("threshold", float), ("left", int), ("right", int),
+               ("missing_left", bool), ("leaf", bool), ("value", float))
+"""A tree's lists in the JSON layout and the type of their entries (``trees_from_dict``)."""
+
+
 def trees_from_dict(data: dict, sha256: str = "", name: str = "") -> BoostedTrees:
     """``BoostedTrees`` from the JSON layout ``fit_trees`` writes: {"features": [...], "baseline": b,
-    "trees": [{"feature", "threshold", "left", "right", "missing_left", "leaf", "value"}, ...]}."""
+    "trees": [{"feature", "threshold", "left", "right", "missing_left", "leaf", "value"}, ...]}, each
+    tree's seven lists one entry per node, root first, its child indices counted within the tree.
+    Raises ``BoostedMapError`` on anything else, naming the tree."""
     where = f"topple.boosted_map {name!r}"
-    if not isinstance(data, dict) or list(data.get("features", [])) != list(FEATURES):
+    if not isinstance(data, dict):
+        raise BoostedMapError(f"{where}: not a JSON object")
+    if list(data.get("features", [])) != list(FEATURES):
         raise BoostedMapError(f"{where}: its features are not this version's ({len(FEATURES)}, from {FEATURES[0]})")
-    trees = data.get("trees")
-    if not trees or not np.isfinite(data.get("baseline", np.nan)):
-        raise BoostedMapError(f"{where}: no trees or no finite baseline")
-    size = max(len(t["value"]) for t in trees)
-    fields = {}
-    for key, dtype, fill in (("feature", np.int64, 0), ("threshold", float, 0.0), ("left", np.int64, 0),
-                             ("right", np.int64, 0), ("missing_left", bool, True), ("leaf", bool, True), ("value", float, 0.0)):
-        fields[key] = np.array([np.pad(np.asarray(t[key], dtype=dtype), (0, size - len(t[key])), constant_values=fill)
-                                for t in trees])  # (T, N)
-    inner = ~fields["leaf"]
-    if (np.any(fields["feature"][inner] < 0) or np.any(fields["feature"][inner] >= len(FEATURES))
-            or np.any(fields["left"][inner] >= size) or np.any(fields["right"][inner] >= size)
-            or not np.all(np.isfinite(fields["value"]))):
-        raise BoostedMapError(f"{where}: a node points outside its tree or a leaf is not finite")
-    return BoostedTrees(baseline=float(data["baseline"]), depth=_depth(fields["left"], fields["right"], fields["leaf"]),
-                        sha256=sha256, **fields)
+    baseline, trees = data.get("baseline"), data.get("trees")
+    if isinstance(baseline, bool) or not isinstance(baseline, (int, float)) or not np.isfinite(baseline):
+        raise BoostedMapError(f"{where}: the baseline is not a finite number")
+    if not isinstance(trees, list) or not trees:
+        raise BoostedMapError(f"{where}: no list of trees")
+    columns = {key: [] for key, _ in NODE_FIELDS}
+    for i, tree in enumerate(trees):
+        for key, values in _tree_lists(tree, f"{where}: tree {i}").items():
+            columns[key].append(values)
+    sizes = np.array([len(v) for v in columns["value"]])  # (T,)
+    roots = np.concatenate([[0], np.cumsum(sizes)[:-1]])  # (T,)
+    fields = {key: np.concatenate(columns[key]) for key, _ in NODE_FIELDS}  # (N,) each
+    inner, offset, size = ~fields["leaf"], np.repeat(roots, sizes), np.repeat(sizes, sizes)
+    for child in ("left", "right"):
+        if np.any(inner & ((fields[child] < 0) | (fields[child] >= size))):
+            raise BoostedMapError(f"{where}: a node points outside its tree")
+        fields[child] = np.where(inner, fields[child] + offset, np.arange(len(offset)))  # a leaf points at itself
+    if np.any(inner & ((fields["feature"] < 0) | (fields["feature"] >= len(FEATURES)))):
+        raise BoostedMapError(f"{where}: a node splits on no feature")
+    if np.any(inner & ~np.isfinite(fields["threshold"])):
+        raise BoostedMapError(f"{where}: a node's threshold is not finite")
+    if not np.all(np.isfinite(fields["value"][fields["leaf"]])):
+        raise BoostedMapError(f"{where}: a leaf's value is not finite")
+    fields["feature"] = np.where(inner, fields["feature"], 0)
+    _check_paths(roots, fields["left"], fields["right"], fields["leaf"], where)
+    return BoostedTrees(baseline=float(baseline), roots=roots, sha256=sha256, **fields)
 
 
-def _depth(left: np.ndarray, right: np.ndarray, leaf: np.ndarray) -> int:
-    """The longest root-to-leaf path over all trees (T, N); raises on a node reached twice."""
-    deepest = 0
-    for tree in range(len(leaf)):
-        seen, stack = set(), [(0, 0)]
+def _tree_lists(tree, where: str) -> dict[str, np.ndarray]:
+    """One tree's seven lists as arrays, each of one length of at least 1 and of its entries' type
+    (``NODE_FIELDS``; JSON's true and false for the flags, numbers for the rest).  Raises ``BoostedMapError``."""
+    if not isinstance(tree, dict) or any(key not in tree for key, _ in NODE_FIELDS):
+        raise BoostedMapError(f"{where} is not an object with the lists {', '.join(k for k, _ in NODE_FIELDS)}")
+    out = {}
+    for key, kind in NODE_FIELDS:
+        values = tree[key]
+        if not isinstance(values, list) or not values:
+            raise BoostedMapError(f"{where}: {key} is not a list of nodes")
+        if kind is bool:
+            ok = all(isinstance(v, bool) for v in values)
+        elif kind is int:
+            ok = all(isinstance(v, int) and not isinstance(v, bool) for v in values)
+        else:
+            ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+        if not ok:
+            raise BoostedMapError(f"{where}: {key} holds entries that are not {kind.__name__}")
+        out[key] = np.array(values, dtype=np.int64 if kind is int else kind)
+    if len({len(v) for v in out.values()}) != 1:
+        raise BoostedMapError(f"{where}: its lists differ in length")
+    return out
+
+
+def _check_paths(roots: np.ndarray, left: np.ndarray, right: np.ndarray, leaf: np.ndarray, where: str) -> None:
+    """Raise unless every tree is a tree: no node reached twice from its root (so every walk ends)."""
+    for tree, root in enumerate(roots):
+        seen, stack = set(), [int(root)]
         while stack:
-            node, depth = stack.pop()
+            node = stack.pop()
             if node in seen:
-                raise BoostedMapError(f"topple.boosted_map: tree {tree} reaches node {node} twice")
+                raise BoostedMapError(f"{where}: tree {tree} reaches node {node - root} twice")
             seen.add(node)
-            if leaf[tree, node]:
-                deepest = max(deepest, depth)
-            else:
-                stack += [(int(left[tree, node]), depth + 1), (int(right[tree, node]), depth + 1)]
-    return deepest
+            if not leaf[node]:
+                stack += [int(left[node]), int(right[node])]
 
 
 def boosted_probability(features: np.ndarray, trees: BoostedTrees) -> np.ndarray:
-    """q of (C.19.1), every push through every tree at once.
+    """q of (C.19.1): every (tree, push) pair walks down one level a step, until all are at a leaf.
 
     features : (A, len(FEATURES)) float (NaN follows each node's ``missing_left``)
     returns : (A,) float in (0, 1)
     """
     features = np.asarray(features, dtype=float)
-    n_trees = len(trees.leaf)
-    tree = np.arange(n_trees)[:, None]  # (T, 1)
-    push = np.arange(len(features))[None, :]  # (1, A)
-    node = np.zeros((n_trees, len(features)), dtype=np.int64)  # (T, A)
-    for _ in range(trees.depth):
-        x = features[push, trees.feature[tree, node]]  # (T, A)
-        with np.errstate(invalid="ignore"):
-            go_left = np.where(np.isnan(x), trees.missing_left[tree, node], x <= trees.threshold[tree, node])
-        step = np.where(go_left, trees.left[tree, node], trees.right[tree, node])
-        node = np.where(trees.leaf[tree, node], node, step)
-    raw = trees.baseline + trees.value[tree, node].sum(axis=0)  # (A,)
+    if features.ndim != 2 or features.shape[1] != len(FEATURES):
+        raise ValueError(f"features must be (A, {len(FEATURES)}), got {features.shape}")
+    n_pushes = len(features)
+    node = np.repeat(trees.roots, n_pushes)  # (T A,), tree-major
+    push = np.tile(np.arange(n_pushes), len(trees.roots))  # (T A,)
+    # Only the pairs still above a leaf are stepped: trees stop at depths from 1 to about 15.
+    walking = np.flatnonzero(~trees.leaf[node])
+    while walking.size:
+        at = node[walking]
+        x = features[push[walking], trees.feature[at]]
+        go_left = x <= trees.threshold[at]  # False for NaN, which goes where missing_left says
+        missing = np.isnan(x)
+        go_left[missing] = trees.missing_left[at[missing]]
+        node[walking] = np.where(go_left, trees.left[at], trees.right[at])
+        walking = walking[~trees.leaf[node[walking]]]
+    raw = trees.baseline + trees.value[node].reshape(len(trees.roots), n_pushes).sum(axis=0)  # (A,)
     return 1.0 / (1.0 + np.exp(-raw))
 
 
@@ -215,9 +261,12 @@ def boosted_features(
 
 
 def fitted_logit(p: np.ndarray) -> np.ndarray:
-    """logit of P clipped to [LOGIT_FLOOR, 1 - LOGIT_FLOOR], as log(p / (1 - p)): the form the map
-    was fitted on.  A third of pushes sit at the floor, and a tree's threshold can be the floor's value
-    itself, so ``feature_map.logit``'s form, one rounding away, sends them down the other branch."""
+    """logit of P clipped to [LOGIT_FLOOR, 1 - LOGIT_FLOOR], as log(p / (1 - p)): the form
+    ``boosted_map_s41``'s ``logit_p`` was fitted on.  A third of pushes sit at the floor, and that map has
+    thresholds exactly at the floor's value, so ``feature_map.logit``'s form, one rounding (1 ulp) higher,
+    sends them down the other branch.  (Its ``logit_p_unmapped`` was fitted on ``feature_map.logit``'s
+    form; this one is 1 ulp lower, so those pushes still go left of its floor thresholds, as in the fit.
+    ``logit_neighbourhood`` is ``feature_map.logit``'s, as fitted.)"""
     p = np.clip(np.asarray(p, dtype=float), LOGIT_FLOOR, 1.0 - LOGIT_FLOOR)
     return np.log(p / (1.0 - p))
 
@@ -274,6 +323,8 @@ def fit_trees(features: np.ndarray, observed: np.ndarray, repeats: np.ndarray, s
 
 
 FIT_PARAMS = {"max_leaf_nodes": 20, "max_depth": None, "learning_rate": 0.03, "max_iter": 300,
-              "min_samples_leaf": 200, "l2_regularization": 1.0}
+              "min_samples_leaf": 200, "l2_regularization": 1.0, "early_stopping": "auto"}
 """Candidate B's setting (reports/boosted_map_rule_s41.md): the best of five on the corpus logs'
-object-grouped cross-validation; scikit-learn's defaults otherwise."""
+object-grouped cross-validation; scikit-learn's defaults otherwise.  ``early_stopping="auto"`` (the
+default, spelled out) stops adding trees when a random tenth of the rows, held out, stops improving, on
+fits of more than 10,000 rows (the corpus's 8,261 pushes are about 16,000): B's fit ran all 300."""

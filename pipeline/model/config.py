@@ -407,14 +407,14 @@ class ToppleConfig:
     @property
     def needs_candidates(self) -> bool:
         """Whether a push's prediction depends on the pose's other candidates (the smoothing of
-        C.12, the neighbourhood feature of C.13, the borrowed landing of C.15): a probe must then
-        be evaluated beside them."""
+        C.12, the neighbourhood feature of C.13 and C.19, the borrowed landing of C.15 and C.19): a
+        probe must then be evaluated beside them."""
         return (self.applied_smoothing > 0 or bool(self.applied_feature_map) or bool(self.applied_down_map)
                 or bool(self.applied_boosted_map))
 
     def without_recalibration(self) -> "ToppleConfig":
         """This model with no map: what a recalibration (MODEL.md C.7), a feature map (C.13) or the
-        down map (C.15) is fitted on, the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12),
+        down map (C.15) is fitted on (the side map of C.16 and the boosted map of C.19 cleared too), the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12),
         their landing neither spread (C.17) nor carried on (C.18)."""
         return dataclasses.replace(self, **NO_MAP, boosted_map="", landing_spread=0.0, landing_onward=0.0)
 

@@ -17,12 +17,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from ..model.boosted_map import FEATURES as BOOSTED_FEATURES
+from ..model.boosted_map import FIT_PARAMS, boosted_probability, fit_trees, trees_from_dict
 from ..model.config import MAP_FIELDS, NO_MAP, Config, ToppleConfig
 from ..model.feature_map import (
     DOWN_FEATURES,
@@ -292,6 +296,48 @@ def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
                       counts=log.counts())
 
 
+def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
+    """Cross-validate the boosted map (docs/MODEL.md C.19) on top of ``config``'s other maps, fit it on all.
+
+    Every fold fits trees (``boosted_map.fit_trees``, ``FIT_PARAMS``) on its training pushes and maps its
+    held-out ones; a push the model knows no landing for keeps P.  ``identity`` is P as the model without a
+    boosted map gives it.
+    returns : a JSON-ready record with ``trees`` (``boosted_map.trees_from_dict``'s layout, fitted on every
+      push) and pooled held-out metrics of both
+    """
+    config = config or Config()
+    started = time.perf_counter()
+    scorer = Scorer(log, config.seed, config.contacts)
+    features, lands = scorer.boosted_inputs(config.topple)
+    p = scorer.score(replace(config.topple, boosted_map="")).p_topple
+    observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
+    fold_objects, fold_of = push_folds([scorer.object_ids[i] for i in objects], folds, seed)
+    rows = np.isfinite(p)
+    held_out = p.copy()
+    for f in range(folds):
+        train, test = (fold_of != f) & rows, (fold_of == f) & rows & lands
+        if not train.any():
+            raise RecalibrationError(f"fold {f} leaves no push to fit the boosted map on; use fewer folds")
+        trees = trees_from_dict(fit_trees(features[train], observed[train], scorer.repeats[train], seed))
+        held_out[test] = boosted_probability(features[test], trees)
+    fitted = fit_trees(features[rows], observed[rows], scorer.repeats[rows], seed)
+    metrics_of = metrics_by_predictor({"identity": p, "boosted_map": held_out}, rows, observed, weight, objects)
+    return {"variant": config.topple.variant, "features": list(BOOSTED_FEATURES), "fit": {**FIT_PARAMS, "random_state": seed},
+            "pushes": int(rows.sum()), "objects": len(scorer.object_ids), "folds": folds, "seed": seed,
+            "cross_validated": metrics_of, "fold_objects": fold_objects, "counts": log.counts(),
+            "wall_s": round(time.perf_counter() - started, 1), "trees": fitted}
+
+
+def format_boosted_record(result: dict) -> str:
+    """``boosted_recalibrate``'s record as the table ``toppledb recalibrate --boosted`` prints."""
+    lines = [f"{result['pushes']} pushes on {result['objects']} objects; {result['folds']}-fold CV grouped by object, held-out folds pooled:",
+             f"{'predictor':<12} {'ECE':>6} {'Brier':>7} {'AP':>6} {'mAP':>6} {'mean pred.':>10} {'observed':>8}"]
+    for name, m in result["cross_validated"].items():
+        if isinstance(m, dict) and "brier" in m:
+            lines.append(f"{name:<12} {m['ece']:6.3f} {m['brier']:7.4f} {m['ap']:6.3f} {m['map']:6.3f} {m['predicted']:10.3f} {m['observed']:8.3f}")
+    return "\n".join(lines)
+
+
 def format_side_record(result: dict) -> str:
     """``side_recalibrate``'s record as the table ``toppledb recalibrate --side`` prints."""
     lines = [(f"{result['pushes']} pushes on {result['objects']} objects ({result['side_pushes']['pushes']} side pushes with "
@@ -367,11 +413,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="fit the centred map and, for pushes with u_z < topple.down_map_z, the down map (docs/MODEL.md C.15)")
     parser.add_argument("--side", action="store_true",
                         help="fit the side map (docs/MODEL.md C.16) on top of the model's other maps, which are kept")
+    parser.add_argument("--boosted", action="store_true",
+                        help=("fit the boosted map (docs/MODEL.md C.19) on top of the model's other maps, which are kept; "
+                              "its trees go to OUT with the suffix .trees.json, which the TOML names"))
     args = parser.parse_args(argv)
 
     try:
-        if args.features + args.down + args.side > 1:
-            raise UsageError("--features, --down and --side fit different maps; choose one")
+        if args.features + args.down + args.side + args.boosted > 1:
+            raise UsageError("--features, --down, --side and --boosted fit different maps; choose one")
         config = config_from_args(args)
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
@@ -391,10 +440,15 @@ def main(argv: list[str] | None = None) -> int:
             result = down_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
         elif args.side:
             result = side_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
+        elif args.boosted:
+            result = boosted_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
         else:
             result = recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, methods=tuple(args.methods))
     except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError) as err:
         print(f"error: {err}", file=sys.stderr)
+        return 2
+    except ImportError as err:  # the boosted map's fit needs scikit-learn, which only the pipeline extra installs
+        print(f"error: {err.name or err}: not installed; pip install \"toppledb[pipeline]\"", file=sys.stderr)
         return 2
     logs_line = f"logs: {' '.join(args.logs)}; {result['pushes']} pushes on {result['objects']} objects, variant {result['variant']}"
     if args.features:
@@ -433,6 +487,23 @@ def main(argv: list[str] | None = None) -> int:
         ]
         fitted_map = {**{name: getattr(config.topple, name) for name in MAP_FIELDS}, "down_map_z": config.topple.down_map_z,
                       "side_map": tuple(result["weights"]), "side_map_band": tuple(result["band"])}
+    elif args.boosted:
+        print(format_boosted_record(result))
+        cv = result["cross_validated"]
+        # Absolute: the TOML names the file, and a relative name would be read against whatever
+        # directory the TOML is used from.  To ship a map, copy it into pipeline/model/presets/.
+        trees_file = args.out.with_suffix(".trees.json").resolve()
+        trees_file.parent.mkdir(parents=True, exist_ok=True)
+        trees_file.write_text(json.dumps(result.pop("trees"), separators=(",", ":")))
+        result["trees_file"] = str(trees_file)
+        comments = [
+            "toppledb recalibrate --boosted: the boosted map of P(topple) (docs/MODEL.md C.19), the model's other maps kept",
+            logs_line,
+            (f"{args.folds}-fold CV grouped by object (seed {args.seed}), held-out ECE / Brier: without it "
+             f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, with it {cv['boosted_map']['ece']:.3f} / {cv['boosted_map']['brier']:.4f}"),
+        ]
+        fitted_map = {**{name: getattr(config.topple, name) for name in MAP_FIELDS}, "down_map_z": config.topple.down_map_z,
+                      "side_map_band": config.topple.side_map_band, "boosted_map": str(trees_file)}
     else:
         print(format_record(result))
         cv = result["cross_validated"]
@@ -460,7 +531,9 @@ def main(argv: list[str] | None = None) -> int:
         source = " ".join(filter(None, [str(args.config or "the defaults"), *(f"--set {o}" for o in args.overrides)]))
         comments.append(f"base model: {source}; its variant, corrections and [topple] values that differ from the "
                         "defaults are written here, its other sections are not")
-    fitted = {**base, "smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **NO_MAP, **fitted_map}
+    # A boosted map sits on the maps under it (C.19): any other fit replaces them, so it goes too.
+    fitted = {**base, "smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **NO_MAP,
+              "boosted_map": "", **fitted_map}
     write_outputs(args.out, fitted, comments, args.json, result)
     return 0
 

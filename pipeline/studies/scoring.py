@@ -29,6 +29,8 @@ import numpy as np
 from schema.frames import transform_points
 from schema.vocabulary import STATUS_OK
 
+from ..model.boosted_map import FEATURES as BOOSTED_FEATURES
+from ..model.boosted_map import boosted_features
 from ..model.collision import collision_object
 from ..model.config import ContactConfig, ToppleConfig
 from ..model.contacts import explicit_actions, object_contacts, pose_actions
@@ -195,7 +197,7 @@ class Scorer:
 
         returns : features (n, len(SIDE_FEATURES)) float;  p_topple (n,) float;  taken (n,) bool,
           the pushes the map takes (``feature_map.side_rows``)"""
-        topple = replace(topple, side_map=())
+        topple = replace(topple, side_map=(), boosted_map="")  # the boosted map comes after the side map (C.19)
         out = np.full((len(self), len(SIDE_FEATURES)), np.nan)
         p = np.full(len(self), np.nan)
         taken = np.zeros(len(self), dtype=bool)
@@ -206,6 +208,30 @@ class Scorer:
             out[group.rows] = side_features(table.p_topple[index], actions.points[index], actions.directions[index], edges)
             taken[group.rows] = side_rows(table.p_topple[index], actions.directions[index, 2], topple.side_map_band)
         return out, p, taken
+
+    def boosted_inputs(self, topple: ToppleConfig) -> tuple[np.ndarray, np.ndarray]:
+        """What the boosted map (docs/MODEL.md C.19) reads of every push, in log order, from ``topple``
+        with no boosted map (what the map is fitted on: the other maps applied, as the engine has them),
+        each push evaluated among its pose's candidates.
+
+        returns : features (n, len(boosted_map.FEATURES)) float;  lands (n,) bool, whether the model
+          knows where the push would land (where it does not, the engine keeps the row whatever the map says)"""
+        topple = replace(topple, boosted_map="")
+        unmapped_model = topple.without_recalibration()
+        out = np.full((len(self), len(BOOSTED_FEATURES)), np.nan)
+        lands = np.zeros(len(self), dtype=bool)
+        for group in self.groups:
+            table, actions, index = self._evaluate(group, topple, candidates=True)
+            unmapped, _, _ = self._evaluate(group, unmapped_model, candidates=True)
+            center_mass, edges = self._pose_edges(group)
+            pool = self.pose_candidates(group).candidates
+            obj = self.log.objects[group.object_id].model
+            features = boosted_features(table.p_topple, unmapped.p_topple, table.mean_force, actions, edges, center_mass,
+                                        group.drop_probabilities, group.pose.index, obj, topple.gravity, pool=pool)
+            out[group.rows] = features[index]
+            landing = landing_rows(table.next_pose, group.pose.index, actions.points, actions.directions, pool=pool, rows=index)
+            lands[group.rows] = landing.sum(axis=1) > 0
+        return out, lands
 
     def _pose_edges(self, group: Group) -> tuple[np.ndarray, EdgeGeometry]:
         """The centre of mass of ``group``'s object in its pose's frame, (3,) float, m (not the
