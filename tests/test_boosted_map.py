@@ -373,3 +373,32 @@ def test_a_missing_map_is_the_commands_one_line_error(tmp_path, capsys):
                  "--set", f"topple.boosted_map={tmp_path / 'nowhere.json'}"])
     err = capsys.readouterr().err
     assert code == 2 and "error: topple.boosted_map" in err and "nowhere.json" in err and "Traceback" not in err
+
+
+def _walk_one_by_one(x, data):
+    """The scalar reference of (C.19.1): one push, one tree, one node at a time, from the JSON layout."""
+    raw = data["baseline"]
+    for tree in data["trees"]:
+        node = 0
+        while not tree["leaf"][node]:
+            value = x[tree["feature"][node]]
+            left = tree["missing_left"][node] if np.isnan(value) else value <= tree["threshold"][node]
+            node = tree["left"][node] if left else tree["right"][node]
+        raw += tree["value"][node]
+    return 1.0 / (1.0 + np.exp(-raw))
+
+
+@pytest.mark.parametrize("shared", [(), (10, 13, 14, 15, 16, 17, 18, 19, 20, 21), tuple(range(F))])
+def test_the_walk_skipping_shared_splits_reaches_the_scalar_walks_leaves(shared):
+    data = json.loads(map_file("boosted_map_s41").read_text())
+    trees = trees_from_dict(data)
+    rng = np.random.default_rng(len(shared))
+    thresholds = np.array([t for tree in data["trees"] for t, leaf in zip(tree["threshold"], tree["leaf"]) if not leaf])
+    # Values drawn from the map's own thresholds, so pushes land on both sides of real splits and some exactly on one.
+    x = rng.choice(thresholds, size=(40, F)) + rng.choice([0.0, 0.0, 1e-3, -1e-3], size=(40, F))
+    x[rng.random((40, F)) < 0.05] = np.nan
+    x[:, list(shared)] = x[0, list(shared)]  # what a pose's pushes share (its drop probability, the object's shape, ...)
+    expected = np.array([_walk_one_by_one(row, data) for row in x])
+    assert np.allclose(boosted_probability(x, trees), expected, rtol=0, atol=1e-12)
+    assert np.allclose(boosted_probability(x[:1], trees), expected[:1], rtol=0, atol=1e-12), "one push: every split shared"
+    assert boosted_probability(x[:0], trees).shape == (0,)

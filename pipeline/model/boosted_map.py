@@ -189,7 +189,10 @@ def boosted_probability(features: np.ndarray, trees: BoostedTrees) -> np.ndarray
     if features.ndim != 2 or features.shape[1] != len(FEATURES):
         raise ValueError(f"features must be (A, {len(FEATURES)}), got {features.shape}")
     n_pushes = len(features)
-    node = np.repeat(trees.roots, n_pushes)  # (T A,), tree-major
+    if n_pushes == 0:
+        return np.empty(0)
+    roots, left, right = _skip_shared_splits(features, trees)
+    node = np.repeat(roots, n_pushes)  # (T A,), tree-major
     push = np.tile(np.arange(n_pushes), len(trees.roots))  # (T A,)
     # Only the pairs still above a leaf are stepped: trees stop at depths from 1 to about 15.
     walking = np.flatnonzero(~trees.leaf[node])
@@ -199,10 +202,34 @@ def boosted_probability(features: np.ndarray, trees: BoostedTrees) -> np.ndarray
         go_left = x <= trees.threshold[at]  # False for NaN, which goes where missing_left says
         missing = np.isnan(x)
         go_left[missing] = trees.missing_left[at[missing]]
-        node[walking] = np.where(go_left, trees.left[at], trees.right[at])
+        node[walking] = np.where(go_left, left[at], right[at])
         walking = walking[~trees.leaf[node[walking]]]
     raw = trees.baseline + trees.value[node].reshape(len(trees.roots), n_pushes).sum(axis=0)  # (A,)
     return 1.0 / (1.0 + np.exp(-raw))
+
+
+def _skip_shared_splits(features: np.ndarray, trees: BoostedTrees) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The trees' roots and child pointers with every split on a column all pushes share resolved.
+
+    A pose's pushes share nine of the 24 features (its drop probability, the object's shape, ...), and
+    two fifths of the packaged map's splits are on them: every push takes the same branch there, so the
+    walk jumps past those nodes instead of stepping each push through them.  The leaves reached, and the
+    sum over them, are the plain walk's.
+    features : (A, F) float;  returns : roots (T,), left (N,), right (N,) int
+    """
+    first = features[0]
+    shared = np.all(features == first, axis=0)  # (F,); NaN != NaN, so a column with a NaN is never shared
+    split = ~trees.leaf & shared[trees.feature]  # (N,)
+    taken = np.where(first[trees.feature] <= trees.threshold, trees.left, trees.right)  # (N,), read where split
+    jump = np.where(split, taken, np.arange(len(split)))  # (N,): a shared split's node -> the branch all take
+    # Pointer jumping: a chain of shared splits resolves in about log2(its length) rounds.  Stopping early
+    # would still be right (the walk steps through a shared split like any other), only slower.
+    while True:
+        further = jump[jump]
+        if np.array_equal(further, jump):
+            break
+        jump = further
+    return jump[trees.roots], jump[trees.left], jump[trees.right]
 
 
 def boosted_features(
