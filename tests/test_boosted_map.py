@@ -213,7 +213,7 @@ def test_the_scorer_gives_the_engines_features_and_the_fit_is_written(model_logs
     contacts = ContactConfig(n_contacts=CANDIDATES_PER_POSE)
     scorer = Scorer(log, seed=2, contacts=contacts)
     topple = Config().topple
-    features, lands = scorer.boosted_inputs(topple)
+    features, _, lands = scorer.boosted_inputs(topple)
     p = scorer.score(topple).p_topple
     assert np.allclose(features[:, 0], fitted_logit(p)) and lands[p > 0].all()
     out, record = tmp_path / "b.toml", tmp_path / "b.json"
@@ -334,7 +334,7 @@ def test_boosted_recalibrate_fits_each_fold_on_the_others_and_scores_the_model_w
     config = Config().with_overrides({"contacts.n_contacts": CANDIDATES_PER_POSE, "seed": 2, "topple.boosted_map": str(stump)})
     topple = config.topple
     scorer = Scorer(log, 2, config.contacts)
-    features, lands = scorer.boosted_inputs(topple)
+    features, _, lands = scorer.boosted_inputs(topple)
     p = scorer.score(replace(topple, boosted_map="")).p_topple
     rows = np.isfinite(p)
     # SC1: the second column is the unmapped P's

@@ -28,7 +28,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .feature_map import FORCE_RATIO_RANGE, LOGIT_FLOOR, down_features, landing_rows, needed_force_ratio, pose_features
+from .feature_map import (
+    FORCE_RATIO_RANGE,
+    LOGIT_FLOOR,
+    down_features,
+    landing_rows,
+    needed_force_ratio,
+    pose_features,
+    toppled_rows,
+)
 
 if TYPE_CHECKING:  # the service imports the config, which names this module's files, without the geometry
     from .edges import EdgeGeometry
@@ -313,10 +321,7 @@ def map_boosted_rows(next_pose: np.ndarray, features: np.ndarray, start: int, ac
         return next_pose, 1.0 - next_pose[:, start]
     landing = landing_rows(next_pose, start, actions.points, actions.directions, pool=pool, rows=ok)  # (K, P)
     lands = landing.sum(axis=1) > 0
-    q = boosted_probability(features[ok[lands]], trees)  # (L,)
-    rows = landing[lands] * q[:, None]
-    rows[:, start] = 1.0 - q
-    next_pose[ok[lands]] = rows
+    next_pose[ok[lands]] = toppled_rows(boosted_probability(features[ok[lands]], trees), landing[lands], start)
     return next_pose, 1.0 - next_pose[:, start]
 
 

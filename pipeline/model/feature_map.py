@@ -141,7 +141,7 @@ def _leaving(next_pose: np.ndarray, start: int) -> np.ndarray:
     return leaving
 
 
-def _toppled_rows(q: np.ndarray, landing: np.ndarray, start: int) -> np.ndarray:
+def toppled_rows(q: np.ndarray, landing: np.ndarray, start: int) -> np.ndarray:
     """(C.13.2): rows that stay in ``start`` with 1 - q and land as ``landing`` with q.
     q : (R,) float;  landing : (R, P) float, column ``start`` zero, rows sum to 1 (or 0 with q = 0)
     returns : (R, P) float"""
@@ -199,7 +199,7 @@ def map_rows(
     landing = _landing(leaving, near[:, 1:], pool)  # (A, P)
     ok = np.isfinite(p)
     q = np.where(landing.sum(axis=1) > 0, q, 0.0)
-    next_pose[ok] = _toppled_rows(q[ok], landing[ok], start)
+    next_pose[ok] = toppled_rows(q[ok], landing[ok], start)
     return next_pose, 1.0 - next_pose[:, start]
 
 
@@ -318,7 +318,7 @@ def map_down_rows(
     q = mapped_probability(features, weights)  # (D,)
     landing = landing_rows(unmapped, start, actions.points, actions.directions, pool=pool, rows=down)  # (D, P)
     q = np.where(landing.sum(axis=1) > 0, q, 0.0)  # nowhere the model knows to land: no topple
-    next_pose[down] = _toppled_rows(q, landing, start)
+    next_pose[down] = toppled_rows(q, landing, start)
     return next_pose, 1.0 - next_pose[:, start]
 
 
@@ -414,5 +414,5 @@ def map_side_rows(next_pose: np.ndarray, start: int, actions, edges: EdgeGeometr
         return next_pose, p
     q = mapped_probability(side_features(p[side], actions.points[side], actions.directions[side], edges), weights)  # (S,)
     leaving = _leaving(next_pose[side], start)  # (S, P); P > 0, so every row leaves
-    next_pose[side] = _toppled_rows(q, leaving / leaving.sum(axis=1, keepdims=True), start)  # (C.13.2), its own landing
+    next_pose[side] = toppled_rows(q, leaving / leaving.sum(axis=1, keepdims=True), start)  # (C.13.2), its own landing
     return next_pose, 1.0 - next_pose[:, start]

@@ -20,7 +20,6 @@ import dataclasses
 import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -308,8 +307,7 @@ def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: in
     config = config or Config()
     started = time.perf_counter()
     scorer = Scorer(log, config.seed, config.contacts)
-    features, lands = scorer.boosted_inputs(config.topple)
-    p = scorer.score(replace(config.topple, boosted_map="")).p_topple
+    features, p, lands = scorer.boosted_inputs(config.topple)
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
     fold_objects, fold_of = push_folds([scorer.object_ids[i] for i in objects], folds, seed)
     rows = np.isfinite(p)
@@ -388,6 +386,19 @@ def format_record(result: dict) -> str:
         lines.append(f"{name:<10} {m['ece']:>6.3f} {m['brier']:>7.4f} {m['ap']:>6.3f} {m['map']:>6.3f} {m['predicted']:>10.3f} {m['observed']:>8.3f}")
     lines.append(f"chosen by held-out {result['select_by']}: {result['chosen']} ({len(result['knots']['x'])} knots)")
     return "\n".join(lines)
+
+
+def kept_maps(topple: ToppleConfig) -> dict:
+    """The [topple] map values a fit on top of the model's maps writes back unchanged (--side, --boosted):
+    every map field, the down map's cut and the side map's band, which belong to their weights."""
+    return {**{name: getattr(topple, name) for name in MAP_FIELDS}, "down_map_z": topple.down_map_z,
+            "side_map_band": topple.side_map_band}
+
+
+def with_and_without(cv: dict, name: str, folds: int, seed: int) -> str:
+    """The TOML comment line of a map fitted on top of the others: held-out ECE and Brier without and with it."""
+    return (f"{folds}-fold CV grouped by object (seed {seed}), held-out ECE / Brier: without it "
+            f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, with it {cv[name]['ece']:.3f} / {cv[name]['brier']:.4f}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -479,14 +490,9 @@ def main(argv: list[str] | None = None) -> int:
     elif args.side:
         print(format_side_record(result))
         cv = result["cross_validated"]
-        comments = [
-            "toppledb recalibrate --side: the side map of P(topple) (docs/MODEL.md C.16), the model's other maps kept",
-            logs_line,
-            (f"{args.folds}-fold CV grouped by object (seed {args.seed}), held-out ECE / Brier: without it "
-             f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, with it {cv['side_map']['ece']:.3f} / {cv['side_map']['brier']:.4f}"),
-        ]
-        fitted_map = {**{name: getattr(config.topple, name) for name in MAP_FIELDS}, "down_map_z": config.topple.down_map_z,
-                      "side_map": tuple(result["weights"]), "side_map_band": tuple(result["band"])}
+        comments = ["toppledb recalibrate --side: the side map of P(topple) (docs/MODEL.md C.16), the model's other maps kept",
+                    logs_line, with_and_without(cv, "side_map", args.folds, args.seed)]
+        fitted_map = {**kept_maps(config.topple), "side_map": tuple(result["weights"]), "side_map_band": tuple(result["band"])}
     elif args.boosted:
         print(format_boosted_record(result))
         cv = result["cross_validated"]
@@ -496,14 +502,9 @@ def main(argv: list[str] | None = None) -> int:
         trees_file.parent.mkdir(parents=True, exist_ok=True)
         trees_file.write_text(json.dumps(result.pop("trees"), separators=(",", ":")))
         result["trees_file"] = str(trees_file)
-        comments = [
-            "toppledb recalibrate --boosted: the boosted map of P(topple) (docs/MODEL.md C.19), the model's other maps kept",
-            logs_line,
-            (f"{args.folds}-fold CV grouped by object (seed {args.seed}), held-out ECE / Brier: without it "
-             f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, with it {cv['boosted_map']['ece']:.3f} / {cv['boosted_map']['brier']:.4f}"),
-        ]
-        fitted_map = {**{name: getattr(config.topple, name) for name in MAP_FIELDS}, "down_map_z": config.topple.down_map_z,
-                      "side_map_band": config.topple.side_map_band, "boosted_map": str(trees_file)}
+        comments = ["toppledb recalibrate --boosted: the boosted map of P(topple) (docs/MODEL.md C.19), the model's other maps kept",
+                    logs_line, with_and_without(cv, "boosted_map", args.folds, args.seed)]
+        fitted_map = {**kept_maps(config.topple), "boosted_map": str(trees_file)}
     else:
         print(format_record(result))
         cv = result["cross_validated"]

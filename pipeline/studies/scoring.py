@@ -209,16 +209,18 @@ class Scorer:
             taken[group.rows] = side_rows(table.p_topple[index], actions.directions[index, 2], topple.side_map_band)
         return out, p, taken
 
-    def boosted_inputs(self, topple: ToppleConfig) -> tuple[np.ndarray, np.ndarray]:
+    def boosted_inputs(self, topple: ToppleConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What the boosted map (docs/MODEL.md C.19) reads of every push, in log order, from ``topple``
         with no boosted map (what the map is fitted on: the other maps applied, as the engine has them),
         each push evaluated among its pose's candidates.
 
-        returns : features (n, len(boosted_map.FEATURES)) float;  lands (n,) bool, whether the model
-          knows where the push would land (where it does not, the engine keeps the row whatever the map says)"""
+        returns : features (n, len(boosted_map.FEATURES)) float;  p_topple (n,) float, P without the
+          boosted map;  lands (n,) bool, whether the model knows where the push would land (where it
+          does not, the engine keeps the row whatever the map says)"""
         topple = replace(topple, boosted_map="")
         unmapped_model = topple.without_recalibration()
         out = np.full((len(self), len(BOOSTED_FEATURES)), np.nan)
+        p = np.full(len(self), np.nan)
         lands = np.zeros(len(self), dtype=bool)
         for group in self.groups:
             table, actions, index = self._evaluate(group, topple, candidates=True)
@@ -229,9 +231,10 @@ class Scorer:
             features = boosted_features(table.p_topple, unmapped.p_topple, table.mean_force, actions, edges, center_mass,
                                         group.drop_probabilities, group.pose.index, obj, topple.gravity, pool=pool)
             out[group.rows] = features[index]
+            p[group.rows] = table.p_topple[index]
             landing = landing_rows(table.next_pose, group.pose.index, actions.points, actions.directions, pool=pool, rows=index)
             lands[group.rows] = landing.sum(axis=1) > 0
-        return out, lands
+        return out, p, lands
 
     def _pose_edges(self, group: Group) -> tuple[np.ndarray, EdgeGeometry]:
         """The centre of mass of ``group``'s object in its pose's frame, (3,) float, m (not the
