@@ -91,7 +91,7 @@ def noise_free(variant="corrected", **fields):
     """A noise-free trial of ``variant`` at the thesis's friction means (mu_T 0.43, mu_f 0.98: the
     world the push player plays), the other fields the defaults, then ``fields``.  corrected is
     robust, so every spread is zeroed; no smoothing over neighbouring pushes and no recalibration
-    map (MODEL.md C.12, C.7 and C.15 are tested on their own): each push is judged alone."""
+    map (MODEL.md C.12, C.7, C.15 and C.19 are tested on their own): each push is judged alone."""
     topple = replace(
         Config().topple,
         variant=variant,
@@ -107,6 +107,7 @@ def noise_free(variant="corrected", **fields):
         recalibration_x=(),
         recalibration_y=(),
         down_map=(),
+        boosted_map="",
     )
     return replace(topple, **fields)
 

@@ -167,7 +167,7 @@ def test_rows_take_q_where_they_land_and_keep_their_landing_in_proportion():
 
 def test_the_engine_maps_every_ok_row_last_from_its_features(pose_and_candidates, tmp_path):  # noqa: F811
     obj, pose_set, pose, actions = pose_and_candidates
-    topple = replace(Config().topple, n_trials=40)
+    topple = replace(Config().topple, n_trials=40, boosted_map="")
     trees_file = tmp_path / "stumps.json"
     trees_file.write_text(json.dumps(_map(_stump(0, -2.0, -1.0, 0.5), _stump(13, 0.3, 0.4, -0.4), baseline=0.1)))
     boosted = replace(topple, boosted_map=str(trees_file))
@@ -212,7 +212,7 @@ def test_the_scorer_gives_the_engines_features_and_the_fit_is_written(model_logs
     log = read_log([path])
     contacts = ContactConfig(n_contacts=CANDIDATES_PER_POSE)
     scorer = Scorer(log, seed=2, contacts=contacts)
-    topple = Config().topple
+    topple = replace(Config().topple, boosted_map="")  # the model the map is fitted over
     features, _, lands = scorer.boosted_inputs(topple)
     p = scorer.score(topple).p_topple
     assert np.allclose(features[:, 0], fitted_logit(p)) and lands[p > 0].all()
@@ -271,7 +271,7 @@ def test_the_logit_floor_is_the_fitted_form_bit_for_bit():
 
 def test_the_engine_passes_boosted_features_of_the_unmapped_p_and_the_candidates(pose_and_candidates, tmp_path, monkeypatch):  # noqa: F811
     obj, pose_set, pose, actions = pose_and_candidates
-    topple = replace(Config().topple, n_trials=40)
+    topple = replace(Config().topple, n_trials=40, boosted_map="")
     trees_file = tmp_path / "stumps.json"
     trees_file.write_text(json.dumps(_map(_stump(0, -2.0, -1.0, 0.5))))
     boosted = replace(topple, boosted_map=str(trees_file))
@@ -306,15 +306,17 @@ def test_the_engine_passes_boosted_features_of_the_unmapped_p_and_the_candidates
 
 
 def test_the_boosted_map_alone_needs_the_candidates():
-    bare = replace(Config().topple, smoothing_radius=0.0, feature_map=(), down_map=())
+    bare = replace(Config().topple, smoothing_radius=0.0, feature_map=(), down_map=(), boosted_map="")
     assert not bare.needs_candidates and replace(bare, boosted_map="boosted_map_s41").needs_candidates
 
 
 # --- shards (S02, S03) -----------------------------------------------------------------------------
 
 def test_a_shard_without_the_map_keeps_the_identity_it_had_before_it_existed(tmp_path):
-    inputs = shards.shard_inputs(SPEC, Config())
+    without = Config().with_overrides({"topple.boosted_map": ""})
+    inputs = shards.shard_inputs(SPEC, without)
     assert "boosted_map" not in inputs["config"]["topple"] and "boosted_map_sha256" not in inputs
+    assert "boosted_map_sha256" in shards.shard_inputs(SPEC, Config()), "the default applies the packaged map"
     thesis = Config().with_overrides({"topple.variant": "robust"})
     named = thesis.with_overrides({"topple.boosted_map": str(tmp_path / "nowhere.json")})
     assert shards.shard_inputs(SPEC, named) == shards.shard_inputs(SPEC, thesis), "a thesis variant never reads the file"

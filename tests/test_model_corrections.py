@@ -230,7 +230,7 @@ def test_limited_forces_are_positive_and_below_the_limit_on_a_random_object():
     from schema.frames import transform_points
 
     actions = explicit_actions(obj, pose.transform, transform_points(pose.transform, points), None)
-    topple = replace(Config().topple, variant="corrected", n_trials=20, max_finger_force=1.5, recalibration_x=(), recalibration_y=(), down_map=())
+    topple = replace(Config().topple, variant="corrected", n_trials=20, max_finger_force=1.5, recalibration_x=(), recalibration_y=(), down_map=(), boosted_map="")
     table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(0, obj.name, 0, "trials"))
     forces = table.mean_force[np.isfinite(table.mean_force)]
     assert len(forces) > 0 and np.all(forces > 0) and np.all(forces <= 1.5)
@@ -270,7 +270,7 @@ def test_a_marginal_pose_falls_over_its_nearest_edge_whatever_the_push():
     points = np.array([[-0.0495, 0.0, 0.02], [-0.0495, 0.0, 0.14], [-0.0245, 0.0, 0.15]])
     actions = explicit_actions(obj, pose.transform, points, None)
     falls = replace(Config().topple, variant="corrected", corrections="stability_margin,finger_friction", n_trials=5,
-                    recalibration_x=(), recalibration_y=(), down_map=())
+                    recalibration_x=(), recalibration_y=(), down_map=(), boosted_map="")
     table = evaluate_pose(obj, pose, pose_set.probabilities, actions, falls, stream(0, "m", pose.index, "trials"))
     landing = pose.edge_final_pose[edge]
     assert landing != pose.index

@@ -269,15 +269,16 @@ def test_corrections_and_maps_that_are_off_are_no_part_of_a_shards_identity():
 
     spread, onward = shards.UNUSED_WHEN_OFF["landing_spread"], shards.UNUSED_WHEN_OFF["landing_onward"]
     boosted = shards.UNUSED_WHEN_OFF["boosted_map"]
-    # The default plans with failures (its map is used) and carries landings onward, but spreads none
-    # and has no boosted map.
+    # The default plans with failures (its map is used), carries landings onward and applies the boosted
+    # map, but spreads none.
     assert SMALL.mdp.plans_with_failures and SMALL.topple.applied_landing_onward and not SMALL.topple.applied_landing_spread
-    assert unused() == {"topple": spread + boosted}
-    assert unused(**{"topple.landing_spread": 0.3}) == {"topple": boosted}
-    assert unused(**{"topple.landing_spread": 0.3, "topple.boosted_map": "boosted_map_s41"}) == {}
+    assert SMALL.topple.applied_boosted_map
+    assert unused() == {"topple": spread}
+    assert unused(**{"topple.landing_spread": 0.3}) == {}
+    assert unused(**{"topple.landing_spread": 0.3, "topple.boosted_map": ""}) == {"topple": boosted}
     assert unused(**{"topple.variant": "robust"}) == {"topple": spread + onward + boosted}
-    assert unused(**{"mdp.believe_failures": False}) == {**shards.SERVING_ONLY, "topple": spread + boosted}
-    assert unused(**{"mdp.believe_failures": False, "topple.landing_spread": 0.3}) == {**shards.SERVING_ONLY, "topple": boosted}
+    assert unused(**{"mdp.believe_failures": False}) == {**shards.SERVING_ONLY, "topple": spread}
+    assert unused(**{"mdp.believe_failures": False, "topple.landing_spread": 0.3}) == {**shards.SERVING_ONLY}
 
     base = shards.shard_inputs(spec_of("box"), SMALL)
     assert not set(spread) & set(base["config"]["topple"]) and set(onward) <= set(base["config"]["topple"])

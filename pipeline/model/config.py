@@ -77,8 +77,8 @@ def field_range(cls: type, name: str) -> Range | None:
 
 MAP_FIELDS = ("recalibration_x", "recalibration_y", "feature_map", "down_map", "side_map")
 """The ``topple`` fields that hold a map of P(topple) (MODEL.md C.7, C.13, C.15, C.16); all empty: no map."""
-NO_MAP = {name: () for name in MAP_FIELDS}
-"""``topple`` values of a model with no map: what a file writes to clear the default's."""
+NO_MAP = {**{name: () for name in MAP_FIELDS}, "boosted_map": ""}
+"""``topple`` values of a model with no map (the boosted map of C.19 too): what a file writes to clear the default's."""
 
 THESIS_VARIANTS = ("baseline", "rotations", "robustness", "robust")
 """Model variants of thesis table 4.1: (predicts planar rotations, robust estimates)."""
@@ -280,11 +280,12 @@ class ToppleConfig:
     maps; it is part of the fit (``recalibrate --side`` fits on the pushes inside it and writes
     it beside the weights).  The default keeps to the pushes the model is unsure of."""
 
-    boosted_map: str = ""
+    boosted_map: str = "boosted_map_s41"
     """A gradient-boosted map of P(topple) applied after every other map (docs/MODEL.md C.19,
-    ``pipeline.model.boosted_map``): the name of a packaged map (``presets/<name>.json``, e.g.
-    ``boosted_map_s41``, fitted on the corpus's drawn pushes under this default) or a path to a
-    ``.json`` one; empty (the default): none.  Only the ``corrected`` variant applies it."""
+    ``pipeline.model.boosted_map``): the name of a packaged map (``presets/<name>.json``; the
+    default, ``boosted_map_s41``, was fitted on the corpus's drawn pushes under this model without
+    it and adopted at stop 42 by the rules of reports/boosted_map_rule*_s41.md) or a path to a
+    ``.json`` one; empty: none.  Only the ``corrected`` variant applies it."""
 
     landing_spread: float = bounded(0.0, FRACTION)
     """Share eps of every toppling push's landing moved to the start pose's most probable other
@@ -416,7 +417,7 @@ class ToppleConfig:
         """This model with no map: what a recalibration (MODEL.md C.7), a feature map (C.13) or the
         down map (C.15) is fitted on (the side map of C.16 and the boosted map of C.19 cleared too), the Monte Carlo counts of (9.1)-(9.2) smoothed as configured (C.12),
         their landing neither spread (C.17) nor carried on (C.18)."""
-        return dataclasses.replace(self, **NO_MAP, boosted_map="", landing_spread=0.0, landing_onward=0.0)
+        return dataclasses.replace(self, **NO_MAP, landing_spread=0.0, landing_onward=0.0)
 
     def counted(self) -> "ToppleConfig":
         """This model as the Monte Carlo counts of MODEL.md (9.1)-(9.2), neither smoothed (C.12) nor
