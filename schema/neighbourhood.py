@@ -34,6 +34,7 @@ def neighbour_mean(
     max_angle: float = MAX_ANGLE,
     rows: np.ndarray | None = None,
     pool: int | None = None,
+    near: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mean of ``values`` over each candidate's neighbours with a finite value (itself included).
 
@@ -44,6 +45,8 @@ def neighbour_mean(
     pool : only the first ``pool`` candidates are anyone's neighbours (default: all A); a row
       past them (a push that is not one of the pose's candidates, such as a logged push) is
       averaged over the pool and itself, and counts in no other row's mean
+    near : (A, A) bool, ``neighbour_matrix`` of these candidates with these limits and ``pool``, when
+      the caller has it already (one pose's maps take several means over the same neighbourhoods)
     returns : mean (R,) or (R, k) float, NaN where the candidate itself is NaN;
       count (R,) int, its finite neighbours (0 where it is NaN)
     """
@@ -52,11 +55,24 @@ def neighbour_mean(
     values = values[:, None] if flat else values
     rows = np.arange(len(points)) if rows is None else np.asarray(rows, dtype=np.int64)
     finite = np.isfinite(values).all(axis=1)
-    near = _near(points, directions, rows, radius, max_angle, pool) & finite[None, :] & finite[rows, None]
+    near = (_near(points, directions, rows, radius, max_angle, pool) if near is None else near[rows]) \
+        & finite[None, :] & finite[rows, None]
     count = near.sum(axis=1)
     total = near.astype(float) @ np.where(finite[:, None], values, 0.0)
     mean = np.where((count > 0)[:, None], total / np.maximum(count, 1)[:, None], np.nan)
     return (mean[:, 0] if flat else mean), count
+
+
+def neighbour_matrix(points: np.ndarray, directions: np.ndarray, radius: float = RADIUS, max_angle: float = MAX_ANGLE,
+                     pool: int | None = None) -> np.ndarray:
+    """Which candidates are in each candidate's neighbourhood (``neighbour_mean``'s limits and
+    ``pool``), whatever their values: what ``neighbour_mean`` takes as ``near``.
+
+    points : (A, 3) float, m;  directions : (A, 3) float, unit
+    returns : (A, A) bool, row i the neighbours of candidate i, itself included
+    """
+    points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
+    return _near(points, directions, np.arange(len(points)), radius, max_angle, pool)
 
 
 def neighbours(

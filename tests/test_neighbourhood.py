@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from schema.neighbourhood import MAX_ANGLE, RADIUS, neighbour_mean, neighbours
+from schema.neighbourhood import MAX_ANGLE, RADIUS, neighbour_matrix, neighbour_mean, neighbours
 from tests.test_service import client, dataset, planar_transform, stored_transform, tables, xyz  # noqa: F401 (fixtures)
 
 
@@ -103,6 +103,27 @@ def test_a_row_past_the_pool_averages_over_the_pool_and_itself_only():
     assert n.tolist() == [3] and probe[0] == pytest.approx(0.5)
     everyone, _ = neighbour_mean(points, directions, values)
     np.testing.assert_allclose(everyone, [0.5, 0.5, 0.5])
+
+
+def test_a_neighbour_matrix_found_once_gives_every_mean_bit_for_bit():
+    """One pose's maps share ``neighbour_matrix``: each mean over it is the mean found from scratch,
+    for any rows, a pool and k columns, and the matrix passed is the one used."""
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-0.03, 0.03, (300, 3))
+    directions = np.array([1.0, 0.0, 0.0]) + 0.4 * rng.normal(size=(300, 3))  # some within MAX_ANGLE, some not
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    values = rng.random((300, 2))
+    values[rng.random(300) < 0.1] = np.nan
+    near = neighbour_matrix(points, directions, pool=250)
+    assert near.shape == (300, 300) and near.diagonal().all() and not near[:, 250:][~np.eye(300, dtype=bool)[:, 250:]].any()
+    rows = np.flatnonzero(np.isfinite(values[:, 0]))[::3]
+    for kwargs in ({}, {"rows": rows}):
+        shared = neighbour_mean(points, directions, values, pool=250, near=near, **kwargs)
+        fresh = neighbour_mean(points, directions, values, pool=250, **kwargs)
+        assert np.array_equal(shared[0], fresh[0], equal_nan=True) and np.array_equal(shared[1], fresh[1])
+    alone, count = neighbour_mean(points, directions, values[:, 0], near=np.eye(300, dtype=bool))
+    assert np.array_equal(alone, values[:, 0], equal_nan=True) and count.max() == 1, "the matrix given is the one read"
+    assert 3 < neighbour_mean(points, directions, values[:, 0], pool=250)[1].mean(), "the test needs real neighbourhoods"
 
 
 def test_chosen_means_average_around_each_pose_s_own_candidates():

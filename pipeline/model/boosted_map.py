@@ -252,6 +252,7 @@ def boosted_features(
     obj: ObjectModel,
     gravity: float,
     pool: int | None = None,
+    near: np.ndarray | None = None,
 ) -> np.ndarray:
     """g(u) (``FEATURES``) of every push of one pose.
 
@@ -261,11 +262,12 @@ def boosted_features(
     edges : ``edges.edge_geometry`` of the pose;  center_mass : (3,) float, m, pose frame
     drop_probabilities : (P,) float, the pose set's;  start : the pose's index;  obj : the object
     gravity : m/s^2;  pool : the pose's candidates, over which N is taken (``pose_features``)
+    near : (A, A) bool, ``neighbour_matrix`` with ``pool`` when at hand (else computed here)
     returns : (A, len(FEATURES)) float, NaN rows where ``unmapped_p`` is NaN
     """
     n = len(p_topple)
     points, directions = np.asarray(actions.points, dtype=float), np.asarray(actions.directions, dtype=float)
-    push = pose_features(unmapped_p, points, directions, mean_force, obj.mass * gravity, pool=pool)  # (A, 6)
+    push = pose_features(unmapped_p, points, directions, mean_force, obj.mass * gravity, pool=pool, near=near)  # (A, 6)
     down = down_features(unmapped_p, points, actions.normals, directions, edges, center_mass)  # (A, 8)
     height = max(float(center_mass[2]), MIN_HEIGHT)  # m
     extents = np.sort(np.asarray(obj.mesh.extents, dtype=float))[::-1]  # (3,), m, longest first
@@ -307,11 +309,11 @@ def fitted_logit(p: np.ndarray) -> np.ndarray:
 
 
 def map_boosted_rows(next_pose: np.ndarray, features: np.ndarray, start: int, actions, trees: BoostedTrees,
-                     pool: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     pool: int | None = None, near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Apply (C.19.1) to every ok row of one pose.
 
     next_pose : (A, P) float, the rows after the other maps (NaN rows: not ok)
-    features : (A, len(FEATURES)) float, ``boosted_features``;  pool : as ``landing_rows``
+    features : (A, len(FEATURES)) float, ``boosted_features``;  pool, near : as ``landing_rows``
     returns : next_pose (A, P), an ok row (1 - q) at ``start`` plus q times its landing (C.13.2),
       a row with no known landing unchanged;  p_topple (A,)
     """
@@ -319,7 +321,7 @@ def map_boosted_rows(next_pose: np.ndarray, features: np.ndarray, start: int, ac
     ok = np.flatnonzero(np.isfinite(next_pose[:, start]))  # (K,)
     if len(ok) == 0:
         return next_pose, 1.0 - next_pose[:, start]
-    landing = landing_rows(next_pose, start, actions.points, actions.directions, pool=pool, rows=ok)  # (K, P)
+    landing = landing_rows(next_pose, start, actions.points, actions.directions, pool=pool, rows=ok, near=near)  # (K, P)
     lands = landing.sum(axis=1) > 0
     next_pose[ok[lands]] = toppled_rows(boosted_probability(features[ok[lands]], trees), landing[lands], start)
     return next_pose, 1.0 - next_pose[:, start]

@@ -97,16 +97,17 @@ def push_features(
 
 
 def pose_features(p_topple: np.ndarray, points: np.ndarray, directions: np.ndarray, mean_force: np.ndarray,
-                  weight: float, pool: int | None = None, rows: np.ndarray | None = None) -> np.ndarray:
+                  weight: float, pool: int | None = None, rows: np.ndarray | None = None,
+                  near: np.ndarray | None = None) -> np.ndarray:
     """f(u) of (C.13.1) for ``rows`` of one pose's pushes (default all), N taken over the pose's
     pool as ``map_rows`` takes it: what the map is fitted on (``Scorer.features``).
 
     p_topple : (A,) float;  points, directions : (A, 3) float, pose frame;  mean_force : (A,) float, N
-    weight : float, N, mg;  pool, rows : as ``neighbour_mean``
+    weight : float, N, mg;  pool, rows, near : as ``neighbour_mean``
     returns : (R, F) float
     """
     rows = np.arange(len(p_topple)) if rows is None else np.asarray(rows)
-    neighbourhood, _ = neighbour_mean(points, directions, p_topple, RADIUS, MAX_ANGLE, rows=rows, pool=pool)
+    neighbourhood, _ = neighbour_mean(points, directions, p_topple, RADIUS, MAX_ANGLE, rows=rows, pool=pool, near=near)
     return push_features(p_topple[rows], neighbourhood, mean_force[rows], weight, directions[rows])
 
 
@@ -116,7 +117,7 @@ def mapped_probability(features: np.ndarray, weights) -> np.ndarray:
 
 
 def landing_rows(next_pose: np.ndarray, start: int, points: np.ndarray, directions: np.ndarray,
-                 pool: int | None = None, rows: np.ndarray | None = None) -> np.ndarray:
+                 pool: int | None = None, rows: np.ndarray | None = None, near: np.ndarray | None = None) -> np.ndarray:
     """Where each push lands when it topples (C.13.2): a distribution over the poses other than
     ``start``, or zeros where the model knows of no landing.
 
@@ -126,12 +127,12 @@ def landing_rows(next_pose: np.ndarray, start: int, points: np.ndarray, directio
 
     next_pose : (A, P) float, rows sum to 1, NaN rows not ok;  start : the pose the rows leave
     points, directions : (A, 3) float, pose frame;  pool : the pose's candidates (default all)
-    rows : (R,) int, the pushes to give a landing (default all)
+    rows : (R,) int, the pushes to give a landing (default all);  near : as ``neighbour_mean``
     returns : (R, P) float, column ``start`` zero; rows sum to 1 or to 0
     """
     leaving = _leaving(next_pose, start)
-    near, _ = neighbour_mean(points, directions, leaving, RADIUS, MAX_ANGLE, rows=rows, pool=pool)
-    return _landing(leaving, near, pool, rows)
+    mean, _ = neighbour_mean(points, directions, leaving, RADIUS, MAX_ANGLE, rows=rows, pool=pool, near=near)
+    return _landing(leaving, mean, pool, rows)
 
 
 def _leaving(next_pose: np.ndarray, start: int) -> np.ndarray:
@@ -177,6 +178,7 @@ def map_rows(
     weight: float,
     weights,
     pool: int | None = None,
+    near: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Apply the feature map to one pose's rows, keeping them distributions.
 
@@ -184,6 +186,7 @@ def map_rows(
     points, directions : (A, 3) float, pose frame;  mean_force : (A,) float, N (NaN: none toppled)
     weight : float, N, mg;  weights : (F,) or empty (the rows come back as they are)
     pool : the first ``pool`` rows are the pose's candidates, the rest probes (``neighbour_mean``)
+    near : (A, A) bool, ``neighbour_matrix`` with ``pool`` when at hand (else computed here)
     returns : next_pose (A, P) with row = (1 - q) at ``start`` + q landing; p_topple (A,) = q
       (0 where the model knows of no landing for the pose at all)
     """
@@ -194,9 +197,9 @@ def map_rows(
     leaving = _leaving(next_pose, start)  # (A, P)
     # One neighbourhood pass for both N and the neighbours' landing: p and the leaving parts are
     # NaN on the same rows, so their means are over the same neighbours.
-    near, _ = neighbour_mean(points, directions, np.column_stack([p, leaving]), RADIUS, MAX_ANGLE, pool=pool)
-    q = mapped_probability(push_features(p, near[:, 0], mean_force, weight, directions), weights)  # (A,)
-    landing = _landing(leaving, near[:, 1:], pool)  # (A, P)
+    mean, _ = neighbour_mean(points, directions, np.column_stack([p, leaving]), RADIUS, MAX_ANGLE, pool=pool, near=near)
+    q = mapped_probability(push_features(p, mean[:, 0], mean_force, weight, directions), weights)  # (A,)
+    landing = _landing(leaving, mean[:, 1:], pool)  # (A, P)
     ok = np.isfinite(p)
     q = np.where(landing.sum(axis=1) > 0, q, 0.0)
     next_pose[ok] = toppled_rows(q[ok], landing[ok], start)
@@ -295,6 +298,7 @@ def map_down_rows(
     weights,
     cut_z: float,
     pool: int | None = None,
+    near: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Apply the down map (C.15) to the rows of the pushes ``pressed_down`` below ``cut_z``; the
     rest are returned as they are.
@@ -304,7 +308,7 @@ def map_down_rows(
       map's P and a push's landing are read from
     start : the pose the rows leave;  actions : the pose's ``outcomes.Actions`` (points, m;
       normals; directions; pose frame);  edges, center_mass : as ``down_features``
-    weights : (len(DOWN_FEATURES),) or empty;  pool : as ``map_rows``
+    weights : (len(DOWN_FEATURES),) or empty;  pool, near : as ``map_rows``
     returns : next_pose (A, P), a down push's row (1 - q) at ``start`` + q times its landing
       (C.13.2); p_topple (A,)
     """
@@ -316,7 +320,7 @@ def map_down_rows(
     p = 1.0 - unmapped[down, start]  # (D,)
     features = down_features(p, actions.points[down], actions.normals[down], actions.directions[down], edges, center_mass)
     q = mapped_probability(features, weights)  # (D,)
-    landing = landing_rows(unmapped, start, actions.points, actions.directions, pool=pool, rows=down)  # (D, P)
+    landing = landing_rows(unmapped, start, actions.points, actions.directions, pool=pool, rows=down, near=near)  # (D, P)
     q = np.where(landing.sum(axis=1) > 0, q, 0.0)  # nowhere the model knows to land: no topple
     next_pose[down] = toppled_rows(q, landing, start)
     return next_pose, 1.0 - next_pose[:, start]

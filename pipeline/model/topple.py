@@ -47,7 +47,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from schema.frames import axis_angle_matrices, transform_points, unit
-from schema.neighbourhood import neighbour_mean
+from schema.neighbourhood import neighbour_matrix, neighbour_mean
 from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
 from .boosted_map import boosted_features, load_trees, map_boosted_rows
@@ -766,14 +766,17 @@ def evaluate_pose(
     # distribution; no knots (every thesis variant) leave the table as counted.
     unmapped = next_pose  # the down map (C.15) reads P from the rows before C.7's map, as it was fitted
     next_pose, p_topple = recalibrate_rows(next_pose, pose.index, *config.applied_recalibration)  # (A, P), (A,), (9.2)
+    # The maps' neighbourhood means (C.13, C.15, C.19) are over the same neighbours: found once.
+    near = (neighbour_matrix(actions.points, actions.directions, pool=n_candidates)
+            if config.applied_feature_map or config.applied_down_map or config.applied_boosted_map else None)
     if config.applied_feature_map:
         # MODEL.md C.13: P(topple) from the push's features, its landing kept (or borrowed).
         next_pose, p_topple = map_rows(next_pose, pose.index, actions.points, actions.directions, mean_force,
-                                       obj.mass * config.gravity, config.applied_feature_map, pool=n_candidates)
+                                       obj.mass * config.gravity, config.applied_feature_map, pool=n_candidates, near=near)
     if config.applied_down_map:
         # MODEL.md C.15: pushes that press down, which the policies never choose, from their geometry.
         next_pose, p_topple = map_down_rows(next_pose, unmapped, pose.index, actions, edges, center_mass,
-                                            config.applied_down_map, config.down_map_z, pool=n_candidates)
+                                            config.applied_down_map, config.down_map_z, pool=n_candidates, near=near)
     if config.applied_side_map:
         # MODEL.md C.16: pushes from the side the model is unsure of, sharpened along the force they need.
         next_pose, p_topple = map_side_rows(next_pose, pose.index, actions, edges, config.applied_side_map,
@@ -781,9 +784,9 @@ def evaluate_pose(
     if config.applied_boosted_map:
         # MODEL.md C.19: P(topple) from boosted trees over what the model computes, last of the maps.
         features = boosted_features(p_topple, 1.0 - unmapped[:, pose.index], mean_force, actions, edges, center_mass,
-                                    drop_probabilities, pose.index, obj, config.gravity, pool=n_candidates)
+                                    drop_probabilities, pose.index, obj, config.gravity, pool=n_candidates, near=near)
         next_pose, p_topple = map_boosted_rows(next_pose, features, pose.index, actions,
-                                               load_trees(config.applied_boosted_map), pool=n_candidates)
+                                               load_trees(config.applied_boosted_map), pool=n_candidates, near=near)
     if spread:
         # MODEL.md C.17: the landing, never P(topple), shared with the most stable other poses.  Last,
         # though the maps keep a row's landing in proportion or borrow its neighbours' (both commute
