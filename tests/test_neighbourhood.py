@@ -126,6 +126,29 @@ def test_a_neighbour_matrix_found_once_gives_every_mean_bit_for_bit():
     assert 3 < neighbour_mean(points, directions, values[:, 0], pool=250)[1].mean(), "the test needs real neighbourhoods"
 
 
+def test_every_mean_is_summed_in_index_order_whatever_blas_threads_it_may_use():
+    """A mean one rounding off crosses a threshold of the boosted map (MODEL.md C.19) now and then, so a
+    table must not depend on how many threads a BLAS product splits its sums over: each neighbour is
+    added in index order, as a plain loop adds them, and one or two BLAS threads give the same bits."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-0.02, 0.02, (1500, 3))  # dense: dozens of neighbours each
+    directions = np.array([1.0, 0.0, 0.0]) + 0.3 * rng.normal(size=(1500, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    values = rng.random((1500, 3)) * 10.0 ** rng.integers(-8, 1, (1500, 3))  # magnitudes apart: order shows
+    mean, count = neighbour_mean(points, directions, values)
+    near = neighbour_matrix(points, directions)
+    for row in (0, 1, 777, 1499):
+        total = np.zeros(3)
+        for j in np.flatnonzero(near[row]):
+            total = total + values[j]
+        assert count[row] == near[row].sum() > 20 and np.array_equal(mean[row], total / count[row])
+    for threads in (1, 2):
+        with threadpoolctl.threadpool_limits(threads):
+            again = neighbour_mean(points, directions, values)
+        assert np.array_equal(again[0], mean) and np.array_equal(again[1], count)
+
+
 def test_chosen_means_average_around_each_pose_s_own_candidates():
     from schema.neighbourhood import chosen_means
     from schema.vocabulary import NO_OP
