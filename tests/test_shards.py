@@ -25,6 +25,7 @@ from pipeline.build import shards
 from pipeline.build.atomic import file_sha256
 from pipeline.build.rows import ShardError, build_shard
 from pipeline.model.evaluation import evaluate_object
+from pipeline.model.topple import ENGINE_REVISION
 from schema import hdf5, layout, tables
 from schema.version import SCHEMA_VERSION
 from tests.test_rows import SMALL, TRIALS, spec_of
@@ -249,7 +250,9 @@ def test_remove_temp_files_removes_only_temporary_files(tmp_path):
 def test_a_shards_identity_is_its_object_and_the_parameters_it_uses():
     spec = spec_of("box")
     inputs = shards.shard_inputs(spec, SMALL)
-    assert inputs["schema_version"] == SCHEMA_VERSION
+    assert inputs["schema_version"] == SCHEMA_VERSION and inputs["engine_revision"] == ENGINE_REVISION
+    revised = {**inputs, "engine_revision": ENGINE_REVISION + 1}
+    assert shards.fingerprint(revised) != shards.fingerprint(inputs), "another engine's shard is not resumed"
     assert inputs["object"] == {k: v for k, v in dataclasses.asdict(spec).items() if k != "path"}
     moved = dataclasses.replace(spec, path="/elsewhere/box.obj")
     assert shards.shard_inputs(moved, SMALL) == inputs, "the same mesh elsewhere is the same shard"

@@ -28,6 +28,7 @@ from schema.version import SCHEMA_VERSION
 
 from ..model.boosted_map import load_trees
 from ..model.config import Config
+from ..model.topple import ENGINE_REVISION
 from .atomic import file_sha256, write_atomic, write_text_atomic
 from .corpus import ObjectSpec
 from .rows import ShardData, ShardError
@@ -74,12 +75,13 @@ def unused_by_shards(config: Config) -> dict[str, tuple[str, ...]]:
 def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:
     """Everything that determines a shard's content: schema version, every parameter the
     build uses (``unused_by_shards`` left out), and the object (mesh checksum, scale, mass, id,
-    source).  The mesh's location is left out: the same file elsewhere gives the same shard."""
+    source), and the engine's revision, so that a shard of an engine that computed other numbers is not
+    resumed.  The mesh's location is left out: the same file elsewhere gives the same shard."""
     identity = {k: v for k, v in dataclasses.asdict(spec).items() if k != "path"}
     parameters = config.to_dict()
     for section, keys in unused_by_shards(config).items():
         parameters[section] = {k: v for k, v in parameters[section].items() if k not in keys}
-    inputs = {"schema_version": SCHEMA_VERSION, "config": parameters, "object": identity}
+    inputs = {"schema_version": SCHEMA_VERSION, "engine_revision": ENGINE_REVISION, "config": parameters, "object": identity}
     if config.topple.applied_boosted_map:
         # The parameter names a file: its content, not its name or place, makes the shard (docs/MODEL.md C.19).
         parameters["topple"].pop("boosted_map")

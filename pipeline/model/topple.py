@@ -85,6 +85,12 @@ guaranteed by BLAS: identical outcomes and forces on the 20 bench objects, 19 mi
 and on the whole default dataset; ``tests/test_topple.py`` holds a 97-entry tiling to the
 default's table); it is not a model parameter."""
 
+ENGINE_REVISION = 1
+"""Bumped by every change to the engine that changes a table's numbers for the same parameters and
+object (not by speed-ups that keep every bit): part of each shard's identity (``shards.shard_inputs``),
+so a resumed build never mixes shards of two engines.  1: stop 42, neighbourhood means summed in index
+order (``schema.neighbourhood.neighbour_mean``), the same bits whatever BLAS's thread count."""
+
 NO_ROTATION_AXIS = (0.0, 0.0, 1.0)
 """Rotation axis of the noise-free variants, whose rotation angle is 0: any unit axis
 gives the identity; a fixed one keeps ``TrialNoise`` valid (unit axes) in every variant."""
