@@ -526,7 +526,7 @@ def main(argv: list[str] | None = None) -> int:
     # defaults change (they did when stuck_finger joined them).
     # The side map's band belongs to its weights: it travels only with them (the --side branch above).
     base = {f.name: getattr(topple, f.name) for f in dataclasses.fields(topple)
-            if f.name not in (*MAP_FIELDS, "side_map_band")
+            if f.name not in (*NO_MAP, "side_map_band")
             and (f.name in ("variant", "corrections") or getattr(topple, f.name) != getattr(default, f.name))}
     if args.config or args.overrides:
         source = " ".join(filter(None, [str(args.config or "the defaults"), *(f"--set {o}" for o in args.overrides)]))
@@ -534,7 +534,7 @@ def main(argv: list[str] | None = None) -> int:
                         "defaults are written here, its other sections are not")
     # A boosted map sits on the maps under it (C.19): any other fit replaces them, so it goes too.
     fitted = {**base, "smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **NO_MAP,
-              "boosted_map": "", **fitted_map}
+              **fitted_map}
     write_outputs(args.out, fitted, comments, args.json, result)
     return 0
 

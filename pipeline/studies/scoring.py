@@ -186,9 +186,7 @@ class Scorer:
             out[group.rows] = down_features(table.p_topple[index], actions.points[index], actions.normals[index],
                                             actions.directions[index], edges, center_mass)
             p[group.rows] = table.p_topple[index]
-            pool = self.pose_candidates(group).candidates
-            landing = landing_rows(table.next_pose, group.pose.index, actions.points, actions.directions, pool=pool, rows=index)
-            lands[group.rows] = landing.sum(axis=1) > 0
+            lands[group.rows] = self._lands(group, table, actions, index)
         return out, p, lands
 
     def side_map_inputs(self, topple: ToppleConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -232,9 +230,15 @@ class Scorer:
                                         group.drop_probabilities, group.pose.index, obj, topple.gravity, pool=pool)
             out[group.rows] = features[index]
             p[group.rows] = table.p_topple[index]
-            landing = landing_rows(table.next_pose, group.pose.index, actions.points, actions.directions, pool=pool, rows=index)
-            lands[group.rows] = landing.sum(axis=1) > 0
+            lands[group.rows] = self._lands(group, table, actions, index)
         return out, p, lands
+
+    def _lands(self, group: Group, table: ToppleTable, actions: Actions, index: np.ndarray) -> np.ndarray:
+        """Whether the model knows where each of ``group``'s pushes would land (C.13.2, over its pose's
+        candidates), (pushes,) bool: where it does not, the engine's maps keep the row as it is."""
+        landing = landing_rows(table.next_pose, group.pose.index, actions.points, actions.directions,
+                               pool=self.pose_candidates(group).candidates, rows=index)
+        return landing.sum(axis=1) > 0
 
     def _pose_edges(self, group: Group) -> tuple[np.ndarray, EdgeGeometry]:
         """The centre of mass of ``group``'s object in its pose's frame, (3,) float, m (not the
