@@ -14,6 +14,8 @@ numpy only: the service and the pipeline's studies share it.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .vocabulary import NO_OP
@@ -45,8 +47,8 @@ def neighbour_mean(
     pool : only the first ``pool`` candidates are anyone's neighbours (default: all A); a row
       past them (a push that is not one of the pose's candidates, such as a logged push) is
       averaged over the pool and itself, and counts in no other row's mean
-    near : (A, A) bool, ``neighbour_matrix`` of these candidates with these limits and ``pool``, when
-      the caller has it already (one pose's maps take several means over the same neighbourhoods)
+    near : ``Neighbours`` of these candidates with these limits and ``pool``, when the caller has them
+      already (one pose's maps take several means over the same neighbourhoods); ``rows`` then distinct
     returns : mean (R,) or (R, k) float, NaN where the candidate itself is NaN;
       count (R,) int, its finite neighbours (0 where it is NaN)
     """
@@ -55,9 +57,11 @@ def neighbour_mean(
     values = values[:, None] if flat else values
     rows = np.arange(len(points)) if rows is None else np.asarray(rows, dtype=np.int64)
     finite = np.isfinite(values).all(axis=1)
-    near = (_near(points, directions, rows, radius, max_angle, pool) if near is None else near[rows]) \
-        & finite[None, :] & finite[rows, None]
-    row, neighbour = np.nonzero(near)  # row-major: each row's neighbours in index order
+    if near is None:
+        found = _near(points, directions, rows, radius, max_angle, pool) & finite[None, :] & finite[rows, None]
+        row, neighbour = np.nonzero(found)  # row-major: each row's neighbours in index order
+    else:
+        row, neighbour = near.pairs_of(rows, finite)
     count = np.bincount(row, minlength=len(rows))
     # Summed one neighbour after another, in index order: a BLAS product's order follows its thread
     # count, and a mean one rounding off crosses a threshold of the boosted map (C.19) now and then.
@@ -67,16 +71,68 @@ def neighbour_mean(
     return (mean[:, 0] if flat else mean), count
 
 
-def neighbour_matrix(points: np.ndarray, directions: np.ndarray, radius: float = RADIUS, max_angle: float = MAX_ANGLE,
-                     pool: int | None = None) -> np.ndarray:
+@dataclass(frozen=True)
+class Neighbours:
+    """Every candidate's neighbourhood as index pairs, found once for the several means of one pose.
+
+    row, neighbour : (M,) int, candidate ``neighbour`` is in candidate ``row``'s neighbourhood (itself
+      included), sorted by row and then by neighbour: the order a mean adds them in
+    distance2 : (M,) float, m^2, the squared distance between their contacts as the limit read it;
+      cosine : (M,) float, between their directions;  size : int, A, the candidates
+    radius, max_angle : the limits they were found with (m, rad)
+    """
+
+    row: np.ndarray
+    neighbour: np.ndarray
+    distance2: np.ndarray
+    cosine: np.ndarray
+    size: int
+    radius: float
+    max_angle: float
+
+    def pairs_of(self, rows: np.ndarray, finite: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pairs of ``rows`` between finite candidates, each row numbered by its place in ``rows``.
+
+        rows : (R,) int, distinct;  finite : (A,) bool
+        returns : row (m,) int in [0, R), neighbour (m,) int, each row's neighbours in index order
+        """
+        place = np.full(self.size, -1)
+        place[rows] = np.arange(len(rows))
+        if np.count_nonzero(place >= 0) != len(rows):
+            raise ValueError("rows must be distinct to be averaged over shared Neighbours")
+        row = place[self.row]  # (M,)
+        keep = (row >= 0) & finite[self.row] & finite[self.neighbour]
+        # Kept in the pairs' order, so each row's neighbours stay in index order whatever the order of
+        # ``rows``: the order a mean adds them in.
+        return row[keep], self.neighbour[keep]
+
+    def narrower(self, radius: float, max_angle: float) -> Neighbours:
+        """The neighbourhoods of limits within these (``radius`` <= the radius, ``max_angle`` <= the
+        angle), with the same pool: what ``neighbour_pairs`` finds with them, without a second search."""
+        if radius > self.radius or max_angle > self.max_angle:
+            raise ValueError(f"({radius}, {max_angle}) is not within ({self.radius}, {self.max_angle})")
+        limit = radius + TOLERANCE
+        keep = ((self.distance2 <= limit * limit) & (self.cosine >= np.cos(max_angle) - TOLERANCE)) \
+            | (self.row == self.neighbour)
+        return Neighbours(self.row[keep], self.neighbour[keep], self.distance2[keep], self.cosine[keep], self.size,
+                          radius, max_angle)
+
+
+def neighbour_pairs(points: np.ndarray, directions: np.ndarray, radius: float = RADIUS, max_angle: float = MAX_ANGLE,
+                    pool: int | None = None) -> Neighbours:
     """Which candidates are in each candidate's neighbourhood (``neighbour_mean``'s limits and
     ``pool``), whatever their values: what ``neighbour_mean`` takes as ``near``.
 
     points : (A, 3) float, m;  directions : (A, 3) float, unit
-    returns : (A, A) bool, row i the neighbours of candidate i, itself included
+    returns : ``Neighbours``, found by the same arithmetic as a mean that finds its own, so every mean
+      over them is that mean to the bit
     """
     points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
-    return _near(points, directions, np.arange(len(points)), radius, max_angle, pool)
+    size = len(points)
+    distance2, cosine = _distances(points, directions, np.arange(size))
+    found = np.flatnonzero(_within(distance2, cosine, np.arange(size), radius, max_angle, pool))  # row-major
+    row, neighbour = np.divmod(found, max(size, 1))
+    return Neighbours(row, neighbour, distance2.ravel()[found], cosine.ravel()[found], size, radius, max_angle)
 
 
 def neighbours(
@@ -103,10 +159,23 @@ def _near(points: np.ndarray, directions: np.ndarray, rows: np.ndarray, radius: 
     pool : only the first ``pool`` candidates are others' neighbours (``neighbour_mean``)
     returns : (R, A) bool, a candidate is its own neighbour whatever the rounding
     """
+    return _within(*_distances(points, directions, rows), rows, radius, max_angle, pool)
+
+
+def _distances(points: np.ndarray, directions: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Squared distances (m^2) and direction cosines of ``rows`` to every candidate, (R, A) float each."""
     # |a - b|^2 by one matrix product: ~100x faster than broadcasting (R, A, 3) for A ~ 1,000.
     square = np.einsum("ij,ij->i", points, points)
-    distance2 = square[rows, None] + square[None, :] - 2.0 * points[rows] @ points.T
-    cosine = directions[rows] @ directions.T
+    twice_dot = points[rows] @ points.T
+    twice_dot *= 2.0
+    distance2 = np.add.outer(square[rows], square)
+    distance2 -= twice_dot  # (|a|^2 + |b|^2) - 2 a.b, in place: the same sum without two (R, A) temporaries
+    return distance2, directions[rows] @ directions.T
+
+
+def _within(distance2: np.ndarray, cosine: np.ndarray, rows: np.ndarray, radius: float, max_angle: float,
+            pool: int | None) -> np.ndarray:
+    """``_near`` from ``_distances``: (R, A) bool."""
     limit = radius + TOLERANCE
     near = (distance2 <= limit * limit) & (cosine >= np.cos(max_angle) - TOLERANCE)
     if pool is not None:

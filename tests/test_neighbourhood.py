@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from schema.neighbourhood import MAX_ANGLE, RADIUS, neighbour_matrix, neighbour_mean, neighbours
+from schema.neighbourhood import MAX_ANGLE, RADIUS, Neighbours, neighbour_mean, neighbour_pairs, neighbours
 from tests.test_service import client, dataset, planar_transform, stored_transform, tables, xyz  # noqa: F401 (fixtures)
 
 
@@ -105,24 +105,38 @@ def test_a_row_past_the_pool_averages_over_the_pool_and_itself_only():
     np.testing.assert_allclose(everyone, [0.5, 0.5, 0.5])
 
 
-def test_a_neighbour_matrix_found_once_gives_every_mean_bit_for_bit():
-    """One pose's maps share ``neighbour_matrix``: each mean over it is the mean found from scratch,
-    for any rows, a pool and k columns, and the matrix passed is the one used."""
+def test_neighbours_found_once_give_every_mean_bit_for_bit():
+    """One pose's maps share ``neighbour_pairs``: each mean over them is the mean found from scratch,
+    for any rows (in any order), a pool, k columns and narrower limits, and the pairs passed are the ones used."""
     rng = np.random.default_rng(4)
     points = rng.uniform(-0.03, 0.03, (300, 3))
     directions = np.array([1.0, 0.0, 0.0]) + 0.4 * rng.normal(size=(300, 3))  # some within MAX_ANGLE, some not
     directions /= np.linalg.norm(directions, axis=1)[:, None]
     values = rng.random((300, 2))
     values[rng.random(300) < 0.1] = np.nan
-    near = neighbour_matrix(points, directions, pool=250)
-    assert near.shape == (300, 300) and near.diagonal().all() and not near[:, 250:][~np.eye(300, dtype=bool)[:, 250:]].any()
+    near = neighbour_pairs(points, directions, pool=250)
+    matrix = np.zeros((300, 300), dtype=bool)
+    matrix[near.row, near.neighbour] = True
+    assert matrix.diagonal().all() and not matrix[:, 250:][~np.eye(300, dtype=bool)[:, 250:]].any()
+    assert np.all(np.diff(near.row * 300 + near.neighbour) > 0), "sorted by row, then by neighbour"
     rows = np.flatnonzero(np.isfinite(values[:, 0]))[::3]
-    for kwargs in ({}, {"rows": rows}):
+    for kwargs in ({}, {"rows": rows}, {"rows": rows[::-1]}, {"rows": [7]}):
         shared = neighbour_mean(points, directions, values, pool=250, near=near, **kwargs)
         fresh = neighbour_mean(points, directions, values, pool=250, **kwargs)
         assert np.array_equal(shared[0], fresh[0], equal_nan=True) and np.array_equal(shared[1], fresh[1])
-    alone, count = neighbour_mean(points, directions, values[:, 0], near=np.eye(300, dtype=bool))
-    assert np.array_equal(alone, values[:, 0], equal_nan=True) and count.max() == 1, "the matrix given is the one read"
+    narrow = near.narrower(0.01, 0.35)
+    assert 0 < len(narrow.row) < len(near.row)
+    shared = neighbour_mean(points, directions, values, 0.01, 0.35, pool=250, near=narrow)
+    fresh = neighbour_mean(points, directions, values, 0.01, 0.35, pool=250)
+    assert np.array_equal(shared[0], fresh[0], equal_nan=True) and np.array_equal(shared[1], fresh[1])
+    with pytest.raises(ValueError, match="not within"):
+        near.narrower(0.03, 0.35)
+    with pytest.raises(ValueError, match="distinct"):
+        neighbour_mean(points, directions, values, pool=250, near=near, rows=[3, 3])
+    self_only = np.arange(300)
+    alone, count = neighbour_mean(points, directions, values[:, 0],
+                                  near=Neighbours(self_only, self_only, np.zeros(300), np.ones(300), 300, RADIUS, MAX_ANGLE))
+    assert np.array_equal(alone, values[:, 0], equal_nan=True) and count.max() == 1, "the pairs given are the ones read"
     assert 3 < neighbour_mean(points, directions, values[:, 0], pool=250)[1].mean(), "the test needs real neighbourhoods"
 
 
@@ -137,16 +151,19 @@ def test_every_mean_is_summed_in_index_order_whatever_blas_threads_it_may_use():
     directions /= np.linalg.norm(directions, axis=1)[:, None]
     values = rng.random((1500, 3)) * 10.0 ** rng.integers(-8, 1, (1500, 3))  # magnitudes apart: order shows
     mean, count = neighbour_mean(points, directions, values)
-    near = neighbour_matrix(points, directions)
+    near = neighbour_pairs(points, directions)
     for row in (0, 1, 777, 1499):
         total = np.zeros(3)
-        for j in np.flatnonzero(near[row]):
+        mine = near.neighbour[near.row == row]
+        for j in mine:
             total = total + values[j]
-        assert count[row] == near[row].sum() > 20 and np.array_equal(mean[row], total / count[row])
+        assert count[row] == len(mine) > 20 and np.array_equal(mean[row], total / count[row])
     for threads in (1, 2):
         with threadpoolctl.threadpool_limits(threads):
             again = neighbour_mean(points, directions, values)
+            shared = neighbour_mean(points, directions, values, near=neighbour_pairs(points, directions))
         assert np.array_equal(again[0], mean) and np.array_equal(again[1], count)
+        assert np.array_equal(shared[0], mean) and np.array_equal(shared[1], count)
 
 
 def test_chosen_means_average_around_each_pose_s_own_candidates():

@@ -39,6 +39,8 @@ from .feature_map import (
 )
 
 if TYPE_CHECKING:  # the service imports the config, which names this module's files, without the geometry
+    from schema.neighbourhood import Neighbours
+
     from .edges import EdgeGeometry
     from .mesh import ObjectModel
 
@@ -200,17 +202,21 @@ def boosted_probability(features: np.ndarray, trees: BoostedTrees) -> np.ndarray
     if n_pushes == 0:
         return np.empty(0)
     roots, left, right = _skip_shared_splits(features, trees)
+    child = np.column_stack([right, left]).ravel()  # (2 N,): node 2 i + (x <= threshold) is i's next
+    values = features.ravel()  # push a's feature f at a F + f: one gather a step instead of two
     node = np.repeat(roots, n_pushes)  # (T A,), tree-major
-    push = np.tile(np.arange(n_pushes), len(trees.roots))  # (T A,)
+    start = np.tile(np.arange(n_pushes) * features.shape[1], len(trees.roots))  # (T A,)
+    missing = np.isnan(values).any()  # an ok push has no NaN feature: the check is skipped for the engine
     # Only the pairs still above a leaf are stepped: trees stop at depths from 1 to about 15.
     walking = np.flatnonzero(~trees.leaf[node])
     while walking.size:
         at = node[walking]
-        x = features[push[walking], trees.feature[at]]
+        x = values[start[walking] + trees.feature[at]]
         go_left = x <= trees.threshold[at]  # False for NaN, which goes where missing_left says
-        missing = np.isnan(x)
-        go_left[missing] = trees.missing_left[at[missing]]
-        node[walking] = np.where(go_left, left[at], right[at])
+        if missing:
+            nan = np.isnan(x)
+            go_left[nan] = trees.missing_left[at[nan]]
+        node[walking] = child[2 * at + go_left]
         walking = walking[~trees.leaf[node[walking]]]
     raw = trees.baseline + trees.value[node].reshape(len(trees.roots), n_pushes).sum(axis=0)  # (A,)
     return 1.0 / (1.0 + np.exp(-raw))
@@ -252,7 +258,7 @@ def boosted_features(
     obj: ObjectModel,
     gravity: float,
     pool: int | None = None,
-    near: np.ndarray | None = None,
+    near: Neighbours | None = None,
 ) -> np.ndarray:
     """g(u) (``FEATURES``) of every push of one pose.
 
@@ -262,7 +268,7 @@ def boosted_features(
     edges : ``edges.edge_geometry`` of the pose;  center_mass : (3,) float, m, pose frame
     drop_probabilities : (P,) float, the pose set's;  start : the pose's index;  obj : the object
     gravity : m/s^2;  pool : the pose's candidates, over which N is taken (``pose_features``)
-    near : (A, A) bool, ``neighbour_matrix`` with ``pool`` when at hand (else computed here)
+    near : ``neighbour_pairs`` with ``pool`` when at hand (else found here)
     returns : (A, len(FEATURES)) float, NaN rows where ``unmapped_p`` is NaN
     """
     n = len(p_topple)
@@ -309,7 +315,7 @@ def fitted_logit(p: np.ndarray) -> np.ndarray:
 
 
 def map_boosted_rows(next_pose: np.ndarray, features: np.ndarray, start: int, actions, trees: BoostedTrees,
-                     pool: int | None = None, near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     pool: int | None = None, near: Neighbours | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Apply (C.19.1) to every ok row of one pose.
 
     next_pose : (A, P) float, the rows after the other maps (NaN rows: not ok)

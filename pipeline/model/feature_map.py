@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from schema.horizon import choosable_pushes
-from schema.neighbourhood import MAX_ANGLE, RADIUS, neighbour_mean
+from schema.neighbourhood import MAX_ANGLE, RADIUS, Neighbours, neighbour_mean
 
 from .recalibration import logistic_regression
 from .recalibration import logit as clipped_logit
@@ -98,7 +98,7 @@ def push_features(
 
 def pose_features(p_topple: np.ndarray, points: np.ndarray, directions: np.ndarray, mean_force: np.ndarray,
                   weight: float, pool: int | None = None, rows: np.ndarray | None = None,
-                  near: np.ndarray | None = None) -> np.ndarray:
+                  near: Neighbours | None = None) -> np.ndarray:
     """f(u) of (C.13.1) for ``rows`` of one pose's pushes (default all), N taken over the pose's
     pool as ``map_rows`` takes it: what the map is fitted on (``Scorer.features``).
 
@@ -117,7 +117,7 @@ def mapped_probability(features: np.ndarray, weights) -> np.ndarray:
 
 
 def landing_rows(next_pose: np.ndarray, start: int, points: np.ndarray, directions: np.ndarray,
-                 pool: int | None = None, rows: np.ndarray | None = None, near: np.ndarray | None = None) -> np.ndarray:
+                 pool: int | None = None, rows: np.ndarray | None = None, near: Neighbours | None = None) -> np.ndarray:
     """Where each push lands when it topples (C.13.2): a distribution over the poses other than
     ``start``, or zeros where the model knows of no landing.
 
@@ -178,7 +178,7 @@ def map_rows(
     weight: float,
     weights,
     pool: int | None = None,
-    near: np.ndarray | None = None,
+    near: Neighbours | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Apply the feature map to one pose's rows, keeping them distributions.
 
@@ -186,7 +186,7 @@ def map_rows(
     points, directions : (A, 3) float, pose frame;  mean_force : (A,) float, N (NaN: none toppled)
     weight : float, N, mg;  weights : (F,) or empty (the rows come back as they are)
     pool : the first ``pool`` rows are the pose's candidates, the rest probes (``neighbour_mean``)
-    near : (A, A) bool, ``neighbour_matrix`` with ``pool`` when at hand (else computed here)
+    near : ``neighbour_pairs`` with ``pool`` when at hand (else found here)
     returns : next_pose (A, P) with row = (1 - q) at ``start`` + q landing; p_topple (A,) = q
       (0 where the model knows of no landing for the pose at all)
     """
@@ -298,7 +298,7 @@ def map_down_rows(
     weights,
     cut_z: float,
     pool: int | None = None,
-    near: np.ndarray | None = None,
+    near: Neighbours | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Apply the down map (C.15) to the rows of the pushes ``pressed_down`` below ``cut_z``; the
     rest are returned as they are.

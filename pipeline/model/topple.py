@@ -47,7 +47,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from schema.frames import axis_angle_matrices, transform_points, unit
-from schema.neighbourhood import neighbour_matrix, neighbour_mean
+from schema.neighbourhood import neighbour_mean, neighbour_pairs
 from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
 from .boosted_map import boosted_features, load_trees, map_boosted_rows
@@ -759,11 +759,17 @@ def evaluate_pose(
     else:
         counts = np.bincount(landed_cells, minlength=len(ok) * n_poses)  # (n_ok P,)
     next_pose[ok] = counts.reshape(len(ok), n_poses) / trials
+    # The maps' neighbourhood means (C.13, C.15, C.19) are over the same neighbours, and the smoothing's
+    # (C.12) over some of them: found once.
+    maps = config.applied_feature_map or config.applied_down_map or config.applied_boosted_map
+    near = neighbour_pairs(actions.points, actions.directions, pool=n_candidates) if maps else None
     if config.applied_smoothing > 0:
         # MODEL.md C.12: a push's row is its neighbourhood's mean row. Taking the best of ~1,000
         # candidates picks those whose count is most inflated; the mean over neighbours is not.
-        next_pose, _ = neighbour_mean(actions.points, actions.directions, next_pose,
-                                      config.applied_smoothing, config.smoothing_angle, pool=n_candidates)
+        limits = (config.applied_smoothing, config.smoothing_angle)
+        within = near is not None and limits[0] <= near.radius and limits[1] <= near.max_angle
+        next_pose, _ = neighbour_mean(actions.points, actions.directions, next_pose, *limits, pool=n_candidates,
+                                      near=near.narrower(*limits) if within else None)
     toppled = outcomes >= 0  # (A, T), toppled over some edge (blocked ones included, section 9)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_force = np.where(toppled, forces, 0.0).sum(axis=1) / toppled.sum(axis=1)  # (A,), (9.3), N
@@ -772,9 +778,6 @@ def evaluate_pose(
     # distribution; no knots (every thesis variant) leave the table as counted.
     unmapped = next_pose  # the down map (C.15) reads P from the rows before C.7's map, as it was fitted
     next_pose, p_topple = recalibrate_rows(next_pose, pose.index, *config.applied_recalibration)  # (A, P), (A,), (9.2)
-    # The maps' neighbourhood means (C.13, C.15, C.19) are over the same neighbours: found once.
-    near = (neighbour_matrix(actions.points, actions.directions, pool=n_candidates)
-            if config.applied_feature_map or config.applied_down_map or config.applied_boosted_map else None)
     if config.applied_feature_map:
         # MODEL.md C.13: P(topple) from the push's features, its landing kept (or borrowed).
         next_pose, p_topple = map_rows(next_pose, pose.index, actions.points, actions.directions, mean_force,
