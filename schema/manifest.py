@@ -57,6 +57,9 @@ class MDPParameters(_Open):
     min_direction_z: float = Field(-1.0, ge=-1, le=1)
     """Greedy and value iteration chose only pushes with u_z at least this (pose frame); a
     manifest from before the field chose from every push, which -1 is."""
+    budget_min_direction_z: float | None = Field(None, ge=-1, le=1)
+    """The served budget (``pushes_left``) chooses only pushes with u_z at least this; a manifest from
+    before the field chose as its policies did (``budget_direction_z``)."""
     retry_failed: bool = True
     """Whether value iteration counted on pushing again where a push failed (the thesis, the
     default) or valued that pose at its grasp (docs/MODEL.md (12.9)); a manifest from before the
@@ -68,6 +71,12 @@ class MDPParameters(_Open):
     """Whether value iteration planned with the after-failure map from the first push on
     (docs/MODEL.md (12.13)): the stored Q is Q0 and after a failure /plan ranks by Q1.  A manifest
     from before the field was built with the thesis's equation."""
+
+    @property
+    def budget_direction_z(self) -> float:
+        """The least u_z of a push the build's budget may choose: ``budget_min_direction_z``, or the
+        policies' ``min_direction_z`` for a build from before it."""
+        return self.min_direction_z if self.budget_min_direction_z is None else self.budget_min_direction_z
 
     @property
     def plans_with_failures(self) -> bool:

@@ -93,7 +93,7 @@ def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
             raise UnknownAction(f"pose {pose} of '{obj.object_id}' has no action {action}: its actions are 0..{count - 1}", index)
         raise UnknownAction(f"action {action} of pose {pose} of '{obj.object_id}' is {obj.status_name(rows.start + action)}, "
                             "not ok: /plan never serves it, so it cannot have failed", index)
-    choosable = obj.choosable(rows)
+    choosable = obj.budget_choosable(rows) if request.pushes_left is not None else obj.choosable(rows)
     stay = float(obj.v_s[pose])
     if request.pushes_left is not None:
         values = obj.budget_q(pose, request.pushes_left, after_failure=bool(request.failed_actions))

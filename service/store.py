@@ -87,7 +87,8 @@ class ObjectData:
     Transitions (K nonzero entries), from served/transitions.arrow:
       transition_offsets (N + 1,) int64; next_pose (K,) int32; transition_probability (K,) float32
     Hull: hull_vertices (V, 3) float64, m, object frame
-    min_direction_z: the build's ``mdp.min_direction_z``: the pushes a budget's choice may take
+    min_direction_z: the build's ``mdp.min_direction_z``: the pushes greedy and value iteration may take
+    budget_direction_z: the build's ``MDPParameters.budget_direction_z``: the pushes a budget's choice may take
     failure_power: k of (12.14) when the build plans with its failures (``MDPParameters.failure_power``):
       its budgets then believe a failure as its value iteration does; None: they are (12.8) and believe nothing
     """
@@ -131,6 +132,7 @@ class ObjectData:
     transition_probability: np.ndarray
     hull_vertices: np.ndarray
     min_direction_z: float = -1.0
+    budget_direction_z: float = -1.0
     failure_power: float | None = None
     _budgets: tuple | None = field(default=None, init=False, repr=False)
 
@@ -163,13 +165,19 @@ class ObjectData:
         if self._budgets is None:
             # one assignment: a concurrent first request computes the same
             csr = (self.action_offsets, self.transition_offsets, self.next_pose, self.transition_probability)
-            self._budgets = horizon.solve_budgets(self.v_s, csr, horizon.MAX_PUSHES_LEFT, self.failure_power, self.choosable(slice(None)))
+            self._budgets = horizon.solve_budgets(self.v_s, csr, horizon.MAX_PUSHES_LEFT, self.failure_power,
+                                                  self.budget_choosable(slice(None)))
         return self._budgets
 
     def choosable(self, rows: slice | list[int]) -> np.ndarray:
         """(n,) bool, whether greedy and value iteration may choose each action row: ``ok``
         and pushing with u_z at least the build's ``mdp.min_direction_z`` (``schema.horizon``)."""
         return (self.status[rows] == STATUS_OK) & horizon.choosable_pushes(self.directions[rows, 2], self.min_direction_z)
+
+    def budget_choosable(self, rows: slice | list[int]) -> np.ndarray:
+        """(n,) bool, whether a budget (``pushes_left``) may choose each action row: ``ok`` and pushing
+        with u_z at least the build's ``budget_direction_z``."""
+        return (self.status[rows] == STATUS_OK) & horizon.choosable_pushes(self.directions[rows, 2], self.budget_direction_z)
 
     def neighbourhood_p(self, pose: int, action: int) -> float:
         """The mean P(topple) around one push of a pose (``schema.neighbourhood``; the served
@@ -328,7 +336,7 @@ class Store:
             except (served.ServedError, DatasetUnreadable) as err:
                 raise DatasetError(f"{root}: {err}") from None
         mdp = manifest.parameters.mdp
-        objects = _objects(tables, mdp.min_direction_z, mdp.failure_power)
+        objects = _objects(tables, mdp.min_direction_z, mdp.failure_power, mdp.budget_direction_z)
         store = cls(root, manifest, objects, time.perf_counter() - started, manifest_sha256)
         expected = {k: getattr(manifest.counts, k) for k in store.counts}
         if expected != store.counts:
@@ -339,7 +347,8 @@ class Store:
         return store
 
 
-def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0, failure_power: float | None = None) -> dict[str, ObjectData]:
+def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0, failure_power: float | None = None,
+             budget_direction_z: float | None = None) -> dict[str, ObjectData]:
     """ObjectData of every object: views into the served tables' columns (no copies but
     two small offset arrays per object); ``min_direction_z`` and ``failure_power`` are the build's (``ObjectData``)."""
     col = {name: {f.name: served.column(table, f.name) for f in table.schema if not pa.types.is_string(f.type)}
@@ -397,6 +406,7 @@ def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0, failure
             transition_probability=transitions["probability"][t],
             hull_vertices=hulls["vertex"][h],
             min_direction_z=min_direction_z,
+            budget_direction_z=min_direction_z if budget_direction_z is None else budget_direction_z,
             failure_power=failure_power,
         )
     return out

@@ -124,14 +124,16 @@ def test_plan_for_a_budget_believes_failures_as_the_config_does(box):
     assert CONFIG.mdp.plans_with_failures
     v_s = np.array([s.quality for s in result.suction])
     rows = [np.asarray(t.next_pose, dtype=float) for t in result.topple]
-    q0s, q1s = reference_belief_budget(rows, v_s, CONFIG.mdp.after_failure_power, 3, result.choosable)
+    # The pushes a budget may choose (mdp.budget_min_direction_z), which may be more than the policies'.
+    choosable = [horizon.choosable_pushes(a.directions[:, 2], CONFIG.mdp.budget_min_direction_z) for a in result.actions]
+    q0s, q1s = reference_belief_budget(rows, v_s, CONFIG.mdp.after_failure_power, 3, choosable)
     plain_config = replace(CONFIG, mdp=replace(CONFIG.mdp, believe_failures=False))
-    plain_actions, plain_values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), 3, np.concatenate(result.choosable))
+    plain_actions, plain_values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), 3, np.concatenate(choosable))
     after_failures = differs = 0
     for pose in result.poses:
         x, observed = pose.index, world(pose.transform, 0.3)
         for h in (1, 2, 3):
-            q0 = np.where(result.choosable[x], q0s[h - 1][x], np.nan)
+            q0 = np.where(choosable[x], q0s[h - 1][x], np.nan)
             first = toppledb.plan(result, observed, pushes_left=h, config=CONFIG)
             assert first.value == pytest.approx(max(v_s[x], np.nanmax(q0, initial=-np.inf)), abs=1e-12)
             plain = toppledb.plan(result, observed, pushes_left=h, config=plain_config)
@@ -143,7 +145,7 @@ def test_plan_for_a_budget_believes_failures_as_the_config_does(box):
             assert q0[first.action] == pytest.approx(first.value, abs=1e-12)
             after = toppledb.plan(result, observed, pushes_left=h, config=CONFIG, failed_actions=[first.action])
             actions = result.actions[x]
-            allowed = result.choosable[x] & ~retry.ruled_out(actions.points, actions.directions, [first.action])
+            allowed = choosable[x] & ~retry.ruled_out(actions.points, actions.directions, [first.action])
             q1 = np.where(allowed, q1s[h - 1][x], np.nan)
             best = np.nanmax(q1, initial=-np.inf)
             if after.action is None:

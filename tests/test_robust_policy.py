@@ -515,7 +515,8 @@ def test_after_a_failure_each_believing_policy_ranks_by_its_own_q1():
     from pipeline.studies.robust_policy import after_failure_choice
 
     q_first, q_second = np.array([0.9, 0.5, 0.1]), np.array([0.1, 0.5, 0.9])
-    extra = {"choosable": [np.ones(3, dtype=bool)], "candidates": [None],
+    # The policies may choose pushes 0 and 1 only; the budgets every push (mdp.budget_min_direction_z).
+    extra = {"choosable": [np.array([True, True, False])], "budget_choosable": [np.ones(3, dtype=bool)], "candidates": [None],
              "belief_q1": {"belief_vi": [q_first], "prior_belief_vi": [q_second]},
              "belief_budget_q1": {"belief_horizon_vi": [[q_second], [q_first]],
                                   "prior_belief_horizon_vi": [[q_first], [q_second]]}}
@@ -524,10 +525,10 @@ def test_after_a_failure_each_believing_policy_ranks_by_its_own_q1():
     def choice(policy, step=0, out=ruled_out):
         return after_failure_choice(policy, 0, step, out, plan, extra, config)
 
-    assert (choice("belief_vi"), choice("prior_belief_vi")) == (0, 2)
+    assert (choice("belief_vi"), choice("prior_belief_vi")) == (0, 1)
     assert (choice("belief_horizon_vi"), choice("belief_horizon_vi", 1)) == (2, 0)
     assert (choice("prior_belief_horizon_vi"), choice("prior_belief_horizon_vi", 1)) == (0, 2)
-    assert choice("prior_belief_vi", out=np.array([False, False, True])) == 1
+    assert choice("prior_belief_vi", out=np.array([False, True, False])) == 0
     with pytest.raises(ValueError, match="value_iteration has no rule after a failure"):
         choice("value_iteration")
 

@@ -30,6 +30,8 @@ from service.store import widen
 
 MIN_DIRECTION_Z = Config().mdp.min_direction_z
 """The test dataset is built with the default config: the pushes its policies may choose."""
+BUDGET_DIRECTION_Z = Config().mdp.budget_min_direction_z
+"""The pushes its budgets (``pushes_left``) may choose."""
 
 OBJECTS = ["random_000", "random_001", "random_002"]
 ROOT = Path(__file__).resolve().parent.parent

@@ -11,6 +11,7 @@ import pytest
 
 from schema.horizon import MAX_PUSHES_LEFT
 from tests.test_service import (  # noqa: F401 (fixtures)
+    BUDGET_DIRECTION_Z,
     JSON,
     MIN_DIRECTION_Z,
     client,
@@ -34,9 +35,9 @@ def test_one_push_left_is_the_greedy_choice(client, tables):
         answer = plan(client, tables, object_id, pose, pushes_left=1)
         assert answer["pushes_left"] == 1
         greedy = {a: r["greedy"] for (o, p, a), r in tables["actions"].items() if (o, p) == (object_id, pose) and r["greedy"] is not None}
-        # Only the pushes the policies may choose (mdp.min_direction_z) compete.
+        # Only the pushes the budget may choose (mdp.budget_min_direction_z) compete.
         choosable = {a: g for a, g in greedy.items()
-                     if np.float32(tables["actions"][(object_id, pose, a)]["direction_z"]) >= np.float32(MIN_DIRECTION_Z)}
+                     if np.float32(tables["actions"][(object_id, pose, a)]["direction_z"]) >= np.float32(BUDGET_DIRECTION_Z)}
         best = max(choosable.values(), default=-np.inf)
         assert answer["action"] is None or answer["action"] in choosable, (object_id, pose)
         if answer["action"] is None:
@@ -51,9 +52,10 @@ def test_one_push_left_is_the_greedy_choice(client, tables):
     assert pushed > 0, "the test dataset should have poses worth pushing from"
 
 
-def test_a_budget_chooses_only_pushes_the_build_lets_the_policies_choose(dataset, tables):
-    """The served budget with a stricter mdp.min_direction_z (0.2: mostly pushes from below):
-    one push left is the best greedy value among those pushes, though better ones exist."""
+def test_a_budget_chooses_only_pushes_the_build_lets_the_budget_choose(dataset, tables):
+    """The served budget with a stricter mdp.budget_min_direction_z (0.2: mostly pushes from below):
+    one push left is the best greedy value among those pushes, though better ones exist, whatever
+    the policies' own cut."""
     import dataclasses
 
     from service.store import Store
@@ -61,7 +63,7 @@ def test_a_budget_chooses_only_pushes_the_build_lets_the_policies_choose(dataset
     store = Store.load(dataset)
     masked = 0
     for object_id, obj in store.objects.items():
-        strict = dataclasses.replace(obj, min_direction_z=0.2)
+        strict = dataclasses.replace(obj, min_direction_z=-1.0, budget_direction_z=0.2)
         actions, values = strict.budget(1)
         for pose in range(len(strict.v_s)):
             rows = tables["actions"]
@@ -74,7 +76,22 @@ def test_a_budget_chooses_only_pushes_the_build_lets_the_policies_choose(dataset
                 assert best <= strict.v_s[pose] + 1e-6
             else:
                 assert actions[pose] in allowed and allowed[actions[pose]] == pytest.approx(best, abs=1e-6)
-    assert masked > 0, "some pose's best push should be one the stricter build does not let the policies choose"
+    assert masked > 0, "some pose's best push should be one the stricter build does not let the budget choose"
+
+
+def test_the_default_budget_may_choose_the_pushes_from_above_value_iteration_may_not(dataset):
+    """The default build's budget takes every ok push (mdp.budget_min_direction_z = -1) where its
+    policies take only those with u_z >= -0.3 (docs/VALIDATION.md, "Choosing from above again")."""
+    from service.store import Store
+
+    store = Store.load(dataset)
+    assert store.manifest.parameters.mdp.budget_direction_z == BUDGET_DIRECTION_Z == -1.0 < MIN_DIRECTION_Z
+    wider = 0
+    for obj in store.objects.values():
+        budget, policies = obj.budget_choosable(slice(None)), obj.choosable(slice(None))
+        assert np.all(policies <= budget)
+        wider += int(np.count_nonzero(budget & ~policies))
+    assert wider > 0, "the test dataset should have ok pushes from above"
 
 
 def final_value(client, tables, object_id: str, pose: int, budget: int) -> float:

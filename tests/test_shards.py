@@ -263,6 +263,7 @@ def test_a_shards_identity_is_its_object_and_the_parameters_it_uses():
     assert shards.fingerprint(reordered) == shards.fingerprint(inputs), "key order is no part of it"
     assert len(shards.fingerprint(inputs)) == 64
     every = SMALL.to_dict()
+    every["mdp"] = {k: v for k, v in every["mdp"].items() if k not in shards.BUDGET_ONLY["mdp"]}  # only the service reads them
     assert {k: v for k, v in inputs["config"].items() if k != "topple"} == {k: v for k, v in every.items() if k != "topple"}
 
 
@@ -276,17 +277,21 @@ def test_corrections_and_maps_that_are_off_are_no_part_of_a_shards_identity():
     # map, but spreads none.
     assert SMALL.mdp.plans_with_failures and SMALL.topple.applied_landing_onward and not SMALL.topple.applied_landing_spread
     assert SMALL.topple.applied_boosted_map
-    assert unused() == {"topple": spread}
-    assert unused(**{"topple.landing_spread": 0.3}) == {}
-    assert unused(**{"topple.landing_spread": 0.3, "topple.boosted_map": ""}) == {"topple": boosted}
-    assert unused(**{"topple.variant": "robust"}) == {"topple": spread + onward + boosted}
-    assert unused(**{"mdp.believe_failures": False}) == {**shards.SERVING_ONLY, "topple": spread}
-    assert unused(**{"mdp.believe_failures": False, "topple.landing_spread": 0.3}) == {**shards.SERVING_ONLY}
+    budget = shards.BUDGET_ONLY
+    assert unused() == {"topple": spread, **budget}
+    assert unused(**{"topple.landing_spread": 0.3}) == budget
+    assert unused(**{"topple.landing_spread": 0.3, "topple.boosted_map": ""}) == {"topple": boosted, **budget}
+    assert unused(**{"topple.variant": "robust"}) == {"topple": spread + onward + boosted, **budget}
+    serving = {"mdp": shards.SERVING_ONLY["mdp"] + budget["mdp"]}
+    assert unused(**{"mdp.believe_failures": False}) == {**serving, "topple": spread}
+    assert unused(**{"mdp.believe_failures": False, "topple.landing_spread": 0.3}) == serving
 
     base = shards.shard_inputs(spec_of("box"), SMALL)
     assert not set(spread) & set(base["config"]["topple"]) and set(onward) <= set(base["config"]["topple"])
     same = SMALL.with_overrides({"topple.landing_spread_poses": SMALL.topple.landing_spread_poses + 1})
     assert shards.shard_inputs(spec_of("box"), same) == base, "a parameter of a correction that is off changes nothing"
+    narrower = SMALL.with_overrides({"mdp.budget_min_direction_z": 0.0})
+    assert shards.shard_inputs(spec_of("box"), narrower) == base, "only the served budget reads its cut"
     other = SMALL.with_overrides({"topple.landing_onward_below": SMALL.topple.landing_onward_below / 2})
     assert shards.shard_inputs(spec_of("box"), other) != base
 

@@ -50,6 +50,12 @@ iteration believes failures with a map (``mdp.believe_failures`` and k != 1, doc
 (12.13)); any other build's shards keep the identity they had before the two existed."""
 
 
+BUDGET_ONLY = {"mdp": ("budget_min_direction_z",)}
+"""Parameters only the served budgets read (``pushes_left``, solved by the service from the tables): never
+part of a shard's identity, so a dataset built before one existed keeps its shards and a new value only
+rewrites the manifest."""
+
+
 UNUSED_WHEN_OFF = {
     "landing_spread": ("landing_spread", "landing_spread_poses"),
     "landing_onward": ("landing_onward", "landing_onward_below"),
@@ -63,9 +69,10 @@ C.17, C.18, C.19)."""
 
 def unused_by_shards(config: Config) -> dict[str, tuple[str, ...]]:
     """The parameters this configuration's shards do not depend on (section -> keys):
-    ``SERVING_ONLY`` unless the build plans with failures, and those of each landing correction
-    that is off."""
+    ``BUDGET_ONLY``, ``SERVING_ONLY`` unless the build plans with failures, and those of each landing
+    correction that is off."""
     unused = {} if config.mdp.plans_with_failures else dict(SERVING_ONLY)
+    unused["mdp"] = unused.get("mdp", ()) + BUDGET_ONLY["mdp"]
     off = tuple(key for name, keys in UNUSED_WHEN_OFF.items() if not getattr(config.topple, f"applied_{name}") for key in keys)
     if off:
         unused["topple"] = unused.get("topple", ()) + off

@@ -491,6 +491,15 @@ class MDPConfig:
     played) and keeps the chosen pushes' predictions from resting on two opposite errors
     (docs/VALIDATION.md, "Plan on the pushes the model can judge").  Every push keeps its
     P(topple), Q and greedy value."""
+    budget_min_direction_z: float = bounded(-1.0, Range(-1.0, 1.0))
+    """The pushes the served budget (``/plan``'s ``pushes_left``, docs/MODEL.md (12.14)) may choose: u_z at
+    least this; -1, every ok push.  With the boosted map (C.19) the budget that chooses from above gained
+    +0.022 V_s over the one that chooses as value iteration does, its pushes honest (predicted 0.507, toppled
+    0.481), on six held-out runs no rule had seen, by a rule written before they were played
+    (docs/VALIDATION.md, "Choosing from above again"; value iteration's own pushes from above were
+    over-predicted, so ``min_direction_z`` stays).  A build from before the field chose its budget's pushes
+    as value iteration did.  The budget's P of a push from above is the boosted map's; a configuration
+    without it but with a down map (C.15) lets the budget choose down-mapped pushes, which no rule judged."""
     retry_failed: bool = True
     """Whether value iteration may push again where a push failed (the thesis's Bellman
     equation).  False (opt-in): a push that leaves the object in its pose is worth grasping
@@ -591,6 +600,10 @@ class Config:
             # A manifest from before the after-failure map reads it as none (schema.manifest); the
             # build never used it, so such a manifest's configuration takes the default.
             data = {**data, "mdp": {k: v for k, v in mdp.items() if k != "after_failure_power"}}
+        mdp = data.get("mdp")
+        if isinstance(mdp, dict) and "budget_min_direction_z" in mdp and mdp["budget_min_direction_z"] is None:
+            # A manifest from before the budget's own cut: its budget chose as its policies did.
+            data = {**data, "mdp": {**mdp, "budget_min_direction_z": mdp.get("min_direction_z", -1.0)}}
         return _build(cls, data, "")
 
     @classmethod

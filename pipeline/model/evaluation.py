@@ -249,6 +249,11 @@ def _choosable(actions: list[Actions], config: Config) -> list[np.ndarray]:
     return [horizon.choosable_pushes(a.directions[:, 2], config.mdp.min_direction_z) for a in actions]
 
 
+def _budget_choosable(actions: list[Actions], config: Config) -> list[np.ndarray]:
+    """Per pose, (A_x,) bool: the pushes a budget (``pushes_left``) may choose (``mdp.budget_min_direction_z``)."""
+    return [horizon.choosable_pushes(a.directions[:, 2], config.mdp.budget_min_direction_z) for a in actions]
+
+
 # --- an observed pose: match it, and the policy's push in the world --------------------------
 
 DEFAULT_HEIGHT_TOLERANCE = 0.01
@@ -398,8 +403,8 @@ def plan(
     budget = None  # with pushes_left: the tables in the budgets' layout, V0_h and V1_h for h = 1..pushes_left
     if pushes_left is not None:
         csr = horizon.csr_from_rows([np.asarray(t.next_pose, dtype=float) for t in result.topple])
-        # The pushes the build's policies could choose (its mdp.min_direction_z, not ``config``'s).
-        choosable = None if result.choosable is None else np.concatenate(result.choosable)
+        # The pushes a budget may choose (mdp.budget_min_direction_z; the policies' own cut may be narrower).
+        choosable = np.concatenate(_budget_choosable(result.actions, config))
         actions, values, failed_values = horizon.solve_budgets(v_s, csr, pushes_left, config.mdp.failure_power, choosable)
         choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
         budget = csr, values, failed_values
@@ -445,7 +450,10 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
         if not exists:
             raise ValueError(f"failed_actions [{action}] are no actions of pose {pose} (0..{count - 1})")
         raise ValueError(f"failed_actions [{action}] of pose {pose} are not ok: no policy pushes them, so they cannot have failed")
-    choosable = np.ones(count, dtype=bool) if result.choosable is None else result.choosable[pose]
+    if budget is not None:
+        choosable = _budget_choosable([actions], config)[0]
+    else:
+        choosable = np.ones(count, dtype=bool) if result.choosable is None else result.choosable[pose]
     stay = float(v_s[pose])
     if budget is not None:
         (action_offsets, transition_offsets, next_pose, probability), fresh, failed_values = budget

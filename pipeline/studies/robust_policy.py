@@ -396,27 +396,31 @@ def landing_prior_rows(rows: np.ndarray, pose: int, alpha: float, choosable: np.
 
 
 def believing_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray], max_pushes: int,
-                     names: tuple[str, str] = (BELIEF_POLICY, BELIEF_HORIZON_POLICY)
+                     names: tuple[str, str] = (BELIEF_POLICY, BELIEF_HORIZON_POLICY),
+                     budget_choosable: list[np.ndarray] | None = None,
                      ) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
     """The two policies that believe their failures, planned over ``rows``: ``belief_tables`` as
     ``names[0]`` and ``belief_budget_tables`` as ``names[1]``.  returns : their actions, and the Q1
     tables each ranks by after a failure (``after_failure_choice``), keyed by name.
 
-    rows : per pose (A_x, P) float (``next_pose_rows``);  choosable : per pose (A_x,) bool"""
+    rows : per pose (A_x, P) float (``next_pose_rows``);  choosable : per pose (A_x,) bool
+    budget_choosable : the budget's (``mdp.budget_min_direction_z``), default ``choosable``"""
     first, budget = names
     actions, q1, budget_q1 = {}, {}, {}
     actions[first], q1[first] = belief_tables(v_s, rows, mdp, choosable)
-    actions[budget], budget_q1[budget] = belief_budget_tables(v_s, rows, mdp, max_pushes, choosable)
+    actions[budget], budget_q1[budget] = belief_budget_tables(v_s, rows, mdp, max_pushes,
+                                                              choosable if budget_choosable is None else budget_choosable)
     return actions, q1, budget_q1
 
 
 def prior_plan(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray], alpha: float,
-               trials: int, max_pushes: int) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
+               trials: int, max_pushes: int, budget_choosable: list[np.ndarray] | None = None,
+               ) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
     """``believing_tables`` of the ``PRIOR_POLICIES`` over ``landing_prior_rows`` of every pose, with
     ``prior_vi``'s actions (``value_iteration_actions``) among the actions."""
     prior = [landing_prior_rows(r, x, alpha, choosable[x], trials) for x, r in enumerate(rows)]
     actions, q1, budget_q1 = believing_tables(v_s, prior, mdp, choosable, max_pushes,
-                                              (PRIOR_BELIEF_POLICY, PRIOR_BELIEF_HORIZON_POLICY))
+                                              (PRIOR_BELIEF_POLICY, PRIOR_BELIEF_HORIZON_POLICY), budget_choosable)
     actions[PRIOR_POLICY] = value_iteration_actions(v_s, prior, mdp, choosable)
     return actions, q1, budget_q1
 
@@ -534,8 +538,8 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
     if policy in (BELIEF_POLICY, PRIOR_BELIEF_POLICY):
         return retry.best_untried(extra["belief_q1"][policy][pose], choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
     if policy in (BELIEF_HORIZON_POLICY, PRIOR_BELIEF_HORIZON_POLICY):
-        return retry.best_untried(extra["belief_budget_q1"][policy][step][pose], choosable & ~ruled_out, stay,
-                                  horizon.IMPROVEMENT)
+        return retry.best_untried(extra["belief_budget_q1"][policy][step][pose], extra["budget_choosable"][pose] & ~ruled_out,
+                                  stay, horizon.IMPROVEMENT)
     raise ValueError(f"{policy} has no rule after a failure")
 
 
@@ -569,23 +573,28 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         rows = next_pose_rows(dataset, object_id, [len(c.q) for c in candidates])
         scores = [pose_scores(c, smoothing, r) for c, r in zip(candidates, rows)]
         landings = [pose_landings(r, x, plan.v_s) for x, r in enumerate(rows)]
-        # The pushes the dataset's own policies could choose (mdp.min_direction_z), for every rule here.
+        # The pushes the dataset's own policies could choose (mdp.min_direction_z), for every rule but the budgets.
         choosable = [horizon.choosable_pushes(c.directions[:, 2], config.mdp.min_direction_z) for c in candidates]
+        # The budgets choose as /plan's pushes_left does (mdp.budget_min_direction_z).
+        budget_choosable = [horizon.choosable_pushes(c.directions[:, 2], config.mdp.budget_min_direction_z) for c in candidates]
         plan.actions[ROBUST_POLICY] = robust_actions(plan.v_s, scores, config.mdp.gamma, smoothing, choosable)
-        plan.actions[HORIZON_POLICY] = horizon_actions(plan.v_s, rows, max_pushes, choosable)
-        plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, [s.smoothed_rows for s in scores], max_pushes, choosable)
+        plan.actions[HORIZON_POLICY] = horizon_actions(plan.v_s, rows, max_pushes, budget_choosable)
+        plan.actions[SMOOTHED_HORIZON_POLICY] = horizon_actions(plan.v_s, [s.smoothed_rows for s in scores], max_pushes,
+                                                                budget_choosable)
         plan.actions[UNTRIED_POLICY] = plan.actions["value_iteration"]  # until a push fails
         plan.actions[AWARE_POLICY] = plan.actions["value_iteration"]
         plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
-        actions, belief_q1, belief_budget_q1 = believing_tables(plan.v_s, rows, config.mdp, choosable, max_pushes)
+        actions, belief_q1, belief_budget_q1 = believing_tables(plan.v_s, rows, config.mdp, choosable, max_pushes,
+                                                                budget_choosable=budget_choosable)
         plan.actions.update(actions)
         if landing_prior is not None:
             actions, q1, budget_q1 = prior_plan(plan.v_s, rows, config.mdp, choosable, landing_prior, config.topple.trials,
-                                                max_pushes)
+                                                max_pushes, budget_choosable)
             plan.actions.update(actions)
             belief_q1.update(q1)
             belief_budget_q1.update(budget_q1)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
+                             "budget_choosable": budget_choosable,
                                   "landings": landings, "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
                       config, seed, max_pushes, world, policies))
 
