@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from schema import layout
 from schema.version import SCHEMA_VERSION
@@ -57,9 +57,9 @@ class MDPParameters(_Open):
     min_direction_z: float = Field(-1.0, ge=-1, le=1)
     """Greedy and value iteration chose only pushes with u_z at least this (pose frame); a
     manifest from before the field chose from every push, which -1 is."""
-    budget_min_direction_z: float | None = Field(None, ge=-1, le=1)
+    budget_min_direction_z: float = Field(-1.0, ge=-1, le=1)
     """The served budget (``pushes_left``) chooses only pushes with u_z at least this; a manifest from
-    before the field chose as its policies did (``budget_direction_z``)."""
+    before the field chose as its policies did, so it reads as their ``min_direction_z``."""
     retry_failed: bool = True
     """Whether value iteration counted on pushing again where a push failed (the thesis, the
     default) or valued that pose at its grasp (docs/MODEL.md (12.9)); a manifest from before the
@@ -72,11 +72,14 @@ class MDPParameters(_Open):
     (docs/MODEL.md (12.13)): the stored Q is Q0 and after a failure /plan ranks by Q1.  A manifest
     from before the field was built with the thesis's equation."""
 
-    @property
-    def budget_direction_z(self) -> float:
-        """The least u_z of a push the build's budget may choose: ``budget_min_direction_z``, or the
-        policies' ``min_direction_z`` for a build from before it."""
-        return self.min_direction_z if self.budget_min_direction_z is None else self.budget_min_direction_z
+    @model_validator(mode="before")
+    @classmethod
+    def _budget_chose_as_the_policies(cls, data):
+        """A manifest from before ``budget_min_direction_z`` (or with it null) reads it as the policies' cut:
+        the service and ``Config.from_dict`` of its parameters then need no rule of their own."""
+        if isinstance(data, dict) and data.get("budget_min_direction_z") is None:
+            data = {**data, "budget_min_direction_z": data.get("min_direction_z", -1.0)}
+        return data
 
     @property
     def plans_with_failures(self) -> bool:

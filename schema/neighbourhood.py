@@ -106,10 +106,14 @@ class Neighbours:
         # ``rows``: the order a mean adds them in.
         return row[keep], self.neighbour[keep]
 
+    def covers(self, radius: float, max_angle: float) -> bool:
+        """Whether limits ``radius`` (m) and ``max_angle`` (rad) lie within these, so ``narrower`` can take them."""
+        return radius <= self.radius and max_angle <= self.max_angle
+
     def narrower(self, radius: float, max_angle: float) -> Neighbours:
-        """The neighbourhoods of limits within these (``radius`` <= the radius, ``max_angle`` <= the
-        angle), with the same pool: what ``neighbour_pairs`` finds with them, without a second search."""
-        if radius > self.radius or max_angle > self.max_angle:
+        """The neighbourhoods of limits within these (``covers``), with the same pool: what
+        ``neighbour_pairs`` finds with them, without a second search."""
+        if not self.covers(radius, max_angle):
             raise ValueError(f"({radius}, {max_angle}) is not within ({self.radius}, {self.max_angle})")
         limit = radius + TOLERANCE
         keep = ((self.distance2 <= limit * limit) & (self.cosine >= np.cos(max_angle) - TOLERANCE)) \

@@ -88,7 +88,7 @@ class ObjectData:
       transition_offsets (N + 1,) int64; next_pose (K,) int32; transition_probability (K,) float32
     Hull: hull_vertices (V, 3) float64, m, object frame
     min_direction_z: the build's ``mdp.min_direction_z``: the pushes greedy and value iteration may take
-    budget_direction_z: the build's ``MDPParameters.budget_direction_z``: the pushes a budget's choice may take
+    budget_direction_z: the build's ``mdp.budget_min_direction_z``: the pushes a budget's choice may take
     failure_power: k of (12.14) when the build plans with its failures (``MDPParameters.failure_power``):
       its budgets then believe a failure as its value iteration does; None: they are (12.8) and believe nothing
     """
@@ -172,12 +172,16 @@ class ObjectData:
     def choosable(self, rows: slice | list[int]) -> np.ndarray:
         """(n,) bool, whether greedy and value iteration may choose each action row: ``ok``
         and pushing with u_z at least the build's ``mdp.min_direction_z`` (``schema.horizon``)."""
-        return (self.status[rows] == STATUS_OK) & horizon.choosable_pushes(self.directions[rows, 2], self.min_direction_z)
+        return self._ok_above(rows, self.min_direction_z)
 
     def budget_choosable(self, rows: slice | list[int]) -> np.ndarray:
         """(n,) bool, whether a budget (``pushes_left``) may choose each action row: ``ok`` and pushing
         with u_z at least the build's ``budget_direction_z``."""
-        return (self.status[rows] == STATUS_OK) & horizon.choosable_pushes(self.directions[rows, 2], self.budget_direction_z)
+        return self._ok_above(rows, self.budget_direction_z)
+
+    def _ok_above(self, rows: slice | list[int], min_direction_z: float) -> np.ndarray:
+        """(n,) bool: ``ok`` and u_z at least ``min_direction_z`` (``schema.horizon.choosable_pushes``)."""
+        return (self.status[rows] == STATUS_OK) & horizon.choosable_pushes(self.directions[rows, 2], min_direction_z)
 
     def neighbourhood_p(self, pose: int, action: int) -> float:
         """The mean P(topple) around one push of a pose (``schema.neighbourhood``; the served
@@ -336,7 +340,7 @@ class Store:
             except (served.ServedError, DatasetUnreadable) as err:
                 raise DatasetError(f"{root}: {err}") from None
         mdp = manifest.parameters.mdp
-        objects = _objects(tables, mdp.min_direction_z, mdp.failure_power, mdp.budget_direction_z)
+        objects = _objects(tables, mdp.min_direction_z, mdp.failure_power, mdp.budget_min_direction_z)
         store = cls(root, manifest, objects, time.perf_counter() - started, manifest_sha256)
         expected = {k: getattr(manifest.counts, k) for k in store.counts}
         if expected != store.counts:
@@ -348,7 +352,7 @@ class Store:
 
 
 def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0, failure_power: float | None = None,
-             budget_direction_z: float | None = None) -> dict[str, ObjectData]:
+             budget_direction_z: float = -1.0) -> dict[str, ObjectData]:
     """ObjectData of every object: views into the served tables' columns (no copies but
     two small offset arrays per object); ``min_direction_z`` and ``failure_power`` are the build's (``ObjectData``)."""
     col = {name: {f.name: served.column(table, f.name) for f in table.schema if not pa.types.is_string(f.type)}
@@ -406,7 +410,7 @@ def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0, failure
             transition_probability=transitions["probability"][t],
             hull_vertices=hulls["vertex"][h],
             min_direction_z=min_direction_z,
-            budget_direction_z=min_direction_z if budget_direction_z is None else budget_direction_z,
+            budget_direction_z=budget_direction_z,
             failure_power=failure_power,
         )
     return out

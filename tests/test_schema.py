@@ -74,6 +74,12 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
     without = Config().with_overrides({"mdp.retry_failed": False, "mdp.believe_failures": False}).to_dict()
     assert Parameters.model_validate(without).mdp.retry_failed is False
     assert Config.from_dict(parameters.model_dump()).mdp.min_direction_z == -1.0
+    side = Config().to_dict()
+    del side["mdp"]["budget_min_direction_z"]  # before stop 43 the budget chose as the policies did
+    assert Parameters.model_validate(side).mdp.budget_min_direction_z == side["mdp"]["min_direction_z"] == -0.3
+    assert Config.from_dict(Parameters.model_validate(side).model_dump()).mdp.budget_min_direction_z == -0.3
+    side["mdp"]["budget_min_direction_z"] = None
+    assert Parameters.model_validate(side).mdp.budget_min_direction_z == -0.3
     del old["mdp"]["after_failure_power"]  # and the after-failure map /plan serves (schema.retry)
     parameters = Parameters.model_validate(old)
     assert parameters.mdp.after_failure_power is None, "no map: the service serves no p_topple_given_failures"

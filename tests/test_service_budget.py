@@ -85,7 +85,7 @@ def test_the_default_budget_may_choose_the_pushes_from_above_value_iteration_may
     from service.store import Store
 
     store = Store.load(dataset)
-    assert store.manifest.parameters.mdp.budget_direction_z == BUDGET_DIRECTION_Z == -1.0 < MIN_DIRECTION_Z
+    assert store.manifest.parameters.mdp.budget_min_direction_z == BUDGET_DIRECTION_Z == -1.0 < MIN_DIRECTION_Z
     wider = 0
     for obj in store.objects.values():
         budget, policies = obj.budget_choosable(slice(None)), obj.choosable(slice(None))

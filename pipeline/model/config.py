@@ -600,10 +600,6 @@ class Config:
             # A manifest from before the after-failure map reads it as none (schema.manifest); the
             # build never used it, so such a manifest's configuration takes the default.
             data = {**data, "mdp": {k: v for k, v in mdp.items() if k != "after_failure_power"}}
-        mdp = data.get("mdp")
-        if isinstance(mdp, dict) and "budget_min_direction_z" in mdp and mdp["budget_min_direction_z"] is None:
-            # A manifest from before the budget's own cut: its budget chose as its policies did.
-            data = {**data, "mdp": {**mdp, "budget_min_direction_z": mdp.get("min_direction_z", -1.0)}}
         return _build(cls, data, "")
 
     @classmethod

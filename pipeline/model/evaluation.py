@@ -134,7 +134,7 @@ def evaluate_object(
             with clock("suction"):
                 suction.append(pose_suction(obj, p, config))
     with _stage(timings, "mdp"), clock("mdp"):
-        choosable = _choosable(actions, config)
+        choosable = _choosable(actions, config.mdp.min_direction_z)
         values = pose_values(
             [t.next_pose for t in tables],
             np.array([s.quality for s in suction]),
@@ -240,18 +240,14 @@ def solve(evaluations: list["PoseEvaluation"], v_s: np.ndarray, config: Config =
         raise ValueError("solve needs one evaluation per stable pose, in pose order")
     return pose_values(
         [e.table.next_pose for e in evaluations], np.asarray(v_s, dtype=float),
-        [e.actions.max_height for e in evaluations], config.mdp, _choosable([e.actions for e in evaluations], config),
+        [e.actions.max_height for e in evaluations], config.mdp, _choosable([e.actions for e in evaluations], config.mdp.min_direction_z),
     )
 
 
-def _choosable(actions: list[Actions], config: Config) -> list[np.ndarray]:
-    """Per pose, (A_x,) bool: the pushes greedy and value iteration may choose (``mdp.min_direction_z``)."""
-    return [horizon.choosable_pushes(a.directions[:, 2], config.mdp.min_direction_z) for a in actions]
-
-
-def _budget_choosable(actions: list[Actions], config: Config) -> list[np.ndarray]:
-    """Per pose, (A_x,) bool: the pushes a budget (``pushes_left``) may choose (``mdp.budget_min_direction_z``)."""
-    return [horizon.choosable_pushes(a.directions[:, 2], config.mdp.budget_min_direction_z) for a in actions]
+def _choosable(actions: list[Actions], min_direction_z: float) -> list[np.ndarray]:
+    """Per pose, (A_x,) bool: the pushes with u_z at least ``min_direction_z``: ``mdp.min_direction_z``
+    for greedy and value iteration, ``mdp.budget_min_direction_z`` for a budget (``pushes_left``)."""
+    return [horizon.choosable_pushes(a.directions[:, 2], min_direction_z) for a in actions]
 
 
 # --- an observed pose: match it, and the policy's push in the world --------------------------
@@ -404,7 +400,7 @@ def plan(
     if pushes_left is not None:
         csr = horizon.csr_from_rows([np.asarray(t.next_pose, dtype=float) for t in result.topple])
         # The pushes a budget may choose (mdp.budget_min_direction_z; the policies' own cut may be narrower).
-        choosable = np.concatenate(_budget_choosable(result.actions, config))
+        choosable = np.concatenate(_choosable(result.actions, config.mdp.budget_min_direction_z))
         actions, values, failed_values = horizon.solve_budgets(v_s, csr, pushes_left, config.mdp.failure_power, choosable)
         choice = PolicyChoice(int(actions[-1, pose]), float(values[-1, pose]))
         budget = csr, values, failed_values
@@ -451,7 +447,7 @@ def _untried_choice(result: ObjectResult, pose: int, policy: str, failed: list[i
             raise ValueError(f"failed_actions [{action}] are no actions of pose {pose} (0..{count - 1})")
         raise ValueError(f"failed_actions [{action}] of pose {pose} are not ok: no policy pushes them, so they cannot have failed")
     if budget is not None:
-        choosable = _budget_choosable([actions], config)[0]
+        choosable = _choosable([actions], config.mdp.budget_min_direction_z)[0]
     else:
         choosable = np.ones(count, dtype=bool) if result.choosable is None else result.choosable[pose]
     stay = float(v_s[pose])

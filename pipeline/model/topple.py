@@ -767,9 +767,8 @@ def evaluate_pose(
         # MODEL.md C.12: a push's row is its neighbourhood's mean row. Taking the best of ~1,000
         # candidates picks those whose count is most inflated; the mean over neighbours is not.
         limits = (config.applied_smoothing, config.smoothing_angle)
-        within = near is not None and limits[0] <= near.radius and limits[1] <= near.max_angle
-        next_pose, _ = neighbour_mean(actions.points, actions.directions, next_pose, *limits, pool=n_candidates,
-                                      near=near.narrower(*limits) if within else None)
+        shared = near.narrower(*limits) if near is not None and near.covers(*limits) else None  # else found here
+        next_pose, _ = neighbour_mean(actions.points, actions.directions, next_pose, *limits, pool=n_candidates, near=shared)
     toppled = outcomes >= 0  # (A, T), toppled over some edge (blocked ones included, section 9)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_force = np.where(toppled, forces, 0.0).sum(axis=1) / toppled.sum(axis=1)  # (A,), (9.3), N
