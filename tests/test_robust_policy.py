@@ -557,3 +557,44 @@ def test_each_prior_policy_is_paired_with_its_own_counterpart(dataset):  # noqa:
     assert policies["prior_belief_horizon_vi"]["gain_over_counterpart"] == 0.0
     assert [policies[p]["counterpart"] for p in PRIOR_POLICIES] == list(PRIOR_POLICIES.values())
     assert "counterpart" not in policies["belief_vi"]
+
+
+def test_the_datasets_own_discount_plays_exactly_what_value_iteration_and_belief_vi_play(dataset):  # noqa: F811 (fixture)
+    """``--gamma`` at the dataset's own discount replans value iteration and ``belief_vi`` from the
+    rows: the same pushes, trial by trial, as the stored value iteration and the study's ``belief_vi``
+    (after failures too), and a paired gain of exactly 0."""
+    from pipeline.studies.robust_policy import GAMMA_POLICIES, experiment
+    from schema.reader import Dataset
+
+    gamma = Dataset.open(dataset).manifest.parameters.mdp.gamma
+    report, pushes = experiment(dataset, 8, seed=1, workers=1, gamma=gamma)
+    assert report["gamma"] == gamma
+    played_by = {}
+    for push in pushes:
+        played_by.setdefault(push.policy, []).append((push.trial, push.object_id, push.pose, push.action, push.after))
+    for policy, counterpart in GAMMA_POLICIES.items():
+        assert played_by[policy], "the tiny dataset's trials push"
+        assert sorted(played_by[policy]) == sorted(played_by[counterpart])
+        assert report["policies"][policy]["counterpart"] == counterpart
+        assert report["policies"][policy]["gain_over_counterpart"] == 0.0
+
+
+def test_a_discount_near_zero_never_pushes_and_a_discount_out_of_range_is_refused(dataset, study_run, capsys):  # noqa: F811
+    """With gamma 1e-13 no push beats grasping where the object lies by the planners' margin (gamma Q
+    <= 1e-13 < ``IMPROVEMENT``, whatever V_s), so the replanned policies end where they start; without
+    ``--gamma`` they are not played at all."""
+    from pipeline.model.mdp import IMPROVEMENT
+    from pipeline.studies.robust_policy import GAMMA_POLICIES, experiment, main
+
+    assert 1e-13 < IMPROVEMENT
+    report, pushes = experiment(dataset, 8, seed=1, workers=1, gamma=1e-13)
+    assert not {p.policy for p in pushes} & set(GAMMA_POLICIES)
+    assert any(p.policy == "value_iteration" for p in pushes)
+    for policy in GAMMA_POLICIES:
+        assert report["policies"][policy]["physical_gain_useful"] == 0.0
+    plain, plain_pushes = study_run
+    assert plain["gamma"] is None and not set(GAMMA_POLICIES) & set(plain["policies"])
+    assert not {p.policy for p in plain_pushes} & set(GAMMA_POLICIES)
+    for bad in ("0", "1.5", "nan"):
+        assert main([str(dataset), "--trials", "2", "--gamma", bad]) == 2
+        assert f"gamma must be in (0, 1]; got {float(bad)}" in capsys.readouterr().err

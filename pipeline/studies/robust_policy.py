@@ -33,7 +33,9 @@ against physical topple rates of the chosen pushes, where their topples came to 
 the model lands them (``landing_summary``), with per-push diagnostics.  With ``--landing-prior ALPHA``
 it also plays value iteration, ``belief_vi`` and ``belief_horizon_vi`` planned over rows whose landings
 are shrunk toward their pose's mean landing by their topple count (``landing_prior_rows``,
-``PRIOR_POLICIES``), each against its counterpart.
+``PRIOR_POLICIES``), each against its counterpart; with ``--gamma G``, value iteration and ``belief_vi``
+planned with the discount G instead of the dataset's ``mdp.gamma`` (``GAMMA_POLICIES``), each against
+its counterpart, so one run pairs the two discounts trial by trial.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ from schema.reader import Dataset
 from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
-from ..model.config import Config, MDPConfig
+from ..model.config import Config, MDPConfig, field_range
 from ..model.mdp import IMPROVEMENT, belief_value_iteration, pose_values, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, mean_se, object_plans, open_trials, world_config
@@ -90,8 +92,15 @@ PRIOR_POLICIES = {PRIOR_POLICY: "value_iteration", PRIOR_BELIEF_POLICY: BELIEF_P
                   PRIOR_BELIEF_HORIZON_POLICY: BELIEF_HORIZON_POLICY}
 """Played only with a landing prior (``--landing-prior``): each the policy it maps to, planned over
 ``landing_prior_rows``, and compared with that policy, paired (stop 40; measured, not served)."""
+GAMMA_POLICY = "gamma_vi"
+GAMMA_BELIEF_POLICY = "gamma_belief_vi"
+GAMMA_POLICIES = {GAMMA_POLICY: "value_iteration", GAMMA_BELIEF_POLICY: BELIEF_POLICY}
+"""Played only with another discount (``--gamma``): value iteration and ``belief_vi`` planned with it,
+each compared with the same policy under the dataset's ``mdp.gamma``, paired (stop 44)."""
+COUNTERPARTS = {**PRIOR_POLICIES, **GAMMA_POLICIES}
+"""Every optional policy and the policy it is compared with."""
 REPORTS_FAILURES = (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY, PRIOR_BELIEF_POLICY,
-                    PRIOR_BELIEF_HORIZON_POLICY)
+                    PRIOR_BELIEF_HORIZON_POLICY, GAMMA_BELIEF_POLICY)
 """The policies played as a client that tells /plan its failed pushes: where a push of the trial
 has failed they choose among the candidates no failure ruled out (``after_failure_choice``)."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
@@ -528,14 +537,15 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
     """The push of a ``REPORTS_FAILURES`` policy from a pose where a push of the trial has failed,
     among the choosable candidates not in ``ruled_out`` ((A,) bool); ``step`` counts the trial's
     pushes (the budget's row).  returns : action index, or NO_OP"""
-    candidates, choosable, gamma = extra["candidates"][pose], extra["choosable"][pose], config.mdp.gamma
+    candidates, choosable = extra["candidates"][pose], extra["choosable"][pose]
+    gamma = extra.get("gammas", {}).get(policy, config.mdp.gamma)  # a GAMMA_POLICIES policy plans with its own
     stay = float(plan.v_s[pose])
     if policy == UNTRIED_POLICY:
         return untried_choice(pose, plan.v_s, candidates.q, ruled_out | ~choosable, gamma)
     if policy == AWARE_POLICY:
         return aware_choice(pose, plan.v_s, candidates.q, candidates.p_topple, ruled_out, choosable, gamma,
                             config.mdp.after_failure_power, config.mdp.retry_failed, believes=config.mdp.believe_failures)
-    if policy in (BELIEF_POLICY, PRIOR_BELIEF_POLICY):
+    if policy in (BELIEF_POLICY, PRIOR_BELIEF_POLICY, GAMMA_BELIEF_POLICY):
         return retry.best_untried(extra["belief_q1"][policy][pose], choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
     if policy in (BELIEF_HORIZON_POLICY, PRIOR_BELIEF_HORIZON_POLICY):
         return retry.best_untried(extra["belief_budget_q1"][policy][step][pose], extra["budget_choosable"][pose] & ~ruled_out,
@@ -545,8 +555,10 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
 
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
                workers: int | None = 1, world: Config | None = None, progress: bool = False,
-               exclusion: Exclusion = Exclusion(), landing_prior: float | None = None) -> tuple[dict, list[Push]]:
-    """Play the ``COMPARED`` policies (and the ``PRIOR_POLICIES`` with a landing prior); the report
+               exclusion: Exclusion = Exclusion(), landing_prior: float | None = None,
+               gamma: float | None = None) -> tuple[dict, list[Push]]:
+    """Play the ``COMPARED`` policies (and the ``PRIOR_POLICIES`` with a landing prior, the
+    ``GAMMA_POLICIES`` with another discount); the report
     (JSON-ready) and every push played.
 
     world : the simulated world's noise; default the dataset's own.  The CLI passes the thesis
@@ -557,14 +569,21 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     landing_prior : alpha of ``landing_prior_rows``; given, the ``PRIOR_POLICIES`` are played too.  A
       trial any of them leaves the pose set in is dropped for every policy, as for any played policy,
       so the others' counted trials can differ from a run without it (pushes never do).  Their
-      pushes' landing records (``Push.landing``...) are the model's rows', not the shrunk ones."""
+      pushes' landing records (``Push.landing``...) are the model's rows', not the shrunk ones.
+    gamma : a discount in (0, 1] for the ``GAMMA_POLICIES``; given, they are played too (the same
+      caveat on dropped trials)."""
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
     if landing_prior is not None and not 0 <= landing_prior < float("inf"):
         raise ValueError(f"the landing prior is a count of trials, finite and >= 0; got {landing_prior}")
+    accepted = field_range(MDPConfig, "gamma")
+    if gamma is not None and not accepted.contains(gamma):
+        raise ValueError(f"gamma must be {accepted.text()}; got {gamma}")
     policies = COMPARED + (tuple(PRIOR_POLICIES) if landing_prior is not None else ())
+    policies += tuple(GAMMA_POLICIES) if gamma is not None else ()
     dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
+    discounted = None if gamma is None else replace(config.mdp, gamma=gamma)
     plans: dict[str, ObjectPlan] = object_plans(dataset, sorted(by_object))
     tasks = []
     for object_id in sorted(by_object):
@@ -593,8 +612,12 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
             plan.actions.update(actions)
             belief_q1.update(q1)
             belief_budget_q1.update(budget_q1)
+        if discounted is not None:
+            plan.actions[GAMMA_POLICY] = value_iteration_actions(plan.v_s, rows, discounted, choosable)
+            plan.actions[GAMMA_BELIEF_POLICY], belief_q1[GAMMA_BELIEF_POLICY] = belief_tables(plan.v_s, rows, discounted,
+                                                                                              choosable)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
-                             "budget_choosable": budget_choosable,
+                             "budget_choosable": budget_choosable, "gammas": {GAMMA_BELIEF_POLICY: gamma},
                                   "landings": landings, "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
                       config, seed, max_pushes, world, policies))
 
@@ -608,7 +631,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         runs.update(results)
         pushes.extend(object_pushes)
     report = summarise(tables, starts, runs, pushes, policies)
-    report.update({"landing_prior": landing_prior, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
+    report.update({"landing_prior": landing_prior, "gamma": gamma, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
                    "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
     return report, pushes
@@ -652,7 +675,7 @@ def landing_summary(pushes: list[Push]) -> dict:
 
 def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push], policies: tuple[str, ...] = COMPARED) -> dict:
     """Per policy: V_s gain on useful trials, paired gain over max_height (and never push), topple rates;
-    the ``CHALLENGERS`` against value iteration and the ``PRIOR_POLICIES`` played against theirs, paired."""
+    the ``CHALLENGERS`` against value iteration and the ``COUNTERPARTS`` played against theirs, paired."""
     kept, gains, useful, outside = trial_gains(tables, starts, runs, policies)
     gains["never_push"] = np.zeros(len(kept))
     report = {"played_trials": len(runs), "outside_trials": outside, "useful_trials": int(useful.sum()), "policies": {}}
@@ -678,7 +701,7 @@ def summarise(tables, starts: np.ndarray, runs: dict, pushes: list[Push], polici
     # The budget believing failures against the budget that does not (the same pushes left).
     mean, error = mean_se(gains[BELIEF_HORIZON_POLICY][useful] - gains[HORIZON_POLICY][useful])
     report["policies"][BELIEF_HORIZON_POLICY].update({"gain_over_horizon_vi": mean, "gain_over_horizon_vi_se": error})
-    for policy, counterpart in PRIOR_POLICIES.items():
+    for policy, counterpart in COUNTERPARTS.items():
         if policy in gains:
             mean, error = mean_se(gains[policy][useful] - gains[counterpart][useful])
             report["policies"][policy].update({"counterpart": counterpart, "gain_over_counterpart": mean,
@@ -721,7 +744,7 @@ def text(report: dict) -> str:
         r = report["policies"][policy]
         lines.append(f"{policy} - value_iteration on useful trials: {cell(r['gain_over_value_iteration'])} +/- "
                      f"{r['gain_over_value_iteration_se'] or 0:.3f}")
-    for policy in PRIOR_POLICIES:
+    for policy in COUNTERPARTS:
         if policy in report["policies"]:
             r = report["policies"][policy]
             lines.append(f"{policy} - {r['counterpart']} on useful trials: {cell(r['gain_over_counterpart'])} +/- "
@@ -749,13 +772,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--landing-prior", type=float, metavar="ALPHA",
                         help="also play value iteration, belief_vi and belief_horizon_vi over rows whose landings are "
                              "shrunk toward the pose's mean landing with this pseudo-count (landing_prior_rows)")
+    parser.add_argument("--gamma", type=float, metavar="G",
+                        help="also play value iteration and belief_vi planned with this discount in (0, 1] "
+                             "(gamma_vi, gamma_belief_vi), each against its counterpart")
     args = parser.parse_args(argv)
     try:
         smoothing = Smoothing(args.radius, args.max_angle, args.min_neighbours)
         report, pushes = experiment(args.dataset, args.trials, smoothing, max_pushes=args.max_pushes, seed=args.seed,
                                     workers=args.workers, world=world_config(args.world),
                                     exclusion=Exclusion(args.exclude_radius, args.exclude_angle),
-                                    landing_prior=args.landing_prior)
+                                    landing_prior=args.landing_prior, gamma=args.gamma)
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
