@@ -231,6 +231,54 @@ def test_the_scorer_gives_the_engines_features_and_the_fit_is_written(model_logs
     assert set(result["cross_validated"]) >= {"identity", "boosted_map"} and result["pushes"] == len(log.pushes)
 
 
+
+def test_fold_maps_are_each_fitted_without_their_objects_and_list_them_as_a_corpus(model_logs, tmp_path, capsys):  # noqa: F811
+    """``--fold-maps``: fold k's trees are the fit on the pushes of the other folds' objects, and
+    fold k's corpus list holds exactly its objects (absolute paths), so a dataset of the list built
+    with the map never maps an object the map was fitted on."""
+    pytest.importorskip("sklearn")
+    from pipeline.build.corpus import read_list, write_list
+    from pipeline.build.atomic import file_sha256
+    from pipeline.studies.recalibrate import main, push_folds
+    from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
+
+    path = model_logs / "reported.parquet"
+    log = read_log([path])
+    specs = [ObjectSpec(f"box{i}", str(model_logs / f"box{i}.stl"), 1.0, 0.25, "test", file_sha256(model_logs / f"box{i}.stl"))
+             for i in range(3)]
+    corpus_list = tmp_path / "boxes.csv"
+    write_list(specs, corpus_list, None)
+    folds_dir, record = tmp_path / "folds", tmp_path / "b.json"
+    common = [str(path), "--corpus", str(corpus_list), "--folds", "3", "--set", f"contacts.n_contacts={CANDIDATES_PER_POSE}",
+              "--seed", "2", "--set", "seed=2", "--out", str(tmp_path / "b.toml"), "--json", str(record)]
+    assert main([*common, "--boosted", "--fold-maps", str(folds_dir)]) == 0
+    result = json.loads(record.read_text())
+    assert result["fold_lists"] == [str(folds_dir / f"fold_{k}.csv") for k in range(3)]
+
+    scorer = Scorer(log, seed=2, contacts=ContactConfig(n_contacts=CANDIDATES_PER_POSE))
+    features, p, _ = scorer.boosted_inputs(replace(Config().topple, boosted_map=""))
+    rows = np.isfinite(p)
+    fold_objects, fold_of = push_folds([scorer.object_ids[i] for i in scorer.object_index], 3, 2)
+    assert result["fold_objects"] == fold_objects
+    listed = []
+    for k in range(3):
+        train = (fold_of != k) & rows
+        expected = trees_from_dict(fit_trees(features[train], scorer.empirical_topple[train], scorer.repeats[train], 2))
+        written = load_trees(str(folds_dir / f"fold_{k}.trees.json"))
+        assert np.array_equal(boosted_probability(features, written), boosted_probability(features, expected), equal_nan=True)
+        members = read_list(folds_dir / f"fold_{k}.csv", 0.25).specs
+        assert [m.object_id for m in members] == sorted(fold_objects[k])
+        assert all(Path(m.path).is_absolute() and Path(m.path) == (model_logs / f"{m.object_id}.stl").resolve()
+                   and m.sha256 == file_sha256(m.path) for m in members)
+        listed += [m.object_id for m in members]
+    assert sorted(listed) == sorted(scorer.object_ids), "every logged object in one fold"
+
+    capsys.readouterr()
+    assert main([*common, "--fold-maps", str(folds_dir)]) == 2
+    assert "--fold-maps writes the boosted map's folds; give --boosted" in capsys.readouterr().err
+    assert main([*common[:1], "--corpus", "none", *common[3:], "--boosted", "--fold-maps", str(folds_dir)]) == 2
+    assert "--fold-maps writes corpus lists: give a --corpus, not 'none'" in capsys.readouterr().err
+
 # --- the features: every column what its name says (M09, M10, M24, M27, M28, M11, M12) --------------
 
 def test_every_feature_column_is_what_its_name_says(pose_and_candidates):  # noqa: F811

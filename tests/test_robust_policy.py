@@ -559,42 +559,96 @@ def test_each_prior_policy_is_paired_with_its_own_counterpart(dataset):  # noqa:
     assert "counterpart" not in policies["belief_vi"]
 
 
-def test_the_datasets_own_discount_plays_exactly_what_value_iteration_and_belief_vi_play(dataset):  # noqa: F811 (fixture)
-    """``--gamma`` at the dataset's own discount replans value iteration and ``belief_vi`` from the
-    rows: the same pushes, trial by trial, as the stored value iteration and the study's ``belief_vi``
-    (after failures too), and a paired gain of exactly 0."""
-    from pipeline.studies.robust_policy import GAMMA_POLICIES, experiment
+def test_the_datasets_own_mdp_as_a_variant_plays_exactly_what_its_counterparts_play(dataset):  # noqa: F811 (fixture)
+    """A variant at the dataset's own discount and cut replans value iteration, ``belief_vi`` and
+    ``smoothed_vi`` from the rows: the same pushes, trial by trial, as the stored value iteration
+    and the study's others (after failures too), and a paired gain of exactly 0."""
+    from pipeline.studies.robust_policy import VARIANT_POLICIES, experiment
     from schema.reader import Dataset
 
-    gamma = Dataset.open(dataset).manifest.parameters.mdp.gamma
-    report, pushes = experiment(dataset, 8, seed=1, workers=1, gamma=gamma)
-    assert report["gamma"] == gamma
+    mdp = Dataset.open(dataset).manifest.parameters.mdp
+    own = {"gamma": mdp.gamma, "min_direction_z": mdp.min_direction_z}
+    report, pushes = experiment(dataset, 8, seed=1, workers=1, variant=own)
+    assert report["variant"] == own
     played_by = {}
     for push in pushes:
         played_by.setdefault(push.policy, []).append((push.trial, push.object_id, push.pose, push.action, push.after))
-    for policy, counterpart in GAMMA_POLICIES.items():
-        assert played_by[policy], "the tiny dataset's trials push"
-        assert sorted(played_by[policy]) == sorted(played_by[counterpart])
+    assert played_by["variant_vi"] and played_by["variant_belief_vi"], "the tiny dataset's trials push"
+    for policy, counterpart in VARIANT_POLICIES.items():
+        assert sorted(played_by.get(policy, [])) == sorted(played_by.get(counterpart, []))
         assert report["policies"][policy]["counterpart"] == counterpart
         assert report["policies"][policy]["gain_over_counterpart"] == 0.0
 
 
-def test_a_discount_near_zero_never_pushes_and_a_discount_out_of_range_is_refused(dataset, study_run, capsys):  # noqa: F811
+def test_a_variant_plans_under_its_own_discount_and_cut(dataset):  # noqa: F811 (fixture)
+    """``variant_plan`` is value iteration, ``belief_vi`` and ``smoothed_vi`` of the variant MDP over
+    the pushes its cut allows: a cut above every push leaves nothing to push; another discount gives
+    value iteration's choice under it (``value_iteration_actions``)."""
+    from dataclasses import replace
+
+    from pipeline.studies.policies_physics import dataset_config, object_plans
+    from pipeline.studies.robust_policy import (
+        VARIANT_BELIEF_POLICY,
+        VARIANT_POLICY,
+        VARIANT_ROBUST_POLICY,
+        belief_tables,
+        read_candidates,
+        robust_actions,
+        value_iteration_actions,
+        variant_plan,
+    )
+    from schema import horizon
+    from schema.reader import Dataset
+
+    data = Dataset.open(dataset)
+    config = dataset_config(data)
+    plans = object_plans(data, sorted(o.object_id for o in data.manifest.corpus.objects))
+    object_id = next(o for o, plan in plans.items() if (plan.actions["value_iteration"] != NO_OP).any())
+    candidates = read_candidates(data, object_id)
+    rows = next_pose_rows(data, object_id, [len(c.q) for c in candidates])
+    v_s = plans[object_id].v_s
+    smoothing = Smoothing(min_neighbours=1)  # the tiny dataset's pushes are sparse: let every ok push be chosen
+    scores = [pose_scores(c, smoothing, r) for c, r in zip(candidates, rows)]
+    nothing = [np.zeros(len(c.q), dtype=bool) for c in candidates]
+    actions, _ = variant_plan(v_s, rows, candidates, scores, config.mdp, nothing, smoothing)
+    assert all((a == NO_OP).all() for a in actions.values())
+    every = [horizon.choosable_pushes(c.directions[:, 2], -1.0) for c in candidates]
+    for gamma in (0.5, 0.99):
+        mdp = replace(config.mdp, gamma=gamma, min_direction_z=-1.0)
+        actions, q1 = variant_plan(v_s, rows, candidates, scores, mdp, every, smoothing)
+        np.testing.assert_array_equal(actions[VARIANT_POLICY], value_iteration_actions(v_s, rows, mdp, every))
+        first, expected_q1 = belief_tables(v_s, rows, mdp, every)
+        np.testing.assert_array_equal(actions[VARIANT_BELIEF_POLICY], first)
+        assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(q1[VARIANT_BELIEF_POLICY], expected_q1))
+        assert actions[VARIANT_ROBUST_POLICY].shape == (len(candidates),)
+    # The smoothed choice follows the variant's own Q_T: at the dataset's MDP, the stored Q's.
+    actions, _ = variant_plan(v_s, rows, candidates, scores, config.mdp, [horizon.choosable_pushes(c.directions[:, 2],
+                              config.mdp.min_direction_z) for c in candidates], smoothing)
+    stored = robust_actions(v_s, scores, config.mdp.gamma, smoothing,
+                            [horizon.choosable_pushes(c.directions[:, 2], config.mdp.min_direction_z) for c in candidates])
+    np.testing.assert_array_equal(actions[VARIANT_ROBUST_POLICY], stored)
+    assert (stored != NO_OP).any(), "a pose of the object pushes"
+
+
+def test_a_variant_near_zero_discount_never_pushes_and_a_bad_variant_is_refused(dataset, study_run, capsys):  # noqa: F811
     """With gamma 1e-13 no push beats grasping where the object lies by the planners' margin (gamma Q
-    <= 1e-13 < ``IMPROVEMENT``, whatever V_s), so the replanned policies end where they start; without
-    ``--gamma`` they are not played at all."""
+    <= 1e-13 < ``IMPROVEMENT``, whatever V_s), so the variant's policies end where they start; without
+    a variant they are not played at all."""
     from pipeline.model.mdp import IMPROVEMENT
-    from pipeline.studies.robust_policy import GAMMA_POLICIES, experiment, main
+    from pipeline.studies.robust_policy import VARIANT_POLICIES, experiment, main
 
     assert 1e-13 < IMPROVEMENT
-    report, pushes = experiment(dataset, 8, seed=1, workers=1, gamma=1e-13)
-    assert not {p.policy for p in pushes} & set(GAMMA_POLICIES)
+    report, pushes = experiment(dataset, 8, seed=1, workers=1, variant={"gamma": 1e-13})
+    assert not {p.policy for p in pushes} & set(VARIANT_POLICIES)
     assert any(p.policy == "value_iteration" for p in pushes)
-    for policy in GAMMA_POLICIES:
+    for policy in VARIANT_POLICIES:
         assert report["policies"][policy]["physical_gain_useful"] == 0.0
     plain, plain_pushes = study_run
-    assert plain["gamma"] is None and not set(GAMMA_POLICIES) & set(plain["policies"])
-    assert not {p.policy for p in plain_pushes} & set(GAMMA_POLICIES)
-    for bad in ("0", "1.5", "nan"):
-        assert main([str(dataset), "--trials", "2", "--gamma", bad]) == 2
-        assert f"gamma must be in (0, 1]; got {float(bad)}" in capsys.readouterr().err
+    assert plain["variant"] is None and not set(VARIANT_POLICIES) & set(plain["policies"])
+    assert not {p.policy for p in plain_pushes} & set(VARIANT_POLICIES)
+    for flag, bad, message in [("--gamma", "0", "gamma must be in (0, 1]; got 0.0"), ("--gamma", "nan", "gamma must be in (0, 1]"),
+                               ("--min-direction-z", "1.5", "min_direction_z must be in [-1, 1]; got 1.5")]:
+        assert main([str(dataset), "--trials", "2", flag, bad]) == 2
+        assert message in capsys.readouterr().err
+    with pytest.raises(ValueError, match="a variant changes gamma or min_direction_z, not tolerance"):
+        experiment(dataset, 2, variant={"tolerance": 1e-3})

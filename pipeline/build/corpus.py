@@ -417,15 +417,16 @@ def _number(text: str | float | None, default: float | None, what: str, where: s
     return value
 
 
-def write_list(specs: list[ObjectSpec], path: str | Path, root: Path) -> None:
-    """Write specs as a list file with paths relative to ``root``, atomically."""
+def write_list(specs: list[ObjectSpec], path: str | Path, root: Path | None) -> None:
+    """Write specs as a list file with paths relative to ``root`` (None: absolute paths), atomically."""
     path = Path(path)
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(LIST_COLUMNS)
     for s in specs:
-        relative = Path(s.path).resolve().relative_to(root.resolve()).as_posix()
-        writer.writerow([s.object_id, s.source, relative, repr(s.scale), repr(s.mass), s.sha256])
+        mesh = Path(s.path).resolve()
+        written = mesh.as_posix() if root is None else mesh.relative_to(root.resolve()).as_posix()
+        writer.writerow([s.object_id, s.source, written, repr(s.scale), repr(s.mass), s.sha256])
     write_text_atomic(path, buffer.getvalue())
 
 

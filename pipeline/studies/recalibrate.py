@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..build.atomic import write_text_atomic
+from ..build.corpus import Corpus
 from ..model.boosted_map import FEATURES as BOOSTED_FEATURES
 from ..model.boosted_map import FIT_PARAMS, boosted_probability, fit_trees, trees_from_dict
 from ..model.config import MAP_FIELDS, NO_MAP, Config, ToppleConfig
@@ -302,7 +304,8 @@ def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: in
     held-out ones; a push the model knows no landing for keeps P.  ``identity`` is P as the model without a
     boosted map gives it.
     returns : a JSON-ready record with ``trees`` (``boosted_map.trees_from_dict``'s layout, fitted on every
-      push) and pooled held-out metrics of both
+      push), ``fold_trees`` (fold k's, fitted without the objects of ``fold_objects[k]``: what maps them
+      out of fold, ``write_fold_maps``) and pooled held-out metrics of both
     """
     config = config or Config()
     started = time.perf_counter()
@@ -312,18 +315,42 @@ def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: in
     fold_objects, fold_of = push_folds([scorer.object_ids[i] for i in objects], folds, seed)
     rows = np.isfinite(p)
     held_out = p.copy()
+    fold_trees = []
     for f in range(folds):
         train, test = (fold_of != f) & rows, (fold_of == f) & rows & lands
         if not train.any():
             raise RecalibrationError(f"fold {f} leaves no push to fit the boosted map on; use fewer folds")
-        trees = trees_from_dict(fit_trees(features[train], observed[train], scorer.repeats[train], seed))
-        held_out[test] = boosted_probability(features[test], trees)
+        fold_trees.append(fit_trees(features[train], observed[train], scorer.repeats[train], seed))
+        held_out[test] = boosted_probability(features[test], trees_from_dict(fold_trees[-1]))
     fitted = fit_trees(features[rows], observed[rows], scorer.repeats[rows], seed)
     metrics_of = metrics_by_predictor({"identity": p, "boosted_map": held_out}, rows, observed, weight, objects)
     return {"variant": config.topple.variant, "features": list(BOOSTED_FEATURES), "fit": {**FIT_PARAMS, "random_state": seed},
             "pushes": int(rows.sum()), "objects": len(scorer.object_ids), "folds": folds, "seed": seed,
             "cross_validated": metrics_of, "fold_objects": fold_objects, "counts": log.counts(),
-            "wall_s": round(time.perf_counter() - started, 1), "trees": fitted}
+            "wall_s": round(time.perf_counter() - started, 1), "trees": fitted, "fold_trees": fold_trees}
+
+
+def write_fold_maps(directory: Path, fold_trees: list[dict], fold_objects: list[list[str]], corpus: Corpus) -> list[Path]:
+    """Each fold's boosted map and its objects' corpus list, to build the corpus out of fold.
+
+    A dataset of the corpus built with the map fitted on the same objects is judged on the map's own
+    training set: its planners' pushes look better there than on new objects (docs/VALIDATION.md,
+    stop 44).  Fold k's objects built with fold k's map (fitted without them) are not:
+    ``toppledb dataset --corpus DIR/fold_k.csv --set topple.boosted_map=DIR/fold_k.trees.json``.
+    returns : the corpus lists written, fold by fold (absolute mesh paths)"""
+    from ..build.corpus import write_list
+
+    directory.mkdir(parents=True, exist_ok=True)
+    by_id = {spec.object_id: spec for spec in corpus.specs}
+    missing = sorted(name for members in fold_objects for name in members if name not in by_id)
+    if missing:
+        raise RecalibrationError(f"--fold-maps: {len(missing)} logged objects are not in the corpus, e.g. {missing[0]}")
+    lists = []
+    for k, (trees, members) in enumerate(zip(fold_trees, fold_objects)):
+        write_text_atomic(directory / f"fold_{k}.trees.json", json.dumps(trees, separators=(",", ":")))
+        lists.append(directory / f"fold_{k}.csv")
+        write_list([by_id[name] for name in sorted(members)], lists[-1], None)
+    return lists
 
 
 def format_boosted_record(result: dict) -> str:
@@ -427,11 +454,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--boosted", action="store_true",
                         help=("fit the boosted map (docs/MODEL.md C.19) on top of the model's other maps, which are kept; "
                               "its trees go to OUT with the suffix .trees.json, which the TOML names"))
+    parser.add_argument("--fold-maps", type=Path, metavar="DIR",
+                        help=("with --boosted: also write each fold's map (fitted without its objects) and its objects' "
+                              "corpus list to DIR, to build the corpus out of fold (fold_K.trees.json, fold_K.csv)"))
     args = parser.parse_args(argv)
 
     try:
         if args.features + args.down + args.side + args.boosted > 1:
             raise UsageError("--features, --down, --side and --boosted fit different maps; choose one")
+        if args.fold_maps is not None and not args.boosted:
+            raise UsageError("--fold-maps writes the boosted map's folds; give --boosted")
         config = config_from_args(args)
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
@@ -452,7 +484,12 @@ def main(argv: list[str] | None = None) -> int:
         elif args.side:
             result = side_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
         elif args.boosted:
+            if args.fold_maps is not None and corpus is None:
+                raise UsageError("--fold-maps writes corpus lists: give a --corpus, not 'none'")
             result = boosted_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
+            fold_trees = result.pop("fold_trees")
+            if args.fold_maps is not None:
+                result["fold_lists"] = [str(p) for p in write_fold_maps(args.fold_maps, fold_trees, result["fold_objects"], corpus)]
         else:
             result = recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, methods=tuple(args.methods))
     except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError) as err:

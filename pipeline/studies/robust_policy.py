@@ -33,9 +33,10 @@ against physical topple rates of the chosen pushes, where their topples came to 
 the model lands them (``landing_summary``), with per-push diagnostics.  With ``--landing-prior ALPHA``
 it also plays value iteration, ``belief_vi`` and ``belief_horizon_vi`` planned over rows whose landings
 are shrunk toward their pose's mean landing by their topple count (``landing_prior_rows``,
-``PRIOR_POLICIES``), each against its counterpart; with ``--gamma G``, value iteration and ``belief_vi``
-planned with the discount G instead of the dataset's ``mdp.gamma`` (``GAMMA_POLICIES``), each against
-its counterpart, so one run pairs the two discounts trial by trial.
+``PRIOR_POLICIES``), each against its counterpart; with ``--gamma G`` and/or ``--min-direction-z Z``,
+value iteration, ``belief_vi`` and ``smoothed_vi`` planned under that MDP instead of the dataset's
+(``VARIANT_POLICIES``: another discount, other choosable pushes), each against its counterpart, so one
+run pairs the two MDPs trial by trial.
 """
 
 from __future__ import annotations
@@ -92,15 +93,19 @@ PRIOR_POLICIES = {PRIOR_POLICY: "value_iteration", PRIOR_BELIEF_POLICY: BELIEF_P
                   PRIOR_BELIEF_HORIZON_POLICY: BELIEF_HORIZON_POLICY}
 """Played only with a landing prior (``--landing-prior``): each the policy it maps to, planned over
 ``landing_prior_rows``, and compared with that policy, paired (stop 40; measured, not served)."""
-GAMMA_POLICY = "gamma_vi"
-GAMMA_BELIEF_POLICY = "gamma_belief_vi"
-GAMMA_POLICIES = {GAMMA_POLICY: "value_iteration", GAMMA_BELIEF_POLICY: BELIEF_POLICY}
-"""Played only with another discount (``--gamma``): value iteration and ``belief_vi`` planned with it,
-each compared with the same policy under the dataset's ``mdp.gamma``, paired (stop 44)."""
-COUNTERPARTS = {**PRIOR_POLICIES, **GAMMA_POLICIES}
+VARIANT_POLICY = "variant_vi"
+VARIANT_BELIEF_POLICY = "variant_belief_vi"
+VARIANT_ROBUST_POLICY = "variant_smoothed_vi"
+VARIANT_POLICIES = {VARIANT_POLICY: "value_iteration", VARIANT_BELIEF_POLICY: BELIEF_POLICY, VARIANT_ROBUST_POLICY: ROBUST_POLICY}
+"""Played only under another MDP (``MDPVariant``: a discount, a cut on the choosable pushes): value
+iteration, ``belief_vi`` and ``smoothed_vi`` planned under it over the dataset's rows, each compared
+with the same policy under the dataset's MDP, paired (stop 44)."""
+VARIANT_FIELDS = ("gamma", "min_direction_z")
+"""The ``mdp`` fields an ``MDPVariant`` may change."""
+COUNTERPARTS = {**PRIOR_POLICIES, **VARIANT_POLICIES}
 """Every optional policy and the policy it is compared with."""
 REPORTS_FAILURES = (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY, PRIOR_BELIEF_POLICY,
-                    PRIOR_BELIEF_HORIZON_POLICY, GAMMA_BELIEF_POLICY)
+                    PRIOR_BELIEF_HORIZON_POLICY, VARIANT_BELIEF_POLICY)
 """The policies played as a client that tells /plan its failed pushes: where a push of the trial
 has failed they choose among the candidates no failure ruled out (``after_failure_choice``)."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
@@ -434,6 +439,23 @@ def prior_plan(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosabl
     return actions, q1, budget_q1
 
 
+def variant_plan(v_s: np.ndarray, rows: list[np.ndarray], candidates: list[PoseCandidates], scores: list[PoseScores],
+                 mdp: MDPConfig, choosable: list[np.ndarray], smoothing: Smoothing) -> tuple[dict[str, np.ndarray], dict[str, list]]:
+    """The ``VARIANT_POLICIES`` planned under ``mdp`` over pushes ``choosable`` under it: value iteration
+    (``pose_values``), ``belief_vi`` (``belief_tables``) and ``smoothed_vi`` over the neighbourhood means
+    of that value iteration's Q_T (its V_T, hence every Q_T, follows the variant).  returns : their actions
+    and the Q1 the variant ``belief_vi`` ranks by after a failure, keyed by name."""
+    values = pose_values(rows, v_s, [-1] * len(rows), mdp, choosable)
+    actions = {VARIANT_POLICY: np.array([v.policies["value_iteration"].action for v in values], dtype=np.int64)}
+    smoothed = []
+    for c, v, s in zip(candidates, values, scores):
+        mean, count = neighbour_mean(c.points, c.directions, v.q, smoothing)
+        smoothed.append(PoseScores(mean, s.smoothed_p, count))
+    actions[VARIANT_ROBUST_POLICY] = robust_actions(v_s, smoothed, mdp.gamma, smoothing, choosable)
+    actions[VARIANT_BELIEF_POLICY], q1 = belief_tables(v_s, rows, mdp, choosable)
+    return actions, {VARIANT_BELIEF_POLICY: q1}
+
+
 # ---------------------------------------------------------------- physics
 
 
@@ -537,15 +559,18 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
     """The push of a ``REPORTS_FAILURES`` policy from a pose where a push of the trial has failed,
     among the choosable candidates not in ``ruled_out`` ((A,) bool); ``step`` counts the trial's
     pushes (the budget's row).  returns : action index, or NO_OP"""
-    candidates, choosable = extra["candidates"][pose], extra["choosable"][pose]
-    gamma = extra.get("gammas", {}).get(policy, config.mdp.gamma)  # a GAMMA_POLICIES policy plans with its own
+    candidates = extra["candidates"][pose]
+    # A VARIANT_POLICIES policy plans with its own discount over its own choosable pushes.
+    mdp = extra["variant_mdp"] if policy in VARIANT_POLICIES else config.mdp
+    choosable = (extra["variant_choosable"] if policy in VARIANT_POLICIES else extra["choosable"])[pose]
+    gamma = mdp.gamma
     stay = float(plan.v_s[pose])
     if policy == UNTRIED_POLICY:
         return untried_choice(pose, plan.v_s, candidates.q, ruled_out | ~choosable, gamma)
     if policy == AWARE_POLICY:
         return aware_choice(pose, plan.v_s, candidates.q, candidates.p_topple, ruled_out, choosable, gamma,
                             config.mdp.after_failure_power, config.mdp.retry_failed, believes=config.mdp.believe_failures)
-    if policy in (BELIEF_POLICY, PRIOR_BELIEF_POLICY, GAMMA_BELIEF_POLICY):
+    if policy in (BELIEF_POLICY, PRIOR_BELIEF_POLICY, VARIANT_BELIEF_POLICY):
         return retry.best_untried(extra["belief_q1"][policy][pose], choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
     if policy in (BELIEF_HORIZON_POLICY, PRIOR_BELIEF_HORIZON_POLICY):
         return retry.best_untried(extra["belief_budget_q1"][policy][step][pose], extra["budget_choosable"][pose] & ~ruled_out,
@@ -556,9 +581,9 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
                workers: int | None = 1, world: Config | None = None, progress: bool = False,
                exclusion: Exclusion = Exclusion(), landing_prior: float | None = None,
-               gamma: float | None = None) -> tuple[dict, list[Push]]:
+               variant: dict[str, float] | None = None) -> tuple[dict, list[Push]]:
     """Play the ``COMPARED`` policies (and the ``PRIOR_POLICIES`` with a landing prior, the
-    ``GAMMA_POLICIES`` with another discount); the report
+    ``VARIANT_POLICIES`` under another MDP); the report
     (JSON-ready) and every push played.
 
     world : the simulated world's noise; default the dataset's own.  The CLI passes the thesis
@@ -570,20 +595,23 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
       trial any of them leaves the pose set in is dropped for every policy, as for any played policy,
       so the others' counted trials can differ from a run without it (pushes never do).  Their
       pushes' landing records (``Push.landing``...) are the model's rows', not the shrunk ones.
-    gamma : a discount in (0, 1] for the ``GAMMA_POLICIES``; given, they are played too (the same
-      caveat on dropped trials)."""
+    variant : ``mdp`` values (``VARIANT_FIELDS``) the ``VARIANT_POLICIES`` plan under, the dataset's
+      for the others; given, they are played too (the same caveat on dropped trials)."""
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
     if landing_prior is not None and not 0 <= landing_prior < float("inf"):
         raise ValueError(f"the landing prior is a count of trials, finite and >= 0; got {landing_prior}")
-    accepted = field_range(MDPConfig, "gamma")
-    if gamma is not None and not accepted.contains(gamma):
-        raise ValueError(f"gamma must be {accepted.text()}; got {gamma}")
+    for name, value in (variant or {}).items():
+        accepted = field_range(MDPConfig, name) if name in VARIANT_FIELDS else None
+        if accepted is None:
+            raise ValueError(f"a variant changes {' or '.join(VARIANT_FIELDS)}, not {name}")
+        if not accepted.contains(value):
+            raise ValueError(f"{name} must be {accepted.text()}; got {value}")
     policies = COMPARED + (tuple(PRIOR_POLICIES) if landing_prior is not None else ())
-    policies += tuple(GAMMA_POLICIES) if gamma is not None else ()
+    policies += tuple(VARIANT_POLICIES) if variant else ()
     dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
-    discounted = None if gamma is None else replace(config.mdp, gamma=gamma)
+    variant_mdp = replace(config.mdp, **variant) if variant else None
     plans: dict[str, ObjectPlan] = object_plans(dataset, sorted(by_object))
     tasks = []
     for object_id in sorted(by_object):
@@ -612,12 +640,15 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
             plan.actions.update(actions)
             belief_q1.update(q1)
             belief_budget_q1.update(budget_q1)
-        if discounted is not None:
-            plan.actions[GAMMA_POLICY] = value_iteration_actions(plan.v_s, rows, discounted, choosable)
-            plan.actions[GAMMA_BELIEF_POLICY], belief_q1[GAMMA_BELIEF_POLICY] = belief_tables(plan.v_s, rows, discounted,
-                                                                                              choosable)
+        variant_choosable = None
+        if variant_mdp is not None:
+            variant_choosable = [horizon.choosable_pushes(c.directions[:, 2], variant_mdp.min_direction_z) for c in candidates]
+            actions, q1 = variant_plan(plan.v_s, rows, candidates, scores, variant_mdp, variant_choosable, smoothing)
+            plan.actions.update(actions)
+            belief_q1.update(q1)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
-                             "budget_choosable": budget_choosable, "gammas": {GAMMA_BELIEF_POLICY: gamma},
+                             "budget_choosable": budget_choosable, "variant_mdp": variant_mdp,
+                             "variant_choosable": variant_choosable,
                                   "landings": landings, "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
                       config, seed, max_pushes, world, policies))
 
@@ -631,7 +662,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         runs.update(results)
         pushes.extend(object_pushes)
     report = summarise(tables, starts, runs, pushes, policies)
-    report.update({"landing_prior": landing_prior, "gamma": gamma, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
+    report.update({"landing_prior": landing_prior, "variant": variant or None, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
                    "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
     return report, pushes
@@ -773,15 +804,20 @@ def main(argv: list[str] | None = None) -> int:
                         help="also play value iteration, belief_vi and belief_horizon_vi over rows whose landings are "
                              "shrunk toward the pose's mean landing with this pseudo-count (landing_prior_rows)")
     parser.add_argument("--gamma", type=float, metavar="G",
-                        help="also play value iteration and belief_vi planned with this discount in (0, 1] "
-                             "(gamma_vi, gamma_belief_vi), each against its counterpart")
+                        help="also play value iteration, belief_vi and smoothed_vi planned with this discount in (0, 1] "
+                             "(variant_vi, variant_belief_vi, variant_smoothed_vi), each against its counterpart")
+    parser.add_argument("--min-direction-z", type=float, metavar="Z",
+                        help="also play them choosing among the pushes with u_z >= Z (the dataset's mdp.min_direction_z "
+                             "for the others); with --gamma, one variant of both")
     args = parser.parse_args(argv)
     try:
         smoothing = Smoothing(args.radius, args.max_angle, args.min_neighbours)
         report, pushes = experiment(args.dataset, args.trials, smoothing, max_pushes=args.max_pushes, seed=args.seed,
                                     workers=args.workers, world=world_config(args.world),
                                     exclusion=Exclusion(args.exclude_radius, args.exclude_angle),
-                                    landing_prior=args.landing_prior, gamma=args.gamma)
+                                    landing_prior=args.landing_prior,
+                                    variant={name: value for name, value in (("gamma", args.gamma), ("min_direction_z",
+                                             args.min_direction_z)) if value is not None})
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
