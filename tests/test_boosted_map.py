@@ -237,8 +237,8 @@ def test_fold_maps_are_each_fitted_without_their_objects_and_list_them_as_a_corp
     fold k's corpus list holds exactly its objects (absolute paths), so a dataset of the list built
     with the map never maps an object the map was fitted on."""
     pytest.importorskip("sklearn")
-    from pipeline.build.corpus import read_list, write_list
     from pipeline.build.atomic import file_sha256
+    from pipeline.build.corpus import read_list, write_list
     from pipeline.studies.recalibrate import main, push_folds
     from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
 
