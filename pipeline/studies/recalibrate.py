@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..build.atomic import write_text_atomic
-from ..build.corpus import Corpus
+from ..build.corpus import Corpus, write_list
 from ..model.boosted_map import FEATURES as BOOSTED_FEATURES
 from ..model.boosted_map import FIT_PARAMS, boosted_probability, fit_trees, trees_from_dict
 from ..model.config import MAP_FIELDS, NO_MAP, Config, ToppleConfig
@@ -338,8 +338,6 @@ def write_fold_maps(directory: Path, fold_trees: list[dict], fold_objects: list[
     stop 44).  Fold k's objects built with fold k's map (fitted without them) are not:
     ``toppledb dataset --corpus DIR/fold_k.csv --set topple.boosted_map=DIR/fold_k.trees.json``.
     returns : the corpus lists written, fold by fold (absolute mesh paths)"""
-    from ..build.corpus import write_list
-
     directory.mkdir(parents=True, exist_ok=True)
     by_id = {spec.object_id: spec for spec in corpus.specs}
     missing = sorted(name for members in fold_objects for name in members if name not in by_id)

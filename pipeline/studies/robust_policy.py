@@ -97,11 +97,11 @@ VARIANT_POLICY = "variant_vi"
 VARIANT_BELIEF_POLICY = "variant_belief_vi"
 VARIANT_ROBUST_POLICY = "variant_smoothed_vi"
 VARIANT_POLICIES = {VARIANT_POLICY: "value_iteration", VARIANT_BELIEF_POLICY: BELIEF_POLICY, VARIANT_ROBUST_POLICY: ROBUST_POLICY}
-"""Played only under another MDP (``MDPVariant``: a discount, a cut on the choosable pushes): value
-iteration, ``belief_vi`` and ``smoothed_vi`` planned under it over the dataset's rows, each compared
-with the same policy under the dataset's MDP, paired (stop 44)."""
+"""Played only under another MDP (``experiment``'s ``variant``: a discount, a cut on the choosable
+pushes): value iteration, ``belief_vi`` and ``smoothed_vi`` planned under it over the dataset's rows,
+each compared with the same policy under the dataset's MDP, paired (stop 44)."""
 VARIANT_FIELDS = ("gamma", "min_direction_z")
-"""The ``mdp`` fields an ``MDPVariant`` may change."""
+"""The ``mdp`` fields a variant may change."""
 COUNTERPARTS = {**PRIOR_POLICIES, **VARIANT_POLICIES}
 """Every optional policy and the policy it is compared with."""
 REPORTS_FAILURES = (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY, PRIOR_BELIEF_POLICY,
