@@ -561,9 +561,9 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
     pushes (the budget's row).  returns : action index, or NO_OP"""
     candidates = extra["candidates"][pose]
     # A VARIANT_POLICIES policy plans with its own discount over its own choosable pushes.
-    mdp = extra["variant_mdp"] if policy in VARIANT_POLICIES else config.mdp
-    choosable = (extra["variant_choosable"] if policy in VARIANT_POLICIES else extra["choosable"])[pose]
-    gamma = mdp.gamma
+    variant = policy in VARIANT_POLICIES
+    gamma = (extra["variant_mdp"] if variant else config.mdp).gamma
+    choosable = extra["variant_choosable" if variant else "choosable"][pose]
     stay = float(plan.v_s[pose])
     if policy == UNTRIED_POLICY:
         return untried_choice(pose, plan.v_s, candidates.q, ruled_out | ~choosable, gamma)
@@ -603,9 +603,9 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     if landing_prior is not None and not 0 <= landing_prior < float("inf"):
         raise ValueError(f"the landing prior is a count of trials, finite and >= 0; got {landing_prior}")
     for name, value in (variant or {}).items():
-        accepted = field_range(MDPConfig, name) if name in VARIANT_FIELDS else None
-        if accepted is None:
+        if name not in VARIANT_FIELDS:
             raise ValueError(f"a variant changes {' or '.join(VARIANT_FIELDS)}, not {name}")
+        accepted = field_range(MDPConfig, name)
         if not accepted.contains(value):
             raise ValueError(f"{name} must be {accepted.text()}; got {value}")
     policies = COMPARED + (tuple(PRIOR_POLICIES) if landing_prior is not None else ())
