@@ -71,6 +71,12 @@ class MDPParameters(_Open):
     """Whether value iteration planned with the after-failure map from the first push on
     (docs/MODEL.md (12.13)): the stored Q is Q0 and after a failure /plan ranks by Q1.  A manifest
     from before the field was built with the thesis's equation."""
+    choice_radius: float = Field(0.0, ge=0)
+    """m: value iteration's push was the one of highest neighbourhood-mean Q_T within this (and
+    ``choice_angle``, ``choice_neighbours``; docs/MODEL.md section 12, "the choice"); 0, the argmax
+    of Q_T, which a manifest from before the field took."""
+    choice_angle: float = Field(0.5, ge=0)
+    choice_neighbours: int = Field(5, ge=1)
 
     @model_validator(mode="before")
     @classmethod

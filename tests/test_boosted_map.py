@@ -361,7 +361,7 @@ def test_the_boosted_map_alone_needs_the_candidates():
 # --- shards (S02, S03) -----------------------------------------------------------------------------
 
 def test_a_shard_without_the_map_keeps_the_identity_it_had_before_it_existed(tmp_path):
-    without = Config().with_overrides({"topple.boosted_map": ""})
+    without = Config().with_overrides({"topple.boosted_map": "", "mdp.min_direction_z": -0.3})
     inputs = shards.shard_inputs(SPEC, without)
     assert "boosted_map" not in inputs["config"]["topple"] and "boosted_map_sha256" not in inputs
     assert "boosted_map_sha256" in shards.shard_inputs(SPEC, Config()), "the default applies the packaged map"

@@ -182,9 +182,13 @@ def test_bad_weights_and_a_cut_above_the_policies_are_refused():
         Config().with_overrides({"topple.down_map": "1,2,3"})
     with pytest.raises(ValueError, match="down_map_z"):
         Config().with_overrides({"topple.down_map_z": -2.0})
-    # Choosing from every push (the thesis's rule) with the down map on would map chosen pushes.
-    with pytest.raises(ValueError, match="would map pushes the policies may choose"):
-        Config().with_overrides({"mdp.min_direction_z": -1.0})
+    # Choosing from every push with the down map on maps chosen pushes: the default does, by the
+    # neighbourhood over the boosted map (C.19); the argmax, or no boosted map, is refused.
+    assert Config().mdp.min_direction_z == -1.0 and Config().topple.applied_down_map and Config().topple.down_map_z > -1.0
+    for unjudged in ({"mdp.choice_radius": 0.0}, {"topple.boosted_map": ""}):
+        with pytest.raises(ValueError, match="would map pushes the policies may choose"):
+            Config().with_overrides(unjudged)
+        assert Config().with_overrides({**unjudged, "mdp.min_direction_z": -0.3}).topple.applied_down_map
     assert Config().with_overrides({"mdp.min_direction_z": -1.0, "topple.down_map": ""}).topple.applied_down_map == ()
     assert Config().with_overrides({"mdp.min_direction_z": 0.0}).topple.applied_down_map == Config().topple.down_map
     with pytest.raises(ValueError, match="would map pushes the policies may choose"):
@@ -292,6 +296,8 @@ def test_recalibrate_down_fits_the_centred_map_on_all_pushes_and_the_down_map_on
     assert main([str(path), "--down", "--set", "topple.down_map_z=-0.5", *common]) == 0
     written = Config.from_toml(out).topple
     assert np.allclose(written.down_map, result["weights"]) and written.down_map_z == -0.5, "the cut travels with the weights"
+    assert not written.applied_boosted_map and Config.from_toml(out).mdp.min_direction_z == -0.5, \
+        "without the boosted map over it, value iteration chooses no push the down map maps"
     assert json.loads(record.read_text())["weights"] == result["weights"]
     # A cut below every push leaves nothing to fit: a clear error, nothing written.
     out.unlink()

@@ -267,7 +267,7 @@ def test_policies_choose_among_the_choosable_pushes_and_every_push_keeps_its_val
     # above, say); push 1 reaches it half the time.  Pose 1 is the best pose.
     v_s = np.array([0.1, 0.9])
     tables = [np.array([[0.0, 1.0], [0.5, 0.5]]), np.array([[0.0, 1.0]])]
-    thesis = MDPConfig(believe_failures=False)  # the value below counts on retrying push 1
+    thesis = MDPConfig(choice_radius=0.0, believe_failures=False)  # the value below counts on retrying push 1
     free = pose_values(tables, v_s, [-1, -1], thesis)
     assert free[0].policies["value_iteration"].action == 0 and free[0].policies["greedy"].action == 0
     kept = pose_values(tables, v_s, [-1, -1], thesis, [np.array([False, True]), np.array([True])])
@@ -370,12 +370,12 @@ def test_belief_tries_the_long_shot_once_then_takes_the_likely_push():
 
 def test_pose_values_believe_failures_by_default_and_the_thesis_preset_does_not():
     next_pose, v_s = long_shot_and_likely_push()
-    believing = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig())
-    thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(believe_failures=False))
+    believing = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(choice_radius=0.0))
+    thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(choice_radius=0.0, believe_failures=False))
     assert thesis[0].policies["value_iteration"].action == believing[0].policies["value_iteration"].action == 0
     assert believing[0].value < thesis[0].value  # a failure is worth V1 < V_T
     # k = 1 believes nothing: the thesis's equation, to the bit.
-    no_map = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(after_failure_power=1.0))
+    no_map = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(choice_radius=0.0, after_failure_power=1.0))
     assert [(v.value, v.q.tolist()) for v in no_map] == [(v.value, v.q.tolist()) for v in thesis]
     with pytest.raises(ValueError, match="two answers to one question"):
         MDPConfig(retry_failed=False)
@@ -394,7 +394,7 @@ def test_belief_plans_over_the_choosable_pushes_only():
     free = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000)
     assert free[1][0] > 0.4, "with every push choosable the failed state takes the likely push"
     # pose_values plans the same way, and chooses only among the choosable pushes.
-    values = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(tolerance=1e-13), choosable)
+    values = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(choice_radius=0.0, tolerance=1e-13), choosable)
     assert values[0].value == pytest.approx(v0[0]) and values[0].policies["value_iteration"].action == 0
     np.testing.assert_allclose(values[0].q, q0[0])
 
@@ -497,8 +497,8 @@ def test_max_height_policy_rules():
 
 def test_pose_values_takes_retries_from_the_config():
     next_pose, v_s = long_shot()
-    once = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(retry_failed=False, believe_failures=False))
-    thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(believe_failures=False))
+    once = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(choice_radius=0.0, retry_failed=False, believe_failures=False))
+    thesis = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(choice_radius=0.0, believe_failures=False))
     assert once[0].policies["value_iteration"].action == 1
     assert thesis[0].policies["value_iteration"].action == 0
     assert once[0].policies["greedy"] == thesis[0].policies["greedy"]  # greedy has no retries to count
@@ -526,7 +526,7 @@ def test_without_retries_undiscounted_loops_and_pushes_it_may_not_choose():
 @pytest.mark.parametrize("retry_failed, believes", [(True, False), (False, False), (True, True)])
 def test_pose_values_ties_it_together(retry_failed, believes):
     next_pose, v_s = figure_4_6()
-    config = MDPConfig(gamma=GAMMA, tolerance=1e-12, retry_failed=retry_failed, believe_failures=believes)
+    config = MDPConfig(choice_radius=0.0, gamma=GAMMA, tolerance=1e-12, retry_failed=retry_failed, believe_failures=believes)
     values = pose_values(next_pose, v_s, [1, 0, -1, 0], config)
     if believes:  # the stored Q and value are Q0 and V0 (MODEL.md (12.13))
         v, _, q, _ = belief_value_iteration(next_pose, v_s, GAMMA, config.after_failure_power, 1e-12, 10_000)
@@ -571,7 +571,7 @@ def test_policies_need_more_than_rounding_to_leave_a_pose(excess):
 
 def test_pose_values_greedy_acts_where_a_push_raises_the_grasp_quality():
     next_pose, v_s = figure_4_6()
-    values = pose_values(next_pose, v_s, [1, 0, -1, 0], MDPConfig(gamma=GAMMA, tolerance=1e-12))
+    values = pose_values(next_pose, v_s, [1, 0, -1, 0], MDPConfig(choice_radius=0.0, gamma=GAMMA, tolerance=1e-12))
     # Pose 1: its push reaches the perfect pose 2 with 0.9, so Greedy pushes it.
     greedy = values[1].policies["greedy"]
     assert greedy.action == 0 and greedy.value == pytest.approx(0.1 * 0.4 + 0.9 * 1.0)
@@ -596,3 +596,55 @@ def test_pose_values_greedy_acts_where_a_push_raises_the_grasp_quality():
 )
 def test_selection_rule(v_s, com, kept):
     assert is_selected(np.array(v_s), np.array(com)) is kept
+
+
+# ----------------------------------------------------------------------------- the choice by neighbourhood
+
+
+def _spike_and_plateau():
+    """One pose (V_s 0.1) and a better one (V_s 0.9): push 0 alone at its contact topples surely,
+    pushes 1-5 share a contact 2 mm apart and topple 0.8 of the time; pose 1 never leaves."""
+    v_s = np.array([0.1, 0.9])
+    rows = np.array([[0.0, 1.0]] + [[0.2, 0.8]] * 5)
+    points = np.array([[0.0, 0.1, 0.0]] + [[0.0, 0.002 * i, 0.0] for i in range(5)])
+    directions = np.tile([1.0, 0.0, 0.0], (6, 1))
+    return v_s, [rows, np.array([[0.0, 1.0]])], [(points, directions), (np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]))]
+
+
+def test_the_choice_by_neighbourhood_takes_the_plateau_over_a_lone_spike():
+    v_s, tables, pushes = _spike_and_plateau()
+    argmax = MDPConfig(believe_failures=False, choice_radius=0.0)
+    assert pose_values(tables, v_s, [-1, -1], argmax)[0].policies["value_iteration"].action == 0
+    chosen = pose_values(tables, v_s, [-1, -1], MDPConfig(believe_failures=False), pushes=pushes)
+    choice = chosen[0].policies["value_iteration"]
+    assert choice.action == 1, "the first of the plateau's equal means; the spike has no neighbour"
+    assert choice.value == pytest.approx(chosen[0].q[1])
+    # Q and V_T are value iteration's whatever the choice: the same as the argmax's.
+    np.testing.assert_allclose(chosen[0].q, pose_values(tables, v_s, [-1, -1], argmax)[0].q)
+    # A neighbourhood that counts the spike lets it win again (at least 1 neighbour, itself).
+    lone = MDPConfig(believe_failures=False, choice_neighbours=1)
+    assert pose_values(tables, v_s, [-1, -1], lone, pushes=pushes)[0].policies["value_iteration"].action == 0
+    # Only the choosable pushes are chosen, their means over every ok push.
+    mask = [np.array([True, False, False, True, True, True]), np.ones(1, dtype=bool)]
+    assert pose_values(tables, v_s, [-1, -1], MDPConfig(believe_failures=False), mask, pushes)[0].policies[
+        "value_iteration"].action == 3
+
+
+def test_the_choice_by_neighbourhood_grasps_unless_gamma_times_the_mean_beats_v_s():
+    from pipeline.model.mdp import neighbourhood_choice
+
+    _, _, pushes = _spike_and_plateau()
+    points, directions = pushes[0]
+    q = np.array([0.95, 0.6, 0.7, 0.8, 0.7, 0.6])  # the plateau's mean is 0.68 at pushes 1-5 (all within 20 mm)
+    config = MDPConfig()
+    every = np.ones(6, dtype=bool)
+    for stay, expected in [(config.gamma * 0.68 - 1e-6, 1), (config.gamma * 0.68 + 1e-6, NO_OP)]:
+        choice = neighbourhood_choice(0, np.array([stay, 0.9]), q, points, directions, every, config)
+        assert choice.action == expected
+        assert choice.value == pytest.approx(q[1] if expected == 1 else stay), "the push's own Q_T, or the grasp"
+
+
+def test_the_choice_by_neighbourhood_needs_the_pushes():
+    v_s, tables, _ = _spike_and_plateau()
+    with pytest.raises(ValueError, match="give each pose's pushes"):
+        pose_values(tables, v_s, [-1, -1], MDPConfig())

@@ -278,10 +278,10 @@ def test_once_vi_takes_the_surer_push_where_value_iteration_counts_on_retrying_a
     # that is not ok (NaN).
     next_pose, v_s = long_shot()
     rows = [np.vstack([next_pose[0], [np.nan] * 3]), *next_pose[1:]]
-    assert once_actions(v_s, rows, MDPConfig()).tolist() == [1, NO_OP, NO_OP]
-    assert once_actions(v_s, rows, MDPConfig(), [np.array([True, False, True]), np.zeros(0, bool), np.zeros(0, bool)]).tolist() == [0, NO_OP, NO_OP]
+    assert once_actions(v_s, rows, MDPConfig(choice_radius=0.0)).tolist() == [1, NO_OP, NO_OP]
+    assert once_actions(v_s, rows, MDPConfig(choice_radius=0.0), [np.array([True, False, True]), np.zeros(0, bool), np.zeros(0, bool)]).tolist() == [0, NO_OP, NO_OP]
     # Grasping at 0.9 beats the long shot alone: 0.95 x (0.3 x 1.0 + 0.7 x 0.9) = 0.8835.
-    assert once_actions(np.array([0.9, 1.0, 0.5]), [rows[0][:1], rows[1], rows[2]], MDPConfig()).tolist() == [NO_OP] * 3
+    assert once_actions(np.array([0.9, 1.0, 0.5]), [rows[0][:1], rows[1], rows[2]], MDPConfig(choice_radius=0.0)).tolist() == [NO_OP] * 3
 
 
 def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset, study_run):  # noqa: F811 (fixture)
@@ -492,7 +492,7 @@ def test_the_prior_turns_the_planners_from_a_long_shot_whose_landing_rests_on_fi
     from pipeline.studies.robust_policy import PRIOR_POLICIES, belief_budget_tables, belief_tables, prior_plan, value_iteration_actions
 
     v_s, rows, choosable = shaky_landing_pose()
-    mdp = MDPConfig()
+    mdp = MDPConfig(choice_radius=0.0)  # the argmax: these rows have no pushes to be neighbours
     actions, q1, budget_q1 = prior_plan(v_s, rows, mdp, choosable, 10.0, 100, 3)
     assert set(actions) == set(PRIOR_POLICIES) and set(q1) == {"prior_belief_vi"} and set(budget_q1) == {"prior_belief_horizon_vi"}
     # On the model's rows the planners take the long shot; its landing shrunk, the likely push.
@@ -503,7 +503,7 @@ def test_the_prior_turns_the_planners_from_a_long_shot_whose_landing_rests_on_fi
     prior = [landing_prior_rows(r, x, 10.0, choosable[x], 100) for x, r in enumerate(rows)]
     np.testing.assert_allclose(q1["prior_belief_vi"][0], belief_tables(v_s, prior, mdp, choosable)[1][0])
     # The thesis's equation counts on retrying the long shot, prior or not (no-retry planning would not).
-    thesis = MDPConfig(believe_failures=False)
+    thesis = MDPConfig(believe_failures=False, choice_radius=0.0)
     assert prior_plan(v_s, rows, thesis, choosable, 10.0, 100, 3)[0]["prior_vi"][0] == 0
     assert once_actions(v_s, prior, thesis, choosable)[0] == 1
 
@@ -628,6 +628,40 @@ def test_a_variant_plans_under_its_own_discount_and_cut(dataset):  # noqa: F811 
                             [horizon.choosable_pushes(c.directions[:, 2], config.mdp.min_direction_z) for c in candidates])
     np.testing.assert_array_equal(actions[VARIANT_ROBUST_POLICY], stored)
     assert (stored != NO_OP).any(), "a pose of the object pushes"
+
+
+def test_the_engines_choice_by_neighbourhood_is_the_studys_smoothed_vi(dataset):  # noqa: F811 (fixture)
+    """S_A, judged at stop 44 as the study's ``variant_smoothed_vi`` over every push (the neighbourhood mean
+    of value iteration's Q_T, ``robust_actions``), is value iteration's push as ``pose_values`` now stores
+    it (``mdp.choice_radius`` > 0, MODEL.md (12.15)), pose by pose, on every object."""
+    from dataclasses import replace
+
+    from pipeline.studies.policies_physics import dataset_config, object_plans
+    from pipeline.studies.robust_policy import VARIANT_POLICY, VARIANT_ROBUST_POLICY, read_candidates, variant_plan
+    from schema import horizon
+    from schema.reader import Dataset
+
+    data = Dataset.open(dataset)
+    config = dataset_config(data)
+    assert config.mdp.choice_radius == 0.0, "the fixture stores the argmax"
+    plans = object_plans(data, sorted(o.object_id for o in data.manifest.corpus.objects))
+    pushed = 0
+    for neighbours in (1, 2, 5):  # the tiny dataset's pushes are sparse: fewer neighbours let more be chosen
+        smoothing = Smoothing(min_neighbours=neighbours)
+        mdp = replace(config.mdp, min_direction_z=-1.0, choice_radius=smoothing.radius, choice_angle=smoothing.max_angle,
+                      choice_neighbours=neighbours)
+        for object_id, plan in plans.items():
+            candidates = read_candidates(data, object_id)
+            rows = next_pose_rows(data, object_id, [len(c.q) for c in candidates])
+            scores = [pose_scores(c, smoothing, r) for c, r in zip(candidates, rows)]
+            every = [horizon.choosable_pushes(c.directions[:, 2], -1.0) for c in candidates]
+            actions, _ = variant_plan(plan.v_s, rows, candidates, scores, mdp, every, smoothing)
+            np.testing.assert_array_equal(actions[VARIANT_POLICY], actions[VARIANT_ROBUST_POLICY])
+            pushed += int((actions[VARIANT_POLICY] != NO_OP).sum())
+            # Q_T, hence the smoothed choice, is value iteration's whichever way its own push is chosen.
+            argmax, _ = variant_plan(plan.v_s, rows, candidates, scores, replace(mdp, choice_radius=0.0), every, smoothing)
+            np.testing.assert_array_equal(argmax[VARIANT_ROBUST_POLICY], actions[VARIANT_ROBUST_POLICY])
+    assert pushed > 0, "some pose pushes: the test compares choices, not two no-ops"
 
 
 def test_a_variant_near_zero_discount_never_pushes_and_a_bad_variant_is_refused(dataset, study_run, capsys):  # noqa: F811

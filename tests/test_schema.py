@@ -63,6 +63,8 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
 
     old = Config().to_dict()
     del old["mdp"]["min_direction_z"]
+    for key in ("choice_radius", "choice_angle", "choice_neighbours"):  # and the choice by neighbourhood ((12.15))
+        del old["mdp"][key]
     del old["mdp"]["retry_failed"]  # and value iteration without retries (MODEL.md (12.9))
     del old["mdp"]["believe_failures"]  # and value iteration that believes failures (MODEL.md (12.13))
     del old["topple"]["down_map"], old["topple"]["down_map_z"]  # it predates the down map (MODEL.md C.15) too
@@ -74,7 +76,7 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
     without = Config().with_overrides({"mdp.retry_failed": False, "mdp.believe_failures": False}).to_dict()
     assert Parameters.model_validate(without).mdp.retry_failed is False
     assert Config.from_dict(parameters.model_dump()).mdp.min_direction_z == -1.0
-    side = Config().to_dict()
+    side = Config().with_overrides({"mdp.min_direction_z": -0.3}).to_dict()
     del side["mdp"]["budget_min_direction_z"]  # before stop 43 the budget chose as the policies did
     assert Parameters.model_validate(side).mdp.budget_min_direction_z == side["mdp"]["min_direction_z"] == -0.3
     assert Config.from_dict(Parameters.model_validate(side).model_dump()).mdp.budget_min_direction_z == -0.3
@@ -84,6 +86,12 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
     parameters = Parameters.model_validate(old)
     assert parameters.mdp.after_failure_power is None, "no map: the service serves no p_topple_given_failures"
     assert Config.from_dict(parameters.model_dump()).mdp == MDPConfig(
-        min_direction_z=-1.0, believe_failures=False), "the rest reads as before; the map, unused by the build, as the default"
+        min_direction_z=-1.0, believe_failures=False, choice_radius=0.0), \
+        "the rest reads as before (the argmax, (12.15)); the map, unused by the build, as the default"
     assert Config.from_dict(parameters.model_dump()).topple.down_map == (), "built without the down map, read without it"
-    assert Parameters.model_validate(Config().to_dict()).mdp.min_direction_z == Config().mdp.min_direction_z == -0.3
+    assert Parameters.model_validate(Config().to_dict()).mdp.min_direction_z == Config().mdp.min_direction_z == -1.0
+    before = Config().to_dict()
+    for key in ("choice_radius", "choice_angle", "choice_neighbours"):  # before stop 45: the argmax
+        del before["mdp"][key]
+    assert Parameters.model_validate(before).mdp.choice_radius == 0.0
+    assert Parameters.model_validate(Config().to_dict()).mdp.choice_radius == Config().mdp.choice_radius == 0.02

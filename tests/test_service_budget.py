@@ -80,8 +80,8 @@ def test_a_budget_chooses_only_pushes_the_build_lets_the_budget_choose(dataset, 
 
 
 def test_the_default_budget_may_choose_the_pushes_from_above_value_iteration_may_not(dataset):
-    """The default build's budget takes every ok push (mdp.budget_min_direction_z = -1) where its
-    policies take only those with u_z >= -0.3 (docs/VALIDATION.md, "Choosing from above again")."""
+    """The default build's budget takes every ok push (mdp.budget_min_direction_z = -1) where the test
+    dataset's policies take only those with u_z >= -0.3 (docs/VALIDATION.md, "Choosing from above again")."""
     from service.store import Store
 
     store = Store.load(dataset)

@@ -280,7 +280,10 @@ def test_corrections_and_maps_that_are_off_are_no_part_of_a_shards_identity():
     budget = shards.BUDGET_ONLY
     assert unused() == {"topple": spread, **budget}
     assert unused(**{"topple.landing_spread": 0.3}) == budget
-    assert unused(**{"topple.landing_spread": 0.3, "topple.boosted_map": ""}) == {"topple": boosted, **budget}
+    side = {"mdp.min_direction_z": -0.3}  # no boosted map: value iteration chooses no push the down map maps
+    assert unused(**{"topple.landing_spread": 0.3, "topple.boosted_map": "", **side}) == {"topple": boosted, **budget}
+    argmax = {"mdp": budget["mdp"] + shards.NEIGHBOURHOOD_CHOICE["mdp"]}
+    assert unused(**{"topple.landing_spread": 0.3, "mdp.choice_radius": 0.0, **side}) == argmax, "the argmax reads no neighbourhood"
     assert unused(**{"topple.variant": "robust"}) == {"topple": spread + onward + boosted, **budget}
     serving = {"mdp": shards.SERVING_ONLY["mdp"] + budget["mdp"]}
     assert unused(**{"mdp.believe_failures": False}) == {**serving, "topple": spread}

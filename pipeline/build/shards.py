@@ -66,13 +66,20 @@ which the thesis's variants always are), change no shard (correction or map -> k
 identity then, so the shards of a dataset built before they existed keep theirs (docs/MODEL.md
 C.17, C.18, C.19)."""
 
+NEIGHBOURHOOD_CHOICE = {"mdp": ("choice_radius", "choice_angle", "choice_neighbours")}
+"""Value iteration's choice by neighbourhood (docs/MODEL.md (12.15)), which its argmax (``mdp.choice_radius``
+0, the thesis) does not read: left out of a shard's identity then, so a dataset of the argmax built before
+they existed keeps its shards."""
+
 
 def unused_by_shards(config: Config) -> dict[str, tuple[str, ...]]:
     """The parameters this configuration's shards do not depend on (section -> keys):
-    ``BUDGET_ONLY``, ``SERVING_ONLY`` unless the build plans with failures, and those of each landing
-    correction that is off."""
+    ``BUDGET_ONLY``, ``SERVING_ONLY`` unless the build plans with failures, ``NEIGHBOURHOOD_CHOICE`` under
+    the argmax, and those of each landing correction that is off."""
     unused = {} if config.mdp.plans_with_failures else dict(SERVING_ONLY)
     unused["mdp"] = unused.get("mdp", ()) + BUDGET_ONLY["mdp"]
+    if config.mdp.choice_radius == 0:
+        unused["mdp"] += NEIGHBOURHOOD_CHOICE["mdp"]
     off = tuple(key for name, keys in UNUSED_WHEN_OFF.items() if not getattr(config.topple, f"applied_{name}") for key in keys)
     if off:
         unused["topple"] = unused.get("topple", ()) + off

@@ -141,6 +141,7 @@ def evaluate_object(
             [a.max_height for a in actions],
             config.mdp,
             choosable,
+            [(a.points, a.directions) for a in actions],
         )
     return ObjectResult(
         object_id=object_id or obj.name,
@@ -241,6 +242,7 @@ def solve(evaluations: list["PoseEvaluation"], v_s: np.ndarray, config: Config =
     return pose_values(
         [e.table.next_pose for e in evaluations], np.asarray(v_s, dtype=float),
         [e.actions.max_height for e in evaluations], config.mdp, _choosable([e.actions for e in evaluations], config.mdp.min_direction_z),
+        [(e.actions.points, e.actions.directions) for e in evaluations],
     )
 
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schema import retry
+from schema import neighbourhood, retry
 from schema.vocabulary import NO_OP
 
 from .config import MDPConfig
@@ -322,12 +322,33 @@ def value_iteration_policy(pose: int, v_s: np.ndarray, q: np.ndarray, gamma: flo
     return PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))
 
 
+def neighbourhood_choice(pose: int, v_s: np.ndarray, q: np.ndarray, points: np.ndarray, directions: np.ndarray,
+                         choosable: np.ndarray, config: MDPConfig) -> PolicyChoice:
+    """Value iteration's push chosen by its neighbourhood (docs/MODEL.md section 12, "the choice"):
+    the choosable push of highest mean Q_T over the ok pushes within ``config.choice_radius`` of its
+    contact and ``config.choice_angle`` of its direction (itself included), among those with at least
+    ``config.choice_neighbours`` of them; no-op unless gamma times that mean beats V_s(x).  An argmax
+    over ~1,000 Monte Carlo estimates picks the most over-stated one; the mean of ~30 neighbours does
+    not (docs/VALIDATION.md, "Tuning the planners out of fold").
+
+    pose : int;  v_s : (P,) float;  q : (A,) float, Q_T (NaN unless ok)
+    points, directions : (A, 3) float, the pushes' contacts (m) and unit directions, pose frame
+    choosable : (A,) bool;  returns : PolicyChoice; value = the push's own Q_T, or V_s(x) for the no-op
+    """
+    stay = float(np.asarray(v_s, dtype=float)[pose])
+    mean, count = neighbourhood.neighbour_mean(points, directions, q, config.choice_radius, config.choice_angle)
+    eligible = np.asarray(choosable, dtype=bool) & (count >= config.choice_neighbours)
+    action = retry.best_untried(mean, eligible, stay, IMPROVEMENT, scale=config.gamma)
+    return PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))
+
+
 def pose_values(
     next_pose: list[np.ndarray],
     v_s: np.ndarray,
     max_height_actions: list[int] | np.ndarray,
     config: MDPConfig = MDPConfig(),
     choosable: list[np.ndarray] | None = None,
+    pushes: list[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> list[PoseValues]:
     """Value iteration, greedy values and all three policies' choices for every pose.
 
@@ -337,11 +358,15 @@ def pose_values(
       (default all).  Value iteration plans over these alone; every push's Q_T is then its
       value under that plan (push it, then follow the policy), choosable or not.  Max-Height
       pushes its own push, as the thesis defines it.
+    pushes : per pose (points (A_x, 3), directions (A_x, 3)), pose frame: what value iteration's
+      choice by neighbourhood (``config.choice_radius`` > 0, ``neighbourhood_choice``) needs
     returns : list of P PoseValues (q = Q_T, greedy = E[V_s(x')], value = V_T(x), and
       policies ``max_height``, ``greedy``, ``value_iteration``); when ``config`` believes failures
       (``believe_failures`` with k > 1), q = Q0 and value = V0 of ``belief_value_iteration``
     """
     v_s = np.asarray(v_s, dtype=float)
+    if config.choice_radius > 0 and pushes is None and len(next_pose):
+        raise ValueError("mdp.choice_radius > 0 chooses value iteration's push by its neighbourhood: give each pose's pushes")
     if config.plans_with_failures:
         v_t, _, q, _ = belief_value_iteration(next_pose, v_s, config.gamma, config.after_failure_power, config.tolerance,
                                               config.max_iterations, choosable)
@@ -355,7 +380,9 @@ def pose_values(
         policies = {
             "max_height": max_height_policy(x, v_s, int(max_height_actions[x]), greedy[x]),
             "greedy": greedy_policy(x, v_s, np.where(mine, greedy[x], np.nan)),
-            "value_iteration": value_iteration_policy(x, v_s, np.where(mine, q[x], np.nan), config.gamma),
+            "value_iteration": (value_iteration_policy(x, v_s, np.where(mine, q[x], np.nan), config.gamma)
+                                if config.choice_radius == 0 else
+                                neighbourhood_choice(x, v_s, q[x], *pushes[x], mine, config)),
         }
         out.append(PoseValues(q=q[x], greedy=greedy[x], value=float(v_t[x]), policies=policies))
     return out

@@ -395,8 +395,9 @@ def calibrated_config(base: Config, chosen: dict[str, float]) -> Config:
     return base.with_overrides({f"topple.{k}": v for k, v in chosen.items()})
 
 
-def write_toml(path: str | Path, topple: dict[str, float | tuple[float, ...]], comments: list[str]) -> None:
-    """A config TOML holding only the given ``[topple]`` keys (everything else stays default):
+def write_toml(path: str | Path, topple: dict[str, float | tuple[float, ...]], comments: list[str],
+               mdp: dict[str, float] | None = None) -> None:
+    """A config TOML holding only the given ``[topple]`` (and ``[mdp]``) keys (everything else stays default):
     every number exactly (repr), a sequence (recalibration knots) as a list of them, strings
     and booleans as TOML writes them.  Exactly,
     because knots fitted on a smoothed table (MODEL.md C.12) can differ in the 7th digit, and
@@ -414,13 +415,16 @@ def write_toml(path: str | Path, topple: dict[str, float | tuple[float, ...]], c
 
     lines = [f"# {c}" for c in comments] + ["", "[topple]"]
     lines += [f"{key} = {value(v)}" for key, v in topple.items()]
+    if mdp:
+        lines += ["", "[mdp]"] + [f"{key} = {value(v)}" for key, v in mdp.items()]
     write_text_atomic(path, "\n".join(lines) + "\n")
 
 
-def write_outputs(out: str | Path, topple: dict, comments: list[str], record: str | Path, result: dict) -> None:
+def write_outputs(out: str | Path, topple: dict, comments: list[str], record: str | Path, result: dict,
+                  mdp: dict | None = None) -> None:
     """The config TOML (checked by loading it, as ``toppledb dataset --config`` will) and the
     JSON record of a calibration command; prints where they are."""
-    write_toml(out, topple, comments)
+    write_toml(out, topple, comments, mdp)
     Config.from_toml(out)
     write_text_atomic(record, json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
     print(f"config: {out}\nrecord: {record} ({result['wall_s']} s)")

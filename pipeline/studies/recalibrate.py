@@ -568,7 +568,14 @@ def main(argv: list[str] | None = None) -> int:
     # A boosted map sits on the maps under it (C.19): any other fit replaces them, so it goes too.
     fitted = {**base, "smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **NO_MAP,
               **fitted_map}
-    write_outputs(args.out, fitted, comments, args.json, result)
+    # Value iteration may choose the pushes a down map maps only with the boosted map over it
+    # (Config's check; MODEL.md C.15, C.19): a file without one plans on the others.
+    model = dataclasses.replace(ToppleConfig(), **fitted)
+    mdp = None
+    if model.applied_down_map and not model.applied_boosted_map and model.down_map_z > config.mdp.min_direction_z:
+        mdp = {"min_direction_z": model.down_map_z}
+        comments.append("[mdp]: value iteration chooses no push the down map maps, as the boosted map is not over it")
+    write_outputs(args.out, fitted, comments, args.json, result, mdp)
     return 0
 
 

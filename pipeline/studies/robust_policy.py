@@ -295,17 +295,24 @@ def next_pose_rows(dataset: Dataset, object_id: str, n_actions: list[int]) -> li
 
 
 def value_iteration_actions(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig,
-                            choosable: list[np.ndarray] | None = None) -> np.ndarray:
+                            choosable: list[np.ndarray] | None = None,
+                            candidates: list[PoseCandidates] | None = None) -> np.ndarray:
     """(P,) int: value iteration's push per pose under ``mdp`` (``pipeline.model.mdp.pose_values``)
-    over ``next_pose_rows`` or rows made from them; NO_OP: grasp.  choosable : as ``robust_actions``."""
-    values = pose_values(rows, v_s, [-1] * len(rows), mdp, choosable)
+    over ``next_pose_rows`` or rows made from them; NO_OP: grasp.  choosable : as ``robust_actions``;
+    candidates : each pose's pushes, which a choice by neighbourhood (``mdp.choice_radius``) needs."""
+    values = pose_values(rows, v_s, [-1] * len(rows), mdp, choosable, _pushes(candidates))
     return np.array([v.policies["value_iteration"].action for v in values], dtype=np.int64)
 
 
-def once_actions(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray] | None = None) -> np.ndarray:
+def once_actions(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray] | None = None,
+                 candidates: list[PoseCandidates] | None = None) -> np.ndarray:
     """(P,) int: value iteration's push per pose without retries (``mdp`` with
     ``retry_failed = False``, docs/MODEL.md (12.9)); NO_OP: grasp."""
-    return value_iteration_actions(v_s, rows, replace(mdp, retry_failed=False, believe_failures=False), choosable)
+    return value_iteration_actions(v_s, rows, replace(mdp, retry_failed=False, believe_failures=False), choosable, candidates)
+
+
+def _pushes(candidates: list[PoseCandidates] | None) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    return None if candidates is None else [(c.points, c.directions) for c in candidates]
 
 
 def belief_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig,
@@ -429,13 +436,14 @@ def believing_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, ch
 
 def prior_plan(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray], alpha: float,
                trials: int, max_pushes: int, budget_choosable: list[np.ndarray] | None = None,
+               candidates: list[PoseCandidates] | None = None,
                ) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
     """``believing_tables`` of the ``PRIOR_POLICIES`` over ``landing_prior_rows`` of every pose, with
-    ``prior_vi``'s actions (``value_iteration_actions``) among the actions."""
+    ``prior_vi``'s actions (``value_iteration_actions``; ``candidates`` as there) among the actions."""
     prior = [landing_prior_rows(r, x, alpha, choosable[x], trials) for x, r in enumerate(rows)]
     actions, q1, budget_q1 = believing_tables(v_s, prior, mdp, choosable, max_pushes,
                                               (PRIOR_BELIEF_POLICY, PRIOR_BELIEF_HORIZON_POLICY), budget_choosable)
-    actions[PRIOR_POLICY] = value_iteration_actions(v_s, prior, mdp, choosable)
+    actions[PRIOR_POLICY] = value_iteration_actions(v_s, prior, mdp, choosable, candidates)
     return actions, q1, budget_q1
 
 
@@ -445,7 +453,7 @@ def variant_plan(v_s: np.ndarray, rows: list[np.ndarray], candidates: list[PoseC
     (``pose_values``), ``belief_vi`` (``belief_tables``) and ``smoothed_vi`` over the neighbourhood means
     of that value iteration's Q_T (its V_T, hence every Q_T, follows the variant).  returns : their actions
     and the Q1 the variant ``belief_vi`` ranks by after a failure, keyed by name."""
-    values = pose_values(rows, v_s, [-1] * len(rows), mdp, choosable)
+    values = pose_values(rows, v_s, [-1] * len(rows), mdp, choosable, _pushes(candidates))
     actions = {VARIANT_POLICY: np.array([v.policies["value_iteration"].action for v in values], dtype=np.int64)}
     smoothed = []
     for c, v, s in zip(candidates, values, scores):
@@ -630,13 +638,13 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
                                                                 budget_choosable)
         plan.actions[UNTRIED_POLICY] = plan.actions["value_iteration"]  # until a push fails
         plan.actions[AWARE_POLICY] = plan.actions["value_iteration"]
-        plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable)
+        plan.actions[ONCE_POLICY] = once_actions(plan.v_s, rows, config.mdp, choosable, candidates)
         actions, belief_q1, belief_budget_q1 = believing_tables(plan.v_s, rows, config.mdp, choosable, max_pushes,
                                                                 budget_choosable=budget_choosable)
         plan.actions.update(actions)
         if landing_prior is not None:
             actions, q1, budget_q1 = prior_plan(plan.v_s, rows, config.mdp, choosable, landing_prior, config.topple.trials,
-                                                max_pushes, budget_choosable)
+                                                max_pushes, budget_choosable, candidates)
             plan.actions.update(actions)
             belief_q1.update(q1)
             belief_budget_q1.update(budget_q1)
