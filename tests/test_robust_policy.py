@@ -567,7 +567,7 @@ def test_the_datasets_own_mdp_as_a_variant_plays_exactly_what_its_counterparts_p
     from schema.reader import Dataset
 
     mdp = Dataset.open(dataset).manifest.parameters.mdp
-    own = {"gamma": mdp.gamma, "min_direction_z": mdp.min_direction_z}
+    own = {"gamma": mdp.gamma, "min_direction_z": mdp.min_direction_z, "choice_radius": mdp.choice_radius}
     report, pushes = experiment(dataset, 8, seed=1, workers=1, variant=own)
     assert report["variant"] == own
     played_by = {}
@@ -681,8 +681,9 @@ def test_a_variant_near_zero_discount_never_pushes_and_a_bad_variant_is_refused(
     assert plain["variant"] is None and not set(VARIANT_POLICIES) & set(plain["policies"])
     assert not {p.policy for p in plain_pushes} & set(VARIANT_POLICIES)
     for flag, bad, message in [("--gamma", "0", "gamma must be in (0, 1]; got 0.0"), ("--gamma", "nan", "gamma must be in (0, 1]"),
-                               ("--min-direction-z", "1.5", "min_direction_z must be in [-1, 1]; got 1.5")]:
+                               ("--min-direction-z", "1.5", "min_direction_z must be in [-1, 1]; got 1.5"),
+                               ("--choice-radius", "-0.01", "choice_radius must be")]:
         assert main([str(dataset), "--trials", "2", flag, bad]) == 2
         assert message in capsys.readouterr().err
-    with pytest.raises(ValueError, match="a variant changes gamma or min_direction_z, not tolerance"):
+    with pytest.raises(ValueError, match="a variant changes gamma or min_direction_z or choice_radius, not tolerance"):
         experiment(dataset, 2, variant={"tolerance": 1e-3})

@@ -336,7 +336,13 @@ def neighbourhood_choice(pose: int, v_s: np.ndarray, q: np.ndarray, points: np.n
     choosable : (A,) bool;  returns : PolicyChoice; value = the push's own Q_T, or V_s(x) for the no-op
     """
     stay = float(np.asarray(v_s, dtype=float)[pose])
-    mean, count = neighbourhood.neighbour_mean(points, directions, q, config.choice_radius, config.choice_angle)
+    q = np.asarray(q, dtype=float)
+    # Over the ok pushes alone (about half): a push that is not ok is nobody's neighbour, and the
+    # pairwise search costs the square of the pushes searched.
+    ok = np.flatnonzero(np.isfinite(q))
+    mean, count = np.full(len(q), np.nan), np.zeros(len(q), dtype=np.int64)
+    mean[ok], count[ok] = neighbourhood.neighbour_mean(np.asarray(points, dtype=float)[ok], np.asarray(directions, dtype=float)[ok],
+                                                       q[ok], config.choice_radius, config.choice_angle)
     eligible = np.asarray(choosable, dtype=bool) & (count >= config.choice_neighbours)
     action = retry.best_untried(mean, eligible, stay, IMPROVEMENT, scale=config.gamma)
     return PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))

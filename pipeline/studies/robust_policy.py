@@ -33,10 +33,10 @@ against physical topple rates of the chosen pushes, where their topples came to 
 the model lands them (``landing_summary``), with per-push diagnostics.  With ``--landing-prior ALPHA``
 it also plays value iteration, ``belief_vi`` and ``belief_horizon_vi`` planned over rows whose landings
 are shrunk toward their pose's mean landing by their topple count (``landing_prior_rows``,
-``PRIOR_POLICIES``), each against its counterpart; with ``--gamma G`` and/or ``--min-direction-z Z``,
-value iteration, ``belief_vi`` and ``smoothed_vi`` planned under that MDP instead of the dataset's
-(``VARIANT_POLICIES``: another discount, other choosable pushes), each against its counterpart, so one
-run pairs the two MDPs trial by trial.
+``PRIOR_POLICIES``), each against its counterpart; with ``--gamma G``, ``--min-direction-z Z`` and/or
+``--choice-radius R``, value iteration, ``belief_vi`` and ``smoothed_vi`` planned under that MDP instead of
+the dataset's (``VARIANT_POLICIES``: another discount, other choosable pushes, another choice of value
+iteration's push), each against its counterpart, so one run pairs the two MDPs trial by trial.
 """
 
 from __future__ import annotations
@@ -100,7 +100,7 @@ VARIANT_POLICIES = {VARIANT_POLICY: "value_iteration", VARIANT_BELIEF_POLICY: BE
 """Played only under another MDP (``experiment``'s ``variant``: a discount, a cut on the choosable
 pushes): value iteration, ``belief_vi`` and ``smoothed_vi`` planned under it over the dataset's rows,
 each compared with the same policy under the dataset's MDP, paired (stop 44)."""
-VARIANT_FIELDS = ("gamma", "min_direction_z")
+VARIANT_FIELDS = ("gamma", "min_direction_z", "choice_radius")
 """The ``mdp`` fields a variant may change."""
 COUNTERPARTS = {**PRIOR_POLICIES, **VARIANT_POLICIES}
 """Every optional policy and the policy it is compared with."""
@@ -817,6 +817,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--min-direction-z", type=float, metavar="Z",
                         help="also play them choosing among the pushes with u_z >= Z (the dataset's mdp.min_direction_z "
                              "for the others); with --gamma, one variant of both")
+    parser.add_argument("--choice-radius", type=float, metavar="R",
+                        help="also play them with value iteration choosing by its neighbourhood within R m (mdp.choice_radius; "
+                             "0: the argmax of Q_T); with the others, one variant of all")
     args = parser.parse_args(argv)
     try:
         smoothing = Smoothing(args.radius, args.max_angle, args.min_neighbours)
@@ -825,7 +828,7 @@ def main(argv: list[str] | None = None) -> int:
                                     exclusion=Exclusion(args.exclude_radius, args.exclude_angle),
                                     landing_prior=args.landing_prior,
                                     variant={name: value for name, value in (("gamma", args.gamma), ("min_direction_z",
-                                             args.min_direction_z)) if value is not None})
+                                             args.min_direction_z), ("choice_radius", args.choice_radius)) if value is not None})
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
