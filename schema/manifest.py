@@ -73,7 +73,7 @@ class MDPParameters(_Open):
     from before the field was built with the thesis's equation."""
     choice_radius: float = Field(0.0, ge=0)
     """m: value iteration's push was the one of highest neighbourhood-mean Q_T within this (and
-    ``choice_angle``, ``choice_neighbours``; docs/MODEL.md section 12, "the choice"); 0, the argmax
+    ``choice_angle``, ``choice_neighbours``; docs/MODEL.md (12.15)); 0, the argmax
     of Q_T, which a manifest from before the field took."""
     choice_angle: float = Field(0.5, ge=0)
     choice_neighbours: int = Field(5, ge=1)

@@ -485,7 +485,7 @@ class MDPConfig:
     min_direction_z: float = bounded(-1.0, Range(-1.0, 1.0))
     """Greedy and value iteration choose only pushes whose direction's vertical component
     (pose frame, z up) is at least this; -1 lets them choose any (the thesis, and the default
-    since stop 44).  From stop 26 to 43 it was -0.3: the model ranked pushes from above poorly
+    since stop 45).  From stop 26 to 44 it was -0.3: the model ranked pushes from above poorly
     among themselves (docs/VALIDATION.md, "Plan on the pushes the model can judge").  With the
     boosted map (C.19) and value iteration choosing by its neighbourhood (``choice_radius``), the
     choice among every push gained +0.028 V_s over the argmax from the side on held-out objects, its
@@ -494,8 +494,8 @@ class MDPConfig:
     choice_radius: float = bounded(0.02, Range(0.0, None))
     """m.  Value iteration's push is the choosable one of highest mean Q_T over the ok pushes whose
     contact lies within this of its own and whose direction within ``choice_angle`` of its own
-    (itself included), among those with at least ``choice_neighbours`` of them (docs/MODEL.md section
-    12, "the choice"); 0: the argmax of Q_T (the thesis).  The study's ``smoothed_vi`` limits (20 mm,
+    (itself included), among those with at least ``choice_neighbours`` of them (docs/MODEL.md
+    (12.15)); 0: the argmax of Q_T (the thesis).  The study's ``smoothed_vi`` limits (20 mm,
     0.5 rad, 5), tuned on corpus objects out of fold and judged on held-out ones at stop 44."""
     choice_angle: float = bounded(0.5, Range(0.0, None))
     """rad; see ``choice_radius``."""

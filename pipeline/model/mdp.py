@@ -324,7 +324,7 @@ def value_iteration_policy(pose: int, v_s: np.ndarray, q: np.ndarray, gamma: flo
 
 def neighbourhood_choice(pose: int, v_s: np.ndarray, q: np.ndarray, points: np.ndarray, directions: np.ndarray,
                          choosable: np.ndarray, config: MDPConfig) -> PolicyChoice:
-    """Value iteration's push chosen by its neighbourhood (docs/MODEL.md section 12, "the choice"):
+    """Value iteration's push chosen by its neighbourhood (docs/MODEL.md (12.15)):
     the choosable push of highest mean Q_T over the ok pushes within ``config.choice_radius`` of its
     contact and ``config.choice_angle`` of its direction (itself included), among those with at least
     ``config.choice_neighbours`` of them; no-op unless gamma times that mean beats V_s(x).  An argmax
