@@ -298,6 +298,9 @@ def test_recalibrate_down_fits_the_centred_map_on_all_pushes_and_the_down_map_on
     assert np.allclose(written.down_map, result["weights"]) and written.down_map_z == -0.5, "the cut travels with the weights"
     assert not written.applied_boosted_map and Config.from_toml(out).mdp.min_direction_z == -0.5, \
         "without the boosted map over it, value iteration chooses no push the down map maps"
+    # The file's other sections are the defaults', whatever the base model's: a base that chose from the side says so too.
+    assert main([str(path), "--down", "--set", "topple.down_map_z=-0.5", "--set", "mdp.min_direction_z=-0.3", *common]) == 0
+    assert Config.from_toml(out).mdp.min_direction_z == -0.5
     assert json.loads(record.read_text())["weights"] == result["weights"]
     # A cut below every push leaves nothing to fit: a clear error, nothing written.
     out.unlink()

@@ -28,11 +28,11 @@ from service import DatasetError, create_app
 from service.__main__ import main
 from service.store import widen
 
-ARGMAX_FROM_THE_SIDE = {"mdp.min_direction_z": -0.3, "mdp.choice_radius": 0.0}
-"""The test dataset's value iteration: the argmax from the side (the default of stops 26-44).  30 contacts a
-pose leave no push the five neighbours within 20 mm that the default's choice (MODEL.md (12.15)) asks for;
-every other parameter is the default's."""
-MIN_DIRECTION_Z = ARGMAX_FROM_THE_SIDE["mdp.min_direction_z"]
+SPARSE_CHOICE_FROM_THE_SIDE = {"mdp.min_direction_z": -0.3, "mdp.choice_neighbours": 1}
+"""The test dataset's value iteration: the default's choice by neighbourhood (MODEL.md (12.15)), but 30
+contacts a pose leave few pushes the five neighbours within 20 mm it asks for, so one will do; and from the
+side, so that the tests can tell the pushes the budgets may choose from those the policies may."""
+MIN_DIRECTION_Z = SPARSE_CHOICE_FROM_THE_SIDE["mdp.min_direction_z"]
 """The pushes the test dataset's policies may choose."""
 BUDGET_DIRECTION_Z = Config().mdp.budget_min_direction_z
 """The pushes its budgets (``pushes_left``) may choose."""
@@ -57,7 +57,7 @@ def dataset(tmp_path_factory) -> Path:
     )
     config = Config().with_overrides(
         {"contacts.n_contacts": 30, "topple.n_trials": 5, "suction.n_candidates": 20, "suction.n_samples": 5,
-         **ARGMAX_FROM_THE_SIDE}
+         **SPARSE_CHOICE_FROM_THE_SIDE}
     )
     out = directory / "dataset"
     build_dataset(read_list(corpus, default_mass=0.25), config, out, workers=1, progress=False, log=lambda _: None)

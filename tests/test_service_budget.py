@@ -79,7 +79,7 @@ def test_a_budget_chooses_only_pushes_the_build_lets_the_budget_choose(dataset, 
     assert masked > 0, "some pose's best push should be one the stricter build does not let the budget choose"
 
 
-def test_the_default_budget_may_choose_the_pushes_from_above_value_iteration_may_not(dataset):
+def test_the_default_budget_may_choose_the_pushes_from_above_a_cut_keeps_from_value_iteration(dataset):
     """The default build's budget takes every ok push (mdp.budget_min_direction_z = -1) where the test
     dataset's policies take only those with u_z >= -0.3 (docs/VALIDATION.md, "Choosing from above again")."""
     from service.store import Store

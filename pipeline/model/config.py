@@ -265,8 +265,10 @@ class ToppleConfig:
     u_z below ``down_map_z``, read from their unmapped P; the rest keep C.7's.  Only the
     ``corrected`` variant applies it."""
     down_map_z: float = bounded(-0.3, Range(-1.0, 1.0))
-    """Pushes whose direction's z (pose frame) is below this are mapped by ``down_map``; the
-    default is ``mdp.min_direction_z``'s, so no push the policies choose is ever mapped."""
+    """Pushes whose direction's z (pose frame) is below this are mapped by ``down_map``: the
+    default was ``mdp.min_direction_z``'s until stop 44, so no push the policies chose was mapped;
+    since stop 45 value iteration chooses among them by its neighbourhood over the boosted map
+    (``Config``'s check, docs/MODEL.md C.15)."""
     side_map: tuple[float, ...] = bounded(fitted_map.SIDE_MAP, Range())
     """Weights of the map of P(topple) for pushes from the side (docs/MODEL.md C.16), one per
     feature (bias, logit_p, log_force_ratio: the noise-free force the push needs over the
@@ -506,8 +508,8 @@ class MDPConfig:
     least this; -1, every ok push.  With the boosted map (C.19) the budget that chooses from above gained
     +0.022 V_s over the one that chooses as value iteration does, its pushes honest (predicted 0.507, toppled
     0.481), on six held-out runs no rule had seen, by a rule written before they were played
-    (docs/VALIDATION.md, "Choosing from above again"; value iteration's own pushes from above were
-    over-predicted, so ``min_direction_z`` stays).  A build from before the field chose its budget's pushes
+    (docs/VALIDATION.md, "Choosing from above again"; value iteration's argmax among the pushes from above
+    was over-predicted, so ``min_direction_z`` stayed -0.3 until its choice by neighbourhood, stop 45).  A build from before the field chose its budget's pushes
     as value iteration did.  The budget's P of a push from above is the boosted map's; a configuration
     without it but with a down map (C.15) lets the budget choose down-mapped pushes, which no rule judged."""
     retry_failed: bool = True
@@ -580,8 +582,9 @@ class Config:
             )
         # The down map is safe only on pushes no policy chooses (MODEL.md C.15): a map of chosen
         # pushes makes them over-confident (C.7, C.13).  The boosted map (C.19) maps those pushes
-        # after it, and value iteration choosing by its neighbourhood kept them honest (stop 44);
-        # its argmax did not, so both are needed.
+        # after it, and value iteration choosing by its neighbourhood kept them honest (stops 44-45);
+        # its argmax did not, so both are needed.  Greedy shares the cut and keeps its argmax: no
+        # rule judged it (its pushes 0.564 predicted, 0.508 toppled on held-out seed 9).
         chooses_safely = bool(self.topple.applied_boosted_map) and self.mdp.choice_radius > 0
         if self.topple.applied_down_map and self.topple.down_map_z > self.mdp.min_direction_z and not chooses_safely:
             raise ValueError(

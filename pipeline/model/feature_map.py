@@ -226,9 +226,10 @@ def fit_weights(features: np.ndarray, observed: np.ndarray, repeats: np.ndarray)
 # Pushes that press down onto the object (u_z below ``topple.down_map_z``) tip by mechanics the
 # model lacks: the base slides and turns while the object tips (docs/VALIDATION.md, "Where the
 # default model is wrong"), so P ranks them poorly (on the corpus log AP 0.58 within them, 0.85
-# within the other pushes).  Their geometry says more, and the policies never choose them
-# (``mdp.min_direction_z``, which the configuration holds at or below the cut), so a map of them
-# cannot make a chosen push over-confident.
+# within the other pushes).  Their geometry says more.  Until stop 45 the policies never chose them
+# (``mdp.min_direction_z`` at the cut), so a map of them could not make a chosen push over-confident;
+# since then value iteration chooses among them by its neighbourhood over the boosted map, which
+# maps every push after this one (docs/MODEL.md C.15, (12.15)).
 
 DOWN_FEATURES = ("bias", "logit_p", "direction_z", "overhang", "height", "normal_z", "stability", "offset")
 """The entries of the down map's features, in the order of ``topple.down_map``'s weights; every
@@ -244,7 +245,7 @@ def check_down_weights(weights) -> None:
 
 
 def pressed_down(direction_z: np.ndarray, cut_z: float) -> np.ndarray:
-    """(A,) bool, the pushes the down map takes: exactly those the policies may not choose with
+    """(A,) bool, the pushes the down map takes: exactly those a policy may not choose with
     ``mdp.min_direction_z = cut_z`` (``schema.horizon.choosable_pushes``, compared in float32 as
     it is, so no push is on both sides of the cut).  direction_z : (A,) float, pose frame"""
     return ~choosable_pushes(direction_z, cut_z)

@@ -362,7 +362,7 @@ def pose_values(
     max_height_actions : (P,) int, ``Actions.max_height`` of each pose (-1: none)
     choosable : list of P (A_x,) bool, the pushes greedy and value iteration may choose
       (default all).  Value iteration plans over these alone; every push's Q_T is then its
-      value under that plan (push it, then follow the policy), choosable or not.  Max-Height
+      value under that plan (push it, then follow the plan's argmax), choosable or not.  Max-Height
       pushes its own push, as the thesis defines it.
     pushes : per pose (points (A_x, 3), directions (A_x, 3)), pose frame: what value iteration's
       choice by neighbourhood (``config.choice_radius`` > 0, ``neighbourhood_choice``) needs

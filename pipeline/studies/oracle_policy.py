@@ -27,8 +27,8 @@ Max-Height is how far the goal is from what such knowledge reaches.  A budget th
 ``repeats``-sample estimate suffers the winner's curse, and only the top ``k_max`` pushes are
 known, so it is a floor under the ceiling, not the ceiling.
 
-``--every-ok`` ranks every ok push for the candidates, pushes from above included (the policies
-may not choose them); ``--log DIR`` writes the estimate's plays as a push log, which ``toppledb
+``--every-ok`` ranks every ok push for the candidates, pushes from above included (which the policies
+of a dataset built with ``mdp.min_direction_z`` above -1 may not choose); ``--log DIR`` writes the estimate's plays as a push log, which ``toppledb
 report`` scores like any other: the model on the pushes its planner weighs.
 
     python -m pipeline.studies.oracle_policy DATASET --trials 600 --seed S --repeats 16 --workers 2 --json F
@@ -219,8 +219,8 @@ def experiment(root: str | Path, n_trials: int, *, seed: int = 0, repeats: int =
     """Estimate the candidates' physics, then play every budget from the useful trials.
 
     world : the simulated world's noise (the CLI passes the thesis preset, as ``policies-physics``)
-    every_ok : rank every ok push for the candidates, those the policies may not choose (pushes
-      from above, ``mdp.min_direction_z``) included: what knowing them would be worth
+    every_ok : rank every ok push for the candidates, those the dataset's policies may not choose
+      (``mdp.min_direction_z`` above -1) included: what knowing them would be worth
     log : write the estimate's plays here as a push log (one part file per object), which
       ``toppledb report`` scores: the model on the pushes its planner weighs
     returns : the report (JSON-ready), every push played, and the estimate: object -> start
