@@ -355,6 +355,38 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset, study_
     assert min(checked.values()) > 0, f"no push after a failure for some policy: {checked}"
 
 
+def test_aware_vi_plays_what_plan_serves_a_client_that_reports_its_failures(dataset, study_run):  # noqa: F811 (fixtures)
+    """``aware_vi``, push by push, is the service's own choice (``service.planning.untried_push``, as ``/plan``
+    calls it) given the pushes of the trial that failed from that pose so far: the stored push (the choice by
+    neighbourhood, MODEL.md (12.15)) while nothing has failed, the argmax of Q1 among the untried pushes after.
+    So the study's ``aware_vi`` is what a robot gets from ``/plan`` when it reports its failures."""
+    from pipeline.studies.robust_policy import AWARE_POLICY
+    from schema.api import PlanRequest
+    from service.planning import untried_push
+    from service.store import Store
+
+    _, pushes = study_run
+    store = Store.load(dataset)
+    assert store.believe_failures, "the default build believes its failures: /plan ranks by Q1 after one"
+    by_trial: dict[tuple, list] = {}
+    for push in pushes:
+        if push.policy == AWARE_POLICY:
+            by_trial.setdefault((push.object_id, push.trial), []).append(push)
+    after_failure = 0
+    for (object_id, _), played in by_trial.items():
+        obj, failed = store.object(object_id), {}
+        for push in played:
+            request = PlanRequest(object_id=object_id, pose=np.eye(4).tolist(), failed_actions=failed.get(push.pose, []))
+            served = (untried_push(obj, push.pose, request, store.gamma, store.after_failure_power, store.retry_failed,
+                                   believes=store.believe_failures)[0] if request.failed_actions
+                      else int(obj.policy_action["value_iteration"][push.pose]))
+            assert push.action == served, (object_id, push.pose, failed.get(push.pose))
+            after_failure += bool(request.failed_actions)
+            if not push.toppled:
+                failed.setdefault(push.pose, []).append(push.action)
+    assert after_failure > 0, "some push follows a failure: the test compares the rule after one"
+
+
 def test_the_model_lands_a_push_where_its_row_leaves_the_pose_most():
     nan = np.nan
     rows = np.array([
