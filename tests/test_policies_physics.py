@@ -14,6 +14,7 @@ from pipeline.studies import playlog, policies_physics
 from pipeline.studies.policy_experiment import ACTION_SPAN, PolicyTables
 from schema.pushlog import row_problems
 from schema.vocabulary import NO_OP, POLICIES
+from tests.test_service import SPARSE_CHOICE_FROM_THE_SIDE
 
 
 def chain_tables() -> PolicyTables:
@@ -39,7 +40,7 @@ def test_predicted_values_are_the_exact_expectation_over_the_stored_transitions(
     np.testing.assert_allclose(policies_physics.predicted_values(tables, "greedy", 0), v)
 
 
-SPARSE_CHOICE_FROM_THE_SIDE = ("--set", "mdp.min_direction_z=-0.3", "--set", "mdp.choice_neighbours=1")
+SPARSE_CHOICE_ARGS = tuple(arg for key, value in SPARSE_CHOICE_FROM_THE_SIDE.items() for arg in ("--set", f"{key}={value}"))
 
 
 @pytest.fixture(scope="module")
@@ -51,11 +52,9 @@ def dataset(tmp_path_factory):
         + "".join(f"random_{n},pybullet_data/random_urdfs,random_urdfs/{n}/{n}.obj,0.015,0.1\n" for n in ("000", "002"))
     )
     out = directory / "dataset"
-    # 40 contacts a pose leave few pushes five neighbours within 20 mm, so the default's choice by neighbourhood
-    # (MODEL.md (12.15)) would hardly push: one neighbour will do; and from the side, whose pushes from above
-    # the tests tell apart.
+    # The service tests' planner (40 contacts a pose are as sparse as their 30): one neighbour will do, from the side.
     assert cli(["dataset", "--corpus", str(corpus), "--out", str(out), "--contacts", "40", "--trials", "8",
-                "--set", "suction.n_candidates=20", "--set", "suction.n_samples=5", *SPARSE_CHOICE_FROM_THE_SIDE,
+                "--set", "suction.n_candidates=20", "--set", "suction.n_samples=5", *SPARSE_CHOICE_ARGS,
                 "--workers", "1", "--no-progress"]) == 0
     return out
 

@@ -580,13 +580,7 @@ class Config:
                 f"topple.stroke ({self.topple.stroke:g} m) must equal contacts.push_depth "
                 f"({self.contacts.push_depth:g} m): the model predicts the push the robot executes; set both"
             )
-        # The down map is safe only on pushes no policy chooses (MODEL.md C.15): a map of chosen
-        # pushes makes them over-confident (C.7, C.13).  The boosted map (C.19) maps those pushes
-        # after it, and value iteration choosing by its neighbourhood kept them honest (stops 44-45);
-        # its argmax did not, so both are needed.  Greedy shares the cut and keeps its argmax: no
-        # rule judged it (its pushes 0.564 predicted, 0.508 toppled on held-out seed 9).
-        chooses_safely = bool(self.topple.applied_boosted_map) and self.mdp.choice_radius > 0
-        if self.topple.applied_down_map and self.topple.down_map_z > self.mdp.min_direction_z and not chooses_safely:
+        if maps_unjudged_choices(self.topple, self.mdp):
             raise ValueError(
                 f"topple.down_map_z ({self.topple.down_map_z:g}) is above mdp.min_direction_z ({self.mdp.min_direction_z:g}): "
                 "the down map would map pushes the policies may choose, which only the boosted map with a choice by "
@@ -641,6 +635,19 @@ class Config:
                 raise ValueError(f"unknown config key {key!r}")
             node[leaf] = value
         return Config.from_dict(data)
+
+
+def maps_unjudged_choices(topple: ToppleConfig, mdp: MDPConfig) -> bool:
+    """Whether the down map (MODEL.md C.15) maps pushes the policies may choose in a way no rule judged.
+
+    The down map is safe only on pushes no policy chooses: a map of chosen pushes makes them
+    over-confident (C.7, C.13).  The boosted map (C.19) maps those pushes after it, and value
+    iteration choosing by its neighbourhood kept them honest (stops 44-45); its argmax did not, so
+    both are needed.  Greedy shares the cut and keeps its argmax: no rule judged it (its pushes 0.564
+    predicted, 0.508 toppled on held-out seed 9).  ``Config`` refuses such a pair; ``toppledb
+    recalibrate`` writes the cut into a file that would be one."""
+    chooses_safely = bool(topple.applied_boosted_map) and mdp.choice_radius > 0
+    return bool(topple.applied_down_map) and topple.down_map_z > mdp.min_direction_z and not chooses_safely
 
 
 def _own_map(topple: dict[str, Any]) -> bool:

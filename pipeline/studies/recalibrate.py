@@ -28,7 +28,7 @@ from ..build.atomic import write_text_atomic
 from ..build.corpus import Corpus, write_list
 from ..model.boosted_map import FEATURES as BOOSTED_FEATURES
 from ..model.boosted_map import FIT_PARAMS, boosted_probability, fit_trees, trees_from_dict
-from ..model.config import MAP_FIELDS, NO_MAP, Config, MDPConfig, ToppleConfig
+from ..model.config import MAP_FIELDS, NO_MAP, Config, MDPConfig, ToppleConfig, maps_unjudged_choices
 from ..model.feature_map import (
     DOWN_FEATURES,
     FEATURES,
@@ -568,12 +568,11 @@ def main(argv: list[str] | None = None) -> int:
     # A boosted map sits on the maps under it (C.19): any other fit replaces them, so it goes too.
     fitted = {**base, "smoothing_radius": topple.smoothing_radius, "smoothing_angle": topple.smoothing_angle, **NO_MAP,
               **fitted_map}
-    # Value iteration may choose the pushes a down map maps only with the boosted map over it
-    # (Config's check; MODEL.md C.15, C.19): a file without one plans on the others.  The file's
-    # other sections are the defaults', whatever the base model's were.
+    # The file's other sections are the defaults', whatever the base model's were: if they would
+    # choose pushes its down map maps as no rule judged, the file plans on the others.
     model = dataclasses.replace(ToppleConfig(), **fitted)
     mdp = None
-    if model.applied_down_map and not model.applied_boosted_map and model.down_map_z > MDPConfig().min_direction_z:
+    if maps_unjudged_choices(model, MDPConfig()):
         mdp = {"min_direction_z": model.down_map_z}
         comments.append("[mdp]: value iteration chooses no push the down map maps, as the boosted map is not over it")
     write_outputs(args.out, fitted, comments, args.json, result, mdp)

@@ -156,14 +156,9 @@ def smoothed_choice(v_s_pose: float, smoothed_q: np.ndarray, count: np.ndarray, 
     """argmax of the smoothed Q among candidates with enough neighbours; NO_OP unless it beats V_s.
 
     v_s_pose : V_s of this pose;  smoothed_q, count : (A,) from ``neighbour_mean``
-    returns : action index, or NO_OP
+    returns : action index, or NO_OP (the rule of ``pipeline.model.mdp.neighbourhood_choice``)
     """
-    eligible = np.isfinite(smoothed_q) & (count >= min_neighbours)
-    if not eligible.any():
-        return NO_OP
-    score = np.where(eligible, smoothed_q, -np.inf)
-    action = int(np.argmax(score))  # first of equal scores: deterministic
-    return action if gamma * score[action] > v_s_pose + IMPROVEMENT else NO_OP
+    return retry.best_untried(smoothed_q, np.asarray(count) >= min_neighbours, v_s_pose, IMPROVEMENT, scale=gamma)
 
 
 def untried_choice(pose: int, v_s: np.ndarray, q: np.ndarray, failed: np.ndarray, gamma: float) -> int:
