@@ -223,6 +223,19 @@ def test_max_iterations_bounds_the_sweeps():
     np.testing.assert_allclose(q[0], next_pose[0] @ v_s)
 
 
+def test_no_sweeps_return_the_grasp_values_as_floats():
+    # max_iterations 0 returns V_s as V_T, and as V0 believing failures: floats (the (P,) float the
+    # docstrings promise) whatever V_s came as, integers here, as after any number of sweeps.
+    next_pose, _ = figure_4_6()
+    v_s = np.array([0, 0, 1, 0])
+    v, _ = value_iteration(next_pose, v_s, GAMMA, 1e-12, 0)
+    v0, v1, _, _ = belief_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-12, 0)
+    for values in (v, v0, v1):
+        assert values.dtype == np.float64
+    np.testing.assert_array_equal(v, [0.0, 0.0, 1.0, 0.0])
+    np.testing.assert_array_equal(v0, [0.0, 0.0, 1.0, 0.0])
+
+
 def test_nan_rows_are_ignored():
     base = [[[0.5, 0.5, 0.0]], [[0.0, 0.0, 1.0]], np.zeros((0, 3))]
     v_s = [0.1, 0.2, 0.8]
@@ -253,6 +266,75 @@ def test_rarely_toppling_pushes_converge_in_a_few_sweeps():
     fast, _ = solve(chain, v_s, max_iterations=4)
     np.testing.assert_allclose(fast, exact, atol=1e-12)
     np.testing.assert_allclose(exact, reference_values(chain, v_s, GAMMA, sweeps=2000), atol=1e-10)
+
+
+def sure_chain():
+    """A chain of sure topples 0 -> 1 -> 2, a perfect grasp only at its end (V_s 0, 0, 1)."""
+    return [np.array([[0.0, 1.0, 0.0]]), np.array([[0.0, 0.0, 1.0]]), np.zeros((0, 3))], np.array([0.0, 0.0, 1.0])
+
+
+def test_a_sweep_that_moves_no_value_by_more_than_the_tolerance_is_the_last():
+    # The stopping rule of both solvers at its boundary, with gamma 0.5 (every number exact): the first
+    # sweep from V_s raises V(1) to 0.5 and leaves V(0) at 0, as pose 1 was worth nothing when pose 0
+    # looked at it.  A change of exactly the tolerance is no more than it: that sweep is returned as it
+    # stands, short of the fixed point (0.25, 0.5, 1) by 0.25, within tolerance * gamma / (1 - gamma).
+    # A tolerance below 0.5 takes the next sweep, which changes V(0) by 0.25 and lands on the fixed point.
+    chain, v_s = sure_chain()
+    v, q = value_iteration(chain, v_s, 0.5, 0.5, 100)
+    np.testing.assert_array_equal(v, [0.0, 0.5, 1.0])
+    np.testing.assert_array_equal(q[0], [0.5])  # Q_T under the V returned
+    v, _ = value_iteration(chain, v_s, 0.5, 0.4, 100)
+    np.testing.assert_array_equal(v, [0.25, 0.5, 1.0])
+    # Believing failures (12.13), where sweeps iterate V0 over the topples between poses, the same.
+    v0, _, _, _ = belief_value_iteration(chain, v_s, 0.5, 2.1, 0.5, 100)
+    np.testing.assert_array_equal(v0, [0.0, 0.5, 1.0])
+    v0, _, _, _ = belief_value_iteration(chain, v_s, 0.5, 2.1, 0.4, 100)
+    np.testing.assert_array_equal(v0, [0.25, 0.5, 1.0])
+
+
+def test_the_exact_evaluation_pushes_only_where_a_push_beats_grasping():
+    # Each sweep evaluates "push where gamma Q_T > V_s, else grasp" (the policy rule); a pose that
+    # would do worse pushing, or only as well, must grasp in it, or the evaluation says too little.
+    # Pose 0 (V_s 0) rarely topples, onto pose 1 (V_s 0.9), whose one push lands on pose 2 (V_s 0.2):
+    # pose 1 grasps, so V_T(0) = 0.01 gamma 0.9 / (1 - 0.99 gamma) after the first sweep's evaluation.
+    # Had pose 1 pushed there, the evaluation would be worth less than the Bellman update and three
+    # sweeps would leave V_T(0) at a fraction of that.
+    next_pose = [np.array([[0.99, 0.01, 0.0]]), np.array([[0.0, 0.0, 1.0]]), np.zeros((0, 3))]
+    v, _ = solve(next_pose, [0.0, 0.9, 0.2], max_iterations=3)
+    np.testing.assert_allclose(v, [0.01 * GAMMA * 0.9 / (1 - 0.99 * GAMMA), 0.9, 0.2], atol=1e-12)
+    # Undiscounted, pose 0 (V_s 0.5) has only a push that leaves it there: pushing ties grasping, and
+    # a tie grasps.  (Pushing it would make the evaluation's system singular, and pose 1, which rarely
+    # topples onto the perfect pose 2, would creep up by plain sweeps instead of being worth 1 at once.)
+    next_pose = [np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.99, 0.01]]), np.zeros((0, 3))]
+    v, _ = solve(next_pose, [0.5, 0.0, 1.0], gamma=1.0, max_iterations=3)
+    np.testing.assert_allclose(v, [0.5, 1.0, 1.0], atol=1e-9)
+
+
+def test_float32_inputs_are_solved_in_float64():
+    # The service stores its tables in float32.  The solvers read tables and V_s as float64, so
+    # float32 inputs give, to the bit, what the same numbers widened to float64 give (in float32 a
+    # policy evaluation's gamma T and a failed push's 1 - P(x | x, u) would round).  Two sweeps
+    # stop before later sweeps could wash such rounding out; 10,000 run to the tolerance.
+    tables = [np.array([[0.95, 0.05, 0.0], [0.1, 0.0, 0.9]]), np.array([[0.05, 0.9, 0.05]]), np.zeros((0, 3))]
+    narrow = [t.astype(np.float32) for t in tables]
+    wide = [t.astype(float) for t in narrow]
+    v_s32 = np.array([0.1, 0.3, 1.0], dtype=np.float32)
+    v_s64 = v_s32.astype(float)
+    for max_iterations in (2, 10_000):
+        for retry_failed in (True, False):
+            v, q = value_iteration(narrow, v_s32, GAMMA, 1e-12, max_iterations, retry_failed=retry_failed)
+            v_wide, q_wide = value_iteration(wide, v_s64, GAMMA, 1e-12, max_iterations, retry_failed=retry_failed)
+            np.testing.assert_array_equal(v, v_wide)
+            for a, b in zip(q, q_wide):
+                np.testing.assert_array_equal(a, b)
+        narrow_belief = belief_value_iteration(narrow, v_s32, GAMMA, 2.1, 1e-12, max_iterations)
+        wide_belief = belief_value_iteration(wide, v_s64, GAMMA, 2.1, 1e-12, max_iterations)
+        for a, b in zip(narrow_belief[:2], wide_belief[:2]):
+            np.testing.assert_array_equal(a, b)
+        for a, b in zip(narrow_belief[2] + narrow_belief[3], wide_belief[2] + wide_belief[3]):
+            np.testing.assert_array_equal(a, b)
+    for a, b in zip(greedy_values(narrow, v_s32), greedy_values(wide, v_s64)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_an_object_without_poses_has_no_values():
@@ -431,7 +513,8 @@ def test_belief_without_discount_keeps_a_push_that_never_topples_finite():
 
 
 def test_belief_refuses_a_power_below_one():
-    with pytest.raises(ValueError, match="power >= 1"):
+    # The message names the solver that refused (the rows' reader is shared).
+    with pytest.raises(ValueError, match=r"^belief_value_iteration needs power >= 1, got 0\.5$"):
         belief_value_iteration([np.zeros((0, 1))], np.array([0.5]), GAMMA, 0.5, 1e-9, 100)
 
 
@@ -646,5 +729,30 @@ def test_the_choice_by_neighbourhood_grasps_unless_gamma_times_the_mean_beats_v_
 
 def test_the_choice_by_neighbourhood_needs_the_pushes():
     v_s, tables, _ = _spike_and_plateau()
-    with pytest.raises(ValueError, match="give each pose's pushes"):
+    # The message names the setting that asks for them.
+    with pytest.raises(ValueError, match=r"^mdp\.choice_radius > 0 .*give each pose's pushes$"):
         pose_values(tables, v_s, [-1, -1], MDPConfig())
+
+
+def _fan(angles):
+    """Pushes at one contact, directions in the table's plane at ``angles`` (rad) about z."""
+    return np.zeros((len(angles), 3)), np.array([[np.cos(a), np.sin(a), 0.0] for a in angles])
+
+
+def test_the_choice_by_neighbourhood_reads_its_angle_from_the_config():
+    # Four pushes at one contact: push 0 (Q_T 0.9) and push 1 (0.1) 0.3 rad apart, pushes 2 and 3
+    # (0.6 each) pointing the other way.  Within 0.5 rad (the default) pushes 0 and 1 are neighbours,
+    # their mean 0.5 loses to the 0.6 of pushes 2-3; within 0.1 rad push 0 is alone and its 0.9 wins.
+    # An angle wider than the default joins pushes the default keeps apart: 0.7 rad apart, push 1 is
+    # push 0's neighbour within 1 rad and not within 0.5.
+    from pipeline.model.mdp import neighbourhood_choice
+
+    v_s = np.array([0.1, 0.9])
+    q = np.array([0.9, 0.1, 0.6, 0.6])
+    every = np.ones(4, dtype=bool)
+    for angle, expected in [(0.1, 0), (0.5, 2)]:
+        config = MDPConfig(choice_neighbours=1, choice_angle=angle)
+        assert neighbourhood_choice(0, v_s, q, *_fan([0.0, 0.3, np.pi, np.pi]), every, config).action == expected
+    for angle, expected in [(0.5, 0), (1.0, 2)]:
+        config = MDPConfig(choice_neighbours=1, choice_angle=angle)
+        assert neighbourhood_choice(0, v_s, q, *_fan([0.0, 0.7, np.pi, np.pi]), every, config).action == expected
