@@ -365,6 +365,30 @@ def test_policies_choose_among_the_choosable_pushes_and_every_push_keeps_its_val
     assert [(v.value, v.q.tolist(), v.policies) for v in every] == [(v.value, v.q.tolist(), v.policies) for v in free]
 
 
+@pytest.mark.parametrize("believe_failures", [False, True])
+def test_a_mask_of_zeros_and_ones_is_a_mask_not_row_numbers(believe_failures):
+    """The solvers read each pose's choosable pushes as bool, as the choices do: a 0/1 integer or list
+    mask plans exactly as the bool mask, where indexing by it would take rows 0 and 1 as row numbers
+    (V_T(0) 0.776 instead of 0.19 on the case below, found by mutation testing); a mask that does not
+    cover every push is refused."""
+    v_s = np.array([0.1, 0.9, 0.2])
+    tables = [np.array([[0.0, 1.0, 0.0], [0.5, 0.5, 0.0], [0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, 1.0]]), np.zeros((0, 3))]
+    config = MDPConfig(choice_radius=0.0, believe_failures=believe_failures)
+    masks = [np.array([False, True, False]), np.array([True]), np.zeros(0, dtype=bool)]
+    as_bool = pose_values(tables, v_s, [-1, -1, -1], config, masks)
+    for other in ([m.astype(int) for m in masks], [m.tolist() for m in masks]):
+        same = pose_values(tables, v_s, [-1, -1, -1], config, other)
+        assert [(v.value, v.q.tolist(), v.policies) for v in same] == [(v.value, v.q.tolist(), v.policies) for v in as_bool]
+    # Only push 1 may be chosen in pose 0: it reaches pose 1 (V_s 0.9, where pushing would lose it to pose 2)
+    # half the time, and a failure leaves pose 0 retrying it, believed at p^k after a failure when so planned.
+    p = 0.5 ** (config.after_failure_power if believe_failures else 1.0)
+    failed = GAMMA * p * 0.9 / (1 - GAMMA * (1 - p))
+    assert as_bool[0].policies["value_iteration"].action == 1
+    assert as_bool[0].value == pytest.approx(GAMMA * (0.5 * 0.9 + 0.5 * failed))
+    with pytest.raises(ValueError, match="one per push of each pose"):
+        pose_values(tables, v_s, [-1, -1, -1], config, [np.array([False, True]), np.array([True]), np.zeros(0, dtype=bool)])
+
+
 # ----------------------------------------------------------------------------- believing failures (12.13)
 
 

@@ -157,7 +157,7 @@ def value_iteration(
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
     rows, owner, ok = _stack(next_pose, n_poses)
-    planned = slice(None) if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])[ok]
+    planned = slice(None) if choosable is None else _choosable_rows(choosable, ok)
     plan_rows, plan_owner = rows[planned], owner[planned]
     poses, starts = np.unique(plan_owner, return_index=True)
     ends = np.r_[starts[1:], len(plan_owner)].astype(int)
@@ -199,12 +199,22 @@ class _BeliefRows:
         return out
 
 
+def _choosable_rows(choosable: list[np.ndarray], ok: np.ndarray) -> np.ndarray:
+    """(N,) bool: which of the stacked ok rows ``ok`` (``_stack``) the plan may choose.  Each mask is
+    read as bool, so a 0/1 integer mask is a mask and not a list of row numbers, as ``pose_values`` reads it
+    for its choices."""
+    mask = np.concatenate([np.zeros(0, dtype=bool), *(np.asarray(c, dtype=bool).ravel() for c in choosable)])
+    if len(mask) != len(ok):
+        raise ValueError(f"choosable has {len(mask)} entries over its poses, the tables {len(ok)} pushes: one per push of each pose")
+    return mask[ok]
+
+
 def _belief_rows(next_pose: list[np.ndarray], n_poses: int, power: float, choosable: list[np.ndarray] | None,
                  name: str) -> _BeliefRows:
     if not power >= 1.0:
         raise ValueError(f"{name} needs power >= 1, got {power}")
     rows, owner, ok = _stack(next_pose, n_poses)
-    planned = np.ones(len(rows), dtype=bool) if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])[ok]
+    planned = np.ones(len(rows), dtype=bool) if choosable is None else _choosable_rows(choosable, ok)
     stay = _self_mass(rows, owner)
     leave = rows.copy()
     leave[np.arange(len(rows)), owner] = 0.0
