@@ -368,9 +368,9 @@ def test_policies_choose_among_the_choosable_pushes_and_every_push_keeps_its_val
 @pytest.mark.parametrize("believe_failures", [False, True])
 def test_a_mask_of_zeros_and_ones_is_a_mask_not_row_numbers(believe_failures):
     """The solvers read each pose's choosable pushes as bool, as the choices do: a 0/1 integer or list
-    mask plans exactly as the bool mask, where indexing by it would take rows 0 and 1 as row numbers
-    (V_T(0) 0.776 instead of 0.19 on the case below, found by mutation testing); a mask that does not
-    cover every push is refused."""
+    mask plans exactly as the bool mask, where indexing by it took its entries as row numbers (found by
+    mutation testing: V_T(0) 0.855 instead of 0.814 on the case below); masks that are not one per pose,
+    one entry per push, are refused, even when their total length matches."""
     v_s = np.array([0.1, 0.9, 0.2])
     tables = [np.array([[0.0, 1.0, 0.0], [0.5, 0.5, 0.0], [0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, 1.0]]), np.zeros((0, 3))]
     config = MDPConfig(choice_radius=0.0, believe_failures=believe_failures)
@@ -385,8 +385,12 @@ def test_a_mask_of_zeros_and_ones_is_a_mask_not_row_numbers(believe_failures):
     failed = GAMMA * p * 0.9 / (1 - GAMMA * (1 - p))
     assert as_bool[0].policies["value_iteration"].action == 1
     assert as_bool[0].value == pytest.approx(GAMMA * (0.5 * 0.9 + 0.5 * failed))
-    with pytest.raises(ValueError, match="one per push of each pose"):
-        pose_values(tables, v_s, [-1, -1, -1], config, [np.array([False, True]), np.array([True]), np.zeros(0, dtype=bool)])
+    for wrong in ([np.array([False, True]), np.array([True]), np.zeros(0, dtype=bool)],      # a push short
+                  [np.array([False, True]), np.array([False, True]), np.zeros(0, dtype=bool)],  # the right total, shifted
+                  [np.array([[False, True, False]]), np.array([True]), np.zeros(0, dtype=bool)],  # 2-D
+                  masks[:2]):                                                                   # a pose short
+        with pytest.raises(ValueError, match="one per pose|one entry per push"):
+            pose_values(tables, v_s, [-1, -1, -1], config, wrong)
 
 
 # ----------------------------------------------------------------------------- believing failures (12.13)

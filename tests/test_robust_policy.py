@@ -387,39 +387,6 @@ def test_aware_vi_plays_what_plan_serves_a_client_that_reports_its_failures(data
     assert after_failure > 0, "some push follows a failure: the test compares the rule after one"
 
 
-def test_belief_horizon_vi_plays_what_plan_serves_a_client_that_sends_its_budget_and_failures(dataset, study_run):  # noqa: F811 (fixtures)
-    """``belief_horizon_vi``, push by push, is what ``/plan`` serves a client that sends ``pushes_left`` (the
-    trial's budget minus the pushes it made) and, once pushes from the pose have failed, ``failed_actions``:
-    the stored budget's push (``ObjectData.budget``) while nothing failed there, ``service.planning.untried_push``
-    after.  So docs/SERVICE.md's row for that client is the study's ``belief_horizon_vi``."""
-    from pipeline.studies.robust_policy import BELIEF_HORIZON_POLICY
-    from schema.api import PlanRequest
-    from service.planning import untried_push
-    from service.store import Store
-
-    report, pushes = study_run
-    store = Store.load(dataset)
-    by_trial: dict[tuple, list] = {}
-    for push in pushes:
-        if push.policy == BELIEF_HORIZON_POLICY:
-            by_trial.setdefault((push.object_id, push.trial), []).append(push)
-    after_failure = 0
-    for (object_id, _), played in by_trial.items():
-        obj, failed = store.object(object_id), {}
-        for step, push in enumerate(played):
-            left = report["max_pushes"] - step
-            request = PlanRequest(object_id=object_id, pose=np.eye(4).tolist(), pushes_left=left,
-                                  failed_actions=failed.get(push.pose, []))
-            served = (untried_push(obj, push.pose, request, store.gamma, store.after_failure_power, store.retry_failed,
-                                   believes=store.believe_failures)[0] if request.failed_actions
-                      else int(obj.budget(left)[0][push.pose]))
-            assert push.action == served, (object_id, push.pose, left, failed.get(push.pose))
-            after_failure += bool(request.failed_actions)
-            if not push.toppled:
-                failed.setdefault(push.pose, []).append(push.action)
-    assert after_failure > 0, "some push follows a failure: the test compares the rule after one"
-
-
 def test_the_model_lands_a_push_where_its_row_leaves_the_pose_most():
     nan = np.nan
     rows = np.array([

@@ -272,3 +272,61 @@ def test_the_store_reads_from_the_manifest_whether_its_budgets_believe_failures(
             np.testing.assert_array_equal(obj.budget(3)[1], plain[2])
     with pytest.raises(ValueError, match="pushes_left must be 1"):
         next(iter(store.objects.values())).budget(0)
+
+
+def test_belief_horizon_vi_plans_what_plan_serves_a_client_that_sends_its_budget_and_failures(dataset):
+    """``belief_horizon_vi``'s tables (``pipeline.studies.robust_policy.belief_budget_tables``: its push per fresh
+    pose with h pushes left, and the Q1_h it ranks the untried pushes by once a push from the pose has failed)
+    choose, for every pose and every h, the push ``/plan`` serves a client that sends ``pushes_left`` h: the
+    stored budget's push (``ObjectData.budget``) while nothing failed, ``service.planning.untried_push`` with
+    ``failed_actions`` after (the failed push taken to be the budget's own).  The tiny dataset's budgets all push
+    as value iteration does, so each object is also planned under random grasp values V_s, where the push depends
+    on h and on the failure, which the test asserts it meets.  With
+    ``tests/test_robust_policy.py::test_aware_and_belief_vi_play_their_own_rule_after_a_failure``, which holds
+    the plays to these tables, the study's ``belief_horizon_vi`` is docs/SERVICE.md's client that sends its
+    failures and its pushes left."""
+    import dataclasses
+
+    from pipeline.studies.policies_physics import open_trials
+    from pipeline.studies.robust_policy import belief_budget_tables, next_pose_rows, read_candidates
+    from schema import horizon, neighbourhood, retry
+    from schema.api import PlanRequest
+    from schema.reader import Dataset
+    from schema.vocabulary import NO_OP
+    from service.planning import untried_push
+    from service.store import Store
+
+    budget = 3
+    store = Store.load(dataset)
+    data, config, _, _, _ = open_trials(dataset, 8, 1)  # the dataset's config, its tables read as the study reads them
+    mdp = dataclasses.replace(config.mdp, after_failure_power=data.manifest.parameters.mdp.after_failure_power)
+    rng = np.random.default_rng(0)
+    compared = by_budget = by_failure = 0
+    for object_id, stored in store.objects.items():
+        candidates = read_candidates(Dataset.open(dataset), object_id)
+        rows = next_pose_rows(Dataset.open(dataset), object_id, [len(c.q) for c in candidates])
+        choosable = [horizon.choosable_pushes(c.directions[:, 2], mdp.budget_min_direction_z) for c in candidates]
+        for v_s in (stored.v_s, *rng.random((3, len(stored.v_s)))):
+            obj = dataclasses.replace(stored, v_s=np.asarray(v_s, dtype=stored.v_s.dtype))
+            actions, q1s = belief_budget_tables(np.asarray(obj.v_s, dtype=float), rows, mdp, budget, choosable)  # row k: budget - k left
+            for k in range(budget):
+                left = budget - k
+                served = obj.budget(left)[0]
+                for x, c in enumerate(candidates):
+                    fresh = int(actions[k, x])
+                    assert fresh == int(served[x]), (object_id, x, left)
+                    compared += 1
+                    by_budget += fresh != int(actions[0, x])
+                    if fresh == NO_OP:
+                        continue
+                    ruled_out = neighbourhood.neighbours(c.points, c.directions, fresh)
+                    ours = retry.best_untried(q1s[k][x], choosable[x] & ~ruled_out, float(obj.v_s[x]), horizon.IMPROVEMENT)
+                    request = PlanRequest(object_id=object_id, pose=np.eye(4).tolist(), pushes_left=left, failed_actions=[fresh])
+                    assert ours == untried_push(obj, x, request, store.gamma, store.after_failure_power, store.retry_failed,
+                                                believes=store.believe_failures)[0], (object_id, x, left)
+                    fresh_values = obj.budget_q(x, left, after_failure=False)
+                    by_failure += ours != retry.best_untried(fresh_values, choosable[x] & ~ruled_out, float(obj.v_s[x]),
+                                                             horizon.IMPROVEMENT)
+    assert compared > 0
+    assert by_budget > 0, "some push depends on the pushes left: the test tells the budgets apart"
+    assert by_failure > 0, "some push after a failure is not the one a fresh pose would take: the test tells Q1_h from Q0_h"

@@ -148,8 +148,9 @@ def value_iteration(
     gamma : discount in [0, 1)
     tolerance : float, largest change of any V_T(x) in the last sweep
     max_iterations : int, upper bound on sweeps
-    choosable : list of P (A_x,) bool, the pushes the max over u may take (default all); the
-      others' Q_T is still their value under the plan, (12.7)
+    choosable : list of P (A_x,) bool (0/1 reads as bool), the pushes the max over u may take
+      (default all); the others' Q_T is still their value under the plan, (12.7).  ValueError
+      unless one mask per pose, one entry per push
     retry_failed : whether a push that leaves the object in its pose may be pushed again
       (the thesis, (12.1)) or the object is then grasped there ((12.9))
     returns : V_T (P,) float; Q_T list of (A_x,) float, NaN where the row is NaN
@@ -157,7 +158,7 @@ def value_iteration(
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
     rows, owner, ok = _stack(next_pose, n_poses)
-    planned = slice(None) if choosable is None else _choosable_rows(choosable, ok)
+    planned = slice(None) if choosable is None else _choosable_rows(choosable, next_pose, ok)
     plan_rows, plan_owner = rows[planned], owner[planned]
     poses, starts = np.unique(plan_owner, return_index=True)
     ends = np.r_[starts[1:], len(plan_owner)].astype(int)
@@ -199,14 +200,21 @@ class _BeliefRows:
         return out
 
 
-def _choosable_rows(choosable: list[np.ndarray], ok: np.ndarray) -> np.ndarray:
-    """(N,) bool: which of the stacked ok rows ``ok`` (``_stack``) the plan may choose.  Each mask is
-    read as bool, so a 0/1 integer mask is a mask and not a list of row numbers, as ``pose_values`` reads it
-    for its choices."""
-    mask = np.concatenate([np.zeros(0, dtype=bool), *(np.asarray(c, dtype=bool).ravel() for c in choosable)])
-    if len(mask) != len(ok):
-        raise ValueError(f"choosable has {len(mask)} entries over its poses, the tables {len(ok)} pushes: one per push of each pose")
-    return mask[ok]
+def _choosable_rows(choosable: list, next_pose: list[np.ndarray], ok: np.ndarray) -> np.ndarray:
+    """Which of the stacked ok rows (``_stack``) the plan may choose.
+
+    choosable : list of P (A_x,) masks, read as bool (a 0/1 integer mask is a mask, as ``pose_values``
+      reads it for its choices, and not a list of row numbers);  next_pose : the P tables
+    ok : (sum A_x,) bool from ``_stack``;  returns : (N,) bool over the stacked ok rows
+    ValueError unless there is one mask per pose, one entry per push
+    """
+    masks = [np.asarray(c, dtype=bool) for c in choosable]
+    if len(masks) != len(next_pose):
+        raise ValueError(f"choosable has {len(masks)} masks for {len(next_pose)} poses: one per pose")
+    for x, (mask, table) in enumerate(zip(masks, next_pose)):
+        if mask.shape != (len(table),):
+            raise ValueError(f"choosable[{x}] has shape {mask.shape}, pose {x} has {len(table)} pushes: one entry per push")
+    return np.concatenate([np.zeros(0, dtype=bool), *masks])[ok]
 
 
 def _belief_rows(next_pose: list[np.ndarray], n_poses: int, power: float, choosable: list[np.ndarray] | None,
@@ -214,7 +222,7 @@ def _belief_rows(next_pose: list[np.ndarray], n_poses: int, power: float, choosa
     if not power >= 1.0:
         raise ValueError(f"{name} needs power >= 1, got {power}")
     rows, owner, ok = _stack(next_pose, n_poses)
-    planned = np.ones(len(rows), dtype=bool) if choosable is None else _choosable_rows(choosable, ok)
+    planned = np.ones(len(rows), dtype=bool) if choosable is None else _choosable_rows(choosable, next_pose, ok)
     stay = _self_mass(rows, owner)
     leave = rows.copy()
     leave[np.arange(len(rows)), owner] = 0.0
