@@ -362,7 +362,12 @@ def test_policies_choose_among_the_choosable_pushes_and_every_push_keeps_its_val
     np.testing.assert_allclose(kept[0].greedy, free[0].greedy)
     # All choosable is the same as no mask, to the bit.
     every = pose_values(tables, v_s, [-1, -1], thesis, [np.ones(2, dtype=bool), np.ones(1, dtype=bool)])
-    assert [(v.value, v.q.tolist(), v.policies) for v in every] == [(v.value, v.q.tolist(), v.policies) for v in free]
+    assert plans(every) == plans(free)
+
+
+def plans(values) -> list[tuple]:
+    """What ``pose_values`` says of each pose (V_T, every Q_T, the policies' choices), for comparing two plans to the bit."""
+    return [(v.value, v.q.tolist(), v.policies) for v in values]
 
 
 @pytest.mark.parametrize("believe_failures", [False, True])
@@ -377,8 +382,7 @@ def test_a_mask_of_zeros_and_ones_is_a_mask_not_row_numbers(believe_failures):
     masks = [np.array([False, True, False]), np.array([True]), np.zeros(0, dtype=bool)]
     as_bool = pose_values(tables, v_s, [-1, -1, -1], config, masks)
     for other in ([m.astype(int) for m in masks], [m.tolist() for m in masks]):
-        same = pose_values(tables, v_s, [-1, -1, -1], config, other)
-        assert [(v.value, v.q.tolist(), v.policies) for v in same] == [(v.value, v.q.tolist(), v.policies) for v in as_bool]
+        assert plans(pose_values(tables, v_s, [-1, -1, -1], config, other)) == plans(as_bool)
     # Only push 1 may be chosen in pose 0: it reaches pose 1 (V_s 0.9, where pushing would lose it to pose 2)
     # half the time, and a failure leaves pose 0 retrying it, believed at p^k after a failure when so planned.
     p = 0.5 ** (config.after_failure_power if believe_failures else 1.0)
@@ -778,9 +782,6 @@ def test_the_choice_by_neighbourhood_reads_its_angle_from_the_config():
     v_s = np.array([0.1, 0.9])
     q = np.array([0.9, 0.1, 0.6, 0.6])
     every = np.ones(4, dtype=bool)
-    for angle, expected in [(0.1, 0), (0.5, 2)]:
+    for apart, angle, expected in [(0.3, 0.1, 0), (0.3, 0.5, 2), (0.7, 0.5, 0), (0.7, 1.0, 2)]:
         config = MDPConfig(choice_neighbours=1, choice_angle=angle)
-        assert neighbourhood_choice(0, v_s, q, *_fan([0.0, 0.3, np.pi, np.pi]), every, config).action == expected
-    for angle, expected in [(0.5, 0), (1.0, 2)]:
-        config = MDPConfig(choice_neighbours=1, choice_angle=angle)
-        assert neighbourhood_choice(0, v_s, q, *_fan([0.0, 0.7, np.pi, np.pi]), every, config).action == expected
+        assert neighbourhood_choice(0, v_s, q, *_fan([0.0, apart, np.pi, np.pi]), every, config).action == expected

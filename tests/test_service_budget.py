@@ -291,20 +291,19 @@ def test_belief_horizon_vi_plans_what_plan_serves_a_client_that_sends_its_budget
     from pipeline.studies.robust_policy import belief_budget_tables, next_pose_rows, read_candidates
     from schema import horizon, neighbourhood, retry
     from schema.api import PlanRequest
-    from schema.reader import Dataset
     from schema.vocabulary import NO_OP
     from service.planning import untried_push
     from service.store import Store
 
     budget = 3
     store = Store.load(dataset)
-    data, config, _, _, _ = open_trials(dataset, 8, 1)  # the dataset's config, its tables read as the study reads them
+    data, config, _, _, _ = open_trials(dataset, 8, 1)  # the dataset as the study opens it, and its config
     mdp = dataclasses.replace(config.mdp, after_failure_power=data.manifest.parameters.mdp.after_failure_power)
     rng = np.random.default_rng(0)
     compared = by_budget = by_failure = 0
     for object_id, stored in store.objects.items():
-        candidates = read_candidates(Dataset.open(dataset), object_id)
-        rows = next_pose_rows(Dataset.open(dataset), object_id, [len(c.q) for c in candidates])
+        candidates = read_candidates(data, object_id)
+        rows = next_pose_rows(data, object_id, [len(c.q) for c in candidates])
         choosable = [horizon.choosable_pushes(c.directions[:, 2], mdp.budget_min_direction_z) for c in candidates]
         for v_s in (stored.v_s, *rng.random((3, len(stored.v_s)))):
             obj = dataclasses.replace(stored, v_s=np.asarray(v_s, dtype=stored.v_s.dtype))

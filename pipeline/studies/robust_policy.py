@@ -822,8 +822,7 @@ def main(argv: list[str] | None = None) -> int:
                                     workers=args.workers, world=world_config(args.world),
                                     exclusion=Exclusion(args.exclude_radius, args.exclude_angle),
                                     landing_prior=args.landing_prior,
-                                    variant={name: value for name, value in (("gamma", args.gamma), ("min_direction_z",
-                                             args.min_direction_z), ("choice_radius", args.choice_radius)) if value is not None})
+                                    variant={name: getattr(args, name) for name in VARIANT_FIELDS if getattr(args, name) is not None})
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
