@@ -642,19 +642,19 @@ def test_a_variant_plans_under_its_own_discount_and_cut(dataset):  # noqa: F811 
     smoothing = Smoothing(min_neighbours=1)  # the tiny dataset's pushes are sparse: let every ok push be chosen
     scores = [pose_scores(c, smoothing, r) for c, r in zip(candidates, rows)]
     nothing = [np.zeros(len(c.q), dtype=bool) for c in candidates]
-    actions, _ = variant_plan(v_s, rows, candidates, scores, config.mdp, nothing, smoothing)
+    actions, _, _ = variant_plan(v_s, rows, candidates, scores, config.mdp, nothing, smoothing)
     assert all((a == NO_OP).all() for a in actions.values())
     every = [horizon.choosable_pushes(c.directions[:, 2], -1.0) for c in candidates]
     for gamma in (0.5, 0.99):
         mdp = replace(config.mdp, gamma=gamma, min_direction_z=-1.0)
-        actions, q1 = variant_plan(v_s, rows, candidates, scores, mdp, every, smoothing)
+        actions, q1, _ = variant_plan(v_s, rows, candidates, scores, mdp, every, smoothing)
         np.testing.assert_array_equal(actions[VARIANT_POLICY], value_iteration_actions(v_s, rows, mdp, every, candidates))
         first, expected_q1 = belief_tables(v_s, rows, mdp, every)
         np.testing.assert_array_equal(actions[VARIANT_BELIEF_POLICY], first)
         assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(q1[VARIANT_BELIEF_POLICY], expected_q1))
         assert actions[VARIANT_ROBUST_POLICY].shape == (len(candidates),)
     # The smoothed choice follows the variant's own Q_T: at the dataset's MDP, the stored Q's.
-    actions, _ = variant_plan(v_s, rows, candidates, scores, config.mdp, [horizon.choosable_pushes(c.directions[:, 2],
+    actions, _, _ = variant_plan(v_s, rows, candidates, scores, config.mdp, [horizon.choosable_pushes(c.directions[:, 2],
                               config.mdp.min_direction_z) for c in candidates], smoothing)
     stored = robust_actions(v_s, scores, config.mdp.gamma, smoothing,
                             [horizon.choosable_pushes(c.directions[:, 2], config.mdp.min_direction_z) for c in candidates])
@@ -695,7 +695,7 @@ def test_the_engines_choice_by_neighbourhood_is_the_studys_smoothed_vi(dataset):
             rows = next_pose_rows(data, object_id, [len(c.q) for c in candidates])
             scores = [pose_scores(c, smoothing, r) for c, r in zip(candidates, rows)]
             every = [horizon.choosable_pushes(c.directions[:, 2], -1.0) for c in candidates]
-            actions, _ = variant_plan(plan.v_s, rows, candidates, scores, mdp, every, smoothing)
+            actions, _, _ = variant_plan(plan.v_s, rows, candidates, scores, mdp, every, smoothing)
             np.testing.assert_array_equal(actions[VARIANT_POLICY], actions[VARIANT_ROBUST_POLICY])
             pushed += int((actions[VARIANT_POLICY] != NO_OP).sum())
     assert pushed > 0, "some pose pushes: the test compares choices, not two no-ops"
@@ -722,5 +722,5 @@ def test_a_variant_near_zero_discount_never_pushes_and_a_bad_variant_is_refused(
                                ("--choice-radius", "-0.01", "choice_radius must be")]:
         assert main([str(dataset), "--trials", "2", flag, bad]) == 2
         assert message in capsys.readouterr().err
-    with pytest.raises(ValueError, match="a variant changes gamma or min_direction_z or choice_radius, not tolerance"):
+    with pytest.raises(ValueError, match="a variant changes gamma or min_direction_z or choice_radius or choose_for_repeats, not tolerance"):
         experiment(dataset, 2, variant={"tolerance": 1e-3})

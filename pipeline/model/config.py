@@ -540,6 +540,12 @@ class MDPConfig:
     before it was played: +0.012 V_s on four corpus seeds, +0.018 on two held-out ones, with a sixth
     fewer pushes (docs/VALIDATION.md, "Value iteration that believes its failures").  False: the
     thesis's Bellman equation, and after a failure (12.12)."""
+    choose_for_repeats: bool = False
+    """Whether value iteration's stored push is chosen for a client that pushes it again after it fails
+    (docs/MODEL.md (12.16)): ranked (by its neighbourhood, as ``choice_radius`` says) by Q_R, the value
+    of the pose -> push map whose failed pushes are repeated at P^k (``after_failure_power``), instead of by
+    Q0, which counts a failure at the best untried push.  Only the choice moves: the stored Q, V and the
+    ranking after a reported failure stay (12.13)'s.  A study candidate (stop 47, ``reports/repeat_choice_rule_s47.md``)."""
 
     @property
     def plans_with_failures(self) -> bool:
@@ -558,6 +564,9 @@ class MDPConfig:
             raise ValueError("mdp.retry_failed = false values a failure at the grasp (MODEL.md (12.9)) and "
                              "mdp.believe_failures = true at the failed state's value (12.13): two answers to one "
                              "question; set mdp.believe_failures = false with mdp.retry_failed = false")
+        if self.choose_for_repeats and not self.retry_failed:
+            raise ValueError("mdp.choose_for_repeats chooses for a client that pushes again after a failure and "
+                             "mdp.retry_failed = false for one that grasps (MODEL.md (12.9)): set one of them")
 
 
 @dataclass(frozen=True)

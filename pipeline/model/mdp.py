@@ -283,6 +283,51 @@ def belief_value_iteration(
     return value, failed_value, _split(q0, next_pose), _split(q1, next_pose)
 
 
+def repeat_value_iteration(
+    next_pose: list[np.ndarray],
+    v_s: np.ndarray,
+    gamma: float,
+    power: float,
+    tolerance: float,
+    max_iterations: int,
+    choosable: list[np.ndarray] | None = None,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Value iteration for a client that pushes its pose's stored push again after it fails
+    (docs/MODEL.md (12.16)).
+
+    A client that sends /plan only its pose is served the same push after a failure, and (12.13)'s
+    failed state, which switches to the best untried push, is not where it goes.  Its pushes keep
+    (12.13)'s belief: after a failure the same push topples with p^k (k = ``power``) and lands where
+    its row's topples land, so a push is worth its topples plus its own loop of repeats:
+
+        Q_R(x, u) = S(x, u) (1 + (1 - p) gamma p^(k-1) / (1 - gamma + gamma p^k)),  S(x, u) = sum_{x' != x} P(x' | x, u) V_R(x')
+        V_R(x)    = max(V_s(x), gamma max_u Q_R(x, u))  over the choosable pushes
+
+    the value of the best stationary pose -> push map under that belief.  A push unlikely to topple
+    loses more here than in Q0, where its failure is worth the best other push.
+
+    next_pose, v_s, choosable : as ``value_iteration``;  gamma : discount in [0, 1);  power : k >= 1
+    returns : V_R (P,) float; Q_R list of (A_x,) float, NaN where the row is NaN
+    """
+    v_s = np.asarray(v_s, dtype=float)
+    n_poses = len(v_s)
+    rows = _belief_rows(next_pose, n_poses, power, choosable, "repeat_value_iteration")
+    loop = 1.0 - gamma + gamma * rows.failed_topple
+    failed_loop = np.divide(gamma * rows.failed_ratio, loop, out=np.zeros_like(loop), where=loop > 0)
+    # Q_R is S times a factor fixed by the push alone: (12.16) is value iteration with rescaled rows.
+    factor = 1.0 + rows.stay * failed_loop
+    value = v_s.copy()
+    for _ in range(max_iterations):
+        update = np.maximum(v_s, gamma * rows.best(factor * (rows.leave @ value), n_poses))
+        change = float(np.max(np.abs(update - value))) if n_poses else 0.0
+        value = update
+        if change <= tolerance:
+            break
+    q = np.full(len(rows.ok), np.nan)
+    q[rows.ok] = factor * (rows.leave @ value)
+    return value, _split(q, next_pose)
+
+
 def greedy_values(next_pose: list[np.ndarray], v_s: np.ndarray) -> list[np.ndarray]:
     """E[V_s(x')] of every action: the suction quality expected right after the push.
 
@@ -397,16 +442,22 @@ def pose_values(
     else:
         v_t, q = value_iteration(next_pose, v_s, config.gamma, config.tolerance, config.max_iterations, choosable,
                                  config.retry_failed)
+    ranked = q
+    if config.choose_for_repeats:
+        _, ranked = repeat_value_iteration(next_pose, v_s, config.gamma, config.after_failure_power, config.tolerance,
+                                           config.max_iterations, choosable)
     greedy = greedy_values(next_pose, v_s)
     out = []
     for x in range(len(v_s)):
         mine = True if choosable is None else np.asarray(choosable[x], dtype=bool)
+        choice = (value_iteration_policy(x, v_s, np.where(mine, ranked[x], np.nan), config.gamma)
+                  if config.choice_radius == 0 else neighbourhood_choice(x, v_s, ranked[x], *pushes[x], mine, config))
+        if choice.action != NO_OP:
+            choice = PolicyChoice(choice.action, float(q[x][choice.action]))  # the stored Q of the push, whatever ranked it
         policies = {
             "max_height": max_height_policy(x, v_s, int(max_height_actions[x]), greedy[x]),
             "greedy": greedy_policy(x, v_s, np.where(mine, greedy[x], np.nan)),
-            "value_iteration": (value_iteration_policy(x, v_s, np.where(mine, q[x], np.nan), config.gamma)
-                                if config.choice_radius == 0 else
-                                neighbourhood_choice(x, v_s, q[x], *pushes[x], mine, config)),
+            "value_iteration": choice,
         }
         out.append(PoseValues(q=q[x], greedy=greedy[x], value=float(v_t[x]), policies=policies))
     return out

@@ -96,16 +96,20 @@ PRIOR_POLICIES = {PRIOR_POLICY: "value_iteration", PRIOR_BELIEF_POLICY: BELIEF_P
 VARIANT_POLICY = "variant_vi"
 VARIANT_BELIEF_POLICY = "variant_belief_vi"
 VARIANT_ROBUST_POLICY = "variant_smoothed_vi"
-VARIANT_POLICIES = {VARIANT_POLICY: "value_iteration", VARIANT_BELIEF_POLICY: BELIEF_POLICY, VARIANT_ROBUST_POLICY: ROBUST_POLICY}
+VARIANT_AWARE_POLICY = "variant_aware_vi"
+VARIANT_POLICIES = {VARIANT_POLICY: "value_iteration", VARIANT_BELIEF_POLICY: BELIEF_POLICY, VARIANT_ROBUST_POLICY: ROBUST_POLICY,
+                    VARIANT_AWARE_POLICY: AWARE_POLICY}
 """Played only under another MDP (``experiment``'s ``variant``: a discount, a cut on the choosable
-pushes): value iteration, ``belief_vi`` and ``smoothed_vi`` planned under it over the dataset's rows,
-each compared with the same policy under the dataset's MDP, paired (stop 44)."""
-VARIANT_FIELDS = ("gamma", "min_direction_z", "choice_radius")
+pushes, a choice for the client that repeats): value iteration, ``belief_vi``, ``smoothed_vi`` and
+``aware_vi`` (the variant's value iteration until a push fails, then ``aware_choice`` over the variant's Q,
+what ``/plan`` with ``failed_actions`` would serve from a build under it) planned under it over the
+dataset's rows, each compared with the same policy under the dataset's MDP, paired (stops 44, 47)."""
+VARIANT_FIELDS = ("gamma", "min_direction_z", "choice_radius", "choose_for_repeats")
 """The ``mdp`` fields a variant may change."""
 COUNTERPARTS = {**PRIOR_POLICIES, **VARIANT_POLICIES}
 """Every optional policy and the policy it is compared with."""
 REPORTS_FAILURES = (UNTRIED_POLICY, AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY, PRIOR_BELIEF_POLICY,
-                    PRIOR_BELIEF_HORIZON_POLICY, VARIANT_BELIEF_POLICY)
+                    PRIOR_BELIEF_HORIZON_POLICY, VARIANT_BELIEF_POLICY, VARIANT_AWARE_POLICY)
 """The policies played as a client that tells /plan its failed pushes: where a push of the trial
 has failed they choose among the candidates no failure ruled out (``after_failure_choice``)."""
 COMPARED = ("max_height", "value_iteration", *CHALLENGERS)
@@ -443,20 +447,23 @@ def prior_plan(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosabl
 
 
 def variant_plan(v_s: np.ndarray, rows: list[np.ndarray], candidates: list[PoseCandidates], scores: list[PoseScores],
-                 mdp: MDPConfig, choosable: list[np.ndarray], smoothing: Smoothing) -> tuple[dict[str, np.ndarray], dict[str, list]]:
+                 mdp: MDPConfig, choosable: list[np.ndarray], smoothing: Smoothing
+                 ) -> tuple[dict[str, np.ndarray], dict[str, list], list[np.ndarray]]:
     """The ``VARIANT_POLICIES`` planned under ``mdp`` over pushes ``choosable`` under it: value iteration
-    (``pose_values``), ``belief_vi`` (``belief_tables``) and ``smoothed_vi`` over the neighbourhood means
-    of that value iteration's Q_T (its V_T, hence every Q_T, follows the variant).  returns : their actions
-    and the Q1 the variant ``belief_vi`` ranks by after a failure, keyed by name."""
+    (``pose_values``; ``aware_vi`` pushes as it does until a push fails), ``belief_vi`` (``belief_tables``)
+    and ``smoothed_vi`` over the neighbourhood means of that value iteration's Q_T (its V_T, hence every
+    Q_T, follows the variant).  returns : their actions, the Q1 the variant ``belief_vi`` ranks by after a
+    failure, keyed by name, and the variant's Q per pose, which its ``aware_vi`` ranks by."""
     values = pose_values(rows, v_s, [-1] * len(rows), mdp, choosable, _pushes(candidates))
     actions = {VARIANT_POLICY: np.array([v.policies["value_iteration"].action for v in values], dtype=np.int64)}
+    actions[VARIANT_AWARE_POLICY] = actions[VARIANT_POLICY]
     smoothed = []
     for c, v, s in zip(candidates, values, scores):
         mean, count = neighbour_mean(c.points, c.directions, v.q, smoothing)
         smoothed.append(PoseScores(mean, s.smoothed_p, count))
     actions[VARIANT_ROBUST_POLICY] = robust_actions(v_s, smoothed, mdp.gamma, smoothing, choosable)
     actions[VARIANT_BELIEF_POLICY], q1 = belief_tables(v_s, rows, mdp, choosable)
-    return actions, {VARIANT_BELIEF_POLICY: q1}
+    return actions, {VARIANT_BELIEF_POLICY: q1}, [v.q for v in values]
 
 
 # ---------------------------------------------------------------- physics
@@ -570,8 +577,9 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
     stay = float(plan.v_s[pose])
     if policy == UNTRIED_POLICY:
         return untried_choice(pose, plan.v_s, candidates.q, ruled_out | ~choosable, gamma)
-    if policy == AWARE_POLICY:
-        return aware_choice(pose, plan.v_s, candidates.q, candidates.p_topple, ruled_out, choosable, gamma,
+    if policy in (AWARE_POLICY, VARIANT_AWARE_POLICY):
+        q = extra["variant_q"][pose] if variant else candidates.q
+        return aware_choice(pose, plan.v_s, q, candidates.p_topple, ruled_out, choosable, gamma,
                             config.mdp.after_failure_power, config.mdp.retry_failed, believes=config.mdp.believe_failures)
     if policy in (BELIEF_POLICY, PRIOR_BELIEF_POLICY, VARIANT_BELIEF_POLICY):
         return retry.best_untried(extra["belief_q1"][policy][pose], choosable & ~ruled_out, stay, IMPROVEMENT, scale=gamma)
@@ -608,6 +616,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     for name, value in (variant or {}).items():
         if name not in VARIANT_FIELDS:
             raise ValueError(f"a variant changes {' or '.join(VARIANT_FIELDS)}, not {name}")
+        if isinstance(value, bool):
+            continue
         accepted = field_range(MDPConfig, name)
         if not accepted.contains(value):
             raise ValueError(f"{name} must be {accepted.text()}; got {value}")
@@ -643,15 +653,15 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
             plan.actions.update(actions)
             belief_q1.update(q1)
             belief_budget_q1.update(budget_q1)
-        variant_choosable = None
+        variant_choosable, variant_q = None, None
         if variant_mdp is not None:
             variant_choosable = [horizon.choosable_pushes(c.directions[:, 2], variant_mdp.min_direction_z) for c in candidates]
-            actions, q1 = variant_plan(plan.v_s, rows, candidates, scores, variant_mdp, variant_choosable, smoothing)
+            actions, q1, variant_q = variant_plan(plan.v_s, rows, candidates, scores, variant_mdp, variant_choosable, smoothing)
             plan.actions.update(actions)
             belief_q1.update(q1)
         tasks.append((plan, {"candidates": candidates, "scores": scores, "exclusion": exclusion, "choosable": choosable,
                              "budget_choosable": budget_choosable, "variant_mdp": variant_mdp,
-                             "variant_choosable": variant_choosable,
+                             "variant_choosable": variant_choosable, "variant_q": variant_q,
                                   "landings": landings, "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
                       config, seed, max_pushes, world, policies))
 
@@ -815,6 +825,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--choice-radius", type=float, metavar="R",
                         help="also play them with value iteration choosing by its neighbourhood within R m (mdp.choice_radius; "
                              "0: the argmax of Q_T); with the others, one variant of all")
+    parser.add_argument("--choose-for-repeats", action="store_const", const=True,
+                        help="also play them with value iteration's push chosen for a client that repeats it "
+                             "(mdp.choose_for_repeats, docs/MODEL.md (12.16)); with the others, one variant of all")
     args = parser.parse_args(argv)
     try:
         smoothing = Smoothing(args.radius, args.max_angle, args.min_neighbours)
