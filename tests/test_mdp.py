@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -15,6 +17,7 @@ from pipeline.model.mdp import (
     is_selected,
     max_height_policy,
     pose_values,
+    repeat_value_iteration,
     value_iteration,
     value_iteration_policy,
 )
@@ -493,6 +496,98 @@ def test_pose_values_believe_failures_by_default_and_the_thesis_preset_does_not(
     assert [(v.value, v.q.tolist()) for v in no_map] == [(v.value, v.q.tolist()) for v in thesis]
     with pytest.raises(ValueError, match="two answers to one question"):
         MDPConfig(retry_failed=False)
+
+
+def stationary_map_value(next_pose, v_s, acts, gamma, power):
+    """Exact value of the pose -> push map ``acts`` (NO_OP: grasp) for a client that repeats a failed
+    push, under (12.13)'s belief: two states per pushing pose, fresh and failed (the same push then
+    topples with p^k and lands where its row's topples land), one linear system."""
+    n = len(v_s)
+    acting = [x for x in range(n) if acts[x] != NO_OP]
+    index = {x: i for i, x in enumerate(acting)}
+    m = len(acting)
+    system, constant = np.eye(2 * m), np.zeros(2 * m)
+    for x in acting:
+        row = np.asarray(next_pose[x], dtype=float)[acts[x]]
+        p = 1.0 - row[x]
+        for scale, state in ((1.0, index[x]), (p ** (power - 1.0), m + index[x])):
+            for y in range(n):
+                if y != x and row[y] > 0:
+                    if y in index:
+                        system[state, index[y]] -= gamma * scale * row[y]
+                    else:
+                        constant[state] += gamma * scale * row[y] * v_s[y]
+        system[index[x], m + index[x]] -= gamma * (1.0 - p)  # fresh: a failure leaves it failed here
+        system[m + index[x], m + index[x]] -= gamma * (1.0 - p ** power)  # failed: and again
+    fresh = np.array(v_s, dtype=float)
+    if m:
+        fresh[acting] = np.linalg.solve(system, constant)[:m]
+    return fresh
+
+
+def test_for_a_client_that_repeats_the_long_shot_the_likely_push_is_worth_more():
+    # The client that sends only its pose pushes the long shot again after it fails, where it topples
+    # with 0.1^2.1: Q_R = 0.1 (1 + 0.9 g 0.1^1.1 / (1 - g + g 0.1^2.1)) = 0.218, against the likely
+    # push's 0.45 (1 + 0.1 g 0.9^1.1 / (1 - g + g 0.9^2.1)) = 0.497, its Q0 too (its failed state pushes
+    # it again); (12.13)'s Q0 ranks the long shot first (0.522), counting its failure at the likely push
+    # a reporting client switches to.
+    next_pose, v_s = long_shot_and_likely_push()
+    v_r, q_r = repeat_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000)
+    loop = [GAMMA * p ** 1.1 / (1 - GAMMA + GAMMA * p ** 2.1) for p in (0.1, 0.9)]
+    expected = [0.1 * (1 + 0.9 * loop[0]), 0.45 * (1 + 0.1 * loop[1])]
+    np.testing.assert_allclose(q_r[0], expected, rtol=1e-12)
+    assert expected == pytest.approx([0.218, 0.497], abs=5e-4)
+    assert v_r[0] == pytest.approx(GAMMA * expected[1]) and v_r[1:].tolist() == [1.0, 0.5]
+    believing = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(choice_radius=0.0))
+    repeating = pose_values(next_pose, v_s, [-1, -1, -1], MDPConfig(choice_radius=0.0, choose_for_repeats=True))
+    assert believing[0].policies["value_iteration"].action == 0 and repeating[0].policies["value_iteration"].action == 1
+    # Only the choice moves: the stored Q0 and V0, and the chosen push's value is its own Q0.
+    for a, b in zip(believing, repeating):
+        assert a.value == b.value and np.array_equal(a.q, b.q, equal_nan=True)
+    assert repeating[0].policies["value_iteration"].value == believing[0].q[1]
+    # And the exact value of each map for that client agrees: the likely push is the better one to store.
+    assert stationary_map_value(next_pose, v_s, [1, NO_OP, NO_OP], GAMMA, 2.1)[0] == pytest.approx(v_r[0], abs=1e-12)
+    assert stationary_map_value(next_pose, v_s, [0, NO_OP, NO_OP], GAMMA, 2.1)[0] == pytest.approx(GAMMA * expected[0], abs=1e-12)
+
+
+def test_repeat_value_iteration_is_the_best_pose_to_push_map_for_a_client_that_repeats():
+    rng = np.random.default_rng(11)
+    for n_poses, n_actions, power in [(2, 3, 2.1), (3, 3, 2.1), (3, 2, 3.5), (4, 2, 1.4)]:
+        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+        choosable = [rng.random(len(t)) < 0.8 for t in next_pose]
+        v_r, q_r = repeat_value_iteration(next_pose, v_s, GAMMA, power, 1e-13, 10_000, choosable)
+        options = [[NO_OP] + [u for u in range(len(t)) if choosable[x][u] and not np.isnan(t[u]).any()]
+                   for x, t in enumerate(next_pose)]
+        best = np.array(v_s, dtype=float)
+        for acts in itertools.product(*options):
+            value = stationary_map_value(next_pose, v_s, acts, GAMMA, power)
+            assert (value <= v_r + 1e-9).all(), "no map beats V_R for this client"
+            best = np.maximum(best, value)
+        np.testing.assert_allclose(v_r, best, atol=1e-9)
+        # Its argmax map attains V_R, and Q_R is NaN where the row is.
+        acts = [NO_OP if v_s[x] >= GAMMA * np.nanmax(np.where(choosable[x], q, np.nan), initial=-1.0)
+                else int(np.nanargmax(np.where(choosable[x], q, np.nan))) for x, q in enumerate(q_r)]
+        np.testing.assert_allclose(stationary_map_value(next_pose, v_s, acts, GAMMA, power), v_r, atol=1e-9)
+        for table, q in zip(next_pose, q_r):
+            assert np.array_equal(np.isnan(q), np.isnan(np.asarray(table, dtype=float)).any(axis=1))
+
+
+def test_repeat_value_iteration_of_power_one_is_the_thesis_value_iteration():
+    # Without a belief a repeated push is a fresh draw: the thesis's own stationary optimum.
+    rng = np.random.default_rng(12)
+    for n_poses, n_actions in [(3, 5), (7, 30)]:
+        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+        thesis_v, thesis_q = solve(next_pose, v_s)
+        v_r, q_r = repeat_value_iteration(next_pose, v_s, GAMMA, 1.0, 1e-13, 10_000)
+        np.testing.assert_allclose(v_r, thesis_v, atol=1e-10)
+        pushing = thesis_v > np.asarray(v_s) + 1e-9
+        assert pushing.any()
+        for x in np.flatnonzero(pushing):  # where the thesis pushes, it pushes what the repeating client should
+            assert np.nanargmax(q_r[x]) == np.nanargmax(thesis_q[x])
+    with pytest.raises(ValueError, match="power >= 1"):
+        repeat_value_iteration(next_pose, v_s, GAMMA, 0.5, 1e-13, 10)
+    with pytest.raises(ValueError, match="one that grasps"):
+        MDPConfig(choose_for_repeats=True, retry_failed=False, believe_failures=False)
 
 
 def test_belief_plans_over_the_choosable_pushes_only():

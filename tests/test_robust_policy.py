@@ -620,6 +620,7 @@ def test_a_variant_plans_under_its_own_discount_and_cut(dataset):  # noqa: F811 
 
     from pipeline.studies.policies_physics import dataset_config, object_plans
     from pipeline.studies.robust_policy import (
+        VARIANT_AWARE_POLICY,
         VARIANT_BELIEF_POLICY,
         VARIANT_POLICY,
         VARIANT_ROBUST_POLICY,
@@ -653,6 +654,12 @@ def test_a_variant_plans_under_its_own_discount_and_cut(dataset):  # noqa: F811 
         np.testing.assert_array_equal(actions[VARIANT_BELIEF_POLICY], first)
         assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(q1[VARIANT_BELIEF_POLICY], expected_q1))
         assert actions[VARIANT_ROBUST_POLICY].shape == (len(candidates),)
+    # A variant for the client that repeats moves value iteration's push (and aware_vi's first), not its Q.
+    repeating = replace(config.mdp, min_direction_z=-1.0, choice_radius=0.0, choose_for_repeats=True)
+    actions, _, variant_q = variant_plan(v_s, rows, candidates, scores, repeating, every, smoothing)
+    np.testing.assert_array_equal(actions[VARIANT_POLICY], value_iteration_actions(v_s, rows, repeating, every, candidates))
+    np.testing.assert_array_equal(actions[VARIANT_AWARE_POLICY], actions[VARIANT_POLICY])
+    assert all(np.array_equal(a, c.q, equal_nan=True) for a, c in zip(variant_q, candidates))
     # The smoothed choice follows the variant's own Q_T: at the dataset's MDP, the stored Q's.
     actions, _, _ = variant_plan(v_s, rows, candidates, scores, config.mdp, [horizon.choosable_pushes(c.directions[:, 2],
                               config.mdp.min_direction_z) for c in candidates], smoothing)
