@@ -498,10 +498,11 @@ def test_pose_values_believe_failures_by_default_and_the_thesis_preset_does_not(
         MDPConfig(retry_failed=False)
 
 
-def stationary_map_value(next_pose, v_s, acts, gamma, power):
+def stationary_map_value(next_pose, v_s, acts, gamma, power, grasps_after_failure=()):
     """Exact value of the pose -> push map ``acts`` (NO_OP: grasp) for a client that repeats a failed
     push, under (12.13)'s belief: two states per pushing pose, fresh and failed (the same push then
-    topples with p^k and lands where its row's topples land), one linear system."""
+    topples with p^k and lands where its row's topples land), one linear system; in the poses
+    ``grasps_after_failure`` the failed state grasps instead (12.17)."""
     n = len(v_s)
     acting = [x for x in range(n) if acts[x] != NO_OP]
     index = {x: i for i, x in enumerate(acting)}
@@ -518,6 +519,11 @@ def stationary_map_value(next_pose, v_s, acts, gamma, power):
                     else:
                         constant[state] += gamma * scale * row[y] * v_s[y]
         system[index[x], m + index[x]] -= gamma * (1.0 - p)  # fresh: a failure leaves it failed here
+        if x in grasps_after_failure:
+            system[m + index[x]] = 0.0
+            system[m + index[x], m + index[x]] = 1.0
+            constant[m + index[x]] = v_s[x]  # the failed state is the grasp: worth V_s(x), not discounted
+            continue
         system[m + index[x], m + index[x]] -= gamma * (1.0 - p ** power)  # failed: and again
     fresh = np.array(v_s, dtype=float)
     if m:
@@ -570,6 +576,48 @@ def test_repeat_value_iteration_is_the_best_pose_to_push_map_for_a_client_that_r
         np.testing.assert_allclose(stationary_map_value(next_pose, v_s, acts, GAMMA, power), v_r, atol=1e-9)
         for table, q in zip(next_pose, q_r):
             assert np.array_equal(np.isnan(q), np.isnan(np.asarray(table, dtype=float)).any(axis=1))
+
+
+def test_a_repeating_client_that_then_grasps_is_the_best_map_of_push_and_failed_choice():
+    # (12.17): each pushing pose also chooses, once its push failed, to repeat it or grasp there.
+    rng = np.random.default_rng(13)
+    cases_where_the_grasp_after_a_failure_pays = 0
+    for n_poses, n_actions, power in [(2, 3, 2.1), (3, 2, 2.1), (3, 2, 4.0), (2, 2, 6.0)]:
+        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+        v_g, q_g = repeat_value_iteration(next_pose, v_s, GAMMA, power, 1e-13, 10_000, then_grasp=True)
+        options = [[NO_OP] + [u for u in range(len(t)) if not np.isnan(t[u]).any()] for t in next_pose]
+        best, repeating = np.array(v_s, dtype=float), np.array(v_s, dtype=float)
+        for acts in itertools.product(*options):
+            pushing = [x for x in range(n_poses) if acts[x] != NO_OP]
+            for grasping in itertools.product((False, True), repeat=len(pushing)):
+                value = stationary_map_value(next_pose, v_s, acts, GAMMA, power, {x for x, g in zip(pushing, grasping) if g})
+                best = np.maximum(best, value)
+                if not any(grasping):
+                    repeating = np.maximum(repeating, value)
+        np.testing.assert_allclose(v_g, best, atol=1e-9)
+        cases_where_the_grasp_after_a_failure_pays += int((best > repeating + 1e-9).any())
+        v_r, _ = repeat_value_iteration(next_pose, v_s, GAMMA, power, 1e-13, 10_000)
+        assert (v_g >= v_r - 1e-12).all(), "the grasp is one more choice"
+    assert cases_where_the_grasp_after_a_failure_pays, "the enumeration meets a map that grasps after a failure"
+    # The long shot: 0.1 + 0.9 max(0.2, its repeats' 0.1 g 0.1^1.1 / (1 - g + g 0.1^2.1)) = 0.28.
+    next_pose, v_s = long_shot_and_likely_push()
+    _, q_g = repeat_value_iteration(next_pose, v_s, GAMMA, 2.1, 1e-13, 10_000, then_grasp=True)
+    assert stationary_map_value(next_pose, v_s, [0, NO_OP, NO_OP], GAMMA, 2.1, {0})[0] == pytest.approx(GAMMA * 0.28)
+    likely = 0.45 * 0.9 ** 1.1 * GAMMA / (1 - GAMMA + 0.9 ** 2.1 * GAMMA)
+    np.testing.assert_allclose(q_g[0], [0.1 + 0.9 * 0.2, 0.45 + 0.1 * likely], rtol=1e-12)
+    # Past any belief in repeats (k huge) it is value iteration without retries, (12.9).
+    rng = np.random.default_rng(14)
+    next_pose, v_s = random_mdp(rng, 5, 8)
+    once_v, once_q = solve(next_pose, v_s, retry_failed=False)
+    v_g, q_g = repeat_value_iteration(next_pose, v_s, GAMMA, 1e9, 1e-13, 10_000, then_grasp=True)
+    np.testing.assert_allclose(v_g, once_v, atol=1e-10)
+    for a, b in zip(q_g, once_q):
+        np.testing.assert_allclose(a, b, atol=1e-10)
+    with pytest.raises(ValueError, match="set both"):
+        MDPConfig(repeats_then_grasp=True)
+    chosen = pose_values(*long_shot_and_likely_push(), [-1, -1, -1],
+                         MDPConfig(choice_radius=0.0, choose_for_repeats=True, repeats_then_grasp=True))
+    assert chosen[0].policies["value_iteration"].action == 1
 
 
 def test_repeat_value_iteration_of_power_one_is_the_thesis_value_iteration():

@@ -729,5 +729,5 @@ def test_a_variant_near_zero_discount_never_pushes_and_a_bad_variant_is_refused(
                                ("--choice-radius", "-0.01", "choice_radius must be")]:
         assert main([str(dataset), "--trials", "2", flag, bad]) == 2
         assert message in capsys.readouterr().err
-    with pytest.raises(ValueError, match="a variant changes gamma or min_direction_z or choice_radius or choose_for_repeats, not tolerance"):
+    with pytest.raises(ValueError, match="a variant changes gamma or min_direction_z or choice_radius or choose_for_repeats or repeats_then_grasp, not tolerance"):
         experiment(dataset, 2, variant={"tolerance": 1e-3})

@@ -546,6 +546,10 @@ class MDPConfig:
     of the pose -> push map whose failed pushes are repeated at P^k (``after_failure_power``), instead of by
     Q0, which counts a failure at the best untried push.  Only the choice moves: the stored Q, V and the
     ranking after a reported failure stay (12.13)'s.  A study candidate (stop 47, ``reports/repeat_choice_rule_s47.md``)."""
+    repeats_then_grasp: bool = False
+    """With ``choose_for_repeats``: the repeating client grasps where its push failed once repeating is worth
+    less, as a robot whose push budget runs out does (docs/MODEL.md (12.17)), instead of repeating for ever.
+    A study candidate (stop 47, ``reports/repeat_grasp_rule_s47.md``)."""
 
     @property
     def plans_with_failures(self) -> bool:
@@ -564,6 +568,8 @@ class MDPConfig:
             raise ValueError("mdp.retry_failed = false values a failure at the grasp (MODEL.md (12.9)) and "
                              "mdp.believe_failures = true at the failed state's value (12.13): two answers to one "
                              "question; set mdp.believe_failures = false with mdp.retry_failed = false")
+        if self.repeats_then_grasp and not self.choose_for_repeats:
+            raise ValueError("mdp.repeats_then_grasp says how the client of mdp.choose_for_repeats ends: set both")
         if self.choose_for_repeats and not self.retry_failed:
             raise ValueError("mdp.choose_for_repeats chooses for a client that pushes again after a failure and "
                              "mdp.retry_failed = false for one that grasps (MODEL.md (12.9)): set one of them")

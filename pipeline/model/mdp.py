@@ -291,6 +291,7 @@ def repeat_value_iteration(
     tolerance: float,
     max_iterations: int,
     choosable: list[np.ndarray] | None = None,
+    then_grasp: bool = False,
 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """Value iteration for a client that pushes its pose's stored push again after it fails
     (docs/MODEL.md (12.16)).
@@ -304,27 +305,37 @@ def repeat_value_iteration(
         V_R(x)    = max(V_s(x), gamma max_u Q_R(x, u))  over the choosable pushes
 
     the value of the best stationary pose -> push map under that belief.  A push unlikely to topple
-    loses more here than in Q0, where its failure is worth the best other push.
+    loses more here than in Q0, where its failure is worth the best other push.  With ``then_grasp``
+    (12.17) the client grasps where it failed once its repeats are worth less than that, as a robot
+    whose budget runs out does: the failed state is (12.13)'s with the same push or the grasp,
+
+        Q_G(x, u) = S(x, u) + (1 - p) max(V_s(x), gamma p^(k-1) S(x, u) / (1 - gamma + gamma p^k))
 
     next_pose, v_s, choosable : as ``value_iteration``;  gamma : discount in [0, 1);  power : k >= 1
-    returns : V_R (P,) float; Q_R list of (A_x,) float, NaN where the row is NaN
+    returns : V_R (P,) float; Q_R (or Q_G) list of (A_x,) float, NaN where the row is NaN
     """
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
     rows = _belief_rows(next_pose, n_poses, power, choosable, "repeat_value_iteration")
     loop = 1.0 - gamma + gamma * rows.failed_topple
     failed_loop = np.divide(gamma * rows.failed_ratio, loop, out=np.zeros_like(loop), where=loop > 0)
-    # Q_R is S times a factor fixed by the push alone: (12.16) is value iteration with rescaled rows.
-    factor = 1.0 + rows.stay * failed_loop
+    grasp = v_s[rows.owner]
+
+    def push_values(s: np.ndarray) -> np.ndarray:
+        # Q_R is S times a factor fixed by the push alone: (12.16) is value iteration with rescaled rows.
+        if then_grasp:
+            return s + rows.stay * np.maximum(grasp, failed_loop * s)
+        return s * (1.0 + rows.stay * failed_loop)
+
     value = v_s.copy()
     for _ in range(max_iterations):
-        update = np.maximum(v_s, gamma * rows.best(factor * (rows.leave @ value), n_poses))
+        update = np.maximum(v_s, gamma * rows.best(push_values(rows.leave @ value), n_poses))
         change = float(np.max(np.abs(update - value))) if n_poses else 0.0
         value = update
         if change <= tolerance:
             break
     q = np.full(len(rows.ok), np.nan)
-    q[rows.ok] = factor * (rows.leave @ value)
+    q[rows.ok] = push_values(rows.leave @ value)
     return value, _split(q, next_pose)
 
 
@@ -445,7 +456,7 @@ def pose_values(
     ranked = q
     if config.choose_for_repeats:
         _, ranked = repeat_value_iteration(next_pose, v_s, config.gamma, config.after_failure_power, config.tolerance,
-                                           config.max_iterations, choosable)
+                                           config.max_iterations, choosable, config.repeats_then_grasp)
     greedy = greedy_values(next_pose, v_s)
     out = []
     for x in range(len(v_s)):

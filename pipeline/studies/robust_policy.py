@@ -104,7 +104,7 @@ pushes, a choice for the client that repeats): value iteration, ``belief_vi``, `
 ``aware_vi`` (the variant's value iteration until a push fails, then ``aware_choice`` over the variant's Q,
 what ``/plan`` with ``failed_actions`` would serve from a build under it) planned under it over the
 dataset's rows, each compared with the same policy under the dataset's MDP, paired (stops 44, 47)."""
-VARIANT_FIELDS = ("gamma", "min_direction_z", "choice_radius", "choose_for_repeats")
+VARIANT_FIELDS = ("gamma", "min_direction_z", "choice_radius", "choose_for_repeats", "repeats_then_grasp")
 """The ``mdp`` fields a variant may change."""
 COUNTERPARTS = {**PRIOR_POLICIES, **VARIANT_POLICIES}
 """Every optional policy and the policy it is compared with."""
@@ -828,6 +828,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--choose-for-repeats", action="store_const", const=True,
                         help="also play them with value iteration's push chosen for a client that repeats it "
                              "(mdp.choose_for_repeats, docs/MODEL.md (12.16)); with the others, one variant of all")
+    parser.add_argument("--repeats-then-grasp", action="store_const", const=True,
+                        help="with --choose-for-repeats: a client that grasps once repeating is worth less "
+                             "(mdp.repeats_then_grasp, docs/MODEL.md (12.17))")
     args = parser.parse_args(argv)
     try:
         smoothing = Smoothing(args.radius, args.max_angle, args.min_neighbours)
