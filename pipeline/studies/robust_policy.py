@@ -33,10 +33,11 @@ against physical topple rates of the chosen pushes, where their topples came to 
 the model lands them (``landing_summary``), with per-push diagnostics.  With ``--landing-prior ALPHA``
 it also plays value iteration, ``belief_vi`` and ``belief_horizon_vi`` planned over rows whose landings
 are shrunk toward their pose's mean landing by their topple count (``landing_prior_rows``,
-``PRIOR_POLICIES``), each against its counterpart; with ``--gamma G``, ``--min-direction-z Z`` and/or
-``--choice-radius R``, value iteration, ``belief_vi`` and ``smoothed_vi`` planned under that MDP instead of
-the dataset's (``VARIANT_POLICIES``: another discount, other choosable pushes, another choice of value
-iteration's push), each against its counterpart, so one run pairs the two MDPs trial by trial.
+``PRIOR_POLICIES``), each against its counterpart; with ``--gamma G``, ``--min-direction-z Z``,
+``--choice-radius R`` and/or ``--choose-for-repeats [--repeats-then-grasp]``, value iteration, ``belief_vi``,
+``smoothed_vi`` and ``aware_vi`` planned under that MDP instead of the dataset's (``VARIANT_POLICIES``: another
+discount, other choosable pushes, another choice of value iteration's push), each against its counterpart, so
+one run pairs the two MDPs trial by trial.
 """
 
 from __future__ import annotations
