@@ -263,7 +263,8 @@ def test_a_shards_identity_is_its_object_and_the_parameters_it_uses():
     assert shards.fingerprint(reordered) == shards.fingerprint(inputs), "key order is no part of it"
     assert len(shards.fingerprint(inputs)) == 64
     every = SMALL.to_dict()
-    every["mdp"] = {k: v for k, v in every["mdp"].items() if k not in shards.BUDGET_ONLY["mdp"]}  # only the service reads them
+    # Only the service reads the budget's; the repeat choice is off.
+    every["mdp"] = {k: v for k, v in every["mdp"].items() if k not in shards.BUDGET_ONLY["mdp"] + shards.REPEAT_CHOICE["mdp"]}
     assert {k: v for k, v in inputs["config"].items() if k != "topple"} == {k: v for k, v in every.items() if k != "topple"}
 
 
@@ -277,8 +278,9 @@ def test_corrections_and_maps_that_are_off_are_no_part_of_a_shards_identity():
     # map, but spreads none.
     assert SMALL.mdp.plans_with_failures and SMALL.topple.applied_landing_onward and not SMALL.topple.applied_landing_spread
     assert SMALL.topple.applied_boosted_map
-    budget = shards.BUDGET_ONLY
+    budget = {"mdp": shards.BUDGET_ONLY["mdp"] + shards.REPEAT_CHOICE["mdp"]}  # the repeat choice is off too
     assert unused() == {"topple": spread, **budget}
+    assert unused(**{"mdp.choose_for_repeats": True}) == {"topple": spread, **shards.BUDGET_ONLY}
     assert unused(**{"topple.landing_spread": 0.3}) == budget
     side = {"mdp.min_direction_z": -0.3}  # no boosted map: value iteration chooses no push the down map maps
     assert unused(**{"topple.landing_spread": 0.3, "topple.boosted_map": "", **side}) == {"topple": boosted, **budget}
@@ -297,6 +299,9 @@ def test_corrections_and_maps_that_are_off_are_no_part_of_a_shards_identity():
     assert shards.shard_inputs(spec_of("box"), narrower) == base, "only the served budget reads its cut"
     other = SMALL.with_overrides({"topple.landing_onward_below": SMALL.topple.landing_onward_below / 2})
     assert shards.shard_inputs(spec_of("box"), other) != base
+    repeating = SMALL.with_overrides({"mdp.choose_for_repeats": True})
+    assert not set(shards.REPEAT_CHOICE["mdp"]) & set(base["config"]["mdp"]), "off, the repeat choice is no part of it"
+    assert shards.shard_inputs(spec_of("box"), repeating) != base, "on, it moves the stored push"
 
 
 def test_input_differences_recurse_into_sections():

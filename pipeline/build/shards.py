@@ -72,12 +72,19 @@ NEIGHBOURHOOD_CHOICE = {"mdp": ("choice_radius", "choice_angle", "choice_neighbo
 they existed keeps its shards."""
 
 
+REPEAT_CHOICE = {"mdp": ("choose_for_repeats", "repeats_then_grasp")}
+"""The stored push chosen for the client that repeats it (docs/MODEL.md (12.16), (12.17); opt-in): left out of a
+shard's identity while ``choose_for_repeats`` is off, so a dataset built before the fields existed keeps its shards."""
+
+
 def unused_by_shards(config: Config) -> dict[str, tuple[str, ...]]:
     """The parameters this configuration's shards do not depend on (section -> keys):
-    ``BUDGET_ONLY``, ``SERVING_ONLY`` unless the build plans with failures, ``NEIGHBOURHOOD_CHOICE`` under
-    the argmax, and those of each landing correction that is off."""
+    ``BUDGET_ONLY``, ``SERVING_ONLY`` unless the build plans with failures, ``REPEAT_CHOICE`` while it is off,
+    ``NEIGHBOURHOOD_CHOICE`` under the argmax, and those of each landing correction that is off."""
     unused = {} if config.mdp.plans_with_failures else dict(SERVING_ONLY)
     unused["mdp"] = unused.get("mdp", ()) + BUDGET_ONLY["mdp"]
+    if not config.mdp.choose_for_repeats:
+        unused["mdp"] += REPEAT_CHOICE["mdp"]
     if config.mdp.choice_radius == 0:
         unused["mdp"] += NEIGHBOURHOOD_CHOICE["mdp"]
     off = tuple(key for name, keys in UNUSED_WHEN_OFF.items() if not getattr(config.topple, f"applied_{name}") for key in keys)
