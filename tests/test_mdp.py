@@ -558,8 +558,9 @@ def test_for_a_client_that_repeats_the_long_shot_the_likely_push_is_worth_more()
 
 def test_repeat_value_iteration_is_the_best_pose_to_push_map_for_a_client_that_repeats():
     rng = np.random.default_rng(11)
-    for n_poses, n_actions, power in [(2, 3, 2.1), (3, 3, 2.1), (3, 2, 3.5), (4, 2, 1.4)]:
-        next_pose, v_s = random_mdp(rng, n_poses, n_actions)
+    coupled = random_mdp(np.random.default_rng(2), 5, 3)  # three poses push, and (12.13)'s V0 is not V_R
+    cases = [(*random_mdp(rng, n, a), power) for n, a, power in [(2, 3, 2.1), (3, 3, 2.1), (3, 2, 3.5), (4, 2, 1.4)]]
+    for next_pose, v_s, power in cases + [(*coupled, 2.1)]:
         choosable = [rng.random(len(t)) < 0.8 for t in next_pose]
         v_r, q_r = repeat_value_iteration(next_pose, v_s, GAMMA, power, 1e-13, 10_000, choosable)
         options = [[NO_OP] + [u for u in range(len(t)) if choosable[x][u] and not np.isnan(t[u]).any()]
@@ -576,6 +577,10 @@ def test_repeat_value_iteration_is_the_best_pose_to_push_map_for_a_client_that_r
         np.testing.assert_allclose(stationary_map_value(next_pose, v_s, acts, GAMMA, power), v_r, atol=1e-9)
         for table, q in zip(next_pose, q_r):
             assert np.array_equal(np.isnan(q), np.isnan(np.asarray(table, dtype=float)).any(axis=1))
+    v_r, _ = repeat_value_iteration(*coupled, GAMMA, 2.1, 1e-13, 10_000)
+    v0, *_ = belief_value_iteration(*coupled, GAMMA, 2.1, 1e-13, 10_000)
+    assert (v_r > np.asarray(coupled[1]) + 1e-6).sum() >= 2, "poses push onto poses that push"
+    assert (v0 > v_r + 1e-6).any(), "the repeating client is worth less than the one that switches"
 
 
 def test_a_repeating_client_that_then_grasps_is_the_best_map_of_push_and_failed_choice():
@@ -615,9 +620,12 @@ def test_a_repeating_client_that_then_grasps_is_the_best_map_of_push_and_failed_
         np.testing.assert_allclose(a, b, atol=1e-10)
     with pytest.raises(ValueError, match="set both"):
         MDPConfig(repeats_then_grasp=True)
-    chosen = pose_values(*long_shot_and_likely_push(), [-1, -1, -1],
-                         MDPConfig(choice_radius=0.0, choose_for_repeats=True, repeats_then_grasp=True))
-    assert chosen[0].policies["value_iteration"].action == 1
+    # With V_s(0) 0.45 the three tell apart: (12.13)'s Q0 and (12.17) push the long shot, (12.16) the likely push.
+    rows, v_s = long_shot_and_likely_push()
+    v_s = np.array([0.45, 1.0, 0.5])
+    actions = [pose_values(rows, v_s, [-1, -1, -1], MDPConfig(choice_radius=0.0, **options))[0].policies["value_iteration"].action
+               for options in ({}, {"choose_for_repeats": True}, {"choose_for_repeats": True, "repeats_then_grasp": True})]
+    assert actions == [0, 1, 0]
 
 
 def test_repeat_value_iteration_of_power_one_is_the_thesis_value_iteration():
@@ -636,6 +644,21 @@ def test_repeat_value_iteration_of_power_one_is_the_thesis_value_iteration():
         repeat_value_iteration(next_pose, v_s, GAMMA, 0.5, 1e-13, 10)
     with pytest.raises(ValueError, match="one that grasps"):
         MDPConfig(choose_for_repeats=True, retry_failed=False, believe_failures=False)
+    for thesis in ({"believe_failures": False}, {"after_failure_power": 1.0}):  # no belief to rank repeats by
+        with pytest.raises(ValueError, match="needs mdp.believe_failures = true"):
+            MDPConfig(choose_for_repeats=True, **thesis)
+
+
+def test_the_choice_by_neighbourhood_ranks_the_repeating_clients_values():
+    # The default chooses by neighbourhood (12.15): with the option it averages Q_R, not Q0.  Two pushes a
+    # metre apart are each their own only neighbour.
+    rows, v_s = long_shot_and_likely_push()
+    pushes = [(np.array([[0.0, 0, 0], [1.0, 0, 0]]), np.array([[1.0, 0, 0], [0, 1.0, 0]])), (np.zeros((0, 3)), np.zeros((0, 3))),
+              (np.zeros((0, 3)), np.zeros((0, 3)))]
+    plain = pose_values(rows, v_s, [-1, -1, -1], MDPConfig(choice_neighbours=1), pushes=pushes)
+    repeating = pose_values(rows, v_s, [-1, -1, -1], MDPConfig(choice_neighbours=1, choose_for_repeats=True), pushes=pushes)
+    assert plain[0].policies["value_iteration"].action == 0 and repeating[0].policies["value_iteration"].action == 1
+    assert repeating[0].policies["value_iteration"].value == plain[0].q[1]
 
 
 def test_belief_plans_over_the_choosable_pushes_only():

@@ -563,6 +563,17 @@ def test_after_a_failure_each_believing_policy_ranks_by_its_own_q1():
     assert choice("prior_belief_vi", out=np.array([False, True, False])) == 0
     with pytest.raises(ValueError, match="value_iteration has no rule after a failure"):
         choice("value_iteration")
+    # aware_vi ranks the stored Q over the dataset's choosable pushes; its variant, the variant's Q over the
+    # variant's choosable pushes, under the variant's discount (equal P, so the ranking follows Q).
+    from dataclasses import replace
+
+    extra["candidates"] = [SimpleNamespace(q=q_first, p_topple=np.full(3, 0.5))]
+    extra.update(variant_q=[q_second], variant_choosable=[np.ones(3, dtype=bool)], variant_mdp=config.mdp)
+    assert (choice("aware_vi"), choice("variant_aware_vi")) == (0, 2)
+    extra["variant_choosable"] = [np.array([True, True, False])]
+    assert choice("variant_aware_vi") == 1
+    extra["variant_mdp"] = replace(config.mdp, gamma=1e-13)  # no push beats the grasp by the margin
+    assert (choice("aware_vi"), choice("variant_aware_vi")) == (0, NO_OP)
 
 
 def test_each_prior_policy_is_paired_with_its_own_counterpart(dataset):  # noqa: F811 (fixture)
@@ -731,3 +742,7 @@ def test_a_variant_near_zero_discount_never_pushes_and_a_bad_variant_is_refused(
         assert message in capsys.readouterr().err
     with pytest.raises(ValueError, match="a variant changes gamma or min_direction_z or choice_radius or choose_for_repeats or repeats_then_grasp, not tolerance"):
         experiment(dataset, 2, variant={"tolerance": 1e-3})
+    for bad, message in [({"choose_for_repeats": 1}, "choose_for_repeats is true or false; got 1"),
+                         ({"gamma": True}, "gamma is a number; got True")]:
+        with pytest.raises(ValueError, match=message):
+            experiment(dataset, 2, variant=bad)

@@ -551,7 +551,7 @@ class MDPConfig:
     repeats_then_grasp: bool = False
     """With ``choose_for_repeats``: the repeating client grasps where its push failed once repeating is worth
     less, as a robot whose push budget runs out does (docs/MODEL.md (12.17)), instead of repeating for ever.
-    Opt-in: +0.0034 +/- 0.0061 V_s over Q0's choice on held-out seed 13, short of the two standard errors its
+    Q_G only ranks the stored push; the grasp after a failure is not served.  Opt-in: +0.0033 +/- 0.0061 V_s over Q0's choice on held-out seed 13, short of the two standard errors its
     rule asked (``reports/repeat_grasp_rule_s47.md``)."""
 
     @property
@@ -576,6 +576,10 @@ class MDPConfig:
         if self.choose_for_repeats and not self.retry_failed:
             raise ValueError("mdp.choose_for_repeats chooses for a client that pushes again after a failure and "
                              "mdp.retry_failed = false for one that grasps (MODEL.md (12.9)): set one of them")
+        if self.choose_for_repeats and not self.plans_with_failures:
+            # (12.16) believes a repeat as (12.13) believes any push after a failure, and moves (12.13)'s choice.
+            raise ValueError("mdp.choose_for_repeats ranks by (12.13)'s belief (MODEL.md (12.16)): it needs "
+                             "mdp.believe_failures = true and mdp.after_failure_power != 1")
 
 
 @dataclass(frozen=True)

@@ -593,7 +593,7 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
                workers: int | None = 1, world: Config | None = None, progress: bool = False,
                exclusion: Exclusion = Exclusion(), landing_prior: float | None = None,
-               variant: dict[str, float] | None = None) -> tuple[dict, list[Push]]:
+               variant: dict[str, float | bool] | None = None) -> tuple[dict, list[Push]]:
     """Play the ``COMPARED`` policies (and the ``PRIOR_POLICIES`` with a landing prior, the
     ``VARIANT_POLICIES`` under another MDP); the report
     (JSON-ready) and every push played.
@@ -617,7 +617,10 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     for name, value in (variant or {}).items():
         if name not in VARIANT_FIELDS:
             raise ValueError(f"a variant changes {' or '.join(VARIANT_FIELDS)}, not {name}")
-        if isinstance(value, bool):
+        switch = isinstance(getattr(MDPConfig(), name), bool)  # a switch takes true or false, nothing else
+        if switch != isinstance(value, bool):
+            raise ValueError(f"{name} is {'true or false' if switch else 'a number'}; got {value!r}")
+        if switch:
             continue
         accepted = field_range(MDPConfig, name)
         if not accepted.contains(value):
