@@ -551,8 +551,9 @@ class MDPConfig:
     repeats_then_grasp: bool = False
     """With ``choose_for_repeats``: the repeating client grasps where its push failed once repeating is worth
     less, as a robot whose push budget runs out does (docs/MODEL.md (12.17)), instead of repeating for ever.
-    Q_G only ranks the stored push; the grasp after a failure is not served.  Opt-in: +0.0033 +/- 0.0061 V_s over Q0's choice on held-out seed 13, short of the two standard errors its
-    rule asked (``reports/repeat_grasp_rule_s47.md``)."""
+    Q_G only ranks the stored push; the grasp after a failure is not served.  Opt-in: +0.0033 +/- 0.0061 V_s
+    over Q0's choice on held-out seed 13, short of the two standard errors its rule asked
+    (``reports/repeat_grasp_rule_s47.md``)."""
 
     @property
     def plans_with_failures(self) -> bool:

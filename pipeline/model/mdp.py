@@ -311,6 +311,8 @@ def repeat_value_iteration(
 
         Q_G(x, u) = S(x, u) + (1 - p) max(V_s(x), gamma p^(k-1) S(x, u) / (1 - gamma + gamma p^k))
 
+    (``pose_values`` ranks the stored push by either; the grasp after a failure is not stored or served.)
+
     next_pose, v_s, choosable : as ``value_iteration``;  gamma : discount in [0, 1);  power : k >= 1
     returns : V_R (P,) float; Q_R (or Q_G) list of (A_x,) float, NaN where the row is NaN
     """
