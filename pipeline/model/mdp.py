@@ -199,6 +199,26 @@ class _BeliefRows:
         np.maximum.at(out, self.owner[self.planned], values[self.planned])
         return out
 
+    def failed_loop(self, gamma: float) -> np.ndarray:
+        """(N,) float, what pushing a row again and again from its failed state is worth per unit of
+        S, its loop summed: gamma p^(k-1) / (1 - gamma + gamma p^k); 0 for a push that never topples
+        (0 / 0 when gamma = 1)."""
+        loop = 1.0 - gamma + gamma * self.failed_topple
+        return np.divide(gamma * self.failed_ratio, loop, out=np.zeros_like(loop), where=loop > 0)
+
+
+def _sweep(step, v_s: np.ndarray, tolerance: float, max_iterations: int) -> np.ndarray:
+    """Iterate ``value = step(value)`` from V_s until no value moves by more than ``tolerance``
+    (at most ``max_iterations`` sweeps); the last value, (P,) float."""
+    value = v_s.copy()
+    for _ in range(max_iterations):
+        update = step(value)
+        change = float(np.max(np.abs(update - value))) if len(value) else 0.0
+        value = update
+        if change <= tolerance:
+            break
+    return value
+
 
 def _choosable_rows(choosable: list, next_pose: list[np.ndarray], ok: np.ndarray) -> np.ndarray:
     """Which of the stacked ok rows (``_stack``) the plan may choose.
@@ -261,22 +281,18 @@ def belief_value_iteration(
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
     rows = _belief_rows(next_pose, n_poses, power, choosable, "belief_value_iteration")
-    # What a push from the failed state is worth per unit of S, its loop summed; 0 for a push that
-    # never topples (0 / 0 when gamma = 1).
-    loop = 1.0 - gamma + gamma * rows.failed_topple
-    failed_loop = np.divide(gamma * rows.failed_ratio, loop, out=np.zeros_like(loop), where=loop > 0)
+    failed_loop = rows.failed_loop(gamma)
 
-    value = v_s.copy()
-    for _ in range(max_iterations):
+    def failed_values(s: np.ndarray) -> np.ndarray:
+        return np.maximum(v_s, rows.best(failed_loop * s, n_poses))
+
+    def step(value: np.ndarray) -> np.ndarray:
         s = rows.leave @ value
-        failed_value = np.maximum(v_s, rows.best(failed_loop * s, n_poses))
-        update = np.maximum(v_s, gamma * rows.best(s + rows.stay * failed_value[rows.owner], n_poses))
-        change = float(np.max(np.abs(update - value))) if n_poses else 0.0
-        value = update
-        if change <= tolerance:
-            break
+        return np.maximum(v_s, gamma * rows.best(s + rows.stay * failed_values(s)[rows.owner], n_poses))
+
+    value = _sweep(step, v_s, tolerance, max_iterations)
     s = rows.leave @ value
-    failed_value = np.maximum(v_s, rows.best(failed_loop * s, n_poses))
+    failed_value = failed_values(s)
     q0, q1 = np.full(len(rows.ok), np.nan), np.full(len(rows.ok), np.nan)
     q0[rows.ok] = s + rows.stay * failed_value[rows.owner]
     q1[rows.ok] = rows.failed_ratio * s + (1.0 - rows.failed_topple) * failed_value[rows.owner]
@@ -319,8 +335,7 @@ def repeat_value_iteration(
     v_s = np.asarray(v_s, dtype=float)
     n_poses = len(v_s)
     rows = _belief_rows(next_pose, n_poses, power, choosable, "repeat_value_iteration")
-    loop = 1.0 - gamma + gamma * rows.failed_topple
-    failed_loop = np.divide(gamma * rows.failed_ratio, loop, out=np.zeros_like(loop), where=loop > 0)
+    failed_loop = rows.failed_loop(gamma)
     grasp = v_s[rows.owner]
 
     def push_values(s: np.ndarray) -> np.ndarray:
@@ -329,13 +344,8 @@ def repeat_value_iteration(
             return s + rows.stay * np.maximum(grasp, failed_loop * s)
         return s * (1.0 + rows.stay * failed_loop)
 
-    value = v_s.copy()
-    for _ in range(max_iterations):
-        update = np.maximum(v_s, gamma * rows.best(push_values(rows.leave @ value), n_poses))
-        change = float(np.max(np.abs(update - value))) if n_poses else 0.0
-        value = update
-        if change <= tolerance:
-            break
+    value = _sweep(lambda value: np.maximum(v_s, gamma * rows.best(push_values(rows.leave @ value), n_poses)),
+                   v_s, tolerance, max_iterations)
     q = np.full(len(rows.ok), np.nan)
     q[rows.ok] = push_values(rows.leave @ value)
     return value, _split(q, next_pose)
