@@ -531,6 +531,17 @@ def stationary_map_value(next_pose, v_s, acts, gamma, power, grasps_after_failur
     return fresh
 
 
+def every_map_value(next_pose, v_s, power, options, grasps=False):
+    """(map, the poses whose failed state grasps, exact value) of every pose -> push map over ``options``
+    (per pose, NO_OP and the pushes it may take), and with ``grasps`` every repeat-or-grasp choice of
+    its pushing poses too (``stationary_map_value``)."""
+    for acts in itertools.product(*options):
+        pushing = [x for x, a in enumerate(acts) if a != NO_OP]
+        for grasping in itertools.product((False, True), repeat=len(pushing) if grasps else 0):
+            chosen = {x for x, g in zip(pushing, grasping) if g}
+            yield acts, chosen, stationary_map_value(next_pose, v_s, acts, GAMMA, power, chosen)
+
+
 def test_for_a_client_that_repeats_the_long_shot_the_likely_push_is_worth_more():
     # The client that sends only its pose pushes the long shot again after it fails, where it topples
     # with 0.1^2.1: Q_R = 0.1 (1 + 0.9 g 0.1^1.1 / (1 - g + g 0.1^2.1)) = 0.218, against the likely
@@ -566,8 +577,7 @@ def test_repeat_value_iteration_is_the_best_pose_to_push_map_for_a_client_that_r
         options = [[NO_OP] + [u for u in range(len(t)) if choosable[x][u] and not np.isnan(t[u]).any()]
                    for x, t in enumerate(next_pose)]
         best = np.array(v_s, dtype=float)
-        for acts in itertools.product(*options):
-            value = stationary_map_value(next_pose, v_s, acts, GAMMA, power)
+        for _, _, value in every_map_value(next_pose, v_s, power, options):
             assert (value <= v_r + 1e-9).all(), "no map beats V_R for this client"
             best = np.maximum(best, value)
         np.testing.assert_allclose(v_r, best, atol=1e-9)
@@ -592,13 +602,10 @@ def test_a_repeating_client_that_then_grasps_is_the_best_map_of_push_and_failed_
         v_g, q_g = repeat_value_iteration(next_pose, v_s, GAMMA, power, 1e-13, 10_000, then_grasp=True)
         options = [[NO_OP] + [u for u in range(len(t)) if not np.isnan(t[u]).any()] for t in next_pose]
         best, repeating = np.array(v_s, dtype=float), np.array(v_s, dtype=float)
-        for acts in itertools.product(*options):
-            pushing = [x for x in range(n_poses) if acts[x] != NO_OP]
-            for grasping in itertools.product((False, True), repeat=len(pushing)):
-                value = stationary_map_value(next_pose, v_s, acts, GAMMA, power, {x for x, g in zip(pushing, grasping) if g})
-                best = np.maximum(best, value)
-                if not any(grasping):
-                    repeating = np.maximum(repeating, value)
+        for _, grasping, value in every_map_value(next_pose, v_s, power, options, grasps=True):
+            best = np.maximum(best, value)
+            if not grasping:
+                repeating = np.maximum(repeating, value)
         np.testing.assert_allclose(v_g, best, atol=1e-9)
         cases_where_the_grasp_after_a_failure_pays += int((best > repeating + 1e-9).any())
         v_r, _ = repeat_value_iteration(next_pose, v_s, GAMMA, power, 1e-13, 10_000)
