@@ -939,6 +939,46 @@ def test_the_choice_by_neighbourhood_needs_the_pushes():
         pose_values(tables, v_s, [-1, -1], MDPConfig())
 
 
+def test_a_pose_too_sparse_for_any_neighbourhood_takes_the_argmax():
+    # Three pushes 5 cm apart: none has another within 20 mm, so none has the 5 neighbours (12.15) asks
+    # for. The mean cannot temper them, and grasping at V_s 0.1 would throw away a push worth far more:
+    # the pose takes the thesis's argmax, as with choice_radius 0.
+    v_s = np.array([0.1, 0.9])
+    tables = [np.array([[0.5, 0.5], [0.0, 1.0], [0.7, 0.3]]), np.array([[0.0, 1.0]])]
+    points = np.array([[0.0, 0.05 * i, 0.0] for i in range(3)])
+    pushes = [(points, np.tile([1.0, 0.0, 0.0], (3, 1))), (np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]]))]
+    argmax = pose_values(tables, v_s, [-1, -1], MDPConfig(believe_failures=False, choice_radius=0.0))
+    chosen = pose_values(tables, v_s, [-1, -1], MDPConfig(believe_failures=False), pushes=pushes)
+    assert argmax[0].policies["value_iteration"].action == 1
+    assert chosen[0].policies["value_iteration"] == argmax[0].policies["value_iteration"]
+    # Among the choosable pushes only: with push 1 not choosable, the argmax of the others, push 0 (it
+    # topples more often than push 2 onto the same pose, so with retries it reaches it sooner).
+    mask = [np.array([True, False, True]), np.ones(1, dtype=bool)]
+    masked = pose_values(tables, v_s, [-1, -1], MDPConfig(believe_failures=False), mask, pushes)[0].policies["value_iteration"]
+    assert masked.action == 0
+    assert masked == pose_values(tables, v_s, [-1, -1], MDPConfig(believe_failures=False, choice_radius=0.0), mask)[0].policies[
+        "value_iteration"]
+
+
+def test_the_argmax_is_taken_only_where_no_push_has_a_neighbourhood():
+    from pipeline.model.mdp import neighbourhood_choice
+
+    # Pushes 0-4 share a contact (a neighbourhood of five, each Q_T 0.2); push 5, 5 cm away, is alone
+    # with Q_T 0.9. The neighbourhood's mean is taken, and 0.95 x 0.2 does not beat V_s 0.3: grasp,
+    # not the lone push. Without pushes 0-4 choosable, none has a neighbourhood and push 5 is pushed.
+    points = np.array([[0.0, 0.001 * i, 0.0] for i in range(5)] + [[0.0, 0.05, 0.0]])
+    directions = np.tile([1.0, 0.0, 0.0], (6, 1))
+    q = np.array([0.2] * 5 + [0.9])
+    v_s = np.array([0.3, 0.9])
+    config = MDPConfig()
+    assert neighbourhood_choice(0, v_s, q, points, directions, np.ones(6, dtype=bool), config).action == NO_OP
+    lone = np.array([False] * 5 + [True])
+    choice = neighbourhood_choice(0, v_s, q, points, directions, lone, config)
+    assert choice.action == 5 and choice.value == pytest.approx(0.9)
+    # The argmax still grasps unless gamma times its Q_T beats V_s.
+    assert neighbourhood_choice(0, np.array([0.86, 0.9]), q, points, directions, lone, config).action == NO_OP
+
+
 def _fan(angles):
     """Pushes at one contact, directions in the table's plane at ``angles`` (rad) about z."""
     return np.zeros((len(angles), 3)), np.array([[np.cos(a), np.sin(a), 0.0] for a in angles])

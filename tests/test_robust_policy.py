@@ -87,19 +87,21 @@ def test_isolated_spike_loses_to_a_robust_plateau():
     smoothing = Smoothing(radius=0.0065, max_angle=0.2, min_neighbours=3)
     smoothed, count = neighbour_mean(points, directions, q, smoothing)
     assert int(np.nanargmax(q)) == 2  # the raw argmax is the spike
-    assert smoothed_choice(0.2, smoothed, count, gamma=0.95, min_neighbours=3) in range(5, 10)  # the plateau
-    assert smoothed_choice(0.2, smoothed, count, gamma=0.95, min_neighbours=3) == int(np.nanargmax(smoothed))
+    assert smoothed_choice(0.2, smoothed, count, gamma=0.95, min_neighbours=3, q=q) in range(5, 10)  # the plateau
+    assert smoothed_choice(0.2, smoothed, count, gamma=0.95, min_neighbours=3, q=q) == int(np.nanargmax(smoothed))
 
 
 def test_no_push_unless_the_smoothed_value_beats_grasping_here():
     points, directions = line_of_pushes(3, 0.002)
     q = np.array([0.5, 0.6, 0.5])
     smoothed, count = neighbour_mean(points, directions, q, Smoothing(radius=0.01))
-    assert smoothed_choice(0.9, smoothed, count, gamma=0.95, min_neighbours=1) == NO_OP
-    assert smoothed_choice(0.3, smoothed, count, gamma=0.95, min_neighbours=1) != NO_OP
-    # Too few neighbours: nothing is eligible.
-    assert smoothed_choice(0.3, smoothed, count, gamma=0.95, min_neighbours=4) == NO_OP
-    assert smoothed_choice(0.3, np.full(3, np.nan), np.zeros(3, int), gamma=0.95, min_neighbours=1) == NO_OP
+    assert smoothed_choice(0.9, smoothed, count, gamma=0.95, min_neighbours=1, q=q) == NO_OP
+    assert smoothed_choice(0.3, smoothed, count, gamma=0.95, min_neighbours=1, q=q) != NO_OP
+    # Too few neighbours for any: the pose takes the argmax of its own Q, as the stored push does
+    # (``pipeline.model.mdp.choice_by_means``), and still grasps unless it beats V_s.
+    assert smoothed_choice(0.3, smoothed, count, gamma=0.95, min_neighbours=4, q=q) == 1
+    assert smoothed_choice(0.58, smoothed, count, gamma=0.95, min_neighbours=4, q=q) == NO_OP
+    assert smoothed_choice(0.3, np.full(3, np.nan), np.zeros(3, int), gamma=0.95, min_neighbours=1, q=q) == NO_OP
 
 
 def test_robust_actions_are_deterministic_and_per_pose():

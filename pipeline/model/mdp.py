@@ -413,7 +413,8 @@ def neighbourhood_choice(pose: int, v_s: np.ndarray, q: np.ndarray, points: np.n
     """Value iteration's push chosen by its neighbourhood (docs/MODEL.md (12.15)):
     the choosable push of highest mean Q_T over the ok pushes within ``config.choice_radius`` of its
     contact and ``config.choice_angle`` of its direction (itself included), among those with at least
-    ``config.choice_neighbours`` of them; no-op unless gamma times that mean beats V_s(x).  An argmax
+    ``config.choice_neighbours`` of them (``choice_by_means``: the argmax of Q_T where no push has
+    them); no-op unless gamma times that mean beats V_s(x).  An argmax
     over ~1,000 Monte Carlo estimates picks the most over-stated one; the mean of ~30 neighbours does
     not (docs/VALIDATION.md, "Tuning the planners out of fold").
 
@@ -429,9 +430,26 @@ def neighbourhood_choice(pose: int, v_s: np.ndarray, q: np.ndarray, points: np.n
     mean, count = np.full(len(q), np.nan), np.zeros(len(q), dtype=np.int64)
     mean[ok], count[ok] = neighbourhood.neighbour_mean(np.asarray(points, dtype=float)[ok], np.asarray(directions, dtype=float)[ok],
                                                        q[ok], config.choice_radius, config.choice_angle)
-    eligible = np.asarray(choosable, dtype=bool) & (count >= config.choice_neighbours)
-    action = retry.best_untried(mean, eligible, stay, IMPROVEMENT, scale=config.gamma)
+    action = choice_by_means(stay, mean, count, q, choosable, config.gamma, config.choice_neighbours)
     return PolicyChoice(NO_OP, stay) if action == NO_OP else PolicyChoice(action, float(q[action]))
+
+
+def choice_by_means(stay: float, mean: np.ndarray, count: np.ndarray, q: np.ndarray, choosable: np.ndarray, gamma: float,
+                    neighbours: int) -> int:
+    """(12.15) from the neighbourhood means: the choosable push of highest ``mean`` among those with
+    at least ``neighbours`` ok pushes in their neighbourhood, pushed iff gamma times that mean beats
+    ``stay``.  A pose where no choosable push has that many (pushes sampled too thinly for the mean,
+    as in a build with a hundred contacts) takes the thesis's argmax of ``q`` instead: no neighbourhood
+    can temper the estimates there, and grasping where a push is worth far more would throw V_T away.
+
+    stay : V_s of the pose;  mean, count, q : (A,) float, float, int (NaN unless ok);  choosable : (A,) bool
+    returns : action index, or NO_OP
+    """
+    choosable = np.asarray(choosable, dtype=bool)
+    eligible = choosable & (np.asarray(count) >= neighbours)
+    if not eligible.any():
+        return retry.best_untried(np.asarray(q, dtype=float), choosable, stay, IMPROVEMENT, scale=gamma)
+    return retry.best_untried(mean, eligible, stay, IMPROVEMENT, scale=gamma)
 
 
 def pose_values(

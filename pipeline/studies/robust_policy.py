@@ -57,7 +57,7 @@ from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
 from ..model.config import Config, MDPConfig, field_range
-from ..model.mdp import IMPROVEMENT, belief_value_iteration, pose_values, value_iteration_policy
+from ..model.mdp import IMPROVEMENT, belief_value_iteration, choice_by_means, pose_values, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, mean_se, object_plans, open_trials, world_config
 from .policy_experiment import useful_starts
@@ -157,13 +157,17 @@ def neighbour_mean(points: np.ndarray, directions: np.ndarray, values: np.ndarra
     return neighbourhood.neighbour_mean(points, directions, values, smoothing.radius, smoothing.max_angle)
 
 
-def smoothed_choice(v_s_pose: float, smoothed_q: np.ndarray, count: np.ndarray, gamma: float, min_neighbours: int) -> int:
-    """argmax of the smoothed Q among candidates with enough neighbours; NO_OP unless it beats V_s.
+def smoothed_choice(v_s_pose: float, smoothed_q: np.ndarray, count: np.ndarray, gamma: float, min_neighbours: int,
+                    q: np.ndarray) -> int:
+    """argmax of the smoothed Q among candidates with enough neighbours, or of ``q`` where none has
+    them; NO_OP unless it beats V_s (``pipeline.model.mdp.choice_by_means``, the rule of the stored push).
 
-    v_s_pose : V_s of this pose;  smoothed_q, count : (A,) from ``neighbour_mean``
-    returns : action index, or NO_OP (the rule of ``pipeline.model.mdp.neighbourhood_choice``)
+    v_s_pose : V_s of this pose;  smoothed_q, count : (A,) from ``neighbour_mean``, NaN where the
+    candidate may not be chosen;  q : (A,) float, the candidates' own Q_T
+    returns : action index, or NO_OP
     """
-    return retry.best_untried(smoothed_q, np.asarray(count) >= min_neighbours, v_s_pose, IMPROVEMENT, scale=gamma)
+    smoothed_q = np.asarray(smoothed_q, dtype=float)
+    return choice_by_means(v_s_pose, smoothed_q, count, q, np.isfinite(smoothed_q), gamma, min_neighbours)
 
 
 def untried_choice(pose: int, v_s: np.ndarray, q: np.ndarray, failed: np.ndarray, gamma: float) -> int:
@@ -246,10 +250,12 @@ def read_candidates(dataset: Dataset, object_id: str) -> list[PoseCandidates]:
 
 @dataclass
 class PoseScores:
-    """Per-candidate scores of one pose.  smoothed_q, smoothed_p : (A,) float;  count : (A,) int;
+    """Per-candidate scores of one pose.  q : (A,) float, the candidates' own Q_T, which a pose too
+    sparse for any neighbourhood chooses by;  smoothed_q, smoothed_p : (A,) float;  count : (A,) int;
     smoothed_rows : (A, P) float, each candidate's mean next-pose row over its neighbours (NaN
     with fewer than ``min_neighbours``), when the rows were given."""
 
+    q: np.ndarray
     smoothed_q: np.ndarray
     smoothed_p: np.ndarray
     count: np.ndarray
@@ -267,7 +273,7 @@ def pose_scores(candidates: PoseCandidates, smoothing: Smoothing, rows: np.ndarr
     if rows is not None:
         smoothed_rows = means[:, 2:]
         smoothed_rows[count < smoothing.min_neighbours] = np.nan
-    return PoseScores(means[:, 0], means[:, 1], count, smoothed_rows)
+    return PoseScores(candidates.q, means[:, 0], means[:, 1], count, smoothed_rows)
 
 
 def robust_actions(v_s: np.ndarray, scores: list[PoseScores], gamma: float, smoothing: Smoothing,
@@ -275,7 +281,7 @@ def robust_actions(v_s: np.ndarray, scores: list[PoseScores], gamma: float, smoo
     """(P,) int, ``smoothed_vi``'s action per pose (NO_OP: no push), among each pose's
     ``choosable`` pushes ((A_x,) bool, ``schema.horizon.choosable_pushes``; default all)."""
     return np.array([smoothed_choice(float(v_s[x]), s.smoothed_q if choosable is None else np.where(choosable[x], s.smoothed_q, np.nan),
-                                     s.count, gamma, smoothing.min_neighbours)
+                                     s.count, gamma, smoothing.min_neighbours, s.q)
                      for x, s in enumerate(scores)], dtype=np.int64)
 
 
@@ -461,7 +467,7 @@ def variant_plan(v_s: np.ndarray, rows: list[np.ndarray], candidates: list[PoseC
     smoothed = []
     for c, v, s in zip(candidates, values, scores):
         mean, count = neighbour_mean(c.points, c.directions, v.q, smoothing)
-        smoothed.append(PoseScores(mean, s.smoothed_p, count))
+        smoothed.append(PoseScores(v.q, mean, s.smoothed_p, count))
     actions[VARIANT_ROBUST_POLICY] = robust_actions(v_s, smoothed, mdp.gamma, smoothing, choosable)
     actions[VARIANT_BELIEF_POLICY], q1 = belief_tables(v_s, rows, mdp, choosable)
     return actions, {VARIANT_BELIEF_POLICY: q1}, [v.q for v in values]
