@@ -1,6 +1,9 @@
 """Reading a toppledb dataset with pandas, polars, duckdb and pyarrow, and one plot.
 
-    .venv/bin/python docs/analyze_dataset.py [DATASET_DIR] [--plot docs/dataset_overview.png]
+    .venv/bin/python docs/analyze_dataset.py [DATASET_DIR] [--plot FILE.png]
+
+The plot goes to dataset_overview.png in the working directory unless --plot names another file; the
+README's figure is this script on the default dataset with --plot docs/dataset_overview.png.
 
 Every query here is also in docs/DATASET.md ("Reading the tables").
 """
@@ -24,7 +27,8 @@ import pyarrow.dataset as ds  # noqa: E402
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dataset", nargs="?", default="data/dataset", type=Path)
-    parser.add_argument("--plot", type=Path, default=Path("docs/dataset_overview.png"))
+    # Not docs/ by default: a run on a small dataset would overwrite the README's figure.
+    parser.add_argument("--plot", type=Path, default=Path("dataset_overview.png"))
     args = parser.parse_args()
     root = args.dataset
 
@@ -49,15 +53,16 @@ def main() -> None:
     con = duckdb.connect()
     expected_vs = con.execute(
         f"""
-        select t.object_id, t.pose, t.action, sum(t.probability * p.v_s) as expected_v_s
+        select t.object_id, t.pose, t.action, s.v_s as v_s_now, sum(t.probability * p.v_s) as expected_v_s
         from read_parquet('{root}/transitions/*/*.parquet', hive_partitioning = true) t
         join '{root}/poses.parquet' p on p.object_id = t.object_id and p.pose = t.next_pose
-        group by all
-        order by expected_v_s desc
+        join '{root}/poses.parquet' s on s.object_id = t.object_id and s.pose = t.pose
+        group by t.object_id, t.pose, t.action, s.v_s
+        order by expected_v_s - v_s_now desc
         limit 5
         """
     ).df()
-    print("duckdb: the five pushes with the best expected suction quality afterwards")
+    print("duckdb: the five pushes that raise the expected suction quality most over grasping now")
     print(expected_vs)
 
     # pyarrow: filters are pushed down to the partition directories.

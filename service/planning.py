@@ -229,7 +229,7 @@ def _decision(policy, pushes_left, action, v_s, grasp, p_topple, p_near, after, 
               p_given=None) -> tuple[str, str]:
     """(decision, one-sentence reason) for the response."""
     if pushes_left is not None:
-        policy = f"{policy} for {pushes_left} push{'es' if pushes_left > 1 else ''}"
+        policy = f"{policy} ({pushes_left} push{'es' if pushes_left > 1 else ''} left)"
     if failed:
         policy = (f"{policy}, after {failed} failed push{'es' if failed > 1 else ''} "
                   f"({ruled} candidate{'s' if ruled != 1 else ''} ruled out),")

@@ -42,11 +42,11 @@ def test_a_push_s_reason_names_the_policy_its_probabilities_and_values():
 
 
 @pytest.mark.parametrize("pushes_left, failed, ruled, prefix", [
-    (1, 0, 0, "value_iteration for 1 push pushes"),
-    (2, 0, 0, "value_iteration for 2 pushes pushes"),
+    (1, 0, 0, "value_iteration (1 push left) pushes"),
+    (2, 0, 0, "value_iteration (2 pushes left) pushes"),
     (None, 1, 1, "value_iteration, after 1 failed push (1 candidate ruled out), pushes"),
     (None, 2, 0, "value_iteration, after 2 failed pushes (0 candidates ruled out), pushes"),
-    (3, 1, 2, "value_iteration for 3 pushes, after 1 failed push (2 candidates ruled out), pushes"),
+    (3, 1, 2, "value_iteration (3 pushes left), after 1 failed push (2 candidates ruled out), pushes"),
 ])
 def test_a_reason_counts_the_budget_and_the_failures_in_good_english(pushes_left, failed, ruled, prefix):
     decision, text = reason(pushes_left=pushes_left, failed=failed, ruled=ruled)
@@ -167,7 +167,7 @@ def test_a_plan_s_reason_is_made_of_its_own_answer(dataset, tables):
         answer = plan(store, request(tables, object_id, pose, pushes_left=2), Settings())
         if answer["action"] is not None:
             checked += 1
-            assert answer["reason"].startswith(f"value_iteration for 2 pushes pushes: P(topple) {answer['p_topple']:.3g} ")
+            assert answer["reason"].startswith(f"value_iteration (2 pushes left) pushes: P(topple) {answer['p_topple']:.3g} ")
             assert f"expected V_s after the push {answer['expected_v_s_after']:.3g} vs" in answer["reason"]
     assert checked > 0
 
