@@ -35,7 +35,8 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
         # validation then refuses with a message naming the field (orjson would not say where).
         data = json.loads(body)
     except (ValueError, UnicodeDecodeError) as err:
-        raise BatchInvalid([{"type": "json_invalid", "loc": ("body", getattr(err, "pos", 0)), "msg": "JSON decode error"}]) from None
+        raise BatchInvalid([{"type": "json_invalid", "loc": ("body", getattr(err, "pos", 0)), "msg": "JSON decode error",
+                            "ctx": {"error": getattr(err, "msg", "")}}]) from None
     except RecursionError:  # thousands of nested brackets: malformed input, not a server error
         raise BatchInvalid([{"type": "json_invalid", "loc": ("body",), "msg": "JSON decode error (nested too deeply)"}]) from None
     try:

@@ -114,13 +114,27 @@ def validation_body(errors: list[dict]) -> dict:
     # FastAPI's default body is a list under "detail"; ours keeps "detail" a message
     # and drops "input"/"ctx", which may echo huge bodies or hold non-JSON objects.
     errors = [
-        {"loc": list(e.get("loc", ())), "msg": str(e.get("msg", "")).removeprefix("Value error, "), "type": str(e.get("type", ""))}
+        {"loc": list(e.get("loc", ())), "msg": _message(e), "type": str(e.get("type", ""))}
         for e in errors
     ]
     detail = "; ".join(f"{_location(e['loc'])}: {e['msg']}" for e in errors[:10])
     if len(errors) > 10:
         detail += f"; ... {len(errors) - 10} more"
     return {"detail": detail or "malformed request", "errors": errors}
+
+
+def _message(error: dict) -> str:
+    """An error's message; a JSON decode error says why and where (the parser's words are in ``ctx``,
+    which the body leaves out), so a client can find the broken character."""
+    message = str(error.get("msg", "")).removeprefix("Value error, ")
+    if error.get("type") == "json_invalid" and message == "JSON decode error":
+        reason = (error.get("ctx") or {}).get("error")
+        loc = tuple(error.get("loc", ()))
+        if isinstance(reason, str) and reason:
+            message += f": {reason}"
+        if len(loc) > 1 and isinstance(loc[1], int):
+            message += f" at character {loc[1]}"
+    return message
 
 
 def _location(loc) -> str:

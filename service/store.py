@@ -310,7 +310,7 @@ class Store:
                 raise NotFound(
                     f"object '{object_id}' is not in the dataset: its build failed ({self.failures[object_id]})"
                 ) from None
-            raise NotFound(f"unknown object '{object_id}' ({len(self.objects)} objects; GET /objects lists them)") from None
+            raise NotFound(f"unknown object {_quoted(object_id)} ({len(self.objects)} objects; GET /objects lists them)") from None
 
     @classmethod
     def load(cls, root: str | Path) -> Store:
@@ -470,3 +470,14 @@ class LiveStore:
             log.warning("now serving %s manifest %s (%d objects, loaded in %.1f s)", fresh.root,
                         fresh.manifest_sha256[:12], fresh.counts["objects"], fresh.load_seconds)
             return True
+
+
+ECHOED_ID = 64
+"""The most characters of an unknown id an error repeats: a request may carry kilobytes of one."""
+
+
+def _quoted(object_id: str) -> str:
+    """``object_id`` in quotes for an error message, cut to its first ``ECHOED_ID`` characters."""
+    if len(object_id) <= ECHOED_ID:
+        return f"'{object_id}'"
+    return f"'{object_id[:ECHOED_ID]}...' ({len(object_id)} characters)"

@@ -337,6 +337,23 @@ def test_malformed_plan_requests_are_422_with_a_message(client, body, message):
     assert_malformed(client, "/plan", body, message)
 
 
+def test_an_unknown_id_is_repeated_only_in_part(client):
+    # A 60 kB id costs the service a 404, not a 60 kB echo.
+    long_id = "x" * 60_000
+    response = client.post("/plan", json={"object_id": long_id, "pose": np.eye(4).tolist()})
+    detail = response.json()["detail"]
+    assert response.status_code == 404 and len(detail) < 200, detail
+    assert f"unknown object '{'x' * 64}...' (60000 characters)" in detail
+
+
+@pytest.mark.parametrize("path", ["/plan", "/batch/plan", "/batch/transitions"])
+def test_a_body_that_is_not_json_says_why_and_where(client, path):
+    # The parser's reason and the character it stopped at: where a client's serialiser went wrong.
+    body = '{"object_id": "random_001", "pose": [[1, 0, 0, 0],, [0, 1, 0, 0]]}'
+    where = body.index(",,") + 1
+    assert_malformed(client, path, body, f"JSON decode error: Expecting value at character {where}")
+
+
 @pytest.mark.parametrize(
     "url,message",
     [
