@@ -473,11 +473,12 @@ def test_broken_mesh_is_a_failure_and_strict_makes_it_fatal(tmp_path, capsys):
 def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_path, capsys):
     copy = tmp_path / "dataset"
     shutil.copytree(reference, copy)
-    assert build(corpus, copy, "--trials", "6") == 1
+    # Not a failed build but a path the user must change (--force or another --out): exit 2.
+    assert build(corpus, copy, "--trials", "6") == 2
     err = capsys.readouterr().err
     assert "3 shard(s) built from other inputs (config.topple.n_trials: 5 -> 6). To replace it, add --force" in err
     assert f"choose another --out, e.g. --out {copy}-2" in err and err.count("\n") == 1
-    assert build(corpus, copy, "--limit", "2") == 1
+    assert build(corpus, copy, "--limit", "2") == 2
     assert f"1 shard(s) of objects not in this corpus (e.g. {OBJECTS[2]})" in capsys.readouterr().err
     assert verify_dataset(copy) == [], "a refused run changes nothing"
 
@@ -532,6 +533,11 @@ def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_
     assert verify_dataset(copy) == []
     manifest = read_manifest(copy)
     assert list(manifest.shards) == [*OBJECTS, "extra"] and manifest.counts.objects == 4
+    capsys.readouterr()
+    assert build(write_corpus(tmp_path, OBJECTS), copy) == 2, "the corpus it was built from no longer describes it"
+    err = capsys.readouterr().err
+    assert "1 shard(s) of objects not in this corpus (e.g. extra). To replace it, add --force" in err
+    assert err.startswith("error: ") and err.count("\n") == 1
     assert {k: v for k, v in snapshot(copy).items() if k.startswith(("actions", "transitions", "arrays", "_shards"))} == {
         k: v for k, v in before.items() if k.startswith(("actions", "transitions", "arrays", "_shards"))
     } | {k: v for k, v in snapshot(copy).items() if "extra" in k}, "the other shards are untouched"

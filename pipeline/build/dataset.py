@@ -59,7 +59,9 @@ class BuildError(RuntimeError):
 
 
 class OutputError(BuildError):
-    """The output directory cannot be created or written (a bad path, permissions)."""
+    """The output directory cannot be created or written (a bad path, permissions), or
+    holds shards this build must not mix with or delete (other inputs, other objects):
+    the user's path to change, exit status 2."""
 
 
 class StrictFailure(BuildError):
@@ -635,7 +637,7 @@ def _refuse_foreign_shards(out: Path, inputs: dict[str, dict]) -> None:
         what = f"{len(changed)} shard(s) built from other inputs ({'; '.join(differences[:3]) or 'not recorded'})"
     else:
         what = f"{len(outside)} shard(s) of objects not in this corpus (e.g. {outside[0]})"
-    raise BuildError(
+    raise OutputError(
         f"{out} holds {what}. To replace it, add --force (the old "
         f"dataset stays until the new one is complete); to keep it, choose another --out, e.g. --out {out}-2"
     )
