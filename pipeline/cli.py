@@ -335,8 +335,13 @@ def run_add(args: argparse.Namespace) -> int:
     mass = units.mass
     if units.density is not None:
         mass = mass_from_density(mesh, scale, units.density)
-        if mass is None:
-            raise UsageError(f"{mesh.name}: cannot compute a mass from the density: the mesh does not load")
+        if mass is None:  # the mesh does not load: say why, as add would
+            from .model.mesh import MeshError, load_mesh
+
+            try:
+                load_mesh(mesh, scale=scale, mass=1.0, name=object_id)
+            except MeshError as err:
+                raise UsageError(str(err)) from None
     if mass is None:
         try:
             mass = float(read_manifest(args.directory).parameters.model_dump()["mesh"]["default_mass"])
@@ -380,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
 
         return import_module(DELEGATED[argv[0]][0]).main(argv[1:]) or EXIT_OK
     from .build.corpus import CorpusError
-    from .build.dataset import BuildError, OutputError
+    from .build.dataset import BuildError, InputError, OutputError
     from .build.fanout import SchedulerError
 
     args = parser().parse_args(argv)
@@ -390,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with _terminate_as_interrupt():
             return commands[args.command](args)
-    except (UsageError, CorpusError, OutputError) as err:
+    except (UsageError, CorpusError, OutputError, InputError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except (BuildError, SchedulerError) as err:

@@ -116,6 +116,9 @@ def test_millimetre_meshes_fail_with_a_unit_hint_until_units_are_given(tmp_path,
     assert "error: every object failed (3)" in captured.err
     assert "2  too large for a tabletop (block, bracket); try --units mm" in captured.out
     assert "1  cannot read # (noise)" in captured.out
+    # A dataset's corpus can give units in a sidecar or a list's column too: its hint says so.
+    assert 'failed    block: too large for a tabletop' in captured.out
+    assert 'use --units mm (or units = "mm" in corpus.toml, or a scale column)' in captured.out
     assert not (tmp_path / "new").exists(), "a run where every object failed writes nothing, not even the directories"
 
     assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--units", "mm", "--mass", "0.2", *FAST]) == 0

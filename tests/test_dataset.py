@@ -443,19 +443,26 @@ def test_broken_mesh_is_a_failure_and_strict_makes_it_fatal(tmp_path, capsys):
     meshes.mkdir()
     (meshes / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nf 1 2 3\nf 1 3 4\n")
     (meshes / "garbage.obj").write_text("this is not a mesh\n")
+    (meshes / "photo.png").write_bytes(b"\x89PNG\r\n")
+    (meshes / "junk.ply").write_text("junk\n")
     corpus = write_corpus(
         tmp_path, OBJECTS[:1], "flat,,meshes/flat.obj,1,0.1\ngarbage,,meshes/garbage.obj,1,0.1\ngone,,meshes/gone.obj,1,0.1\n"
+        "photo,,meshes/photo.png,1,0.1\njunk,,meshes/junk.ply,1,0.1\n"
     )
     out = tmp_path / "dataset"
     assert build(corpus, out, "--workers", "2") == 0
     manifest = read_manifest(out)
-    assert manifest.counts.objects == 1 and manifest.counts.failed == 3
+    assert manifest.counts.objects == 1 and manifest.counts.failed == 5
     failures = {f.object_id: f for f in manifest.failures}
-    assert set(failures) == {"flat", "garbage", "gone"}
+    assert set(failures) == {"flat", "garbage", "gone", "photo", "junk"}
     assert failures["gone"].kind == "corpus" and "not found" in failures["gone"].reason
-    for object_id in ("flat", "garbage"):
+    for object_id in ("flat", "garbage", "photo", "junk"):
         assert failures[object_id].kind == "mesh", failures[object_id]
         assert failures[object_id].reason.startswith(f"{object_id}: ")
+    assert failures["photo"].reason == (
+        "photo: cannot read photo.png: '.png' is not a mesh format toppledb reads; convert it to OBJ, STL or PLY"
+    )
+    assert "not a valid PLY file" in failures["junk"].reason and "Not a ply file" not in failures["junk"].reason
     summary = capsys.readouterr().out
     assert "failed    flat:" in summary
     assert verify_dataset(out) == []
@@ -521,10 +528,24 @@ def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_
     assert "already has an object 'random_000'; choose another --id" in capsys.readouterr().err
     assert main(["add", str(copy), str(mesh), "--id", "Random_000"]) == 2, "the same files on macOS or Windows"
     assert "already has an object 'random_000'; choose another --id (ids that differ only in case" in capsys.readouterr().err
+    # A mesh toppledb cannot use is bad input (2), as in ``figures``, in toppledb's words, not trimesh's.
     (tmp_path / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nf 1 2 3\n")
-    assert main(["add", str(copy), str(tmp_path / "flat.obj"), "--no-progress"]) == 1
-    err = capsys.readouterr().err
-    assert "error: flat: zero volume" in err and "--strict" not in err, "add was given no --strict to blame"
+    (tmp_path / "photo.png").write_bytes(b"\x89PNG\r\n")
+    (tmp_path / "junk.ply").write_text("junk\n")
+    rejected = {
+        "flat.obj": "error: flat: zero volume",
+        "photo.png": "error: photo: cannot read photo.png: '.png' is not a mesh format toppledb reads; "
+                     "convert it to OBJ, STL or PLY",
+        "junk.ply": "error: junk: cannot read junk.ply: not a valid PLY file (text without vertices and faces); "
+                    "export it again as OBJ, STL or PLY",
+        # The hint names the flags add has, not a corpus sidecar or list column.
+        str(mesh): "too large for a tabletop: largest side",
+    }
+    for file, message in rejected.items():
+        assert main(["add", str(copy), str(tmp_path / file), "--no-progress"]) == 2, file
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
+        assert "--strict" not in err and "corpus.toml" not in err and "scale column" not in err, err
     assert_intact(copy, before)
 
     assert main(["add", str(copy), str(mesh), "--scale", "0.015", "--mass", "0.1", "--id", "extra", "--no-progress"]) == 0

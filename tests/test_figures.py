@@ -71,10 +71,24 @@ def test_the_figures_command_reads_millimetres_as_the_dataset_command_does(tmp_p
     box.apply_translation([0, 0, 50.0])
     box.export(part)
     assert figures.main([str(part), "--pose", "0", "--contacts", "20", "--trials", "2", "--out", str(tmp_path / "f")]) == 2
-    assert "--units mm" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.endswith("use --units mm\n"), "figures has no corpus.toml or scale column to suggest"
     assert figures.main([str(part), "--units", "mm", "--pose", "0", "--contacts", "20", "--trials", "2",
                          "--out", str(tmp_path / "f")]) == 0
     assert (tmp_path / "f" / "pushes_0.png").is_file() and (tmp_path / "f" / "object.glb").is_file()
     with pytest.raises(SystemExit) as refused:
         figures.main([str(part), "--units", "mm", "--scale", "0.001"])
     assert refused.value.code == 2
+
+
+def test_a_file_that_is_no_mesh_is_bad_input_in_toppledbs_words(tmp_path, capsys):
+    (tmp_path / "photo.png").write_bytes(b"\x89PNG\r\n")
+    (tmp_path / "junk.ply").write_text("junk\n")
+    assert figures.main([str(tmp_path / "photo.png"), "--out", str(tmp_path / "f")]) == 2
+    assert capsys.readouterr().err == (
+        "error: photo: cannot read photo.png: '.png' is not a mesh format toppledb reads; convert it to OBJ, STL or PLY\n"
+    )
+    assert figures.main([str(tmp_path / "junk.ply"), "--out", str(tmp_path / "f")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: junk: cannot read junk.ply: not a valid PLY file") and "Not a ply file" not in err
+    assert not (tmp_path / "f").exists()

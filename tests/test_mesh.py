@@ -226,3 +226,36 @@ def test_a_point_cloud_file_has_no_triangles(tmp_path):
         stem = file.split(".")[0]
         with pytest.raises(MeshError, match=rf"{stem}: cannot read {file}: a point cloud \({count} vertices, no faces\), not a surface"):
             load_mesh(tmp_path / file)
+
+
+@pytest.mark.parametrize("file, content, reason", [
+    ("photo.png", b"\x89PNG\r\n", "'.png' is not a mesh format toppledb reads; convert it to OBJ, STL or PLY"),
+    ("part.off", b"OFF\n3 1 0\n", "'.off' is not a mesh format toppledb reads; convert it to OBJ, STL or PLY"),
+    ("part", b"v 0 0 0\n", "no file extension to tell its format; convert it to OBJ, STL or PLY"),
+    ("junk.ply", b"junk\n", "not a valid PLY file (text without vertices and faces); export it again as OBJ, STL or PLY"),
+    ("cut.ply", b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nend_header\n1\n",
+     "a damaged PLY file (its header reads as PLY, its contents do not); export it again as OBJ, STL or PLY"),
+])
+def test_an_unsupported_or_unreadable_file_is_named_in_toppledbs_words(tmp_path, file, content, reason):
+    """Not trimesh's "file_type 'png' not supported" or "Not a ply file!": the file, what is
+    wrong with it and the formats toppledb reads."""
+    (tmp_path / file).write_bytes(content)
+    with pytest.raises(MeshError) as err:
+        load_mesh(tmp_path / file)
+    assert str(err.value) == f"{file.split('.')[0]}: cannot read {file}: {reason}"
+
+
+def test_the_formats_read_are_those_a_directory_corpus_picks_up():
+    from pipeline.build.corpus import MESH_SUFFIXES as corpus_suffixes
+    from pipeline.model.mesh import MESH_SUFFIXES
+
+    assert corpus_suffixes == MESH_SUFFIXES
+
+
+def test_the_unit_hint_names_the_corpus_only_for_a_corpus_object():
+    """A dataset build can set units in corpus.toml or a scale column; ``add`` and ``figures`` only by flags."""
+    millimetres = trimesh.creation.box([120.0, 80.0, 40.0])
+    assert _reason(millimetres).endswith("probably in millimetres: use --units mm")
+    assert _reason(millimetres, corpus_hint=True).endswith('use --units mm (or units = "mm" in corpus.toml, or a scale column)')
+    assert unit_hint(0.001, MeshConfig()) == "; check the file's units (--units or --scale)"
+    assert unit_hint(0.001, MeshConfig(), corpus=True) == "; check the file's units (--units, --scale, or the corpus's scale)"

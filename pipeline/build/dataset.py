@@ -64,6 +64,10 @@ class OutputError(BuildError):
     the user's path to change, exit status 2."""
 
 
+class InputError(BuildError):
+    """An input the user gave cannot be used (``add``'s mesh): bad input, exit status 2."""
+
+
 class StrictFailure(BuildError):
     """``strict``: an object failed, and the build stopped there (``failure``: which, and why)."""
 
@@ -568,6 +572,14 @@ def add_object(
                 f"{root} was built with parameters this code no longer gives it ({'; '.join(differences[:3]) or 'schema'}); "
                 "`add` needs the code that built it: rebuild the dataset with this code (toppledb dataset --force) first"
             )
+    # The mesh, read as ``figures`` reads one: a file toppledb cannot use is the user's input to
+    # change (exit 2), said before any computing, with the unit hint of the flags ``add`` has.
+    from ..model.mesh import MeshError, load_mesh
+
+    try:
+        load_mesh(spec.path, scale=spec.scale, mass=spec.mass, name=spec.object_id, config=config.mesh)
+    except MeshError as err:
+        raise InputError(str(err)) from None
     previous = {
         f.object_id: Failure(f.object_id, f.reason, f.kind, f.detail) for f in current.failures
     }
@@ -579,7 +591,9 @@ def add_object(
         )
     except StrictFailure as err:
         # ``add`` is strict by nature (a failed object adds nothing); the user gave no --strict.
-        raise BuildError(_named(err.failure)) from None
+        # A mesh the model rejects (no stable pose, ...) is bad input, as in ``figures``; a crash is a failed build.
+        failed = InputError if err.failure.kind in ("mesh", "corpus") else BuildError
+        raise failed(_named(err.failure)) from None
 
 
 def _size(path: str) -> int:

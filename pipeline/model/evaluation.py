@@ -71,8 +71,9 @@ class _PoseClock:
 
 
 def load_object(spec: Spec, config: Config) -> ObjectModel:
-    """The spec's mesh, validated; raises ``MeshError`` with a one-line reason."""
-    return load_mesh(spec.path, scale=spec.scale, mass=spec.mass, name=spec.object_id, config=config.mesh)
+    """The spec's mesh, validated; raises ``MeshError`` with a one-line reason (a size
+    error's unit hint names the corpus's settings too: this is a corpus object)."""
+    return load_mesh(spec.path, scale=spec.scale, mass=spec.mass, name=spec.object_id, config=config.mesh, corpus_hint=True)
 
 
 def pose_suction(obj: ObjectModel, pose: StablePose, config: Config) -> SuctionResult:

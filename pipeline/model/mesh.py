@@ -21,6 +21,11 @@ class MeshError(ValueError):
     """A mesh that cannot be used; ``str(err)`` is one line: ``<name>: <reason>``."""
 
 
+MESH_SUFFIXES = (".obj", ".stl", ".ply")
+"""The mesh formats toppledb reads (``pipeline.build.corpus`` picks these up in a directory)."""
+FORMATS = "OBJ, STL or PLY"
+
+
 @dataclass
 class ObjectModel:
     """An object ready for the toppling model.
@@ -48,6 +53,7 @@ def load_mesh(
     center_mass: np.ndarray | None = None,
     name: str | None = None,
     config: MeshConfig = MeshConfig(),
+    corpus_hint: bool = False,
 ) -> ObjectModel:
     """Load an OBJ/STL/PLY file as an ``ObjectModel``.
 
@@ -58,19 +64,26 @@ def load_mesh(
     mass : float, kg; ``config.default_mass`` when None
     center_mass : (3,) float, m, object frame; uniform density when None
     name : identifier for messages; the file stem when None
+    corpus_hint : a size error's unit hint also names the corpus's own settings (a sidecar's
+        ``units``, a list's scale column), for a dataset build; otherwise only --units/--scale
+
+    Every error is in toppledb's words, not the mesh library's: a format it does not read,
+    a file that is not what its extension says, a file without triangles.
     """
     name = name or Path(path).stem
     file = Path(path).name
     if not Path(path).is_file():
         raise MeshError(f"{name}: mesh file not found: {path}")
+    suffix = Path(path).suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        what = f"'{suffix}' is not a mesh format toppledb reads" if suffix else "no file extension to tell its format"
+        raise MeshError(f"{name}: cannot read {file}: {what}; convert it to {FORMATS}")
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
-    except ImportError:
-        # trimesh imports its text-encoding detector only for bytes that are not UTF-8;
-        # the real cause is the file, not the missing module.
+    except Exception:  # noqa: BLE001 (trimesh raises many types for unreadable files, ImportError included)
+        # ImportError: trimesh imports its text-encoding detector only for bytes that are not
+        # UTF-8; the real cause is the file, not the missing module.
         raise MeshError(f"{name}: cannot read {file}: {_not_a_mesh(path)}") from None
-    except Exception as err:  # trimesh raises many types for unreadable files
-        raise MeshError(f"{name}: cannot read {file}: {_one_line(err)}") from None
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"{name}: {file} holds no triangle mesh")
     if len(loaded.faces) == 0:
@@ -78,20 +91,31 @@ def load_mesh(
         points = _point_count(path)
         why = f"a point cloud ({points} vertices, no faces), not a surface" if points else f"no triangles, {_not_a_mesh(path)}"
         raise MeshError(f"{name}: cannot read {file}: {why}")
-    return model_from_mesh(loaded, scale=scale, mass=mass, center_mass=center_mass, name=name, config=config)
+    return model_from_mesh(
+        loaded, scale=scale, mass=mass, center_mass=center_mass, name=name, config=config, corpus_hint=corpus_hint
+    )
+
+
+MAGIC = {".ply": b"ply"}
+"""How a file of the format begins, where the format says (OBJ and binary STL do not)."""
 
 
 def _not_a_mesh(path: str | Path) -> str:
-    """Why a file gave no mesh, for the user: empty, binary garbage, or text without faces."""
+    """Why a file gave no mesh, for the user: empty, damaged, binary garbage, or text without
+    faces; and what to do (a mesh in a format toppledb reads)."""
     data = Path(path).read_bytes()[:4096]
-    kind = Path(path).suffix.lower().lstrip(".").upper() or "mesh"
+    suffix = Path(path).suffix.lower()
+    kind = suffix.lstrip(".").upper() or "mesh"
     if not data:
         return "the file is empty"
+    again = f"; export it again as {FORMATS}"
+    if suffix in MAGIC and data.startswith(MAGIC[suffix]):
+        return f"a damaged {kind} file (its header reads as {kind}, its contents do not){again}"
     try:
         data.decode("utf-8")
     except UnicodeDecodeError:
-        return f"not a valid {kind} file (binary data that is neither {kind} nor UTF-8 text)"
-    return f"not a valid {kind} file (text without vertices and faces)"
+        return f"not a valid {kind} file (binary data that is neither {kind} nor UTF-8 text){again}"
+    return f"not a valid {kind} file (text without vertices and faces){again}"
 
 
 def _point_count(path: str | Path) -> int:
@@ -108,9 +132,11 @@ UNIT_SCALES = {"mm": 0.001, "cm": 0.01, "in": 0.0254, "m": 1.0}
 UNIT_NAMES = {"mm": "millimetres", "cm": "centimetres", "in": "inches", "m": "metres"}
 
 
-def unit_hint(extent: float, config: MeshConfig) -> str:
+def unit_hint(extent: float, config: MeshConfig, corpus: bool = False) -> str:
     """For an object ``extent`` metres across that is out of the tabletop range, the
-    file units that would make it fit, as a hint: "" when none would."""
+    file units that would make it fit, as a hint: "" when none would.  ``corpus``: also
+    name the corpus's settings (a dataset build); else only the --units/--scale flags
+    (``add``, ``figures``), the only ones there."""
     fits = [
         unit for unit, factor in UNIT_SCALES.items()
         if unit != "m" and config.min_extent <= extent * factor <= config.max_extent
@@ -118,12 +144,13 @@ def unit_hint(extent: float, config: MeshConfig) -> str:
     if extent < config.min_extent:
         grown = [extent / factor for unit, factor in UNIT_SCALES.items() if unit != "m"]
         fitting = any(config.min_extent <= size <= config.max_extent for size in grown)
-        return "; check the file's units (--units, --scale, or the corpus's scale)" if fitting else ""
+        where = "--units, --scale, or the corpus's scale" if corpus else "--units or --scale"
+        return f"; check the file's units ({where})" if fitting else ""
     if not fits:
         return ""
     return (
-        "; the file is probably in " + " or ".join(UNIT_NAMES[u] for u in fits)
-        + f": use --units {fits[0]} (or units = \"{fits[0]}\" in corpus.toml, or a scale column)"
+        "; the file is probably in " + " or ".join(UNIT_NAMES[u] for u in fits) + f": use --units {fits[0]}"
+        + (f" (or units = \"{fits[0]}\" in corpus.toml, or a scale column)" if corpus else "")
     )
 
 
@@ -134,6 +161,7 @@ def model_from_mesh(
     center_mass: np.ndarray | None = None,
     name: str = "mesh",
     config: MeshConfig = MeshConfig(),
+    corpus_hint: bool = False,
 ) -> ObjectModel:
     """Validate and repair an in-memory mesh; see ``load_mesh``."""
     mass = config.default_mass if mass is None else float(mass)
@@ -155,11 +183,11 @@ def model_from_mesh(
     extent = float(mesh.extents.max())
     if extent < config.min_extent:
         raise MeshError(
-            f"{name}: too small for a tabletop: largest side {extent:.4g} m < {config.min_extent} m{unit_hint(extent, config)}"
+            f"{name}: too small for a tabletop: largest side {extent:.4g} m < {config.min_extent} m{unit_hint(extent, config, corpus_hint)}"
         )
     if extent > config.max_extent:
         raise MeshError(
-            f"{name}: too large for a tabletop: largest side {extent:.4g} m > {config.max_extent} m{unit_hint(extent, config)}"
+            f"{name}: too large for a tabletop: largest side {extent:.4g} m > {config.max_extent} m{unit_hint(extent, config, corpus_hint)}"
         )
 
     # A flat mesh makes trimesh divide by a zero volume; the rejection below says why.
