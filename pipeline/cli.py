@@ -3,7 +3,7 @@
     toppledb dataset [--corpus default|pybullet_data|DIR|LIST.csv] [--out data/dataset]
                      [--limit N] [--contacts N] [--trials N] [--variant NAME] [--seed S]
                      [--workers N | --scheduler ADDRESS] [--force] [--strict]
-                     [--config FILE.toml] [--set section.key=value ...]
+                     [--config FILE.toml|PRESET] [--set section.key=value ...]
     toppledb verify DIR
     toppledb corpus [--out pipeline/build/corpus_default.csv] [--count 189]
     toppledb policies DIR [--trials 20000] [--plot PNG]
@@ -164,6 +164,7 @@ examples:
   toppledb dataset --limit 5 --contacts 200 --out /tmp/small
   toppledb dataset --corpus meshes/ --units mm --density 700 --out data/mine
   toppledb dataset --corpus list.csv --set topple.mu_table_mean=0.5 --config params.toml
+  toppledb dataset --config thesis --out data/thesis     # a preset: the thesis's model
   toppledb dataset --scheduler tcp://head:8786            # on a dask.distributed cluster
   toppledb add data/dataset part.stl --units mm --mass 0.2
 
@@ -183,7 +184,13 @@ def _add_execution(command: argparse.ArgumentParser) -> None:
 
     command.add_argument("--workers", type=positive_int, help="local worker processes (default: all cores, here %s)" % default_workers())
     command.add_argument("--scheduler", metavar="ADDRESS", help="run on this dask.distributed scheduler, e.g. tcp://host:8786")
-    command.add_argument("--config", type=Path, metavar="FILE.toml", help="parameters from a TOML file")
+    presets = ", ".join(sorted(p.stem for p in PRESETS.glob("*.toml")))
+    command.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE.toml|PRESET",
+        help=f"parameters from a TOML file, or a preset by name: {presets} (e.g. --config thesis, the thesis's model)",
+    )
     command.add_argument(
         "--set",
         dest="overrides",

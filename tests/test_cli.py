@@ -147,6 +147,8 @@ def test_help_shows_defaults_set_keys_and_examples(capsys, monkeypatch):
     for key, value, accepted in parameter_table():
         assert key in text, f"--set key {key} missing from --help"
     assert "topple.mu_table_mean" in text and ">= 0" in text
+    assert "--config FILE.toml|PRESET" in text and "a preset by name: thesis (e.g. --config thesis" in text
+    assert "toppledb dataset --config thesis" in text, "an example"
 
 
 SLOW_WORKERS = """\
