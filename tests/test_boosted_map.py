@@ -126,11 +126,15 @@ def test_a_file_that_is_no_boosted_map_is_refused_with_a_reason(change, message)
 
 
 def test_a_missing_or_broken_file_names_the_path(tmp_path):
-    with pytest.raises(BoostedMapError, match="cannot read .*nowhere.json"):
+    with pytest.raises(BoostedMapError) as missing:
         load_trees(str(tmp_path / "nowhere.json"))
+    assert str(missing.value).startswith(f"topple.boosted_map '{tmp_path}/nowhere.json': no such file {tmp_path}/nowhere.json; ")
+    assert "Errno" not in str(missing.value)
+    with pytest.raises(BoostedMapError, match="'nowhere': no packaged map of that name; .*packaged map \\(boosted_map_s41\\)"):
+        load_trees("nowhere")
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
-    with pytest.raises(BoostedMapError, match="bad.json"):
+    with pytest.raises(BoostedMapError, match="bad.json is not valid JSON"):
         load_trees(str(bad))
     assert map_file("boosted_map_s41").name == "boosted_map_s41.json" and map_file("x/y.json") == Path("x/y.json")
 

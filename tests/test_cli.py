@@ -36,6 +36,16 @@ def test_parameters_come_from_defaults_toml_set_then_flags(tmp_path):
     [
         (["dataset", "--set", "topple.n_trials"], "--set expects SECTION.KEY=VALUE"),
         (["dataset", "--set", "topple.nope=1"], "unknown config key 'topple.nope'"),
+        (["dataset", "--set", "bogus.key=1"],
+         "unknown config section 'bogus' in 'bogus.key' (sections: contacts, mdp, mesh, poses, suction, topple)"),
+        (["dataset", "--set", "topple.n_trials.x=1"], "config key 'topple.n_trials' is a value, not a section"),
+        (["dataset", "--set", "topple.mu_table_mean=nan"], "config key 'topple.mu_table_mean' must be a finite number, got 'nan'"),
+        (["dataset", "--set", "mdp.gamma=inf"], "config key 'mdp.gamma' must be a finite number, got 'inf'"),
+        (["dataset", "--set", "topple.boosted_map=nonexist"],
+         ("topple.boosted_map 'nonexist': no packaged map of that name; a value ending in .json is a file's path, "
+          "any other value names a packaged map (boosted_map_s41); '' sets none")),
+        (["dataset", "--set", "topple.boosted_map={tmp}/maps/x.json"],
+         "topple.boosted_map '{tmp}/maps/x.json': no such file {tmp}/maps/x.json; a value ending in .json"),
         (["dataset", "--set", "topple.n_trials=many"], "expects int"),
         (["dataset", "--config", "/no/such.toml"], "config file not found"),
         (["dataset", "--corpus", "/no/such/corpus", "--out", "{tmp}/out"], "corpus not found"),
@@ -58,6 +68,7 @@ def test_bad_input_is_one_line_with_status_2(tmp_path, capsys, argv, message):
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err
     assert err.count("\n") == 1
+    assert "Errno" not in err and "presets/" not in err, "no errno text, no path inside the package"
 
 
 def test_bad_toml_is_reported(tmp_path, capsys):

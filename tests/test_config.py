@@ -85,7 +85,7 @@ def test_bad_overrides_are_clear_errors(overrides, message):
         ("contacts.n_contacts", "0", "must be in [1, 100000]"),
         ("contacts.n_contacts", "10000000000", "must be in [1, 100000]"),
         ("topple.mu_table_mean", "-3", "must be >= 0"),
-        ("topple.mu_table_mean", "nan", "must be >= 0"),
+        ("topple.mu_table_mean", "nan", "must be a finite number, got 'nan'"),  # not ">= 0": nan is no number to compare
         ("mdp.gamma", "0", "must be in (0, 1]"),
         ("mdp.gamma", "1.5", "must be in (0, 1]"),
         ("poses.min_probability", "1", "must be in [0, 1)"),

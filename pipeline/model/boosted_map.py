@@ -101,12 +101,28 @@ def load_trees(name: str) -> BoostedTrees:
     """Read and check the map ``name`` names (``map_file``), once per process (cached by name: a file
     changed under a running job is not re-read).  Raises ``BoostedMapError``."""
     path = map_file(name)
+    where = f"topple.boosted_map {name!r}"
     try:
         raw = path.read_bytes()
+    except FileNotFoundError:
+        packaged = f"any other value names a packaged map ({', '.join(packaged_maps())}); '' sets none"
+        if name.endswith(".json"):
+            raise BoostedMapError(f"{where}: no such file {path.resolve()}; a value ending in .json is a file's path, "
+                                  f"{packaged}") from None
+        raise BoostedMapError(f"{where}: no packaged map of that name; a value ending in .json is a file's path, "
+                              f"{packaged}") from None
+    except OSError as err:
+        raise BoostedMapError(f"{where}: cannot read {path}: {err.strerror}") from None
+    try:
         data = json.loads(raw)
-    except (OSError, ValueError) as err:
-        raise BoostedMapError(f"topple.boosted_map {name!r}: cannot read {path}: {err}") from None
+    except ValueError as err:
+        raise BoostedMapError(f"{where}: {path} is not valid JSON ({err})") from None
     return trees_from_dict(data, hashlib.sha256(raw).hexdigest(), name)
+
+
+def packaged_maps() -> list[str]:
+    """The names of the maps shipped in ``presets/`` (what ``topple.boosted_map`` may name without a path)."""
+    return sorted(p.stem for p in PRESETS.glob("*.json"))
 
 
 NODE_FIELDS = (("feature", int), ("threshold", float), ("left", int), ("right", int),

@@ -650,9 +650,13 @@ class Config:
         for key, value in overrides.items():
             *path, leaf = key.split(".")
             node = data
-            for part in path:
-                if part not in node or not isinstance(node[part], dict):
-                    raise ValueError(f"unknown config section {key!r}")
+            for depth, part in enumerate(path):
+                section = ".".join(path[: depth + 1])
+                if part in node and not isinstance(node[part], dict):
+                    raise ValueError(f"config key {section!r} is a value, not a section (in {key!r})")
+                if part not in node:
+                    known = ", ".join(sorted(k for k, v in node.items() if isinstance(v, dict)))
+                    raise ValueError(f"unknown config section {section!r} in {key!r} (sections: {known})")
                 node = node[part]
             if leaf not in node:
                 raise ValueError(f"unknown config key {key!r}")
@@ -713,8 +717,10 @@ def _build(cls, data: dict[str, Any], prefix: str):
             accepted = f.metadata.get("range")
             # A tuple field (knots) is checked element by element.
             items = kwargs[name] if isinstance(kwargs[name], tuple) else (kwargs[name],)
+            what = "every entry of " if isinstance(kwargs[name], tuple) else ""
+            if accepted is not None and not all(math.isfinite(v) for v in items):  # nan, inf: no range holds them
+                raise ValueError(f"config key {what}{prefix + name!r} must be a finite number, got {value!r}")
             if accepted is not None and not all(accepted.contains(v) for v in items):
-                what = "every entry of " if isinstance(kwargs[name], tuple) else ""
                 raise ValueError(f"config key {what}{prefix + name!r} must be {accepted.text()}, got {value!r}")
     return cls(**kwargs)
 
