@@ -390,7 +390,10 @@ def main(argv: list[str] | None = None) -> int:
         # Before anything from pipeline.build: `toppledb serve` must work with only the service extra.
         from importlib import import_module
 
-        return import_module(DELEGATED[argv[0]][0]).main(argv[1:]) or EXIT_OK
+        module = import_module(DELEGATED[argv[0]][0])
+        if argv[0] == "serve":  # its usage names the command typed: `toppledb serve`, or `python -m service`
+            return module.main(argv[1:], prog="toppledb serve") or EXIT_OK
+        return module.main(argv[1:]) or EXIT_OK
     from .build.corpus import CorpusError
     from .build.dataset import BuildError, InputError, OutputError
     from .build.fanout import SchedulerError

@@ -32,8 +32,9 @@ def _ranged(kind: type, low: float, high: float | None = None, low_open: bool = 
     return parse
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m service", description="Serve a toppledb dataset over HTTP.")
+def build_parser(prog: str = "python -m service") -> argparse.ArgumentParser:
+    """The options; ``prog`` is the command the usage names (``toppledb serve`` from ``pipeline.cli``)."""
+    parser = argparse.ArgumentParser(prog=prog, description="Serve a toppledb dataset over HTTP.")
     parser.add_argument("--dataset", default=None, help="dataset directory (default: $TOPPLEDB_DATASET or data/dataset)")
     parser.add_argument("--host", default=DEFAULT_HOST, help="address to bind (default: %(default)s, this machine only)")
     parser.add_argument("--port", type=_ranged(int, 1, 65535), default=DEFAULT_PORT, help="TCP port (default: %(default)s)")
@@ -52,8 +53,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv: list[str] | None = None, prog: str = "python -m service") -> int:
+    args = build_parser(prog).parse_args(argv)
+    from .server import listen_problem
+
+    problem = listen_problem(args.host, args.port)  # before the load: a port in use is said at once, in a line
+    if problem is not None:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     import pyarrow as pa
 
     # Arrow's default pool (mimalloc) keeps ~120 MB of the load's transient buffers for

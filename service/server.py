@@ -133,6 +133,36 @@ async def json_service_unavailable(scope, receive, send) -> None:
     await send({"type": "http.response.body", "body": BUSY_BODY, "more_body": False})
 
 
+def listen_problem(host: str, port: int) -> str | None:
+    """Why the service could not listen on ``host:port``, as one line for the user, or None.
+
+    Checked before the dataset is loaded, so a port already in use is said at once and in a
+    line, not after the load as uvicorn's ``[Errno 98]`` log and exit 3.  Every address the
+    host resolves to is bound as asyncio's server binds it (``SO_REUSEADDR``, IPv6 only on
+    IPv6), then released; a server that takes the port in between still fails as uvicorn says."""
+    import errno
+    import socket
+
+    where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    try:
+        addresses = socket.getaddrinfo(host or None, port, socket.AF_UNSPEC, socket.SOCK_STREAM, 0, socket.AI_PASSIVE)
+    except socket.gaierror as err:
+        return f"cannot listen on {where}: {str(err.strerror).lower()}; check --host"
+    for family, kind, proto, _, address in dict.fromkeys(addresses):
+        try:
+            with socket.socket(family, kind, proto) as sock:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                if family == socket.AF_INET6 and hasattr(socket, "IPPROTO_IPV6"):
+                    sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+                sock.bind(address)
+        except OSError as err:
+            reason = (err.strerror or str(err)).lower()
+            todo = {errno.EADDRINUSE: "choose another --port", errno.EACCES: "choose a --port above 1023",
+                    errno.EADDRNOTAVAIL: "choose another --host (an address of this machine)"}.get(err.errno, "check --host and --port")
+            return f"cannot listen on {where}: {reason}; {todo}"
+    return None
+
+
 def run(
     app,
     host: str,

@@ -159,6 +159,27 @@ def test_options_that_would_start_a_service_that_cannot_serve_are_refused(option
     assert build_parser().parse_args([option, sane]) is not None
 
 
+def test_the_usage_names_the_command_typed(capsys):
+    from pipeline.cli import main as toppledb
+
+    with pytest.raises(SystemExit) as shown:
+        toppledb(["serve", "--help"])
+    assert shown.value.code == 0 and capsys.readouterr().out.startswith("usage: toppledb serve [-h]")
+    assert build_parser().format_usage().startswith("usage: python -m service [-h]")
+
+
+def test_a_port_in_use_is_one_line_and_exit_2_before_the_dataset_is_loaded(dataset):
+    """It used to load the dataset, say "loaded", start, then log uvicorn's [Errno 98] and exit 3."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        run = subprocess.run([sys.executable, "-m", "pipeline", "serve", "--dataset", str(dataset), "--port", str(port)],
+                             cwd=ROOT, capture_output=True, text=True, timeout=60, check=False)
+    assert run.returncode == 2
+    assert run.stderr == f"error: cannot listen on 127.0.0.1:{port}: address already in use; choose another --port\n"
+
+
 def test_default_host_is_localhost_and_the_server_answers(dataset):
     assert DEFAULT_HOST == "127.0.0.1" and build_parser().parse_args([]).host == "127.0.0.1"
     process, url = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--log-level", "warning"])
