@@ -87,11 +87,16 @@ def main(argv: list[str] | None = None, prog: str = "python -m service") -> int:
         f"{store.counts['actions']} actions loaded from {settings.dataset} in {store.load_seconds:.2f} s",
         file=sys.stderr,
     )
-    run(
-        StagedApp(runtime), args.host, args.port, workers=args.workers, log_level=args.log_level, access_log=args.access_log,
-        limit_concurrency=args.limit_concurrency, timeout_keep_alive=args.timeout_keep_alive,
-        request_timeout=args.request_timeout,
-    )
+    try:
+        run(
+            StagedApp(runtime), args.host, args.port, workers=args.workers, log_level=args.log_level,
+            access_log=args.access_log, limit_concurrency=args.limit_concurrency,
+            timeout_keep_alive=args.timeout_keep_alive, request_timeout=args.request_timeout,
+        )
+    except KeyboardInterrupt:
+        # One worker: uvicorn shuts down gracefully on Ctrl-C, then raises it again; that is the
+        # stop asked for, not a crash to show as a traceback (forked workers already end with 0).
+        pass
     return 0
 
 

@@ -189,7 +189,8 @@ def test_default_host_is_localhost_and_the_server_answers(dataset):
         listening = {c.laddr.ip for c in psutil.Process(process.pid).net_connections() if c.status == psutil.CONN_LISTEN}
         assert listening == {"127.0.0.1"}
     finally:
-        stop(process)
+        _, err = stop(process)
+    assert process.returncode == 0 and "Traceback" not in err, "Ctrl-C is a stop, not a crash"
 
 
 def test_server_closes_unfinished_requests_reloads_on_sighup_logs_no_access_lines_and_leaves_no_child(dataset, tmp_path):
