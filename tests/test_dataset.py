@@ -362,7 +362,8 @@ def test_sigkill_part_way_then_resume_gives_the_same_dataset(reference, corpus, 
 
     resumed = subprocess.run([*command, "--workers", "2"], capture_output=True, text=True)
     assert resumed.returncode == 0, resumed.stderr
-    assert f"resuming: {len(finished)} of {len(OBJECTS)}" in resumed.stderr
+    # They wait in the staging directory, beside --out (which holds nothing yet): the message names it.
+    assert f"resuming: {len(finished)} of {len(OBJECTS)} objects already complete in {staging_dir(out)}\n" in resumed.stderr
     manifest = read_manifest(out)
     assert manifest.run["reused"] == len(finished)
     assert manifest.run["computed"] == len(OBJECTS) - len(finished)
@@ -397,9 +398,11 @@ def test_sigkill_while_extending_a_finished_dataset_keeps_it_until_the_commit(re
         move(source, target)
 
     monkeypatch.setattr(dataset, "_move", crash_after_first_partition)
+    capsys.readouterr()
     with pytest.raises(SystemExit):
         build(grown, out, "--workers", "1")
     monkeypatch.setattr(dataset, "_move", move)
+    assert f"resuming: 2 of 3 objects already complete (1 in {out}, 1 in {staging_dir(out)})\n" in capsys.readouterr().err
     assert (staging_dir(out) / "commit.json").exists(), "stopped after the commit point"
     assert verify_dataset(out) != [], "half-way through the renames"
 
@@ -598,7 +601,7 @@ def test_a_killed_force_run_resumes_when_run_again_and_a_new_one_starts_over(ref
     staged = sorted(p.parent.name for p in (staging_dir(out) / layout.SHARDS_DIR).glob("*/complete.json"))
     assert 1 <= len(staged) < len(OBJECTS) and (staging_dir(out) / FORCED_RUN).is_file()
     assert build(corpus, out, "--force", "--workers", "1") == 0
-    assert f"resuming: {len(staged)} of {len(OBJECTS)}" in capsys.readouterr().err
+    assert f"resuming: {len(staged)} of {len(OBJECTS)} objects already complete in {staging_dir(out)}\n" in capsys.readouterr().err
     assert (read_manifest(out).run["computed"], read_manifest(out).run["reused"]) == (len(OBJECTS) - len(staged), len(staged))
     assert_same_dataset(reference, out)
 

@@ -292,7 +292,11 @@ def _build_locked(
         log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
         return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
     if reused:
-        log(f"resuming: {reused} of {len(corpus.specs)} objects already complete in {out}")
+        # Name the directory that holds them: a killed run's shards wait in the staging directory,
+        # and --out may not exist yet.
+        where = (f"in {out}" if not staged else f"in {staging}" if not records
+                 else f"({len(records)} in {out}, {len(staged)} in {staging})")
+        log(f"resuming: {reused} of {len(corpus.specs)} objects already complete {where}")
 
     _make_directory(staging, "staging directory")
     if forced is not None:
