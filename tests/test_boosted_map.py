@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from pipeline.build.corpus import ObjectSpec
 from pipeline.model.boosted_map import (
     FEATURES,
     BoostedMapError,
+    _skip_shared_splits,
     boosted_features,
     boosted_probability,
     fit_trees,
@@ -26,7 +28,7 @@ from pipeline.model.boosted_map import (
 )
 from pipeline.model.config import Config, ContactConfig
 from pipeline.model.edges import edge_geometry
-from pipeline.model.feature_map import LOGIT_FLOOR, landing_rows, pose_features
+from pipeline.model.feature_map import FORCE_RATIO_RANGE, LOGIT_FLOOR, landing_rows, needed_force_ratio, pose_features
 from pipeline.model.outcomes import Actions
 from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose
@@ -94,8 +96,24 @@ def test_fitted_trees_predict_what_scikit_learn_predicts():
     assert np.allclose(q, model.predict_proba(x)[:, 1], rtol=0, atol=1e-12)
 
 
+def _shared_subtree(d):
+    """A second tree whose nodes 1 and 2 both point at leaves 3 and 4 (a walk ends, but no tree)."""
+    d["trees"].append({"feature": [0, 1, 2, 0, 0], "threshold": [0.0] * 5, "left": [1, 3, 3, 0, 0], "right": [2, 4, 4, 0, 0],
+                       "missing_left": [True] * 5, "leaf": [False, False, False, True, True], "value": [0.0] * 5})
+
+
 @pytest.mark.parametrize("change, message", [
-    (lambda d: d.update(features=list(FEATURES[:-1])), "features are not this version's"),
+    (lambda d: d.update(features=list(FEATURES[:-1])), rf"its features are not this version's \({F}, from logit_p\)$"),
+    (lambda d: d.pop("features"), rf"its features are not this version's \({F}, from logit_p\)$"),
+    (lambda d: d.update(features=None), "features are not this version's"),
+    (lambda d: d.update(features=5), "features are not this version's"),
+    (lambda d: d.update(baseline=10**400), "baseline is not a finite number"),  # JSON's integer, past any float
+    (lambda d: d["trees"][0].update(feature=[10**20, 0, 0]), "tree 0: feature holds entries out of range"),
+    (lambda d: d["trees"][0].update(value=[0.0, 10**400, 1.0]), "tree 0: value holds entries out of range"),
+    (lambda d: d["trees"][0].update(left=[1, 0, 0], right=[1, 0, 0]), "tree 0 reaches node 1 twice"),  # both children one leaf
+    (_shared_subtree, "tree 1 reaches node 4 twice$"),  # counted within tree 1, which starts at node 3
+    (lambda d: d["trees"][0].update(threshold=[True, 0.0, 0.0]), "threshold holds entries that are not float"),
+    (lambda d: d["trees"][0].update(value=[0.0, "1.0", 1.0]), "value holds entries that are not float"),
     (lambda d: d.update(baseline=float("nan")), "baseline is not a finite number"),
     (lambda d: d.update(trees=[]), "no list of trees"),
     (lambda d: d["trees"][0].update(left=[7, 0, 0]), "points outside its tree"),
@@ -106,7 +124,7 @@ def test_fitted_trees_predict_what_scikit_learn_predicts():
     (lambda d: d["trees"][0].update(feature=[-1, 0, 0]), "splits on no feature"),
     (lambda d: d["trees"][0].update(value=[0.0, float("inf"), 1.0]), "leaf's value is not finite"),
     (lambda d: d["trees"][0].update(threshold=[float("nan"), 0.0, 0.0]), "threshold is not finite"),
-    (lambda d: d["trees"][0].pop("value"), "not an object with the lists"),
+    (lambda d: d["trees"][0].pop("value"), "tree 0 is not an object with the lists feature, threshold, left, right, missing_left, leaf, value$"),
     (lambda d: d["trees"][0].update(left=1), "left is not a list of nodes"),
     (lambda d: d["trees"][0].update(left=[1, 0]), "differ in length"),
     (lambda d: d["trees"][0].update(threshold=[0.0] * 4), "differ in length"),  # would shift every later tree
@@ -121,8 +139,32 @@ def test_fitted_trees_predict_what_scikit_learn_predicts():
 def test_a_file_that_is_no_boosted_map_is_refused_with_a_reason(change, message):
     data = _map(_stump(0, 0.0, -1.0, 1.0))
     change(data)
-    with pytest.raises(BoostedMapError, match=message):
-        trees_from_dict(data)
+    with pytest.raises(BoostedMapError, match=message) as refused:
+        trees_from_dict(data, name="m")
+    assert str(refused.value).startswith("topple.boosted_map 'm': "), "one line that names the map"
+
+
+def test_what_is_no_json_object_is_refused_and_a_map_read_from_no_file_has_no_hash():
+    with pytest.raises(BoostedMapError, match=r"^topple\.boosted_map '': not a JSON object$"):
+        trees_from_dict([_stump(0, 0.0, -1.0, 1.0)])
+    assert trees_from_dict(_map(_stump(0, 0.0, -1.0, 1.0))).sha256 == ""
+
+
+def test_integer_thresholds_and_values_are_read_as_floats_even_past_int64():
+    """JSON carries 0 and 1e20 as integers when a writer drops the ".0"; they are numbers all the same."""
+    trees = trees_from_dict(_map(_stump(0, 10**20, -1, 1), _stump(1, 0, 2, 0), baseline=0))
+    assert trees.threshold.dtype == trees.value.dtype == np.float64 and trees.threshold[0] == 1e20
+    x = np.zeros((2, F))
+    x[:, 0] = [1e19, 1e21]
+    x[:, 1] = [0, 1]
+    assert np.allclose(boosted_probability(x, trees), _sigmoid(np.array([-1.0 + 2.0, 1.0 + 0.0])), rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("shape", [(2, F + 1), (2, F - 1), (F,), (1, 2, F)])
+def test_features_of_any_other_shape_are_refused(shape):
+    trees = trees_from_dict(_map(_stump(0, 0.0, -1.0, 1.0)))
+    with pytest.raises(ValueError, match=re.escape(f"features must be (A, {F}), got {shape}")):
+        boosted_probability(np.zeros(shape), trees)
 
 
 def test_a_missing_or_broken_file_names_the_path(tmp_path):
@@ -167,6 +209,39 @@ def test_rows_take_q_where_they_land_and_keep_their_landing_in_proportion():
     still = np.array([[1.0, 0.0, 0.0]] * 3 + [[np.nan] * 3])
     kept, p_kept = map_boosted_rows(still, features, 0, actions, trees, pool=4)
     assert np.array_equal(kept[:3], still[:3]) and np.array_equal(p_kept[:3], [0.0, 0.0, 0.0])
+
+
+def _actions_at_one_spot(n):
+    """n pushes at one contact in one direction, all ok: each is every other's neighbour."""
+    directions = np.tile([1.0, 0, 0], (n, 1))
+    return Actions(points=np.zeros((n, 3)), normals=-directions, directions=directions,
+                   status=np.full(n, STATUS_OK, dtype=np.int8), max_height=-1)
+
+
+def test_a_pose_with_one_ok_row_maps_it():
+    rows = np.array([[0.5, 0.5, 0.0], [np.nan] * 3])
+    features = np.zeros((2, F))
+    features[:, 0] = 1.0
+    trees = trees_from_dict(_map(_stump(0, 0.0, -1.0, 1.0)))
+    mapped, p = map_boosted_rows(rows, features, 0, _actions_at_one_spot(2), trees)
+    q = _sigmoid(-0.5 + 1.0)
+    assert np.allclose(mapped[0], [1 - q, q, 0.0]) and p[0] == pytest.approx(q)
+    assert np.all(np.isnan(mapped[1])) and np.isnan(p[1])
+
+
+def test_a_probe_that_never_toppled_borrows_its_landing_from_the_candidates_only():
+    """Row 0 is the pose's one candidate (pool 1) and lands in pose 1; row 1, a probe, lands in pose 2;
+    row 2, a probe that never toppled, takes the mean of the pool's and its own leaving parts: pose 1 only
+    (over all three rows it would be half pose 1, half pose 2)."""
+    rows = np.array([[0.5, 0.5, 0.0], [0.5, 0.0, 0.5], [1.0, 0.0, 0.0]])
+    features = np.zeros((3, F))
+    features[:, 0] = 1.0
+    trees = trees_from_dict(_map(_stump(0, 0.0, -1.0, 1.0)))
+    q = _sigmoid(-0.5 + 1.0)
+    mapped, p = map_boosted_rows(rows, features, 0, _actions_at_one_spot(3), trees, pool=1)
+    assert np.allclose(mapped, [[1 - q, q, 0.0], [1 - q, 0.0, q], [1 - q, q, 0.0]]) and np.allclose(p, q)
+    everyone, _ = map_boosted_rows(rows, features, 0, _actions_at_one_spot(3), trees)
+    assert np.allclose(everyone[2], [1 - q, q / 2, q / 2]), "without a pool every row is a neighbour"
 
 
 def test_the_engine_maps_every_ok_row_last_from_its_features(pose_and_candidates, tmp_path):  # noqa: F811
@@ -308,12 +383,29 @@ def test_every_feature_column_is_what_its_name_says(pose_and_candidates):  # noq
     assert np.allclose(col["horizontal"], np.hypot(actions.directions[:, 0], actions.directions[:, 1]))
     assert np.allclose(col["contact_height_over_size"], actions.points[:, 2] / longest)
     assert len({round(float(v), 9) for v in (shortest / longest, middle / longest, np.log(obj.mass), np.log(longest))}) == 4
+    height = center_mass[2]
+    assert height > 1e-3 and np.allclose(col["height_over_size"], height / longest)
+    assert np.allclose(col["widest_edge"], edges.com_distance.max() / height) and edges.com_distance.max() > edges.com_distance.min()
+    ratio = needed_force_ratio(actions.points, actions.directions, edges)
+    assert np.allclose(col["log_needed_force_ratio"], np.log(np.clip(ratio, *FORCE_RATIO_RANGE)))
+    assert np.isinf(ratio).any() and np.all(np.abs(col["log_needed_force_ratio"]) <= np.log(1e3) + 1e-12), "clipped"
+    # N over the pose's candidates only: the last rows (probes) are nobody else's neighbours.
+    k = n - 20
+    pooled = boosted_features(p, unmapped, mean_force, actions, edges, center_mass, pose_set.probabilities, pose.index, obj, 9.81,
+                              pool=k)
+    push_k = pose_features(unmapped, actions.points, actions.directions, mean_force, obj.mass * 9.81, pool=k)
+    assert np.allclose(pooled[:, 2:6], push_k[:, 2:], equal_nan=True)
+    assert not np.allclose(pooled[:, 2], g[:, 2]), "the test needs probes that are some candidate's neighbours"
 
 
 def test_the_logit_floor_is_the_fitted_form_bit_for_bit():
     """fitted_logit's reason to exist: the packaged map has thresholds exactly on log(f / (1 - f))."""
     floor = np.log(LOGIT_FLOOR / (1.0 - LOGIT_FLOOR))
     assert fitted_logit(np.array([0.0, LOGIT_FLOOR]))[0] == floor == fitted_logit(np.array([LOGIT_FLOOR]))[0]
+    top = fitted_logit(np.array([1.0, 1.0 - LOGIT_FLOOR]))
+    ceiling = 1.0 - LOGIT_FLOOR
+    assert top[0] == top[1] == np.log(ceiling / (1.0 - ceiling)), "a push that always topples is clipped too"
+    assert top[0] == pytest.approx(-floor, rel=1e-14)
     trees = load_trees("boosted_map_s41")
     on_floor = ~trees.leaf & (trees.feature == 0) & (trees.threshold == floor)
     assert on_floor.any(), "the packaged map splits logit_p exactly at the floor"
@@ -427,6 +519,12 @@ def test_a_missing_map_is_the_commands_one_line_error(tmp_path, capsys):
                  "--set", f"topple.boosted_map={tmp_path / 'nowhere.json'}"])
     err = capsys.readouterr().err
     assert code == 2 and "error: topple.boosted_map" in err and "nowhere.json" in err and "Traceback" not in err
+    broken = tmp_path / "broken.json"
+    broken.write_text(json.dumps({**_map(_stump(0, 0.0, -1.0, 1.0)), "features": None}))  # JSON, but no map
+    code = main(["dataset", "--corpus", str(tmp_path / "none.csv"), "--out", str(tmp_path / "d"),
+                 "--set", f"topple.boosted_map={broken}"])
+    err = capsys.readouterr().err
+    assert code == 2 and "features are not this version's" in err and "Traceback" not in err
 
 
 def _walk_one_by_one(x, data):
@@ -456,3 +554,18 @@ def test_the_walk_skipping_shared_splits_reaches_the_scalar_walks_leaves(shared)
     assert np.allclose(boosted_probability(x, trees), expected, rtol=0, atol=1e-12)
     assert np.allclose(boosted_probability(x[:1], trees), expected[:1], rtol=0, atol=1e-12), "one push: every split shared"
     assert boosted_probability(x[:0], trees).shape == (0,)
+
+
+def test_splits_every_push_shares_are_resolved_before_the_walk():
+    """One push shares every column with itself: each tree's root becomes the leaf the scalar walk reaches.
+    Pushes that differ in every column share no split: the trees come back as they are."""
+    data = json.loads(map_file("boosted_map_s41").read_text())
+    trees = trees_from_dict(data)
+    x = np.random.default_rng(5).normal(size=(2, F))
+    roots, left, right = _skip_shared_splits(x[:1], trees)
+    assert trees.leaf[roots].all() and (~trees.leaf[trees.roots]).all()
+    assert _sigmoid(data["baseline"] + trees.value[roots].sum()) == pytest.approx(_walk_one_by_one(x[0], data), rel=1e-12)
+    leaves = np.flatnonzero(trees.leaf)
+    assert np.array_equal(left[leaves], leaves) and np.array_equal(right[leaves], leaves), "a leaf still points at itself"
+    same = _skip_shared_splits(x, trees)
+    assert all(np.array_equal(a, b) for a, b in zip(same, (trees.roots, trees.left, trees.right)))

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -138,10 +139,12 @@ def trees_from_dict(data: dict, sha256: str = "", name: str = "") -> BoostedTree
     where = f"topple.boosted_map {name!r}"
     if not isinstance(data, dict):
         raise BoostedMapError(f"{where}: not a JSON object")
-    if list(data.get("features", [])) != list(FEATURES):
+    features = data.get("features")
+    if not isinstance(features, (list, tuple)) or list(features) != list(FEATURES):
         raise BoostedMapError(f"{where}: its features are not this version's ({len(FEATURES)}, from {FEATURES[0]})")
     baseline, trees = data.get("baseline"), data.get("trees")
-    if isinstance(baseline, bool) or not isinstance(baseline, (int, float)) or not np.isfinite(baseline):
+    # abs(b) <= the largest float: finite, and a float holds it (np.isfinite raises on a JSON integer past that)
+    if isinstance(baseline, bool) or not isinstance(baseline, (int, float)) or not abs(baseline) <= sys.float_info.max:
         raise BoostedMapError(f"{where}: the baseline is not a finite number")
     if not isinstance(trees, list) or not trees:
         raise BoostedMapError(f"{where}: no list of trees")
@@ -186,7 +189,10 @@ def _tree_lists(tree, where: str) -> dict[str, np.ndarray]:
             ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
         if not ok:
             raise BoostedMapError(f"{where}: {key} holds entries that are not {kind.__name__}")
-        out[key] = np.array(values, dtype=np.int64 if kind is int else kind)
+        try:
+            out[key] = np.array(values, dtype=np.int64 if kind is int else kind)
+        except OverflowError:  # a JSON integer past int64 (or past any float)
+            raise BoostedMapError(f"{where}: {key} holds entries out of range") from None
     if len({len(v) for v in out.values()}) != 1:
         raise BoostedMapError(f"{where}: its lists differ in length")
     return out
