@@ -92,3 +92,9 @@ def test_a_file_that_is_no_mesh_is_bad_input_in_toppledbs_words(tmp_path, capsys
     err = capsys.readouterr().err
     assert err.startswith("error: junk: cannot read junk.ply: not a valid PLY file") and "Not a ply file" not in err
     assert not (tmp_path / "f").exists()
+
+
+def test_an_arrow_never_reads_probability_zero():
+    # Every drawn arrow has P > 0 (topple_edges keeps only those); one below 0.005 would read 0.00.
+    assert figures.edge_label(0.004) == "<0.01" and figures.edge_label(1e-9) == "<0.01"
+    assert figures.edge_label(0.005) == "0.01" and figures.edge_label(0.954) == "0.95"

@@ -81,6 +81,12 @@ def topple_edges(result) -> dict[tuple[int, int], float]:
     return edges
 
 
+def edge_label(probability: float) -> str:
+    """An arrow's label: two decimals, and "<0.01" for the smoothed rows' small shares, which two
+    decimals would show as an arrow of probability 0.00."""
+    return f"{probability:.2f}" if probability >= 0.005 else "<0.01"
+
+
 def graph_figure(result, path: str | Path) -> dict:
     """Figure 4.6: the topple graph, poses coloured by V_s, arrows labelled with the best
     push's probability.  Returns {"nodes": P, "edges": E}."""
@@ -96,7 +102,7 @@ def graph_figure(result, path: str | Path) -> dict:
                     arrowprops={"arrowstyle": "-|>", "color": "0.4", "shrinkA": 16, "shrinkB": 16,
                                 "connectionstyle": "arc3,rad=0.12"})
         middle = (xy[a] + xy[b]) / 2 + 0.06 * np.array([-(xy[b] - xy[a])[1], (xy[b] - xy[a])[0]])
-        ax.text(*middle, f"{probability:.2f}", fontsize=7, ha="center", va="center", color="0.2")
+        ax.text(*middle, edge_label(probability), fontsize=7, ha="center", va="center", color="0.2")
     nodes = ax.scatter(xy[:, 0], xy[:, 1], s=600, c=v_s, cmap="RdYlGn", vmin=0, vmax=1,
                        edgecolors=NODE_EDGE_COLOR, linewidths=2.5, zorder=3)
     for i in range(n):
