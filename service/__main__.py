@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m service") -> int:
     args = build_parser(prog).parse_args(argv)
     from .server import listen_problem
 
-    problem = listen_problem(args.host, args.port)  # before the load: a port in use is said at once, in a line
+    problem = listen_problem(args.host, args.port, args.workers)  # before the load: a port in use is said at once, in a line
     if problem is not None:
         print(f"error: {problem}", file=sys.stderr)
         return 2

@@ -133,24 +133,34 @@ async def json_service_unavailable(scope, receive, send) -> None:
     await send({"type": "http.response.body", "body": BUSY_BODY, "more_body": False})
 
 
-def listen_problem(host: str, port: int) -> str | None:
+def listen_problem(host: str, port: int, workers: int = 1) -> str | None:
     """Why the service could not listen on ``host:port``, as one line for the user, or None.
 
     Checked before the dataset is loaded, so a port already in use is said at once and in a
-    line, not after the load as uvicorn's ``[Errno 98]`` log and exit 3.  Every address the
-    host resolves to is bound as asyncio's server binds it (``SO_REUSEADDR``, IPv6 only on
-    IPv6), then released; a server that takes the port in between still fails as uvicorn says."""
+    line, not after the load as uvicorn's ``[Errno 98]`` log and exit 3.  The addresses are
+    bound as the server will bind them, then released: one worker's asyncio server binds every
+    address the host resolves to (``SO_REUSEADDR``, IPv6 only on IPv6) and skips a family the
+    machine cannot open a socket of; several workers share the one socket uvicorn binds (IPv6
+    only for a host written with ':').  A server that takes the port in between still fails as
+    uvicorn says."""
     import errno
     import socket
 
     where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+    family = socket.AF_UNSPEC if workers <= 1 else (socket.AF_INET6 if ":" in host else socket.AF_INET)
     try:
-        addresses = socket.getaddrinfo(host or None, port, socket.AF_UNSPEC, socket.SOCK_STREAM, 0, socket.AI_PASSIVE)
+        addresses = socket.getaddrinfo(host or None, port, family, socket.SOCK_STREAM, 0, socket.AI_PASSIVE)
     except socket.gaierror as err:
         return f"cannot listen on {where}: {str(err.strerror).lower()}; check --host"
+    if workers > 1:
+        addresses = addresses[:1]
     for family, kind, proto, _, address in dict.fromkeys(addresses):
         try:
-            with socket.socket(family, kind, proto) as sock:
+            opened = socket.socket(family, kind, proto)
+        except OSError:
+            continue  # a family this machine cannot open (IPv6 disabled): asyncio skips it too
+        try:
+            with opened as sock:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                 if family == socket.AF_INET6 and hasattr(socket, "IPPROTO_IPV6"):
                     sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)

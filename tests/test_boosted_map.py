@@ -170,7 +170,8 @@ def test_features_of_any_other_shape_are_refused(shape):
 def test_a_missing_or_broken_file_names_the_path(tmp_path):
     with pytest.raises(BoostedMapError) as missing:
         load_trees(str(tmp_path / "nowhere.json"))
-    assert str(missing.value).startswith(f"topple.boosted_map '{tmp_path}/nowhere.json': no such file {tmp_path}/nowhere.json; ")
+    assert str(missing.value).startswith(
+        f"topple.boosted_map '{tmp_path}/nowhere.json': no such file {(tmp_path / 'nowhere.json').resolve()}; ")
     assert "Errno" not in str(missing.value)
     with pytest.raises(BoostedMapError, match="'nowhere': no packaged map of that name; .*packaged map \\(boosted_map_s41\\)"):
         load_trees("nowhere")

@@ -259,3 +259,17 @@ def test_the_unit_hint_names_the_corpus_only_for_a_corpus_object():
     assert _reason(millimetres, corpus_hint=True).endswith('use --units mm (or units = "mm" in corpus.toml, or a scale column)')
     assert unit_hint(0.001, MeshConfig()) == "; check the file's units (--units or --scale)"
     assert unit_hint(0.001, MeshConfig(), corpus=True) == "; check the file's units (--units, --scale, or the corpus's scale)"
+
+
+@pytest.mark.parametrize("error", [PermissionError(13, "Permission denied"), IsADirectoryError(21, "Is a directory")])
+def test_a_file_that_cannot_be_opened_is_one_line_not_a_traceback(tmp_path, monkeypatch, error):
+    # As root (CI) chmod 000 is no obstacle, so the loader is made to meet the error itself.
+    path = tmp_path / "box.obj"
+    path.write_text("v 0 0 0\n")
+
+    def refuse(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(trimesh, "load", refuse)
+    with pytest.raises(MeshError, match=rf"^box: cannot read box\.obj: {error.strerror.lower()}$"):
+        load_mesh(path)

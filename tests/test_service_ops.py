@@ -180,6 +180,42 @@ def test_a_port_in_use_is_one_line_and_exit_2_before_the_dataset_is_loaded(datas
     assert run.stderr == f"error: cannot listen on 127.0.0.1:{port}: address already in use; choose another --port\n"
 
 
+def test_the_port_check_binds_what_the_server_will_bind(monkeypatch):
+    """A family the machine cannot open (IPv6 disabled while the host resolves to ::1 too) is
+    skipped, as asyncio skips it; several workers share one socket of the host's written family,
+    so only that address is checked; a port in use is refused either way."""
+    from service.server import listen_problem
+
+    real_socket = socket.socket
+    resolved = [(socket.AF_INET6, socket.SOCK_STREAM, 6, "", ("::1", 0, 0, 0)),
+                (socket.AF_INET, socket.SOCK_STREAM, 6, "", ("127.0.0.1", 0))]
+    asked = []
+
+    def getaddrinfo(host, port, family=0, *args):
+        asked.append(family)
+        return [(f, k, p, c, (a[0], port, *a[2:])) for f, k, p, c, a in resolved if family in (0, f)]
+
+    def no_ipv6(family=socket.AF_INET, *args, **kwargs):
+        if family == socket.AF_INET6:
+            raise OSError(97, "Address family not supported by protocol")
+        return real_socket(family, *args, **kwargs)
+
+    monkeypatch.setattr(socket, "getaddrinfo", getaddrinfo)
+    monkeypatch.setattr(socket, "socket", no_ipv6)
+    with real_socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        free = probe.getsockname()[1]
+    assert listen_problem("localhost", free) is None
+    assert listen_problem("localhost", free, workers=2) is None and asked[-1] == socket.AF_INET
+    with real_socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        for workers in (1, 2):
+            assert listen_problem("localhost", port, workers) == (
+                f"cannot listen on localhost:{port}: address already in use; choose another --port")
+
+
 def test_default_host_is_localhost_and_the_server_answers(dataset):
     assert DEFAULT_HOST == "127.0.0.1" and build_parser().parse_args([]).host == "127.0.0.1"
     process, url = start([sys.executable, "-m", "service", "--dataset", str(dataset), "--log-level", "warning"])

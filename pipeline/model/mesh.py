@@ -80,6 +80,8 @@ def load_mesh(
         raise MeshError(f"{name}: cannot read {file}: {what}; convert it to {FORMATS}")
     try:
         loaded = trimesh.load(str(path), force="mesh", process=False)
+    except OSError as err:  # the file itself cannot be opened or read (permissions, a directory, I/O)
+        raise MeshError(f"{name}: cannot read {file}: {(err.strerror or str(err)).lower()}") from None
     except Exception:  # noqa: BLE001 (trimesh raises many types for unreadable files, ImportError included)
         # ImportError: trimesh imports its text-encoding detector only for bytes that are not
         # UTF-8; the real cause is the file, not the missing module.
