@@ -38,10 +38,9 @@ from pathlib import Path
 
 from schema.layout import check_object_id, object_id_key
 
+from ..model.config import MESH_SUFFIXES
 from .atomic import file_sha256, write_text_atomic
 
-MESH_SUFFIXES = (".obj", ".stl", ".ply")
-"""The formats ``pipeline.model.mesh.load_mesh`` reads (its ``MESH_SUFFIXES``; not imported, to keep trimesh out)."""
 DEFAULT_LIST = Path(__file__).with_name("corpus_default.csv")
 LIST_COLUMNS = ("object_id", "source", "path", "scale", "mass", "sha256")
 """Columns of the default list as written by ``write_list``."""

@@ -105,6 +105,11 @@ when nothing else does and the push can drag the base (the finger sticks, the ba
 ``tip_path_points`` angles between, not only at the start (it needs ``finger_friction``)."""
 
 
+MESH_SUFFIXES = (".obj", ".stl", ".ply")
+"""The mesh formats ``mesh.load_mesh`` reads, and so the files a directory corpus picks up
+(``pipeline.build.corpus``); here, not in ``mesh``, so the corpus reads it without importing trimesh."""
+
+
 @dataclass(frozen=True)
 class MeshConfig:
     """Loading and validation of corpus meshes."""

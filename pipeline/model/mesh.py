@@ -14,16 +14,15 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .config import MeshConfig
+from .config import MESH_SUFFIXES, MeshConfig
 
 
 class MeshError(ValueError):
     """A mesh that cannot be used; ``str(err)`` is one line: ``<name>: <reason>``."""
 
 
-MESH_SUFFIXES = (".obj", ".stl", ".ply")
-"""The mesh formats toppledb reads (``pipeline.build.corpus`` picks these up in a directory)."""
 FORMATS = "OBJ, STL or PLY"
+"""``MESH_SUFFIXES`` as a message names them."""
 
 
 @dataclass
