@@ -341,14 +341,8 @@ def run_add(args: argparse.Namespace) -> int:
     scale = units.scale or 1.0
     mass = units.mass
     if units.density is not None:
+        # None when the mesh does not load: ``add_object`` reads it before computing and says why (exit 2).
         mass = mass_from_density(mesh, scale, units.density)
-        if mass is None:  # the mesh does not load: say why, as add would
-            from .model.mesh import MeshError, load_mesh
-
-            try:
-                load_mesh(mesh, scale=scale, mass=1.0, name=object_id)
-            except MeshError as err:
-                raise UsageError(str(err)) from None
     if mass is None:
         try:
             mass = float(read_manifest(args.directory).parameters.model_dump()["mesh"]["default_mass"])

@@ -549,6 +549,10 @@ def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_
         err = capsys.readouterr().err
         assert err.startswith("error: ") and message in err and err.count("\n") == 1, err
         assert "--strict" not in err and "corpus.toml" not in err and "scale column" not in err, err
+    # With --density no mass can be computed from it either: the mesh's own reason, said once.
+    assert main(["add", str(copy), str(tmp_path / "junk.ply"), "--density", "700", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert rejected["junk.ply"] in err and err.count("\n") == 1, err
     assert_intact(copy, before)
 
     assert main(["add", str(copy), str(mesh), "--scale", "0.015", "--mass", "0.1", "--id", "extra", "--no-progress"]) == 0
