@@ -294,8 +294,12 @@ def _build_locked(
     if reused:
         # Name the directory that holds them: a killed run's shards wait in the staging directory,
         # and --out may not exist yet.
-        where = (f"in {out}" if not staged else f"in {staging}" if not records
-                 else f"({len(records)} in {out}, {len(staged)} in {staging})")
+        if not staged:
+            where = f"in {out}"
+        elif not records:
+            where = f"in {staging}"
+        else:
+            where = f"({len(records)} in {out}, {len(staged)} in {staging})"
         log(f"resuming: {reused} of {len(corpus.specs)} objects already complete {where}")
 
     _make_directory(staging, "staging directory")
