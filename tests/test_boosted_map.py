@@ -359,6 +359,56 @@ def test_fold_maps_are_each_fitted_without_their_objects_and_list_them_as_a_corp
     assert main([*common[:1], "--corpus", "none", *common[3:], "--boosted", "--fold-maps", str(folds_dir)]) == 2
     assert "--fold-maps writes corpus lists: give a --corpus, not 'none'" in capsys.readouterr().err
 
+
+def test_folds_from_an_earlier_fold_maps_directory_are_the_folds_used(model_logs, tmp_path, capsys):  # noqa: F811
+    """``--folds-from DIR``: the fit's folds are DIR's lists, not drawn, so two maps' corpus datasets out
+    of fold hold the same objects; a logged object in no list, or one list alone, is refused."""
+    pytest.importorskip("sklearn")
+    from pipeline.build.atomic import file_sha256
+    from pipeline.build.corpus import write_list
+    from pipeline.studies.recalibrate import main
+    from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
+
+    path = model_logs / "reported.parquet"
+    specs = {f"box{i}": ObjectSpec(f"box{i}", str(model_logs / f"box{i}.stl"), 1.0, 0.25, "test",
+                                   file_sha256(model_logs / f"box{i}.stl")) for i in range(3)}
+    corpus_list = tmp_path / "boxes.csv"
+    write_list(list(specs.values()), corpus_list, None)
+    given = tmp_path / "given"
+    given.mkdir()
+    # Folds no draw of three folds gives: two objects together, one alone.
+    write_list([specs["box0"], specs["box2"]], given / "fold_0.csv", None)
+    write_list([specs["box1"]], given / "fold_1.csv", None)
+    common = [str(path), "--corpus", str(corpus_list), "--boosted", "--folds", "3", "--set", f"contacts.n_contacts={CANDIDATES_PER_POSE}",
+              "--seed", "2", "--set", "seed=2", "--out", str(tmp_path / "b.toml"), "--json", str(tmp_path / "b.json")]
+    out_dir = tmp_path / "out"
+    assert main([*common, "--folds-from", str(given), "--fold-maps", str(out_dir)]) == 0
+    result = json.loads((tmp_path / "b.json").read_text())
+    assert result["fold_objects"] == [["box0", "box2"], ["box1"]] and result["folds"] == 2
+    assert sorted(p.name for p in out_dir.iterdir()) == ["fold_0.csv", "fold_0.trees.json", "fold_1.csv", "fold_1.trees.json"]
+    assert "the folds of" in (tmp_path / "b.toml").read_text()
+
+    # The same lists and a different --seed: the same folds and, fitted on the same pushes, the same maps.
+    again = tmp_path / "again"
+    assert main([*common[:-6], "--seed", "5", *common[-4:], "--folds-from", str(out_dir), "--fold-maps", str(again)]) == 0
+    assert json.loads((tmp_path / "b.json").read_text())["fold_objects"] == [["box0", "box2"], ["box1"]]
+    assert (again / "fold_1.csv").read_text() == (out_dir / "fold_1.csv").read_text()
+
+    capsys.readouterr()
+    (given / "fold_1.csv").unlink()
+    write_list([specs["box0"]], given / "fold_0.csv", None)
+    assert main([*common, "--folds-from", str(given)]) == 2
+    assert "holds 1 fold list(s)" in capsys.readouterr().err
+    write_list([specs["box2"]], given / "fold_1.csv", None)
+    assert main([*common, "--folds-from", str(given)]) == 2
+    assert "1 logged object(s) in no fold: box1" in capsys.readouterr().err
+    write_list([specs["box1"], specs["box2"]], given / "fold_1.csv", None)
+    write_list([specs["box0"], specs["box2"]], given / "fold_0.csv", None)
+    assert main([*common, "--folds-from", str(given)]) == 2
+    assert "object 'box2' is in folds 0 and 1" in capsys.readouterr().err
+    assert main([*common[:3], *common[4:], "--folds-from", str(given)]) == 2
+    assert "--folds-from gives the boosted map's folds; give --boosted" in capsys.readouterr().err
+
 # --- the features: every column what its name says (M09, M10, M24, M27, M28, M11, M12) --------------
 
 def test_every_feature_column_is_what_its_name_says(pose_and_candidates):  # noqa: F811

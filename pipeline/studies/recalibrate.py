@@ -168,8 +168,45 @@ def push_folds(objects: list[str], folds: int, seed: int) -> tuple[list[list[str
     for name in objects:
         counts[name] = counts.get(name, 0) + 1
     fold_objects = grouped_folds(counts, folds, seed)
-    fold_of_object = {name: f for f, members in enumerate(fold_objects) for name in members}
-    return fold_objects, np.array([fold_of_object[name] for name in objects], dtype=int)
+    return fold_objects, fold_of_pushes(objects, fold_objects)
+
+
+def fold_of_pushes(objects: list[str], fold_objects: list[list[str]]) -> np.ndarray:
+    """(n,) int, the fold of each push's object; every object must be in exactly one fold.
+
+    objects : (n,) the object id of each push;  fold_objects : object ids per fold
+    """
+    fold_of_object: dict[str, int] = {}
+    for f, members in enumerate(fold_objects):
+        for name in members:
+            if name in fold_of_object:
+                raise RecalibrationError(f"object {name!r} is in folds {fold_of_object[name]} and {f}; a fold list holds each object once")
+            fold_of_object[name] = f
+    outside = sorted(set(objects) - set(fold_of_object))
+    if outside:
+        raise RecalibrationError(f"{len(outside)} logged object(s) in no fold: {', '.join(outside[:5])}"
+                                 f"{' ...' if len(outside) > 5 else ''}")
+    return np.array([fold_of_object[name] for name in objects], dtype=int)
+
+
+def read_fold_lists(directory: Path) -> list[list[str]]:
+    """The folds an earlier ``--fold-maps DIR`` wrote: object ids of ``fold_0.csv``, ``fold_1.csv``, ...
+
+    Two maps fitted on the same folds build corpus datasets out of fold of the same objects, so
+    their policies can be played on the same trials, object by object."""
+    from ..build.corpus import CorpusError, read_list
+
+    folds = []
+    while (directory / f"fold_{len(folds)}.csv").is_file():
+        try:
+            specs = read_list(directory / f"fold_{len(folds)}.csv", 1.0).specs
+        except CorpusError as err:
+            raise RecalibrationError(f"{directory / f'fold_{len(folds)}.csv'}: {err}") from None
+        folds.append([spec.object_id for spec in specs])
+    if len(folds) < 2:
+        raise RecalibrationError(f"{directory} holds {len(folds)} fold list(s) (fold_0.csv, fold_1.csv, ...); "
+                                 "cross-validation needs at least 2")
+    return folds
 
 
 def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
@@ -297,7 +334,8 @@ def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
                       counts=log.counts())
 
 
-def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
+def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0,
+                        fold_objects: list[list[str]] | None = None) -> dict:
     """Cross-validate the boosted map (docs/MODEL.md C.19) on top of ``config``'s other maps, fit it on all.
 
     Every fold fits trees (``boosted_map.fit_trees``, ``FIT_PARAMS``) on its training pushes and maps its
@@ -306,13 +344,18 @@ def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: in
     returns : a JSON-ready record with ``trees`` (``boosted_map.trees_from_dict``'s layout, fitted on every
       push), ``fold_trees`` (fold k's, fitted without the objects of ``fold_objects[k]``: what maps them
       out of fold, ``write_fold_maps``) and pooled held-out metrics of both
+    fold_objects : the folds to use (``read_fold_lists``) instead of ``folds`` drawn with ``seed``
     """
     config = config or Config()
     started = time.perf_counter()
     scorer = Scorer(log, config.seed, config.contacts)
     features, p, lands = scorer.boosted_inputs(config.topple)
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
-    fold_objects, fold_of = push_folds([scorer.object_ids[i] for i in objects], folds, seed)
+    names = [scorer.object_ids[i] for i in objects]
+    if fold_objects is None:
+        fold_objects, fold_of = push_folds(names, folds, seed)
+    else:
+        fold_of, folds = fold_of_pushes(names, fold_objects), len(fold_objects)
     rows = np.isfinite(p)
     held_out = p.copy()
     fold_trees = []
@@ -418,9 +461,12 @@ def kept_maps(topple: ToppleConfig) -> dict:
             "side_map_band": topple.side_map_band}
 
 
-def with_and_without(cv: dict, name: str, folds: int, seed: int) -> str:
-    """The TOML comment line of a map fitted on top of the others: held-out ECE and Brier without and with it."""
-    return (f"{folds}-fold CV grouped by object (seed {seed}), held-out ECE / Brier: without it "
+def with_and_without(cv: dict, name: str, folds: int, seed: int | str) -> str:
+    """The TOML comment line of a map fitted on top of the others: held-out ECE and Brier without and with it.
+
+    seed : the folds' seed, or where they were read from"""
+    drawn = f"seed {seed}" if isinstance(seed, int) else f"the folds of {seed}"
+    return (f"{folds}-fold CV grouped by object ({drawn}), held-out ECE / Brier: without it "
             f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, with it {cv[name]['ece']:.3f} / {cv[name]['brier']:.4f}")
 
 
@@ -453,6 +499,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fold-maps", type=Path, metavar="DIR",
                         help=("with --boosted: also write each fold's map (fitted without its objects) and its objects' "
                               "corpus list to DIR, to build the corpus out of fold (fold_K.trees.json, fold_K.csv)"))
+    parser.add_argument("--folds-from", type=Path, metavar="DIR",
+                        help=("with --boosted: the folds an earlier --fold-maps DIR wrote, instead of drawing them "
+                              "(--folds and --seed's folds are ignored), so two maps' corpus datasets out of fold hold the same objects"))
     args = parser.parse_args(argv)
 
     try:
@@ -460,6 +509,8 @@ def main(argv: list[str] | None = None) -> int:
             raise UsageError("--features, --down, --side and --boosted fit different maps; choose one")
         if args.fold_maps is not None and not args.boosted:
             raise UsageError("--fold-maps writes the boosted map's folds; give --boosted")
+        if args.folds_from is not None and not args.boosted:
+            raise UsageError("--folds-from gives the boosted map's folds; give --boosted")
         config = config_from_args(args)
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
@@ -482,7 +533,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.boosted:
             if args.fold_maps is not None and corpus is None:
                 raise UsageError("--fold-maps writes corpus lists: give a --corpus, not 'none'")
-            result = boosted_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
+            given = None if args.folds_from is None else read_fold_lists(args.folds_from)
+            result = boosted_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, fold_objects=given)
             fold_trees = result.pop("fold_trees")
             if args.fold_maps is not None:
                 result["fold_lists"] = [str(p) for p in write_fold_maps(args.fold_maps, fold_trees, result["fold_objects"], corpus)]
@@ -536,7 +588,8 @@ def main(argv: list[str] | None = None) -> int:
         trees_file.write_text(json.dumps(result.pop("trees"), separators=(",", ":")))
         result["trees_file"] = str(trees_file)
         comments = ["toppledb recalibrate --boosted: the boosted map of P(topple) (docs/MODEL.md C.19), the model's other maps kept",
-                    logs_line, with_and_without(cv, "boosted_map", args.folds, args.seed)]
+                    logs_line, with_and_without(cv, "boosted_map", result["folds"],
+                                                args.seed if args.folds_from is None else str(args.folds_from))]
         fitted_map = {**kept_maps(config.topple), "boosted_map": str(trees_file)}
     else:
         print(format_record(result))
