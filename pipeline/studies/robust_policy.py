@@ -599,7 +599,7 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
                workers: int | None = 1, world: Config | None = None, progress: bool = False,
                exclusion: Exclusion = Exclusion(), landing_prior: float | None = None,
-               variant: dict[str, float | bool] | None = None) -> tuple[dict, list[Push]]:
+               variant: dict[str, float | bool] | None = None, per_trial: bool = False) -> tuple[dict, list[Push]]:
     """Play the ``COMPARED`` policies (and the ``PRIOR_POLICIES`` with a landing prior, the
     ``VARIANT_POLICIES`` under another MDP); the report
     (JSON-ready) and every push played.
@@ -614,7 +614,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
       so the others' counted trials can differ from a run without it (pushes never do).  Their
       pushes' landing records (``Push.landing``...) are the model's rows', not the shrunk ones.
     variant : ``mdp`` values (``VARIANT_FIELDS``) the ``VARIANT_POLICIES`` plan under, the dataset's
-      for the others; given, they are played too (the same caveat on dropped trials)."""
+      for the others; given, they are played too (the same caveat on dropped trials).
+    per_trial : the report also holds ``trials``, every played trial's record (``trial_records``)"""
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
@@ -688,6 +689,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     report.update({"landing_prior": landing_prior, "variant": variant or None, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
                    "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
+    if per_trial:
+        report["trials"] = trial_records(tables, starts, runs, policies)
     return report, pushes
 
 
@@ -707,6 +710,27 @@ def trial_gains(tables, starts: np.ndarray, runs: dict, policies: tuple[str, ...
     useful = useful_starts(tables, rows)
     gains = {p: tables.v_s[first + np.array([runs[t][p][-1] for t in kept], dtype=np.int64)] - tables.v_s[rows] for p in policies}
     return kept, gains, useful, int(outside.sum())
+
+
+def trial_records(tables, starts: np.ndarray, runs: dict, policies: tuple[str, ...]) -> list[dict]:
+    """Every played trial as a record, to pair two runs trial by trial (``paired_trials``).
+
+    runs : {trial: {policy: visited poses}}
+    returns : per trial, in order: ``trial``; ``start``, its start row in the dataset's pose order
+      (object by object, pose by pose); ``object``, its object's index; ``outside``, whether a played
+      policy left the pose set; ``useful``, as ``useful_starts``; ``gains``, policy -> V_s at the
+      end minus at the start (None where outside)
+    """
+    records = []
+    for t in sorted(runs):
+        row = int(starts[t])
+        obj = int(np.searchsorted(tables.first_pose, row, side="right") - 1)
+        outside = any(runs[t][p][-1] < 0 for p in policies)
+        gains = None if outside else {p: float(tables.v_s[tables.first_pose[obj] + runs[t][p][-1]] - tables.v_s[row])
+                                      for p in policies}
+        records.append({"trial": int(t), "start": row, "object": obj, "outside": bool(outside),
+                        "useful": bool(useful_starts(tables, np.array([row]))[0]), "gains": gains})
+    return records
 
 
 def landing_summary(pushes: list[Push]) -> dict:
@@ -823,6 +847,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="m, what a failed push rules out for untried_vi (default: %(default)s)")
     parser.add_argument("--exclude-angle", type=float, default=Exclusion.max_angle, help="rad (default: %(default)s)")
     parser.add_argument("--pushes", type=Path, help="write every push played (diagnostics) here, JSON lines")
+    parser.add_argument("--trials-out", type=Path, metavar="FILE.jsonl",
+                        help=("write every trial's start and each policy's gain here, JSON lines: two runs of one seed on "
+                              "datasets of the same objects pair trial by trial (python -m pipeline.studies.paired_trials)"))
     parser.add_argument("--landing-prior", type=float, metavar="ALPHA",
                         help="also play value iteration, belief_vi and belief_horizon_vi over rows whose landings are "
                              "shrunk toward the pose's mean landing with this pseudo-count (landing_prior_rows)")
@@ -848,13 +875,17 @@ def main(argv: list[str] | None = None) -> int:
                                     workers=args.workers, world=world_config(args.world),
                                     exclusion=Exclusion(args.exclude_radius, args.exclude_angle),
                                     landing_prior=args.landing_prior,
-                                    variant={name: getattr(args, name) for name in VARIANT_FIELDS if getattr(args, name) is not None})
+                                    variant={name: getattr(args, name) for name in VARIANT_FIELDS if getattr(args, name) is not None},
+                                    per_trial=args.trials_out is not None)
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    trials = report.pop("trials", None)
     print(text(report))
     if args.json:
         write_text_atomic(args.json, json.dumps(report, indent=1) + "\n")
+    if trials is not None:
+        write_text_atomic(args.trials_out, "".join(json.dumps(t) + "\n" for t in trials))
     if args.pushes:
         write_text_atomic(args.pushes, "".join(json.dumps(vars(p)) + "\n" for p in pushes))
     return 0

@@ -1,0 +1,132 @@
+"""Two datasets' policies played on the same trials, compared trial by trial.
+
+A change to the model's rows (a refitted map, say) changes a dataset's tables, not its objects or
+poses.  ``pipeline.studies.robust_policy`` draws a seed's trials from the poses' drop
+probabilities and plays them with streams of their own, so two datasets of the same objects and
+poses played on one seed start every trial in the same pose under the same noise, and a policy's
+difference between them is paired.  ``--trials-out`` writes each run's trials; this pairs them.
+
+A trial counts where neither run left the pose set and either run calls it useful (greedy would
+push from a pose that is not the object's best): the trials where either table says pushing can
+pay, the same for both.
+
+    python -m pipeline.studies.paired_trials A.jsonl B.jsonl [A2.jsonl B2.jsonl ...] --policies value_iteration
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..build.atomic import write_text_atomic
+
+
+class PairingError(ValueError):
+    """Two runs that are not the same trials; one line."""
+
+
+def read_trials(path: str | Path) -> dict[int, dict]:
+    """A run's trial records (``robust_policy.trial_records``) by trial number."""
+    try:
+        lines = Path(path).read_text().splitlines()
+    except OSError as err:
+        raise PairingError(f"{path}: {err.strerror or err}") from None
+    try:
+        records = [json.loads(line) for line in lines if line.strip()]
+        return {int(r["trial"]): r for r in records}
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+        raise PairingError(f"{path}: not a file of trial records ({err})") from None
+
+
+def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str) -> tuple[np.ndarray, np.ndarray]:
+    """A policy's V_s gain in run ``a`` and in run ``b`` on the trials both count.
+
+    returns : (n,) float each, in trial order, over the trials both played, neither left outside
+      and either calls useful
+    raises PairingError : the runs played different trials, or a trial starts in different poses
+    """
+    if set(a) != set(b):
+        raise PairingError(f"the runs played different trials ({len(a)} and {len(b)}); play both with the same --trials and --seed")
+    for t in sorted(a):
+        if a[t]["start"] != b[t]["start"]:
+            raise PairingError(f"trial {t} starts in pose row {a[t]['start']} in one run and {b[t]['start']} in the other: "
+                               "the runs are not of one seed on datasets of the same objects and poses")
+    counted = [t for t in sorted(a) if not a[t]["outside"] and not b[t]["outside"] and (a[t]["useful"] or b[t]["useful"])]
+    for run in (a, b):
+        if counted and policy not in run[counted[0]]["gains"]:
+            raise PairingError(f"no policy {policy!r} in the runs; they played {', '.join(sorted(run[counted[0]]['gains']))}")
+    return (np.array([a[t]["gains"][policy] for t in counted], dtype=float),
+            np.array([b[t]["gains"][policy] for t in counted], dtype=float))
+
+
+def mean_se(values: np.ndarray) -> tuple[float | None, float | None]:
+    """The mean and its standard error (None for the error of fewer than two values)."""
+    if len(values) == 0:
+        return None, None
+    se = float(np.std(values, ddof=1) / math.sqrt(len(values))) if len(values) > 1 else None
+    return float(np.mean(values)), se
+
+
+def compare(pairs: list[tuple[str, str]], policies: list[str]) -> dict:
+    """Per policy: each pair's paired difference (B minus A, mean and SE over its trials), the mean
+    of the pairs' means with its SE over pairs, and the difference pooled over every counted trial."""
+    runs = [(read_trials(a), read_trials(b)) for a, b in pairs]
+    out = {"pairs": [{"a": str(a), "b": str(b)} for a, b in pairs], "policies": {}}
+    for policy in policies:
+        per_pair, pooled = [], []
+        for (a, b), names in zip(runs, pairs):
+            gain_a, gain_b = paired_gains(a, b, policy)
+            mean, se = mean_se(gain_b - gain_a)
+            per_pair.append({"trials": len(gain_a), "a": mean_se(gain_a)[0], "b": mean_se(gain_b)[0], "b_minus_a": mean,
+                             "b_minus_a_se": se})
+            pooled.append(gain_b - gain_a)
+        means = np.array([p["b_minus_a"] for p in per_pair if p["b_minus_a"] is not None])
+        runs_mean, runs_se = mean_se(means)
+        out["policies"][policy] = {"pairs": per_pair, "runs_mean": runs_mean, "runs_se": runs_se,
+                                   "pooled": mean_se(np.concatenate(pooled))[0] if pooled else None,
+                                   "trials": int(sum(len(p) for p in pooled))}
+    return out
+
+
+def text(result: dict) -> str:
+    def cell(value: float | None) -> str:
+        return "-" if value is None else f"{value:+.4f}"
+
+    lines = []
+    for policy, r in result["policies"].items():
+        lines.append(f"{policy}: B minus A {cell(r['runs_mean'])} +/- {cell(r['runs_se'])} over {len(r['pairs'])} pairs "
+                     f"(pooled over {r['trials']} trials {cell(r['pooled'])})")
+        for pair, p in zip(result["pairs"], r["pairs"]):
+            lines.append(f"  {p['trials']:>5} trials  A {cell(p['a'])}  B {cell(p['b'])}  B - A {cell(p['b_minus_a'])} "
+                         f"+/- {cell(p['b_minus_a_se'])}  {Path(pair['b']).name}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pipeline.studies.paired_trials", description=__doc__.split("\n\n")[0])
+    parser.add_argument("files", nargs="+", metavar="A.jsonl B.jsonl",
+                        help="pairs of runs' --trials-out files, A then B; the difference is B minus A")
+    parser.add_argument("--policies", nargs="+", default=["value_iteration"], help="policies to compare (default: %(default)s)")
+    parser.add_argument("--json", type=Path, help="write the comparison here")
+    args = parser.parse_args(argv)
+    if len(args.files) % 2:
+        print(f"error: {len(args.files)} files do not make pairs; give A B for each pair", file=sys.stderr)
+        return 2
+    try:
+        result = compare(list(zip(args.files[::2], args.files[1::2])), args.policies)
+    except PairingError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(text(result))
+    if args.json:
+        write_text_atomic(args.json, json.dumps(result, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,72 @@
+"""Two runs of the policy study paired trial by trial: the records a run writes and how they pair."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.studies.paired_trials import PairingError, compare, main, paired_gains
+from tests.test_policies_physics import dataset  # noqa: F401 (fixture)
+
+
+def record(trial: int, start: int, gains: dict | None, useful: bool = True) -> dict:
+    return {"trial": trial, "start": start, "object": 0, "outside": gains is None, "useful": useful, "gains": gains}
+
+
+def write(path, records) -> str:
+    path.write_text("".join(json.dumps(r) + "\n" for r in records))
+    return str(path)
+
+
+def test_the_records_reproduce_the_reports_gains_and_a_run_pairs_with_itself_at_zero(dataset, tmp_path, capsys):  # noqa: F811
+    from pipeline.studies.robust_policy import main as study
+
+    out = tmp_path / "trials.jsonl"
+    assert study([str(dataset), "--trials", "8", "--seed", "1", "--json", str(tmp_path / "r.json"), "--trials-out", str(out)]) == 0
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert "trials" not in report, "the records go to their own file"
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [r["trial"] for r in records] == list(range(8))
+    counted = [r for r in records if r["useful"] and not r["outside"]]
+    assert len(counted) == report["useful_trials"] > 0
+    for policy in ("value_iteration", "belief_horizon_vi"):
+        gains = np.array([r["gains"][policy] - r["gains"]["max_height"] for r in counted])
+        assert np.isclose(gains.mean(), report["policies"][policy]["gain_over_max_height"])
+        assert np.isclose(np.mean([r["gains"][policy] for r in counted]), report["policies"][policy]["physical_gain_useful"])
+    capsys.readouterr()
+    assert main([str(out), str(out), "--policies", "value_iteration"]) == 0
+    assert "B minus A +0.0000" in capsys.readouterr().out
+
+
+def test_a_pair_counts_the_trials_either_run_calls_useful_and_neither_leaves_outside(tmp_path):
+    a = write(tmp_path / "a.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 4, {"vi": 0.1}, useful=False),
+                                     record(2, 5, None), record(3, 6, {"vi": 0.2}, useful=False)])
+    b = write(tmp_path / "b.jsonl", [record(0, 3, {"vi": 0.7}), record(1, 4, {"vi": 0.4}),
+                                     record(2, 5, {"vi": 0.9}), record(3, 6, {"vi": 0.2}, useful=False)])
+    from pipeline.studies.paired_trials import read_trials
+
+    gain_a, gain_b = paired_gains(read_trials(a), read_trials(b), "vi")
+    assert gain_a.tolist() == [0.5, 0.1] and gain_b.tolist() == [0.7, 0.4], "trial 2 left outside, trial 3 useful in neither"
+    result = compare([(a, b), (a, b)], ["vi"])["policies"]["vi"]
+    assert result["pairs"][0]["b_minus_a"] == pytest.approx(0.25) and result["pairs"][0]["trials"] == 2
+    assert result["runs_mean"] == pytest.approx(0.25) and result["runs_se"] == pytest.approx(0.0)
+    assert result["pooled"] == pytest.approx(0.25) and result["trials"] == 4
+
+
+def test_runs_of_other_trials_or_starts_are_refused_in_one_line(tmp_path, capsys):
+    a = write(tmp_path / "a.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 4, {"vi": 0.1})])
+    other_start = write(tmp_path / "b.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 7, {"vi": 0.1})])
+    fewer = write(tmp_path / "c.jsonl", [record(0, 3, {"vi": 0.5})])
+    with pytest.raises(PairingError, match="trial 1 starts in pose row 4 in one run and 7 in the other"):
+        compare([(a, other_start)], ["vi"])
+    with pytest.raises(PairingError, match="played different trials"):
+        compare([(a, fewer)], ["vi"])
+    with pytest.raises(PairingError, match="no policy 'mh' in the runs; they played vi"):
+        compare([(a, a)], ["mh"])
+    (tmp_path / "bad.jsonl").write_text("{not json\n")
+    assert main([a, str(tmp_path / "bad.jsonl")]) == 2
+    assert "not a file of trial records" in capsys.readouterr().err
+    assert main([a, a, a]) == 2
+    assert "3 files do not make pairs" in capsys.readouterr().err
+    assert main([a, str(tmp_path / "missing.jsonl")]) == 2
+    assert "missing.jsonl" in capsys.readouterr().err
