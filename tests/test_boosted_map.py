@@ -409,6 +409,57 @@ def test_folds_from_an_earlier_fold_maps_directory_are_the_folds_used(model_logs
     assert main([*common[:3], *common[4:], "--folds-from", str(given)]) == 2
     assert "--folds-from gives the boosted map's folds; give --boosted" in capsys.readouterr().err
 
+
+def test_two_fold_map_sets_are_scored_out_of_fold_each_push_by_its_folds_map(model_logs, tmp_path, capsys):  # noqa: F811
+    """``compare_fold_maps``: each push is mapped by its object's fold's map; the same maps differ by
+    nothing, and maps of a constant 0.5 score exactly (0.5 - f)^2 + f (1 - f) where the model lands."""
+    pytest.importorskip("sklearn")
+    import shutil
+
+    from pipeline.studies.compare_fold_maps import main as compare_main
+    from pipeline.studies.recalibrate import main
+    from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
+
+    path = model_logs / "reported.parquet"
+    settings = ["--set", f"contacts.n_contacts={CANDIDATES_PER_POSE}", "--set", "seed=2"]
+    a, b, record = tmp_path / "a", tmp_path / "b", tmp_path / "c.json"
+    from pipeline.build.atomic import file_sha256
+    from pipeline.build.corpus import write_list
+
+    corpus_list = tmp_path / "boxes.csv"
+    write_list([ObjectSpec(f"box{i}", str(model_logs / f"box{i}.stl"), 1.0, 0.25, "test", file_sha256(model_logs / f"box{i}.stl"))
+                for i in range(3)], corpus_list, None)
+    assert main([str(path), "--corpus", str(corpus_list), "--boosted", "--folds", "3", "--seed", "2", *settings,
+                 "--out", str(tmp_path / "a.toml"), "--json", str(tmp_path / "a.json"), "--fold-maps", str(a)]) == 0
+    shutil.copytree(a, b)
+    common = [str(path), "--corpus", str(corpus_list), *settings, "--json", str(record)]
+    assert compare_main([str(a), str(b), *common]) == 0
+    same = json.loads(record.read_text())["logs"][str(path)]
+    assert same["b_minus_a_brier"] == 0.0 and same["b_minus_a_interval"] == [0.0, 0.0] and same["a"] == same["b"]
+
+    for k in range(3):  # B: every fold's map a constant 0.5
+        (b / f"fold_{k}.trees.json").write_text(json.dumps(_map(_stump(0, 0.0, 0.0, 0.0), baseline=0.0)))
+    load_trees.cache_clear()
+    assert compare_main([str(a), str(b), *common]) == 0
+    result = json.loads(record.read_text())["logs"][str(path)]
+    log = read_log([path])
+    scorer = Scorer(log, seed=2, contacts=ContactConfig(n_contacts=CANDIDATES_PER_POSE))
+    _, p, lands = scorer.boosted_inputs(Config().topple)
+    rows = np.isfinite(p)
+    f, w = scorer.empirical_topple[rows], scorer.repeats[rows]
+    q = np.where(lands[rows], 0.5, p[rows])
+    assert lands[rows].any()
+    assert result["b"]["brier"] == pytest.approx(np.average((q - f) ** 2 + f * (1 - f), weights=w), abs=1e-12)
+    assert result["pushes"] == int(rows.sum()) and result["b_minus_a_brier"] == pytest.approx(result["b"]["brier"] - result["a"]["brier"])
+    low, high = result["b_minus_a_interval"]
+    assert low <= result["b_minus_a_brier"] <= high
+
+    capsys.readouterr()
+    (b / "fold_2.csv").unlink()
+    (b / "fold_0.csv").write_text((a / "fold_0.csv").read_text() + "".join((a / "fold_2.csv").read_text().splitlines(True)[1:]))
+    assert compare_main([str(a), str(b), *common]) == 2
+    assert "hold different folds; fit B with --folds-from" in capsys.readouterr().err
+
 # --- the features: every column what its name says (M09, M10, M24, M27, M28, M11, M12) --------------
 
 def test_every_feature_column_is_what_its_name_says(pose_and_candidates):  # noqa: F811
