@@ -388,11 +388,14 @@ def test_folds_from_an_earlier_fold_maps_directory_are_the_folds_used(model_logs
     assert sorted(p.name for p in out_dir.iterdir()) == ["fold_0.csv", "fold_0.trees.json", "fold_1.csv", "fold_1.trees.json"]
     assert "the folds of" in (tmp_path / "b.toml").read_text()
 
-    # The same lists and a different --seed: the same folds and, fitted on the same pushes, the same maps.
+    # The folds it wrote, read back, and --folds 3 ignored: the same folds and, fitted on the same pushes, the same maps.
     again = tmp_path / "again"
-    assert main([*common[:-6], "--seed", "5", *common[-4:], "--folds-from", str(out_dir), "--fold-maps", str(again)]) == 0
-    assert json.loads((tmp_path / "b.json").read_text())["fold_objects"] == [["box0", "box2"], ["box1"]]
-    assert (again / "fold_1.csv").read_text() == (out_dir / "fold_1.csv").read_text()
+    assert main([*common, "--folds-from", str(out_dir), "--fold-maps", str(again)]) == 0
+    record = json.loads((tmp_path / "b.json").read_text())
+    assert record["fold_objects"] == [["box0", "box2"], ["box1"]] and record["folds_from"] == str(out_dir)
+    for k in range(2):
+        assert (again / f"fold_{k}.trees.json").read_text() == (out_dir / f"fold_{k}.trees.json").read_text()
+        assert (again / f"fold_{k}.csv").read_text() == (out_dir / f"fold_{k}.csv").read_text()
 
     capsys.readouterr()
     (given / "fold_1.csv").unlink()
@@ -406,13 +409,19 @@ def test_folds_from_an_earlier_fold_maps_directory_are_the_folds_used(model_logs
     write_list([specs["box0"], specs["box2"]], given / "fold_0.csv", None)
     assert main([*common, "--folds-from", str(given)]) == 2
     assert "object 'box2' is in folds 0 and 1" in capsys.readouterr().err
+    # A fold list naming an object the corpus does not hold is refused before the fit, not when the lists are written.
+    write_list([specs["box1"]], given / "fold_1.csv", None)
+    write_list([specs["box0"], specs["box2"], ObjectSpec("stranger", specs["box0"].path, 1.0, 0.25, "test", specs["box0"].sha256)],
+               given / "fold_0.csv", None)
+    assert main([*common, "--folds-from", str(given), "--fold-maps", str(tmp_path / "never")]) == 2
+    assert "folds hold 1 object(s) not in corpus" in capsys.readouterr().err and not (tmp_path / "never").exists()
     assert main([*common[:3], *common[4:], "--folds-from", str(given)]) == 2
     assert "--folds-from gives the boosted map's folds; give --boosted" in capsys.readouterr().err
 
 
 def test_two_fold_map_sets_are_scored_out_of_fold_each_push_by_its_folds_map(model_logs, tmp_path, capsys):  # noqa: F811
     """``compare_fold_maps``: each push is mapped by its object's fold's map; the same maps differ by
-    nothing, and maps of a constant 0.5 score exactly (0.5 - f)^2 + f (1 - f) where the model lands."""
+    nothing, and fold maps of constants c_k score exactly (c_k - f)^2 + f (1 - f) where the model lands."""
     pytest.importorskip("sklearn")
     import shutil
 
@@ -437,8 +446,10 @@ def test_two_fold_map_sets_are_scored_out_of_fold_each_push_by_its_folds_map(mod
     same = json.loads(record.read_text())["logs"][str(path)]
     assert same["b_minus_a_brier"] == 0.0 and same["b_minus_a_interval"] == [0.0, 0.0] and same["a"] == same["b"]
 
-    for k in range(3):  # B: every fold's map a constant 0.5
-        (b / f"fold_{k}.trees.json").write_text(json.dumps(_map(_stump(0, 0.0, 0.0, 0.0), baseline=0.0)))
+    constant = [0.2, 0.5, 0.8]  # B: fold k's map the constant constant[k]
+    for k in range(3):
+        logit = float(np.log(constant[k] / (1 - constant[k])))
+        (b / f"fold_{k}.trees.json").write_text(json.dumps(_map(_stump(0, 0.0, 0.0, 0.0), baseline=logit)))
     load_trees.cache_clear()
     assert compare_main([str(a), str(b), *common]) == 0
     result = json.loads(record.read_text())["logs"][str(path)]
@@ -447,7 +458,11 @@ def test_two_fold_map_sets_are_scored_out_of_fold_each_push_by_its_folds_map(mod
     _, p, lands = scorer.boosted_inputs(Config().topple)
     rows = np.isfinite(p)
     f, w = scorer.empirical_topple[rows], scorer.repeats[rows]
-    q = np.where(lands[rows], 0.5, p[rows])
+    from pipeline.studies.recalibrate import fold_of_pushes, read_fold_lists
+
+    fold = fold_of_pushes([scorer.object_ids[i] for i in scorer.object_index], read_fold_lists(a))[rows]
+    assert len(set(fold.tolist())) == 3, "every fold holds logged pushes"
+    q = np.where(lands[rows], np.array(constant)[fold], p[rows])
     assert lands[rows].any()
     assert result["b"]["brier"] == pytest.approx(np.average((q - f) ** 2 + f * (1 - f), weights=w), abs=1e-12)
     assert result["pushes"] == int(rows.sum()) and result["b_minus_a_brier"] == pytest.approx(result["b"]["brier"] - result["a"]["brier"])

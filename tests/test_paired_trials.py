@@ -9,8 +9,9 @@ from pipeline.studies.paired_trials import PairingError, compare, main, paired_g
 from tests.test_policies_physics import dataset  # noqa: F401 (fixture)
 
 
-def record(trial: int, start: int, gains: dict | None, useful: bool = True) -> dict:
-    return {"trial": trial, "start": start, "object": 0, "outside": gains is None, "useful": useful, "gains": gains}
+def record(trial: int, start: int, gains: dict | None, useful: bool = True, object_id: str = "box") -> dict:
+    return {"trial": trial, "start": start, "object": 0, "object_id": object_id, "outside": gains is None, "useful": useful,
+            "gains": gains}
 
 
 def write(path, records) -> str:
@@ -24,7 +25,7 @@ def test_the_records_reproduce_the_reports_gains_and_a_run_pairs_with_itself_at_
     out = tmp_path / "trials.jsonl"
     assert study([str(dataset), "--trials", "8", "--seed", "1", "--json", str(tmp_path / "r.json"), "--trials-out", str(out)]) == 0
     report = json.loads((tmp_path / "r.json").read_text())
-    assert "trials" not in report, "the records go to their own file"
+    assert "trial_records" not in report and report["trials"] == 8, "the records go to their own file"
     records = [json.loads(line) for line in out.read_text().splitlines()]
     assert [r["trial"] for r in records] == list(range(8))
     counted = [r for r in records if r["useful"] and not r["outside"]]
@@ -36,6 +37,9 @@ def test_the_records_reproduce_the_reports_gains_and_a_run_pairs_with_itself_at_
     capsys.readouterr()
     assert main([str(out), str(out), "--policies", "value_iteration"]) == 0
     assert "B minus A +0.0000" in capsys.readouterr().out
+    # Without --trials-out the study writes its report and no records.
+    assert study([str(dataset), "--trials", "8", "--seed", "1", "--json", str(tmp_path / "plain.json")]) == 0
+    assert json.loads((tmp_path / "plain.json").read_text())["policies"] == report["policies"]
 
 
 def test_a_pair_counts_the_trials_either_run_calls_useful_and_neither_leaves_outside(tmp_path):
@@ -57,15 +61,24 @@ def test_runs_of_other_trials_or_starts_are_refused_in_one_line(tmp_path, capsys
     a = write(tmp_path / "a.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 4, {"vi": 0.1})])
     other_start = write(tmp_path / "b.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 7, {"vi": 0.1})])
     fewer = write(tmp_path / "c.jsonl", [record(0, 3, {"vi": 0.5})])
-    with pytest.raises(PairingError, match="trial 1 starts in pose row 4 in one run and 7 in the other"):
+    with pytest.raises(PairingError, match="trial 1 starts in pose row 4 of box in one run and 7 of box in the other"):
         compare([(a, other_start)], ["vi"])
     with pytest.raises(PairingError, match="played different trials"):
         compare([(a, fewer)], ["vi"])
-    with pytest.raises(PairingError, match="no policy 'mh' in the runs; they played vi"):
+    with pytest.raises(PairingError, match="trial 0 has no policy 'mh'; it played vi"):
         compare([(a, a)], ["mh"])
-    (tmp_path / "bad.jsonl").write_text("{not json\n")
-    assert main([a, str(tmp_path / "bad.jsonl")]) == 2
-    assert "not a file of trial records" in capsys.readouterr().err
+    other_object = write(tmp_path / "d.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 4, {"vi": 0.1}, object_id="cup")])
+    with pytest.raises(PairingError, match="trial 1 starts in pose row 4 of box in one run and 4 of cup"):
+        compare([(a, other_object)], ["vi"])
+    bad = {"not json": "{not json\n",
+           "not a trial record (KeyError": json.dumps({"trial": 0, "start": 3}) + "\n",
+           "needs each policy's gain": json.dumps(record(0, 3, None) | {"outside": False}) + "\n",
+           "trial 0 appears twice": (json.dumps(record(0, 3, {"vi": 0.5})) + "\n") * 2}
+    for message, content in bad.items():
+        (tmp_path / "bad.jsonl").write_text(content)
+        assert main([a, str(tmp_path / "bad.jsonl")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and (message in err or message == "not json" and "line 1: not a trial record" in err)
     assert main([a, a, a]) == 2
     assert "3 files do not make pairs" in capsys.readouterr().err
     assert main([a, str(tmp_path / "missing.jsonl")]) == 2

@@ -31,16 +31,31 @@ class PairingError(ValueError):
 
 
 def read_trials(path: str | Path) -> dict[int, dict]:
-    """A run's trial records (``robust_policy.trial_records``) by trial number."""
+    """A run's trial records (``robust_policy.trial_records``) by trial number.
+
+    raises PairingError : the file cannot be read, or a record lacks what pairing reads, or a trial
+      appears twice"""
     try:
         lines = Path(path).read_text().splitlines()
     except OSError as err:
         raise PairingError(f"{path}: {err.strerror or err}") from None
-    try:
-        records = [json.loads(line) for line in lines if line.strip()]
-        return {int(r["trial"]): r for r in records}
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
-        raise PairingError(f"{path}: not a file of trial records ({err})") from None
+    trials: dict[int, dict] = {}
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+            trial, start = int(record["trial"]), int(record["start"])
+            outside, useful, gains = bool(record["outside"]), bool(record["useful"]), record["gains"]
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+            raise PairingError(f"{path}, line {number}: not a trial record ({type(err).__name__}: {err})") from None
+        if not outside and not (isinstance(gains, dict) and all(isinstance(v, (int, float)) for v in gains.values())):
+            raise PairingError(f"{path}, line {number}: a trial inside the pose set needs each policy's gain")
+        if trial in trials:
+            raise PairingError(f"{path}: trial {trial} appears twice")
+        trials[trial] = {"start": start, "object_id": record.get("object_id"), "outside": outside, "useful": useful,
+                         "gains": gains}
+    return trials
 
 
 def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str) -> tuple[np.ndarray, np.ndarray]:
@@ -53,13 +68,15 @@ def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str) -> tuple[n
     if set(a) != set(b):
         raise PairingError(f"the runs played different trials ({len(a)} and {len(b)}); play both with the same --trials and --seed")
     for t in sorted(a):
-        if a[t]["start"] != b[t]["start"]:
-            raise PairingError(f"trial {t} starts in pose row {a[t]['start']} in one run and {b[t]['start']} in the other: "
-                               "the runs are not of one seed on datasets of the same objects and poses")
+        if (a[t]["start"], a[t]["object_id"]) != (b[t]["start"], b[t]["object_id"]):
+            raise PairingError(f"trial {t} starts in pose row {a[t]['start']} of {a[t]['object_id']} in one run and "
+                               f"{b[t]['start']} of {b[t]['object_id']} in the other: the runs are not of one seed on "
+                               "datasets of the same objects and poses")
     counted = [t for t in sorted(a) if not a[t]["outside"] and not b[t]["outside"] and (a[t]["useful"] or b[t]["useful"])]
     for run in (a, b):
-        if counted and policy not in run[counted[0]]["gains"]:
-            raise PairingError(f"no policy {policy!r} in the runs; they played {', '.join(sorted(run[counted[0]]['gains']))}")
+        for t in counted:
+            if policy not in run[t]["gains"]:
+                raise PairingError(f"trial {t} has no policy {policy!r}; it played {', '.join(sorted(run[t]['gains']))}")
     return (np.array([a[t]["gains"][policy] for t in counted], dtype=float),
             np.array([b[t]["gains"][policy] for t in counted], dtype=float))
 
@@ -87,7 +104,7 @@ def compare(pairs: list[tuple[str, str]], policies: list[str]) -> dict:
             pooled.append(gain_b - gain_a)
         means = np.array([p["b_minus_a"] for p in per_pair if p["b_minus_a"] is not None])
         runs_mean, runs_se = mean_se(means)
-        out["policies"][policy] = {"pairs": per_pair, "runs_mean": runs_mean, "runs_se": runs_se,
+        out["policies"][policy] = {"pairs": per_pair, "runs_mean": runs_mean, "runs_se": runs_se, "runs": len(means),
                                    "pooled": mean_se(np.concatenate(pooled))[0] if pooled else None,
                                    "trials": int(sum(len(p) for p in pooled))}
     return out
@@ -99,7 +116,7 @@ def text(result: dict) -> str:
 
     lines = []
     for policy, r in result["policies"].items():
-        lines.append(f"{policy}: B minus A {cell(r['runs_mean'])} +/- {cell(r['runs_se'])} over {len(r['pairs'])} pairs "
+        lines.append(f"{policy}: B minus A {cell(r['runs_mean'])} +/- {cell(r['runs_se'])} over {r['runs']} pairs with counted trials "
                      f"(pooled over {r['trials']} trials {cell(r['pooled'])})")
         for pair, p in zip(result["pairs"], r["pairs"]):
             lines.append(f"  {p['trials']:>5} trials  A {cell(p['a'])}  B {cell(p['b'])}  B - A {cell(p['b_minus_a'])} "

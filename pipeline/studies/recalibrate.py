@@ -200,8 +200,8 @@ def read_fold_lists(directory: Path) -> list[list[str]]:
     while (directory / f"fold_{len(folds)}.csv").is_file():
         try:
             specs = read_list(directory / f"fold_{len(folds)}.csv", 1.0).specs
-        except CorpusError as err:
-            raise RecalibrationError(f"{directory / f'fold_{len(folds)}.csv'}: {err}") from None
+        except CorpusError as err:  # its message names the file
+            raise RecalibrationError(str(err)) from None
         folds.append([spec.object_id for spec in specs])
     if len(folds) < 2:
         raise RecalibrationError(f"{directory} holds {len(folds)} fold list(s) (fold_0.csv, fold_1.csv, ...); "
@@ -534,7 +534,13 @@ def main(argv: list[str] | None = None) -> int:
             if args.fold_maps is not None and corpus is None:
                 raise UsageError("--fold-maps writes corpus lists: give a --corpus, not 'none'")
             given = None if args.folds_from is None else read_fold_lists(args.folds_from)
+            if given is not None and args.fold_maps is not None:  # before the fit: a fold list is written from the corpus
+                unknown = sorted({name for members in given for name in members} - {spec.object_id for spec in corpus.specs})
+                if unknown:
+                    raise UsageError(f"{args.folds_from}'s folds hold {len(unknown)} object(s) not in corpus {args.corpus!r}: "
+                                     f"{', '.join(unknown[:5])}{' ...' if len(unknown) > 5 else ''}")
             result = boosted_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, fold_objects=given)
+            result["folds_from"] = None if args.folds_from is None else str(args.folds_from)
             fold_trees = result.pop("fold_trees")
             if args.fold_maps is not None:
                 result["fold_lists"] = [str(p) for p in write_fold_maps(args.fold_maps, fold_trees, result["fold_objects"], corpus)]

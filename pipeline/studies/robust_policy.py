@@ -615,7 +615,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
       pushes' landing records (``Push.landing``...) are the model's rows', not the shrunk ones.
     variant : ``mdp`` values (``VARIANT_FIELDS``) the ``VARIANT_POLICIES`` plan under, the dataset's
       for the others; given, they are played too (the same caveat on dropped trials).
-    per_trial : the report also holds ``trials``, every played trial's record (``trial_records``)"""
+    per_trial : the report also holds ``trial_records``, every played trial's record (``trial_records``)"""
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
@@ -690,7 +690,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
                    "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
     if per_trial:
-        report["trials"] = trial_records(tables, starts, runs, policies)
+        report["trial_records"] = trial_records(tables, starts, runs, policies)
     return report, pushes
 
 
@@ -717,7 +717,7 @@ def trial_records(tables, starts: np.ndarray, runs: dict, policies: tuple[str, .
 
     runs : {trial: {policy: visited poses}}
     returns : per trial, in order: ``trial``; ``start``, its start row in the dataset's pose order
-      (object by object, pose by pose); ``object``, its object's index; ``outside``, whether a played
+      (object by object, pose by pose); ``object``, its object's index; ``object_id``; ``outside``, whether a played
       policy left the pose set; ``useful``, as ``useful_starts``; ``gains``, policy -> V_s at the
       end minus at the start (None where outside)
     """
@@ -728,7 +728,7 @@ def trial_records(tables, starts: np.ndarray, runs: dict, policies: tuple[str, .
         outside = any(runs[t][p][-1] < 0 for p in policies)
         gains = None if outside else {p: float(tables.v_s[tables.first_pose[obj] + runs[t][p][-1]] - tables.v_s[row])
                                       for p in policies}
-        records.append({"trial": int(t), "start": row, "object": obj, "outside": bool(outside),
+        records.append({"trial": int(t), "start": row, "object": obj, "object_id": tables.object_ids[obj], "outside": bool(outside),
                         "useful": bool(useful_starts(tables, np.array([row]))[0]), "gains": gains})
     return records
 
@@ -880,7 +880,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    trials = report.pop("trials", None)
+    trials = report.pop("trial_records", None)
     print(text(report))
     if args.json:
         write_text_atomic(args.json, json.dumps(report, indent=1) + "\n")
