@@ -349,13 +349,13 @@ def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: in
     config = config or Config()
     started = time.perf_counter()
     scorer = Scorer(log, config.seed, config.contacts)
-    features, p, lands = scorer.boosted_inputs(config.topple)
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
     names = [scorer.object_ids[i] for i in objects]
     if fold_objects is None:
         fold_objects, fold_of = push_folds(names, folds, seed)
-    else:
+    else:  # before the model scores every push: a log object in no fold is refused at once
         fold_of, folds = fold_of_pushes(names, fold_objects), len(fold_objects)
+    features, p, lands = scorer.boosted_inputs(config.topple)
     rows = np.isfinite(p)
     held_out = p.copy()
     fold_trees = []
