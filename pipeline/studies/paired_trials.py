@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from ..build.atomic import write_text_atomic
+from .policies_physics import mean_se
 
 
 class PairingError(ValueError):
@@ -79,14 +79,6 @@ def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str) -> tuple[n
                 raise PairingError(f"trial {t} has no policy {policy!r}; it played {', '.join(sorted(run[t]['gains']))}")
     return (np.array([a[t]["gains"][policy] for t in counted], dtype=float),
             np.array([b[t]["gains"][policy] for t in counted], dtype=float))
-
-
-def mean_se(values: np.ndarray) -> tuple[float | None, float | None]:
-    """The mean and its standard error (None for the error of fewer than two values)."""
-    if len(values) == 0:
-        return None, None
-    se = float(np.std(values, ddof=1) / math.sqrt(len(values))) if len(values) > 1 else None
-    return float(np.mean(values)), se
 
 
 def compare(pairs: list[tuple[str, str]], policies: list[str]) -> dict:
