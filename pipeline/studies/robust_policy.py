@@ -721,16 +721,14 @@ def trial_records(tables, starts: np.ndarray, runs: dict, policies: tuple[str, .
       policy left the pose set; ``useful``, as ``useful_starts``; ``gains``, policy -> V_s at the
       end minus at the start (None where outside)
     """
-    records = []
-    for t in sorted(runs):
-        row = int(starts[t])
-        obj = int(np.searchsorted(tables.first_pose, row, side="right") - 1)
-        outside = any(runs[t][p][-1] < 0 for p in policies)
-        gains = None if outside else {p: float(tables.v_s[tables.first_pose[obj] + runs[t][p][-1]] - tables.v_s[row])
-                                      for p in policies}
-        records.append({"trial": int(t), "start": row, "object": obj, "object_id": tables.object_ids[obj], "outside": bool(outside),
-                        "useful": bool(useful_starts(tables, np.array([row]))[0]), "gains": gains})
-    return records
+    kept, gains, _, _ = trial_gains(tables, starts, runs, policies)
+    gain_of = {int(t): {p: float(gains[p][i]) for p in policies} for i, t in enumerate(kept)}
+    played = np.array(sorted(runs), dtype=np.int64)
+    rows = starts[played]
+    objects = np.searchsorted(tables.first_pose, rows, side="right") - 1
+    return [{"trial": int(t), "start": int(row), "object": int(obj), "object_id": tables.object_ids[obj],
+             "outside": int(t) not in gain_of, "useful": bool(useful), "gains": gain_of.get(int(t))}
+            for t, row, obj, useful in zip(played, rows, objects, useful_starts(tables, rows))]
 
 
 def landing_summary(pushes: list[Push]) -> dict:
