@@ -147,9 +147,9 @@ def listen_problem(host: str, port: int, workers: int = 1) -> str | None:
     import socket
 
     where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
-    family = socket.AF_UNSPEC if workers <= 1 else (socket.AF_INET6 if ":" in host else socket.AF_INET)
+    wanted = socket.AF_UNSPEC if workers <= 1 else (socket.AF_INET6 if ":" in host else socket.AF_INET)
     try:
-        addresses = socket.getaddrinfo(host or None, port, family, socket.SOCK_STREAM, 0, socket.AI_PASSIVE)
+        addresses = socket.getaddrinfo(host or None, port, wanted, socket.SOCK_STREAM, 0, socket.AI_PASSIVE)
     except socket.gaierror as err:
         return f"cannot listen on {where}: {str(err.strerror).lower()}; check --host"
     if workers > 1:
