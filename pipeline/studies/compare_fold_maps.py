@@ -20,28 +20,15 @@ from pathlib import Path
 import numpy as np
 
 from ..build.atomic import write_text_atomic
-from ..model.boosted_map import BoostedMapError, boosted_probability, load_trees
+from ..model.boosted_map import BoostedMapError, load_trees
 from ..model.config import Config
 from .logreader import LogError, read_log
-from .recalibrate import RecalibrationError, fold_of_pushes, metrics, read_fold_lists
+from .recalibrate import RecalibrationError, fold_of_pushes, metrics, out_of_fold, read_fold_lists
 from .scoring import Scorer
+from .validation import percentile_interval
 
 BOOTSTRAP = 2000
 """Resamples of the objects for B minus A's interval."""
-
-
-def out_of_fold(features: np.ndarray, p: np.ndarray, lands: np.ndarray, fold_of: np.ndarray, maps: list) -> np.ndarray:
-    """P(topple) of each push under its fold's map; P unchanged where the model knows no landing
-    (the engine keeps such a row) and NaN where it has no P.
-
-    features : (n, F) float;  p : (n,) float, P without the boosted map;  lands : (n,) bool
-    fold_of : (n,) int;  maps : each fold's trees (``load_trees``)
-    """
-    q = p.copy()
-    for k, trees in enumerate(maps):
-        rows = (fold_of == k) & np.isfinite(p) & lands
-        q[rows] = boosted_probability(features[rows], trees)
-    return q
 
 
 def paired_interval(difference: np.ndarray, weight: np.ndarray, objects: np.ndarray, seed: int = 0) -> list[float]:
@@ -51,8 +38,7 @@ def paired_interval(difference: np.ndarray, weight: np.ndarray, objects: np.ndar
     num = np.bincount(index, weight * difference, len(ids))
     den = np.bincount(index, weight, len(ids))
     draws = np.random.default_rng(seed).integers(0, len(ids), (BOOTSTRAP, len(ids)))
-    boot = num[draws].sum(axis=1) / den[draws].sum(axis=1)
-    return [float(np.quantile(boot, 0.025)), float(np.quantile(boot, 0.975))]
+    return percentile_interval(num[draws].sum(axis=1) / den[draws].sum(axis=1))
 
 
 def compare(a: Path, b: Path, logs: list[str], config: Config, corpus=None) -> dict:
@@ -99,8 +85,7 @@ def text(result: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from ..build.corpus import CorpusError, load_corpus
-    from ..cli import UsageError
-    from .validation import config_from_args
+    from ..cli import UsageError, make_config
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.compare_fold_maps", description=__doc__.split("\n\n")[0])
     parser.add_argument("a", type=Path, help="fold maps A (a --fold-maps DIR)")
@@ -112,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the comparison here")
     args = parser.parse_args(argv)
     try:
-        config = config_from_args(argparse.Namespace(config=args.config, overrides=args.overrides, seed=None))
+        config = make_config(args)
         corpus = None if args.corpus == "none" else load_corpus(args.corpus, config.mesh.default_mass)
         result = compare(args.a, args.b, args.logs, config, corpus)
     except (UsageError, RecalibrationError, LogError, CorpusError) as err:

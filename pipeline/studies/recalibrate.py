@@ -189,6 +189,20 @@ def fold_of_pushes(objects: list[str], fold_objects: list[list[str]]) -> np.ndar
     return np.array([fold_of_object[name] for name in objects], dtype=int)
 
 
+def out_of_fold(features: np.ndarray, p: np.ndarray, lands: np.ndarray, fold_of: np.ndarray, fold_maps: list) -> np.ndarray:
+    """P(topple) of each push under the boosted map of its object's fold; P kept where the model knows
+    no landing (the engine keeps such a row) and where it has none (NaN).
+
+    features : (n, F) float;  p : (n,) float, P without the boosted map;  lands : (n,) bool
+    fold_of : (n,) int;  fold_maps : each fold's trees (``BoostedTrees``)
+    """
+    q = p.copy()
+    for k, trees in enumerate(fold_maps):
+        rows = (fold_of == k) & np.isfinite(p) & lands
+        q[rows] = boosted_probability(features[rows], trees)
+    return q
+
+
 def read_fold_lists(directory: Path) -> list[list[str]]:
     """The folds an earlier ``--fold-maps DIR`` wrote: object ids of ``fold_0.csv``, ``fold_1.csv``, ...
 
@@ -357,14 +371,13 @@ def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: in
         fold_of, folds = fold_of_pushes(names, fold_objects), len(fold_objects)
     features, p, lands = scorer.boosted_inputs(config.topple)
     rows = np.isfinite(p)
-    held_out = p.copy()
     fold_trees = []
     for f in range(folds):
-        train, test = (fold_of != f) & rows, (fold_of == f) & rows & lands
+        train = (fold_of != f) & rows
         if not train.any():
             raise RecalibrationError(f"fold {f} leaves no push to fit the boosted map on; use fewer folds")
         fold_trees.append(fit_trees(features[train], observed[train], scorer.repeats[train], seed))
-        held_out[test] = boosted_probability(features[test], trees_from_dict(fold_trees[-1]))
+    held_out = out_of_fold(features, p, lands, fold_of, [trees_from_dict(trees) for trees in fold_trees])
     fitted = fit_trees(features[rows], observed[rows], scorer.repeats[rows], seed)
     metrics_of = metrics_by_predictor({"identity": p, "boosted_map": held_out}, rows, observed, weight, objects)
     return {"variant": config.topple.variant, "features": list(BOOSTED_FEATURES), "fit": {**FIT_PARAMS, "random_state": seed},
