@@ -527,18 +527,18 @@ def test_the_prior_turns_the_planners_from_a_long_shot_whose_landing_rests_on_fi
 
     v_s, rows, choosable = shaky_landing_pose()
     mdp = MDPConfig(choice_radius=0.0)  # the argmax: these rows have no pushes to be neighbours
-    actions, q1, budget_q1 = prior_plan(v_s, rows, mdp, choosable, 10.0, 100, 3)
+    prior = [landing_prior_rows(r, x, 10.0, choosable[x], 100) for x, r in enumerate(rows)]
+    actions, q1, budget_q1 = prior_plan(v_s, prior, mdp, choosable, 3)
     assert set(actions) == set(PRIOR_POLICIES) and set(q1) == {"prior_belief_vi"} and set(budget_q1) == {"prior_belief_horizon_vi"}
     # On the model's rows the planners take the long shot; its landing shrunk, the likely push.
     assert value_iteration_actions(v_s, rows, mdp, choosable)[0] == belief_tables(v_s, rows, mdp, choosable)[0][0] == 0
     assert actions["prior_vi"].tolist() == actions["prior_belief_vi"].tolist() == [1, NO_OP, NO_OP, NO_OP]
     assert belief_budget_tables(v_s, rows, mdp, 3, choosable)[0][:, 0].tolist() == [0, 0, 1]
     assert actions["prior_belief_horizon_vi"][:, 0].tolist() == [0, 1, 1]  # with 3, 2 and 1 pushes left
-    prior = [landing_prior_rows(r, x, 10.0, choosable[x], 100) for x, r in enumerate(rows)]
     np.testing.assert_allclose(q1["prior_belief_vi"][0], belief_tables(v_s, prior, mdp, choosable)[1][0])
     # The thesis's equation counts on retrying the long shot, prior or not (no-retry planning would not).
     thesis = MDPConfig(believe_failures=False, choice_radius=0.0)
-    assert prior_plan(v_s, rows, thesis, choosable, 10.0, 100, 3)[0]["prior_vi"][0] == 0
+    assert prior_plan(v_s, prior, thesis, choosable, 3)[0]["prior_vi"][0] == 0
     assert once_actions(v_s, prior, thesis, choosable)[0] == 1
 
 

@@ -57,6 +57,8 @@ from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
 from ..model.config import Config, MDPConfig, field_range
+from ..model.landing_trust import BANDS as TRUST_BANDS
+from ..model.landing_trust import trusted_rows
 from ..model.mdp import IMPROVEMENT, belief_value_iteration, choice_by_means, pose_values, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, mean_se, object_plans, open_trials, world_config
@@ -440,13 +442,12 @@ def believing_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, ch
     return actions, q1, budget_q1
 
 
-def prior_plan(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray], alpha: float,
-               trials: int, max_pushes: int, budget_choosable: list[np.ndarray] | None = None,
-               candidates: list[PoseCandidates] | None = None,
+def prior_plan(v_s: np.ndarray, prior: list[np.ndarray], mdp: MDPConfig, choosable: list[np.ndarray], max_pushes: int,
+               budget_choosable: list[np.ndarray] | None = None, candidates: list[PoseCandidates] | None = None,
                ) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
-    """``believing_tables`` of the ``PRIOR_POLICIES`` over ``landing_prior_rows`` of every pose, with
-    ``prior_vi``'s actions (``value_iteration_actions``; ``candidates`` as there) among the actions."""
-    prior = [landing_prior_rows(r, x, alpha, choosable[x], trials) for x, r in enumerate(rows)]
+    """``believing_tables`` of the ``PRIOR_POLICIES`` over ``prior``, every pose's rows with their landings
+    pulled toward a prior (``landing_prior_rows`` or ``landing_trust.trusted_rows``), with ``prior_vi``'s
+    actions (``value_iteration_actions``; ``candidates`` as there) among the actions."""
     actions, q1, budget_q1 = believing_tables(v_s, prior, mdp, choosable, max_pushes,
                                               (PRIOR_BELIEF_POLICY, PRIOR_BELIEF_HORIZON_POLICY), budget_choosable)
     actions[PRIOR_POLICY] = value_iteration_actions(v_s, prior, mdp, choosable, candidates)
@@ -599,6 +600,7 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
                workers: int | None = 1, world: Config | None = None, progress: bool = False,
                exclusion: Exclusion = Exclusion(), landing_prior: float | None = None,
+               landing_trust: tuple[float, ...] | None = None,
                variant: dict[str, float | bool] | None = None, per_trial: bool = False) -> tuple[dict, list[Push]]:
     """Play the ``COMPARED`` policies (and the ``PRIOR_POLICIES`` with a landing prior, the
     ``VARIANT_POLICIES`` under another MDP); the report
@@ -613,6 +615,9 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
       trial any of them leaves the pose set in is dropped for every policy, as for any played policy,
       so the others' counted trials can differ from a run without it (pushes never do).  Their
       pushes' landing records (``Push.landing``...) are the model's rows', not the shrunk ones.
+    landing_trust : the untrusted share of a landing per band of its pose's drop probability
+      (``landing_trust.trusted_rows``); given, the ``PRIOR_POLICIES`` are played over the trusted rows
+      (stop 50), as with a landing prior (the same caveats); not with ``landing_prior``
     variant : ``mdp`` values (``VARIANT_FIELDS``) the ``VARIANT_POLICIES`` plan under, the dataset's
       for the others; given, they are played too (the same caveat on dropped trials).
     per_trial : the report also holds ``trial_records``, every played trial's record (``trial_records``)"""
@@ -632,11 +637,24 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         accepted = field_range(MDPConfig, name)
         if not accepted.contains(value):
             raise ValueError(f"{name} must be {accepted.text()}; got {value}")
-    policies = COMPARED + (tuple(PRIOR_POLICIES) if landing_prior is not None else ())
+    if landing_prior is not None and landing_trust is not None:
+        raise ValueError("a landing prior or a landing trust, not both: the two play the same policies")
+    if landing_trust is not None:
+        landing_trust = np.asarray(landing_trust, dtype=float)
+        if landing_trust.shape != (len(TRUST_BANDS) + 1,) or not np.all((landing_trust >= 0) & (landing_trust <= 1)):
+            raise ValueError(f"the landing trust is {len(TRUST_BANDS) + 1} untrusted shares in [0, 1], one per band of "
+                             f"drop probability (edges {', '.join(map(str, TRUST_BANDS))}); got {landing_trust.tolist()}")
+    policies = COMPARED + (tuple(PRIOR_POLICIES) if landing_prior is not None or landing_trust is not None else ())
     policies += tuple(VARIANT_POLICIES) if variant else ()
     dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
     variant_mdp = replace(config.mdp, **variant) if variant else None
     plans: dict[str, ObjectPlan] = object_plans(dataset, sorted(by_object))
+    drop: dict[str, np.ndarray] = {}
+    if landing_trust is not None:
+        poses = dataset.table("poses", columns=["object_id", "pose", "probability"]).sort_by([("object_id", "ascending"), ("pose", "ascending")])
+        for object_id, probability in zip(poses.column("object_id").to_pylist(), poses.column("probability").to_pylist()):
+            drop.setdefault(object_id, []).append(probability)
+        drop = {k: np.asarray(v, dtype=float) for k, v in drop.items()}
     tasks = []
     for object_id in sorted(by_object):
         plan = plans[object_id]
@@ -658,9 +676,13 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         actions, belief_q1, belief_budget_q1 = believing_tables(plan.v_s, rows, config.mdp, choosable, max_pushes,
                                                                 budget_choosable=budget_choosable)
         plan.actions.update(actions)
-        if landing_prior is not None:
-            actions, q1, budget_q1 = prior_plan(plan.v_s, rows, config.mdp, choosable, landing_prior, config.topple.trials,
-                                                max_pushes, budget_choosable, candidates)
+        if landing_prior is not None or landing_trust is not None:
+            if landing_prior is not None:
+                prior = [landing_prior_rows(r, x, landing_prior, choosable[x], config.topple.trials) for x, r in enumerate(rows)]
+            else:
+                prior = [trusted_rows(r, x, drop[object_id], landing_trust) for x, r in enumerate(rows)]
+            actions, q1, budget_q1 = prior_plan(plan.v_s, prior, config.mdp, choosable, max_pushes, budget_choosable,
+                                                candidates)
             plan.actions.update(actions)
             belief_q1.update(q1)
             belief_budget_q1.update(budget_q1)
@@ -686,7 +708,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         runs.update(results)
         pushes.extend(object_pushes)
     report = summarise(tables, starts, runs, pushes, policies)
-    report.update({"landing_prior": landing_prior, "variant": variant or None, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
+    report.update({"landing_prior": landing_prior,
+                   "landing_trust": None if landing_trust is None else landing_trust.tolist(), "variant": variant or None, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
                    "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
     if per_trial:
@@ -851,6 +874,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--landing-prior", type=float, metavar="ALPHA",
                         help="also play value iteration, belief_vi and belief_horizon_vi over rows whose landings are "
                              "shrunk toward the pose's mean landing with this pseudo-count (landing_prior_rows)")
+    parser.add_argument("--landing-trust", type=float, nargs=len(TRUST_BANDS) + 1, metavar="U",
+                        help="also play them over rows whose landing on a pose keeps 1 - U of its share, U per band of the "
+                             "pose's drop probability (edges " + ", ".join(map(str, TRUST_BANDS)) + "), the rest spread "
+                             "by drop probability (landing_trust.trusted_rows); not with --landing-prior")
     parser.add_argument("--gamma", type=float, metavar="G",
                         help="also play value iteration, belief_vi and smoothed_vi planned with this discount in (0, 1] "
                              "(variant_vi, variant_belief_vi, variant_smoothed_vi), each against its counterpart")
@@ -872,7 +899,7 @@ def main(argv: list[str] | None = None) -> int:
         report, pushes = experiment(args.dataset, args.trials, smoothing, max_pushes=args.max_pushes, seed=args.seed,
                                     workers=args.workers, world=world_config(args.world),
                                     exclusion=Exclusion(args.exclude_radius, args.exclude_angle),
-                                    landing_prior=args.landing_prior,
+                                    landing_prior=args.landing_prior, landing_trust=args.landing_trust,
                                     variant={name: getattr(args, name) for name in VARIANT_FIELDS if getattr(args, name) is not None},
                                     per_trial=args.trials_out is not None)
     except (ExperimentError, ValueError) as err:

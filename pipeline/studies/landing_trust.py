@@ -1,0 +1,251 @@
+"""Fit and score the landing trust (candidate LT, ``pipeline.model.landing_trust``) on a push log.
+
+Each logged push is read against the row the planner saw: its object's dataset (one of
+``--datasets``, the datasets out of fold the log was played on) holds the push as action
+``push_id % ACTION_SPAN`` of pose ``push_id // ACTION_SPAN``, as ``oracle_policy --log`` writes
+it.  The row (every pose, plus 0 outside the pose set) is scored against the plays' observed
+next poses by the multi-class Brier score (``scoring.brier_score``); the untrusted share per band
+is fitted by bounded least squares on the same score, since (LT.1) is linear in it.  With
+``--folds DIR`` (a ``--fold-maps`` directory) the shares are also fitted on all folds but one and
+scored on that one, every fold in turn, against the rows as they are, the prior alone and the
+trivial predictors; the interval is over objects, paired.
+
+    python -m pipeline.studies.landing_trust data/logs/corpus_planner --datasets data/corpus_oof_sa_{0..5} \\
+        --folds data/corpus_folds --json F
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from schema.reader import Dataset, DatasetUnreadable
+
+from ..build.atomic import write_text_atomic
+from ..model.config import Config
+from ..model.landing_spread import landing_prior
+from ..model.landing_trust import BANDS, trust_terms
+from .compare_fold_maps import paired_interval
+from .logreader import LogError, read_log
+from .policy_experiment import ACTION_SPAN
+from .recalibrate import RecalibrationError, fold_of_pushes, read_fold_lists
+from .robust_policy import next_pose_rows
+
+
+class TrustError(ValueError):
+    """Inputs the fit cannot use (one line)."""
+
+
+@dataclass
+class TrustData:
+    """Every usable push as flat buckets: push i's buckets are ``start[i]:start[i+1]``.
+
+    row : (N,) float, the dataset's P(x' | x, u), 0 outside the pose set;  terms : (N, B) float,
+    (LT.1)'s terms;  observed : (N,) float, the plays' frequencies;  prior : (N,) float, the
+    drop-probability landing;  stay : (N,) bool, the start pose's bucket;  start : (n + 1,) int
+    objects : (n,) str per push;  plays : (n,) int;  rejected : reason -> pushes
+    """
+
+    row: np.ndarray
+    terms: np.ndarray
+    observed: np.ndarray
+    prior: np.ndarray
+    stay: np.ndarray
+    start: np.ndarray
+    objects: np.ndarray
+    plays: np.ndarray
+    rejected: Counter
+
+    @property
+    def bucket_push(self) -> np.ndarray:
+        """(N,) int, the push each bucket belongs to."""
+        return np.repeat(np.arange(len(self.objects)), np.diff(self.start))
+
+
+def object_datasets(roots: list[Path]) -> dict[str, Dataset]:
+    """Object id -> the dataset that holds it; an object in two datasets is an error."""
+    found: dict[str, Dataset] = {}
+    for root in roots:
+        try:
+            dataset = Dataset.open(root)
+        except DatasetUnreadable as err:
+            raise TrustError(str(err)) from None
+        for object_id in set(dataset.table("poses", columns=["object_id"]).column("object_id").to_pylist()):
+            if object_id in found:
+                raise TrustError(f"object {object_id!r} is in {found[object_id].root} and {root}; give each object's dataset once")
+            found[object_id] = dataset
+    return found
+
+
+def trust_data(log, datasets: dict[str, Dataset]) -> TrustData:
+    """The log's pushes against their datasets' rows (``TrustData``); a push whose object or action
+    the datasets do not hold is counted under its reason, not used."""
+    parts = {name: [] for name in ("row", "terms", "observed", "prior", "stay")}
+    objects, plays, sizes = [], [], []
+    rejected: Counter = Counter()
+    by_object: dict[str, list] = {}
+    for push in log.pushes:
+        by_object.setdefault(push.object_id, []).append(push)
+    for object_id, pushes in by_object.items():
+        dataset = datasets.get(object_id)
+        if dataset is None:
+            rejected["object in none of the datasets"] += len(pushes)
+            continue
+        poses = dataset.table("poses", columns=["object_id", "pose", "probability", "n_actions"]).to_pydict()
+        mine = sorted((p, d, n) for o, p, d, n in zip(poses["object_id"], poses["pose"], poses["probability"], poses["n_actions"])
+                      if o == object_id)
+        drop = np.array([d for _, d, _ in mine])
+        if len(drop) != len(log.objects[object_id].poses.poses):
+            rejected["the dataset's stable poses differ from the log's"] += len(pushes)
+            continue
+        rows = next_pose_rows(dataset, object_id, [n for _, _, n in mine])
+        terms = [trust_terms(r, x, drop) for x, r in enumerate(rows)]
+        for push in pushes:
+            pose, action = divmod(int(push.push_id), ACTION_SPAN)
+            if pose != push.pose or action >= len(rows[pose]) or not np.isfinite(rows[pose][action]).all():
+                rejected["push id names no ok push of its start pose"] += 1
+                continue
+            bucket = np.arange(len(drop) + 1)
+            parts["row"].append(np.append(rows[pose][action], 0.0))
+            parts["terms"].append(np.vstack([terms[pose][action], np.zeros(len(BANDS) + 1)]))
+            parts["observed"].append(push.empirical(len(drop)))
+            parts["prior"].append(np.append(landing_prior(drop, pose, len(drop)), 0.0))
+            parts["stay"].append(bucket == pose)
+            objects.append(object_id)
+            plays.append(len(push.outcomes))
+            sizes.append(len(drop) + 1)
+    if not objects:
+        raise TrustError(f"no push of the log is in the datasets (rejected: {dict(rejected)})")
+    flat = {name: np.concatenate(values) for name, values in parts.items()}
+    return TrustData(flat["row"], flat["terms"], flat["observed"], flat["prior"], flat["stay"],
+                     np.concatenate([[0], np.cumsum(sizes)]), np.array(objects), np.array(plays), rejected)
+
+
+def fit_shares(data: TrustData, pushes: np.ndarray | None = None) -> np.ndarray:
+    """The untrusted shares u_b in [0, 1] of least Brier score over ``pushes`` ((n,) bool, default all),
+    each push weighted alike.  A band no push lands in gets 0 (nothing says to move it)."""
+    from scipy.optimize import lsq_linear
+
+    keep = np.ones(len(data.objects), dtype=bool) if pushes is None else np.asarray(pushes, dtype=bool)
+    buckets = keep[data.bucket_push]
+    terms = data.terms[buckets]
+    used = np.abs(terms).sum(axis=0) > 0
+    shares = np.zeros(terms.shape[1])
+    if used.any():
+        shares[used] = lsq_linear(terms[:, used], (data.observed - data.row)[buckets], bounds=(0.0, 1.0)).x
+    return shares
+
+
+def brier_per_push(data: TrustData, predicted: np.ndarray) -> np.ndarray:
+    """(n,) float, each push's multi-class Brier score of ``predicted`` ((N,) float per bucket)."""
+    return np.bincount(data.bucket_push, (predicted - data.observed) ** 2, len(data.objects))
+
+
+def predictions(data: TrustData, shares: np.ndarray) -> dict[str, np.ndarray]:
+    """Per bucket: the rows as they are, with the trust, with the prior landing alone (every share
+    1), never topples, and a constant rate (the log's) landing by the prior."""
+    topple = float(np.mean(1.0 - data.observed[data.stay]))
+    return {"rows": data.row,
+            "trust": data.row + data.terms @ shares,
+            "prior_landing": data.row + data.terms @ np.ones(data.terms.shape[1]),
+            "never_topples": data.stay.astype(float),
+            "constant_rate": np.where(data.stay, 1.0 - topple, topple * data.prior)}
+
+
+def out_of_fold(data: TrustData, folds: list[list[str]]) -> dict:
+    """The shares fitted on all folds but one and scored on it, every fold in turn."""
+    fold = fold_of_pushes(list(data.objects), folds)
+    trust = np.empty(len(data.row))
+    per_fold = []
+    bucket_fold = fold[data.bucket_push]
+    for k in range(len(folds)):
+        if not (fold == k).any():
+            continue
+        shares = fit_shares(data, fold != k)
+        mine = bucket_fold == k
+        trust[mine] = (data.row + data.terms @ shares)[mine]
+        per_fold.append({"fold": k, "pushes": int((fold == k).sum()), "shares": shares.tolist()})
+    scores = {name: brier_per_push(data, predicted) for name, predicted in predictions(data, np.zeros(len(BANDS) + 1)).items()
+              if name != "trust"}
+    scores["trust_out_of_fold"] = brier_per_push(data, trust)
+    weight = np.ones(len(data.objects))
+    return {"folds": per_fold,
+            "brier": {name: float(s.mean()) for name, s in scores.items()},
+            "trust_minus_rows": float((scores["trust_out_of_fold"] - scores["rows"]).mean()),
+            "trust_minus_rows_interval": paired_interval(scores["trust_out_of_fold"] - scores["rows"], weight, data.objects),
+            "prior_landing_minus_rows": float((scores["prior_landing"] - scores["rows"]).mean()),
+            "prior_landing_minus_rows_interval": paired_interval(scores["prior_landing"] - scores["rows"], weight, data.objects)}
+
+
+def band_summary(data: TrustData) -> list[dict]:
+    """Per band: the landing mass the rows put there and the share of it physics gave that band's poses."""
+    out = []
+    for b in range(len(BANDS) + 1):
+        moved = -np.minimum(data.terms[:, b], 0.0)  # s_y on this band's landings, 0 elsewhere
+        on = moved > 0
+        out.append({"band": b, "predicted_mass": float(moved.sum()), "observed_mass": float(data.observed[on].sum()),
+                    "pushes": int(len(np.unique(data.bucket_push[on])))})
+    return out
+
+
+def study(logs: list[str], dataset_roots: list[Path], folds_dir: Path | None, config: Config) -> dict:
+    datasets = object_datasets(dataset_roots)
+    log = read_log(logs, config)
+    data = trust_data(log, datasets)
+    shares = fit_shares(data)
+    result = {"logs": logs, "datasets": [str(r) for r in dataset_roots], "bands": list(BANDS),
+              "pushes": len(data.objects), "objects": len(np.unique(data.objects)), "plays": int(data.plays.sum()),
+              "rejected_pushes": dict(data.rejected), "log_rejected_rows": dict(log.rejected),
+              "shares": shares.tolist(), "by_band": band_summary(data),
+              "in_sample_brier": {name: float(brier_per_push(data, p).mean()) for name, p in predictions(data, shares).items()}}
+    if folds_dir is not None:
+        result["out_of_fold"] = out_of_fold(data, read_fold_lists(folds_dir))
+    return result
+
+
+def text(result: dict) -> str:
+    lines = [f"{result['pushes']} pushes ({result['plays']} plays) on {result['objects']} objects; rejected {result['rejected_pushes']}",
+             "untrusted share per band (drop probability <= " + ", ".join(f"{b}" for b in result["bands"]) + ", above): "
+             + ", ".join(f"{s:.3f}" for s in result["shares"]),
+             "in sample, next-pose Brier: " + ", ".join(f"{k} {v:.4f}" for k, v in result["in_sample_brier"].items())]
+    for band in result["by_band"]:
+        lines.append(f"  band {band['band']}: {band['pushes']} pushes, landing mass predicted {band['predicted_mass']:.1f}, "
+                     f"observed there {band['observed_mass']:.1f}")
+    oof = result.get("out_of_fold")
+    if oof:
+        lines.append("out of fold, next-pose Brier: " + ", ".join(f"{k} {v:.4f}" for k, v in oof["brier"].items()))
+        low, high = oof["trust_minus_rows_interval"]
+        lines.append(f"trust minus rows {oof['trust_minus_rows']:+.4f} [{low:+.4f}, {high:+.4f}] (95 % over objects)")
+        low, high = oof["prior_landing_minus_rows_interval"]
+        lines.append(f"prior landing minus rows {oof['prior_landing_minus_rows']:+.4f} [{low:+.4f}, {high:+.4f}]")
+        for f in oof["folds"]:
+            lines.append(f"  fold {f['fold']} ({f['pushes']} pushes): shares " + ", ".join(f"{s:.3f}" for s in f["shares"]))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pipeline.studies.landing_trust", description=__doc__.split("\n\n")[0])
+    parser.add_argument("logs", nargs="+", help="push logs whose push ids name dataset pushes (oracle_policy --log)")
+    parser.add_argument("--datasets", nargs="+", type=Path, required=True, help="the datasets the logs' pushes were drawn from")
+    parser.add_argument("--folds", type=Path, help="a --fold-maps directory: also fit and score out of fold")
+    parser.add_argument("--json", type=Path, help="write the result here")
+    args = parser.parse_args(argv)
+    try:
+        result = study(args.logs, args.datasets, args.folds, Config())
+    except (TrustError, LogError, RecalibrationError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(text(result))
+    if args.json:
+        write_text_atomic(args.json, json.dumps(result, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
