@@ -486,11 +486,13 @@ def test_a_landing_from_few_topples_leans_on_the_pose_s_mean_landing():
     np.testing.assert_allclose(landing_prior_rows(rows, 0, 1e12, choosable, 100)[:2], [[0.9, 0.05, 0.05], [0.2, 0.4, 0.4]])
 
 
-def test_a_prior_of_no_trials_plays_exactly_what_each_counterpart_plays(dataset):  # noqa: F811 (fixture)
+@pytest.mark.parametrize("prior", [{"landing_prior": 0.0}, {"landing_trust": (0.0, 0.0, 0.0, 0.0)}])
+def test_a_prior_of_no_trials_or_a_full_trust_plays_exactly_what_each_counterpart_plays(dataset, prior):  # noqa: F811 (fixture)
     from pipeline.studies.robust_policy import PRIOR_POLICIES, experiment
 
-    report, pushes = experiment(dataset, 8, seed=1, workers=1, landing_prior=0.0)
-    assert report["landing_prior"] == 0.0
+    report, pushes = experiment(dataset, 8, seed=1, workers=1, **prior)
+    name, value = next(iter(prior.items()))
+    assert report[name] == (list(value) if name == "landing_trust" else value)  # the report's JSON holds a list
     played_by = {}
     for push in pushes:
         played_by.setdefault(push.policy, []).append((push.trial, push.object_id, push.pose, push.action, push.after))
@@ -510,6 +512,11 @@ def test_the_study_plays_no_prior_policy_unless_asked_and_refuses_a_negative_pri
     for bad in ("-1", "inf"):
         assert main([str(dataset), "--trials", "2", "--landing-prior", bad]) == 2
         assert f"the landing prior is a count of trials, finite and >= 0; got {float(bad)}" in capsys.readouterr().err
+    assert report["landing_trust"] is None
+    assert main([str(dataset), "--trials", "2", "--landing-trust", "0.5", "0", "1.5", "0"]) == 2
+    assert "the landing trust is 4 untrusted shares in [0, 1]" in capsys.readouterr().err
+    assert main([str(dataset), "--trials", "2", "--landing-trust", "0.5", "0", "0", "0", "--landing-prior", "10"]) == 2
+    assert "a landing prior or a landing trust, not both" in capsys.readouterr().err
 
 
 def shaky_landing_pose():

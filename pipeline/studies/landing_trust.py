@@ -30,7 +30,7 @@ from schema.reader import Dataset, DatasetUnreadable
 from ..build.atomic import write_text_atomic
 from ..model.config import Config
 from ..model.landing_spread import landing_prior
-from ..model.landing_trust import BANDS, trust_terms
+from ..model.landing_trust import BANDS, landing_bands, trust_terms
 from .compare_fold_maps import paired_interval
 from .logreader import LogError, read_log
 from .policy_experiment import ACTION_SPAN
@@ -48,7 +48,8 @@ class TrustData:
 
     row : (N,) float, the dataset's P(x' | x, u), 0 outside the pose set;  terms : (N, B) float,
     (LT.1)'s terms;  observed : (N,) float, the plays' frequencies;  prior : (N,) float, the
-    drop-probability landing;  stay : (N,) bool, the start pose's bucket;  start : (n + 1,) int
+    drop-probability landing;  stay : (N,) bool, the start pose's bucket;  band : (N,) int, the band of
+    each other pose's drop probability (``landing_bands``), -1 at the start pose and outside;  start : (n + 1,) int
     objects : (n,) str per push;  plays : (n,) int;  rejected : reason -> pushes
     """
 
@@ -57,6 +58,7 @@ class TrustData:
     observed: np.ndarray
     prior: np.ndarray
     stay: np.ndarray
+    band: np.ndarray
     start: np.ndarray
     objects: np.ndarray
     plays: np.ndarray
@@ -86,7 +88,7 @@ def object_datasets(roots: list[Path]) -> dict[str, Dataset]:
 def trust_data(log, datasets: dict[str, Dataset]) -> TrustData:
     """The log's pushes against their datasets' rows (``TrustData``); a push whose object or action
     the datasets do not hold is counted under its reason, not used."""
-    parts = {name: [] for name in ("row", "terms", "observed", "prior", "stay")}
+    parts = {name: [] for name in ("row", "terms", "observed", "prior", "stay", "band")}
     objects, plays, sizes = [], [], []
     rejected: Counter = Counter()
     by_object: dict[str, list] = {}
@@ -117,13 +119,14 @@ def trust_data(log, datasets: dict[str, Dataset]) -> TrustData:
             parts["observed"].append(push.empirical(len(drop)))
             parts["prior"].append(np.append(landing_prior(drop, pose, len(drop)), 0.0))
             parts["stay"].append(bucket == pose)
+            parts["band"].append(np.where(bucket == pose, -1, np.append(landing_bands(drop), -1)))
             objects.append(object_id)
             plays.append(len(push.outcomes))
             sizes.append(len(drop) + 1)
     if not objects:
         raise TrustError(f"no push of the log is in the datasets (rejected: {dict(rejected)})")
     flat = {name: np.concatenate(values) for name, values in parts.items()}
-    return TrustData(flat["row"], flat["terms"], flat["observed"], flat["prior"], flat["stay"],
+    return TrustData(flat["row"], flat["terms"], flat["observed"], flat["prior"], flat["stay"], flat["band"],
                      np.concatenate([[0], np.cumsum(sizes)]), np.array(objects), np.array(plays), rejected)
 
 
@@ -138,7 +141,7 @@ def fit_shares(data: TrustData, pushes: np.ndarray | None = None) -> np.ndarray:
     used = np.abs(terms).sum(axis=0) > 0
     shares = np.zeros(terms.shape[1])
     if used.any():
-        shares[used] = lsq_linear(terms[:, used], (data.observed - data.row)[buckets], bounds=(0.0, 1.0)).x
+        shares[used] = lsq_linear(terms[:, used], (data.observed - data.row)[buckets], bounds=(0.0, 1.0), method="bvls").x
     return shares
 
 
@@ -184,13 +187,13 @@ def out_of_fold(data: TrustData, folds: list[list[str]]) -> dict:
 
 
 def band_summary(data: TrustData) -> list[dict]:
-    """Per band: the landing mass the rows put there and the share of it physics gave that band's poses."""
+    """Per band: the landing mass the rows put on its poses, summed over pushes, the mass physics put
+    there, and the pushes whose rows land there."""
     out = []
     for b in range(len(BANDS) + 1):
-        moved = -np.minimum(data.terms[:, b], 0.0)  # s_y on this band's landings, 0 elsewhere
-        on = moved > 0
-        out.append({"band": b, "predicted_mass": float(moved.sum()), "observed_mass": float(data.observed[on].sum()),
-                    "pushes": int(len(np.unique(data.bucket_push[on])))})
+        on = data.band == b
+        out.append({"band": b, "predicted_mass": float(data.row[on].sum()), "observed_mass": float(data.observed[on].sum()),
+                    "pushes": len(np.unique(data.bucket_push[on & (data.row > 0)]))})
     return out
 
 
