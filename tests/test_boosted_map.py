@@ -415,6 +415,9 @@ def test_folds_from_an_earlier_fold_maps_directory_are_the_folds_used(model_logs
                given / "fold_0.csv", None)
     assert main([*common, "--folds-from", str(given), "--fold-maps", str(tmp_path / "never")]) == 2
     assert "folds hold 1 object(s) not in corpus" in capsys.readouterr().err and not (tmp_path / "never").exists()
+    # ... and before any log is read: a log that does not exist is not what it reports.
+    assert main([str(tmp_path / "no_such_log"), *common[1:], "--folds-from", str(given), "--fold-maps", str(tmp_path / "never")]) == 2
+    assert "folds hold 1 object(s) not in corpus" in capsys.readouterr().err
     assert main([*common[:3], *common[4:], "--folds-from", str(given)]) == 2
     assert "--folds-from gives the boosted map's folds; give --boosted" in capsys.readouterr().err
 

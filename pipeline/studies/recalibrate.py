@@ -528,6 +528,15 @@ def main(argv: list[str] | None = None) -> int:
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
         corpus = None if args.corpus == "none" else load_corpus(args.corpus, config.mesh.default_mass)
+        if args.fold_maps is not None and corpus is None:
+            raise UsageError("--fold-maps writes corpus lists: give a --corpus, not 'none'")
+        # The folds are checked before any log is read (reading the logs takes minutes).
+        given = None if args.folds_from is None else read_fold_lists(args.folds_from)
+        if given is not None and args.fold_maps is not None:  # a fold list is written from the corpus
+            unknown = sorted({name for members in given for name in members} - {spec.object_id for spec in corpus.specs})
+            if unknown:
+                raise UsageError(f"{args.folds_from}'s folds hold {len(unknown)} object(s) not in corpus {args.corpus!r}: "
+                                 f"{', '.join(unknown[:5])}{' ...' if len(unknown) > 5 else ''}")
         # A feature map is fitted on several logs at once (drawn pushes and a policy's), read one
         # by one: two logs may number their pushes alike.
         groups = [[path] for path in args.logs] if args.features else [args.logs]
@@ -544,14 +553,6 @@ def main(argv: list[str] | None = None) -> int:
         elif args.side:
             result = side_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
         elif args.boosted:
-            if args.fold_maps is not None and corpus is None:
-                raise UsageError("--fold-maps writes corpus lists: give a --corpus, not 'none'")
-            given = None if args.folds_from is None else read_fold_lists(args.folds_from)
-            if given is not None and args.fold_maps is not None:  # before the fit: a fold list is written from the corpus
-                unknown = sorted({name for members in given for name in members} - {spec.object_id for spec in corpus.specs})
-                if unknown:
-                    raise UsageError(f"{args.folds_from}'s folds hold {len(unknown)} object(s) not in corpus {args.corpus!r}: "
-                                     f"{', '.join(unknown[:5])}{' ...' if len(unknown) > 5 else ''}")
             result = boosted_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, fold_objects=given)
             result["folds_from"] = None if args.folds_from is None else str(args.folds_from)
             fold_trees = result.pop("fold_trees")
