@@ -1,5 +1,7 @@
 """The landing trusted by its pose's drop probability (candidate LT): (LT.1), its fit, and the planners over it."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -168,7 +170,18 @@ def test_each_logged_push_is_read_against_the_row_the_planner_saw(dataset, oracl
     assert sum(b["observed_mass"] for b in bands) == pytest.approx(float((1 - data.observed[data.stay]).sum() - observed_outside))
     result = study([str(oracle_log)], [dataset], None, Config())
     assert result["pushes"] == len(log.pushes) and all(0 <= s <= 1 for s in result["shares"])
-    assert result["in_sample_brier"]["trust"] <= result["in_sample_brier"]["rows"] + 1e-12
+    assert result["shares_fitted"] and result["brier"]["trust"] <= result["brier"]["rows"] + 1e-12
+    assert result["trust_minus_rows"] == pytest.approx(result["brier"]["trust"] - result["brier"]["rows"])
+    # Given shares are scored as they are: none moves nothing, and the fitted ones score what the fit scored.
+    none = study([str(oracle_log)], [dataset], None, Config(), [0.0, 0.0, 0.0, 0.0])
+    assert not none["shares_fitted"] and none["brier"]["trust"] == none["brier"]["rows"] == result["brier"]["rows"]
+    again = study([str(oracle_log)], [dataset], None, Config(), result["shares"])
+    assert again["brier"] == result["brier"]
+    for bad in ([0.5, 0.5, 0.5], [0.0, 0.0, 1.2, 0.0]):
+        with pytest.raises(TrustError, match="one per band"):
+            study([str(oracle_log)], [dataset], None, Config(), bad)
+    with pytest.raises(TrustError, match="give one or the other"):
+        study([str(oracle_log)], [dataset], Path("folds"), Config(), [0.0, 0.0, 0.0, 0.0])
 
 
 def test_objects_outside_the_datasets_are_counted_and_an_object_in_two_is_refused(dataset, oracle_log, tmp_path):  # noqa: F811

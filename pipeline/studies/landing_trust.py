@@ -8,10 +8,12 @@ next poses by the multi-class Brier score (``scoring.brier_score``); the untrust
 is fitted by bounded least squares on the same score, since (LT.1) is linear in it.  With
 ``--folds DIR`` (a ``--fold-maps`` directory) the shares are also fitted on all folds but one and
 scored on that one, every fold in turn, against the rows as they are, the prior alone and the
-trivial predictors; the interval is over objects, paired.
+trivial predictors; the interval is over objects, paired.  ``--shares U...`` scores given shares
+instead of fitting them: on a log of objects they were not fitted on, whether the fit carries over.
 
     python -m pipeline.studies.landing_trust data/logs/corpus_planner --datasets data/corpus_oof_sa_{0..5} \\
         --folds data/corpus_folds --json F
+    python -m pipeline.studies.landing_trust LOG --datasets DATASET --shares 0.491 0.241 0.147 0.029
 """
 
 from __future__ import annotations
@@ -197,16 +199,31 @@ def band_summary(data: TrustData) -> list[dict]:
     return out
 
 
-def study(logs: list[str], dataset_roots: list[Path], folds_dir: Path | None, config: Config) -> dict:
+def study(logs: list[str], dataset_roots: list[Path], folds_dir: Path | None, config: Config,
+          shares: list[float] | None = None) -> dict:
+    """The shares fitted on the logs (``shares`` None) or the given ones scored on them: the next-pose
+    Brier score of each predictor at those shares (in sample when fitted), the trust minus the rows
+    with its interval over objects, and with ``folds_dir`` the fit out of fold."""
+    if shares is not None:
+        shares = np.asarray(shares, dtype=float)
+        if shares.shape != (len(BANDS) + 1,) or not np.all((shares >= 0) & (shares <= 1)):
+            raise TrustError(f"the shares are {len(BANDS) + 1} numbers in [0, 1], one per band; got {shares.tolist()}")
+        if folds_dir is not None:
+            raise TrustError("given shares are scored as they are; --folds fits them, so give one or the other")
     datasets = object_datasets(dataset_roots)
     log = read_log(logs, config)
     data = trust_data(log, datasets)
-    shares = fit_shares(data)
+    fitted = shares is None
+    shares = fit_shares(data) if fitted else shares
+    scores = {name: brier_per_push(data, p) for name, p in predictions(data, shares).items()}
+    difference = scores["trust"] - scores["rows"]
     result = {"logs": logs, "datasets": [str(r) for r in dataset_roots], "bands": list(BANDS),
               "pushes": len(data.objects), "objects": len(np.unique(data.objects)), "plays": int(data.plays.sum()),
               "rejected_pushes": dict(data.rejected), "log_rejected_rows": dict(log.rejected),
-              "shares": shares.tolist(), "by_band": band_summary(data),
-              "in_sample_brier": {name: float(brier_per_push(data, p).mean()) for name, p in predictions(data, shares).items()}}
+              "shares": shares.tolist(), "shares_fitted": fitted, "by_band": band_summary(data),
+              "brier": {name: float(s.mean()) for name, s in scores.items()},
+              "trust_minus_rows": float(difference.mean()),
+              "trust_minus_rows_interval": paired_interval(difference, np.ones(len(difference)), data.objects)}
     if folds_dir is not None:
         result["out_of_fold"] = out_of_fold(data, read_fold_lists(folds_dir))
     return result
@@ -216,7 +233,10 @@ def text(result: dict) -> str:
     lines = [f"{result['pushes']} pushes ({result['plays']} plays) on {result['objects']} objects; rejected {result['rejected_pushes']}",
              "untrusted share per band (drop probability <= " + ", ".join(f"{b}" for b in result["bands"]) + ", above): "
              + ", ".join(f"{s:.3f}" for s in result["shares"]),
-             "in sample, next-pose Brier: " + ", ".join(f"{k} {v:.4f}" for k, v in result["in_sample_brier"].items())]
+             f"next-pose Brier ({'in sample, the shares fitted here' if result['shares_fitted'] else 'the shares given'}): "
+             + ", ".join(f"{k} {v:.4f}" for k, v in result["brier"].items()),
+             "trust minus rows {:+.4f} [{:+.4f}, {:+.4f}] (95 % over objects)".format(result["trust_minus_rows"],
+                                                                                   *result["trust_minus_rows_interval"])]
     for band in result["by_band"]:
         lines.append(f"  band {band['band']}: {band['pushes']} pushes, landing mass predicted {band['predicted_mass']:.1f}, "
                      f"observed there {band['observed_mass']:.1f}")
@@ -237,10 +257,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("logs", nargs="+", help="push logs whose push ids name dataset pushes (oracle_policy --log)")
     parser.add_argument("--datasets", nargs="+", type=Path, required=True, help="the datasets the logs' pushes were drawn from")
     parser.add_argument("--folds", type=Path, help="a --fold-maps directory: also fit and score out of fold")
+    parser.add_argument("--shares", type=float, nargs=len(BANDS) + 1, metavar="U",
+                        help="score these untrusted shares (one per band) instead of fitting them, e.g. on objects they were not fitted on")
     parser.add_argument("--json", type=Path, help="write the result here")
     args = parser.parse_args(argv)
     try:
-        result = study(args.logs, args.datasets, args.folds, Config())
+        result = study(args.logs, args.datasets, args.folds, Config(), args.shares)
     except (TrustError, LogError, RecalibrationError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
