@@ -205,3 +205,168 @@ def test_objects_outside_the_datasets_are_counted_and_an_object_in_two_is_refuse
         object_datasets([dataset, tmp_path / "copy"])
     assert main([str(oracle_log), "--datasets", str(tmp_path / "missing")]) == 2
 
+
+
+# Review (stop 50): what mutation testing found unchecked.
+
+def test_a_row_that_is_not_ok_gets_no_terms_and_a_bad_share_count_is_named():
+    rows = np.array([[np.nan] * 4, [0.4, 0.0, 0.6, 0.0]])
+    terms = trust_terms(rows, 0, DROP)
+    assert (terms[0] == 0).all() and np.abs(terms[1]).sum() > 0
+    with pytest.raises(ValueError, match="the untrusted shares are 4 numbers in"):
+        trusted_rows(rows, 0, DROP, np.array([0.5, 0.5, 0.5]))
+
+
+def tiny() -> TrustData:
+    """Two pushes by hand: three poses plus outside, drop 0.6, 0.3, 0.1 (bands 3, 3, 1)."""
+    drop = np.array([0.6, 0.3, 0.1])
+    rows = [np.array([0.5, 0.2, 0.3]), np.array([0.1, 0.7, 0.2])]  # from poses 0 and 1
+    observed = [np.array([0.25, 0.5, 0.0, 0.25]), np.array([0.0, 0.5, 0.5, 0.0])]
+    parts = {k: [] for k in ("row", "terms", "observed", "prior", "stay", "band")}
+    for pose, (row, seen) in enumerate(zip(rows, observed)):
+        parts["row"].append(np.append(row, 0.0))
+        parts["terms"].append(np.vstack([trust_terms(row[None], pose, drop)[0], np.zeros(4)]))
+        parts["observed"].append(seen)
+        prior = np.where(np.arange(3) == pose, 0.0, drop)
+        parts["prior"].append(np.append(prior / prior.sum(), 0.0))
+        parts["stay"].append(np.arange(4) == pose)
+        parts["band"].append(np.where(np.arange(4) == pose, -1, [3, 3, 1, -1]))
+    flat = {k: np.concatenate(v) for k, v in parts.items()}
+    return TrustData(flat["row"], flat["terms"], flat["observed"], flat["prior"], flat["stay"], flat["band"],
+                     np.array([0, 4, 8]), np.array(["a", "b"]), np.array([4, 2]), {})
+
+
+def test_the_scores_and_the_trivial_predictors_by_hand():
+    from pipeline.studies.landing_trust import band_summary, brier_per_push
+
+    data = tiny()
+    np.testing.assert_allclose(brier_per_push(data, data.row), [0.0625 + 0.09 + 0.09 + 0.0625, 0.01 + 0.04 + 0.09])
+    got = predictions(data, np.zeros(4))
+    assert set(got) == {"rows", "trust", "prior_landing", "never_topples", "constant_rate"}
+    np.testing.assert_allclose(got["trust"], data.row)
+    np.testing.assert_allclose(got["never_topples"], [1, 0, 0, 0, 0, 1, 0, 0])
+    # The log topples 0.75 and 0.5 of its plays: a rate of 0.625, landing by the prior.
+    np.testing.assert_allclose(got["constant_rate"], [0.375, 0.625 * 0.75, 0.625 * 0.25, 0, 0.625 * 6 / 7, 0.375, 0.625 / 7, 0])
+    # Every share 1: the leaving mass (0.5 and 0.3) lands by the prior alone.
+    np.testing.assert_allclose(got["prior_landing"], [0.5, 0.5 * 0.75, 0.5 * 0.25, 0, 0.3 * 6 / 7, 0.7, 0.3 / 7, 0])
+    assert band_summary(data) == [
+        {"band": 0, "predicted_mass": 0.0, "observed_mass": 0.0, "pushes": 0},
+        {"band": 1, "predicted_mass": pytest.approx(0.5), "observed_mass": 0.5, "pushes": 2},
+        {"band": 2, "predicted_mass": 0.0, "observed_mass": 0.0, "pushes": 0},
+        {"band": 3, "predicted_mass": pytest.approx(0.3), "observed_mass": 0.5, "pushes": 2}]
+
+
+def test_the_fit_uses_only_the_pushes_asked_and_each_fold_is_scored_by_the_others_fit():
+    truth, other = np.array([0.6, 0.3, 0.1, 0.0]), np.array([0.1, 0.0, 0.5, 0.4])
+    data = synthetic(truth)
+    b = np.isin(data.objects, [f"object_{n}" for n in range(0, 12, 3)])  # fold 0's objects land by other shares
+    data.observed[b[data.bucket_push]] = (data.row + data.terms @ other)[b[data.bucket_push]]
+    np.testing.assert_allclose(fit_shares(data, b), other, atol=1e-9)
+    np.testing.assert_allclose(fit_shares(data, ~b), truth, atol=1e-9)
+    # Small landings still count: the fit does not drop a band by the size of its terms.
+    scaled = synthetic(truth)
+    scaled.terms *= 1e-4
+    scaled.observed = scaled.row + scaled.terms @ truth
+    np.testing.assert_allclose(fit_shares(scaled), truth, atol=1e-6)
+    # A fold with no pushes (fold 1 here) is skipped, the others still scored.
+    folds = [[f"object_{n}" for n in range(0, 12, 3)], ["nobody"], [f"object_{n}" for n in range(12) if n % 3]]
+    oof = out_of_fold(data, folds)
+    assert [f["fold"] for f in oof["folds"]] == [0, 2] and [f["pushes"] for f in oof["folds"]] == [80, 160]
+    np.testing.assert_allclose(oof["folds"][0]["shares"], fit_shares(data, ~b))
+    np.testing.assert_allclose(oof["folds"][1]["shares"], fit_shares(data, b))
+    fold_of_bucket = b[data.bucket_push]
+    trust = np.where(fold_of_bucket, data.row + data.terms @ fit_shares(data, ~b), data.row + data.terms @ fit_shares(data, b))
+    from pipeline.studies.landing_trust import brier_per_push
+
+    rows, trusted = brier_per_push(data, data.row).mean(), brier_per_push(data, trust).mean()
+    prior = brier_per_push(data, data.row + data.terms @ np.ones(4)).mean()
+    assert set(oof["brier"]) == {"rows", "prior_landing", "never_topples", "constant_rate", "trust_out_of_fold"}
+    assert oof["brier"]["trust_out_of_fold"] == pytest.approx(trusted) and oof["brier"]["rows"] == pytest.approx(rows)
+    assert oof["trust_minus_rows"] == pytest.approx(trusted - rows)
+    assert oof["prior_landing_minus_rows"] == pytest.approx(prior - rows)
+    low, high = oof["trust_minus_rows_interval"]
+    assert low <= trusted - rows <= high
+    low, high = oof["prior_landing_minus_rows_interval"]
+    assert low <= prior - rows <= high
+
+
+def test_each_push_carries_its_start_poses_terms_prior_and_bands(dataset, oracle_log):  # noqa: F811 (fixture)
+    from pipeline.model.config import Config
+    from pipeline.model.landing_spread import landing_prior
+    from pipeline.studies.logreader import read_log
+    from schema.reader import Dataset
+
+    log = read_log([oracle_log], Config())
+    data = trust_data(log, object_datasets([dataset]))
+    poses = Dataset.open(dataset).table("poses", columns=["object_id", "pose", "probability"]).to_pydict()
+    for i, push in enumerate(log.pushes):
+        drop = np.array([d for _, d in sorted((p, d) for o, p, d in zip(poses["object_id"], poses["pose"], poses["probability"])
+                                              if o == push.object_id)])
+        span = slice(data.start[i], data.start[i + 1])
+        row = data.row[span][:-1]
+        np.testing.assert_allclose(data.terms[span], np.vstack([trust_terms(row[None], push.pose, drop)[0], np.zeros(4)]))
+        np.testing.assert_allclose(data.prior[span], np.append(landing_prior(drop, push.pose, len(drop)), 0.0))
+        expected = np.append(landing_bands(drop), -1)
+        expected[push.pose] = -1
+        assert data.band[span].tolist() == expected.tolist()
+
+
+def test_pushes_the_datasets_cannot_place_are_counted_each_under_its_reason(dataset, oracle_log):  # noqa: F811 (fixture)
+    from dataclasses import replace
+
+    from pipeline.model.config import Config
+    from pipeline.studies.logreader import read_log
+    from pipeline.studies.policy_experiment import ACTION_SPAN
+
+    log = read_log([oracle_log], Config())
+    datasets = object_datasets([dataset])
+    first, second = log.pushes[0], log.pushes[1]
+    poses = datasets[first.object_id].table("poses", columns=["object_id", "pose", "n_actions"]).to_pydict()
+    (n_actions,) = [n for o, x, n in zip(poses["object_id"], poses["pose"], poses["n_actions"]) if o == first.object_id and x == first.pose]
+    bad = [replace(first, object_id="elsewhere"), replace(second, object_id="nowhere"),
+           replace(first, push_id=first.pose * ACTION_SPAN + ACTION_SPAN - 1),  # no such action
+           replace(first, push_id=first.pose * ACTION_SPAN + n_actions),  # one past the pose's last action
+           replace(second, push_id=(second.pose + 1) * ACTION_SPAN)]  # another start pose
+    data = trust_data(replace(log, pushes=[*bad, *log.pushes]), datasets)
+    assert data.rejected == {"object in none of the datasets": 2, "push id names no ok push of its start pose": 3}
+    assert len(data.objects) == len(log.pushes)
+    # Objects whose dataset holds other stable poses than the log's (here none): all their pushes set aside, the others read.
+    twins = {name: log.objects[first.object_id] for name in ("twin_a", "twin_b")}
+    moved = [replace(p, object_id=name) for name in twins for p in log.pushes]
+    data = trust_data(replace(log, pushes=[*moved, *log.pushes], objects={**log.objects, **twins}),
+                      {**datasets, **{name: datasets[first.object_id] for name in twins}})
+    assert data.rejected == {"the dataset's stable poses differ from the log's": 2 * len(log.pushes)}
+    assert len(data.objects) == len(log.pushes)
+
+
+def test_the_study_out_of_fold_prints_and_writes_its_record(dataset, oracle_log, tmp_path, capsys):  # noqa: F811 (fixture)
+    import json
+
+    from pipeline.studies.landing_trust import main
+
+    lines = (dataset.parent / "corpus.csv").read_text().splitlines()
+    folds = tmp_path / "folds"
+    folds.mkdir()
+    for k, line in enumerate(lines[1:]):
+        (folds / f"fold_{k}.csv").write_text(f"{lines[0]}\n{line}\n")
+    out = tmp_path / "trust.json"
+    assert main([str(oracle_log), "--datasets", str(dataset), "--folds", str(folds), "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert set(result) == {"logs", "datasets", "bands", "pushes", "objects", "plays", "rejected_pushes", "log_rejected_rows",
+                           "shares", "by_band", "in_sample_brier", "out_of_fold"}
+    assert result["logs"] == [str(oracle_log)] and result["datasets"] == [str(dataset)] and result["bands"] == list(BANDS)
+    assert result["objects"] == 1 and result["plays"] >= result["pushes"] > 0 and result["rejected_pushes"] == {}
+    assert [b["band"] for b in result["by_band"]] == [0, 1, 2, 3]
+    (fold,) = result["out_of_fold"]["folds"]  # the log's one object's; the other fold has no push
+    assert fold["fold"] in (0, 1) and fold["pushes"] == result["pushes"]
+    assert f"{result['pushes']} pushes ({result['plays']} plays) on 1 objects" in printed
+    assert "untrusted share per band (drop probability <= 0.05, 0.1, 0.2, above): " in printed
+    assert "out of fold, next-pose Brier: rows " in printed and "trust minus rows " in printed and f"  fold {fold['fold']} (" in printed
+    assert f"trust minus rows {result['out_of_fold']['trust_minus_rows']:+.4f}" in printed
+    # A bad input is one line on stderr, naming what is wrong.
+    assert main([str(oracle_log), "--datasets", str(dataset), "--folds", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "holds 0 fold list(s)" in err and len(err.strip().splitlines()) == 1
+    assert main([str(oracle_log), "--datasets", str(tmp_path / "missing")]) == 2
+    assert str(tmp_path / "missing") in capsys.readouterr().err
