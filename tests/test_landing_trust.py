@@ -1,5 +1,6 @@
 """The landing trusted by its pose's drop probability (candidate LT): (LT.1), its fit, and the planners over it."""
 
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -106,7 +107,7 @@ def synthetic(shares: np.ndarray, objects: int = 12, seed: int = 0) -> TrustData
                 sizes.append(6)
     flat = {k: np.concatenate(v) for k, v in parts.items()}
     return TrustData(flat["row"], flat["terms"], flat["observed"], flat["prior"], flat["stay"], flat["band"],
-                     np.concatenate([[0], np.cumsum(sizes)]), np.array(names), np.full(len(names), 8), {})
+                     np.concatenate([[0], np.cumsum(sizes)]), np.array(names), np.full(len(names), 8), Counter())
 
 
 def test_the_fit_recovers_the_shares_that_made_the_observations():
@@ -354,7 +355,8 @@ def test_the_study_out_of_fold_prints_and_writes_its_record(dataset, oracle_log,
     printed = capsys.readouterr().out
     result = json.loads(out.read_text())
     assert set(result) == {"logs", "datasets", "bands", "pushes", "objects", "plays", "rejected_pushes", "log_rejected_rows",
-                           "shares", "by_band", "in_sample_brier", "out_of_fold"}
+                           "shares", "shares_fitted", "by_band", "brier", "trust_minus_rows", "trust_minus_rows_interval",
+                           "out_of_fold"}
     assert result["logs"] == [str(oracle_log)] and result["datasets"] == [str(dataset)] and result["bands"] == list(BANDS)
     assert result["objects"] == 1 and result["plays"] >= result["pushes"] > 0 and result["rejected_pushes"] == {}
     assert [b["band"] for b in result["by_band"]] == [0, 1, 2, 3]
@@ -370,3 +372,29 @@ def test_the_study_out_of_fold_prints_and_writes_its_record(dataset, oracle_log,
     assert err.startswith("error: ") and "holds 0 fold list(s)" in err and len(err.strip().splitlines()) == 1
     assert main([str(oracle_log), "--datasets", str(tmp_path / "missing")]) == 2
     assert str(tmp_path / "missing") in capsys.readouterr().err
+
+
+def test_bad_folds_are_named_before_the_log_is_read_and_an_unwritable_record_is_one_line(dataset, oracle_log, tmp_path, capsys):  # noqa: F811
+    from pipeline.studies.landing_trust import main
+
+    assert main([str(tmp_path / "no_log"), "--datasets", str(dataset), "--folds", str(tmp_path / "no_folds")]) == 2
+    assert "holds 0 fold list(s)" in capsys.readouterr().err
+    (tmp_path / "a_file").write_text("")
+    assert main([str(oracle_log), "--datasets", str(dataset), "--json", str(tmp_path / "a_file" / "trust.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: cannot write ") and len(err.strip().splitlines()) == 1
+
+
+def test_a_dataset_whose_poses_lack_the_drop_probabilities_is_refused(dataset, tmp_path):  # noqa: F811
+    import shutil
+
+    import pyarrow.parquet as pq
+
+    from schema.reader import CONSOLIDATED
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    poses = copy / CONSOLIDATED["poses"]
+    pq.write_table(pq.read_table(poses).drop_columns(["probability"]), poses)
+    with pytest.raises(TrustError, match=r"poses.parquet: unreadable: .*probability"):
+        object_datasets([copy])

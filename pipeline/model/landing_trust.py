@@ -6,9 +6,10 @@ where the row lands them, pick those over-valued landings.  So before a pose's p
 share u_b of the landing on each pose y moves to the drop-probability prior over the poses other
 than the start pose x, b the band of y's drop probability d_y (``BANDS``):
 
-    s'_y = (1 - u_b(y)) s_y + pi_y / (1 - pi_x) * sum_z u_b(z) s_z,    y != x                     (LT.1)
+    s'_y = (1 - u_b(y)) s_y + pi_y / (sum_{z != x} pi_z) * sum_z u_b(z) s_z,    y != x            (LT.1)
 
-with s the leaving part of the row (sums to P(topple)) and pi the drop probabilities.  The stay
+with s the leaving part of the row (sums to P(topple)) and pi the drop probabilities (the prior is
+``landing_spread.landing_prior`` over every other pose; with none of positive pi, nothing moves).  The stay
 s_x, hence P(topple), is unchanged.  The rows are linear in u, so the shares are fitted by least
 squares (``trust_terms``).  numpy only.
 """

@@ -72,15 +72,21 @@ class TrustData:
         return np.repeat(np.arange(len(self.objects)), np.diff(self.start))
 
 
+POSE_COLUMNS = ["object_id", "pose", "probability", "n_actions"]
+"""What the fit reads of a dataset's poses table."""
+
+
 def object_datasets(roots: list[Path]) -> dict[str, Dataset]:
-    """Object id -> the dataset that holds it; an object in two datasets is an error."""
+    """Object id -> the dataset that holds it; an object in two datasets, or a dataset whose poses
+    table cannot be read with ``POSE_COLUMNS``, is an error."""
     found: dict[str, Dataset] = {}
     for root in roots:
         try:
             dataset = Dataset.open(root)
-        except DatasetUnreadable as err:
+            names = dataset.table("poses", columns=POSE_COLUMNS).column("object_id").to_pylist()
+        except DatasetUnreadable as err:  # a missing column too: the reader names the file and the column
             raise TrustError(str(err)) from None
-        for object_id in set(dataset.table("poses", columns=["object_id"]).column("object_id").to_pylist()):
+        for object_id in set(names):
             if object_id in found:
                 raise TrustError(f"object {object_id!r} is in {found[object_id].root} and {root}; give each object's dataset once")
             found[object_id] = dataset
@@ -93,6 +99,7 @@ def trust_data(log, datasets: dict[str, Dataset]) -> TrustData:
     parts = {name: [] for name in ("row", "terms", "observed", "prior", "stay", "band")}
     objects, plays, sizes = [], [], []
     rejected: Counter = Counter()
+    poses_of: dict[Path, dict] = {}  # each dataset's poses table, read once
     by_object: dict[str, list] = {}
     for push in log.pushes:
         by_object.setdefault(push.object_id, []).append(push)
@@ -101,7 +108,9 @@ def trust_data(log, datasets: dict[str, Dataset]) -> TrustData:
         if dataset is None:
             rejected["object in none of the datasets"] += len(pushes)
             continue
-        poses = dataset.table("poses", columns=["object_id", "pose", "probability", "n_actions"]).to_pydict()
+        if dataset.root not in poses_of:
+            poses_of[dataset.root] = dataset.table("poses", columns=POSE_COLUMNS).to_pydict()
+        poses = poses_of[dataset.root]
         mine = sorted((p, d, n) for o, p, d, n in zip(poses["object_id"], poses["pose"], poses["probability"], poses["n_actions"])
                       if o == object_id)
         drop = np.array([d for _, d, _ in mine])
@@ -210,6 +219,7 @@ def study(logs: list[str], dataset_roots: list[Path], folds_dir: Path | None, co
             raise TrustError(f"the shares are {len(BANDS) + 1} numbers in [0, 1], one per band; got {shares.tolist()}")
         if folds_dir is not None:
             raise TrustError("given shares are scored as they are; --folds fits them, so give one or the other")
+    folds = None if folds_dir is None else read_fold_lists(folds_dir)  # a bad list before minutes of reading
     datasets = object_datasets(dataset_roots)
     log = read_log(logs, config)
     data = trust_data(log, datasets)
@@ -224,8 +234,8 @@ def study(logs: list[str], dataset_roots: list[Path], folds_dir: Path | None, co
               "brier": {name: float(s.mean()) for name, s in scores.items()},
               "trust_minus_rows": float(difference.mean()),
               "trust_minus_rows_interval": paired_interval(difference, np.ones(len(difference)), data.objects)}
-    if folds_dir is not None:
-        result["out_of_fold"] = out_of_fold(data, read_fold_lists(folds_dir))
+    if folds is not None:
+        result["out_of_fold"] = out_of_fold(data, folds)
     return result
 
 
@@ -268,7 +278,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(text(result))
     if args.json:
-        write_text_atomic(args.json, json.dumps(result, indent=1) + "\n")
+        try:
+            write_text_atomic(args.json, json.dumps(result, indent=1) + "\n")
+        except OSError as err:
+            print(f"error: cannot write {args.json}: {err.strerror or err}", file=sys.stderr)
+            return 2
     return 0
 
 
