@@ -514,7 +514,7 @@ def test_the_study_plays_no_prior_policy_unless_asked_and_refuses_a_negative_pri
         assert f"the landing prior is a count of trials, finite and >= 0; got {float(bad)}" in capsys.readouterr().err
     assert report["landing_trust"] is None
     assert main([str(dataset), "--trials", "2", "--landing-trust", "0.5", "0", "1.5", "0"]) == 2
-    assert "the landing trust is 4 untrusted shares in [0, 1]" in capsys.readouterr().err
+    assert "the untrusted shares are 4 numbers in [0, 1], one per band of drop probability" in capsys.readouterr().err
     assert main([str(dataset), "--trials", "2", "--landing-trust", "0.5", "0", "0", "0", "--landing-prior", "10"]) == 2
     assert "a landing prior or a landing trust, not both" in capsys.readouterr().err
 

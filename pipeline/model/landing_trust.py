@@ -56,6 +56,17 @@ def trust_terms(rows: np.ndarray, pose: int, drop_probabilities: np.ndarray) -> 
     return terms
 
 
+def checked_shares(untrusted) -> np.ndarray:
+    """The untrusted shares u_b as an array, or ValueError saying what they must be.
+
+    untrusted : (len(BANDS) + 1,) numbers in [0, 1]"""
+    shares = np.asarray(untrusted, dtype=float)
+    if shares.shape != (len(BANDS) + 1,) or not np.all((shares >= 0) & (shares <= 1)):
+        raise ValueError(f"the untrusted shares are {len(BANDS) + 1} numbers in [0, 1], one per band of drop probability "
+                         f"(edges {', '.join(map(str, BANDS))}); got {shares.tolist()}")
+    return shares
+
+
 def trusted_rows(rows: np.ndarray, pose: int, drop_probabilities: np.ndarray, untrusted: np.ndarray) -> np.ndarray:
     """(LT.1): ``rows`` with each band's untrusted share of its landings moved to the prior.
 
@@ -63,9 +74,7 @@ def trusted_rows(rows: np.ndarray, pose: int, drop_probabilities: np.ndarray, un
     untrusted : (len(BANDS) + 1,) float in [0, 1], u_b per band
     returns : (A, P) float; ``rows`` itself when every share is 0
     """
-    untrusted = np.asarray(untrusted, dtype=float)
-    if untrusted.shape != (len(BANDS) + 1,) or not np.all((untrusted >= 0) & (untrusted <= 1)):
-        raise ValueError(f"the untrusted shares are {len(BANDS) + 1} numbers in [0, 1], one per band; got {untrusted.tolist()}")
+    untrusted = checked_shares(untrusted)
     if not untrusted.any():
         return rows
     rows = np.asarray(rows, dtype=float)

@@ -32,7 +32,7 @@ from schema.reader import Dataset, DatasetUnreadable
 from ..build.atomic import write_text_atomic
 from ..model.config import Config
 from ..model.landing_spread import landing_prior
-from ..model.landing_trust import BANDS, landing_bands, trust_terms
+from ..model.landing_trust import BANDS, checked_shares, landing_bands, trust_terms
 from .compare_fold_maps import paired_interval
 from .logreader import LogError, read_log
 from .policy_experiment import ACTION_SPAN
@@ -214,9 +214,10 @@ def study(logs: list[str], dataset_roots: list[Path], folds_dir: Path | None, co
     Brier score of each predictor at those shares (in sample when fitted), the trust minus the rows
     with its interval over objects, and with ``folds_dir`` the fit out of fold."""
     if shares is not None:
-        shares = np.asarray(shares, dtype=float)
-        if shares.shape != (len(BANDS) + 1,) or not np.all((shares >= 0) & (shares <= 1)):
-            raise TrustError(f"the shares are {len(BANDS) + 1} numbers in [0, 1], one per band; got {shares.tolist()}")
+        try:
+            shares = checked_shares(shares)
+        except ValueError as err:
+            raise TrustError(str(err)) from None
         if folds_dir is not None:
             raise TrustError("given shares are scored as they are; --folds fits them, so give one or the other")
     folds = None if folds_dir is None else read_fold_lists(folds_dir)  # a bad list before minutes of reading

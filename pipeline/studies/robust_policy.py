@@ -58,7 +58,7 @@ from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 from ..build.atomic import write_text_atomic
 from ..model.config import Config, MDPConfig, field_range
 from ..model.landing_trust import BANDS as TRUST_BANDS
-from ..model.landing_trust import trusted_rows
+from ..model.landing_trust import checked_shares, trusted_rows
 from ..model.mdp import IMPROVEMENT, belief_value_iteration, choice_by_means, pose_values, value_iteration_policy
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, mean_se, object_plans, open_trials, world_config
@@ -640,10 +640,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     if landing_prior is not None and landing_trust is not None:
         raise ValueError("a landing prior or a landing trust, not both: the two play the same policies")
     if landing_trust is not None:
-        landing_trust = np.asarray(landing_trust, dtype=float)
-        if landing_trust.shape != (len(TRUST_BANDS) + 1,) or not np.all((landing_trust >= 0) & (landing_trust <= 1)):
-            raise ValueError(f"the landing trust is {len(TRUST_BANDS) + 1} untrusted shares in [0, 1], one per band of "
-                             f"drop probability (edges {', '.join(map(str, TRUST_BANDS))}); got {landing_trust.tolist()}")
+        landing_trust = checked_shares(landing_trust)
     policies = COMPARED + (tuple(PRIOR_POLICIES) if landing_prior is not None or landing_trust is not None else ())
     policies += tuple(VARIANT_POLICIES) if variant else ()
     dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
@@ -708,8 +705,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         runs.update(results)
         pushes.extend(object_pushes)
     report = summarise(tables, starts, runs, pushes, policies)
-    report.update({"landing_prior": landing_prior,
-                   "landing_trust": None if landing_trust is None else landing_trust.tolist(), "variant": variant or None, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
+    report.update({"landing_prior": landing_prior, "landing_trust": None if landing_trust is None else landing_trust.tolist(),
+                   "variant": variant or None, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
                    "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
     if per_trial:
