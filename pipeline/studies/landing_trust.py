@@ -93,13 +93,24 @@ def object_datasets(roots: list[Path]) -> dict[str, Dataset]:
     return found
 
 
+def poses_by_object(dataset: Dataset) -> dict[str, tuple[np.ndarray, list[int]]]:
+    """Each object's drop probabilities ((P,) float) and actions per pose, in pose order."""
+    table = dataset.table("poses", columns=POSE_COLUMNS).sort_by([("object_id", "ascending"), ("pose", "ascending")]).to_pydict()
+    grouped: dict[str, tuple[list, list]] = {}
+    for object_id, probability, count in zip(table["object_id"], table["probability"], table["n_actions"]):
+        drop, n_actions = grouped.setdefault(object_id, ([], []))
+        drop.append(probability)
+        n_actions.append(count)
+    return {object_id: (np.array(drop, dtype=float), n_actions) for object_id, (drop, n_actions) in grouped.items()}
+
+
 def trust_data(log, datasets: dict[str, Dataset]) -> TrustData:
     """The log's pushes against their datasets' rows (``TrustData``); a push whose object or action
     the datasets do not hold is counted under its reason, not used."""
     parts = {name: [] for name in ("row", "terms", "observed", "prior", "stay", "band")}
     objects, plays, sizes = [], [], []
     rejected: Counter = Counter()
-    poses_of: dict[Path, dict] = {}  # each dataset's poses table, read once
+    poses_of: dict[Path, dict] = {}  # each dataset's poses, object -> (drop probabilities, actions per pose), read once
     by_object: dict[str, list] = {}
     for push in log.pushes:
         by_object.setdefault(push.object_id, []).append(push)
@@ -109,28 +120,27 @@ def trust_data(log, datasets: dict[str, Dataset]) -> TrustData:
             rejected["object in none of the datasets"] += len(pushes)
             continue
         if dataset.root not in poses_of:
-            poses_of[dataset.root] = dataset.table("poses", columns=POSE_COLUMNS).to_pydict()
-        poses = poses_of[dataset.root]
-        mine = sorted((p, d, n) for o, p, d, n in zip(poses["object_id"], poses["pose"], poses["probability"], poses["n_actions"])
-                      if o == object_id)
-        drop = np.array([d for _, d, _ in mine])
+            poses_of[dataset.root] = poses_by_object(dataset)
+        drop, n_actions = poses_of[dataset.root].get(object_id, (np.zeros(0), []))
         if len(drop) != len(log.objects[object_id].poses.poses):
             rejected["the dataset's stable poses differ from the log's"] += len(pushes)
             continue
-        rows = next_pose_rows(dataset, object_id, [n for _, _, n in mine])
+        rows = next_pose_rows(dataset, object_id, n_actions)
         terms = [trust_terms(r, x, drop) for x, r in enumerate(rows)]
+        bucket = np.arange(len(drop) + 1)  # every pose, then outside the pose set
+        bands = np.append(landing_bands(drop), -1)
+        priors = [np.append(landing_prior(drop, x, len(drop)), 0.0) for x in range(len(drop))]
         for push in pushes:
             pose, action = divmod(int(push.push_id), ACTION_SPAN)
             if pose != push.pose or action >= len(rows[pose]) or not np.isfinite(rows[pose][action]).all():
                 rejected["push id names no ok push of its start pose"] += 1
                 continue
-            bucket = np.arange(len(drop) + 1)
             parts["row"].append(np.append(rows[pose][action], 0.0))
             parts["terms"].append(np.vstack([terms[pose][action], np.zeros(len(BANDS) + 1)]))
             parts["observed"].append(push.empirical(len(drop)))
-            parts["prior"].append(np.append(landing_prior(drop, pose, len(drop)), 0.0))
+            parts["prior"].append(priors[pose])
             parts["stay"].append(bucket == pose)
-            parts["band"].append(np.where(bucket == pose, -1, np.append(landing_bands(drop), -1)))
+            parts["band"].append(np.where(bucket == pose, -1, bands))
             objects.append(object_id)
             plays.append(len(push.outcomes))
             sizes.append(len(drop) + 1)

@@ -104,6 +104,7 @@ class ObjectPlan:
     """What the workers need of one object from the dataset.
 
     transforms : (P, 4, 4) float, object -> pose frame of each stable pose;  v_s : (P,) float
+    drop_probabilities : (P,) float, each pose's (section 4 of docs/MODEL.md)
     actions : policy -> (P,) int, the policy's action per pose (NO_OP: no push)
     pushes : (pose, action) -> (point (3,), direction (3,), p_topple), pose frame
     """
@@ -111,6 +112,7 @@ class ObjectPlan:
     spec: ObjectSpec
     transforms: np.ndarray
     v_s: np.ndarray
+    drop_probabilities: np.ndarray
     actions: dict[str, np.ndarray]
     pushes: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, float]]
 
@@ -118,7 +120,7 @@ class ObjectPlan:
 def object_plans(dataset: Dataset, object_ids: list[str]) -> dict[str, ObjectPlan]:
     """Each object's spec (mesh path resolved, checked against the manifest's SHA-256) and policy pushes."""
     corpus = {o.object_id: o for o in dataset.manifest.corpus.objects}
-    poses = dataset.table("poses", columns=["object_id", "pose", "transform", "v_s", *(f"{p}_action" for p in POLICIES)])
+    poses = dataset.table("poses", columns=["object_id", "pose", "transform", "v_s", "probability", *(f"{p}_action" for p in POLICIES)])
     poses = poses.sort_by([("object_id", "ascending"), ("pose", "ascending")]).to_pydict()
     by_object: dict[str, list[int]] = {}
     for i, object_id in enumerate(poses["object_id"]):
@@ -151,6 +153,7 @@ def object_plans(dataset: Dataset, object_ids: list[str]) -> dict[str, ObjectPla
             spec=spec,
             transforms=np.array([np.reshape(poses["transform"][i], (4, 4)) for i in rows]),
             v_s=np.array([poses["v_s"][i] for i in rows]),
+            drop_probabilities=np.array([poses["probability"][i] for i in rows], dtype=float),
             actions=actions,
             pushes=pushes,
         )

@@ -646,12 +646,6 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
     variant_mdp = replace(config.mdp, **variant) if variant else None
     plans: dict[str, ObjectPlan] = object_plans(dataset, sorted(by_object))
-    drop: dict[str, np.ndarray] = {}
-    if landing_trust is not None:
-        poses = dataset.table("poses", columns=["object_id", "pose", "probability"]).sort_by([("object_id", "ascending"), ("pose", "ascending")])
-        for object_id, probability in zip(poses.column("object_id").to_pylist(), poses.column("probability").to_pylist()):
-            drop.setdefault(object_id, []).append(probability)
-        drop = {k: np.asarray(v, dtype=float) for k, v in drop.items()}
     tasks = []
     for object_id in sorted(by_object):
         plan = plans[object_id]
@@ -677,7 +671,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
             if landing_prior is not None:
                 prior = [landing_prior_rows(r, x, landing_prior, choosable[x], config.topple.trials) for x, r in enumerate(rows)]
             else:
-                prior = [trusted_rows(r, x, drop[object_id], landing_trust) for x, r in enumerate(rows)]
+                prior = [trusted_rows(r, x, plan.drop_probabilities, landing_trust) for x, r in enumerate(rows)]
             actions, q1, budget_q1 = prior_plan(plan.v_s, prior, config.mdp, choosable, max_pushes, budget_choosable,
                                                 candidates)
             plan.actions.update(actions)
