@@ -47,6 +47,21 @@ class UsageError(ValueError):
     """Bad command-line input; the message is one line."""
 
 
+def print_and_record(text: str, record: dict, path: Path | None) -> int:
+    """How a study ends: its text on stdout and, when ``path`` is given, its record there as JSON.
+    returns : the exit code, 0, or 2 with one line on stderr when the record cannot be written"""
+    from .build.atomic import write_json_atomic
+
+    print(text)
+    if path is not None:
+        try:
+            write_json_atomic(path, record)
+        except OSError as err:
+            print(f"error: cannot write {path}: {err.strerror or err}", file=sys.stderr)
+            return 2
+    return 0
+
+
 def positive_int(text: str) -> int:
     try:
         value = int(text)

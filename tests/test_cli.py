@@ -236,3 +236,20 @@ def test_an_interrupted_fan_out_stops_its_workers():
     assert len(workers) == 2
     gone, alive = psutil.wait_procs(workers, timeout=20)
     assert not alive, f"workers left running: {[p.pid for p in alive]}"
+
+
+def test_a_study_ends_with_its_text_and_its_record_or_one_line_saying_why_not(tmp_path, capsys):
+    import json
+
+    from pipeline.cli import print_and_record
+
+    record = {"a": [1, 2], "b": None}
+    assert print_and_record("the text", record, tmp_path / "r.json") == 0
+    assert capsys.readouterr().out == "the text\n"
+    assert json.loads((tmp_path / "r.json").read_text()) == record
+    assert (tmp_path / "r.json").read_text() == json.dumps(record, indent=1) + "\n"
+    assert print_and_record("again", record, None) == 0 and capsys.readouterr().out == "again\n"
+    (tmp_path / "a_file").write_text("")
+    assert print_and_record("text", record, tmp_path / "a_file" / "r.json") == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: cannot write {tmp_path / 'a_file' / 'r.json'}: ") and len(err.strip().splitlines()) == 1

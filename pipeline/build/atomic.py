@@ -9,6 +9,7 @@ then the directory entry is flushed too, so the rename itself survives a crash.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import uuid
 from pathlib import Path
@@ -53,6 +54,12 @@ def write_atomic(path: str | Path, write: Callable[[Path], None], check: Callabl
 def write_text_atomic(path: str | Path, text: str) -> str:
     """``write_atomic`` for a text file (UTF-8); returns its SHA-256."""
     return write_atomic(path, lambda temp: temp.write_text(text, encoding="utf-8"))
+
+
+def write_json_atomic(path: str | Path, record) -> str:
+    """``write_text_atomic`` of a JSON-ready record, indented one space a level, as every study writes its
+    report; returns its SHA-256."""
+    return write_text_atomic(path, json.dumps(record, indent=1) + "\n")
 
 
 def fsync_directory(directory: str | Path) -> None:

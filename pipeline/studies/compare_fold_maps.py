@@ -13,13 +13,11 @@ by plays (``recalibrate.brier``), with B minus A bootstrapped over objects (pair
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from ..build.atomic import write_text_atomic
 from ..model.boosted_map import BoostedMapError, load_trees
 from ..model.config import Config
 from .logreader import LogError, read_log
@@ -85,7 +83,7 @@ def text(result: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from ..build.corpus import CorpusError, load_corpus
-    from ..cli import UsageError, make_config
+    from ..cli import UsageError, make_config, print_and_record
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.compare_fold_maps", description=__doc__.split("\n\n")[0])
     parser.add_argument("a", type=Path, help="fold maps A (a --fold-maps DIR)")
@@ -103,10 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     except (UsageError, RecalibrationError, LogError, CorpusError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(text(result))
-    if args.json:
-        write_text_atomic(args.json, json.dumps(result, indent=1) + "\n")
-    return 0
+    return print_and_record(text(result), result, args.json)
 
 
 if __name__ == "__main__":

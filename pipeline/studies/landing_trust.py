@@ -19,7 +19,6 @@ instead of fitting them: on a log of objects they were not fitted on, whether th
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import Counter
 from dataclasses import dataclass
@@ -29,7 +28,6 @@ import numpy as np
 
 from schema.reader import Dataset, DatasetUnreadable
 
-from ..build.atomic import write_text_atomic
 from ..model.config import Config
 from ..model.landing_spread import landing_prior
 from ..model.landing_trust import BANDS, checked_shares, landing_bands, trust_terms
@@ -274,6 +272,8 @@ def text(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ..cli import print_and_record
+
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.landing_trust", description=__doc__.split("\n\n")[0])
     parser.add_argument("logs", nargs="+", help="push logs whose push ids name dataset pushes (oracle_policy --log)")
     parser.add_argument("--datasets", nargs="+", type=Path, required=True, help="the datasets the logs' pushes were drawn from")
@@ -287,14 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     except (TrustError, LogError, RecalibrationError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(text(result))
-    if args.json:
-        try:
-            write_text_atomic(args.json, json.dumps(result, indent=1) + "\n")
-        except OSError as err:
-            print(f"error: cannot write {args.json}: {err.strerror or err}", file=sys.stderr)
-            return 2
-    return 0
+    return print_and_record(text(result), result, args.json)
 
 
 if __name__ == "__main__":

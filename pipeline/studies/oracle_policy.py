@@ -36,7 +36,6 @@ report`` scores like any other: the model on the pushes its planner weighs.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -49,7 +48,6 @@ from schema import horizon
 from schema.pushlog import PUSHLOG
 from schema.vocabulary import NO_OP
 
-from ..build.atomic import write_text_atomic
 from ..model.config import Config
 from ..model.rng import stream
 from .playlog import ObjectLog, append_row, mesh_location, write_part
@@ -336,7 +334,7 @@ def text(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import positive_int
+    from ..cli import positive_int, print_and_record
 
     parser = study_parser("python -m pipeline.studies.oracle_policy", __doc__)
     parser.add_argument("--repeats", type=positive_int, default=REPEATS, help="plays per candidate (default: %(default)s)")
@@ -352,10 +350,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(text(report))
-    if args.json:
-        write_text_atomic(args.json, json.dumps(report, indent=1) + "\n")
-    return 0
+    return print_and_record(text(report), report, args.json)
 
 
 if __name__ == "__main__":

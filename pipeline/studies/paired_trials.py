@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..build.atomic import write_text_atomic
 from .policies_physics import mean_se
 
 
@@ -117,6 +116,8 @@ def text(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ..cli import print_and_record
+
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.paired_trials", description=__doc__.split("\n\n")[0])
     parser.add_argument("files", nargs="+", metavar="A.jsonl B.jsonl",
                         help="pairs of runs' --trials-out files, A then B; the difference is B minus A")
@@ -131,10 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     except PairingError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(text(result))
-    if args.json:
-        write_text_atomic(args.json, json.dumps(result, indent=1) + "\n")
-    return 0
+    return print_and_record(text(result), result, args.json)
 
 
 if __name__ == "__main__":

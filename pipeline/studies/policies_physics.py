@@ -48,7 +48,7 @@ from schema.pushlog import PUSHLOG
 from schema.reader import Dataset, DatasetUnreadable
 from schema.vocabulary import NO_OP, POLICIES
 
-from ..build.atomic import file_sha256, write_text_atomic
+from ..build.atomic import file_sha256, write_json_atomic
 from ..build.corpus import PYBULLET_SOURCE, ObjectSpec, pybullet_data_dir
 from ..model.config import Config
 from ..model.rng import stream
@@ -303,7 +303,7 @@ def experiment(
         "wall_s": round(time.perf_counter() - started, 1),
     })
     if log is not None:
-        write_text_atomic(Path(log) / "_policies_physics.json", json.dumps(report, indent=1) + "\n")
+        write_json_atomic(Path(log) / "_policies_physics.json", report)
     return report
 
 
@@ -456,7 +456,7 @@ def world_config(name: str) -> Config:
 
 def main(argv: list[str] | None = None) -> int:
     """``toppledb policies-physics DATASET --trials N``: the report as a table, then one JSON line."""
-    from ..cli import positive_int
+    from ..cli import positive_int, print_and_record
 
     parser = argparse.ArgumentParser(prog="toppledb policies-physics", description=__doc__.split("\n\n")[0])
     parser.add_argument("dataset", help="dataset directory (its corpus objects and policy tables)")
@@ -479,11 +479,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    print(text(report))
+    if print_and_record(text(report), report, args.json):
+        return 2
     for object_id, reason in report["failed_objects"].items():
         print(f"not played: {object_id}: {reason}", file=sys.stderr)
-    if args.json:
-        write_text_atomic(args.json, json.dumps(report, indent=1) + "\n")
     print(json.dumps(report))
     return 0
 

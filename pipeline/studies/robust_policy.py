@@ -849,7 +849,7 @@ def text(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import positive_int
+    from ..cli import positive_int, print_and_record
 
     parser = study_parser("python -m pipeline.studies.robust_policy", __doc__)
     parser.add_argument("--radius", type=float, default=Smoothing.radius, help="m (default: %(default)s)")
@@ -897,9 +897,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     trials = report.pop("trial_records", None)
-    print(text(report))
-    if args.json:
-        write_text_atomic(args.json, json.dumps(report, indent=1) + "\n")
+    if print_and_record(text(report), report, args.json):
+        return 2
     if trials is not None:
         write_text_atomic(args.trials_out, "".join(json.dumps(t) + "\n" for t in trials))
     if args.pushes:
