@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import signal
 import sys
 import tomllib
@@ -60,6 +61,23 @@ def print_and_record(text: str, record: dict, path: Path | None) -> int:
             print(f"error: cannot write {path}: {err.strerror or err}", file=sys.stderr)
             return 2
     return 0
+
+
+def output_problem(*paths: Path | None) -> str | None:
+    """Why one of a run's output files could not be written, checked before a long run rather
+    than found after it: a missing or unwritable parent directory, or a directory in the file's
+    place.  None when every given path (None: not asked for) looks writable."""
+    for path in paths:
+        if path is None:
+            continue
+        parent = path.parent
+        if path.is_dir():
+            return f"cannot write {path}: it is a directory"
+        if not parent.is_dir():
+            return f"cannot write {path}: no directory {parent}"
+        if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+            return f"cannot write {path}: permission denied"
+    return None
 
 
 def positive_int(text: str) -> int:

@@ -253,3 +253,23 @@ def test_a_study_ends_with_its_text_and_its_record_or_one_line_saying_why_not(tm
     assert print_and_record("text", record, tmp_path / "a_file" / "r.json") == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: cannot write {tmp_path / 'a_file' / 'r.json'}: ") and len(err.strip().splitlines()) == 1
+
+
+def test_a_long_run_refuses_an_output_it_could_not_write_before_it_plays(tmp_path, capsys):
+    from pipeline.cli import output_problem
+    from pipeline.studies import oracle_policy, policies_physics, robust_policy
+
+    (tmp_path / "a_file").write_text("")
+    (tmp_path / "a_dir").mkdir()
+    assert output_problem(None, tmp_path / "r.json", tmp_path / "a_file") is None
+    assert output_problem(tmp_path / "none" / "r.json") == f"cannot write {tmp_path / 'none' / 'r.json'}: no directory {tmp_path / 'none'}"
+    assert output_problem(tmp_path / "a_file" / "r.json").startswith(f"cannot write {tmp_path / 'a_file' / 'r.json'}: no directory")
+    assert output_problem(tmp_path / "r.json", tmp_path / "a_dir") == f"cannot write {tmp_path / 'a_dir'}: it is a directory"
+    # The dataset does not exist either: the output is what is reported, so nothing was played first.
+    missing = str(tmp_path / "no_dataset")
+    bad = str(tmp_path / "none" / "out")
+    for study, args in [(robust_policy.main, [missing, "--trials-out", bad]), (robust_policy.main, [missing, "--pushes", bad]),
+                       (robust_policy.main, [missing, "--json", bad]), (oracle_policy.main, [missing, "--json", bad]),
+                       (policies_physics.main, [missing, "--json", bad])]:
+        assert study(args) == 2
+        assert capsys.readouterr().err == f"error: cannot write {bad}: no directory {tmp_path / 'none'}\n"
