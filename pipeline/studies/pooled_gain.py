@@ -101,11 +101,11 @@ def text(result: dict) -> str:
     def se(value: float | None) -> str:
         return "-" if value is None else f"{value:.4f}"
 
-    lines = [f"{result['policy']} minus {result['baseline']}, pooled over {result['trials']} useful trials of "
-             f"{len(result['runs'])} runs on {result['objects']} objects: {result['pooled']:+.4f}",
-             f"  SE over runs {se(result['runs_se'])} (the runs' mean {result['runs_mean']:+.4f}); over trials "
+    lines = [(f"{result['policy']} minus {result['baseline']}, pooled over {result['trials']} useful trials of "
+             f"{len(result['runs'])} runs on {result['objects']} objects: {result['pooled']:+.4f}"),
+             (f"  SE over runs {se(result['runs_se'])} (the runs' mean {result['runs_mean']:+.4f}); over trials "
              f"{se(result['trials_se'])}; clustered by object {se(result['objects_se'])}, 95 % "
-             f"[{result['objects_interval_95'][0]:+.4f}, {result['objects_interval_95'][1]:+.4f}]"]
+             f"[{result['objects_interval_95'][0]:+.4f}, {result['objects_interval_95'][1]:+.4f}]")]
     lines += [f"  {r['trials']:>5} trials  {'-' if r['mean'] is None else format(r['mean'], '+.4f'):>8}  {Path(r['file']).name}"
               for r in result["runs"]]
     return "\n".join(lines)
