@@ -5,6 +5,7 @@ PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
 ARGS   ?=
+DATASET ?= data/dataset
 
 .PHONY: venv dataset test bench bench-service corpus serve logs clean
 
@@ -35,7 +36,7 @@ corpus: venv
 	$(PY) -m pipeline corpus $(ARGS)
 
 serve: venv
-	$(PY) -m pipeline serve --dataset data/dataset $(ARGS)
+	$(PY) -m pipeline serve --dataset $(DATASET) $(ARGS)
 
 # Push-outcome logs played in pybullet (docs/VALIDATION.md): corpus objects to calibrate on,
 # objects outside the corpus to report on. About 5,000 pushes each; resumable. The player's

@@ -63,21 +63,38 @@ def print_and_record(text: str, record: dict, path: Path | None) -> int:
     return 0
 
 
-def output_problem(*paths: Path | None) -> str | None:
-    """Why one of a run's output files could not be written, checked before a long run rather
-    than found after it: a missing or unwritable parent directory, or a directory in the file's
-    place.  None when every given path (None: not asked for) looks writable."""
+def output_problem(*paths: Path | None, directory: bool = False) -> str | None:
+    """Why one of a run's outputs could not be written, checked before a long run rather than found
+    after it: a file (or, with ``directory``, a non-directory) in the output's place, a file where a
+    parent directory should be, or no permission.  Missing parents are fine: the atomic writers
+    create them.  None when every given path (None: not asked for) looks writable."""
     for path in paths:
         if path is None:
             continue
-        parent = path.parent
-        if path.is_dir():
-            return f"cannot write {path}: it is a directory"
-        if not parent.is_dir():
-            return f"cannot write {path}: no directory {parent}"
-        if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        path = Path(path)
+        if path.exists() and path.is_dir() != directory:
+            return f"cannot write {path}: it is {'not ' if directory else ''}a directory"
+        ancestor = path.parent
+        while not ancestor.exists() and ancestor != ancestor.parent:
+            ancestor = ancestor.parent
+        if not ancestor.is_dir():
+            return f"cannot write {path}: {ancestor} is not a directory"
+        target = path if path.exists() else ancestor
+        if not os.access(target, os.W_OK | (os.X_OK if target.is_dir() else 0)):
             return f"cannot write {path}: permission denied"
     return None
+
+
+def plot_problem(path: Path | None) -> str | None:
+    """``output_problem`` for a figure, and a format matplotlib writes, named by its suffix."""
+    if path is None:
+        return None
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    suffix = Path(path).suffix.lstrip(".").lower()
+    if suffix not in FigureCanvasBase.get_supported_filetypes():
+        return f"cannot draw {path}: {f'no format is named {suffix!r}' if suffix else 'no suffix names its format'}; name it .png, .pdf or .svg"
+    return output_problem(path)
 
 
 def positive_int(text: str) -> int:
@@ -171,7 +188,7 @@ def parser() -> argparse.ArgumentParser:
     policies = commands.add_parser("policies", help="replay the thesis 4.4.3 policy experiment on a dataset")
     policies.add_argument("directory", help="dataset directory")
     policies.add_argument("--trials", type=positive_int, default=20_000, help="trials (default: %(default)s)")
-    policies.add_argument("--steps", type=positive_int, default=5, help="most pushes per trial (default: %(default)s)")
+    policies.add_argument("--steps", type=positive_int, default=5, help="most pushes per trial (default: %(default)s, the thesis's)")
     policies.add_argument("--seed", type=int, default=0, help="seed of the trial draws (default: %(default)s)")
     policies.add_argument("--plot", type=Path, metavar="PNG", help="also draw the mean gains to this file")
 
@@ -396,6 +413,9 @@ def run_policies(args: argparse.Namespace) -> int:
 
     from .studies.policy_experiment import experiment, plot, summary
 
+    problem = plot_problem(args.plot)
+    if problem:
+        raise UsageError(problem)
     try:
         Dataset.open(args.directory)
     except DatasetUnreadable as err:
@@ -420,7 +440,13 @@ def main(argv: list[str] | None = None) -> int:
         module = import_module(DELEGATED[argv[0]][0])
         if argv[0] == "serve":  # its usage names the command typed: `toppledb serve`, or `python -m service`
             return module.main(argv[1:], prog="toppledb serve") or EXIT_OK
-        return module.main(argv[1:]) or EXIT_OK
+        try:
+            return module.main(argv[1:]) or EXIT_OK
+        except OSError as err:
+            # The commands check their outputs before they work; what the file system refuses after
+            # (a full disk, /proc) is still one line, not a traceback.
+            print(f"error: {err.filename or 'a file'}: {err.strerror or err}", file=sys.stderr)
+            return EXIT_USAGE
     from .build.corpus import CorpusError
     from .build.dataset import BuildError, InputError, OutputError
     from .build.fanout import SchedulerError

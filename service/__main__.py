@@ -39,7 +39,7 @@ def build_parser(prog: str = "python -m service") -> argparse.ArgumentParser:
     parser.add_argument("--host", default=DEFAULT_HOST, help="address to bind (default: %(default)s, this machine only)")
     parser.add_argument("--port", type=_ranged(int, 1, 65535), default=DEFAULT_PORT, help="TCP port (default: %(default)s)")
     parser.add_argument("--workers", type=_ranged(int, 1), default=1, help="worker processes, forked after the dataset is mapped (they share it)")
-    parser.add_argument("--token", default=None, help="bearer token for every endpoint except /health (better: $TOPPLEDB_TOKEN)")
+    parser.add_argument("--token", default=None, help="bearer token, at least 16 characters, for every endpoint except /health (better: $TOPPLEDB_TOKEN)")
     parser.add_argument("--max-body-bytes", type=int, default=None, help="largest request body, else 413")
     parser.add_argument("--height-tolerance", type=float, default=None, help="m, largest |z_offset| of an observed pose")
     parser.add_argument("--finger-force-limit", type=float, default=None, help="N, overrides the manifest's")

@@ -261,15 +261,61 @@ def test_a_long_run_refuses_an_output_it_could_not_write_before_it_plays(tmp_pat
 
     (tmp_path / "a_file").write_text("")
     (tmp_path / "a_dir").mkdir()
-    assert output_problem(None, tmp_path / "r.json", tmp_path / "a_file") is None
-    assert output_problem(tmp_path / "none" / "r.json") == f"cannot write {tmp_path / 'none' / 'r.json'}: no directory {tmp_path / 'none'}"
-    assert output_problem(tmp_path / "a_file" / "r.json").startswith(f"cannot write {tmp_path / 'a_file' / 'r.json'}: no directory")
+    # Missing parents are fine (the atomic writers create them); an existing file may be replaced.
+    assert output_problem(None, tmp_path / "r.json", tmp_path / "a_file", tmp_path / "new" / "deeper" / "r.json") is None
+    assert output_problem(tmp_path / "a_dir", tmp_path / "new_dir", directory=True) is None
+    in_a_file = tmp_path / "a_file" / "sub" / "r.json"
+    assert output_problem(in_a_file) == f"cannot write {in_a_file}: {tmp_path / 'a_file'} is not a directory"
     assert output_problem(tmp_path / "r.json", tmp_path / "a_dir") == f"cannot write {tmp_path / 'a_dir'}: it is a directory"
+    assert output_problem(tmp_path / "a_file", directory=True) == f"cannot write {tmp_path / 'a_file'}: it is not a directory"
     # The dataset does not exist either: the output is what is reported, so nothing was played first.
     missing = str(tmp_path / "no_dataset")
-    bad = str(tmp_path / "none" / "out")
+    bad = str(tmp_path / "a_file" / "out")
     for study, args in [(robust_policy.main, [missing, "--trials-out", bad]), (robust_policy.main, [missing, "--pushes", bad]),
-                       (robust_policy.main, [missing, "--json", bad]), (oracle_policy.main, [missing, "--json", bad]),
-                       (policies_physics.main, [missing, "--json", bad])]:
+                        (robust_policy.main, [missing, "--json", bad]), (oracle_policy.main, [missing, "--json", bad]),
+                        (oracle_policy.main, [missing, "--log", bad]), (policies_physics.main, [missing, "--json", bad]),
+                        (policies_physics.main, [missing, "--log", bad])]:
         assert study(args) == 2
-        assert capsys.readouterr().err == f"error: cannot write {bad}: no directory {tmp_path / 'none'}\n"
+        assert capsys.readouterr().err == f"error: cannot write {bad}: {tmp_path / 'a_file'} is not a directory\n"
+
+
+def test_every_command_refuses_an_output_it_could_not_write_before_it_reads_anything(tmp_path, capsys):
+    from pipeline.cli import main
+
+    (tmp_path / "a_file").write_text("")
+    bad = str(tmp_path / "a_file" / "x.json")
+    no_log, no_dataset = str(tmp_path / "no_log"), str(tmp_path / "no_dataset")
+    cases = {
+        ("report", no_log, "--out", bad): f"cannot write {bad}: ",
+        ("report", no_log, "--plot", str(tmp_path / "p.txt")): "no format is named 'txt'; name it .png, .pdf or .svg",
+        ("report", no_log, "--plot", str(tmp_path / "p")): "no suffix names its format",
+        ("calibrate", no_log, "--out", bad): f"cannot write {bad}: ",
+        ("calibrate", no_log, "--json", bad): f"cannot write {bad}: ",
+        ("recalibrate", no_log, "--json", bad): f"cannot write {bad}: ",
+        ("recalibrate", no_log, "--boosted", "--fold-maps", str(tmp_path / "a_file")): "it is not a directory",
+        ("landing", "--json", bad): f"cannot write {bad}: ",
+        ("policies", no_dataset, "--plot", str(tmp_path / "p.txt")): "no format is named 'txt'",
+        ("policies", no_dataset, "--plot", str(tmp_path / "a_file" / "p.png")): "is not a directory",
+    }
+    for argv, message in cases.items():
+        assert main(list(argv)) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err and len(err.strip().splitlines()) == 1, (argv, err)
+    # The studies that write reports by default write them under data/, not over the committed reports/.
+    for command, default in [("report", "data/reports/validation.json"), ("calibrate", "data/reports/calibration.json"),
+                             ("recalibrate", "data/reports/recalibrated.toml")]:
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        assert default in capsys.readouterr().out.replace("\n", " ").replace("  ", " ")
+
+
+def test_what_the_file_system_refuses_after_the_checks_is_one_line(monkeypatch, capsys):
+    from pipeline import cli
+    from pipeline.studies import landing
+
+    def full_disk(argv):
+        raise OSError(28, "No space left on device", "/data/out.json")
+
+    monkeypatch.setattr(landing, "main", full_disk)
+    assert cli.main(["landing"]) == 2
+    assert capsys.readouterr().err == "error: /data/out.json: No space left on device\n"

@@ -205,6 +205,14 @@ def test_no_unit_hint_when_no_unit_would_fit():
     assert "check the file's units" in unit_hint(0.001, config)  # 1 mm: 3.9 cm if it were inches
 
 
+def test_the_unit_hint_names_the_likeliest_unit_first():
+    # pybullet_data's random_urdfs/011 is 10.16 file units across: 1 cm in millimetres, 10 cm in
+    # centimetres, 26 cm in inches; all three fit the range, and 10 cm sits nearest its middle.
+    hint = unit_hint(10.16, MeshConfig())
+    assert hint == "; the file is probably in centimetres or inches or millimetres: use --units cm"
+    assert unit_hint(80.0, MeshConfig()).endswith("probably in millimetres: use --units mm")  # 8 cm; 80 cm in cm is too large
+
+
 def test_a_mesh_of_degenerate_triangles_only_is_refused_with_the_reason():
     # Repair removes every zero-area face; what is left has no extent to measure.
     collinear = trimesh.Trimesh([[0, 0, 0], [0.05, 0, 0], [0.1, 0, 0]], [[0, 1, 2]], process=False)

@@ -53,7 +53,11 @@ def test_cli_reports_and_refuses_a_missing_dataset(tmp_path, capsys):
     write_minimal_manifest(tmp_path, {"cup": 2})
     assert main(["policies", str(tmp_path), "--trials", "500", "--plot", str(tmp_path / "p.png")]) == 0
     out = capsys.readouterr().out
-    assert "points over Max-Height" in out and (tmp_path / "p.png").is_file()
+    assert "points over Max-Height" in out and (tmp_path / "p.png").read_bytes().startswith(b"\x89PNG")
+    # The suffix names the format, and the figure is written whole or not at all.
+    assert main(["policies", str(tmp_path), "--trials", "500", "--plot", str(tmp_path / "figures" / "p.svg")]) == 0
+    assert b"<svg" in (tmp_path / "figures" / "p.svg").read_bytes() and len(list((tmp_path / "figures").iterdir())) == 1
+    capsys.readouterr()
     assert main(["policies", str(tmp_path / "nowhere")]) == 2
     assert "no such dataset directory" in capsys.readouterr().err
 
@@ -89,3 +93,15 @@ def test_useful_trials_follow_the_drop_probabilities(tmp_path):
     assert abs(result["useful_trials"] / 20_000 - 0.8) < 0.02
     # Greedy's mean gain over all trials: 0.8 of them start in pose 0 and topple with 0.3.
     assert abs(result["policies"]["greedy"]["mean_gain_all"] - 0.8 * 0.3) < 0.02
+
+
+def test_the_summary_sets_the_thesis_beside_its_own_experiment_only():
+    from pipeline.studies.policy_experiment import MAX_STEPS, summary
+    from schema.vocabulary import POLICIES
+
+    policy = {"mean_gain_useful": 0.2, "mean_pushes_useful": 1.0, "gain_over_max_height": 0.1}
+    result = {"useful_trials": 3, "trials": 10, "policies": dict.fromkeys(POLICIES, policy)}
+    five = summary(result | {"max_steps": MAX_STEPS})
+    assert "(at most 5 pushes each)" in five and "+10.0 points over Max-Height (thesis +28.4)" in five
+    one = summary(result | {"max_steps": 1})
+    assert "(at most 1 push each)" in one and "+10.0 points over Max-Height" in one and "thesis" not in one

@@ -138,10 +138,14 @@ def unit_hint(extent: float, config: MeshConfig, corpus: bool = False) -> str:
     file units that would make it fit, as a hint: "" when none would.  ``corpus``: also
     name the corpus's settings (a dataset build); else only the --units/--scale flags
     (``add``, ``figures``), the only ones there."""
-    fits = [
-        unit for unit, factor in UNIT_SCALES.items()
-        if unit != "m" and config.min_extent <= extent * factor <= config.max_extent
-    ]
+    # Likeliest first: the unit that puts the object nearest the middle of the range (on a log scale),
+    # so a 10 m "object" is read as 10 cm, not as the 1 cm it would be in millimetres.
+    middle = np.log(np.sqrt(config.min_extent * config.max_extent))
+    fits = sorted(
+        (unit for unit, factor in UNIT_SCALES.items()
+         if unit != "m" and config.min_extent <= extent * factor <= config.max_extent),
+        key=lambda unit: abs(np.log(extent * UNIT_SCALES[unit]) - middle),
+    )
     if extent < config.min_extent:
         grown = [extent / factor for unit, factor in UNIT_SCALES.items() if unit != "m"]
         fitting = any(config.min_extent <= size <= config.max_extent for size in grown)

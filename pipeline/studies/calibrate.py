@@ -521,7 +521,7 @@ def bench(logs: list[str] | None, config: Config, pushes: int, repeats: int, see
 def main(argv: list[str] | None = None) -> int:
     """``toppledb calibrate LOG...``: search the noise parameters, write a config TOML and a JSON record."""
     from ..build.corpus import CorpusError, load_corpus
-    from ..cli import UsageError
+    from ..cli import UsageError, output_problem
     from .validation import config_from_args, format_report
 
     parser = argparse.ArgumentParser(prog="toppledb calibrate", description=__doc__.split("\n\n")[0])
@@ -539,13 +539,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--config", type=Path, metavar="FILE.toml", help="base parameters (default: the dataset's defaults; --config thesis for the thesis's)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes scoring settings (default: all cores)")
-    parser.add_argument("--out", type=Path, default=Path("reports/calibrated.toml"), help="config TOML to write (default: %(default)s)")
-    parser.add_argument("--json", type=Path, default=Path("reports/calibration.json"), help="full record (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=Path("data/reports/calibrated.toml"), help="config TOML to write (default: %(default)s)")
+    parser.add_argument("--json", type=Path, default=Path("data/reports/calibration.json"), help="full record (default: %(default)s)")
     parser.add_argument("--bootstrap", type=int, default=1000, help="bootstrap resamples of the held-out report (default: %(default)s)")
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--bench", action="store_true", help="only time scoring one setting (on LOG, or on a model-made log)")
     parser.add_argument("--bench-pushes", type=int, default=5000, help="pushes of the model-made bench log (default: %(default)s)")
     args = parser.parse_args(argv)
+    problem = output_problem(args.out, args.json)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
 
     try:
         config = config_from_args(args)

@@ -343,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="candidates from every ok push, those from above included (default: the choosable ones)")
     parser.add_argument("--log", type=Path, help="write the estimate's plays here as a push log")
     args = parser.parse_args(argv)
-    problem = output_problem(args.json)
+    problem = output_problem(args.json) or output_problem(args.log, directory=True)
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2

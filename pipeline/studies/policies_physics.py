@@ -470,7 +470,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--world", default="thesis", metavar="PRESET|FILE.toml",
                         help="config whose noise the simulated pushes draw (default: %(default)s, as make logs)")
     args = parser.parse_args(argv)
-    problem = output_problem(args.json)
+    problem = output_problem(args.json) or output_problem(args.log, directory=True)
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2

@@ -486,7 +486,7 @@ def with_and_without(cv: dict, name: str, folds: int, seed: int | str) -> str:
 def main(argv: list[str] | None = None) -> int:
     """``toppledb recalibrate LOG...``: fit g on corpus pushes, write a config TOML and a JSON record."""
     from ..build.corpus import CorpusError, load_corpus
-    from ..cli import UsageError
+    from ..cli import UsageError, output_problem
     from .validation import config_from_args
 
     parser = argparse.ArgumentParser(prog="toppledb recalibrate", description=__doc__.split("\n\n")[0])
@@ -496,8 +496,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--corpus", default="default", help="fit only on this corpus's objects ('none': any object; default: %(default)s)")
     parser.add_argument("--config", type=Path, metavar="FILE.toml", help="the model to recalibrate (default: the defaults); its own recalibration is ignored")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
-    parser.add_argument("--out", type=Path, default=Path("reports/recalibrated.toml"), help="config TOML to write (default: %(default)s)")
-    parser.add_argument("--json", type=Path, default=Path("reports/recalibration.json"), help="full record (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=Path("data/reports/recalibrated.toml"), help="config TOML to write (default: %(default)s)")
+    parser.add_argument("--json", type=Path, default=Path("data/reports/recalibration.json"), help="full record (default: %(default)s)")
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS, metavar="METHOD",
                         help=f"monotone maps cross-validation chooses among (all are scored): {' '.join(METHODS)} (default: all)")
     parser.add_argument("--features", action="store_true",
@@ -516,6 +516,10 @@ def main(argv: list[str] | None = None) -> int:
                         help=("with --boosted: the folds an earlier --fold-maps DIR wrote, instead of drawing them "
                               "(--folds and --seed's folds are ignored), so two maps' corpus datasets out of fold hold the same objects"))
     args = parser.parse_args(argv)
+    problem = output_problem(args.out, args.json) or output_problem(args.fold_maps, directory=True)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
 
     try:
         if args.features + args.down + args.side + args.boosted > 1:

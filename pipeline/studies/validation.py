@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..build.atomic import write_text_atomic
+from ..build.atomic import write_atomic, write_text_atomic
 from ..model.config import VARIANTS, Config, ToppleConfig
 from .logreader import LogError, PushLog, read_log
 from .scoring import Scorer, Scores
@@ -631,8 +631,7 @@ def plot(result: dict, path: str | Path) -> None:
     fig.suptitle(f"Model vs push log: {c['objects']} objects, {c['pushes']} pushes, {c['repeats_max']} repeats; "
                  f"bars: {int(100 * CONFIDENCE)}% bootstrap over objects")
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    write_atomic(path, lambda temp: fig.savefig(temp, format=Path(path).suffix.lstrip(".").lower(), dpi=100))
     plt.close(fig)
 
 
@@ -685,7 +684,7 @@ def comparison_models(names: list[str], config: Config) -> dict[str, ToppleConfi
 def main(argv: list[str] | None = None) -> int:
     """``toppledb report LOG...``: score model variants against push logs and write the report."""
     from ..build.corpus import CorpusError, load_corpus
-    from ..cli import UsageError
+    from ..cli import UsageError, output_problem, plot_problem
 
     parser = argparse.ArgumentParser(prog="toppledb report", description=__doc__.split("\n\n")[0])
     parser.add_argument("logs", nargs="+", help="push-log Parquet files or directories")
@@ -705,9 +704,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--exclude-corpus", action="store_true", help="reject rows of corpus objects (a held-out report)")
     parser.add_argument("--bootstrap", type=int, default=BOOTSTRAP, help="resamples over objects (default: %(default)s; 0: none)")
     parser.add_argument("--seed", type=int, default=None, help="model trial streams and bootstrap seed (default: the config's)")
-    parser.add_argument("--out", type=Path, default=Path("reports/validation.json"), help="JSON report (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=Path("data/reports/validation.json"), help="JSON report (default: %(default)s)")
     parser.add_argument("--plot", type=Path, default=None, metavar="PNG", help="also draw the report")
     args = parser.parse_args(argv)
+    problem = output_problem(args.out) or plot_problem(args.plot)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
 
     started = time.perf_counter()
     try:
