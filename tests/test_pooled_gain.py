@@ -83,7 +83,7 @@ def test_what_cannot_be_pooled_is_refused_in_one_line(tmp_path, capsys):
     with pytest.raises(PairingError, match="1 counted trial"):
         pool([one])
     for args, message in [([str(tmp_path / "missing.jsonl")], "missing.jsonl: No such file"),
-                          ([good, "--json", str(tmp_path / "no" / "p.json")], "no directory")]:
+                          ([good, "--json", str(tmp_path / "good.jsonl" / "p.json")], "good.jsonl is not a directory")]:
         assert main(args) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1
