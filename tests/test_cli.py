@@ -319,3 +319,29 @@ def test_what_the_file_system_refuses_after_the_checks_is_one_line(monkeypatch, 
     monkeypatch.setattr(landing, "main", full_disk)
     assert cli.main(["landing"]) == 2
     assert capsys.readouterr().err == "error: /data/out.json: No space left on device\n"
+
+
+def test_an_output_without_write_permission_is_refused(tmp_path, monkeypatch):
+    """Permission is judged from the owner's mode bits, as a non-root user's would be (root may write anywhere)."""
+    import stat
+
+    from pipeline import cli
+
+    def as_owner(path, mode):
+        return (os.stat(path).st_mode >> 6) & mode == mode
+
+    monkeypatch.setattr(cli.os, "access", as_owner)
+    (tmp_path / "read_only").write_text("")
+    (tmp_path / "read_only").chmod(stat.S_IRUSR)
+    (tmp_path / "no_search").mkdir()
+    (tmp_path / "no_search").chmod(stat.S_IRUSR | stat.S_IWUSR)
+    (tmp_path / "no_write").mkdir()
+    (tmp_path / "no_write").chmod(stat.S_IRUSR | stat.S_IXUSR)
+    try:
+        assert cli.output_problem(tmp_path / "r.json", tmp_path / "new" / "r.json") is None, "the writable parent is asked"
+        for path in [tmp_path / "read_only", tmp_path / "no_write" / "r.json", tmp_path / "no_write" / "new" / "r.json"]:
+            assert cli.output_problem(path) == f"cannot write {path}: permission denied"
+        assert cli.output_problem(tmp_path / "no_search", directory=True) == f"cannot write {tmp_path / 'no_search'}: permission denied"
+    finally:
+        for name in ("no_search", "no_write"):
+            (tmp_path / name).chmod(stat.S_IRWXU)
