@@ -72,14 +72,17 @@ def output_problem(*paths: Path | None, directory: bool = False) -> str | None:
         if path is None:
             continue
         path = Path(path)
-        if path.exists() and path.is_dir() != directory:
-            return f"cannot write {path}: it is {'not ' if directory else ''}a directory"
-        ancestor = path.parent
-        while not ancestor.exists() and ancestor != ancestor.parent:
-            ancestor = ancestor.parent
-        if not ancestor.is_dir():
-            return f"cannot write {path}: {ancestor} is not a directory"
-        target = path if path.exists() else ancestor
+        try:
+            if path.exists() and path.is_dir() != directory:
+                return f"cannot write {path}: it is {'not ' if directory else ''}a directory"
+            ancestor = path.parent
+            while not ancestor.exists() and ancestor != ancestor.parent:
+                ancestor = ancestor.parent
+            if not ancestor.is_dir():
+                return f"cannot write {path}: {ancestor} is not a directory"
+            target = path if path.exists() else ancestor
+        except OSError as err:  # exists() raises, not answers, inside a directory one may not enter
+            return f"cannot write {path}: {err.strerror or err}"
         if not os.access(target, os.W_OK | (os.X_OK if target.is_dir() else 0)):
             return f"cannot write {path}: permission denied"
     return None

@@ -345,3 +345,23 @@ def test_an_output_without_write_permission_is_refused(tmp_path, monkeypatch):
     finally:
         for name in ("no_search", "no_write"):
             (tmp_path / name).chmod(stat.S_IRWXU)
+
+
+def test_an_output_inside_a_directory_one_may_not_enter_is_one_line(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    # For a user other than root, Path.exists raises PermissionError below such a directory (Python
+    # 3.11) instead of answering; root, which the tests run as, is never refused, so it is simulated.
+    from pipeline import cli
+
+    real_exists = Path.exists
+
+    def exists(self, *args, **kwargs):
+        if "locked" in self.parts:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_exists(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "exists", exists)
+    path = tmp_path / "locked" / "r.json"
+    assert cli.output_problem(path) == f"cannot write {path}: Permission denied"
+    assert cli.output_problem(tmp_path / "free.json") is None
