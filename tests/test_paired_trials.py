@@ -83,3 +83,26 @@ def test_runs_of_other_trials_or_starts_are_refused_in_one_line(tmp_path, capsys
     assert "3 files do not make pairs" in capsys.readouterr().err
     assert main([a, str(tmp_path / "missing.jsonl")]) == 2
     assert "missing.jsonl" in capsys.readouterr().err
+
+
+def test_the_pooled_difference_is_also_clustered_by_object_when_the_records_name_them(tmp_path, capsys):
+    from pipeline.studies.pooled_gain import clustered_mean_se
+
+    a = write(tmp_path / "a.jsonl", [record(0, 3, {"vi": 0.5}, object_id="box"), record(1, 4, {"vi": 0.1}, object_id="cup"),
+                                     record(2, 5, {"vi": 0.0}, object_id="mug")])
+    b = write(tmp_path / "b.jsonl", [record(0, 3, {"vi": 0.7}, object_id="box"), record(1, 4, {"vi": 0.4}, object_id="cup"),
+                                     record(2, 5, {"vi": 0.2}, object_id="mug")])
+    a2 = write(tmp_path / "a2.jsonl", [record(0, 3, {"vi": 0.2}, object_id="box"), record(1, 9, {"vi": 0.3}, object_id="mug")])
+    b2 = write(tmp_path / "b2.jsonl", [record(0, 3, {"vi": 0.2}, object_id="box"), record(1, 9, {"vi": 0.6}, object_id="mug")])
+    result = compare([(a, b), (a2, b2)], ["vi"])["policies"]["vi"]
+    differences = np.array([0.2, 0.3, 0.2, 0.0, 0.3])
+    expected = clustered_mean_se(differences, ["box", "cup", "mug", "box", "mug"])[1]
+    assert result["pooled"] == pytest.approx(differences.mean()) and result["pooled_objects_se"] == pytest.approx(expected)
+    assert main([a, b, a2, b2, "--policies", "vi"]) == 0
+    assert f"+/- {expected:.4f} clustered by object" in capsys.readouterr().out
+    # Records of one object, or naming none, have no spread between objects to measure.
+    assert compare([(a2, a2)], ["vi"])["policies"]["vi"]["pooled_objects_se"] is not None
+    same = write(tmp_path / "same.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 4, {"vi": 0.1})])
+    assert compare([(same, same)], ["vi"])["policies"]["vi"]["pooled_objects_se"] is None
+    unnamed = write(tmp_path / "unnamed.jsonl", [record(0, 3, {"vi": 0.5}, object_id=None), record(1, 4, {"vi": 0.1}, object_id="cup")])
+    assert compare([(unnamed, unnamed)], ["vi"])["policies"]["vi"]["pooled_objects_se"] is None

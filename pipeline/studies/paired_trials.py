@@ -57,6 +57,11 @@ def read_trials(path: str | Path) -> dict[int, dict]:
     return trials
 
 
+def counted_trials(a: dict[int, dict], b: dict[int, dict]) -> list[int]:
+    """The trials a pair counts, in order: played by both, left outside by neither, useful in either."""
+    return [t for t in sorted(a) if t in b and not a[t]["outside"] and not b[t]["outside"] and (a[t]["useful"] or b[t]["useful"])]
+
+
 def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str) -> tuple[np.ndarray, np.ndarray]:
     """A policy's V_s gain in run ``a`` and in run ``b`` on the trials both count.
 
@@ -71,7 +76,7 @@ def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str) -> tuple[n
             raise PairingError(f"trial {t} starts in pose row {a[t]['start']} of {a[t]['object_id']} in one run and "
                                f"{b[t]['start']} of {b[t]['object_id']} in the other: the runs are not of one seed on "
                                "datasets of the same objects and poses")
-    counted = [t for t in sorted(a) if not a[t]["outside"] and not b[t]["outside"] and (a[t]["useful"] or b[t]["useful"])]
+    counted = counted_trials(a, b)
     for run in (a, b):
         for t in counted:
             if policy not in run[t]["gains"]:
@@ -82,9 +87,15 @@ def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str) -> tuple[n
 
 def compare(pairs: list[tuple[str, str]], policies: list[str]) -> dict:
     """Per policy: each pair's paired difference (B minus A, mean and SE over its trials), the mean
-    of the pairs' means with its SE over pairs, and the difference pooled over every counted trial."""
+    of the pairs' means with its SE over pairs, and the difference pooled over every counted trial
+    with its SE clustered by object (``pooled_gain.clustered_mean_se``; None when a record names no
+    object): pairs of several seeds replay the same objects, and what a change does to an object
+    it does on every seed."""
+    from .pooled_gain import clustered_mean_se
+
     runs = [(read_trials(a), read_trials(b)) for a, b in pairs]
     out = {"pairs": [{"a": str(a), "b": str(b)} for a, b in pairs], "policies": {}}
+    objects = [a[t]["object_id"] for a, b in runs for t in counted_trials(a, b)]
     for policy in policies:
         per_pair, pooled = [], []
         for (a, b), names in zip(runs, pairs):
@@ -95,9 +106,14 @@ def compare(pairs: list[tuple[str, str]], policies: list[str]) -> dict:
             pooled.append(gain_b - gain_a)
         means = np.array([p["b_minus_a"] for p in per_pair if p["b_minus_a"] is not None])
         runs_mean, runs_se = mean_se(means)
+        differences = np.concatenate(pooled) if pooled else np.zeros(0)
+        objects_se = None
+        if len(differences) and all(objects):
+            objects_se = clustered_mean_se(differences, objects)[1]
+            objects_se = None if np.isnan(objects_se) else objects_se
         out["policies"][policy] = {"pairs": per_pair, "runs_mean": runs_mean, "runs_se": runs_se, "runs": len(means),
-                                   "pooled": mean_se(np.concatenate(pooled))[0] if pooled else None,
-                                   "trials": int(sum(len(p) for p in pooled))}
+                                   "pooled": mean_se(differences)[0] if len(differences) else None,
+                                   "pooled_objects_se": objects_se, "trials": len(differences)}
     return out
 
 
@@ -107,8 +123,9 @@ def text(result: dict) -> str:
 
     lines = []
     for policy, r in result["policies"].items():
+        clustered = "" if r["pooled_objects_se"] is None else f" +/- {r['pooled_objects_se']:.4f} clustered by object"
         lines.append(f"{policy}: B minus A {cell(r['runs_mean'])} +/- {cell(r['runs_se'])} over {r['runs']} pairs with counted trials "
-                     f"(pooled over {r['trials']} trials {cell(r['pooled'])})")
+                     f"(pooled over {r['trials']} trials {cell(r['pooled'])}{clustered})")
         for pair, p in zip(result["pairs"], r["pairs"]):
             lines.append(f"  {p['trials']:>5} trials  A {cell(p['a'])}  B {cell(p['b'])}  B - A {cell(p['b_minus_a'])} "
                          f"+/- {cell(p['b_minus_a_se'])}  {Path(pair['b']).name}")
