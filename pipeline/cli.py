@@ -67,23 +67,26 @@ def output_problem(*paths: Path | None, directory: bool = False) -> str | None:
     """Why one of a run's outputs could not be written, checked before a long run rather than found
     after it: a file (or, with ``directory``, a non-directory) in the output's place, a file where a
     parent directory should be, or no permission.  Missing parents are fine: the atomic writers
-    create them.  None when every given path (None: not asked for) looks writable."""
+    create them.  A file is written beside its target and renamed over it, so its directory must
+    let one create files even when the file itself exists; a directory's files are written inside it.
+    None when every given path (None: not asked for) looks writable."""
     for path in paths:
         if path is None:
             continue
         path = Path(path)
         try:
-            if path.exists() and path.is_dir() != directory:
+            exists = path.exists()
+            if exists and path.is_dir() != directory:
                 return f"cannot write {path}: it is {'not ' if directory else ''}a directory"
             ancestor = path.parent
             while not ancestor.exists() and ancestor != ancestor.parent:
                 ancestor = ancestor.parent
             if not ancestor.is_dir():
                 return f"cannot write {path}: {ancestor} is not a directory"
-            target = path if path.exists() else ancestor
+            targets = ([path] if exists else []) + ([] if exists and directory else [ancestor])
         except OSError as err:  # exists() raises, not answers, inside a directory one may not enter
             return f"cannot write {path}: {err.strerror or err}"
-        if not os.access(target, os.W_OK | (os.X_OK if target.is_dir() else 0)):
+        if not all(os.access(target, os.W_OK | (os.X_OK if target.is_dir() else 0)) for target in targets):
             return f"cannot write {path}: permission denied"
     return None
 

@@ -336,12 +336,19 @@ def test_an_output_without_write_permission_is_refused(tmp_path, monkeypatch):
     (tmp_path / "no_search").mkdir()
     (tmp_path / "no_search").chmod(stat.S_IRUSR | stat.S_IWUSR)
     (tmp_path / "no_write").mkdir()
+    (tmp_path / "no_write" / "old.json").write_text("")  # writable itself, but the atomic writer's temp file goes beside it
     (tmp_path / "no_write").chmod(stat.S_IRUSR | stat.S_IXUSR)
     try:
         assert cli.output_problem(tmp_path / "r.json", tmp_path / "new" / "r.json") is None, "the writable parent is asked"
-        for path in [tmp_path / "read_only", tmp_path / "no_write" / "r.json", tmp_path / "no_write" / "new" / "r.json"]:
+        assert as_owner(tmp_path / "no_write" / "old.json", os.W_OK)
+        for path in [tmp_path / "read_only", tmp_path / "no_write" / "r.json", tmp_path / "no_write" / "new" / "r.json",
+                     tmp_path / "no_write" / "old.json"]:
             assert cli.output_problem(path) == f"cannot write {path}: permission denied"
         assert cli.output_problem(tmp_path / "no_search", directory=True) == f"cannot write {tmp_path / 'no_search'}: permission denied"
+        (tmp_path / "no_write").chmod(stat.S_IRWXU)
+        (tmp_path / "no_write" / "log").mkdir()
+        (tmp_path / "no_write").chmod(stat.S_IRUSR | stat.S_IXUSR)
+        assert cli.output_problem(tmp_path / "no_write" / "log", directory=True) is None, "a directory's files go inside it"
     finally:
         for name in ("no_search", "no_write"):
             (tmp_path / name).chmod(stat.S_IRWXU)
