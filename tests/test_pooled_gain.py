@@ -125,3 +125,16 @@ def test_help_names_the_default_policies(capsys, monkeypatch):
     assert exit_.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
     assert "--policy POLICY (default: value_iteration)" in text and "--baseline BASELINE (default: max_height)" in text
+
+
+def test_one_object_has_no_clustered_se_and_the_record_stays_json(tmp_path, capsys):
+    # Two trials of one object: an SE over trials, none between objects; the record is strict JSON
+    # (null, not NaN) and the text shows a dash and no interval.
+    one = write(tmp_path / "one.jsonl", [record(0, 3, gains(0.5, 0.1)), record(1, 4, gains(0.2, 0.1))])
+    assert main([one, "--json", str(tmp_path / "p.json")]) == 0
+    text = (tmp_path / "p.json").read_text()
+    result = json.loads(text, parse_constant=lambda name: pytest.fail(f"{name} in the record"))
+    assert result["objects"] == 1 and result["objects_se"] is None and result["objects_interval_95"] is None
+    assert result["trials_se"] == pytest.approx(0.15)
+    out = capsys.readouterr().out
+    assert "clustered by object -" in out and "nan" not in out and "95 %" not in out

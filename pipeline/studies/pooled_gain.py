@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .paired_trials import PairingError, read_trials
+from .policies_physics import mean_se
 
 Z_95 = 1.959963984540054
 
@@ -60,7 +61,7 @@ def clustered_mean_se(values: np.ndarray, clusters: list[str]) -> tuple[float, f
     returns : (mean, se, number of clusters).  The mean is sum over clusters of s_c over sum of n_c
       (s_c the cluster's sum, n_c its count); se^2 = G / (G - 1) sum_c (s_c - mean n_c)^2 / n^2, the
       linearised variance of that ratio when the G clusters are drawn independently.  With one value
-      per cluster it is the ordinary SE of a mean; nan below two clusters.
+      per cluster it is the ordinary SE of a mean; nan below two clusters (``pool`` reports None).
     """
     labels, index = np.unique(np.asarray(clusters, dtype=object).astype(str), return_inverse=True)
     sums = np.bincount(index, weights=values, minlength=len(labels))
@@ -87,13 +88,14 @@ def pool(paths: list[str | Path], policy: str = "value_iteration", baseline: str
     values = np.concatenate(pooled) if pooled else np.zeros(0)
     if len(values) < 2:
         raise PairingError(f"{len(values)} counted trial(s) in {len(paths)} run(s): nothing to pool")
-    means = np.array([r["mean"] for r in runs if r["mean"] is not None])
+    runs_mean, runs_se = mean_se([r["mean"] for r in runs if r["mean"] is not None])
     mean, clustered_se, groups = clustered_mean_se(values, objects)
+    if np.isnan(clustered_se):  # one object: no spread between objects to measure (None, as paired_trials', not NaN)
+        clustered_se = None
     result = {"policy": policy, "baseline": baseline, "runs": runs, "trials": len(values), "objects": groups,
-              "pooled": mean, "runs_mean": float(means.mean()),
-              "runs_se": float(means.std(ddof=1) / np.sqrt(len(means))) if len(means) > 1 else None,
-              "trials_se": float(values.std(ddof=1) / np.sqrt(len(values))), "objects_se": clustered_se}
-    result["objects_interval_95"] = [mean - Z_95 * clustered_se, mean + Z_95 * clustered_se]
+              "pooled": mean, "runs_mean": runs_mean, "runs_se": runs_se, "trials_se": mean_se(values)[1],
+              "objects_se": clustered_se}
+    result["objects_interval_95"] = None if clustered_se is None else [mean - Z_95 * clustered_se, mean + Z_95 * clustered_se]
     return result
 
 
@@ -104,8 +106,9 @@ def text(result: dict) -> str:
     lines = [(f"{result['policy']} minus {result['baseline']}, pooled over {result['trials']} useful trials of "
              f"{len(result['runs'])} runs on {result['objects']} objects: {result['pooled']:+.4f}"),
              (f"  SE over runs {se(result['runs_se'])} (the runs' mean {result['runs_mean']:+.4f}); over trials "
-             f"{se(result['trials_se'])}; clustered by object {se(result['objects_se'])}, 95 % "
-             f"[{result['objects_interval_95'][0]:+.4f}, {result['objects_interval_95'][1]:+.4f}]")]
+             f"{se(result['trials_se'])}; clustered by object {se(result['objects_se'])}"
+             + ("" if result["objects_interval_95"] is None else
+                f", 95 % [{result['objects_interval_95'][0]:+.4f}, {result['objects_interval_95'][1]:+.4f}]"))]
     lines += [f"  {r['trials']:>5} trials  {'-' if r['mean'] is None else format(r['mean'], '+.4f'):>8}  {Path(r['file']).name}"
               for r in result["runs"]]
     return "\n".join(lines)
