@@ -451,7 +451,8 @@ def main(argv: list[str] | None = None) -> int:
         except OSError as err:
             # The commands check their outputs before they work; what the file system refuses after
             # (a full disk, /proc) is still one line, not a traceback.
-            print(f"error: {err.filename or 'a file'}: {err.strerror or err}", file=sys.stderr)
+            print(f"error: {err.filename}: {err.strerror or err}" if err.filename else f"error: {err.strerror or err}",
+                  file=sys.stderr)
             return EXIT_USAGE
     from .build.corpus import CorpusError
     from .build.dataset import BuildError, InputError, OutputError

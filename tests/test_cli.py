@@ -320,6 +320,25 @@ def test_what_the_file_system_refuses_after_the_checks_is_one_line(monkeypatch, 
     assert cli.main(["landing"]) == 2
     assert capsys.readouterr().err == "error: /data/out.json: No space left on device\n"
 
+    def no_file(argv):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(landing, "main", no_file)
+    assert cli.main(["landing"]) == 2
+    assert capsys.readouterr().err == "error: No space left on device\n", "no file named, none made up"
+
+
+def test_calibrate_bench_writes_nothing_so_its_outputs_are_not_checked(tmp_path, monkeypatch, capsys):
+    from pipeline import cli
+    from pipeline.studies import calibrate
+
+    monkeypatch.setattr(calibrate, "bench", lambda *args: {"timed": True})
+    (tmp_path / "a_file").write_text("")
+    bad = str(tmp_path / "a_file" / "x.json")
+    assert cli.main(["calibrate", "--bench", "--out", bad, "--json", bad]) == 0
+    assert capsys.readouterr().out == '{"timed": true}\n'
+    assert cli.main(["calibrate", "--out", bad]) == 2, "without --bench the outputs are checked"
+
 
 def test_an_output_without_write_permission_is_refused(tmp_path, monkeypatch):
     """Permission is judged from the owner's mode bits, as a non-root user's would be (root may write anywhere)."""
