@@ -100,8 +100,9 @@ def test_the_pooled_difference_is_also_clustered_by_object_when_the_records_name
     assert result["pooled"] == pytest.approx(differences.mean()) and result["pooled_objects_se"] == pytest.approx(expected)
     assert main([a, b, a2, b2, "--policies", "vi"]) == 0
     assert f"+/- {expected:.4f} clustered by object" in capsys.readouterr().out
+    # Two objects that a run pairs with itself differ by nothing: an SE of zero, not none.
+    assert compare([(a2, a2)], ["vi"])["policies"]["vi"]["pooled_objects_se"] == 0.0
     # Records of one object, or naming none, have no spread between objects to measure.
-    assert compare([(a2, a2)], ["vi"])["policies"]["vi"]["pooled_objects_se"] is not None
     same = write(tmp_path / "same.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 4, {"vi": 0.1})])
     assert compare([(same, same)], ["vi"])["policies"]["vi"]["pooled_objects_se"] is None
     unnamed = write(tmp_path / "unnamed.jsonl", [record(0, 3, {"vi": 0.5}, object_id=None), record(1, 4, {"vi": 0.1}, object_id="cup")])
