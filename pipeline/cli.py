@@ -22,6 +22,7 @@ import os
 import signal
 import sys
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 
 from .model.config import PRESETS, VARIANTS, Config
@@ -437,6 +438,24 @@ def run_policies(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def run_command(command: Callable[[], int | None]) -> int:
+    """A command's exit code, with the two ways a finished command can still fail said plainly:
+    what the file system refuses after the command's own checks (a full disk, /proc) is one line
+    and exit 2, not a traceback; a reader that stopped reading (``| head``) ends it quietly."""
+    try:
+        return command() or EXIT_OK
+    except BrokenPipeError:
+        # Nothing more can be written; point stdout at /dev/null so Python's exit does not
+        # complain again while flushing it (the recipe of Python's signal documentation).
+        with contextlib.suppress(AttributeError, ValueError, OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_FAILED
+    except OSError as err:
+        print(f"error: {err.filename}: {err.strerror or err}" if err.filename else f"error: {err.strerror or err}",
+              file=sys.stderr)
+        return EXIT_USAGE
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in DELEGATED:
@@ -446,14 +465,7 @@ def main(argv: list[str] | None = None) -> int:
         module = import_module(DELEGATED[argv[0]][0])
         if argv[0] == "serve":  # its usage names the command typed: `toppledb serve`, or `python -m service`
             return module.main(argv[1:], prog="toppledb serve") or EXIT_OK
-        try:
-            return module.main(argv[1:]) or EXIT_OK
-        except OSError as err:
-            # The commands check their outputs before they work; what the file system refuses after
-            # (a full disk, /proc) is still one line, not a traceback.
-            print(f"error: {err.filename}: {err.strerror or err}" if err.filename else f"error: {err.strerror or err}",
-                  file=sys.stderr)
-            return EXIT_USAGE
+        return run_command(lambda: module.main(argv[1:]))
     from .build.corpus import CorpusError
     from .build.dataset import BuildError, InputError, OutputError
     from .build.fanout import SchedulerError
@@ -464,7 +476,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     try:
         with _terminate_as_interrupt():
-            return commands[args.command](args)
+            return run_command(lambda: commands[args.command](args))
     except (UsageError, CorpusError, OutputError, InputError) as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE

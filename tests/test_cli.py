@@ -391,3 +391,24 @@ def test_an_output_inside_a_directory_one_may_not_enter_is_one_line(tmp_path, mo
     path = tmp_path / "locked" / "r.json"
     assert cli.output_problem(path) == f"cannot write {path}: Permission denied"
     assert cli.output_problem(tmp_path / "free.json") is None
+
+
+def test_a_study_whose_reader_stopped_reading_ends_quietly(tmp_path):
+    # `python -m pipeline.studies.pooled_gain ... | head -1`, made deterministic: the pipe's read end is
+    # closed before the study writes, so its first line meets a broken pipe.
+    import json
+    import subprocess
+    from pathlib import Path
+
+    trials = tmp_path / "run.jsonl"
+    trials.write_text("".join(json.dumps({"trial": t, "start": t, "object": t, "object_id": f"o{t}", "outside": False,
+                                          "useful": True, "gains": {"value_iteration": 0.1 * t, "max_height": 0.0}}) + "\n"
+                              for t in range(4)))
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        done = subprocess.run([sys.executable, "-m", "pipeline.studies.pooled_gain", str(trials)], stdout=write,
+                              stderr=subprocess.PIPE, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1], check=False)
+    finally:
+        os.close(write)
+    assert done.returncode == 1 and done.stderr == "", done.stderr
