@@ -92,6 +92,16 @@ def output_problem(*paths: Path | None, directory: bool = False) -> str | None:
     return None
 
 
+def refused_outputs(*files: Path | None, directories: tuple[Path | None, ...] = (), figures: tuple[Path | None, ...] = ()) -> bool:
+    """A run's outputs checked before it works (``output_problem``, ``plot_problem``): the first
+    problem as one line on stderr.  returns : whether one was found (the run then exits 2)"""
+    problem = (output_problem(*files) or output_problem(*directories, directory=True)
+               or next(filter(None, map(plot_problem, figures)), None))
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+    return problem is not None
+
+
 def plot_problem(path: Path | None) -> str | None:
     """``output_problem`` for a figure, and a format matplotlib writes, named by its suffix."""
     if path is None:

@@ -521,7 +521,7 @@ def bench(logs: list[str] | None, config: Config, pushes: int, repeats: int, see
 def main(argv: list[str] | None = None) -> int:
     """``toppledb calibrate LOG...``: search the noise parameters, write a config TOML and a JSON record."""
     from ..build.corpus import CorpusError, load_corpus
-    from ..cli import UsageError, output_problem
+    from ..cli import UsageError, refused_outputs
     from .validation import config_from_args, format_report
 
     parser = argparse.ArgumentParser(prog="toppledb calibrate", description=__doc__.split("\n\n")[0])
@@ -546,9 +546,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bench", action="store_true", help="only time scoring one setting (on LOG, or on a model-made log)")
     parser.add_argument("--bench-pushes", type=int, default=5000, help="pushes of the model-made bench log (default: %(default)s)")
     args = parser.parse_args(argv)
-    problem = None if args.bench else output_problem(args.out, args.json)  # --bench writes neither
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
+    if not args.bench and refused_outputs(args.out, args.json):  # --bench writes neither
         return 2
 
     try:

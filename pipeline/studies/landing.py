@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     """``toppledb landing``: release every topple at its apex in pybullet and score the landing tables."""
     from ..build.corpus import CorpusError
     from ..build.fanout import map_unordered
-    from ..cli import UsageError, make_config, output_problem, positive_int
+    from ..cli import UsageError, make_config, positive_int, refused_outputs
     from ..build.atomic import write_text_atomic
     from .playlog import OBJECT_MODES, PlayError, select_objects
 
@@ -182,9 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     parser.add_argument("--json", type=Path, help="write the summary and every row here")
     args = parser.parse_args(argv)
-    problem = output_problem(args.json)
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
+    if refused_outputs(args.json):
         return 2
     started = time.perf_counter()
     try:

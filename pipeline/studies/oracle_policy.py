@@ -334,7 +334,7 @@ def text(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import output_problem, positive_int, print_and_record
+    from ..cli import positive_int, print_and_record, refused_outputs
 
     parser = study_parser("python -m pipeline.studies.oracle_policy", __doc__)
     parser.add_argument("--repeats", type=positive_int, default=REPEATS, help="plays per candidate (default: %(default)s)")
@@ -343,9 +343,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="candidates from every ok push, those from above included (default: the choosable ones)")
     parser.add_argument("--log", type=Path, help="write the estimate's plays here as a push log")
     args = parser.parse_args(argv)
-    problem = output_problem(args.json) or output_problem(args.log, directory=True)
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
+    if refused_outputs(args.json, directories=(args.log,)):
         return 2
     try:
         report, _, _ = experiment(args.dataset, args.trials, seed=args.seed, repeats=args.repeats, ks=tuple(sorted(set(args.ks))),

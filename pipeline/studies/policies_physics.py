@@ -456,7 +456,7 @@ def world_config(name: str) -> Config:
 
 def main(argv: list[str] | None = None) -> int:
     """``toppledb policies-physics DATASET --trials N``: the report as a table, then one JSON line."""
-    from ..cli import output_problem, positive_int, print_and_record
+    from ..cli import positive_int, print_and_record, refused_outputs
 
     parser = argparse.ArgumentParser(prog="toppledb policies-physics", description=__doc__.split("\n\n")[0])
     parser.add_argument("dataset", help="dataset directory (its corpus objects and policy tables)")
@@ -470,9 +470,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--world", default="thesis", metavar="PRESET|FILE.toml",
                         help="config whose noise the simulated pushes draw (default: %(default)s, as make logs)")
     args = parser.parse_args(argv)
-    problem = output_problem(args.json) or output_problem(args.log, directory=True)
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
+    if refused_outputs(args.json, directories=(args.log,)):
         return 2
     try:
         report = experiment(args.dataset, args.trials, max_pushes=args.max_pushes, seed=args.seed, workers=args.workers,

@@ -115,7 +115,7 @@ def text(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import output_problem, print_and_record
+    from ..cli import print_and_record, refused_outputs
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.pooled_gain", description=__doc__.split("\n\n")[0])
     parser.add_argument("files", nargs="+", metavar="RUN.jsonl", help="runs' --trials-out files (robust_policy)")
@@ -123,9 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--baseline", default="max_height", help="(default: %(default)s)")
     parser.add_argument("--json", type=Path, help="write the result here")
     args = parser.parse_args(argv)
-    problem = output_problem(args.json)
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
+    if refused_outputs(args.json):
         return 2
     try:
         result = pool(args.files, args.policy, args.baseline)

@@ -486,7 +486,7 @@ def with_and_without(cv: dict, name: str, folds: int, seed: int | str) -> str:
 def main(argv: list[str] | None = None) -> int:
     """``toppledb recalibrate LOG...``: fit g on corpus pushes, write a config TOML and a JSON record."""
     from ..build.corpus import CorpusError, load_corpus
-    from ..cli import UsageError, output_problem
+    from ..cli import UsageError, refused_outputs
     from .validation import config_from_args
 
     parser = argparse.ArgumentParser(prog="toppledb recalibrate", description=__doc__.split("\n\n")[0])
@@ -516,9 +516,7 @@ def main(argv: list[str] | None = None) -> int:
                         help=("with --boosted: the folds an earlier --fold-maps DIR wrote, instead of drawing them "
                               "(--folds and --seed's folds are ignored), so two maps' corpus datasets out of fold hold the same objects"))
     args = parser.parse_args(argv)
-    problem = output_problem(args.out, args.json) or output_problem(args.fold_maps, directory=True)
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
+    if refused_outputs(args.out, args.json, directories=(args.fold_maps,)):
         return 2
 
     try:

@@ -849,7 +849,7 @@ def text(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import output_problem, positive_int, print_and_record
+    from ..cli import positive_int, print_and_record, refused_outputs
 
     parser = study_parser("python -m pipeline.studies.robust_policy", __doc__)
     parser.add_argument("--radius", type=float, default=Smoothing.radius, help="m (default: %(default)s)")
@@ -885,9 +885,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --choose-for-repeats: a client that grasps once repeating is worth less "
                              "(mdp.repeats_then_grasp, docs/MODEL.md (12.17))")
     args = parser.parse_args(argv)
-    problem = output_problem(args.json, args.trials_out, args.pushes)
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
+    if refused_outputs(args.json, args.trials_out, args.pushes):
         return 2
     try:
         smoothing = Smoothing(args.radius, args.max_angle, args.min_neighbours)

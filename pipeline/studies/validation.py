@@ -684,7 +684,7 @@ def comparison_models(names: list[str], config: Config) -> dict[str, ToppleConfi
 def main(argv: list[str] | None = None) -> int:
     """``toppledb report LOG...``: score model variants against push logs and write the report."""
     from ..build.corpus import CorpusError, load_corpus
-    from ..cli import UsageError, output_problem, plot_problem
+    from ..cli import UsageError, refused_outputs
 
     parser = argparse.ArgumentParser(prog="toppledb report", description=__doc__.split("\n\n")[0])
     parser.add_argument("logs", nargs="+", help="push-log Parquet files or directories")
@@ -707,9 +707,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("data/reports/validation.json"), help="JSON report (default: %(default)s)")
     parser.add_argument("--plot", type=Path, default=None, metavar="PNG", help="also draw the report")
     args = parser.parse_args(argv)
-    problem = output_problem(args.out) or plot_problem(args.plot)
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
+    if refused_outputs(args.out, figures=(args.plot,)):
         return 2
 
     started = time.perf_counter()
