@@ -108,7 +108,9 @@ def plot_problem(path: Path | None) -> str | None:
         return None
     from matplotlib.backend_bases import FigureCanvasBase
 
-    suffix = Path(path).suffix.lstrip(".").lower()
+    from .build.atomic import figure_format
+
+    suffix = figure_format(path)
     if suffix not in FigureCanvasBase.get_supported_filetypes():
         return f"cannot draw {path}: {f'no format is named {suffix!r}' if suffix else 'no suffix names its format'}; name it .png, .pdf or .svg"
     return output_problem(path)

@@ -62,6 +62,17 @@ def write_json_atomic(path: str | Path, record) -> str:
     return write_text_atomic(path, json.dumps(record, indent=1) + "\n")
 
 
+def figure_format(path: str | Path) -> str:
+    """The image format a figure's file name asks for: its suffix, lower case, without the dot."""
+    return Path(path).suffix.lstrip(".").lower()
+
+
+def write_figure_atomic(path: str | Path, figure, dpi: int = 100) -> str:
+    """``write_atomic`` of a matplotlib figure in the format its suffix names (the temporary file's
+    own suffix would say nothing); returns its SHA-256."""
+    return write_atomic(path, lambda temp: figure.savefig(temp, format=figure_format(path), dpi=dpi))
+
+
 def fsync_directory(directory: str | Path) -> None:
     """Flush a directory's entries (renames, unlinks) to disk."""
     fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)

@@ -172,7 +172,7 @@ def plot(result: dict, path: str | Path) -> None:
     """The policies' mean gains as bars, written atomically in the format ``path``'s suffix names."""
     import matplotlib
 
-    from ..build.atomic import write_atomic
+    from ..build.atomic import write_figure_atomic
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -188,7 +188,7 @@ def plot(result: dict, path: str | Path) -> None:
         title=f"Policies on {result['useful_trials']} useful of {result['trials']} trials",
     )
     figure.tight_layout()
-    write_atomic(path, lambda temp: figure.savefig(temp, format=Path(path).suffix.lstrip(".").lower(), dpi=110))
+    write_figure_atomic(path, figure, dpi=110)
     plt.close(figure)
 
 

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..build.atomic import write_atomic, write_text_atomic
+from ..build.atomic import write_figure_atomic, write_text_atomic
 from ..model.config import VARIANTS, Config, ToppleConfig
 from .logreader import LogError, PushLog, read_log
 from .scoring import Scorer, Scores
@@ -631,7 +631,7 @@ def plot(result: dict, path: str | Path) -> None:
     fig.suptitle(f"Model vs push log: {c['objects']} objects, {c['pushes']} pushes, {c['repeats_max']} repeats; "
                  f"bars: {int(100 * CONFIDENCE)}% bootstrap over objects")
     fig.tight_layout()
-    write_atomic(path, lambda temp: fig.savefig(temp, format=Path(path).suffix.lstrip(".").lower(), dpi=100))
+    write_figure_atomic(path, fig, dpi=100)
     plt.close(fig)
 
 
