@@ -176,9 +176,20 @@ if os.environ.get("TOPPLEDB_TEST_SLOW_OBJECTS"):  # every interpreter, loky work
 
 
 def loky_workers(parent) -> list:
-    """Worker processes (not loky's resource tracker, which lives as long as its parent)."""
-    commands = [(c, " ".join(c.cmdline())) for c in parent.children(recursive=True)]
-    return [c for c, command in commands if "loky" in command and "resource_tracker" not in command]
+    """Worker processes (not loky's resource tracker, which lives as long as its parent).  A child
+    that exits while it is listed (a zombie until reaped, or gone) is no worker: on a busy machine the
+    listing meets such children, and their command line cannot be read."""
+    import psutil
+
+    workers = []
+    for child in parent.children(recursive=True):
+        try:
+            command = " ".join(child.cmdline())
+        except (psutil.ZombieProcess, psutil.NoSuchProcess):
+            continue
+        if "loky" in command and "resource_tracker" not in command:
+            workers.append(child)
+    return workers
 
 
 def test_sigterm_stops_the_workers(tmp_path):
