@@ -19,7 +19,7 @@ from shapes import box_object, pose_with_down
 
 from pipeline.model.config import Config
 from pipeline.model.mesh import model_from_mesh
-from pipeline.model.momentum import exit_edge, impact_energy_ratio, inertia_per_mass
+from pipeline.model.momentum import exit_edge, impact_energy_ratio, inertia_per_mass, momentum_poses
 from pipeline.model.poses import stable_poses
 from pipeline.model.topple import landed_poses
 
@@ -32,6 +32,11 @@ DEPTH = 0.1
 CLEAR = 1.5
 """Kept energy over the barrier beyond which (or below whose inverse) the closed form's
 verdict is clear of the model's small 3-D differences (the prism's end faces)."""
+HEXAGON = np.array([30, 26, 22, 28, 24, 20])[:, None] / 1000 * np.column_stack(
+    [np.cos(np.radians(10 + 60 * np.arange(6))), np.sin(np.radians(10 + 60 * np.arange(6)))])
+"""m, a convex hexagonal cross-section (x, z), counter-clockwise, its vertices 20-30 mm out at 60
+degree steps: stable on every side, and its vertices' distances from the centroid (29.4, 24.9,
+21.5, 28.6, 25.1, 20.5 mm) differ by 0.8 mm or more."""
 
 
 def prism(cross_section: np.ndarray, depth: float = DEPTH) -> trimesh.Trimesh:
@@ -109,14 +114,47 @@ def test_inertia_per_mass_of_a_box_is_the_closed_form():
     np.testing.assert_allclose(inertia_per_mass(obj.mesh, obj.hull, obj.center_mass), expected, atol=1e-12)
 
 
+def test_inertia_moves_to_the_given_centre_of_mass_and_scales_to_the_mass():
+    """Parallel axes: about a point d from the box's centroid, I + |d|^2 1 - d d^T per unit mass,
+    m times that for a body of mass m (off-diagonal terms -d_i d_j, so d has no zero component)."""
+    obj = box_object(size=(0.05, 0.08, 0.15))
+    box = np.diag([0.08**2 + 0.15**2, 0.05**2 + 0.15**2, 0.05**2 + 0.08**2]) / 12
+    d = np.array([0.004, -0.01, 0.02])
+    expected = box + d @ d * np.eye(3) - np.outer(d, d)
+    np.testing.assert_allclose(inertia_per_mass(obj.mesh, obj.hull, obj.center_mass + d), expected, atol=1e-12)
+    np.testing.assert_allclose(inertia_per_mass(obj.mesh, obj.hull, obj.center_mass + d, mass=0.3), 0.3 * expected, atol=1e-12)
+
+
+def test_inertia_is_the_mesh_s_own_and_its_hull_s_only_where_it_encloses_no_volume():
+    """Two 4 cm cubes 10 cm apart: their own inertia about the midpoint, a^2/6 about x and
+    a^2/6 + d^2 about y and z, not their hull's (a solid bar).  A box missing its top face
+    encloses no volume: its hull's, the closed box's closed form."""
+    a, d = 0.04, 0.05
+    cubes = [trimesh.creation.box([a, a, a]) for _ in range(2)]
+    for cube, side in zip(cubes, (-1, 1)):
+        cube.apply_translation([side * d, 0.0, 0.0])
+    two = trimesh.util.concatenate(cubes)
+    assert two.is_volume
+    np.testing.assert_allclose(inertia_per_mass(two, two.convex_hull, np.zeros(3)),
+                               np.diag([a * a / 6, a * a / 6 + d * d, a * a / 6 + d * d]), atol=1e-12)
+    box = trimesh.creation.box([0.05, 0.08, 0.15])
+    open_box = trimesh.Trimesh(box.vertices, box.faces[box.face_normals[:, 2] < 0.5])
+    assert not open_box.is_volume
+    np.testing.assert_allclose(inertia_per_mass(open_box, box, np.zeros(3)),
+                               np.diag([0.08**2 + 0.15**2, 0.05**2 + 0.15**2, 0.05**2 + 0.08**2]) / 12, atol=1e-12)
+
+
 def test_the_edge_ahead_is_the_one_the_centre_of_mass_heads_for():
     """A unit square base around the centre of mass: heading +x meets the +x edge, heading
     mostly -y the -y edge; no travel meets none (-1)."""
     outward = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
     inside = np.array([0.5, 0.2, 0.5, 0.8])  # the centre of mass is 0.2 from the +x edge
-    assert exit_edge(outward, inside, np.array([1.0, 0.0, 0.0])) == 1
-    assert exit_edge(outward, inside, np.array([0.3, -0.95, 0.0])) == 0
-    assert exit_edge(outward, inside, np.array([0.0, 0.0, 0.0])) == -1
+    with np.errstate(all="raise"):  # edges parallel to the travel divide by zero, silently
+        assert exit_edge(outward, inside, np.array([1.0, 0.0, 0.0])) == 1
+        assert exit_edge(outward, inside, np.array([0.3, -0.95, 0.0])) == 0
+        assert exit_edge(outward, inside, np.array([0.0, 0.0, 0.0])) == -1
+        # On the -y edge's line (0 / 0 there), heading +x: still the +x edge.
+        assert exit_edge(outward, np.array([0.0, 0.2, 1.0, 0.8]), np.array([1.0, 0.0, 0.0])) == 1
 
 
 def test_a_box_never_rolls_on():
@@ -145,6 +183,56 @@ def test_the_prism_rolls_on_where_the_planar_closed_form_says(quad):
         checked += 1
         rolls += kept > needed
     assert checked >= 3 and rolls >= 1  # the closed form decides most sides, and one rolls on
+
+
+def pose_tables(obj, pose_set) -> tuple:
+    """``momentum_poses``' arguments but ``energy_scale``, from a pose set (as ``landing.land_object``)."""
+    poses = pose_set.poses
+    return (np.array([p.transform for p in poses]), [p.base_edges for p in poses], [p.edge_final_pose.copy() for p in poses],
+            [p.edge_blocked.copy() for p in poses], obj.center_mass, inertia_per_mass(obj.mesh, obj.hull, obj.center_mass))
+
+
+def test_lossless_impacts_roll_on_until_an_apex_higher_than_the_first():
+    """With every impact keeping all its energy (a huge ``energy_scale``; C.8's share is at most
+    one), energy is conserved: toppled over vertex k, the hexagonal prism rolls on over each next
+    vertex nearer its centre of mass than vertex k, and stops on the side before the first one
+    farther out; its onward pose is the side beyond that vertex.  Housner's share is positive at
+    every impact here (the vertices are 60 degrees apart), so none stops it dead.  The topple over
+    the farthest vertex is left out: it comes round to that vertex again at exactly its energy."""
+    obj = model_from_mesh(prism(HEXAGON), mass=0.2, name="hexagon")
+    pose_set = stable_poses(obj, merge_symmetric=False)
+    n = len(HEXAGON)
+    poses = [pose_with_down(pose_set, side_down(HEXAGON, side), atol=1e-6) for side in range(n)]
+    ends, onwards = momentum_poses(*pose_tables(obj, pose_set), energy_scale=1e6)
+    distance = np.linalg.norm(HEXAGON - polygon_moments(HEXAGON)[0], axis=1)
+    rolls = []
+    for side in range(n):
+        first = (side + 1) % n
+        if distance[first] == distance.max():
+            continue
+        last = next(k for k in range(first + 1, first + n) if distance[k % n] > distance[first]) - 1  # side (last, last + 1)
+        pose = pose_set.poses[poses[side]]
+        edge = pivot_edge(pose, np.array([HEXAGON[first][0], 0.0, HEXAGON[first][1]]))
+        assert (ends[pose.index][edge], onwards[pose.index][edge]) == (poses[last % n], poses[(last + 1) % n]), side
+        rolls.append(last - first)
+    assert sorted(rolls) == [0, 0, 1, 1, 2]  # chains of none, one and two roll-ons
+
+
+def test_an_edge_ahead_that_topples_back_into_the_pose_ends_the_chain(quad):
+    """Toppled over vertex 1 from side 0, the prism lands on side 1 with energy enough to roll on
+    over vertex 2.  Were that topple one back into side 1 (unblocked), or blocked (its final pose
+    side 1 itself, as blocked ones are), the chain ends on side 1 and nothing lies onward."""
+    obj, pose_set = quad
+    side0, side1 = (pose_with_down(pose_set, side_down(QUADRILATERAL, side), atol=1e-6) for side in (0, 1))
+    over1 = pivot_edge(pose_set.poses[side0], np.array([QUADRILATERAL[1][0], 0.0, QUADRILATERAL[1][1]]))
+    over2 = pivot_edge(pose_set.poses[side1], np.array([QUADRILATERAL[2][0], 0.0, QUADRILATERAL[2][1]]))
+    assert pose_set.poses[side0].edge_final_pose[over1] == side1 != pose_set.poses[side0].edge_momentum_pose[over1]
+    for blocked in (False, True):
+        tables = pose_tables(obj, pose_set)
+        tables[2][side1][over2] = side1
+        tables[3][side1][over2] = blocked
+        ends, onwards = momentum_poses(*tables)
+        assert (ends[side0][over1], onwards[side0][over1]) == (side1, side1), blocked
 
 
 def test_released_at_its_apex_the_prism_rolls_on_in_pybullet_as_momentum_says(quad):

@@ -76,6 +76,12 @@ def test_pose_set_is_closed_under_toppling(index):
     for pose in pose_set.poses:
         assert np.all((pose.edge_final_pose >= 0) & (pose.edge_final_pose < n))
         assert np.all(pose.edge_final_pose[pose.edge_blocked] == pose.index)
+        # An edge that does not leave the pose (blocked, or a topple back into it; most of these
+        # objects have some) rolls on nowhere (C.8) and has nothing onward (C.18).  None of them
+        # merges symmetric poses, where a topple into a merged twin would count here too.
+        assert pose_set.equivalents is None
+        stays = pose.edge_blocked | (pose.edge_final_pose == pose.index)
+        assert np.all(pose.edge_momentum_pose[stays] == pose.index) and np.all(pose.edge_onward_pose[stays] == pose.index)
 
 
 def test_box_edges_topple_onto_adjacent_faces():
