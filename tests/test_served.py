@@ -8,7 +8,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import re
 import shutil
+import time
 
 import numpy as np
 import pyarrow as pa
@@ -39,7 +41,9 @@ def same_objects(a: Store, b: Store) -> None:
 
 
 def test_mapped_tables_are_views_and_equal_the_parquet_tables_converted(dataset, tmp_path, caplog):
+    started = time.perf_counter()
     mapped = Store.load(dataset)
+    assert 0 < mapped.load_seconds <= time.perf_counter() - started
     obj = next(iter(mapped.objects.values()))
     assert not obj.points.flags.writeable and not obj.q.flags.owndata, "a view into the mapped file, not a copy"
     copy = tmp_path / "dataset"
@@ -53,7 +57,9 @@ def test_mapped_tables_are_views_and_equal_the_parquet_tables_converted(dataset,
     # shared columns cannot be wrong the same way on both paths).
     reader = Dataset.open(dataset)
     poses = reader.table("poses")
+    hulls = dict(zip(*reader.table("objects", ["object_id", "hull_vertices"]).to_pydict().values()))
     for object_id, obj in mapped.objects.items():
+        np.testing.assert_array_equal(obj.hull_vertices, np.reshape(hulls[object_id], (-1, 3)))
         by = [("pose", "ascending"), ("action", "ascending")]
         actions = reader.object_rows("actions", object_id, ["pose", "action", "q", "point_x"]).sort_by(by)
         np.testing.assert_array_equal(obj.q, actions.column("q").to_numpy(zero_copy_only=False))
@@ -122,6 +128,18 @@ def test_a_dataset_whose_tables_do_not_fit_is_not_served(dataset, tmp_path):
     part = copy / "actions" / f"object_id={ids[0]}" / "part-0.parquet"
     pq.write_table(pq.read_table(part).slice(1), part)
     with pytest.raises(DatasetError, match="actions partition does not hold"):
+        Store.load(copy)
+
+
+def test_a_dataset_whose_tables_hold_other_counts_than_its_manifest_is_not_served(dataset, tmp_path):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["counts"]["poses"] += 1
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    poses = manifest["counts"]["poses"]
+    with pytest.raises(DatasetError, match=rf"the tables hold .*'poses': {poses - 1},.* but manifest.json says .*'poses': {poses},.*"
+                                           rf"check it with `toppledb verify {re.escape(str(copy))}`"):
         Store.load(copy)
 
 

@@ -274,6 +274,23 @@ def test_the_store_reads_from_the_manifest_whether_its_budgets_believe_failures(
         next(iter(store.objects.values())).budget(0)
 
 
+def test_the_store_reads_from_the_manifest_which_pushes_a_budget_may_choose(dataset, tmp_path):
+    import shutil
+
+    from schema.vocabulary import STATUS_OK
+    from service.store import Store
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["parameters"]["mdp"]["budget_min_direction_z"] = 0.2
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    for obj in Store.load(copy).objects.values():
+        assert obj.budget_direction_z == 0.2 and obj.min_direction_z == MIN_DIRECTION_Z
+        expected = (obj.status == STATUS_OK) & (obj.directions[:, 2] >= np.float32(0.2))
+        np.testing.assert_array_equal(obj.budget_choosable(slice(None)), expected)
+
+
 def test_belief_horizon_vi_plans_what_plan_serves_a_client_that_sends_its_budget_and_failures(dataset):
     """``belief_horizon_vi``'s tables (``pipeline.studies.robust_policy.belief_budget_tables``: its push per fresh
     pose with h pushes left, and the Q1_h it ranks the untried pushes by once a push from the pose has failed)

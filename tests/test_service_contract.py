@@ -5,10 +5,12 @@ guard's 401/413/415/422 (the tiny dataset of tests/test_service.py)."""
 
 from __future__ import annotations
 
+import datetime
 import hashlib
 import json
 import math
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -18,7 +20,9 @@ from schema.api import FINGER_FORCE_LIMIT, HEIGHT_TOLERANCE, RosPose
 from schema.vocabulary import NO_OP
 from service import create_app
 from service.settings import Settings
+from service.store import Store
 from tests.test_service import (  # noqa: F401 (fixtures)
+    OBJECTS,
     client,
     dataset,
     planar_transform,
@@ -51,6 +55,16 @@ def observe(tables, object_id: str, pose: int, lift: float = 0.0, tilt: float = 
 
 def post_plan(client, object_id, observed, policy="value_iteration"):
     return client.post("/plan", json={"object_id": object_id, "pose": observed.tolist(), "policy": policy})
+
+
+def edited(dataset, tmp_path, edit):
+    """A copy of the dataset whose manifest.json ``edit`` (a function of the parsed JSON) has changed."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    edit(manifest)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    return copy
 
 
 # --- off the table -------------------------------------------------------------------
@@ -124,8 +138,6 @@ def test_force_is_reported_against_the_finger_limit(dataset, tables):
 
 
 def test_a_manifest_finger_force_limit_is_used(dataset, tables, tmp_path):
-    import shutil
-
     copy = tmp_path / "dataset"
     shutil.copytree(dataset, copy)
     manifest = json.loads((copy / "manifest.json").read_text())
@@ -137,6 +149,14 @@ def test_a_manifest_finger_force_limit_is_used(dataset, tables, tmp_path):
         body = post_plan(c, object_id, observe(tables, object_id, pose)).json()
     assert push["finger_force_limit"] == 0.001 and push["within_force_limit"] is False
     assert "more than the finger's limit" in body["reason"]
+
+
+def test_a_build_that_recorded_no_finger_force_limit_is_held_to_the_default(dataset, tables, tmp_path):
+    copy = edited(dataset, tmp_path, lambda manifest: manifest["parameters"]["topple"].pop("max_finger_force"))
+    object_id, pose, _ = pushing_poses(tables)[0]
+    with TestClient(create_app(copy, settings=Settings())) as c:
+        push = post_plan(c, object_id, observe(tables, object_id, pose)).json()["push"]
+    assert push["finger_force_limit"] == FINGER_FORCE_LIMIT
 
 
 def test_no_push_and_no_grasp_says_so(dataset, tables):
@@ -292,7 +312,26 @@ def test_health_names_the_build(client, dataset, tables):
     assert identity["created"] == tables["manifest"]["created"]
     parameters = json.dumps(tables["manifest"]["parameters"], sort_keys=True, separators=(",", ":")).encode()
     assert identity["parameters_sha256"] == hashlib.sha256(parameters).hexdigest()
-    assert identity["code_version"].startswith(tables["manifest"]["code_version"]["package"])
+    code = tables["manifest"]["code_version"]
+    assert identity["code_version"] == code["package"] + (f"+g{code['git_commit'][:12]}" if code["git_commit"] else "")
+    assert datetime.datetime.fromisoformat(identity["loaded_at"]).utcoffset() == datetime.timedelta(0)
+
+
+@pytest.mark.parametrize("commit,version", [(None, "0.1.0"), ("0123456789abcdef0123", "0.1.0+g0123456789ab")])
+def test_the_code_version_names_the_builds_commit_when_it_had_one(dataset, tmp_path, commit, version):
+    copy = edited(dataset, tmp_path, lambda manifest: manifest["code_version"].update(package="0.1.0", git_commit=commit))
+    assert Store.load(copy).code_version == version
+
+
+def test_an_object_whose_build_failed_is_404_saying_so(dataset, tmp_path):
+    failure = {"object_id": "random_009", "path": "random_urdfs/009/009.obj", "reason": "mesh is not watertight", "kind": "mesh"}
+    copy = edited(dataset, tmp_path, lambda manifest: manifest["failures"].append(failure))
+    with TestClient(create_app(copy)) as c:
+        response = c.get("/objects/random_009/poses/0")
+        listing = c.get("/objects").json()
+    assert listing["count"] == 3 and [o["object_id"] for o in listing["objects"]] == OBJECTS, "a failed object is not listed"
+    assert response.status_code == 404
+    assert response.json()["detail"] == "object 'random_009' is not in the dataset: its build failed (mesh is not watertight)"
 
 
 def test_metrics_count_requests_per_route_in_prometheus_format(client):
@@ -328,6 +367,22 @@ def test_openapi_examples_come_from_the_served_dataset(client, tables):
     assert client.post("/batch/plan", json=batch).json()["results"][0]["result"] == response.json()
     transitions = schema["components"]["schemas"]["TransitionBatch"]["examples"][0]
     assert client.post("/batch/transitions", json=transitions).json()["results"][0]["error"] is None
+    # The first pose value iteration pushes from, of the first object with one (corpus order is the ids' order
+    # here): the plan and the lookup agree.
+    assert OBJECTS == sorted(OBJECTS)
+    first = pushing_poses(tables)[0][:2]
+    assert (example["object_id"], response.json()["match"]["pose"]) == first
+    assert (transitions["items"][0]["object_id"], transitions["items"][0]["pose"]) == first
+
+
+def test_without_a_pushing_pose_the_examples_are_the_first_objects_first_pose(dataset):
+    store = Store.load(dataset)
+    for obj in store.objects.values():
+        obj.policy_action = {**obj.policy_action, "value_iteration": np.full(obj.n_poses, NO_OP)}
+    object_id, pose, transform = store.example_object()
+    first = next(iter(store.objects.values()))
+    assert (object_id, pose) == (first.object_id, 0)
+    np.testing.assert_array_equal(transform, first.transforms[0])
 
 
 def test_a_client_that_leaves_before_its_body_arrives_is_not_counted_as_a_server_error():

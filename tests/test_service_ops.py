@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import shutil
 import signal
@@ -25,7 +26,7 @@ from fastapi.testclient import TestClient
 from service import create_app
 from service.__main__ import DEFAULT_HOST, build_parser
 from service.settings import Settings
-from service.store import LiveStore, Store
+from service.store import DatasetError, LiveStore, Store
 from tests.test_service import ROOT, dataset  # noqa: F401 (fixture)
 
 DEADLINE = 30.0
@@ -65,6 +66,35 @@ def test_live_store_swaps_only_for_a_new_readable_build(dataset, tmp_path):
     (copy / "manifest.json").write_text("{")
     served = live.store
     assert live.changed() and not live.reload() and live.store is served and not live.changed()
+
+
+def test_live_store_keeps_an_identical_build_swaps_when_forced_and_logs_each_swap_and_failure_once(dataset, tmp_path, caplog):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    live = LiveStore(Store.load(copy))
+    first = live.store
+    # The same bytes written again as a new file: nothing to swap, and nothing to look at until it changes again.
+    tmp = copy / "manifest.json.tmp"
+    tmp.write_bytes((copy / "manifest.json").read_bytes())
+    os.replace(tmp, copy / "manifest.json")
+    assert live.changed() and not live.reload() and live.store is first and not live.changed()
+    with caplog.at_level(logging.WARNING, logger="service"):
+        assert live.reload(force=True) and live.store is not first and live.reloads == 1  # SIGHUP: the same build again
+        rebuilt(copy, "2030-01-01T00:00:00+00:00")
+        assert live.reload() and live.reloads == 2
+        serving = live.store.manifest_sha256[:12]
+        refused = []
+        for broken, again in (("{", True), ("[]", False)):  # two failed builds, each logged once, even when forced again
+            (copy / "manifest.json").write_text(broken)
+            with pytest.raises(DatasetError) as error:
+                Store.load(copy)
+            refused.append(str(error.value))
+            assert not live.reload() and not live.reload(force=again) and live.reloads == 2
+    messages = [record.getMessage() for record in caplog.records]
+    swaps = [m for m in messages if m.startswith("now serving")]
+    assert len(swaps) == 2 and swaps[1].startswith(f"now serving {copy} manifest {serving} (3 objects, loaded in ")
+    failures = [m for m in messages if m.startswith("reload of")]
+    assert failures == [f"reload of {copy} failed, still serving manifest {serving}: {reason}" for reason in refused]
 
 
 def test_the_watcher_swaps_builds_while_requests_keep_succeeding(dataset, tmp_path):
