@@ -24,9 +24,11 @@ from pipeline.build.corpus import read_list
 from pipeline.build.dataset import build_dataset
 from pipeline.model.config import Config
 from schema import SCHEMA_VERSION
+from schema.vocabulary import STATUS_NAMES, STATUS_OK
 from service import DatasetError, create_app
 from service.__main__ import main
-from service.store import widen
+from service.routers.objects import grasp_model
+from service.store import Store, widen
 
 SPARSE_CHOICE_FROM_THE_SIDE = {"mdp.min_direction_z": -0.3, "mdp.choice_neighbours": 1}
 """The test dataset's value iteration: the default's choice by neighbourhood (MODEL.md (12.15)), but 30
@@ -124,7 +126,8 @@ def test_health_reports_schema_version_and_counts(client, tables):
     assert body["counts"] == {k: manifest_counts[k] for k in body["counts"]}
 
 
-def test_objects_list_and_details(client, tables):
+def test_objects_list_and_details(client, tables, dataset):
+    objects = {r["object_id"]: r for r in pq.read_table(dataset / "objects.parquet", columns=["object_id", "sha256", "com_x", "com_y", "com_z"]).to_pylist()}
     listing = client.get("/objects").json()
     assert listing["count"] == 3 and [o["object_id"] for o in listing["objects"]] == OBJECTS
     for entry in listing["objects"]:
@@ -133,7 +136,8 @@ def test_objects_list_and_details(client, tables):
         assert entry["source"] == "pybullet_data/random_urdfs"
 
         detail = client.get(f"/objects/{entry['object_id']}").json()
-        assert detail["scale"] == 0.015 and len(detail["sha256"]) == 64 and len(detail["center_mass"]) == 3
+        assert detail["scale"] == 0.015 and detail["sha256"] == objects[entry["object_id"]]["sha256"]
+        assert detail["center_mass"] == xyz(objects[entry["object_id"]], "com").tolist()
         assert [p["pose"] for p in detail["poses"]] == list(range(n_poses))
         assert client.get(f"/objects/{entry['object_id']}/poses").json()["poses"] == detail["poses"]
         for summary in detail["poses"]:
@@ -148,15 +152,28 @@ def test_pose_detail_matches_the_poses_table(client, tables):
         np.testing.assert_array_equal(body["transform"], stored_transform(tables, object_id, pose))
         np.testing.assert_array_equal(body["down"], xyz(row, "down"))
         assert (body["v_s"], body["v_t"], body["height"]) == (row["v_s"], row["v_t"], row["height"])
+        assert (body["probability"], body["com_height"]) == (row["probability"], row["com_height"])
         for policy in ("value_iteration", "greedy", "max_height"):
             assert body["policies"][policy] == {"action": no_op(row[f"{policy}_action"]), "value": row[f"{policy}_value"]}
         counts = body["action_counts"]
         assert sum(counts.values()) == body["n_actions"] == row["n_actions"] and counts["ok"] == row["n_ok_actions"]
+        # Every status is named, those no push of the pose has with 0.
+        statuses = [a["status"] for (o, p, _), a in tables["actions"].items() if (o, p) == (object_id, pose)]
+        assert counts == {name: statuses.count(name) for name in STATUS_NAMES}
         if row["grasp_point_x"] is None:
             assert body["grasp"] is None
         else:
             np.testing.assert_array_equal(body["grasp"]["point"], xyz(row, "grasp_point"))
             np.testing.assert_array_equal(body["grasp"]["axis"], xyz(row, "grasp_axis"))
+
+
+def test_a_pose_without_some_status_counts_it_as_zero(dataset):
+    # Every pose of the test dataset has a push of the last status (finger_collision): take them away.
+    obj = Store.load(dataset).objects["random_001"]
+    rows = obj.pose_rows(2)
+    obj.status = obj.status.copy()
+    obj.status[rows] = STATUS_OK
+    assert obj.action_counts(2) == {name: rows.stop - rows.start if name == "ok" else 0 for name in STATUS_NAMES}
 
 
 def check_action(body: dict, row: dict, expected_next: dict[int, float] | None) -> None:
@@ -165,6 +182,7 @@ def check_action(body: dict, row: dict, expected_next: dict[int, float] | None) 
     for name in ("point", "normal", "direction"):
         np.testing.assert_allclose(body[name], xyz(row, name), rtol=1e-6, atol=1e-9)
     assert body["q"] == row["q"] and body["greedy"] == row["greedy"]
+    assert body["mean_force"] == (None if row["mean_force"] is None else pytest.approx(row["mean_force"], rel=1e-6))
     assert body["choosable"] == (row["status"] == "ok" and np.float32(row["direction_z"]) >= np.float32(MIN_DIRECTION_Z))
     if row["status"] != "ok":
         assert not body["executable"] and body["next_poses"] == [] and expected_next is None
@@ -191,6 +209,12 @@ def test_every_action_and_its_next_pose_distribution(client, tables):
         check_action(body, tables["actions"][(object_id, pose, action)], tables["transitions"].get((object_id, pose, action)))
 
 
+def test_a_grasp_is_served_only_when_both_its_point_and_its_axis_are_known():
+    point, axis, unknown = np.array([0.01, 0.0, 0.02]), np.array([0.0, 1.0, 0.0]), np.full(3, np.nan)
+    assert grasp_model(point, unknown) is None and grasp_model(unknown, axis) is None and grasp_model(unknown, unknown) is None
+    assert grasp_model(point, axis).model_dump() == {"point": point.tolist(), "axis": axis.tolist()}
+
+
 def test_float32_storage_is_served_as_short_decimals():
     assert widen(np.float32(0.6)) == 0.6 and widen(np.float32(0.0123)) == 0.0123
     assert np.isnan(widen(np.float32("nan")))
@@ -201,7 +225,8 @@ def test_q_values_and_top_k_sorted(client, tables, by):
     for (object_id, pose), row in tables["poses"].items():
         body = client.get(f"/objects/{object_id}/poses/{pose}/q", params={"top": 5, "by": by}).json()
         actions = [tables["actions"][(object_id, pose, a)] for a in range(row["n_actions"])]
-        assert body["q"] == [a["q"] for a in actions] and body["v_t"] == row["v_t"] and body["gamma"] == 0.95
+        assert body["q"] == [a["q"] for a in actions] and body["gamma"] == 0.95
+        assert (body["v_s"], body["v_t"]) == (row["v_s"], row["v_t"])
         scores = [body_item[by] for body_item in body["top"]]
         assert scores == sorted(scores, reverse=True)
         assert len(body["top"]) == min(5, row["n_ok_actions"])
@@ -209,12 +234,28 @@ def test_q_values_and_top_k_sorted(client, tables, by):
         ok_scores = [a[by] for a in actions if a["status"] == "ok"]
         if ok_scores:
             assert scores[0] == pytest.approx(max(ok_scores), abs=1e-7)
+        # The order: highest score first, ties to the lower action (P(topple) ranked as stored, float32).
+        stored = np.float32 if by == "p_topple" else float
+        ok = [u for u, a in enumerate(actions) if a["status"] == "ok"]
+        assert [item["action"] for item in body["top"]] == sorted(ok, key=lambda u: (-stored(actions[u][by]), u))[:5]
+        for item in body["top"]:
+            action = actions[item["action"]]
+            assert (item["q"], item["greedy"], item["is_max_height"]) == (action["q"], action["greedy"], action["is_max_height"])
+            # P(topple) leaves as the shortest decimal of its float32 (service.store.widen).
+            assert item["p_topple"] == pytest.approx(action["p_topple"], abs=1e-7) and str(item["p_topple"]) == str(np.float32(item["p_topple"]))
         choosable = [a["status"] == "ok" and np.float32(a["direction_z"]) >= np.float32(MIN_DIRECTION_Z) for a in actions]
         assert [item["choosable"] for item in body["top"]] == [choosable[item["action"]] for item in body["top"]]
         if by == "q" and row["value_iteration_action"] != -1:
             # Value iteration's push is the best Q among the pushes it may choose (ties: the first).
             best = max((a["q"], -u) for u, a in enumerate(actions) if choosable[u])
             assert row["value_iteration_action"] == -best[1]
+
+
+def test_q_ranks_the_ten_best_by_q_unless_asked(client, tables):
+    assert tables["poses"][("random_001", 0)]["n_ok_actions"] > 10
+    url = "/objects/random_001/poses/0/q"
+    assert client.get(url).json() == client.get(url, params={"top": 10, "by": "q"}).json()
+    assert len(client.get(url, params={"top": 10_000}).json()["top"]) == tables["poses"][("random_001", 0)]["n_ok_actions"]
 
 
 # --- planning ------------------------------------------------------------------------
@@ -344,6 +385,9 @@ def test_an_unknown_id_is_repeated_only_in_part(client):
     detail = response.json()["detail"]
     assert response.status_code == 404 and len(detail) < 200, detail
     assert f"unknown object '{'x' * 64}...' (60000 characters)" in detail
+    # An id of exactly the echoed length is repeated whole.
+    detail = client.get(f"/objects/{'y' * 64}").json()["detail"]
+    assert detail == f"unknown object '{'y' * 64}' (3 objects; GET /objects lists them)"
 
 
 @pytest.mark.parametrize("path", ["/plan", "/batch/plan", "/batch/transitions"])
@@ -359,6 +403,7 @@ def test_a_body_that_is_not_json_says_why_and_where(client, path):
     [
         ("/objects/random_001/poses/x", "path.pose"),
         ("/objects/random_001/poses/0/q?top=0", "greater than or equal to 1"),
+        ("/objects/random_001/poses/0/q?top=10001", "less than or equal to 10000"),
         ("/objects/random_001/poses/0/q?by=height", "query.by"),
         ("/objects/random_001/poses/0/actions/1.5", "path.action"),
     ],
@@ -383,6 +428,18 @@ def test_malformed_query_and_path_parameters_are_422(client, url, message):
 def test_unknown_ids_are_404_with_a_message(client, url, message):
     response = client.get(url)
     assert response.status_code == 404 and message in response.json()["detail"], response.text
+
+
+def test_the_first_pose_and_action_past_the_last_are_404(client, tables):
+    """For every pose, not only the first (an action's row is counted from its pose's first row)."""
+    for object_id in OBJECTS:
+        n_poses = sum(1 for (o, _) in tables["poses"] if o == object_id)
+        response = client.get(f"/objects/{object_id}/poses/{n_poses}")
+        assert response.status_code == 404 and f"has no pose {n_poses}: its poses are 0..{n_poses - 1}" in response.json()["detail"]
+    for (object_id, pose), row in tables["poses"].items():
+        n = row["n_actions"]
+        response = client.get(f"/objects/{object_id}/poses/{pose}/actions/{n}")
+        assert response.status_code == 404 and f"has no action {n}: its actions are 0..{n - 1}" in response.json()["detail"]
 
 
 def test_plan_for_an_unknown_object_is_404(client):
