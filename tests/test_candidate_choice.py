@@ -134,10 +134,121 @@ def test_the_command_prints_writes_its_record_and_refuses_in_one_line(dataset, o
     out = capsys.readouterr().out
     written = json.loads(record.read_text())
     assert "oracle - rows" in out and written["starts"] > 0 and written["logs"] == [str(oracle_log)]
+    assert written["datasets"] == [str(dataset)]
     assert written["oracle_minus_rows"]["mean"] == pytest.approx(written["value"]["oracle"]["mean"] - written["value"]["rows"]["mean"])
     (tmp_path / "file").write_text("x")
     assert main([str(oracle_log), "--datasets", str(dataset), "--json", str(tmp_path / "file" / "r.json")]) == 2
-    assert capsys.readouterr().err.count("\n") == 1
+    refused = capsys.readouterr()
+    assert refused.err.count("\n") == 1 and refused.out == ""  # refused before the log is read
+    with pytest.raises(SystemExit) as exit_:
+        main([str(oracle_log)])  # the datasets are required
+    assert exit_.value.code == 2 and "--datasets" in capsys.readouterr().err
     assert main([str(oracle_log), "--datasets", str(tmp_path / "nowhere")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error:") and err.count("\n") == 1
+
+
+def test_the_choosers_read_their_own_candidate_and_the_halves_step_by_two():
+    # Six plays each; the rows like the third push, Q the second, and the halves differ from thirds.
+    plays = [[0.0] * 6, [0.3, 0.3, 0.3, 0.9, 0.3, 0.3], [0.6, 0.0, 0.6, 0.0, 0.6, 0.0]]
+    c = made_up(plays=plays, row_value=[0.1, 0.2, 0.9], q=[0.1, 0.9, 0.2], u_z=[0.5, -0.5, 0.5], start=[0, 0, 0], objects=["a"])
+    choice = start_choices(c, np.arange(3))
+    assert choice["rows"] == pytest.approx(0.3) and choice["q"] == pytest.approx(0.4) and CLASSES[choice["class"]] == "below"
+    # even plays: 0, 0.3, 0.6 -> the third, judged on its odd plays (0); odd plays: 0, 0.5, 0 -> the second, judged on
+    # its even plays (0.3)
+    assert choice["oracle"] == pytest.approx(0.5 * (0.0 + 0.3))
+
+
+def test_starts_that_cannot_be_scored_are_skipped_wherever_they_come():
+    # Start 0 has one candidate, start 1 single plays; the scored start comes last.
+    c = made_up(plays=[[0.5, 0.5], [0.2], [0.9], [0.1, 0.3], [0.7, 0.7]], row_value=[1, 1, 0, 1, 0], q=[0] * 5,
+                u_z=[0] * 5, start=[0, 1, 1, 2, 2], objects=["a", "b", "c"])
+    result = summary(c)
+    assert result["starts"] == 1 and result["value"]["rows"]["mean"] == pytest.approx(0.2)
+
+
+def test_rank_correlations_are_clustered_by_their_starts_objects():
+    # Two objects, a start each, four side pushes: one start ranks perfectly, the other backwards.
+    topple = [0.1, 0.2, 0.3, 0.4] * 2
+    moved = [[0, 0], [0, 1], [1, 1], [1, 1]] + [[1, 1], [1, 1], [0, 1], [0, 0]]
+    c = made_up(plays=[[0.5, 0.5]] * 8, row_value=[0] * 8, q=[0] * 8, u_z=[0] * 8, start=[0] * 4 + [1] * 4, objects=["a", "b"],
+                topple=topple, moved=moved)
+    side = summary(c)["topple_rank_correlation"]["side"]
+    rhos = [rank_correlation(topple[:4], [0, 0.5, 1, 1]), rank_correlation(topple[4:], [1, 1, 0.5, 0])]
+    assert side["objects"] == 2 and side["mean"] == pytest.approx(np.mean(rhos))
+    assert side["se"] == pytest.approx(np.std(rhos, ddof=1) / np.sqrt(2))
+
+
+def test_a_constant_ranking_is_nan_without_a_warning():
+    with np.errstate(all="raise"):
+        assert np.isnan(rank_correlation([0.2, 0.2, 0.2], [0, 1, 1])) and np.isnan(rank_correlation([0.1, 0.2, 0.3], [1, 1, 1]))
+
+
+def test_the_text_gives_every_chooser_the_gap_by_class_and_the_correlations():
+    c = made_up(plays=[[0.2, 0.2], [0.4, 0.4], [0.5, 0.5], [0.1, 0.1], [0.3, 0.3], [0.6, 0.6]], row_value=[0.9, 0.1, 0.9, 0.1, 0.9, 0.1],
+                q=[0] * 6, u_z=[-0.9, 0, 0, 0, -0.9, 0], start=[0, 0, 1, 1, 2, 2], objects=["a", "b", "c"])
+    result = summary(c)
+    result.update(logs=["log"], datasets=["d"])
+    from pipeline.studies.candidate_choice import text
+
+    lines = text(result).splitlines()
+    assert lines[0].startswith("3 starts with two candidates or more on 3 objects (6 pushes;")
+    assert [line.split()[0] for line in lines[1:5]] == list(CHOOSERS)
+    assert lines[1] == "  rows    {:.4f} +/- {:.4f}".format(result["value"]["rows"]["mean"], result["value"]["rows"]["se"])
+    assert lines[5] == "oracle - rows {:+.4f} +/- {:.4f}; by the direction of the rows' choice:".format(
+        result["oracle_minus_rows"]["mean"], result["oracle_minus_rows"]["se"])
+    # From above: two objects, 0.2 and 0.3 below the oracle, all of the gap; from the side one object, no SE.
+    assert lines[6] == "  above      2 starts: +0.2500 +/- 0.0500, 100% of the gap"
+    assert lines[7] == "  side       1 starts: +0.0000, 0% of the gap"
+    assert lines[8].startswith("within a start, rank correlation") and len(lines) == 9
+
+
+def test_pushes_the_datasets_cannot_place_are_counted_and_a_play_outside_is_worth_nothing(dataset, oracle_log):  # noqa: F811
+    from dataclasses import replace
+
+    from pipeline.studies.logreader import read_log
+    from pipeline.studies.policy_experiment import ACTION_SPAN
+
+    log = read_log([oracle_log])
+    datasets = object_datasets([dataset])
+    first, second = log.pushes[0], log.pushes[1]
+    bad = [replace(first, object_id="elsewhere"), replace(second, object_id="nowhere"),
+           replace(first, push_id=first.pose * ACTION_SPAN + ACTION_SPAN - 1),  # no such action
+           replace(second, push_id=(second.pose + 1) * ACTION_SPAN),  # another start pose
+           replace(first, push_id=first.pose * ACTION_SPAN + n_actions_of(datasets[first.object_id], first))]  # one past the last
+    # Plays outside the pose set and in every pose.
+    v_s = stored_v_s(datasets[first.object_id], first.object_id)
+    outside = replace(first, outcomes=np.array([-1, *range(len(v_s)), -1]))
+    c = candidates(replace(log, pushes=[*bad, outside, *log.pushes]), datasets)
+    assert c.rejected == {"object in none of the datasets": 2, "push id names no ok push of its start pose": 3}
+    assert len(c.start) == len(log.pushes) + 1
+    np.testing.assert_allclose(c.plays[0], [0.0, *v_s, 0.0])
+    assert c.moved[0].tolist() == [True, *(np.arange(len(v_s)) != first.pose), True]
+    # An object whose dataset holds other stable poses than the log's (here none): its pushes set aside, unread.
+    twin = log.objects[first.object_id]
+    c = candidates(replace(log, pushes=[replace(first, object_id="twin"), *log.pushes], objects={**log.objects, "twin": twin}),
+                   {**datasets, "twin": datasets[first.object_id]})
+    assert c.rejected == {"the dataset's stable poses differ from the log's": 1} and len(c.start) == len(log.pushes)
+    with pytest.raises(TrustError, match="no push of the log"):
+        candidates(replace(log, pushes=bad), datasets)
+
+
+def stored_v_s(opened, object_id) -> np.ndarray:
+    """(P,) float, an object's V_s per pose as the dataset stores them."""
+    poses = opened.table("poses", columns=["object_id", "pose", "v_s"]).to_pandas()
+    return poses[poses.object_id == object_id].sort_values("pose").v_s.to_numpy(float)
+
+
+def n_actions_of(opened, push) -> int:
+    """The number of actions of a logged push's start pose in a dataset."""
+    poses = opened.table("poses", columns=["object_id", "pose", "n_actions"]).to_pandas()
+    return int(poses[(poses.object_id == push.object_id) & (poses.pose == push.pose)].n_actions.item())
+
+
+def test_with_no_gap_no_share_of_it_is_given():
+    c = made_up(plays=[[0.5, 0.5], [0.1, 0.1]], row_value=[1, 0], q=[0, 0], u_z=[0, 0], start=[0, 0], objects=["a"])
+    result = summary(c)
+    assert result["oracle_minus_rows"]["mean"] == 0 and result["by_rows_choice"]["side"]["share_of_gap"] is None
+    from pipeline.studies.candidate_choice import text
+
+    assert "of the gap" not in text({**result, "logs": [], "datasets": []})

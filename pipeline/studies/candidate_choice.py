@@ -80,7 +80,7 @@ def candidates(log, datasets: dict) -> Candidates:
     def reject(reason, count=1):
         rejected[reason] = rejected.get(reason, 0) + count
 
-    tables: dict[str, tuple] = {}
+    tables: dict[str, tuple | None] = {}  # object -> (V_s, rows, Q), None where the poses differ from the log's
     for push in log.pushes:
         dataset = datasets.get(push.object_id)
         if dataset is None:
@@ -89,15 +89,18 @@ def candidates(log, datasets: dict) -> Candidates:
         if push.object_id not in tables:
             poses = dataset.table("poses", columns=["object_id", "pose", "v_s", "n_actions"]).to_pandas()
             poses = poses[poses.object_id == push.object_id].sort_values("pose")
-            actions = dataset.object_rows("actions", push.object_id, columns=["pose", "action", "q"]).to_pandas()
-            q = {(int(p), int(a)): float(v) for p, a, v in zip(actions.pose, actions.action, actions.q)}
-            rows = next_pose_rows(dataset, push.object_id, poses.n_actions.astype(int).tolist())
-            tables[push.object_id] = (poses.v_s.to_numpy(float), rows, q)
-        v_s, rows, q = tables[push.object_id]
-        pose, action = divmod(int(push.push_id), ACTION_SPAN)
-        if len(v_s) != len(log.objects[push.object_id].poses.poses):
+            if len(poses) != len(log.objects[push.object_id].poses.poses):
+                tables[push.object_id] = None  # its actions are not read: the dataset may hold none of them
+            else:
+                actions = dataset.object_rows("actions", push.object_id, columns=["pose", "action", "q"]).to_pandas()
+                q = {(int(p), int(a)): float(v) for p, a, v in zip(actions.pose, actions.action, actions.q)}
+                rows = next_pose_rows(dataset, push.object_id, poses.n_actions.astype(int).tolist())
+                tables[push.object_id] = (poses.v_s.to_numpy(float), rows, q)
+        if tables[push.object_id] is None:
             reject("the dataset's stable poses differ from the log's")
             continue
+        v_s, rows, q = tables[push.object_id]
+        pose, action = divmod(int(push.push_id), ACTION_SPAN)
         if pose != push.pose or action >= len(rows[pose]) or not np.isfinite(rows[pose][action]).all():
             reject("push id names no ok push of its start pose")
             continue
@@ -108,7 +111,7 @@ def candidates(log, datasets: dict) -> Candidates:
         columns["q"].append(q[(pose, action)])
         columns["topple"].append(float(1.0 - row[pose]))
         columns["u_z"].append(float(push.direction[2]))
-        plays.append(np.where(outcomes >= 0, v_s[np.clip(outcomes, 0, None)], 0.0))
+        plays.append(np.append(v_s, 0.0)[np.where(outcomes >= 0, outcomes, len(v_s))])  # the last entry: outside
         moved.append(outcomes != pose)
     if not start_of:
         raise TrustError(f"no push of the log is in the datasets (rejected: {rejected})")
