@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.model.edges import base_edges, base_polygon, edge_geometry, landing_angles, landing_down
+from pipeline.model.edges import base_edges, base_polygon, edge_geometry, landing_angles, landing_down, rolled_down
 from schema.frames import axis_angle_matrices
 
 WIDTH, DEPTH, HEIGHT = 0.05, 0.08, 0.15  # m, box standing on its 0.05 x 0.08 face
@@ -44,9 +44,10 @@ def test_base_polygon_is_the_counter_clockwise_footprint():
     assert {tuple(np.round(p[:2], 6)) for p in polygon} == {(sx * 0.025, sy * 0.04) for sx in (-1, 1) for sy in (-1, 1)}
 
 
-def test_vertices_above_the_tolerance_are_not_part_of_the_base():
+@pytest.mark.parametrize("lift", [TOLERANCE, 2 * TOLERANCE])
+def test_vertices_above_the_tolerance_are_not_part_of_the_base(lift):
     vertices = box_vertices()
-    vertices[vertices[:, 0] > 0, 2] += 2 * TOLERANCE  # tilted: the +x side no longer touches
+    vertices[vertices[:, 0] > 0, 2] += lift  # tilted: the +x side no longer touches (z < tolerance touches)
     with pytest.raises(ValueError, match="degenerate"):
         base_polygon(vertices, TOLERANCE)  # only the two -x corners are left: a line
 
@@ -166,6 +167,9 @@ def test_landing_angle_of_single_raised_vertices():
     # The smallest angle wins.
     both = landing_angles(geometry, np.vstack([base, outside, inside]), TOLERANCE)[plus_x]
     assert both == pytest.approx(np.arctan2(0.02, 0.01))
+    # A vertex at the tolerance is off the table (the base takes z < tolerance): it is raised and lands first.
+    grazing = np.array([[WIDTH / 2 + 0.01, 0.0, TOLERANCE]])
+    assert landing_angles(geometry, np.vstack([base, outside, grazing]), TOLERANCE)[plus_x] == pytest.approx(np.arctan2(TOLERANCE, 0.01))
     # Vertices on the table never stop the rotation: with nothing raised it is a half turn.
     np.testing.assert_array_equal(landing_angles(geometry, base, TOLERANCE), np.pi)
 
@@ -178,3 +182,24 @@ def test_landing_down_rotates_back_about_the_edge():
     # Tipped by 0.3 rad outward, the new down vector leans 0.3 rad towards the outward side.
     np.testing.assert_allclose(down @ np.array([0, 0, -1.0]), np.cos(0.3))
     np.testing.assert_allclose(np.einsum("ij,ij->i", down, geometry.outward), np.sin(0.3))
+
+
+def test_a_blocked_topple_rolls_on_over_the_toe_wherever_the_edge_lies():
+    """A prism along y whose cross-section (x, z) is (-1, 0), (0, 0), a low toe (0.5, 0.1), (0.9,
+    0.35), (0, 1), (-1, 1) (m), its centre of mass at (-0.4, 0.5): tipped over the base edge x = 0
+    (outward +x) the toe's first facet meets the table at atan(0.1 / 0.5) = 0.2 rad, long before
+    the apex (0.67 rad; blocked, MODEL.md C.6); turned on about the toe's tip, the next facet lands
+    first again (0.36 rad, apex 0.96 rad); turned on about (0.9, 0.35), the centre of mass passes it
+    (0.90 rad) long before the face up to (0, 1) would land (1.96 rad), so the prism comes to rest on
+    that face: down is its outward normal (0.65, 0, 0.9) / |.|.  Moved along the table and turned
+    about the vertical, the same prism rolls the same way: the answer turns with it."""
+    profile = [(-1.0, 0.0), (0.0, 0.0), (0.5, 0.1), (0.9, 0.35), (0.0, 1.0), (-1.0, 1.0)]
+    vertices = np.array([[x, y, z] for x, z in profile for y in (-1.0, 1.0)])
+    com, start, direction = np.array([-0.4, 0.0, 0.5]), np.array([0.0, -1.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    down = rolled_down(vertices, com, start, direction, TOLERANCE)
+    np.testing.assert_allclose(down, np.array([0.65, 0.0, 0.9]) / np.hypot(0.65, 0.9), atol=1e-12)
+    for angle, shift in ((0.5, [0.0, 0.0, 0.0]), (2.0, [-1.0, 0.5, 0.0]), (-2.5, [0.3, -0.2, 0.0]), (1.0, [1.0, 2.0, 0.0])):
+        turn = axis_angle_matrices(np.array([0.0, 0.0, 1.0]), np.array(angle))
+        moved = [(np.asarray(points) + shift) @ turn.T for points in (vertices, com, start)]  # along the table, then about the vertical
+        turned = rolled_down(*moved, turn @ direction, TOLERANCE)
+        np.testing.assert_allclose(turned, turn @ down, atol=1e-12, err_msg=str(angle))

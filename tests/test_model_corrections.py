@@ -9,6 +9,7 @@ far bottom edge from the height (C.2.3)
 finger force |f| = F_n sqrt(1 + (k mu_f)^2), F_n = m g d / (h - k mu_f w).
 """
 
+import warnings
 from dataclasses import fields, replace
 
 import numpy as np
@@ -481,11 +482,13 @@ def test_a_finger_moving_off_the_face_pushes_nothing():
     contact, normal = [0.0, -0.5, 1.0], [0.0, -1.0, 0.0]
     _, into = sliding_contact(_one_trial(contact, normal, [0.0, 1.0, 0.0], 0.9), edges, 1.0, 1.0, 1.0, True)
     assert into[0, 2]  # F = 0.5 <= 0.9 mu_T: tips
-    for push in ([0.0, -0.6, 0.8], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]):  # u . n = 0.6, 0, 1
-        for mu_finger in (0.0, 0.98):
-            force, passes = sliding_contact(_one_trial(contact, normal, push, 0.9, mu_finger), edges, 1.0, 1.0, 1.0, True)
-            assert not passes.any(), (push, mu_finger)
-            assert np.isinf(force).all(), (push, mu_finger)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # u . n = 0 is not into the face: no advance s_e = v_e . n / 0 is formed
+        for push in ([0.0, -0.6, 0.8], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]):  # u . n = 0.6, 0, 1
+            for mu_finger in (0.0, 0.98):
+                force, passes = sliding_contact(_one_trial(contact, normal, push, 0.9, mu_finger), edges, 1.0, 1.0, 1.0, True)
+                assert not passes.any(), (push, mu_finger)
+                assert np.isinf(force).all(), (push, mu_finger)
 
 
 def test_no_push_tips_over_an_edge_the_centre_of_mass_is_on():
@@ -591,7 +594,8 @@ def test_the_force_limit_bites_on_the_way_only_with_force_limit(box):
 
 def test_a_trial_that_stalls_on_the_way_reports_no_edge_and_infinite_force(box):
     """``trial_outcomes`` returns OUTCOME_NO_EDGE and an infinite force for a trial that does not
-    topple, a stalled one (C.14) included; a trial that topples keeps its start force (C.2.3)."""
+    topple, a stalled one (C.14) included, as for one whose finger missed the object (invalid, NaN
+    contact: it is never computed); a trial that topples keeps its start force (C.2.3)."""
 
     obj, _, _ = box
     edges, far = _box_far_edge(box)
@@ -602,8 +606,68 @@ def test_a_trial_that_stalls_on_the_way_reports_no_edge_and_infinite_force(box):
     _, half_way = _box_along_tip(heights[0], 0.0, apex / 2, weight, mu_table=mu_table)
     topple = noise_free(corrections="finger_friction,force_limit,tip_path", mu_table_mean=mu_table, mu_finger_mean=0.0,
                         max_finger_force=(start + half_way) / 2, tip_path_points=1)
-    trials = Trials(np.column_stack([np.zeros(2), np.full(2, -0.04), heights]), np.tile([0.0, -1.0, 0.0], (2, 1)),
-                    np.tile([0.0, 1.0, 0.0], (2, 1)), np.full(2, mu_table), np.zeros(2), np.ones(2, bool), np.zeros(2))
+    contact = np.vstack([np.column_stack([np.zeros(2), np.full(2, -0.04), heights]), np.full((1, 3), np.nan)])
+    normal = np.vstack([np.tile([0.0, -1.0, 0.0], (2, 1)), np.full((1, 3), np.nan)])
+    trials = Trials(contact, normal, np.tile([0.0, 1.0, 0.0], (3, 1)), np.full(3, mu_table), np.zeros(3),
+                    np.array([True, True, False]), np.zeros(3))
     edge, force = trial_outcomes(trials, edges, obj.mass, topple)
     assert edge[0] == OUTCOME_NO_EDGE and force[0] == np.inf
     assert edge[1] == far and np.isclose(force[1], weight * 0.04 / heights[1], rtol=1e-9)
+    assert edge[2] == OUTCOME_NO_EDGE and force[2] == np.inf
+
+
+def test_the_stuck_finger_takes_only_valid_pushes_that_press_down_and_drag_the_base():
+    """C.11 qualifies a trial over an edge only if its push moves down (u_z < 0) and drags the base
+    (|u_xy| > mu_T |u_z|), as the reference's ``drags_base``.  On an overhang 0.25 m beyond edge 2 of
+    the unit square (centre of mass 1 m up, d = 0.5 m): pushed down and outward it tips over edge 2
+    with F = m g d / (h u_y + 0.25 |u_z|); the same push from an invalid trial, a horizontal push
+    (which presses nothing down) and a push straight down on a frictionless table (no horizontal
+    part to drag with) tip nothing, though each turns the body outward about edge 2.  Through
+    ``trial_outcomes`` (finger friction 0.98, which holds the sliding finger back: C.2 alone tips
+    nothing) the first trial tips at that force with a share of 1, and with a share of 0 nothing
+    tips, though these trials drew 0, the lowest draw (draws lie in [0, 1): a share q takes draw < q)."""
+    from pipeline.model import reference
+    from pipeline.model.topple import drags_base, stuck_finger
+
+    edges = _square_edges([0.0, 0.0, 1.0])
+    pushes = np.array([[0.0, 0.8, -0.6], [0.0, 0.8, -0.6], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])
+    mu_table = np.array([0.5, 0.5, 0.5, 0.0])
+    trials = Trials(np.tile([0.0, 0.75, 1.0], (4, 1)), np.tile([0.0, 0.0, 1.0], (4, 1)), pushes, mu_table, np.full(4, MU_FINGER),
+                    np.array([True, False, True, True]), np.zeros(4))
+    drags = drags_base(pushes, mu_table)
+    assert drags.tolist() == [reference.drags_base(tuple(u), mu) for u, mu in zip(pushes, mu_table)] == [True, True, False, False]
+    edge, force = stuck_finger(trials, edges, 1.0, 1.0, 10.0)
+    assert edge[0] == 2 and force[0] == pytest.approx(0.5 / (0.8 + 0.25 * 0.6), rel=1e-12)
+    assert np.isinf(force[1:]).all()
+    # The limit is inclusive (F <= max_force); an edge the centre of mass is on (d = 0) is not tipped (F = 0).
+    assert stuck_finger(trials, edges, 1.0, 1.0, force[0])[1][0] == force[0]
+    assert np.isinf(stuck_finger(trials, edges, 1.0, 1.0, np.nextafter(force[0], 0.0))[1][0])
+    assert np.isinf(stuck_finger(trials, _square_edges([0.0, 0.5, 1.0]), 1.0, 1.0, 10.0)[1]).all()
+    for corrections, share, tips in (("finger_friction", 1.0, False), ("finger_friction,stuck_finger", 1.0, True),
+                                     ("finger_friction,stuck_finger", 0.0, False)):
+        config = noise_free(corrections=corrections, stuck_finger_share=share, gravity=1.0)
+        edge, force = trial_outcomes(trials, edges, 1.0, config)
+        assert edge.tolist() == [2 if tips else OUTCOME_NO_EDGE] + [OUTCOME_NO_EDGE] * 3, (corrections, share)
+        assert force[0] == (pytest.approx(0.5 / 0.95, rel=1e-12) if tips else np.inf) and np.isinf(force[1:]).all()
+
+
+@pytest.mark.parametrize("corrections", ["finger_friction,force_limit", "finger_friction,stroke"])
+def test_the_force_limit_and_the_stroke_are_inclusive(box, corrections):
+    """C.1 lets the finger push with F <= max_finger_force and C.10 carry the box as far as s <= stroke,
+    equality included: pushed horizontally high on the 8 cm side, the trial with a limit (a stroke)
+    equal to the force it needs (the travel to the apex, ``finger_travel``) topples at the force it
+    needs without one; with the next float below, ``trial_outcomes`` reports no edge at infinite force."""
+    obj, _, _ = box
+    edges, far = _box_far_edge(box)
+    trials = _one_trial([0.0, -0.04, 0.145], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0], MU_TABLE, MU_FINGER)
+    edge, free = trial_outcomes(trials, edges, obj.mass, noise_free(corrections="finger_friction"))
+    assert edge[0] == far and np.isfinite(free[0])
+    if "force_limit" in corrections:
+        field, needed = "max_finger_force", free[0]
+    else:
+        field, needed = "stroke", finger_travel(trials, edges, np.array([far]))[0]
+        assert 0 < needed < np.inf
+    edge, force = trial_outcomes(trials, edges, obj.mass, noise_free(corrections=corrections, **{field: needed}))
+    assert edge[0] == far and force[0] == free[0]
+    edge, force = trial_outcomes(trials, edges, obj.mass, noise_free(corrections=corrections, **{field: np.nextafter(needed, 0.0)}))
+    assert edge[0] == OUTCOME_NO_EDGE and force[0] == np.inf

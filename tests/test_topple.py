@@ -1,5 +1,6 @@
 """The toppling model: analytic cases and invariants (thesis 4.2, docs/MODEL.md 7)."""
 
+import itertools
 import warnings
 from dataclasses import replace
 
@@ -128,6 +129,34 @@ def test_tile_size_never_changes_a_result(random_table, monkeypatch):
     assert (first.table.outcomes >= 0).sum() > 100, "the comparison needs trials that topple"
 
 
+def test_row_tiles_are_the_fewest_nearly_equal_ranges_within_the_budget():
+    """``_row_tiles`` covers range(n) with ceil(n per_row / TILE_ELEMENTS) contiguous, disjoint ranges
+    of nearly equal size (one empty range when n = 0), never one of fewer than min(n, 2) rows."""
+    for n in (0, 1, 2, 3, 5, 97, 1000, 4000):
+        for per_row in (1, 7, 65536, 10**6):
+            tiles = topple._row_tiles(n, per_row)
+            sizes = [t.stop - t.start for t in tiles]
+            assert tiles[0].start == 0 and tiles[-1].stop == n, (n, per_row)
+            assert all(a.stop == b.start for a, b in itertools.pairwise(tiles)), (n, per_row)
+            assert max(sizes) - min(sizes) <= 1 and min(sizes) >= min(n, 2), (n, per_row, sizes)
+            wanted = -(-n * per_row // topple.TILE_ELEMENTS)  # ceil: the fewest within the budget
+            assert len(tiles) == max(1, min(wanted, n // 2)), (n, per_row)
+
+
+def test_unit_rows_are_schema_units_bit_for_bit_zero_vectors_included():
+    """``_unit_rows`` is ``schema.frames.unit`` without its masked division: the same bits for
+    (..., 3) arrays of any vectors, and a zero vector stays zero (not NaN, no warning)."""
+    from schema.frames import unit
+
+    vectors = np.random.default_rng(2).normal(size=(4, 50, 3)) * np.logspace(-9, 3, 50)[:, None]
+    np.testing.assert_array_equal(topple._unit_rows(vectors), unit(vectors))
+    vectors[1, 7] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(topple._unit_rows(vectors), unit(vectors))
+    assert np.all(topple._unit_rows(vectors)[1, 7] == 0.0)
+
+
 def test_robust_estimate_converges_with_trials(box):
     obj, pose_set, standing = box
     # Near the friction height the outcome is genuinely uncertain under noise.
@@ -235,3 +264,73 @@ def test_pushes_that_never_topple_give_nan_force_without_warnings(box):
         table = evaluate(obj, pose_set, standing, points=_side_pushes([0.05, 0.14]), directions=away, n_trials=20).table
     assert np.all(table.p_topple == 0) and np.all(np.isnan(table.mean_force))
     assert table.outcomes.dtype == np.int16  # the HDF5 layout's dtype (schema/hdf5.py)
+
+
+# ---------------------------------------------------------------- the thesis's conditions at their boundaries (found by mutation testing)
+SQUARE = np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
+"""m, a 1 x 1 square base, counter-clockwise seen from above; edge 2 runs from (0.5, 0.5) to
+(-0.5, 0.5): e = (-1, 0, 0), outward +y.  Every quantity below is a small binary fraction, so
+the conditions' arithmetic on it is exact and a threshold can be met exactly."""
+
+
+def _square_trial(center_mass, contact, normal, push, mu_table, mu_finger, variant="rotations", corrections="none"):
+    """One noise-free trial on the square base (unit mass and gravity) through the engine's
+    ``trial_outcomes`` and through the scalar ``reference_trial``: ((edge, force), (edge, force))."""
+    from pipeline.model.edges import base_edges, edge_geometry
+    from pipeline.model.reference import Scene, TrialDraw
+
+    config = replace(Config().topple, variant=variant, corrections=corrections, gravity=1.0)
+    edges = base_edges(SQUARE)
+    one = lambda v: np.array([v], float)  # (1, 3) or (1,)
+    trials = topple.Trials(one(contact), one(normal), one(push), one(mu_table), one(mu_finger), np.ones(1, bool), np.zeros(1))
+    edge, force = topple.trial_outcomes(trials, edge_geometry(edges, np.asarray(center_mass, float)), 1.0, config)
+    vec = lambda v: tuple(float(x) for x in v)
+    scene = Scene([], [], vec(center_mass), 1.0, 1.0, [(vec(y0), vec(y1)) for y0, y1 in edges])
+    draw = TrialDraw(vec(contact), vec(normal), vec(push), mu_table, mu_finger, (0.0,) * 3, (0.0,) * 3, (0.0, 0.0, 1.0), 0.0)
+    reference = reference_trial(scene, draw, False, config.predicts_rotations, 0.0, config.applied_corrections,
+                                config.max_finger_force)
+    return (int(edge[0]), float(force[0])), reference
+
+
+@pytest.mark.parametrize("variant", ["baseline", "rotations"])
+def test_the_thesis_table_check_is_inclusive_at_the_closed_form_threshold(variant):
+    """(7.9) admits |f_xy| <= mu_T F_n, equality included.  Pushed horizontally on the face 1 m
+    from edge 2, the unit-weight body with its centre of mass d = 0.5 m inside that edge needs
+    F* = d / h (7.5), and the table holds mu_T: at mu_T = 0.5 the threshold is h* = d / mu_T = 1 m
+    exactly (no moment about the vertical: the push is on the centre line)."""
+    for height, toppled in ((1.0 - 2.0**-10, False), (1.0, True), (1.0 + 2.0**-10, True)):
+        engine, reference = _square_trial([0.0, 0.0, 1.0], [0.0, -0.5, height], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0], 0.5, 0.98,
+                                          variant)
+        assert engine == reference, height
+        assert engine == ((2, 0.5 / height) if toppled else (-1, np.inf)), height
+
+
+def test_a_frictionless_table_holds_nothing_in_the_thesis_model():
+    """(7.9) passes only if mu_T > 0 (a draw at or below zero holds nothing, exactly).  Pushed
+    straight down on an overhang 0.25 m beyond edge 2, the body needs F* = m g d / 0.25 = 2 N and
+    puts no horizontal force on the table, so the friction limit alone would pass it at mu_T = 0."""
+    down = ([0.0, 0.0, 1.0], [0.0, 0.75, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0])
+    engine, reference = _square_trial(*down, 0.5, 0.98)
+    assert engine == reference == (2, 2.0)
+    for mu_table in (0.0, -0.1):
+        engine, reference = _square_trial(*down, mu_table, 0.98)
+        assert engine == reference == (-1, np.inf), mu_table
+
+
+def test_an_edge_under_the_centre_of_mass_needs_no_force_and_warns_nothing():
+    """With the centre of mass right above edge 2's line (d = 0, apex angle 0) the thesis's
+    F* = m g d / tau (7.5) is 0: the push tips the body over that edge at no force, as the reference
+    says, without a division warning (the friction check divides m g by F*).  A finger pushes
+    (C.1: 0 < F*), so with ``force_limit`` nothing tips.  The push is along the inward normal,
+    so even a frictionless finger's cone holds it (tan 0 <= 0 at the start and at the apex)."""
+    on_edge = ([0.0, 0.5, 1.0], [0.0, -0.5, 1.0], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0], 0.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for mu_finger in (0.0, 0.98):
+            engine, reference = _square_trial(*on_edge, mu_finger)
+            assert engine == reference == (2, 0.0), mu_finger
+        engine, reference = _square_trial(*on_edge, 0.98, variant="corrected", corrections="force_limit")
+    assert engine == reference == (-1, np.inf)
+    # Pushed a little off the normal, the frictionless finger's cone holds nothing.
+    engine, reference = _square_trial(*on_edge[:3], [0.0, 0.8, 0.6], 0.5, 0.0)
+    assert engine == reference == (-1, np.inf)
