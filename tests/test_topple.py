@@ -1,6 +1,7 @@
 """The toppling model: analytic cases and invariants (thesis 4.2, docs/MODEL.md 7)."""
 
 import itertools
+import re
 import warnings
 from dataclasses import replace
 
@@ -155,6 +156,24 @@ def test_unit_rows_are_schema_units_bit_for_bit_zero_vectors_included():
         warnings.simplefilter("error")
         np.testing.assert_array_equal(topple._unit_rows(vectors), unit(vectors))
     assert np.all(topple._unit_rows(vectors)[1, 7] == 0.0)
+
+
+def test_drop_probabilities_of_another_pose_set_are_refused(box):
+    """A row is as wide as the pose set: ``evaluate_pose`` refuses probabilities that do not cover
+    every pose a topple lands in (here one short of the highest) or are not one per pose (2-D),
+    naming the pose, the highest pose it lands in and the shape given."""
+    from pipeline.model.contacts import explicit_actions
+    from pipeline.model.rng import stream as trials_stream
+
+    obj, pose_set, standing = box
+    pose = pose_set.poses[standing]
+    actions = explicit_actions(obj, pose.transform, _side_pushes([0.1]), None)
+    highest = int(max(pose.edge_final_pose.max(), pose.edge_onward_pose.max(), standing))
+    assert highest >= 1
+    for probabilities in (pose_set.probabilities[:highest], pose_set.probabilities[None]):
+        message = rf"pose {standing} lands in poses up to {highest}, and {re.escape(str(probabilities.shape))} probabilities"
+        with pytest.raises(ValueError, match=message):
+            topple.evaluate_pose(obj, pose, probabilities, actions, THESIS.topple, trials_stream(0, "box", standing, "trials"))
 
 
 def test_robust_estimate_converges_with_trials(box):
