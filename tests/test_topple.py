@@ -349,6 +349,9 @@ def test_an_edge_under_the_centre_of_mass_needs_no_force_and_warns_nothing():
             engine, reference = _square_trial(*on_edge, mu_finger)
             assert engine == reference == (2, 0.0), mu_finger
         engine, reference = _square_trial(*on_edge, 0.98, variant="corrected", corrections="force_limit")
+        assert engine == reference == (-1, np.inf)
+        # A frictionless table holds nothing, even the push that needs no force.
+        engine, reference = _square_trial(*on_edge[:4], 0.0, 0.98)
     assert engine == reference == (-1, np.inf)
     # Pushed a little off the normal, the frictionless finger's cone holds nothing.
     engine, reference = _square_trial(*on_edge[:3], [0.0, 0.8, 0.6], 0.5, 0.0)

@@ -484,10 +484,12 @@ def _thesis_conditions(
     # 3. Workspace slip on the friction limit surface (7.6)-(7.9), divided through by F*^2 (10.4):
     #    tangential: F*|u_xy| <= mu_T F_n;  F_n = m g + F* max(0, -u_z)
     # In-place steps below are the same operations in the same order, minus the temporaries.
+    # F* = 0 (the centre of mass over the edge) makes the limit inf, and inf times a table draw of
+    # exactly 0 is NaN: such a trial fails below on mu_T > 0 alone, so neither warns.
     with np.errstate(divide="ignore", invalid="ignore"):
         limit = np.divide(mass * gravity, force)  # (n, E), m g / F*
-    limit += np.maximum(0.0, -u[:, 2:3])  # (n, E), F_n / F*
-    limit *= trials.mu_table[:, None]  # (n, 1) broadcast: mu_T F_n / F*
+        limit += np.maximum(0.0, -u[:, 2:3])  # (n, E), F_n / F*
+        limit *= trials.mu_table[:, None]  # (n, 1) broadcast: mu_T F_n / F*
     np.square(limit, out=limit)  # (n, E)
     load = u[:, 0:1] ** 2 + u[:, 1:2] ** 2  # (n, 1), |u_xy|^2, compared broadcast against (n, E)
     if spin_stops:
