@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,16 +76,12 @@ def candidates(log, datasets: dict) -> Candidates:
     """The log's pushes against the rows, Q and V_s of the datasets their planner saw."""
     start_of: dict[tuple[str, int], int] = {}
     columns = {name: [] for name in ("start", "row_value", "q", "topple", "u_z")}
-    plays, moved, rejected = [], [], {}
-
-    def reject(reason, count=1):
-        rejected[reason] = rejected.get(reason, 0) + count
-
+    plays, moved, rejected = [], [], Counter()
     tables: dict[str, tuple | None] = {}  # object -> (V_s, rows, Q), None where the poses differ from the log's
     for push in log.pushes:
         dataset = datasets.get(push.object_id)
         if dataset is None:
-            reject("object in none of the datasets")
+            rejected["object in none of the datasets"] += 1
             continue
         if push.object_id not in tables:
             poses = dataset.table("poses", columns=["object_id", "pose", "v_s", "n_actions"]).to_pandas()
@@ -97,12 +94,12 @@ def candidates(log, datasets: dict) -> Candidates:
                 rows = next_pose_rows(dataset, push.object_id, poses.n_actions.astype(int).tolist())
                 tables[push.object_id] = (poses.v_s.to_numpy(float), rows, q)
         if tables[push.object_id] is None:
-            reject("the dataset's stable poses differ from the log's")
+            rejected["the dataset's stable poses differ from the log's"] += 1
             continue
         v_s, rows, q = tables[push.object_id]
         pose, action = divmod(int(push.push_id), ACTION_SPAN)
         if pose != push.pose or action >= len(rows[pose]) or not np.isfinite(rows[pose][action]).all():
-            reject("push id names no ok push of its start pose")
+            rejected["push id names no ok push of its start pose"] += 1
             continue
         row = rows[pose][action]
         outcomes = np.asarray(push.outcomes)
@@ -114,12 +111,12 @@ def candidates(log, datasets: dict) -> Candidates:
         plays.append(np.append(v_s, 0.0)[np.where(outcomes >= 0, outcomes, len(v_s))])  # the last entry: outside
         moved.append(outcomes != pose)
     if not start_of:
-        raise TrustError(f"no push of the log is in the datasets (rejected: {rejected})")
+        raise TrustError(f"no push of the log is in the datasets (rejected: {dict(rejected)})")
     objects = np.empty(len(start_of), dtype=object)
     for (object_id, _), index in start_of.items():
         objects[index] = object_id
     return Candidates(np.array(columns["start"]), objects.astype(str), *(np.array(columns[k], dtype=float) for k in
-                      ("row_value", "q", "topple", "u_z")), plays, moved, rejected)
+                      ("row_value", "q", "topple", "u_z")), plays, moved, dict(rejected))
 
 
 def rank_correlation(x: np.ndarray, y: np.ndarray) -> float:
