@@ -306,3 +306,28 @@ def test_recalibrate_down_fits_the_centred_map_on_all_pushes_and_the_down_map_on
     out.unlink()
     assert main([str(path), "--down", "--set", "topple.down_map_z=-1.0", *common]) == 2 and not out.exists()
     assert main([str(path), "--down", "--features", *common]) == 2
+
+
+def test_the_engine_keeps_the_probes_out_of_the_down_maps_neighbourhoods(pose_and_candidates, monkeypatch):  # noqa: F811
+    """The down map's landings are neighbourhood means (C.15): over the pose's candidates, never over
+    other probes evaluated beside them, as the other maps (found by mutation testing: the pool was
+    never checked for this map)."""
+    import pipeline.model.topple as topple_module
+
+    obj, pose_set, pose, actions = pose_and_candidates
+    seen = {}
+    real = topple_module.map_down_rows
+
+    def recorded(*args, **kwargs):
+        seen.update(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(topple_module, "map_down_rows", recorded)
+    k = len(actions.status) - 5
+    topple = replace(Config().topple, n_trials=20, boosted_map="")
+    assert topple.applied_down_map
+    evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(3, obj.name, pose.index, "trials"), candidates=k)
+    assert seen["pool"] == k
+    seen.clear()
+    evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(3, obj.name, pose.index, "trials"))
+    assert seen["pool"] == len(actions.status), "with no probes every push is a candidate"
