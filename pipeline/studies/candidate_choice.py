@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import rankdata
 
 from ..model.config import Config
 from .landing_trust import TrustError, object_datasets
@@ -37,17 +38,19 @@ from .logreader import LogError, read_log
 from .policy_experiment import ACTION_SPAN
 from .pooled_gain import clustered_mean_se
 from .robust_policy import next_pose_rows
+from .validation import direction_classes
 
-ABOVE, BELOW = -0.3, 0.3
-"""u_z limits of the direction classes: from above below ABOVE, from below at BELOW or more."""
 CLASSES = ("above", "side", "below")
+"""The validation report's push directions (``validation.DIRECTIONS``), its two downward ones as one:
+from above (u_z < -0.3, where the policies stop choosing), from the side, from below (u_z >= 0.3)."""
 CHOOSERS = ("rows", "q", "mean", "oracle")
 
 
 def direction_class(u_z: np.ndarray) -> np.ndarray:
-    """(n,) int index into ``CLASSES`` of push directions' z components (pose frame, unit vectors)."""
-    u_z = np.asarray(u_z, dtype=float)
-    return np.where(u_z < ABOVE, 0, np.where(u_z < BELOW, 1, 2))
+    """(n,) int index into ``CLASSES`` of push directions' z components (pose frame, unit vectors),
+    split as ``validation.direction_classes`` splits them (in float32, as the policies compare)."""
+    classes = dict(direction_classes(u_z))
+    return np.where(classes["from above"] | classes["oblique"], 0, np.where(classes["side"], 1, 2))
 
 
 @dataclass
@@ -121,15 +124,7 @@ def candidates(log, datasets: dict) -> Candidates:
 
 def rank_correlation(x: np.ndarray, y: np.ndarray) -> float:
     """Spearman's rho (average ranks for ties); nan when either is constant."""
-    def ranks(v):
-        order = np.argsort(v, kind="stable")
-        r = np.empty(len(v))
-        r[order] = np.arange(len(v), dtype=float)
-        for value in np.unique(v):  # ties share their mean rank
-            tied = v == value
-            r[tied] = r[tied].mean()
-        return r
-    x, y = ranks(np.asarray(x, dtype=float)), ranks(np.asarray(y, dtype=float))
+    x, y = rankdata(x), rankdata(y)  # ties share their mean rank
     if x.std() == 0 or y.std() == 0:
         return float("nan")
     return float(np.corrcoef(x, y)[0, 1])
