@@ -33,7 +33,7 @@ import numpy as np
 from scipy.stats import rankdata
 
 from ..model.config import Config
-from .landing_trust import TrustError, object_datasets
+from .landing_trust import TrustError, object_datasets, planner_log_arguments, pose_columns
 from .logreader import LogError, read_log
 from .policy_experiment import ACTION_SPAN
 from .pooled_gain import clustered_mean_se
@@ -80,6 +80,7 @@ def candidates(log, datasets: dict) -> Candidates:
     start_of: dict[tuple[str, int], int] = {}
     columns = {name: [] for name in ("start", "row_value", "q", "topple", "u_z")}
     plays, moved, rejected = [], [], Counter()
+    poses_of: dict[Path, dict] = {}  # each dataset's V_s and actions per pose, by object, read once
     tables: dict[str, tuple | None] = {}  # object -> (V_s, rows, Q), None where the poses differ from the log's
     for push in log.pushes:
         dataset = datasets.get(push.object_id)
@@ -87,15 +88,16 @@ def candidates(log, datasets: dict) -> Candidates:
             rejected["object in none of the datasets"] += 1
             continue
         if push.object_id not in tables:
-            poses = dataset.table("poses", columns=["object_id", "pose", "v_s", "n_actions"]).to_pandas()
-            poses = poses[poses.object_id == push.object_id].sort_values("pose")
-            if len(poses) != len(log.objects[push.object_id].poses.poses):
+            if dataset.root not in poses_of:
+                poses_of[dataset.root] = pose_columns(dataset, ["v_s", "n_actions"])
+            poses = poses_of[dataset.root].get(push.object_id, {"v_s": np.zeros(0), "n_actions": np.zeros(0, int)})
+            if len(poses["v_s"]) != len(log.objects[push.object_id].poses.poses):
                 tables[push.object_id] = None  # its actions are not read: the dataset may hold none of them
             else:
                 actions = dataset.object_rows("actions", push.object_id, columns=["pose", "action", "q"]).to_pandas()
                 q = {(int(p), int(a)): float(v) for p, a, v in zip(actions.pose, actions.action, actions.q)}
-                rows = next_pose_rows(dataset, push.object_id, poses.n_actions.astype(int).tolist())
-                tables[push.object_id] = (poses.v_s.to_numpy(float), rows, q)
+                rows = next_pose_rows(dataset, push.object_id, poses["n_actions"].astype(int).tolist())
+                tables[push.object_id] = (poses["v_s"].astype(float), rows, q)
         if tables[push.object_id] is None:
             rejected["the dataset's stable poses differ from the log's"] += 1
             continue
@@ -226,8 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     from ..cli import print_and_record, refused_outputs
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.candidate_choice", description=__doc__.split("\n\n")[0])
-    parser.add_argument("logs", nargs="+", help="push logs whose push ids name dataset pushes (oracle_policy --log)")
-    parser.add_argument("--datasets", nargs="+", type=Path, required=True, help="the datasets the logs' pushes were drawn from")
+    planner_log_arguments(parser)
     parser.add_argument("--json", type=Path, help="write the result here")
     args = parser.parse_args(argv)
     if refused_outputs(args.json):

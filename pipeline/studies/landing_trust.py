@@ -91,15 +91,19 @@ def object_datasets(roots: list[Path]) -> dict[str, Dataset]:
     return found
 
 
+def pose_columns(dataset: Dataset, columns: list[str]) -> dict[str, dict[str, np.ndarray]]:
+    """Each object's ``columns`` of the poses table, (P,) arrays in pose order, read in one pass."""
+    table = dataset.table("poses", columns=["object_id", "pose", *columns]).sort_by([("object_id", "ascending"), ("pose", "ascending")])
+    ids = np.asarray(table.column("object_id").to_pylist(), dtype=object)
+    values = {name: table.column(name).to_numpy(zero_copy_only=False) for name in columns}
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if len(ids) else np.zeros(0, int)
+    return {ids[a]: {name: column[a:b] for name, column in values.items()} for a, b in zip(starts, [*starts[1:], len(ids)])}
+
+
 def poses_by_object(dataset: Dataset) -> dict[str, tuple[np.ndarray, list[int]]]:
     """Each object's drop probabilities ((P,) float) and actions per pose, in pose order."""
-    table = dataset.table("poses", columns=POSE_COLUMNS).sort_by([("object_id", "ascending"), ("pose", "ascending")]).to_pydict()
-    grouped: dict[str, tuple[list, list]] = {}
-    for object_id, probability, count in zip(table["object_id"], table["probability"], table["n_actions"]):
-        drop, n_actions = grouped.setdefault(object_id, ([], []))
-        drop.append(probability)
-        n_actions.append(count)
-    return {object_id: (np.array(drop, dtype=float), n_actions) for object_id, (drop, n_actions) in grouped.items()}
+    return {object_id: (c["probability"].astype(float), c["n_actions"].tolist())
+            for object_id, c in pose_columns(dataset, ["probability", "n_actions"]).items()}
 
 
 def trust_data(log, datasets: dict[str, Dataset]) -> TrustData:
@@ -271,12 +275,17 @@ def text(result: dict) -> str:
     return "\n".join(lines)
 
 
+def planner_log_arguments(parser: argparse.ArgumentParser) -> None:
+    """The inputs of a study that reads planner logs against the datasets their pushes came from."""
+    parser.add_argument("logs", nargs="+", help="push logs whose push ids name dataset pushes (oracle_policy --log)")
+    parser.add_argument("--datasets", nargs="+", type=Path, required=True, help="the datasets the logs' pushes were drawn from")
+
+
 def main(argv: list[str] | None = None) -> int:
     from ..cli import print_and_record
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.landing_trust", description=__doc__.split("\n\n")[0])
-    parser.add_argument("logs", nargs="+", help="push logs whose push ids name dataset pushes (oracle_policy --log)")
-    parser.add_argument("--datasets", nargs="+", type=Path, required=True, help="the datasets the logs' pushes were drawn from")
+    planner_log_arguments(parser)
     parser.add_argument("--folds", type=Path, help="a --fold-maps directory: also fit and score out of fold")
     parser.add_argument("--shares", type=float, nargs=len(BANDS) + 1, metavar="U",
                         help="score these untrusted shares (one per band) instead of fitting them, e.g. on objects they were not fitted on")
