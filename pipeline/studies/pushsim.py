@@ -368,6 +368,7 @@ def play_push(
     direction: np.ndarray,
     config: Config = DEFAULT_CONFIG,
     noise: PushNoise | None = None,
+    observe=None,
 ) -> PlayedPush:
     """Play one push of an object placed at ``transform`` on the table.
 
@@ -376,6 +377,8 @@ def play_push(
     point : (3,) float, m, contact point, object frame
     direction : (3,) float, push direction, object frame (normalised here)
     noise : the push's perturbation (``draw_noise``); noise-free at the config's means when None
+    observe : called after every step of the finger's stroke as ``observe(pb, client, finger, pushed,
+      grip)`` (body ids and the finger's constraint id), to trace the push (``push_course``); it must only read
 
     The push is mapped to the world through the object's transform observed once it
     has come to rest, as a robot maps a planned push through the pose it sees.
@@ -392,7 +395,7 @@ def play_push(
     finger = pb.createMultiBody(FINGER_MASS, sphere, basePosition=path[0].tolist(), physicsClientId=client)
     pb.changeDynamics(finger, -1, lateralFriction=noise.mu_finger / noise.mu_table, physicsClientId=client)
     pb.setCollisionFilterPair(finger, table, -1, -1, 0, physicsClientId=client)
-    peak_force = drive_finger(pb, client, finger, path, obj_id, config.topple.max_finger_force, config.topple.gravity)
+    peak_force = drive_finger(pb, client, finger, path, obj_id, config.topple.max_finger_force, config.topple.gravity, observe)
     # Withdraw the finger so it neither props the object up nor pushes it further.
     pb.removeBody(finger, physicsClientId=client)
     still = 0
@@ -406,7 +409,7 @@ def play_push(
     return PlayedPush(start, final, still >= REST_STEPS, world_point, world_direction, noise, peak_force)
 
 
-def drive_finger(pb, client: int, finger: int, path: np.ndarray, pushed: int, limit: float, gravity: float) -> float:
+def drive_finger(pb, client: int, finger: int, path: np.ndarray, pushed: int, limit: float, gravity: float, observe=None) -> float:
     """Drag the finger body through ``path``, one simulation step per point, pressing with
     ``limit`` in norm once it presses steadily (``finger_row_limit``); the constraint is
     removed at the end, the finger body left to the caller.
@@ -414,6 +417,7 @@ def drive_finger(pb, client: int, finger: int, path: np.ndarray, pushed: int, li
     pb : the pybullet module;  client : its physics client;  finger : the finger's body id
     path : (n_steps, 3) float, m, world frame;  pushed : body id of what the finger pushes
     limit : float, N (``topple.max_finger_force``);  gravity : float, m/s^2, cancelled on the finger
+    observe : ``play_push``'s, called after each step
     returns : float, N, the largest normal force the finger pressed ``pushed`` with (summed
       over its contact points, per step)
     """
@@ -431,6 +435,8 @@ def drive_finger(pb, client: int, finger: int, path: np.ndarray, pushed: int, li
         row_limit = finger_row_limit(applied, limit)
         contacts = pb.getContactPoints(finger, pushed, physicsClientId=client)
         peak_force = max(peak_force, sum(c[9] for c in contacts))
+        if observe is not None:
+            observe(pb, client, finger, pushed, grip)
     pb.removeConstraint(grip, physicsClientId=client)
     return peak_force
 

@@ -1,0 +1,386 @@
+"""How a policy's pushes go in physics, step by step, by push direction.
+
+``candidate_choice`` says where the tables choose worse than physics would; this study says how the
+pushes they choose go.  For each push direction (from above: u_z < -0.3 in the pose frame; from the
+side; from below: u_z >= 0.3, as ``candidate_choice`` splits them) it takes one start pose of each of
+up to ``--per-class`` objects where the policy pushes that way, plays the policy's push ``--repeats``
+times in pybullet under the simulated world's noise (the thesis preset, as ``policies-physics``) and
+traces every step of the finger's stroke.  Each play is then described three ways:
+
+- its course (``course_kind``): the object tips before it slides, slides and then tips, tips and falls
+  back once the finger withdraws, slides or turns without tipping, stalls at the finger's force limit,
+  stays under a lighter finger (which slid over or off it), or is never touched (a pose it leaves on its own);
+- for a topple, the side it tips to (``tip_side``), seen from above: away from the finger (within 45
+  degrees of the push), sideways, or towards the finger;
+- for a topple, where it lands (``landing_kind``), against the chain of poses the model derives for
+  the base edge it tipped over (the edge whose outward normal is nearest the tip direction): that
+  edge's first pose (``edge_final_pose``), the pose a fall rolls on to (``edge_momentum_pose``, C.8),
+  the one beyond it (``edge_onward_pose``, C.18), or elsewhere.
+
+Beside them the rows: the predicted P(topple), the value the rows expect of a topple
+(sum over x' != x of P(x') V_s(x') / P(topple)) against the V_s where the plays landed (0 outside the
+pose set), and the rows' probability of the pose each topple landed in.  Standard errors are
+clustered by object (``pooled_gain.clustered_mean_se``).  A few minutes for 70 objects a class:
+
+    python -m pipeline.studies.push_course data/dataset --per-class 70 --repeats 5 --seed 53
+
+Run on the corpus's own dataset it describes the model on the objects its maps were fitted on: a
+description of mechanisms for the next model step, not a judgement of the model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from schema.frames import transform_points, unit
+from schema.vocabulary import NO_OP, POLICIES
+
+from ..model.config import Config
+from ..model.outcomes import StablePose
+from ..model.rng import stream
+from .candidate_choice import CLASSES, direction_class
+from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, dataset_config, object_plans, world_config
+from .pooled_gain import clustered_mean_se
+from .robust_policy import next_pose_rows
+
+KINDS = ("tips first", "slides, then tips", "tips, falls back", "slides or turns, no tip", "stalls", "stays", "no contact")
+"""A play's course (``course_kind``)."""
+SIDES = ("away", "sideways", "towards")
+"""The side a topple tips to, seen from above (``tip_side``)."""
+LANDINGS = ("first pose", "rolled on", "onward", "elsewhere")
+"""Where a topple lands against its edge's chain of poses (``landing_kind``)."""
+TILT_ONSET = 3.0
+"""deg: the object has begun to tip once it has turned this far out of its start pose's plane."""
+TIP_TILT = 8.0
+"""deg: the tilt at which the tip's direction is read (past the rocking of a settling contact)."""
+SLIDE_ONSET = 0.003
+"""m: the object has begun to slide once its centre of mass has moved this far along the push."""
+MOVED_SLIDE, MOVED_YAW = 0.005, 5.0
+"""m and deg: a play that stayed moved it if it slid or turned this far."""
+STALL_SHARE = 0.9
+"""A play that neither tipped nor moved stalled if the finger pressed with this share of its limit."""
+
+
+@dataclass
+class Course:
+    """One play's stroke, step by step (S steps).
+
+    tilt : (S,) float, deg, the angle between the object's up direction and its start's
+    slide : (S,) float, m, the base's travel along the push's horizontal direction: that of the table point
+      under the centre of mass at the start
+    yaw : (S,) float, deg, the turn about the vertical;  pressing : (S,) float, N, the finger's normal
+      force on the object (summed over its contact points; 0 when not touching)
+    tip_direction : (2,) float, unit, where the up direction leans (world x, y) at ``TIP_TILT``
+      (at the largest tilt when it never got there)
+    """
+
+    tilt: np.ndarray
+    slide: np.ndarray
+    yaw: np.ndarray
+    pressing: np.ndarray
+    tip_direction: np.ndarray
+
+
+def course(start: np.ndarray, transforms: np.ndarray, pressing: np.ndarray, center_mass: np.ndarray, push: np.ndarray) -> Course:
+    """A stroke's ``Course`` from the object's transforms at each step.
+
+    start : (4, 4) float, object -> world before the finger came;  transforms : (S, 4, 4) float, the same
+    at each step;  pressing : (S,) float, N;  center_mass : (3,) float, m, object frame
+    push : (3,) float, the push direction, world frame (only its horizontal part is used)
+    """
+    relative = transforms[:, :3, :3] @ start[:3, :3].T  # (S, 3, 3), the turn since the start
+    up = relative[:, :, 2]  # (S, 3), where the start's vertical went
+    tilt = np.degrees(np.arccos(np.clip(up[:, 2], -1.0, 1.0)))
+    yaw = np.degrees(np.arctan2(relative[:, 1, 0], relative[:, 0, 0]))
+    heading = unit(np.array([push[0], push[1], 0.0]))
+    # The base slides where the table point under the centre of mass moves: a tip about a base edge
+    # hardly moves it (by d (1 - cos tilt)), where it moves the centre of mass by its height times the tilt.
+    base = transform_points(start, center_mass[None])[0] * [1.0, 1.0, 0.0]  # (3,), world
+    held = transform_points(np.linalg.inv(start), base[None])[0]  # (3,), the same point, object frame
+    slide = (transforms[:, :3, :3] @ held + transforms[:, :3, 3] - base) @ heading
+    at = int(np.argmax(tilt >= TIP_TILT)) if (tilt >= TIP_TILT).any() else int(np.argmax(tilt))
+    lean = np.array([up[at, 0], up[at, 1], 0.0])
+    return Course(tilt, slide, yaw, np.asarray(pressing, dtype=float), unit(lean)[:2])
+
+
+def course_kind(c: Course, toppled: bool, limit: float) -> str:
+    """The play's course, one of ``KINDS``: whether and in which order it tipped and slid.
+
+    toppled : the play left its start pose;  limit : N, the finger's force limit
+    """
+    touched = c.pressing > 0.0
+    if not touched.any():
+        return "no contact"
+    tips = np.flatnonzero(c.tilt > TILT_ONSET)
+    slides = np.flatnonzero(np.abs(c.slide) > SLIDE_ONSET)
+    if toppled:
+        return "tips first" if len(tips) and (not len(slides) or tips[0] <= slides[0]) else "slides, then tips"
+    if c.tilt.max() > TIP_TILT:
+        return "tips, falls back"
+    if abs(c.slide[-1]) > MOVED_SLIDE or abs(c.yaw[-1]) > MOVED_YAW:
+        return "slides or turns, no tip"
+    # Neither tipped nor moved: held against the finger's limit, or the finger slid over or off it.
+    return "stalls" if np.median(c.pressing[touched]) >= STALL_SHARE * limit else "stays"
+
+
+def tip_angle(tip_direction: np.ndarray, push: np.ndarray) -> float:
+    """deg in (-180, 180]: the tip direction's angle from the push's horizontal direction, seen from above."""
+    h = unit(np.array([push[0], push[1], 0.0]))[:2]
+    return float(np.degrees(np.arctan2(h[0] * tip_direction[1] - h[1] * tip_direction[0], h @ tip_direction)))
+
+
+def tip_side(angle: float) -> str:
+    """One of ``SIDES``: away within 45 degrees of the push, towards within 45 of its reverse."""
+    return "away" if abs(angle) < 45.0 else "towards" if abs(angle) > 135.0 else "sideways"
+
+
+def tipped_edge(pose: StablePose, center_mass: np.ndarray, tip_direction: np.ndarray) -> tuple[int, float]:
+    """The base edge whose outward normal is nearest the tip direction, and the angle between them.
+
+    center_mass : (3,) float, m, pose frame;  tip_direction : (2,) float, unit, pose frame
+    returns : (edge index, deg)
+    """
+    from ..model.edges import edge_geometry
+
+    outward = edge_geometry(pose.base_edges, center_mass).outward[:, :2]  # (E, 2)
+    outward = outward / np.linalg.norm(outward, axis=1)[:, None]
+    angles = np.degrees(np.arccos(np.clip(outward @ tip_direction, -1.0, 1.0)))
+    edge = int(np.argmin(angles))
+    return edge, float(angles[edge])
+
+
+def landing_kind(pose: StablePose, edge: int, landed: int) -> str:
+    """Where a topple over ``edge`` landed against that edge's chain of poses, one of ``LANDINGS``."""
+    if landed == pose.edge_final_pose[edge]:
+        return "first pose"
+    if landed == pose.edge_momentum_pose[edge]:
+        return "rolled on"
+    if landed == pose.edge_onward_pose[edge]:
+        return "onward"
+    return "elsewhere"
+
+
+def traced_play(body, transform: np.ndarray, point: np.ndarray, direction: np.ndarray, config: Config, noise):
+    """``pushsim.play_push`` with every step of the stroke traced: (the played push, its ``Course``).
+
+    point, direction : object frame, as ``play_push`` takes them
+    """
+    from .pushsim import _observe, play_push
+
+    transforms, pressing = [], []
+
+    def observe(pb, client, finger, pushed, grip):
+        transforms.append(_observe(pb, client, pushed, body))
+        pressing.append(sum(c[9] for c in pb.getContactPoints(finger, pushed, physicsClientId=client)))
+
+    played = play_push(body, transform, point, direction, config, noise, observe=observe)
+    return played, course(played.start_transform, np.array(transforms), np.array(pressing), body.center_mass, played.direction)
+
+
+@dataclass
+class Play:
+    """One traced play and what the rows say of its push."""
+
+    object_id: str
+    direction: str
+    predicted: float
+    toppled: bool
+    kind: str
+    side: str | None
+    landing: str | None
+    value_expected: float | None
+    value_landed: float | None
+    landing_probability: float | None
+
+
+def chosen_pushes(plans: dict[str, ObjectPlan], policy: str, per_class: int, seed: int) -> list[tuple[str, int, int]]:
+    """(object, pose, action): for each direction class, one start of each of up to ``per_class``
+    objects where ``policy`` pushes that way, drawn with ``seed``."""
+    rng = np.random.default_rng(seed)
+    chosen = []
+    for k in range(len(CLASSES)):
+        starts = {}
+        for object_id in sorted(plans):
+            plan = plans[object_id]
+            mine = [(pose, int(action)) for pose, action in enumerate(plan.actions[policy]) if action != NO_OP
+                    and direction_class(np.array([plan.pushes[(pose, int(action))][1][2]]))[0] == k]
+            if mine:
+                starts[object_id] = mine[rng.integers(len(mine))]
+        objects = sorted(starts)
+        for i in np.sort(rng.permutation(len(objects))[:per_class]):
+            chosen.append((objects[i], *starts[objects[i]]))
+    return chosen
+
+
+def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.ndarray], config: Config, world: Config,
+                repeats: int, seed: int) -> list[Play]:
+    """Each start's push played ``repeats`` times, traced (runs in a worker).
+
+    rows : per pose (A_x, P) float, the rows' P(x' | x, u)
+    """
+    from ..model.evaluation import load_object
+    from ..model.poses import settle, stable_poses
+    from .pushsim import body_model, draw_noise
+
+    obj = load_object(plan.spec, config)
+    pose_set = stable_poses(obj, config.poses)
+    if len(pose_set.poses) != len(plan.transforms):
+        raise ExperimentError(f"{plan.spec.object_id}: its stable poses differ from the dataset's (other code or parameters)")
+    body = body_model(obj)
+    values = np.append(plan.v_s, 0.0)  # the last entry: outside the pose set
+    plays = []
+    for pose, action in starts:
+        point, direction, predicted = plan.pushes[(pose, action)]
+        transform = plan.transforms[pose]
+        to_object = np.linalg.inv(transform)
+        row = rows[pose][action]  # (P,)
+        topple = 1.0 - row[pose]
+        others = np.delete(np.arange(len(row)), pose)
+        expected = float(row[others] @ plan.v_s[others] / topple) if topple > 0 else None
+        name = CLASSES[direction_class(np.array([direction[2]]))[0]]
+        rng = stream(seed, f"{plan.spec.object_id}/course/{pose}/{action}", pose, PURPOSE)
+        for _ in range(repeats):
+            played, c = traced_play(body, transform, to_object[:3, :3] @ point + to_object[:3, 3], to_object[:3, :3] @ direction,
+                                    config, draw_noise(world, rng, noise=True))
+            landed = settle(pose_set, obj, played.final_transform[:3, :3])
+            toppled = landed != pose
+            side = landing = probability = landed_value = None
+            if toppled:
+                side = tip_side(tip_angle(c.tip_direction, played.direction))
+                center_mass = transform_points(transform, obj.center_mass[None])[0]
+                edge, _ = tipped_edge(pose_set.poses[pose], center_mass, c.tip_direction)
+                landing = landing_kind(pose_set.poses[pose], edge, landed)
+                landed_value = float(values[landed])
+                probability = float(row[landed] / topple) if topple > 0 and landed >= 0 else 0.0
+            plays.append(Play(plan.spec.object_id, name, float(predicted), bool(toppled),
+                              course_kind(c, toppled, config.topple.max_finger_force), side, landing,
+                              expected if toppled else None, landed_value, probability))
+    return plays
+
+
+def summary(plays: list[Play]) -> dict:
+    """By direction class: calibration, the courses' shares, and for the topples their sides, landings and values."""
+
+    def described(values, groups):
+        mean, se, count = clustered_mean_se(np.asarray(values, dtype=float), list(groups))
+        return {"mean": mean, "se": None if np.isnan(se) else se, "objects": count, "plays": len(values)}
+
+    def shares(labels, names):
+        labels = list(labels)
+        return {name: labels.count(name) / len(labels) for name in names} if labels else {}
+
+    result = {}
+    for name in CLASSES:
+        mine = [p for p in plays if p.direction == name]
+        if not mine:
+            continue
+        objects = [p.object_id for p in mine]
+        topples = [p for p in mine if p.toppled]
+        entry = {
+            "plays": len(mine), "objects": len(set(objects)),
+            "predicted": described([p.predicted for p in mine], objects),
+            "toppled": described([p.toppled for p in mine], objects),
+            "courses": shares((p.kind for p in mine), KINDS),
+            "topples": len(topples),
+        }
+        if topples:
+            where = [p.object_id for p in topples]
+            valued = [p for p in topples if p.value_expected is not None]
+            entry.update({
+                "sides": shares((p.side for p in topples), SIDES),
+                "landings": shares((p.landing for p in topples), LANDINGS),
+                "landing_probability": described([p.landing_probability for p in topples], where),
+                "value_expected": described([p.value_expected for p in valued], [p.object_id for p in valued]) if valued else None,
+                "value_landed": described([p.value_landed for p in valued], [p.object_id for p in valued]) if valued else None,
+                "value_landed_minus_expected": described([p.value_landed - p.value_expected for p in valued],
+                                                         [p.object_id for p in valued]) if valued else None,
+            })
+        result[name] = entry
+    return result
+
+
+def study(root: str | Path, policy: str = "value_iteration", per_class: int = 70, repeats: int = 5, seed: int = 53,
+          world: Config | None = None, workers: int | None = 1) -> dict:
+    """The chosen pushes of ``policy`` on the dataset at ``root``, traced in physics (``summary``)."""
+    from joblib import Parallel, delayed
+
+    from schema.reader import Dataset, DatasetUnreadable
+
+    if policy not in POLICIES:
+        raise ExperimentError(f"unknown policy {policy!r}; one of {', '.join(POLICIES)}")
+    try:
+        dataset = Dataset.open(root)
+        poses = dataset.table("poses", columns=["object_id", "pose", "n_actions"]).sort_by([("object_id", "ascending"), ("pose", "ascending")])
+    except DatasetUnreadable as err:
+        raise ExperimentError(str(err)) from None
+    config = dataset_config(dataset)
+    world = world_config("thesis") if world is None else world
+    n_actions: dict[str, list[int]] = {}
+    for object_id, count in zip(poses["object_id"].to_pylist(), poses["n_actions"].to_pylist()):
+        n_actions.setdefault(object_id, []).append(int(count))
+    plans = object_plans(dataset, sorted(n_actions))
+    chosen = chosen_pushes(plans, policy, per_class, seed)
+    by_object: dict[str, list[tuple[int, int]]] = {}
+    for object_id, pose, action in chosen:
+        by_object.setdefault(object_id, []).append((pose, action))
+    jobs = []
+    for object_id, starts in by_object.items():
+        jobs.append(delayed(play_object)(plans[object_id], starts, next_pose_rows(dataset, object_id, n_actions[object_id]), config, world,
+                                         repeats, seed))
+    plays = [p for found in Parallel(n_jobs=workers)(jobs) for p in found]
+    return {"dataset": str(root), "policy": policy, "per_class": per_class, "repeats": repeats, "seed": seed,
+            "pushes": len(chosen), "by_direction": summary(plays)}
+
+
+def _se(entry: dict) -> str:
+    return "" if entry["se"] is None else f" +/- {entry['se']:.3f}"
+
+
+def text(result: dict) -> str:
+    lines = [f"{result['policy']}'s pushes on {result['dataset']}, {result['pushes']} pushes x {result['repeats']} plays (seed {result['seed']}):"]
+    for name, e in result["by_direction"].items():
+        lines.append(f"from {'the ' if name == 'side' else ''}{name}: {e['plays']} plays on {e['objects']} objects; predicted "
+                     f"{e['predicted']['mean']:.3f}, toppled {e['toppled']['mean']:.3f}{_se(e['toppled'])}")
+        lines.append("  courses: " + ", ".join(f"{k} {v:.2f}" for k, v in e["courses"].items()))
+        if e["topples"]:
+            lines.append(f"  {e['topples']} topples; sides: " + ", ".join(f"{k} {v:.2f}" for k, v in e["sides"].items()))
+            lines.append("  landings against the tipped edge's poses: " + ", ".join(f"{k} {v:.2f}" for k, v in e["landings"].items()))
+            lines.append(f"  the rows' probability of the landing pose {e['landing_probability']['mean']:.3f}")
+            if e["value_expected"]:
+                lines.append(f"  V_s of a topple: expected {e['value_expected']['mean']:.3f}, landed {e['value_landed']['mean']:.3f}"
+                             f" (difference {e['value_landed_minus_expected']['mean']:+.3f}{_se(e['value_landed_minus_expected'])})")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from ..cli import positive_int, print_and_record, refused_outputs
+
+    parser = argparse.ArgumentParser(prog="python -m pipeline.studies.push_course", description=__doc__.split("\n\n")[0])
+    parser.add_argument("dataset", type=Path, help="a dataset directory (toppledb dataset)")
+    parser.add_argument("--policy", default="value_iteration", choices=POLICIES, help="whose chosen pushes to play")
+    parser.add_argument("--per-class", type=positive_int, default=70, help="objects per push direction")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="plays of each push")
+    parser.add_argument("--seed", type=int, default=53, help="draws the starts and the plays' noise")
+    parser.add_argument("--workers", type=positive_int, default=1)
+    parser.add_argument("--world", default="thesis", help="the simulated world's noise: a preset or a TOML file")
+    parser.add_argument("--json", type=Path, help="write the result here")
+    args = parser.parse_args(argv)
+    if refused_outputs(args.json):
+        return 2
+    try:
+        result = study(args.dataset, args.policy, args.per_class, args.repeats, args.seed, world_config(args.world), args.workers)
+    except ExperimentError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return print_and_record(text(result), result, args.json)
+
+
+if __name__ == "__main__":
+    from pipeline.cli import run_command
+
+    sys.exit(run_command(main))
