@@ -213,7 +213,7 @@ def test_the_command_traces_a_small_dataset_prints_and_records(dataset, tmp_path
     assert main([str(dataset), "--per-class", "1", "--repeats", "2", "--seed", "3", "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     record = json.loads(out.read_text())
-    assert record["repeats"] == 2 and record["pushes"] >= 1
+    assert record["repeats"] == 2 and record["pushes"] >= 1 and record["failed_objects"] == {}
     for entry in record["by_direction"].values():
         assert entry["plays"] == 2 and entry["objects"] == 1
         assert sum(entry["courses"].values()) == pytest.approx(1.0)
@@ -221,6 +221,27 @@ def test_the_command_traces_a_small_dataset_prints_and_records(dataset, tmp_path
     again = tmp_path / "again.json"
     assert main([str(dataset), "--per-class", "1", "--repeats", "2", "--seed", "3", "--json", str(again)]) == 0
     assert json.loads(again.read_text())["by_direction"] == record["by_direction"]  # seeded: the same plays
+
+
+def test_an_object_that_cannot_be_played_is_reported_not_fatal(tmp_path):
+    from types import SimpleNamespace
+
+    import trimesh
+
+    from pipeline.build.corpus import ObjectSpec
+    from pipeline.studies.push_course import play_object
+
+    broken = tmp_path / "broken.obj"
+    broken.write_text("v 0 0 0\nv 1 0 0\nf 1 2 3\n")  # a face naming a vertex that does not exist
+    plan = SimpleNamespace(spec=ObjectSpec("broken", str(broken), 1.0, 0.25, "test", "0" * 64), transforms=np.zeros((1, 4, 4)))
+    reason = play_object(plan, [(0, 0)], [], Config(), Config(), 1, 0)
+    assert isinstance(reason, str) and "broken" in reason and "\n" not in reason
+    # A mesh that loads but whose stable poses are not the dataset's (one pose given; a box has several).
+    box = tmp_path / "box.stl"
+    mesh = trimesh.creation.box((0.05, 0.08, 0.15))
+    mesh.export(box)
+    plan = SimpleNamespace(spec=ObjectSpec("box", str(box), 1.0, 0.25, "test", "0" * 64), transforms=np.eye(4)[None])
+    assert play_object(plan, [(0, 0)], [], Config(), Config(), 1, 0) == "box: its stable poses differ from the dataset's (other code or parameters)"
 
 
 def test_the_command_refuses_a_missing_dataset_and_an_unknown_policy_in_one_line(tmp_path, capsys):

@@ -218,19 +218,24 @@ def chosen_pushes(plans: dict[str, ObjectPlan], policy: str, per_class: int, see
 
 
 def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.ndarray], config: Config, world: Config,
-                repeats: int, seed: int) -> list[Play]:
-    """Each start's push played ``repeats`` times, traced (runs in a worker).
+                repeats: int, seed: int) -> list[Play] | str:
+    """Each start's push played ``repeats`` times, traced (runs in a worker); or a one-line reason the
+    object cannot be played (its mesh does not load, or its stable poses are not the dataset's).
 
     rows : per pose (A_x, P) float, the rows' P(x' | x, u)
     """
     from ..model.evaluation import load_object
+    from ..model.mesh import MeshError
     from ..model.poses import settle, stable_poses
     from .pushsim import body_model, draw_noise
 
-    obj = load_object(plan.spec, config)
-    pose_set = stable_poses(obj, config.poses)
+    try:
+        obj = load_object(plan.spec, config)
+        pose_set = stable_poses(obj, config.poses)
+    except MeshError as err:
+        return str(err)
     if len(pose_set.poses) != len(plan.transforms):
-        raise ExperimentError(f"{plan.spec.object_id}: its stable poses differ from the dataset's (other code or parameters)")
+        return f"{plan.spec.object_id}: its stable poses differ from the dataset's (other code or parameters)"
     body = body_model(obj)
     values = np.append(plan.v_s, 0.0)  # the last entry: outside the pose set
     plays = []
@@ -332,9 +337,11 @@ def study(root: str | Path, policy: str = "value_iteration", per_class: int = 70
     for object_id, starts in by_object.items():
         jobs.append(delayed(play_object)(plans[object_id], starts, next_pose_rows(dataset, object_id, n_actions[object_id]), config, world,
                                          repeats, seed))
-    plays = [p for found in Parallel(n_jobs=workers)(jobs) for p in found]
+    played = dict(zip(by_object, Parallel(n_jobs=workers)(jobs)))
+    failed = {object_id: found for object_id, found in played.items() if isinstance(found, str)}
+    plays = [p for found in played.values() if not isinstance(found, str) for p in found]
     return {"dataset": str(root), "policy": policy, "per_class": per_class, "repeats": repeats, "seed": seed,
-            "pushes": len(chosen), "by_direction": summary(plays)}
+            "pushes": len(chosen), "failed_objects": failed, "by_direction": summary(plays)}
 
 
 def _se(entry: dict) -> str:
@@ -343,6 +350,7 @@ def _se(entry: dict) -> str:
 
 def text(result: dict) -> str:
     lines = [f"{result['policy']}'s pushes on {result['dataset']}, {result['pushes']} pushes x {result['repeats']} plays (seed {result['seed']}):"]
+    lines += [f"  not played: {reason}" for reason in result["failed_objects"].values()]
     for name, e in result["by_direction"].items():
         lines.append(f"from {'the ' if name == 'side' else ''}{name}: {e['plays']} plays on {e['objects']} objects; predicted "
                      f"{e['predicted']['mean']:.3f}, toppled {e['toppled']['mean']:.3f}{_se(e['toppled'])}")
