@@ -1,13 +1,17 @@
 """The push-course study: a stroke's course read from made-up transforms, the standing box traced
 in pybullet, and the summary by hand; then the command on a small real dataset."""
 
+import dataclasses
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from shapes import pose_with_down, standing_box
 
 from pipeline.model.config import Config
+from pipeline.studies import push_course
+from pipeline.studies.policies_physics import ExperimentError, dataset_config, object_plans, world_config
 from pipeline.studies.push_course import (
     KINDS,
     LANDINGS,
@@ -19,13 +23,16 @@ from pipeline.studies.push_course import (
     course_kind,
     landing_kind,
     main,
+    play_object,
+    study,
     summary,
+    text,
     tip_angle,
     tip_side,
     tipped_edge,
     traced_play,
 )
-from pipeline.studies.pushsim import body_model, play_push
+from pipeline.studies.pushsim import PushNoise, body_model, draw_noise, play_push
 from schema.frames import transform_points
 from schema.vocabulary import NO_OP
 from tests.test_policies_physics import dataset  # noqa: F401 (fixture)
@@ -86,6 +93,44 @@ def test_the_lean_is_read_at_the_tip_tilt_not_at_the_end():
     np.testing.assert_allclose(small.tip_direction, [1.0, 0.0], atol=1e-12)
 
 
+def turned_about_z(start: np.ndarray, angles_deg: np.ndarray) -> np.ndarray:
+    """(S, 4, 4): ``start`` turned about its own origin's vertical by each angle."""
+    out = np.tile(start, (len(angles_deg), 1, 1))
+    a = np.radians(angles_deg)
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
+    return out
+
+
+def test_the_slide_follows_the_table_point_under_an_off_centre_centre_of_mass():
+    # The object stands at (0.3, -0.2) and turns about its own origin; its centre of mass is (2, 1) cm off
+    # that origin, so the table point under it swings round on an arc: r -> R(theta) r, the origin stays.
+    start = np.eye(4)
+    start[:3, 3] = [0.3, -0.2, 0.0]
+    angles = np.array([0.0, 10.0, 30.0])
+    a, r = np.radians(angles), np.array([0.02, 0.01])
+    center_mass = np.array([0.02, 0.01, 0.05])
+    along_y = course(start, turned_about_z(start, angles), np.ones(3), center_mass, np.array([0.0, 1.0, 0.0]))
+    np.testing.assert_allclose(along_y.slide, r[0] * np.sin(a) + r[1] * np.cos(a) - r[1], atol=1e-12)
+    along_x = course(start, turned_about_z(start, angles), np.ones(3), center_mass, np.array([2.0, 0.0, -1.0]))
+    np.testing.assert_allclose(along_x.slide, r[0] * np.cos(a) - r[1] * np.sin(a) - r[0], atol=1e-12)
+    np.testing.assert_allclose(along_x.yaw, angles, atol=1e-9)
+    np.testing.assert_allclose(along_x.tilt, 0.0, atol=1e-6)
+
+
+def test_a_rotation_a_hair_past_unit_still_reads_0_or_180_degrees_of_tilt():
+    # Rotations are orthonormal only to rounding: turned 0.1273 rad about x, the start's vertical has squared
+    # length 1 + 2^-52, so up . up of the unmoved object is a hair past 1 (and of it upside down a hair past -1),
+    # where arccos gives nan.
+    t = 0.12731365682841422
+    start = np.eye(4)
+    start[1:3, 1:3] = [[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]
+    assert (start[:3, :3] @ start[:3, :3].T)[2, 2] > 1.0
+    flipped = start.copy()
+    flipped[:3, :3] = np.diag([1.0, -1.0, -1.0]) @ start[:3, :3]
+    c = course(start, np.stack([start, flipped]), np.zeros(2), np.zeros(3), np.array([1.0, 0.0, 0.0]))
+    np.testing.assert_array_equal(c.tilt, [0.0, 180.0])
+
+
 @pytest.mark.parametrize("c, toppled, kind", [
     (made([0, 4, 30], [0, 0, 0.004]), True, "tips first"),
     (made([0, 4, 30], [0, 0.004, 0.01]), True, "tips first"),  # tipping and sliding begin on the same step: tipping first
@@ -97,6 +142,15 @@ def test_the_lean_is_read_at_the_tip_tilt_not_at_the_end():
     (made([0, 2, 4], [0, 0, 0], pressing=[0, 19, 20]), False, "stalls"),
     (made([0, 2, 4], [0, 0, 0], pressing=[0, 1, 2]), False, "stays"),
     (made([0, 20, 80], [0, 0.01, 0.02], pressing=[0, 0, 0]), True, "no contact"),
+    # Each threshold is a bound the reading must pass, not reach: 3 degrees is not tipping, 3 mm not sliding,
+    (made([0, 3, 30], [0, 0.004, 0.01]), True, "slides, then tips"),
+    (made([0, 4, 30], [0.003, 0.003, 0.01]), True, "tips first"),
+    # 8 degrees not tipped and fallen back, 5 mm or 5 degrees at the end not moved;
+    (made([0, 8, 2], [0, 0, 0]), False, "stays"),
+    (made([0, 1, 1], [0, 0.004, -0.005]), False, "stays"),
+    (made([0, 1, 1], [0, 0, 0], yaw=[0, 3, -5]), False, "stays"),
+    # but pressing with exactly 0.9 of the limit (18 of 20 N) is stalling.
+    (made([0, 2, 4], [0, 0, 0], pressing=[0, 18, 18]), False, "stalls"),
 ])
 def test_each_course_kind_by_hand(c, toppled, kind):
     assert kind in KINDS
@@ -112,6 +166,28 @@ def test_tip_sides_split_at_45_and_135_degrees_either_way():
         assert angle == pytest.approx(degrees if degrees != 180 else 180.0, abs=1e-9)
         assert tip_side(angle) == side
     assert set(SIDES) == {"away", "sideways", "towards"}
+
+
+def test_tip_angles_are_measured_from_the_pushs_own_heading_whatever_it_is():
+    # The same split under pushes heading 30, 120 and -150 degrees: only the angle between them counts.
+    for heading in (30.0, 120.0, -150.0):
+        h = np.radians(heading)
+        push = np.array([2.0 * np.cos(h), 2.0 * np.sin(h), 0.5])
+        for degrees, side in [(0, "away"), (40, "away"), (-40, "away"), (60, "sideways"), (-100, "sideways"), (170, "towards")]:
+            a = h + np.radians(degrees)
+            angle = tip_angle(np.array([np.cos(a), np.sin(a)]), push)
+            assert angle == pytest.approx(degrees, abs=1e-9)
+            assert tip_side(angle) == side
+
+
+def test_a_diagonal_tip_lies_on_the_sideways_bands_closed_ends():
+    # A tip straight along a diagonal of the push reads exactly 45 or 135 degrees: both ends belong to sideways.
+    push = np.array([1.0, 0.0, -0.5])
+    for x, y in [(1, 1), (1, -1), (-1, 1), (-1, -1)]:
+        angle = tip_angle(np.array([x, y]) / np.sqrt(2.0), push)
+        assert abs(angle) == (45.0 if x > 0 else 135.0)
+        assert tip_side(angle) == "sideways"
+    assert tip_side(44.9) == "away" and tip_side(45.5) == "sideways" and tip_side(135.5) == "towards"
 
 
 def test_the_tipped_edge_is_the_one_facing_the_lean_and_its_landing_is_named_by_its_chain():
@@ -140,6 +216,17 @@ def test_landings_further_down_an_edges_chain_are_rolled_on_and_onward():
     assert [landing_kind(chained, 0, x) for x in (pose.edge_final_pose[0], rolled, onward)] == ["first pose", "rolled on", "onward"]
 
 
+def test_a_tip_direction_a_hair_past_unit_still_finds_its_edge_at_0_degrees():
+    # unit() is unit only to rounding: straight along the -x side's outward normal and a hair long, it meets
+    # that normal at cos 1 + 2^-52 and the +x side's at -(1 + 2^-52), where arccos gives nan.
+    obj, pose_set, standing = standing_box()
+    pose = pose_set.poses[standing]
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
+    edge, off = tipped_edge(pose, center_mass, np.array([-1.0, 0.0]) * np.nextafter(1.0, 2.0))
+    assert off == 0.0
+    assert pose.edge_final_pose[edge] == pose_with_down(pose_set, [-1, 0, 0])
+
+
 def test_the_standing_box_pushed_high_tips_first_away_from_the_finger_and_tracing_changes_nothing():
     obj, pose_set, standing = standing_box()
     body, transform = body_model(obj), pose_set.poses[standing].transform
@@ -148,12 +235,26 @@ def test_the_standing_box_pushed_high_tips_first_away_from_the_finger_and_tracin
     np.testing.assert_array_equal(played.final_transform, untraced.final_transform)  # the observer only reads
     assert len(c.tilt) == len(c.pressing) == len(c.slide) > 100
     assert c.pressing.max() > 0.0 and c.tilt.max() > 10.0  # past the tip tilt within the stroke; it falls on after
+    # Pressing is the finger's normal force on the object alone: nothing before the finger arrives (it starts
+    # short of the contact), and its largest the player's own peak force.
+    assert c.pressing[0] == 0.0 and c.pressing.max() == played.peak_force
     assert course_kind(c, True, Config().topple.max_finger_force) == "tips first"
     assert tip_side(tip_angle(c.tip_direction, played.direction)) == "away"
     center_mass = transform_points(transform, obj.center_mass[None])[0]
     edge, off = tipped_edge(pose_set.poses[standing], center_mass, c.tip_direction)
     assert off < 5.0
     assert pose_set.poses[standing].edge_final_pose[edge] == pose_with_down(pose_set, [-1, 0, 0])
+
+
+def test_a_traced_play_plays_the_noise_it_is_given():
+    obj, pose_set, standing = standing_box()
+    body, transform = body_model(obj), pose_set.poses[standing].transform
+    noise = draw_noise(world_config("thesis"), np.random.default_rng(5), noise=True)
+    played, _ = traced_play(body, transform, PUSH_POINT, PUSH_DIRECTION, Config(), noise)
+    assert played.noise is noise
+    np.testing.assert_array_equal(played.point, transform_points(played.start_transform, PUSH_POINT[None])[0] + noise.contact_offset)
+    untraced = play_push(body, transform, PUSH_POINT, PUSH_DIRECTION, Config(), noise)
+    np.testing.assert_array_equal(played.final_transform, untraced.final_transform)
 
 
 def plan_of(directions_z: list[float], actions: list[int]):
@@ -182,6 +283,120 @@ def test_each_direction_class_gets_one_start_per_object_at_most_and_the_draw_is_
     assert chosen_pushes({"x": plan_of([0.0], [NO_OP])}, "value_iteration", 3, 0) == []
 
 
+def course_of(tilt, pressing, tip=(1.0, 0.0)) -> Course:
+    """A made-up course that never slides or turns, leaning along ``tip``."""
+    tilt = np.asarray(tilt, dtype=float)
+    return Course(tilt, np.zeros_like(tilt), np.zeros_like(tilt), np.asarray(pressing, dtype=float), np.asarray(tip))
+
+
+def test_a_play_is_described_against_its_rows_and_values_by_hand(dataset, monkeypatch):  # noqa: F811 (fixture)
+    # play_object's bookkeeping with the physics replaced: each play's course and landing pose are given, so
+    # its topple, kind, side, landing, values and probability can be worked out by hand from the rows.
+    from pipeline.model.evaluation import load_object
+    from pipeline.model.poses import stable_poses
+    from schema.reader import Dataset
+
+    ds = Dataset.open(dataset)
+    config, world = dataset_config(ds), world_config("thesis")
+    limit = config.topple.max_finger_force
+    plans = object_plans(ds, ["random_000", "random_002"])
+    obj = load_object(plans["random_002"].spec, config)
+    pose_set = stable_poses(obj, config.poses)
+    n = len(pose_set.poses)
+    assert n >= 3
+    v_s = np.linspace(0.1, 0.8, n)
+    # Pose-frame pushes: from above at pose 0, from the side at pose 1, from below at pose 2.
+    pushes = {(0, 1): (np.array([0.01, -0.02, 0.03]), np.array([0.6, 0.0, -0.8]), 0.35),
+              (1, 2): (np.array([0.0, 0.01, 0.02]), np.array([0.0, 1.0, 0.0]), 0.2),
+              (2, 3): (np.array([-0.01, 0.0, 0.01]), np.array([0.8, 0.0, 0.6]), 0.9)}
+    plan = dataclasses.replace(plans["random_002"], v_s=v_s, pushes=pushes)
+    rows = [np.zeros((4, n)) for _ in range(n)]
+    rows[0][1] = np.arange(1.0, n + 1) / np.arange(1.0, n + 1).sum()  # P(x' | 0, 1) grows with x'
+    rows[1][2] = np.full(n, 0.3 / (n - 1))
+    rows[1][2][1] = 0.7  # P(topple) 0.3, spread evenly over the other poses
+    rows[2][3][2] = 1.0  # never topples, by the rows
+    # The tipped edge for a lean to +x and to +y (the world is the pose frame at the start).
+    center_mass = {p: transform_points(pose_set.poses[p].transform, obj.center_mass[None])[0] for p in range(3)}
+    first_x = int(pose_set.poses[0].edge_final_pose[tipped_edge(pose_set.poses[0], center_mass[0], np.array([1.0, 0.0]))[0]])
+    assert first_x not in (0, -1)
+    # (start pose, landed, course, tip side expected, landing expected): per start three plays.
+    script = [
+        (0, 0, course_of([0, 2, 4], [0, limit, limit]), None, None),  # stays put, pressing at the limit: stalls
+        (0, first_x, course_of([0, 4, 30], [0, 5, 5]), "away", "first pose"),
+        (0, -1, course_of([0, 4, 30], [0, 5, 5], tip=(0.0, 1.0)), "sideways", "elsewhere"),  # lands outside the pose set
+        (1, 0, course_of([0, 4, 30], [0, 5, 5], tip=(0.0, -1.0)), "towards", None),
+        (1, 1, course_of([0, 10, 1], [0, 5, 0]), None, None),  # tips and falls back
+        (1, 2, course_of([0, 1, 30], [0, 5, 5], tip=(0.0, 1.0)), "away", None),
+        (2, 2, course_of([0, 1, 1], [0, 0, 0]), None, None),  # never touched
+        (2, 0, course_of([0, 4, 30], [0, 5, 5]), "away", None),  # a topple the rows give no chance
+        (2, 2, course_of([0, 1, 1], [0, 1, 1]), None, None),
+    ]
+    world_direction = {0: np.array([1.0, 0.0, -1.0]), 1: np.array([0.0, 1.0, 0.0]), 2: np.array([1.0, 0.0, 1.0])}
+    calls, played_poses = [], iter(p for p, *_ in script)
+    landed_poses = iter(landed for _, landed, *_ in script)
+    courses = iter(c for _, _, c, *_ in script)
+
+    def traced(body, transform, point, direction, config_, noise):
+        calls.append((transform, point, direction, noise))
+        return SimpleNamespace(direction=world_direction[next(played_poses)], final_transform=np.eye(4)), next(courses)
+
+    monkeypatch.setattr(push_course, "traced_play", traced)
+    monkeypatch.setattr("pipeline.model.poses.settle", lambda *args: next(landed_poses))
+    plays = play_object(plan, [(0, 1), (1, 2), (2, 3)], rows, config, world, 3, seed=11)
+    assert len(plays) == 9
+    for play, (pose, landed, c, side, landing), (transform, point, direction, noise) in zip(plays, script, calls):
+        action = {0: 1, 1: 2, 2: 3}[pose]
+        row, (pose_point, pose_direction, predicted) = rows[pose][action], pushes[(pose, action)]
+        # The push handed to the player is the plan's, carried from the pose frame into the object frame.
+        np.testing.assert_allclose(transform_points(transform, point[None])[0], pose_point, atol=1e-12)
+        np.testing.assert_allclose(transform[:3, :3] @ direction, pose_direction, atol=1e-12)
+        assert isinstance(noise, PushNoise) and np.any(noise.contact_offset != 0.0)  # a noisy draw from the world
+        assert play.object_id == "random_002" and play.predicted == predicted
+        assert play.direction == {0: "above", 1: "side", 2: "below"}[pose]
+        assert play.toppled is (landed != pose)
+        assert play.kind == course_kind(c, landed != pose, limit)
+        if landed == pose:
+            assert (play.side, play.landing, play.value_expected, play.value_landed, play.landing_probability) == (None,) * 5
+            continue
+        topple = 1.0 - row[pose]
+        others = [x for x in range(n) if x != pose]
+        assert play.value_expected == (pytest.approx(sum(row[x] * v_s[x] for x in others) / topple) if topple > 0 else None)
+        assert play.value_landed == (pytest.approx(v_s[landed]) if landed >= 0 else 0.0)
+        assert play.landing_probability == (pytest.approx(row[landed] / topple) if topple > 0 and landed >= 0 else 0.0)
+        assert play.side == side
+        if landing is not None:
+            assert play.landing == landing
+        else:  # its own edge's chain, as landing_kind reads it
+            edge, _ = tipped_edge(pose_set.poses[pose], center_mass[pose], c.tip_direction)
+            assert play.landing == landing_kind(pose_set.poses[pose], edge, landed)
+    assert [p.kind for p in plays[:3]] == ["stalls", "tips first", "tips first"]
+    assert [p.kind for p in plays[3:6]] == ["tips first", "tips, falls back", "tips first"]
+    assert [p.kind for p in plays[6:]] == ["no contact", "tips first", "stays"]
+    assert plays[7].value_expected is None and plays[7].landing_probability == 0.0  # P(topple) 0: nothing to divide by
+    assert plays[1].value_landed == pytest.approx(v_s[first_x]) and plays[2].value_landed == 0.0
+    # Every play draws its own noise; the draws are seeded by object, pose and action, not shared between objects.
+    offsets = [noise.contact_offset.tolist() for *_, noise in calls]
+    assert len({tuple(o) for o in offsets}) == 9
+    m = len(plans["random_000"].transforms)
+    other = dataclasses.replace(plans["random_000"], v_s=np.zeros(m), pushes=pushes)
+    calls.clear()
+    played_poses, landed_poses, courses = iter([0]), iter([0]), iter([course_of([0, 1, 1], [0, 1, 1])])
+    play_object(other, [(0, 1)], [np.full((4, m), 1.0 / m)], config, world, 1, seed=11)
+    assert calls[0][3].contact_offset.tolist() != offsets[0]
+
+
+def test_a_play_refuses_an_object_whose_stable_poses_differ_from_the_datasets(dataset):  # noqa: F811 (fixture)
+    # Fewer poses under a higher drop-probability floor (8 -> 7): the plan's poses are no longer the model's.
+    from schema.reader import Dataset
+
+    ds = Dataset.open(dataset)
+    config = dataset_config(ds)
+    plan = object_plans(ds, ["random_002"])["random_002"]
+    fewer = dataclasses.replace(config, poses=dataclasses.replace(config.poses, min_probability=0.05))
+    with pytest.raises(ExperimentError, match="random_002: its stable poses differ"):
+        play_object(plan, [], [], fewer, world_config("thesis"), 1, 0)
+
+
 def test_the_summary_by_hand_with_topples_clustered_by_object():
     def play(o, toppled, kind, side=None, landing=None, expected=None, landed=None, probability=None, direction="above"):
         return Play(o, direction, 0.6, toppled, kind, side, landing, expected, landed, probability)
@@ -199,13 +414,110 @@ def test_the_summary_by_hand_with_topples_clustered_by_object():
     assert above["sides"] == {"away": pytest.approx(2 / 3), "sideways": 0.0, "towards": pytest.approx(1 / 3)}
     assert above["landings"]["elsewhere"] == pytest.approx(1 / 3)
     assert above["value_landed_minus_expected"]["mean"] == pytest.approx((0.2 - 0.4 + 0.0) / 3)
-    assert above["value_landed_minus_expected"]["objects"] == 2
+    assert above["value_landed_minus_expected"]["objects"] == 2 and above["value_landed_minus_expected"]["plays"] == 3
+    assert above["value_expected"]["mean"] == pytest.approx((0.5 + 0.5 + 0.4) / 3)
+    assert above["value_landed"]["mean"] == pytest.approx((0.7 + 0.1 + 0.4) / 3)
+    assert above["landing_probability"]["mean"] == pytest.approx((0.8 + 0.0 + 0.5) / 3)
     # Object a's two topples are one cluster: differences (+0.2, -0.4) and (0.0) -> cluster sums -0.2 and 0.0.
     mean = -0.2 / 3
     se = np.sqrt(2 / 1 * ((-0.2 - mean * 2) ** 2 + (0.0 - mean) ** 2) / 9)
     assert above["value_landed_minus_expected"]["se"] == pytest.approx(se)
     assert s["side"]["topples"] == 0 and "sides" not in s["side"]
     assert "below" not in s
+
+
+def test_the_summary_keeps_every_class_with_plays_and_leaves_empty_what_it_cannot_estimate():
+    # No pushes from above: the classes after it are still summed up.  One object a class: no standard error
+    # from one cluster.  Topples whose rows gave them no chance (no expected value): no values at all.
+    plays = [Play("a", "side", 0.2, True, "tips first", "away", "first pose", None, 0.5, 0.0),
+             Play("a", "side", 0.2, False, "stays", None, None, None, None, None),
+             Play("b", "below", 0.9, True, "tips first", "away", "onward", 0.3, 0.6, 0.25),
+             Play("b", "below", 0.9, True, "slides, then tips", "sideways", "first pose", 0.3, 0.2, 0.5)]
+    s = summary(plays)
+    assert list(s) == ["side", "below"]
+    side, below = s["side"], s["below"]
+    assert side["toppled"] == {"mean": 0.5, "se": None, "objects": 1, "plays": 2}
+    assert side["topples"] == 1 and side["landing_probability"] == {"mean": 0.0, "se": None, "objects": 1, "plays": 1}
+    assert side["value_expected"] is None and side["value_landed"] is None and side["value_landed_minus_expected"] is None
+    assert below["value_expected"] == {"mean": pytest.approx(0.3), "se": None, "objects": 1, "plays": 2}
+    assert below["value_landed"]["mean"] == pytest.approx(0.4) and below["value_landed_minus_expected"]["mean"] == pytest.approx(0.1)
+    assert below["predicted"]["mean"] == pytest.approx(0.9) and below["landing_probability"]["mean"] == pytest.approx(0.375)
+    assert below["sides"] == {"away": 0.5, "sideways": 0.5, "towards": 0.0}
+
+
+def test_the_text_reads_each_class_its_topples_and_standard_errors_where_there_are_any():
+    above = {"plays": 4, "objects": 2, "predicted": {"mean": 0.6}, "toppled": {"mean": 0.75, "se": 0.125},
+             "courses": {"tips first": 0.5, "stalls": 0.25, "slides, then tips": 0.25}, "topples": 3,
+             "sides": {"away": 2 / 3, "sideways": 0.0, "towards": 1 / 3},
+             "landings": {"first pose": 1 / 3, "rolled on": 1 / 3, "onward": 0.0, "elsewhere": 1 / 3},
+             "landing_probability": {"mean": 0.4333}, "value_expected": {"mean": 0.4667}, "value_landed": {"mean": 0.4},
+             "value_landed_minus_expected": {"mean": -0.0667, "se": 0.0471}}
+    side = {"plays": 1, "objects": 1, "predicted": {"mean": 0.2}, "toppled": {"mean": 0.0, "se": None}, "courses": {"stays": 1.0},
+            "topples": 0}
+    below = {"plays": 2, "objects": 1, "predicted": {"mean": 0.9}, "toppled": {"mean": 1.0, "se": None}, "courses": {"tips first": 1.0},
+             "topples": 2, "sides": {"away": 1.0}, "landings": {"elsewhere": 1.0}, "landing_probability": {"mean": 0.0},
+             "value_expected": None}
+    result = {"policy": "greedy", "dataset": "data/x", "pushes": 3, "repeats": 2, "seed": 7,
+              "by_direction": {"above": above, "side": side, "below": below}}
+    assert text(result).split("\n") == [
+        "greedy's pushes on data/x, 3 pushes x 2 plays (seed 7):",
+        "from above: 4 plays on 2 objects; predicted 0.600, toppled 0.750 +/- 0.125",
+        "  courses: tips first 0.50, stalls 0.25, slides, then tips 0.25",
+        "  3 topples; sides: away 0.67, sideways 0.00, towards 0.33",
+        "  landings against the tipped edge's poses: first pose 0.33, rolled on 0.33, onward 0.00, elsewhere 0.33",
+        "  the rows' probability of the landing pose 0.433",
+        "  V_s of a topple: expected 0.467, landed 0.400 (difference -0.067 +/- 0.047)",
+        "from the side: 1 plays on 1 objects; predicted 0.200, toppled 0.000",
+        "  courses: stays 1.00",
+        "from below: 2 plays on 1 objects; predicted 0.900, toppled 1.000",
+        "  courses: tips first 1.00",
+        "  2 topples; sides: away 1.00",
+        "  landings against the tipped edge's poses: elsewhere 1.00",
+        "  the rows' probability of the landing pose 0.000",
+    ]
+
+
+def test_the_study_hands_its_arguments_to_the_draw_and_the_plays(dataset, monkeypatch):  # noqa: F811 (fixture)
+    # study's wiring, with the draw watched and the plays replaced (run in this process, they return nothing).
+    import joblib
+
+    from schema.reader import Dataset
+
+    drawn, played, asked = [], [], []
+    real_choice = push_course.chosen_pushes
+
+    def choose(plans, policy, per_class, seed):
+        drawn.append((sorted(plans), policy, per_class, seed))
+        return real_choice(plans, policy, per_class, seed)
+
+    def play(plan, starts, rows, config, world, repeats, seed):
+        played.append((plan, starts, rows, config, world, repeats, seed))
+        return []
+
+    class InProcess(joblib.Parallel):  # what study asked for is kept; the jobs run here, where the replacements are
+        def __init__(self, n_jobs=None, **kwargs):
+            asked.append(n_jobs)
+            super().__init__(n_jobs=1, **kwargs)
+
+    monkeypatch.setattr(push_course, "chosen_pushes", choose)
+    monkeypatch.setattr(push_course, "play_object", play)
+    monkeypatch.setattr(joblib, "Parallel", InProcess)
+    world = Config()  # not the thesis preset a missing world stands for
+    result = study(dataset, "greedy", per_class=1, repeats=3, seed=7, world=world, workers=2)
+    ds = Dataset.open(dataset)
+    plans = object_plans(ds, ["random_000", "random_002"])
+    chosen = real_choice(plans, "greedy", 1, 7)
+    assert chosen and drawn == [(["random_000", "random_002"], "greedy", 1, 7)]
+    assert result == {"dataset": str(dataset), "policy": "greedy", "per_class": 1, "repeats": 3, "seed": 7, "pushes": len(chosen),
+                      "by_direction": {}}
+    assert asked == [2]
+    by_object = {}
+    for object_id, pose, action in chosen:
+        by_object.setdefault(object_id, []).append((pose, action))
+    assert [(plan.spec.object_id, starts) for plan, starts, *_ in played] == list(by_object.items())
+    for plan, _, rows, config, given_world, repeats, seed in played:
+        assert given_world is world and (repeats, seed) == (3, 7) and config == dataset_config(ds)
+        assert len(rows) == len(plan.transforms) and all(r.shape[1] == len(plan.transforms) for r in rows)
 
 
 def test_the_command_traces_a_small_dataset_prints_and_records(dataset, tmp_path, capsys):  # noqa: F811 (fixture)
@@ -246,6 +558,33 @@ def test_an_object_that_cannot_be_played_is_reported_not_fatal(tmp_path):
 
 def test_the_command_refuses_a_missing_dataset_and_an_unknown_policy_in_one_line(tmp_path, capsys):
     assert main([str(tmp_path / "nowhere")]) == 2
-    assert "error:" in capsys.readouterr().err
+    assert f"error: {tmp_path / 'nowhere'}" in capsys.readouterr().err  # the reader's reason, naming the directory
     with pytest.raises(SystemExit):
         main([str(tmp_path), "--policy", "nonsense"])
+    with pytest.raises(ExperimentError, match="unknown policy 'nonsense'; one of max_height, greedy, value_iteration"):
+        study(tmp_path, "nonsense")
+
+
+def test_the_command_passes_its_defaults_and_flags_to_the_study_and_checks_its_output_first(tmp_path, monkeypatch, capsys):
+    calls = []
+
+    def traced(*args):
+        calls.append(args)
+        return {"dataset": str(args[0]), "policy": args[1], "per_class": args[2], "repeats": args[3], "seed": args[4], "pushes": 0,
+                "by_direction": {}}
+
+    monkeypatch.setattr(push_course, "study", traced)
+    assert main([str(tmp_path)]) == 0
+    assert main([str(tmp_path), "--policy", "greedy", "--per-class", "2", "--repeats", "3", "--seed", "4", "--workers", "2"]) == 0
+    (root, policy, per_class, repeats, seed, world, workers), flagged = calls
+    # The documented run: value iteration, 70 objects a class, 5 plays, seed 53, one worker, the thesis world's noise.
+    assert (str(root), policy, per_class, repeats, seed, workers) == (str(tmp_path), "value_iteration", 70, 5, 53, 1)
+    assert world == world_config("thesis") and world != Config()
+    assert flagged[1:5] == ("greedy", 2, 3, 4) and flagged[6] == 2
+    with pytest.raises(SystemExit):
+        main([str(tmp_path), "--workers", "0"])
+    # An output it could not write is refused before the study runs.
+    calls.clear()
+    capsys.readouterr()
+    assert main([str(tmp_path), "--json", str(tmp_path)]) == 2
+    assert calls == [] and "cannot write" in capsys.readouterr().err
