@@ -338,7 +338,7 @@ def test_a_play_is_described_against_its_rows_and_values_by_hand(dataset, monkey
 
     def traced(body, transform, point, direction, config_, noise):
         calls.append((transform, point, direction, noise))
-        return SimpleNamespace(direction=world_direction[next(played_poses)], final_transform=np.eye(4)), next(courses)
+        return SimpleNamespace(direction=world_direction[next(played_poses)], final_transform=np.eye(4), start_transform=transform), next(courses)
 
     monkeypatch.setattr(push_course, "traced_play", traced)
     monkeypatch.setattr("pipeline.model.poses.settle", lambda *args: next(landed_poses))
@@ -602,3 +602,16 @@ def test_the_study_reports_an_object_it_could_not_play_and_summarises_the_others
     assert result["pushes"] == 2
     assert result["failed_objects"] == {"random_000": "random_000: its mesh does not load"}
     assert result["by_direction"]["side"]["objects"] == 1 and result["by_direction"]["side"]["toppled"]["mean"] == 1.0
+
+
+def test_a_lean_seen_in_the_world_is_turned_back_into_the_pose_frame():
+    # The object settled 2 degrees about z from where it was placed: a lean seen along world +x is, in the pose
+    # frame, turned back by those 2 degrees; a placement turned 90 degrees is the pose frame's own and stays.
+    turn = lambda degrees: np.array([[np.cos(np.radians(degrees)), -np.sin(np.radians(degrees)), 0, 0],
+                                     [np.sin(np.radians(degrees)), np.cos(np.radians(degrees)), 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    placed = np.eye(4)  # object -> pose frame
+    settled = turn(2.0)  # object -> world
+    np.testing.assert_allclose(push_course.lean_in_pose_frame(np.array([1.0, 0.0]), placed, settled),
+                               [np.cos(np.radians(-2.0)), np.sin(np.radians(-2.0))], atol=1e-12)
+    np.testing.assert_allclose(push_course.lean_in_pose_frame(np.array([0.0, 1.0]), turn(90.0), turn(92.0)),
+                               [np.sin(np.radians(2.0)), np.cos(np.radians(2.0))], atol=1e-12)

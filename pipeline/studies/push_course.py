@@ -59,7 +59,7 @@ TILT_ONSET = 3.0
 TIP_TILT = 8.0
 """deg: the tilt at which the tip's direction is read (past the rocking of a settling contact)."""
 SLIDE_ONSET = 0.003
-"""m: the object has begun to slide once its centre of mass has moved this far along the push."""
+"""m: the base has begun to slide once the table point under the centre of mass has moved this far along the push."""
 MOVED_SLIDE, MOVED_YAW = 0.005, 5.0
 """m and deg: a play that stayed moved it if it slid or turned this far."""
 STALL_SHARE = 0.9
@@ -137,6 +137,17 @@ def tip_angle(tip_direction: np.ndarray, push: np.ndarray) -> float:
 def tip_side(angle: float) -> str:
     """One of ``SIDES``: away within 45 degrees of the push, towards within 45 of its reverse."""
     return "away" if abs(angle) < 45.0 else "towards" if abs(angle) > 135.0 else "sideways"
+
+
+def lean_in_pose_frame(tip_direction: np.ndarray, transform: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """(2,) float, unit: a lean seen in the world, in the pose frame its edges are given in.
+
+    tip_direction : (2,) float, unit, world x, y;  transform : (4, 4) float, object -> pose frame, where the
+    object was placed;  start : (4, 4) float, object -> world once it had come to rest.  Settling turns it
+    by a fraction of a degree about the vertical; that turn is undone rather than assumed away.
+    """
+    to_pose = transform[:3, :3] @ start[:3, :3].T
+    return unit(to_pose @ np.array([tip_direction[0], tip_direction[1], 0.0]))[:2]
 
 
 def tipped_edge(pose: StablePose, center_mass: np.ndarray, tip_direction: np.ndarray) -> tuple[int, float]:
@@ -258,7 +269,8 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
             if toppled:
                 side = tip_side(tip_angle(c.tip_direction, played.direction))
                 center_mass = transform_points(transform, obj.center_mass[None])[0]
-                edge, _ = tipped_edge(pose_set.poses[pose], center_mass, c.tip_direction)
+                lean = lean_in_pose_frame(c.tip_direction, transform, played.start_transform)
+                edge, _ = tipped_edge(pose_set.poses[pose], center_mass, lean)
                 landing = landing_kind(pose_set.poses[pose], edge, landed)
                 landed_value = float(values[landed])
                 probability = float(row[landed] / topple) if topple > 0 and landed >= 0 else 0.0
