@@ -60,23 +60,24 @@ def made(tilt, slide, yaw=None, pressing=None) -> Course:
 def test_a_course_reads_tilt_slide_yaw_and_where_the_object_leans():
     angles = np.array([0.0, 2.0, 5.0, 9.0, 20.0])
     shift = np.outer(np.arange(5) * 0.001, [1.0, 0.0, 0.0])
-    c = course(np.eye(4), turned_about_y(angles, shift), np.arange(5.0), np.zeros(3), np.array([1.0, 0.0, -0.5]))
+    c = course(np.eye(4), turned_about_y(angles, shift), np.arange(5.0), np.zeros(3))
     np.testing.assert_allclose(c.tilt, angles, atol=1e-9)
     np.testing.assert_allclose(c.slide, np.arange(5) * 0.001, atol=1e-12)  # the point under the centre of mass (the origin)
     # A tip about an edge 2.5 cm away, centre of mass 7.5 cm up: the base hardly moves, the centre of mass 7.5 cm x tilt.
     pivot = np.array([0.025, 0.0, 0.0])
     tipped = turned_about_y(angles)
     tipped[:, :3, 3] = pivot - np.einsum("sij,j->si", tipped[:, :3, :3], pivot)
-    tip = course(np.eye(4), tipped, np.ones(5), np.array([0.0, 0.0, 0.075]), np.array([1.0, 0.0, 0.0]))
+    tip = course(np.eye(4), tipped, np.ones(5), np.array([0.0, 0.0, 0.075]))
     np.testing.assert_allclose(tip.slide, 0.025 * (1 - np.cos(np.radians(angles))), atol=1e-12)
     np.testing.assert_allclose(c.yaw, 0.0, atol=1e-9)
     np.testing.assert_allclose(c.tip_direction, [1.0, 0.0], atol=1e-12)  # turning about +y leans the top to +x
-    # Against a push towards -y the slide is sideways: nothing along it.
-    assert np.allclose(course(np.eye(4), turned_about_y(angles, shift), np.zeros(5), np.zeros(3), np.array([0.0, -1.0, 0.0])).slide, 0.0)
+    # A slide is how far the base moved on the table, whichever way: sideways to a push, or under one straight down.
+    sideways = turned_about_y(angles, np.outer(np.arange(5) * 0.001, [0.6, -0.8, 0.0]))
+    np.testing.assert_allclose(course(np.eye(4), sideways, np.zeros(5), np.zeros(3)).slide, np.arange(5) * 0.001, atol=1e-12)
     # A turn about the vertical is yaw, not tilt.
     turn = np.tile(np.eye(4), (2, 1, 1))
     turn[1, :2, :2] = [[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]]
-    spun = course(np.eye(4), turn, np.zeros(2), np.zeros(3), np.array([1.0, 0.0, 0.0]))
+    spun = course(np.eye(4), turn, np.zeros(2), np.zeros(3))
     np.testing.assert_allclose(spun.yaw, [0.0, np.degrees(0.3)])
     np.testing.assert_allclose(spun.tilt, 0.0, atol=1e-6)
 
@@ -86,10 +87,10 @@ def test_the_lean_is_read_at_the_tip_tilt_not_at_the_end():
     first = turned_about_y(np.array([0.0, 4.0, 9.0]))
     swing = np.eye(4)
     swing[:3, :3] = [[1, 0, 0], [0, np.cos(-0.8), -np.sin(-0.8)], [0, np.sin(-0.8), np.cos(-0.8)]]  # about x: up leans to +y
-    c = course(np.eye(4), np.concatenate([first, swing[None]]), np.ones(4), np.zeros(3), np.array([1.0, 0.0, 0.0]))
+    c = course(np.eye(4), np.concatenate([first, swing[None]]), np.ones(4), np.zeros(3))
     np.testing.assert_allclose(c.tip_direction, [1.0, 0.0], atol=1e-12)
     # Never tipped that far: read at the largest tilt.
-    small = course(np.eye(4), turned_about_y(np.array([0.0, 3.0, 1.0])), np.ones(3), np.zeros(3), np.array([1.0, 0.0, 0.0]))
+    small = course(np.eye(4), turned_about_y(np.array([0.0, 3.0, 1.0])), np.ones(3), np.zeros(3))
     np.testing.assert_allclose(small.tip_direction, [1.0, 0.0], atol=1e-12)
 
 
@@ -109,12 +110,14 @@ def test_the_slide_follows_the_table_point_under_an_off_centre_centre_of_mass():
     angles = np.array([0.0, 10.0, 30.0])
     a, r = np.radians(angles), np.array([0.02, 0.01])
     center_mass = np.array([0.02, 0.01, 0.05])
-    along_y = course(start, turned_about_z(start, angles), np.ones(3), center_mass, np.array([0.0, 1.0, 0.0]))
-    np.testing.assert_allclose(along_y.slide, r[0] * np.sin(a) + r[1] * np.cos(a) - r[1], atol=1e-12)
-    along_x = course(start, turned_about_z(start, angles), np.ones(3), center_mass, np.array([2.0, 0.0, -1.0]))
-    np.testing.assert_allclose(along_x.slide, r[0] * np.cos(a) - r[1] * np.sin(a) - r[0], atol=1e-12)
-    np.testing.assert_allclose(along_x.yaw, angles, atol=1e-9)
-    np.testing.assert_allclose(along_x.tilt, 0.0, atol=1e-6)
+    turned = course(start, turned_about_z(start, angles), np.ones(3), center_mass)
+    np.testing.assert_allclose(turned.slide, 2 * np.linalg.norm(r) * np.sin(a / 2), atol=1e-12)  # the chord of the arc
+    np.testing.assert_allclose(turned.yaw, angles, atol=1e-9)
+    np.testing.assert_allclose(turned.tilt, 0.0, atol=1e-6)
+    # About the point under the centre of mass instead, the same turn slides nothing.
+    about_com = turned_about_z(start, angles)
+    about_com[:, :2, 3] = start[:2, 3] + r - np.einsum("sij,j->si", about_com[:, :2, :2], r)
+    np.testing.assert_allclose(course(start, about_com, np.ones(3), center_mass).slide, 0.0, atol=1e-12)
 
 
 def test_a_rotation_a_hair_past_unit_still_reads_0_or_180_degrees_of_tilt():
@@ -127,7 +130,7 @@ def test_a_rotation_a_hair_past_unit_still_reads_0_or_180_degrees_of_tilt():
     assert (start[:3, :3] @ start[:3, :3].T)[2, 2] > 1.0
     flipped = start.copy()
     flipped[:3, :3] = np.diag([1.0, -1.0, -1.0]) @ start[:3, :3]
-    c = course(start, np.stack([start, flipped]), np.zeros(2), np.zeros(3), np.array([1.0, 0.0, 0.0]))
+    c = course(start, np.stack([start, flipped]), np.zeros(2), np.zeros(3))
     np.testing.assert_array_equal(c.tilt, [0.0, 180.0])
 
 
@@ -394,8 +397,13 @@ def test_a_play_refuses_an_object_whose_stable_poses_differ_from_the_datasets(da
     plan = object_plans(ds, ["random_002"])["random_002"]
     fewer = dataclasses.replace(config, poses=dataclasses.replace(config.poses, min_probability=0.05))
     # Reported as the object's one-line reason, not raised: the other objects are still played.
-    assert play_object(plan, [], [], fewer, world_config("thesis"), 1, 0) == (
-        "random_002: its stable poses differ from the dataset's (other code or parameters)")
+    reason = "random_002: its stable poses differ from the dataset's (other code or parameters)"
+    assert play_object(plan, [], [], fewer, world_config("thesis"), 1, 0) == reason
+    # As many poses, one of them placed 1 mm apart: every row index would name another placement.
+    moved = plan.transforms.copy()
+    moved[0, 0, 3] += 0.001
+    assert play_object(dataclasses.replace(plan, transforms=moved), [], [], config, world_config("thesis"), 1, 0) == reason
+    assert play_object(plan, [], [], config, world_config("thesis"), 1, 0) == []  # as the dataset had them: played
 
 
 def test_the_summary_by_hand_with_topples_clustered_by_object():
@@ -408,7 +416,12 @@ def test_the_summary_by_hand_with_topples_clustered_by_object():
              play("c", False, "tips, falls back", direction="side")]
     s = summary(plays)
     above = s["above"]
-    assert above["plays"] == 4 and above["objects"] == 2 and above["topples"] == 3
+    assert above["plays"] == 4 and above["objects"] == 2 and above["topples"] == 3 and above["untouched_topples"] == 0
+    assert above["toppled_minus_predicted"]["mean"] == pytest.approx(0.75 - 0.6)
+    # A start that fell with no finger on it counts as toppled, but its lean and landing are not the push's.
+    untouched = summary([*plays, play("d", True, "no contact", "away", "elsewhere", 0.5, 0.0, 0.0)])["above"]
+    assert untouched["toppled"]["mean"] == pytest.approx(0.8) and untouched["topples"] == 3 and untouched["untouched_topples"] == 1
+    assert untouched["sides"] == above["sides"] and untouched["value_landed_minus_expected"] == above["value_landed_minus_expected"]
     assert above["toppled"]["mean"] == pytest.approx(0.75)
     assert above["courses"]["tips first"] == pytest.approx(0.5) and above["courses"]["stalls"] == pytest.approx(0.25)
     assert sum(above["courses"].values()) == pytest.approx(1.0)
@@ -448,32 +461,33 @@ def test_the_summary_keeps_every_class_with_plays_and_leaves_empty_what_it_canno
 
 def test_the_text_reads_each_class_its_topples_and_standard_errors_where_there_are_any():
     above = {"plays": 4, "objects": 2, "predicted": {"mean": 0.6}, "toppled": {"mean": 0.75, "se": 0.125},
+             "toppled_minus_predicted": {"mean": 0.15, "se": 0.1}, "untouched_topples": 1,
              "courses": {"tips first": 0.5, "stalls": 0.25, "slides, then tips": 0.25}, "topples": 3,
              "sides": {"away": 2 / 3, "sideways": 0.0, "towards": 1 / 3},
              "landings": {"first pose": 1 / 3, "rolled on": 1 / 3, "onward": 0.0, "elsewhere": 1 / 3},
              "landing_probability": {"mean": 0.4333}, "value_expected": {"mean": 0.4667}, "value_landed": {"mean": 0.4},
              "value_landed_minus_expected": {"mean": -0.0667, "se": 0.0471}}
     side = {"plays": 1, "objects": 1, "predicted": {"mean": 0.2}, "toppled": {"mean": 0.0, "se": None}, "courses": {"stays": 1.0},
-            "topples": 0}
+            "toppled_minus_predicted": {"mean": -0.2, "se": None}, "topples": 0, "untouched_topples": 0}
     below = {"plays": 2, "objects": 1, "predicted": {"mean": 0.9}, "toppled": {"mean": 1.0, "se": None}, "courses": {"tips first": 1.0},
-             "topples": 2, "sides": {"away": 1.0}, "landings": {"elsewhere": 1.0}, "landing_probability": {"mean": 0.0},
+             "toppled_minus_predicted": {"mean": 0.1, "se": None}, "topples": 2, "untouched_topples": 0, "sides": {"away": 1.0}, "landings": {"elsewhere": 1.0}, "landing_probability": {"mean": 0.0},
              "value_expected": None}
     result = {"policy": "greedy", "dataset": "data/x", "pushes": 3, "repeats": 2, "seed": 7,
               "failed_objects": {"bad": "bad: its mesh does not load"}, "by_direction": {"above": above, "side": side, "below": below}}
     assert text(result).split("\n") == [
         "greedy's pushes on data/x, 3 pushes x 2 plays (seed 7):",
         "  not played: bad: its mesh does not load",
-        "from above: 4 plays on 2 objects; predicted 0.600, toppled 0.750 +/- 0.125",
+        "from above: 4 plays on 2 objects; predicted 0.600, toppled 0.750 +/- 0.125 (difference +0.150 +/- 0.100)",
         "  courses: tips first 0.50, stalls 0.25, slides, then tips 0.25",
-        "  3 topples; sides: away 0.67, sideways 0.00, towards 0.33",
+        "  3 pushed topples (and 1 with no finger on it); sides: away 0.67, sideways 0.00, towards 0.33",
         "  landings against the tipped edge's poses: first pose 0.33, rolled on 0.33, onward 0.00, elsewhere 0.33",
         "  the rows' probability of the landing pose 0.433",
         "  V_s of a topple: expected 0.467, landed 0.400 (difference -0.067 +/- 0.047)",
-        "from the side: 1 plays on 1 objects; predicted 0.200, toppled 0.000",
+        "from the side: 1 plays on 1 objects; predicted 0.200, toppled 0.000 (difference -0.200)",
         "  courses: stays 1.00",
-        "from below: 2 plays on 1 objects; predicted 0.900, toppled 1.000",
+        "from below: 2 plays on 1 objects; predicted 0.900, toppled 1.000 (difference +0.100)",
         "  courses: tips first 1.00",
-        "  2 topples; sides: away 1.00",
+        "  2 pushed topples; sides: away 1.00",
         "  landings against the tipped edge's poses: elsewhere 1.00",
         "  the rows' probability of the landing pose 0.000",
     ]

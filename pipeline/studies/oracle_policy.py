@@ -53,9 +53,9 @@ from ..model.rng import stream
 from .playlog import ObjectLog, append_row, mesh_location, write_part
 from .policies_physics import (
     PURPOSE,
-    TRANSFORM_TOLERANCE,
     ExperimentError,
     ObjectPlan,
+    load_planned,
     mean_se,
     object_plans,
     open_trials,
@@ -125,23 +125,17 @@ def estimate_object(plan: ObjectPlan, pushes: dict[int, tuple[np.ndarray, np.nda
       outside the pose set), or a one-line reason the object cannot be played; the plays as a
       push log, push_id = pose * ``ACTION_SPAN`` + action, one row per repeat)
     """
-    from ..model.evaluation import load_object
-    from ..model.mesh import MeshError
-    from ..model.poses import settle, stable_poses
+    from ..model.poses import settle
 
     spec = plan.spec
     object_id = spec.object_id
     key = {"object_id": object_id, "mesh_sha256": spec.sha256, "experiment": "oracle-policy", "seed": seed,
            "repeats": repeats, "player": player_parameters()}
     empty = ObjectLog(object_id, PUSHLOG.empty_table(), key, {"pushes": 0})
-    try:
-        obj = load_object(spec, config)
-        pose_set = stable_poses(obj, config.poses)
-    except MeshError as err:
-        return object_id, str(err), empty
-    if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms,
-                                                                      atol=TRANSFORM_TOLERANCE):
-        return object_id, f"{object_id}: its stable poses differ from the dataset's (other code or parameters)", empty
+    loaded = load_planned(plan, config)
+    if isinstance(loaded, str):
+        return object_id, loaded, empty
+    obj, pose_set = loaded
     body = body_model(obj)
     source, path = mesh_location(spec)
     columns: dict[str, list] = {f.name: [] for f in PUSHLOG}

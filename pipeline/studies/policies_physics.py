@@ -163,6 +163,25 @@ def object_plans(dataset: Dataset, object_ids: list[str]) -> dict[str, ObjectPla
 # ---------------------------------------------------------------- the physics side
 
 
+def load_planned(plan: ObjectPlan, config: Config):
+    """The plan's object and its stable poses, as the dataset had them (runs in a worker): (object, pose set),
+    or a one-line reason it cannot be played: its mesh does not load, or its stable poses are not the
+    dataset's (their number or transforms: other code or parameters), which would put every index of the
+    dataset's rows on another pose."""
+    from ..model.evaluation import load_object
+    from ..model.mesh import MeshError
+    from ..model.poses import stable_poses
+
+    try:
+        obj = load_object(plan.spec, config)
+        pose_set = stable_poses(obj, config.poses)
+    except MeshError as err:
+        return str(err)
+    if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms, atol=TRANSFORM_TOLERANCE):
+        return f"{plan.spec.object_id}: its stable poses differ from the dataset's (other code or parameters)"
+    return obj, pose_set
+
+
 @dataclass
 class PolicyRun:
     """One policy in one trial: the poses it went through and its pushes.
@@ -188,21 +207,15 @@ def play_trials(
 
     returns : (object id, {trial: {policy: PolicyRun}} or {"failure": reason}, the pushes as a log)
     """
-    from ..model.evaluation import load_object
-    from ..model.mesh import MeshError
-    from ..model.poses import settle, stable_poses
+    from ..model.poses import settle
 
     spec = plan.spec
     key = {"object_id": spec.object_id, "mesh_sha256": spec.sha256, "experiment": "policies-physics", "seed": seed,
            "max_pushes": max_pushes, "player": player_parameters()}
-    try:
-        obj = load_object(spec, config)
-        pose_set = stable_poses(obj, config.poses)
-    except MeshError as err:
-        return spec.object_id, {"failure": str(err)}, ObjectLog(spec.object_id, PUSHLOG.empty_table(), key, {"pushes": 0})
-    if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms, atol=TRANSFORM_TOLERANCE):
-        reason = f"{spec.object_id}: its stable poses differ from the dataset's (other code or parameters)"
-        return spec.object_id, {"failure": reason}, ObjectLog(spec.object_id, PUSHLOG.empty_table(), key, {"pushes": 0})
+    loaded = load_planned(plan, config)
+    if isinstance(loaded, str):
+        return spec.object_id, {"failure": loaded}, ObjectLog(spec.object_id, PUSHLOG.empty_table(), key, {"pushes": 0})
+    obj, pose_set = loaded
     body = body_model(obj)
     source, path = mesh_location(spec)
     columns: dict[str, list] = {f.name: [] for f in PUSHLOG}

@@ -44,7 +44,7 @@ from ..model.config import Config
 from ..model.outcomes import StablePose
 from ..model.rng import stream
 from .candidate_choice import CLASSES, direction_class
-from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, dataset_config, object_plans, world_config
+from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, dataset_config, load_planned, object_plans, world_config
 from .pooled_gain import clustered_mean_se
 from .robust_policy import next_pose_rows
 
@@ -59,7 +59,7 @@ TILT_ONSET = 3.0
 TIP_TILT = 8.0
 """deg: the tilt at which the tip's direction is read (past the rocking of a settling contact)."""
 SLIDE_ONSET = 0.003
-"""m: the base has begun to slide once the table point under the centre of mass has moved this far along the push."""
+"""m: the base has begun to slide once the table point under the centre of mass has moved this far."""
 MOVED_SLIDE, MOVED_YAW = 0.005, 5.0
 """m and deg: a play that stayed moved it if it slid or turned this far."""
 STALL_SHARE = 0.9
@@ -71,9 +71,10 @@ class Course:
     """One play's stroke, step by step (S steps).
 
     tilt : (S,) float, deg, the angle between the object's up direction and its start's
-    slide : (S,) float, m, the base's travel along the push's horizontal direction: that of the table point
-      under the centre of mass at the start
-    yaw : (S,) float, deg, the turn about the vertical;  pressing : (S,) float, N, the finger's normal
+    slide : (S,) float, m, how far the base has moved on the table, in any horizontal direction: the table point
+      under the centre of mass at the start (a push straight down has no direction along it to measure by)
+    yaw : (S,) float, deg, the turn about the vertical, read as the heading of the object's x axis seen from
+      above (a tilt about a diagonal adds a few degrees; read where the tilt stays small);  pressing : (S,) float, N, the finger's normal
       force on the object (summed over its contact points; 0 when not touching)
     tip_direction : (2,) float, unit, where the up direction leans (world x, y) at ``TIP_TILT``
       (at the largest tilt when it never got there)
@@ -86,23 +87,21 @@ class Course:
     tip_direction: np.ndarray
 
 
-def course(start: np.ndarray, transforms: np.ndarray, pressing: np.ndarray, center_mass: np.ndarray, push: np.ndarray) -> Course:
+def course(start: np.ndarray, transforms: np.ndarray, pressing: np.ndarray, center_mass: np.ndarray) -> Course:
     """A stroke's ``Course`` from the object's transforms at each step.
 
     start : (4, 4) float, object -> world before the finger came;  transforms : (S, 4, 4) float, the same
     at each step;  pressing : (S,) float, N;  center_mass : (3,) float, m, object frame
-    push : (3,) float, the push direction, world frame (only its horizontal part is used)
     """
     relative = transforms[:, :3, :3] @ start[:3, :3].T  # (S, 3, 3), the turn since the start
     up = relative[:, :, 2]  # (S, 3), where the start's vertical went
     tilt = np.degrees(np.arccos(np.clip(up[:, 2], -1.0, 1.0)))
     yaw = np.degrees(np.arctan2(relative[:, 1, 0], relative[:, 0, 0]))
-    heading = unit(np.array([push[0], push[1], 0.0]))
     # The base slides where the table point under the centre of mass moves: a tip about a base edge
     # hardly moves it (by d (1 - cos tilt)), where it moves the centre of mass by its height times the tilt.
     base = transform_points(start, center_mass[None])[0] * [1.0, 1.0, 0.0]  # (3,), world
     held = transform_points(np.linalg.inv(start), base[None])[0]  # (3,), the same point, object frame
-    slide = (transforms[:, :3, :3] @ held + transforms[:, :3, 3] - base) @ heading
+    slide = np.linalg.norm((transforms[:, :3, :3] @ held + transforms[:, :3, 3] - base)[:, :2], axis=1)
     at = int(np.argmax(tilt >= TIP_TILT)) if (tilt >= TIP_TILT).any() else int(np.argmax(tilt))
     lean = np.array([up[at, 0], up[at, 1], 0.0])
     return Course(tilt, slide, yaw, np.asarray(pressing, dtype=float), unit(lean)[:2])
@@ -185,12 +184,12 @@ def traced_play(body, transform: np.ndarray, point: np.ndarray, direction: np.nd
 
     transforms, pressing = [], []
 
-    def observe(pb, client, finger, pushed, grip):
+    def observe(pb, client, finger, pushed):
         transforms.append(_observe(pb, client, pushed, body))
         pressing.append(sum(c[9] for c in pb.getContactPoints(finger, pushed, physicsClientId=client)))
 
     played = play_push(body, transform, point, direction, config, noise, observe=observe)
-    return played, course(played.start_transform, np.array(transforms), np.array(pressing), body.center_mass, played.direction)
+    return played, course(played.start_transform, np.array(transforms), np.array(pressing), body.center_mass)
 
 
 @dataclass
@@ -235,18 +234,13 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
 
     rows : per pose (A_x, P) float, the rows' P(x' | x, u)
     """
-    from ..model.evaluation import load_object
-    from ..model.mesh import MeshError
-    from ..model.poses import settle, stable_poses
+    from ..model.poses import settle
     from .pushsim import body_model, draw_noise
 
-    try:
-        obj = load_object(plan.spec, config)
-        pose_set = stable_poses(obj, config.poses)
-    except MeshError as err:
-        return str(err)
-    if len(pose_set.poses) != len(plan.transforms):
-        return f"{plan.spec.object_id}: its stable poses differ from the dataset's (other code or parameters)"
+    loaded = load_planned(plan, config)
+    if isinstance(loaded, str):
+        return loaded
+    obj, pose_set = loaded
     body = body_model(obj)
     values = np.append(plan.v_s, 0.0)  # the last entry: outside the pose set
     plays = []
@@ -297,13 +291,17 @@ def summary(plays: list[Play]) -> dict:
         if not mine:
             continue
         objects = [p.object_id for p in mine]
-        topples = [p for p in mine if p.toppled]
+        # A start that falls with no finger on it is a marginal pose, not the push's doing: its lean and landing
+        # say nothing of how pushes topple, so only the pushed topples are described below.
+        topples = [p for p in mine if p.toppled and p.kind != "no contact"]
         entry = {
             "plays": len(mine), "objects": len(set(objects)),
             "predicted": described([p.predicted for p in mine], objects),
             "toppled": described([p.toppled for p in mine], objects),
+            "toppled_minus_predicted": described([p.toppled - p.predicted for p in mine], objects),
             "courses": shares((p.kind for p in mine), KINDS),
             "topples": len(topples),
+            "untouched_topples": sum(p.toppled and p.kind == "no contact" for p in mine),
         }
         if topples:
             where = [p.object_id for p in topples]
@@ -365,10 +363,12 @@ def text(result: dict) -> str:
     lines += [f"  not played: {reason}" for reason in result["failed_objects"].values()]
     for name, e in result["by_direction"].items():
         lines.append(f"from {'the ' if name == 'side' else ''}{name}: {e['plays']} plays on {e['objects']} objects; predicted "
-                     f"{e['predicted']['mean']:.3f}, toppled {e['toppled']['mean']:.3f}{_se(e['toppled'])}")
+                     f"{e['predicted']['mean']:.3f}, toppled {e['toppled']['mean']:.3f}{_se(e['toppled'])} (difference "
+                     f"{e['toppled_minus_predicted']['mean']:+.3f}{_se(e['toppled_minus_predicted'])})")
         lines.append("  courses: " + ", ".join(f"{k} {v:.2f}" for k, v in e["courses"].items()))
         if e["topples"]:
-            lines.append(f"  {e['topples']} topples; sides: " + ", ".join(f"{k} {v:.2f}" for k, v in e["sides"].items()))
+            untouched = f" (and {e['untouched_topples']} with no finger on it)" if e["untouched_topples"] else ""
+            lines.append(f"  {e['topples']} pushed topples{untouched}; sides: " + ", ".join(f"{k} {v:.2f}" for k, v in e["sides"].items()))
             lines.append("  landings against the tipped edge's poses: " + ", ".join(f"{k} {v:.2f}" for k, v in e["landings"].items()))
             lines.append(f"  the rows' probability of the landing pose {e['landing_probability']['mean']:.3f}")
             if e["value_expected"]:

@@ -61,7 +61,7 @@ from ..model.landing_trust import BANDS as TRUST_BANDS
 from ..model.landing_trust import checked_shares, trusted_rows
 from ..model.mdp import IMPROVEMENT, belief_value_iteration, choice_by_means, pose_values, value_iteration_policy
 from ..model.rng import stream
-from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, mean_se, object_plans, open_trials, world_config
+from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, load_planned, mean_se, object_plans, open_trials, world_config
 from .policy_experiment import useful_starts
 from .pushsim import body_model, draw_noise, play_push
 
@@ -513,18 +513,13 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
     budget's: row k is played with ``pushes - k`` pushes left.
     returns : (object id, {trial: {policy: visited poses}} or {"failure": reason}, pushes)
     """
-    from ..model.evaluation import load_object
-    from ..model.mesh import MeshError
-    from ..model.poses import settle, stable_poses
+    from ..model.poses import settle
 
     spec = plan.spec
-    try:
-        obj = load_object(spec, config)
-        pose_set = stable_poses(obj, config.poses)
-    except MeshError as err:
-        return spec.object_id, {"failure": str(err)}, []
-    if len(pose_set.poses) != len(plan.transforms) or not np.allclose(pose_set.transforms, plan.transforms, atol=1e-6):
-        return spec.object_id, {"failure": "its stable poses differ from the dataset's"}, []
+    loaded = load_planned(plan, config)
+    if isinstance(loaded, str):
+        return spec.object_id, {"failure": loaded}, []
+    obj, pose_set = loaded
     body = body_model(obj)
     candidates, scores = extra["candidates"], extra["scores"]
     results: dict[int, dict[str, list[int]]] = {}
