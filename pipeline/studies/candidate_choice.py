@@ -36,7 +36,7 @@ from ..model.config import Config
 from .landing_trust import TrustError, object_datasets, planner_log_arguments, pose_columns
 from .logreader import LogError, read_log
 from .policy_experiment import ACTION_SPAN
-from .pooled_gain import clustered_mean_se
+from .pooled_gain import clustered_entry
 from .robust_policy import next_pose_rows
 from .validation import direction_classes
 
@@ -181,8 +181,7 @@ def summary(c: Candidates, min_class_pushes: int = 4) -> dict:
     chosen, classes, objects = np.array(chosen), np.array(classes), np.array(objects)
 
     def described(values, groups):
-        mean, se, count = clustered_mean_se(np.asarray(values, dtype=float), list(groups))
-        return {"mean": mean, "se": None if np.isnan(se) else se, "objects": count, "starts": len(values)}
+        return clustered_entry(values, groups, "starts")
 
     gap = chosen[:, CHOOSERS.index("oracle")] - chosen[:, CHOOSERS.index("rows")]
     by_class = {}

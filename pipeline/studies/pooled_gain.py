@@ -74,6 +74,13 @@ def clustered_mean_se(values: np.ndarray, clusters: list[str]) -> tuple[float, f
     return mean, float(np.sqrt(groups / (groups - 1) * np.sum(residual**2)) / n), groups
 
 
+def clustered_entry(values, clusters, counted: str) -> dict:
+    """``clustered_mean_se`` as a report's entry: {"mean", "se" (None below two clusters), "objects": the
+    number of clusters, ``counted``: the number of values} (the studies cluster by object)."""
+    mean, se, count = clustered_mean_se(np.asarray(values, dtype=float), list(clusters))
+    return {"mean": mean, "se": None if np.isnan(se) else se, "objects": count, counted: len(values)}
+
+
 def pool(paths: list[str | Path], policy: str = "value_iteration", baseline: str = "max_height") -> dict:
     """The gain of ``policy`` over ``baseline`` pooled over the runs' counted trials, with three
     standard errors: over runs (of the runs' means), over trials (as if independent) and clustered by

@@ -45,7 +45,7 @@ from ..model.outcomes import StablePose
 from ..model.rng import stream
 from .candidate_choice import CLASSES, direction_class
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, dataset_config, load_planned, object_plans, world_config
-from .pooled_gain import clustered_mean_se
+from .pooled_gain import clustered_entry
 from .robust_policy import next_pose_rows
 
 KINDS = ("tips first", "slides, then tips", "tips, falls back", "slides or turns, no tip", "stalls", "stays", "no contact")
@@ -253,6 +253,7 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
         others = np.delete(np.arange(len(row)), pose)
         expected = float(row[others] @ plan.v_s[others] / topple) if topple > 0 else None
         name = CLASSES[direction_class(np.array([direction[2]]))[0]]
+        center_mass = transform_points(transform, obj.center_mass[None])[0]  # (3,), pose frame
         rng = stream(seed, f"{plan.spec.object_id}/course/{pose}/{action}", pose, PURPOSE)
         for _ in range(repeats):
             played, c = traced_play(body, transform, to_object[:3, :3] @ point + to_object[:3, 3], to_object[:3, :3] @ direction,
@@ -262,7 +263,6 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
             side = landing = probability = landed_value = None
             if toppled:
                 side = tip_side(tip_angle(c.tip_direction, played.direction))
-                center_mass = transform_points(transform, obj.center_mass[None])[0]
                 lean = lean_in_pose_frame(c.tip_direction, transform, played.start_transform)
                 edge, _ = tipped_edge(pose_set.poses[pose], center_mass, lean)
                 landing = landing_kind(pose_set.poses[pose], edge, landed)
@@ -274,12 +274,16 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
     return plays
 
 
+def _play_named(object_id: str, *arguments) -> tuple[str, list[Play] | str]:
+    """``play_object``'s result with the object it is for (``map_unordered`` hands results back as they finish)."""
+    return object_id, play_object(*arguments)
+
+
 def summary(plays: list[Play]) -> dict:
     """By direction class: calibration, the courses' shares, and for the topples their sides, landings and values."""
 
     def described(values, groups):
-        mean, se, count = clustered_mean_se(np.asarray(values, dtype=float), list(groups))
-        return {"mean": mean, "se": None if np.isnan(se) else se, "objects": count, "plays": len(values)}
+        return clustered_entry(values, groups, "plays")
 
     def shares(labels, names):
         labels = list(labels)
@@ -304,16 +308,15 @@ def summary(plays: list[Play]) -> dict:
             "untouched_topples": sum(p.toppled and p.kind == "no contact" for p in mine),
         }
         if topples:
-            where = [p.object_id for p in topples]
             valued = [p for p in topples if p.value_expected is not None]
+            of = [p.object_id for p in valued]
             entry.update({
                 "sides": shares((p.side for p in topples), SIDES),
                 "landings": shares((p.landing for p in topples), LANDINGS),
-                "landing_probability": described([p.landing_probability for p in topples], where),
-                "value_expected": described([p.value_expected for p in valued], [p.object_id for p in valued]) if valued else None,
-                "value_landed": described([p.value_landed for p in valued], [p.object_id for p in valued]) if valued else None,
-                "value_landed_minus_expected": described([p.value_landed - p.value_expected for p in valued],
-                                                         [p.object_id for p in valued]) if valued else None,
+                "landing_probability": described([p.landing_probability for p in topples], [p.object_id for p in topples]),
+                "value_expected": described([p.value_expected for p in valued], of) if valued else None,
+                "value_landed": described([p.value_landed for p in valued], of) if valued else None,
+                "value_landed_minus_expected": described([p.value_landed - p.value_expected for p in valued], of) if valued else None,
             })
         result[name] = entry
     return result
@@ -322,32 +325,29 @@ def summary(plays: list[Play]) -> dict:
 def study(root: str | Path, policy: str = "value_iteration", per_class: int = 70, repeats: int = 5, seed: int = 53,
           world: Config | None = None, workers: int | None = 1) -> dict:
     """The chosen pushes of ``policy`` on the dataset at ``root``, traced in physics (``summary``)."""
-    from joblib import Parallel, delayed
-
     from schema.reader import Dataset, DatasetUnreadable
+
+    from ..build.fanout import map_unordered
+    from .landing_trust import pose_columns
 
     if policy not in POLICIES:
         raise ExperimentError(f"unknown policy {policy!r}; one of {', '.join(POLICIES)}")
     try:
         dataset = Dataset.open(root)
-        poses = dataset.table("poses", columns=["object_id", "pose", "n_actions"]).sort_by([("object_id", "ascending"), ("pose", "ascending")])
+        n_actions = {object_id: c["n_actions"].tolist() for object_id, c in pose_columns(dataset, ["n_actions"]).items()}
     except DatasetUnreadable as err:
         raise ExperimentError(str(err)) from None
     config = dataset_config(dataset)
     world = world_config("thesis") if world is None else world
-    n_actions: dict[str, list[int]] = {}
-    for object_id, count in zip(poses["object_id"].to_pylist(), poses["n_actions"].to_pylist()):
-        n_actions.setdefault(object_id, []).append(int(count))
     plans = object_plans(dataset, sorted(n_actions))
     chosen = chosen_pushes(plans, policy, per_class, seed)
     by_object: dict[str, list[tuple[int, int]]] = {}
     for object_id, pose, action in chosen:
         by_object.setdefault(object_id, []).append((pose, action))
-    jobs = []
-    for object_id, starts in by_object.items():
-        jobs.append(delayed(play_object)(plans[object_id], starts, next_pose_rows(dataset, object_id, n_actions[object_id]), config, world,
-                                         repeats, seed))
-    played = dict(zip(by_object, Parallel(n_jobs=workers)(jobs)))
+    tasks = [(object_id, plans[object_id], starts, next_pose_rows(dataset, object_id, n_actions[object_id]), config, world, repeats, seed)
+             for object_id, starts in by_object.items()]
+    found = dict(map_unordered(_play_named, tasks, workers, description="objects"))
+    played = {object_id: found[object_id] for object_id in by_object}  # in the draw's order, whatever order they finished in
     failed = {object_id: found for object_id, found in played.items() if isinstance(found, str)}
     plays = [p for found in played.values() if not isinstance(found, str) for p in found]
     return {"dataset": str(root), "policy": policy, "per_class": per_class, "repeats": repeats, "seed": seed,
