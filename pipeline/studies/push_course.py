@@ -184,9 +184,9 @@ def traced_play(body, transform: np.ndarray, point: np.ndarray, direction: np.nd
 
     transforms, pressing = [], []
 
-    def observe(pb, client, finger, pushed):
+    def observe(pb, client, pushed, force):
         transforms.append(_observe(pb, client, pushed, body))
-        pressing.append(sum(c[9] for c in pb.getContactPoints(finger, pushed, physicsClientId=client)))
+        pressing.append(force)  # the player's own per-step sum, not asked of Bullet again
 
     played = play_push(body, transform, point, direction, config, noise, observe=observe)
     return played, course(played.start_transform, np.array(transforms), np.array(pressing), body.center_mass)

@@ -377,8 +377,9 @@ def play_push(
     point : (3,) float, m, contact point, object frame
     direction : (3,) float, push direction, object frame (normalised here)
     noise : the push's perturbation (``draw_noise``); noise-free at the config's means when None
-    observe : called after every step of the finger's stroke as ``observe(pb, client, finger, pushed)``
-      (the finger's and the object's body ids), to trace the push (``push_course``); it must only read
+    observe : called after every step of the finger's stroke as ``observe(pb, client, pushed, pressing)``
+      (the object's body id, and the normal force in N the finger pressed it with at that step), to trace
+      the push (``push_course``); it must only read
 
     The push is mapped to the world through the object's transform observed once it
     has come to rest, as a robot maps a planned push through the pose it sees.
@@ -433,10 +434,10 @@ def drive_finger(pb, client: int, finger: int, path: np.ndarray, pushed: int, li
         pb.stepSimulation(physicsClientId=client)
         applied = np.asarray(pb.getConstraintState(grip, physicsClientId=client)[:3], dtype=float)
         row_limit = finger_row_limit(applied, limit)
-        contacts = pb.getContactPoints(finger, pushed, physicsClientId=client)
-        peak_force = max(peak_force, sum(c[9] for c in contacts))
+        pressing = sum(c[9] for c in pb.getContactPoints(finger, pushed, physicsClientId=client))
+        peak_force = max(peak_force, pressing)
         if observe is not None:
-            observe(pb, client, finger, pushed)
+            observe(pb, client, pushed, pressing)
     pb.removeConstraint(grip, physicsClientId=client)
     return peak_force
 
