@@ -58,8 +58,9 @@ def neighbour_mean(
     rows = np.arange(len(points)) if rows is None else np.asarray(rows, dtype=np.int64)
     finite = np.isfinite(values).all(axis=1)
     if near is None:
-        found = _near(points, directions, rows, radius, max_angle, pool) & finite[None, :] & finite[rows, None]
-        row, neighbour = np.nonzero(found)  # row-major: each row's neighbours in index order
+        row, neighbour, _, _ = _pairs(points, directions, rows, radius, max_angle, pool)  # row-major
+        keep = finite[rows[row]] & finite[neighbour]
+        row, neighbour = row[keep], neighbour[keep]
     else:
         row, neighbour = near.pairs_of(rows, finite)
     count = np.bincount(row, minlength=len(rows))
@@ -133,10 +134,7 @@ def neighbour_pairs(points: np.ndarray, directions: np.ndarray, radius: float = 
     """
     points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
     size = len(points)
-    distance2, cosine = _distances(points, directions, np.arange(size))
-    found = np.flatnonzero(_within(distance2, cosine, np.arange(size), radius, max_angle, pool))  # row-major
-    row, neighbour = np.divmod(found, max(size, 1))
-    return Neighbours(row, neighbour, distance2.ravel()[found], cosine.ravel()[found], size, radius, max_angle)
+    return Neighbours(*_pairs(points, directions, np.arange(size), radius, max_angle, pool), size, radius, max_angle)
 
 
 def neighbours(
@@ -153,6 +151,37 @@ def neighbours(
     """
     points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
     return _near(points, directions, np.array([action]), radius, max_angle)[0]
+
+
+BLOCK = 128
+"""Rows of ``_pairs``' blocks: their (BLOCK, A) arrays stay in cache, where one (A, A) pass of ~1,000
+candidates is 8 MB of fresh memory per temporary (twice as slow for the same arithmetic)."""
+
+
+def _pairs(points: np.ndarray, directions: np.ndarray, rows: np.ndarray, radius: float, max_angle: float,
+           pool: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``_near`` as index pairs, found a block of ``BLOCK`` rows at a time.
+
+    points, directions : (A, 3) float;  rows : (R,) int;  pool : as ``_near``
+    returns : row (M,) int, a place in ``rows``;  neighbour (M,) int;  distance2 (M,) float, m^2;
+      cosine (M,) float: ``_distances`` of the pairs ``_near`` finds, row-major (each row's neighbours
+      in index order)
+    """
+    size = len(points)
+    parts = []
+    for first in range(0, len(rows), BLOCK):
+        # A block is ``_distances`` of some rows against every candidate: each value is the one all rows
+        # at once would give, as the rows a mean asks for (``neighbour_mean``) already rely on.  Only the
+        # columns must not be cut: BLAS's kernel for a product's last few columns rounds differently.
+        block = rows[first:first + BLOCK]
+        distance2, cosine = _distances(points, directions, block)
+        found = np.flatnonzero(_within(distance2, cosine, block, radius, max_angle, pool))  # row-major
+        parts.append((found + first * size, distance2.ravel()[found], cosine.ravel()[found]))
+    if not parts:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+    found, distance2, cosine = (np.concatenate(part) for part in zip(*parts))
+    row, neighbour = np.divmod(found, max(size, 1))
+    return row, neighbour, distance2, cosine
 
 
 def _near(points: np.ndarray, directions: np.ndarray, rows: np.ndarray, radius: float, max_angle: float,
