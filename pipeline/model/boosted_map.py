@@ -223,25 +223,59 @@ def boosted_probability(features: np.ndarray, trees: BoostedTrees) -> np.ndarray
     n_pushes = len(features)
     if n_pushes == 0:
         return np.empty(0)
-    roots, left, right = _skip_shared_splits(features, trees)
-    child = np.column_stack([right, left]).ravel()  # (2 N,): node 2 i + (x <= threshold) is i's next
-    values = features.ravel()  # push a's feature f at a F + f: one gather a step instead of two
-    node = np.repeat(roots, n_pushes)  # (T A,), tree-major
-    start = np.tile(np.arange(n_pushes) * features.shape[1], len(trees.roots))  # (T A,)
+    old, roots, n_inner, child, threshold, offset = _walk_tables(features, trees)
+    n_trees = len(roots)
+    columns = np.ascontiguousarray(features.T)  # (F, A): pair t A + a reads feature f at f A + a + offset
+    values = columns.ravel()
     missing = np.isnan(values).any()  # an ok push has no NaN feature: the check is skipped for the engine
-    # Only the pairs still above a leaf are stepped: trees stop at depths from 1 to about 15.
-    walking = np.flatnonzero(~trees.leaf[node])
-    while walking.size:
-        at = node[walking]
-        x = values[start[walking] + trees.feature[at]]
-        go_left = x <= trees.threshold[at]  # False for NaN, which goes where missing_left says
+    node = np.repeat(roots, n_pushes).reshape(n_trees, n_pushes)  # (T, A), new numbers, tree-major
+    # The first step, from the roots, a tree at a time: all its pushes read one column against one threshold.
+    walk = np.flatnonzero(node[:, 0] < n_inner)  # (t,), the trees whose root is no leaf
+    at = node[walk, 0]
+    x = columns[trees.feature[old[at]]]  # (t, A)
+    go_left = x <= threshold[at, None]  # False for NaN, which goes where missing_left says
+    if missing:
+        go_left = np.where(np.isnan(x), trees.missing_left[old[at], None], go_left)
+    node[walk] = at = child[2 * at[:, None] + go_left]
+    node, pair = node.ravel(), (walk[:, None] * n_pushes + np.arange(n_pushes)).ravel()
+    # Then the pairs still above a leaf, a level a step: trees stop at depths from 1 to about 15.
+    keep = np.flatnonzero(at.ravel() < n_inner)
+    pair, at = pair.take(keep), at.ravel().take(keep)
+    while pair.size:
+        x = values[pair + offset[at]]
+        go_left = x <= threshold[at]
         if missing:
             nan = np.isnan(x)
-            go_left[nan] = trees.missing_left[at[nan]]
-        node[walking] = child[2 * at + go_left]
-        walking = walking[~trees.leaf[node[walking]]]
-    raw = trees.baseline + trees.value[node].reshape(len(trees.roots), n_pushes).sum(axis=0)  # (A,)
+            go_left[nan] = trees.missing_left[old[at[nan]]]
+        node[pair] = at = child[2 * at + go_left]
+        keep = np.flatnonzero(at < n_inner)  # inner nodes are numbered first
+        pair, at = pair.take(keep), at.take(keep)
+    raw = trees.baseline + trees.value[old][node].reshape(n_trees, n_pushes).sum(axis=0)  # (A,)
     return 1.0 / (1.0 + np.exp(-raw))
+
+
+def _walk_tables(features: np.ndarray, trees: BoostedTrees) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray,
+                                                                      np.ndarray]:
+    """The nodes renumbered for ``boosted_probability``'s walk: the inner ones first (a walk ends where the
+    number reaches n_inner, a comparison instead of a lookup), each with what a step reads, shared splits
+    resolved (``_skip_shared_splits``).
+
+    features : (A, F) float
+    returns : old (N,) int, each new number's node;  roots (T,) int, new numbers;  n_inner : int;
+      child (2 n_inner,) int, new number 2 i + (x <= threshold) is inner node i's next;
+      threshold (n_inner,) float;  offset (n_inner,) int, added to pair t A + a to read its feature at f A + a
+    """
+    roots, left, right = _skip_shared_splits(features, trees)
+    n_nodes = len(trees.leaf)
+    old = np.argsort(trees.leaf, kind="stable")  # (N,): new number -> node
+    new = np.empty(n_nodes, dtype=np.int64)
+    new[old] = np.arange(n_nodes)
+    n_inner = n_nodes - int(np.count_nonzero(trees.leaf))
+    inner = old[:n_inner]
+    child = new[np.column_stack([right[inner], left[inner]])].ravel()
+    tree = np.repeat(np.arange(len(trees.roots)), np.diff(np.append(trees.roots, n_nodes)))  # (N,)
+    offset = (trees.feature[inner] - tree[inner]) * len(features)
+    return old, new[roots], n_inner, child, trees.threshold[inner], offset
 
 
 def _skip_shared_splits(features: np.ndarray, trees: BoostedTrees) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
