@@ -169,11 +169,16 @@ def _pairs(points: np.ndarray, directions: np.ndarray, rows: np.ndarray, radius:
     """
     size = len(points)
     parts = []
-    for first in range(0, len(rows), BLOCK):
+    bounds = list(range(0, len(rows), BLOCK)) + [len(rows)]
+    if len(bounds) > 2 and bounds[-1] - bounds[-2] == 1:
+        # A lone last row would be a matrix-vector product, which rounds otherwise than the block's
+        # matrix product: it joins the block before.
+        del bounds[-2]
+    for first, stop in zip(bounds[:-1], bounds[1:]):
         # A block is ``_distances`` of some rows against every candidate: each value is the one all rows
         # at once would give, as the rows a mean asks for (``neighbour_mean``) already rely on.  Only the
         # columns must not be cut: BLAS's kernel for a product's last few columns rounds differently.
-        block = rows[first:first + BLOCK]
+        block = rows[first:stop]
         distance2, cosine = _distances(points, directions, block)
         found = np.flatnonzero(_within(distance2, cosine, block, radius, max_angle, pool))  # row-major
         parts.append((found + first * size, distance2.ravel()[found], cosine.ravel()[found]))
