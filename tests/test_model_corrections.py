@@ -671,3 +671,27 @@ def test_the_force_limit_and_the_stroke_are_inclusive(box, corrections):
     assert edge[0] == far and force[0] == free[0]
     edge, force = trial_outcomes(trials, edges, obj.mass, noise_free(corrections=corrections, **{field: np.nextafter(needed, 0.0)}))
     assert edge[0] == OUTCOME_NO_EDGE and force[0] == np.inf
+
+
+def test_each_edge_alone_gets_the_bits_it_gets_among_all_edges():
+    """C.2's balance runs only on the (trial, edge) pairs whose face recedes from the finger: a trial's
+    force and verdict over an edge are the same to the bit whether the edge comes alone or among the
+    pose's others (other pairs kept), and the pairs left out are exactly those that cannot tip."""
+    rng = np.random.default_rng(7)
+    n = 400
+    normal = rng.normal(size=(n, 3))
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    push = -normal + 0.6 * rng.normal(size=(n, 3))
+    push /= np.linalg.norm(push, axis=1)[:, None]
+    contact = rng.uniform([-0.6, -0.6, 0.0], [0.6, 0.6, 1.0], (n, 3))
+    trials = Trials(contact, normal, push, rng.uniform(0.2, 1.0, n), rng.uniform(0.0, 1.0, n), rng.random(n) < 0.95,
+                    np.zeros(n))
+    edges = _square_edges([0.1, -0.05, 0.4])
+    for spin_stops in (True, False):
+        force, passes = sliding_contact(trials, edges, 0.3, 9.81, 1.0, spin_stops)  # (n, 4) each
+        for e in range(4):
+            alone = EdgeGeometry(**{f: getattr(edges, f)[[e]] for f in EdgeGeometry.__dataclass_fields__})
+            force_e, passes_e = sliding_contact(trials, alone, 0.3, 9.81, 1.0, spin_stops)
+            assert force_e[:, 0].tobytes() == force[:, e].tobytes() and np.array_equal(passes_e[:, 0], passes[:, e])
+        assert passes.any() and not passes.all() and np.isfinite(force).any() and np.isinf(force).any()
+        assert not passes[~trials.valid].any()

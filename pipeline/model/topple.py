@@ -260,11 +260,17 @@ def trial_outcomes(trials: Trials, edges: EdgeGeometry, mass: float, config: Top
         # block's gemm); compute every row instead, the invalid ones fail on ``valid``.
         live = np.arange(n)
     kept = trials.take(live)  # (m, ...)
-    kept = replace(kept, contact=np.nan_to_num(kept.contact), normal=np.nan_to_num(kept.normal))  # (m, 3) each
+    if not kept.valid.all():
+        # Only where invalid rows came along: a valid row's ray hit, so its contact and normal are finite.
+        kept = replace(kept, contact=np.nan_to_num(kept.contact), normal=np.nan_to_num(kept.normal))  # (m, 3) each
+    kept_edge, kept_required = np.empty(len(live), dtype=np.intp), np.empty(len(live))  # (m,) each
     for rows in _row_tiles(len(live), len(edges.com_distance)):
-        edge[live[rows]], required[live[rows]] = _tile_outcomes(
-            kept.take(rows), edges, mass, config, corrections
-        )  # (r,) each, for the tile's r valid trials
+        kept_edge[rows], kept_required[rows] = _least_force_edges(kept.take(rows), edges, mass, config, corrections)
+    # The corrections below look at one edge per trial, or at few trials: whole-block arrays, one
+    # pass each instead of one per tile (all row-wise, so the same numbers).
+    _check_corrections(kept, edges, kept_edge, kept_required, mass, config, corrections)
+    edge[live] = np.where(np.isfinite(kept_required), kept_edge, OUTCOME_NO_EDGE)
+    required[live] = kept_required
     return edge, required
 
 
@@ -294,11 +300,12 @@ def _unit_rows(vectors: np.ndarray) -> np.ndarray:
     return vectors / norm
 
 
-def _tile_outcomes(
+def _least_force_edges(
     trials: Trials, edges: EdgeGeometry, mass: float, config: ToppleConfig, corrections: frozenset[str]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``trial_outcomes`` on one tile of r trials (contact and normal finite): edge (r,) int,
-    required_force (r,) float, N.  corrections : ``config.applied_corrections``"""
+    """The least-force passing edge (10.6) of each trial of one tile of r trials (contact and normal
+    finite): edge (r,) int (any index where none passes), required_force (r,) float, N (inf where
+    none).  corrections : ``config.applied_corrections``"""
     gravity, max_force = config.gravity, config.max_finger_force
     # C.9 (``edge_spin``): a moment about the vertical turns the object without stopping the
     # topple, so the limit surface (7.9) keeps only its force term.
@@ -310,12 +317,23 @@ def _tile_outcomes(
     if "force_limit" in corrections:
         # A finger pushes (F* > 0: a negative F* means the centre of mass is already past
         # the edge, not a push) and no harder than the arm can (MODEL.md C.1).
-        passes = passes & (force > 0.0) & (force <= max_force)
-    n = len(force)
+        passes &= force > 0.0
+        passes &= force <= max_force
     candidate = np.where(passes, force, np.inf)  # (n, E)
     # (10.6): the least-force passing edge; a row of all inf means no edge passes.
     edge = np.argmin(candidate, axis=1)  # (n,)
-    required = candidate[np.arange(n), edge]  # (n,), N
+    return edge, candidate[np.arange(len(edge)), edge]
+
+
+def _check_corrections(
+    trials: Trials, edges: EdgeGeometry, edge: np.ndarray, required: np.ndarray, mass: float, config: ToppleConfig,
+    corrections: frozenset[str],
+) -> None:
+    """Apply the corrections that follow the least-force edge (C.10, C.14, C.11) to a block of n
+    trials, in place: ``required`` (n,) float, N, becomes inf where the topple does not happen,
+    and ``edge``/``required`` take the stuck finger's edge and force where it tips a trial."""
+    gravity, max_force = config.gravity, config.max_finger_force
+    spin_stops = config.predicts_rotations and "edge_spin" not in corrections
     if "stroke" in corrections:
         # C.10: the object tips over the least-force edge, and falls back unless the finger's
         # stroke carries it to that edge's apex.  Only the chosen edge is checked.
@@ -343,11 +361,13 @@ def _tile_outcomes(
             # A lone row would make the matrix products 1-row ones (a gemv, other last bits than
             # the gemm of a block, as in ``trial_outcomes``): evaluate it twice, keep the first.
             both = np.append(rows, rows) if len(rows) == 1 else rows
-            stuck_edge, stuck_force = stuck_finger(trials.take(both), edges, mass, gravity, max_force)  # (r,) each
+            stuck = trials.take(both)
+            stuck_edge, stuck_force = np.empty(len(both), dtype=np.intp), np.empty(len(both))
+            for tile in _row_tiles(len(both), len(edges.com_distance)):
+                stuck_edge[tile], stuck_force[tile] = stuck_finger(stuck.take(tile), edges, mass, gravity, max_force)
             stuck_edge, stuck_force = stuck_edge[: len(rows)], stuck_force[: len(rows)]
             takes = np.isfinite(stuck_force)
             edge[rows[takes]], required[rows[takes]] = stuck_edge[takes], stuck_force[takes]
-    return np.where(np.isfinite(required), edge, OUTCOME_NO_EDGE), required
 
 
 def stuck_finger(
@@ -400,25 +420,32 @@ def holds_along_tip(
     returns : (r,) bool
     """
     u, normal, contact = trials.push, trials.normal, trials.contact  # (r, 3) each
-    e, y0, apex = edges.direction[edge], edges.start[edge], edges.apex_angle[edge]  # (r, 3), (r, 3), (r,)
-    # Each row's own edge as (r, 1) columns: ``_sliding_balance`` then works row by row.
-    ex, ey, y0x, y0y = e[:, 0:1], e[:, 1:2], y0[:, 0:1], y0[:, 1:2]
+    e, y0 = edges.direction[edge], edges.start[edge]  # (r, 3) each
     origin = edges.origin[edge]  # (r, 3)
-    origin_x, origin_y, half_span = origin[:, 0:1], origin[:, 1:2], edges.half_span[edge][:, None]
     offset = contact - y0  # (r, 3), p - y0
-    holds = np.ones(len(edge), dtype=bool)
-    for k in range(1, points + 1):
-        theta = apex * (k / (points + 1))  # (r,), rad
-        turned = np.einsum("rij,rj->ri", axis_angle_matrices(e, theta), normal)  # (r, 3), n_t
-        approach = np.einsum("ij,ij->i", turned, u)  # (r,), n_t . u
-        reaches = approach < 0.0
-        gap = np.einsum("ij,ij->i", normal - turned, offset)  # (r,), (n - n_t) . (p - y0)
-        finger = contact + (gap / np.where(reaches, approach, -1.0))[:, None] * u  # (r, 3), q
-        inside = (edges.com_distance[edge] * (np.sin(apex - theta) / np.sin(apex)))[:, None]  # (r, 1), d_e(theta), m
-        force, passes = _sliding_balance(replace(trials, contact=finger, normal=turned), ex, ey, y0x, y0y, inside,
-                                         origin_x, origin_y, half_span, mass, gravity, friction_scale, spin_stops)  # (r, 1) each
-        holds &= reaches & passes[:, 0] & (force[:, 0] <= max_force)
-    return holds
+    # Every k's points for all r trials at once, k-major: (points r, ...) rows, each the same
+    # numbers as one k's pass (``_sliding_balance`` is row-wise).
+    stacked = lambda v: np.concatenate([v] * points)  # noqa: E731
+    # theta and what depends on it alone are per (k, edge): (points, E) tables, read per row.
+    apex = edges.apex_angle  # (E,), rad
+    theta = [apex * (k / (points + 1)) for k in range(1, points + 1)]  # (E,) each, rad
+    turned = np.concatenate([np.einsum("rij,rj->ri", axis_angle_matrices(edges.direction, t)[edge], normal)
+                             for t in theta])  # (points r, 3), n_t
+    # d_e sin(theta_e - theta) / sin(theta_e) of each row's edge, (points r, 1), m
+    inside = np.concatenate([(edges.com_distance * (np.sin(apex - t) / np.sin(apex)))[edge] for t in theta])[:, None]
+    u, normal, contact, offset = stacked(u), stacked(normal), stacked(contact), stacked(offset)
+    approach = np.einsum("ij,ij->i", turned, u)  # (points r,), n_t . u
+    reaches = approach < 0.0
+    gap = np.einsum("ij,ij->i", normal - turned, offset)  # (points r,), (n - n_t) . (p - y0)
+    finger = contact + (gap / np.where(reaches, approach, -1.0))[:, None] * u  # (points r, 3), q
+    at_point = Trials(finger, turned, u, stacked(trials.mu_table), stacked(trials.mu_finger), stacked(trials.valid),
+                      stacked(trials.stuck_draw))
+    column = lambda v: stacked(v)[:, None]  # noqa: E731, (points r, 1)
+    force, passes = _sliding_balance(at_point, column(e[:, 0]), column(e[:, 1]), column(y0[:, 0]), column(y0[:, 1]),
+                                     inside, column(origin[:, 0]), column(origin[:, 1]), column(edges.half_span[edge]),
+                                     mass, gravity, friction_scale, spin_stops)  # (points r, 1) each
+    holds_at = reaches & passes[:, 0] & (force[:, 0] <= max_force)  # (points r,)
+    return holds_at.reshape(points, len(edge)).all(axis=0)
 
 
 def drags_base(push: np.ndarray, mu_table: np.ndarray) -> np.ndarray:
@@ -562,6 +589,11 @@ def _sliding_balance(
     ex, ey : e's components;  y0x, y0y : y0's;  com_distance : d_e, m;  origin_x, origin_y : O_e's, m
     half_span : h_e, m
     returns : force, passes: (n, E) or (n, 1)
+
+    Only the (trial, edge) pairs whose face recedes from the finger can tip (about a quarter of
+    them, ``follows``): the balance runs on those pairs alone, as 1-D arrays, and the others keep
+    force inf and passes False, which is what the conditions give them.  Each pair's numbers are
+    the same operations in the same order as on the whole grid, so the same bits.
     """
     u, normal, contact = trials.push, trials.normal, trials.contact  # (n, 3) each, finite (``trial_outcomes``)
     col = lambda a, k: a[:, k : k + 1]  # noqa: E731, (n, 1) column k of an (n, 3) array
@@ -576,60 +608,71 @@ def _sliding_balance(
     face_speed = vx * col(normal, 0)
     face_speed += vy * col(normal, 1)
     face_speed += vz * col(normal, 2)  # (n, E), v_e . n
-    approach = np.einsum("nk,nk->n", u, normal)[:, None]  # (n, 1), u . n < 0: the finger moves into the face
-    into = approach < 0.0  # (n, 1)
+    approach = np.einsum("nk,nk->n", u, normal)  # (n,), u . n < 0: the finger moves into the face
     # The face recedes from the advancing finger (MIN_PUSH_TORQUE: v_e . n is also the
     # frictionless torque per newton, so the same cut as (7.4)).
-    follows = into & (face_speed < -MIN_PUSH_TORQUE)  # (n, E)
-    advance = np.where(follows, face_speed / np.where(into, approach, -1.0), 0.0)  # (n, E), s_e >= 0
-    # v_rel = v_e - s_e u, one component at a time into fresh (n, E) arrays.
-    rx = vx - advance * col(u, 0)
-    ry = np.multiply(advance, col(u, 1), out=face_speed)  # face_speed is not needed any more
+    follows = (approach < 0.0)[:, None] & (face_speed < -MIN_PUSH_TORQUE)  # (n, E)
+    force = np.full(follows.shape, np.inf)  # (n, E), N
+    passes = np.zeros(follows.shape, dtype=bool)  # (n, E)
+    pair = np.flatnonzero(follows)  # (K,): the pairs that follow, as places in the row-major (n, E) grid
+    if len(pair) == 0:
+        return force, passes
+    # From here on 1-D arrays over the K pairs (``take`` of flat places, the cheapest gather): a trial's
+    # value at the pair's row, an edge's at its edge ((n, 1) edge columns, one edge per trial, at its row).
+    row, edge = np.divmod(pair, follows.shape[1])  # (K,) each
+    at_row = lambda a, k: a[:, k].take(row)  # noqa: E731, (K,) column k of an (n, 3) array
+    at_edge = lambda v: v.take(edge) if np.ndim(v) == 1 else v[:, 0].take(row)  # noqa: E731, of (E,) or (n, 1)
+    vx, vy, vz = vx.take(pair), vy.take(pair), vz.take(pair)  # (K,) each, v_e
+    advance = face_speed.take(pair) / approach.take(row)  # (K,), s_e = v_e . n / u . n > 0
+    # v_rel = v_e - s_e u
+    rx = vx - advance * at_row(u, 0)
+    ry = np.multiply(advance, at_row(u, 1))
     np.subtract(vy, ry, out=ry)
-    rz = np.multiply(advance, col(u, 2), out=advance)
-    np.subtract(vz, rz, out=rz)  # (n, E) each, v_rel
+    rz = np.multiply(advance, at_row(u, 2), out=advance)
+    np.subtract(vz, rz, out=rz)  # (K,) each, v_rel
     slide = rx * rx
     slide += ry * ry
     slide += rz * rz
-    np.sqrt(slide, out=slide)  # (n, E), |v_rel|, m per rad
+    np.sqrt(slide, out=slide)  # (K,), |v_rel|, m per rad
     # No sliding (v_e along u): the contact sticks and friction does no work; take t = 0.
     sliding = slide > MIN_PUSH_TORQUE
-    mu = (friction_scale * trials.mu_finger)[:, None]  # (n, 1), k mu_f
+    mu = (friction_scale * trials.mu_finger).take(row)  # (K,), k mu_f
     friction = np.where(sliding, slide, 1.0)
     np.divide(mu, friction, out=friction)
     friction = np.where(sliding, friction, 0.0)
-    np.negative(friction, out=friction)  # (n, E): f_hat = -n + friction v_rel
+    np.negative(friction, out=friction)  # (K,): f_hat = -n + friction v_rel
     fx = np.multiply(friction, rx, out=rx)
-    fx -= col(normal, 0)
+    fx -= at_row(normal, 0)
     fy = np.multiply(friction, ry, out=ry)
-    fy -= col(normal, 1)
+    fy -= at_row(normal, 1)
     fz = np.multiply(friction, rz, out=rz)
-    fz -= col(normal, 2)  # (n, E) each, f_hat = friction v_rel - n
+    fz -= at_row(normal, 2)  # (K,) each, f_hat = friction v_rel - n
     torque = fx * vx
     torque += fy * vy
-    torque += fz * vz  # (n, E), tau_e = f_hat . v_e, m
-    rotates = follows & (torque > MIN_PUSH_TORQUE) & (com_distance > 0.0)  # (n, E)
+    torque += fz * vz  # (K,), tau_e = f_hat . v_e, m
+    com = at_edge(com_distance)  # (K,), d_e, m
+    rotates = (torque > MIN_PUSH_TORQUE) & (com > 0.0)  # (K,)
     weight = mass * gravity
-    normal_force = np.where(rotates, weight * com_distance / np.where(rotates, torque, 1.0), 0.0)  # (n, E), F_n*
+    normal_force = np.where(rotates, weight * com / np.where(rotates, torque, 1.0), 0.0)  # (K,), F_n*
     fx *= normal_force
     fy *= normal_force
-    fz *= normal_force  # (n, E) each, f, N
-    table = weight - fz  # (n, E), the edge's normal force, N
+    fz *= normal_force  # (K,) each, f, N
+    table = weight - fz  # (K,), the edge's normal force, N
     force_xy = fx * fx
-    force_xy += fy * fy  # (n, E), |f_xy|^2, shared by load and |f|
+    force_xy += fy * fy  # (K,), |f_xy|^2, shared by load and |f|
     if spin_stops:
-        # ((p - O_e) x f)_z with (p - O_e)_xy as (n, 1) - (E,) columns.
-        tau_z = (col(contact, 0) - origin_x) * fy
-        tau_z -= (col(contact, 1) - origin_y) * fx  # (n, E)
-        tau_z /= half_span
-        load = force_xy + np.square(tau_z, out=tau_z)  # (n, E), |f_xy|^2 + (tau_z / h_e)^2, N^2
+        # ((p - O_e) x f)_z
+        tau_z = (at_row(contact, 0) - at_edge(origin_x)) * fy
+        tau_z -= (at_row(contact, 1) - at_edge(origin_y)) * fx  # (K,)
+        tau_z /= at_edge(half_span)
+        load = force_xy + np.square(tau_z, out=tau_z)  # (K,), |f_xy|^2 + (tau_z / h_e)^2, N^2
     else:
-        load = force_xy.copy()  # (n, E), |f_xy|^2, N^2: force_xy goes on to become |f|
-    mu_t = trials.mu_table[:, None]  # (n, 1)
-    holds = (table > 0.0) & (mu_t > 0.0) & (load <= (mu_t * table) ** 2)  # (n, E), (7.9) with the whole f
-    passes = rotates & holds & trials.valid[:, None]  # (n, E)
+        load = force_xy.copy()  # (K,), |f_xy|^2, N^2: force_xy goes on to become |f|
+    mu_t = trials.mu_table.take(row)  # (K,)
+    holds = (table > 0.0) & (mu_t > 0.0) & (load <= (mu_t * table) ** 2)  # (K,), (7.9) with the whole f
+    passes.ravel()[pair] = rotates & holds & trials.valid.take(row)  # ravel of a new array: a view
     force_xy += fz * fz
-    force = np.where(rotates, np.sqrt(force_xy, out=force_xy), np.inf)  # (n, E), |f|, N
+    force.ravel()[pair] = np.where(rotates, np.sqrt(force_xy, out=force_xy), np.inf)  # |f|, N
     return force, passes
 
 
