@@ -15,6 +15,7 @@ numpy only: the service and the pipeline's studies share it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -174,7 +175,7 @@ def _pairs(points: np.ndarray, directions: np.ndarray, rows: np.ndarray, radius:
         # A lone last row would be a matrix-vector product, which rounds otherwise than the block's
         # matrix product: it joins the block before.
         del bounds[-2]
-    for first, stop in zip(bounds[:-1], bounds[1:]):
+    for first, stop in pairwise(bounds):
         # A block is ``_distances`` of some rows against every candidate: each value is the one all rows
         # at once would give, as the rows a mean asks for (``neighbour_mean``) already rely on.  Only the
         # columns must not be cut: BLAS's kernel for a product's last few columns rounds differently.

@@ -8,8 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from schema.neighbourhood import (BLOCK, MAX_ANGLE, RADIUS, Neighbours, _distances, _within, neighbour_mean,
-                                  neighbour_pairs, neighbours)
+from schema.neighbourhood import BLOCK, MAX_ANGLE, RADIUS, Neighbours, _distances, _within, neighbour_mean, neighbour_pairs, neighbours
 from tests.test_service import client, dataset, planar_transform, stored_transform, tables, xyz  # noqa: F401 (fixtures)
 
 

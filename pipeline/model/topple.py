@@ -162,7 +162,10 @@ class Trials:
 
     def take(self, rows) -> Trials:
         """The trials at ``rows`` (an index array or slice) of every field."""
-        return Trials(*(getattr(self, f)[rows] for f in Trials.__dataclass_fields__))
+        if isinstance(rows, slice):
+            return Trials(*(getattr(self, f)[rows] for f in Trials.__dataclass_fields__))  # views
+        # ``take`` along the rows: the same copy as fancy indexing, several times faster for (n, 3) arrays.
+        return Trials(*(getattr(self, f).take(rows, axis=0) for f in Trials.__dataclass_fields__))
 
 
 def noisy_trials(
@@ -225,12 +228,12 @@ def noisy_trials(
     contact = np.full((a * t, 3), np.nan)  # (n, 3), NaN where the ray missed
     normal = np.full((a * t, 3), np.nan)  # (n, 3)
     contact[rays] = transform_points(transform, hits)
-    hit_normal = obj.mesh.face_normals[faces] @ transform[:3, :3].T  # (h, 3), pose frame
+    hit_normal = obj.mesh.face_normals.take(faces, axis=0) @ transform[:3, :3].T  # (h, 3), pose frame
     normal[rays] = hit_normal  # each ray hits at most once (first hits only)
     valid = np.zeros(a * t, dtype=bool)  # (n,)
     # Front face iff n' . r < 0 (8.3): an exact sign test, a grazing hit (n' . r ~ 0) is
     # as good as any other, so no tolerance.
-    valid[rays] = np.einsum("ij,ij->i", hit_normal, ray[rays]) < 0.0
+    valid[rays] = np.einsum("ij,ij->i", hit_normal, ray.take(rays, axis=0)) < 0.0
     return Trials(contact, normal, push, noise.mu_table.ravel(), noise.mu_finger.ravel(), valid, noise.stuck_draw.ravel())
 
 
@@ -420,19 +423,19 @@ def holds_along_tip(
     returns : (r,) bool
     """
     u, normal, contact = trials.push, trials.normal, trials.contact  # (r, 3) each
-    e, y0 = edges.direction[edge], edges.start[edge]  # (r, 3) each
-    origin = edges.origin[edge]  # (r, 3)
+    rows_of = lambda a: a.take(edge, axis=0)  # each row's edge's entry of an (E, ...) array
+    e, y0, origin = rows_of(edges.direction), rows_of(edges.start), rows_of(edges.origin)  # (r, 3) each
     offset = contact - y0  # (r, 3), p - y0
     # Every k's points for all r trials at once, k-major: (points r, ...) rows, each the same
     # numbers as one k's pass (``_sliding_balance`` is row-wise).
-    stacked = lambda v: np.concatenate([v] * points)  # noqa: E731
+    stacked = lambda v: np.concatenate([v] * points)
     # theta and what depends on it alone are per (k, edge): (points, E) tables, read per row.
     apex = edges.apex_angle  # (E,), rad
     theta = [apex * (k / (points + 1)) for k in range(1, points + 1)]  # (E,) each, rad
-    turned = np.concatenate([np.einsum("rij,rj->ri", axis_angle_matrices(edges.direction, t)[edge], normal)
+    turned = np.concatenate([np.einsum("rij,rj->ri", rows_of(axis_angle_matrices(edges.direction, t)), normal)
                              for t in theta])  # (points r, 3), n_t
     # d_e sin(theta_e - theta) / sin(theta_e) of each row's edge, (points r, 1), m
-    inside = np.concatenate([(edges.com_distance * (np.sin(apex - t) / np.sin(apex)))[edge] for t in theta])[:, None]
+    inside = np.concatenate([rows_of(edges.com_distance * (np.sin(apex - t) / np.sin(apex))) for t in theta])[:, None]
     u, normal, contact, offset = stacked(u), stacked(normal), stacked(contact), stacked(offset)
     approach = np.einsum("ij,ij->i", turned, u)  # (points r,), n_t . u
     reaches = approach < 0.0
@@ -440,9 +443,9 @@ def holds_along_tip(
     finger = contact + (gap / np.where(reaches, approach, -1.0))[:, None] * u  # (points r, 3), q
     at_point = Trials(finger, turned, u, stacked(trials.mu_table), stacked(trials.mu_finger), stacked(trials.valid),
                       stacked(trials.stuck_draw))
-    column = lambda v: stacked(v)[:, None]  # noqa: E731, (points r, 1)
+    column = lambda v: stacked(v)[:, None]  # (points r, 1)
     force, passes = _sliding_balance(at_point, column(e[:, 0]), column(e[:, 1]), column(y0[:, 0]), column(y0[:, 1]),
-                                     inside, column(origin[:, 0]), column(origin[:, 1]), column(edges.half_span[edge]),
+                                     inside, column(origin[:, 0]), column(origin[:, 1]), column(rows_of(edges.half_span)),
                                      mass, gravity, friction_scale, spin_stops)  # (points r, 1) each
     holds_at = reaches & passes[:, 0] & (force[:, 0] <= max_force)  # (points r,)
     return holds_at.reshape(points, len(edge)).all(axis=0)
@@ -476,8 +479,8 @@ def finger_travel(trials: Trials, edges: EdgeGeometry, edge: np.ndarray) -> np.n
     returns : (r,) float, m
     """
     p, n, u = trials.contact, trials.normal, trials.push  # (r, 3) each
-    offset = p - edges.start[edge]  # (r, 3), p - y0 of each row's edge
-    apex_normal = np.einsum("rij,rj->ri", edges.tip_rotation[edge], n)  # (r, 3), n_a
+    offset = p - edges.start.take(edge, axis=0)  # (r, 3), p - y0 of each row's edge
+    apex_normal = np.einsum("rij,rj->ri", edges.tip_rotation.take(edge, axis=0), n)  # (r, 3), n_a
     approach = np.einsum("rk,rk->r", apex_normal, u)  # (r,), n_a . u
     gap = np.einsum("rk,rk->r", n - apex_normal, offset)  # (r,), (n - n_a) . (p - y0)
     toward = approach < 0.0
@@ -620,8 +623,8 @@ def _sliding_balance(
     # From here on 1-D arrays over the K pairs (``take`` of flat places, the cheapest gather): a trial's
     # value at the pair's row, an edge's at its edge ((n, 1) edge columns, one edge per trial, at its row).
     row, edge = np.divmod(pair, follows.shape[1])  # (K,) each
-    at_row = lambda a, k: a[:, k].take(row)  # noqa: E731, (K,) column k of an (n, 3) array
-    at_edge = lambda v: v.take(edge) if np.ndim(v) == 1 else v[:, 0].take(row)  # noqa: E731, of (E,) or (n, 1)
+    at_row = lambda a, k: a[:, k].take(row)  # (K,) column k of an (n, 3) array
+    at_edge = lambda v: v.take(edge) if np.ndim(v) == 1 else v[:, 0].take(row)  # of (E,) or (n, 1)
     vx, vy, vz = vx.take(pair), vy.take(pair), vz.take(pair)  # (K,) each, v_e
     advance = face_speed.take(pair) / approach.take(row)  # (K,), s_e = v_e . n / u . n > 0
     # v_rel = v_e - s_e u
@@ -767,7 +770,7 @@ def evaluate_pose(
     for chunk in np.array_split(ok, max(1, int(np.ceil(len(ok) / config.chunk_actions)))):
         if len(chunk) == 0:
             continue
-        chunk_noise = TrialNoise(*(getattr(noise, f)[chunk] for f in TrialNoise.__dataclass_fields__))  # (a, T, ...)
+        chunk_noise = TrialNoise(*(getattr(noise, f).take(chunk, axis=0) for f in TrialNoise.__dataclass_fields__))  # (a, T, ...)
         chunk_trials = noisy_trials(
             obj,
             pose.transform,
