@@ -20,7 +20,16 @@ from pipeline.model.config import CORRECTIONS, Config
 from pipeline.model.contacts import explicit_actions
 from pipeline.model.edges import EdgeGeometry, edge_geometry
 from pipeline.model.rng import stream
-from pipeline.model.topple import Trials, evaluate_pose, finger_travel, holds_along_tip, landed_poses, sliding_contact, trial_outcomes
+from pipeline.model.topple import (
+    Trials,
+    _least_passing,
+    evaluate_pose,
+    finger_travel,
+    holds_along_tip,
+    landed_poses,
+    sliding_contact,
+    trial_outcomes,
+)
 from schema.frames import axis_angle_matrices, transform_points
 from schema.vocabulary import OUTCOME_NO_EDGE
 
@@ -695,3 +704,22 @@ def test_each_edge_alone_gets_the_bits_it_gets_among_all_edges():
             assert force_e[:, 0].tobytes() == force[:, e].tobytes() and np.array_equal(passes_e[:, 0], passes[:, e])
         assert passes.any() and not passes.all() and np.isfinite(force).any() and np.isinf(force).any()
         assert not passes[~trials.valid].any()
+
+
+def test_the_least_force_from_the_passing_pairs_is_the_grids_argmin():
+    """(10.6) from the passing pairs alone is ``argmin(where(passes, force, inf))`` over the whole grid and its
+    value: ties go to the first edge, a row with no passing pair keeps inf (its edge is never read)."""
+    rng = np.random.default_rng(3)
+    n, width = 300, 6
+    force = rng.choice([0.5, 1.0, 2.0, 3.0, np.inf], size=(n, width))  # few values: many ties
+    passes = rng.random((n, width)) < 0.3
+    pair = np.flatnonzero(passes)
+    edge, required = _least_passing((n, width), pair, force.ravel()[pair])
+    candidate = np.where(passes, force, np.inf)
+    expected = np.argmin(candidate, axis=1)
+    assert np.array_equal(required, candidate[np.arange(n), expected])
+    some = np.isfinite(required)
+    assert np.array_equal(edge[some], expected[some]) and some.any() and not some.all()
+    ties = (candidate == candidate.min(axis=1, keepdims=True)).sum(axis=1) > 1
+    assert (ties & some).any(), "the test needs rows whose least force two edges share"
+    assert np.isinf(_least_passing((n, width), pair[:0], force.ravel()[:0])[1]).all()

@@ -313,19 +313,45 @@ def _least_force_edges(
     # C.9 (``edge_spin``): a moment about the vertical turns the object without stopping the
     # topple, so the limit surface (7.9) keeps only its force term.
     spin_stops = config.predicts_rotations and "edge_spin" not in corrections
+    # A finger pushes (F* > 0: a negative F* means the centre of mass is already past the edge,
+    # not a push) and no harder than the arm can (MODEL.md C.1).
+    limited = "force_limit" in corrections
     if "finger_friction" in corrections:
-        force, passes = sliding_contact(trials, edges, mass, gravity, config.finger_friction_scale, spin_stops)  # (n, E) each
-    else:
-        force, passes = _thesis_conditions(trials, edges, mass, gravity, spin_stops)
-    if "force_limit" in corrections:
-        # A finger pushes (F* > 0: a negative F* means the centre of mass is already past
-        # the edge, not a push) and no harder than the arm can (MODEL.md C.1).
+        # C.2's pairs that can tip, as 1-D arrays: the least force per trial from those alone.
+        shape, pair, force, passes = sliding_pairs(trials, edges, mass, gravity, config.finger_friction_scale, spin_stops)
+        if limited:
+            passes &= (force > 0.0) & (force <= max_force)
+        return _least_passing(shape, pair[passes], force[passes])
+    force, passes = _thesis_conditions(trials, edges, mass, gravity, spin_stops)  # (n, E) each
+    if limited:
         passes &= force > 0.0
         passes &= force <= max_force
     candidate = np.where(passes, force, np.inf)  # (n, E)
     # (10.6): the least-force passing edge; a row of all inf means no edge passes.
     edge = np.argmin(candidate, axis=1)  # (n,)
     return edge, candidate[np.arange(len(edge)), edge]
+
+
+def _least_passing(shape: tuple[int, int], pair: np.ndarray, force: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(10.6) from the passing pairs alone: ``argmin(where(passes, force, inf), axis=1)`` and its value.
+
+    shape : (n, E), the grid;  pair : (K,) int, passing places in the row-major grid, ascending
+    force : (K,) float, N, theirs
+    returns : edge (n,) int (the first of the least, 0 where none passes), required_force (n,) float,
+      N (inf where none)
+    """
+    edge = np.zeros(shape[0], dtype=np.intp)
+    required = np.full(shape[0], np.inf)
+    if len(pair) == 0:
+        return edge, required
+    row, column = np.divmod(pair, shape[1])  # (K,) each, rows ascending, then columns
+    start = np.flatnonzero(np.r_[True, row[1:] != row[:-1]])  # (G,): each passing row's first pair
+    least = np.minimum.reduceat(force, start)  # (G,)
+    at_least = np.flatnonzero(force == np.repeat(least, np.diff(np.r_[start, len(row)])))  # ascending
+    # argmin's tie rule: the first column with the least force in each row.
+    first = at_least[np.r_[True, row[at_least[1:]] != row[at_least[:-1]]]]  # (G,)
+    edge[row[first]], required[row[first]] = column[first], force[first]
+    return edge, required
 
 
 def _check_corrections(
@@ -575,9 +601,26 @@ def sliding_contact(
 
     returns : force (n, E) float, N (finger force magnitude); passes (n, E) bool
     """
+    return _on_grid(*sliding_pairs(trials, edges, mass, gravity, friction_scale, spin_stops))
+
+
+def sliding_pairs(
+    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, friction_scale: float = 1.0, spin_stops: bool = True
+) -> tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray]:
+    """``sliding_contact`` on the pairs that can tip only (``_sliding_pairs``): shape (n, E), pair (K,) int
+    places in the row-major grid, force (K,) float, N, passes (K,) bool; every other pair has force inf
+    and does not pass."""
     e, y0 = edges.direction, edges.start  # (E, 3) each, horizontal and on the table (e_z = y0_z = 0, section 5)
-    return _sliding_balance(trials, e[:, 0], e[:, 1], y0[:, 0], y0[:, 1], edges.com_distance, edges.origin[:, 0],
-                            edges.origin[:, 1], edges.half_span, mass, gravity, friction_scale, spin_stops)
+    return _sliding_pairs(trials, e[:, 0], e[:, 1], y0[:, 0], y0[:, 1], edges.com_distance, edges.origin[:, 0],
+                          edges.origin[:, 1], edges.half_span, mass, gravity, friction_scale, spin_stops)
+
+
+def _on_grid(shape: tuple[int, int], pair: np.ndarray, force: np.ndarray, passes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``_sliding_pairs``' results on their (n, E) grid: force inf and passes False off the pairs."""
+    force_grid, passes_grid = np.full(shape, np.inf), np.zeros(shape, dtype=bool)
+    force_grid.ravel()[pair] = force  # ravel of a new array: a view
+    passes_grid.ravel()[pair] = passes
+    return force_grid, passes_grid
 
 
 def _sliding_balance(
@@ -592,11 +635,22 @@ def _sliding_balance(
     ex, ey : e's components;  y0x, y0y : y0's;  com_distance : d_e, m;  origin_x, origin_y : O_e's, m
     half_span : h_e, m
     returns : force, passes: (n, E) or (n, 1)
+    """
+    return _on_grid(*_sliding_pairs(trials, ex, ey, y0x, y0y, com_distance, origin_x, origin_y, half_span,
+                                    mass, gravity, friction_scale, spin_stops))
 
-    Only the (trial, edge) pairs whose face recedes from the finger can tip (about a quarter of
-    them, ``follows``): the balance runs on those pairs alone, as 1-D arrays, and the others keep
-    force inf and passes False, which is what the conditions give them.  Each pair's numbers are
-    the same operations in the same order as on the whole grid, so the same bits.
+
+def _sliding_pairs(
+    trials: Trials, ex, ey, y0x, y0y, com_distance, origin_x, origin_y, half_span,
+    mass: float, gravity: float, friction_scale: float, spin_stops: bool,
+) -> tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray]:
+    """``_sliding_balance`` on the (trial, edge) pairs whose face recedes from the finger, the only
+    ones that can tip (about a quarter of them, ``follows``), as 1-D arrays; the others have force
+    inf and do not pass, which is what the conditions give them.  Each pair's numbers are the
+    same operations in the same order as on the whole grid, so the same bits.
+
+    returns : shape (n, E) or (n, 1);  pair (K,) int, the pairs' places in the row-major grid, ascending;
+      force (K,) float, N;  passes (K,) bool
     """
     u, normal, contact = trials.push, trials.normal, trials.contact  # (n, 3) each, finite (``trial_outcomes``)
     col = lambda a, k: a[:, k : k + 1]  # noqa: E731, (n, 1) column k of an (n, 3) array
@@ -615,11 +669,9 @@ def _sliding_balance(
     # The face recedes from the advancing finger (MIN_PUSH_TORQUE: v_e . n is also the
     # frictionless torque per newton, so the same cut as (7.4)).
     follows = (approach < 0.0)[:, None] & (face_speed < -MIN_PUSH_TORQUE)  # (n, E)
-    force = np.full(follows.shape, np.inf)  # (n, E), N
-    passes = np.zeros(follows.shape, dtype=bool)  # (n, E)
     pair = np.flatnonzero(follows)  # (K,): the pairs that follow, as places in the row-major (n, E) grid
     if len(pair) == 0:
-        return force, passes
+        return follows.shape, pair, np.zeros(0), np.zeros(0, dtype=bool)
     # From here on 1-D arrays over the K pairs (``take`` of flat places, the cheapest gather): a trial's
     # value at the pair's row, an edge's at its edge ((n, 1) edge columns, one edge per trial, at its row).
     row, edge = np.divmod(pair, follows.shape[1])  # (K,) each
@@ -673,10 +725,10 @@ def _sliding_balance(
         load = force_xy.copy()  # (K,), |f_xy|^2, N^2: force_xy goes on to become |f|
     mu_t = trials.mu_table.take(row)  # (K,)
     holds = (table > 0.0) & (mu_t > 0.0) & (load <= (mu_t * table) ** 2)  # (K,), (7.9) with the whole f
-    passes.ravel()[pair] = rotates & holds & trials.valid.take(row)  # ravel of a new array: a view
+    passes = rotates & holds & trials.valid.take(row)
     force_xy += fz * fz
-    force.ravel()[pair] = np.where(rotates, np.sqrt(force_xy, out=force_xy), np.inf)  # |f|, N
-    return force, passes
+    force = np.where(rotates, np.sqrt(force_xy, out=force_xy), np.inf)  # (K,), |f|, N
+    return follows.shape, pair, force, passes
 
 
 def _inside_cone(cos: np.ndarray, mu: np.ndarray) -> np.ndarray:
