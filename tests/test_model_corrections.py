@@ -167,6 +167,19 @@ def test_a_push_down_onto_an_overhang_tips_it_with_the_stuck_finger(frustum, x):
     assert landed != index and pose_set.poses[landed].down[2] == pytest.approx(-np.sin(np.arctan2(0.02, 0.06)), abs=1e-3)
 
 
+def test_the_stuck_finger_pushes_no_harder_than_the_finger_can(frustum):
+    """C.11 with the force limit (C.1): the overhang of the test above tips with F = m g a / lever exactly
+    when the limit admits F, whichever tile or block of the engine the trial falls in."""
+    obj, _, _ = frustum
+    direction = np.array([0.87, 0.0, -0.5]) / np.hypot(0.87, 0.5)
+    x = 0.03
+    force = obj.mass * 9.81 * FRUSTUM_BASE / (FRUSTUM_HEIGHT * direction[0] + (x - FRUSTUM_BASE) * -direction[2])
+    for limit, toppled in ((force * (1 + 1e-9), 1.0), (force * (1 - 1e-9), 0.0)):
+        topple = noise_free(corrections="finger_friction,stuck_finger,force_limit", stuck_finger_share=1.0,
+                            max_finger_force=limit)
+        assert _push(frustum, [[x, 0.0, FRUSTUM_HEIGHT]], direction, topple).p_topple.tolist() == [toppled], limit
+
+
 @pytest.mark.parametrize("direction", [[0.0, 0.0, -1.0], [0.26, 0.0, -0.97], [-0.5, 0.0, -0.87], [0.87, 0.0, 0.5]])
 def test_the_stuck_finger_leaves_steep_inward_and_upward_pushes_alone(frustum, direction):
     """Too steep to drag the base (|u_xy| <= mu_T |u_z|: the player leaves the frustum standing
