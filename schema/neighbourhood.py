@@ -15,7 +15,6 @@ numpy only: the service and the pipeline's studies share it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from itertools import pairwise
 
 import numpy as np
 
@@ -59,9 +58,8 @@ def neighbour_mean(
     rows = np.arange(len(points)) if rows is None else np.asarray(rows, dtype=np.int64)
     finite = np.isfinite(values).all(axis=1)
     if near is None:
-        row, neighbour, _, _ = _pairs(points, directions, rows, radius, max_angle, pool)  # row-major
-        keep = finite[rows[row]] & finite[neighbour]
-        row, neighbour = row[keep], neighbour[keep]
+        found = _near(points, directions, rows, radius, max_angle, pool) & finite[None, :] & finite[rows, None]
+        row, neighbour = np.nonzero(found)  # row-major: each row's neighbours in index order
     else:
         row, neighbour = near.pairs_of(rows, finite)
     count = np.bincount(row, minlength=len(rows))
@@ -135,7 +133,10 @@ def neighbour_pairs(points: np.ndarray, directions: np.ndarray, radius: float = 
     """
     points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
     size = len(points)
-    return Neighbours(*_pairs(points, directions, np.arange(size), radius, max_angle, pool), size, radius, max_angle)
+    distance2, cosine = _distances(points, directions, np.arange(size))
+    found = np.flatnonzero(_within(distance2, cosine, np.arange(size), radius, max_angle, pool))  # row-major
+    row, neighbour = np.divmod(found, max(size, 1))
+    return Neighbours(row, neighbour, distance2.ravel()[found], cosine.ravel()[found], size, radius, max_angle)
 
 
 def neighbours(
@@ -152,42 +153,6 @@ def neighbours(
     """
     points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
     return _near(points, directions, np.array([action]), radius, max_angle)[0]
-
-
-BLOCK = 128
-"""Rows of ``_pairs``' blocks: their (BLOCK, A) arrays stay in cache, where one (A, A) pass of ~1,000
-candidates is 8 MB of fresh memory per temporary (twice as slow for the same arithmetic)."""
-
-
-def _pairs(points: np.ndarray, directions: np.ndarray, rows: np.ndarray, radius: float, max_angle: float,
-           pool: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``_near`` as index pairs, found a block of ``BLOCK`` rows at a time.
-
-    points, directions : (A, 3) float;  rows : (R,) int;  pool : as ``_near``
-    returns : row (M,) int, a place in ``rows``;  neighbour (M,) int;  distance2 (M,) float, m^2;
-      cosine (M,) float: ``_distances`` of the pairs ``_near`` finds, row-major (each row's neighbours
-      in index order)
-    """
-    size = len(points)
-    parts = []
-    bounds = list(range(0, len(rows), BLOCK)) + [len(rows)]
-    if len(bounds) > 2 and bounds[-1] - bounds[-2] == 1:
-        # A lone last row would be a matrix-vector product, which rounds otherwise than the block's
-        # matrix product: it joins the block before.
-        del bounds[-2]
-    for first, stop in pairwise(bounds):
-        # A block is ``_distances`` of some rows against every candidate: each value is the one all rows
-        # at once would give, as the rows a mean asks for (``neighbour_mean``) already rely on.  Only the
-        # columns must not be cut: BLAS's kernel for a product's last few columns rounds differently.
-        block = rows[first:stop]
-        distance2, cosine = _distances(points, directions, block)
-        found = np.flatnonzero(_within(distance2, cosine, block, radius, max_angle, pool))  # row-major
-        parts.append((found + first * size, distance2.ravel()[found], cosine.ravel()[found]))
-    if not parts:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
-    found, distance2, cosine = (np.concatenate(part) for part in zip(*parts))
-    row, neighbour = np.divmod(found, max(size, 1))
-    return row, neighbour, distance2, cosine
 
 
 def _near(points: np.ndarray, directions: np.ndarray, rows: np.ndarray, radius: float, max_angle: float,

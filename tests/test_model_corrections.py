@@ -698,7 +698,8 @@ def test_the_force_limit_and_the_stroke_are_inclusive(box, corrections):
 def test_each_edge_alone_gets_the_bits_it_gets_among_all_edges():
     """C.2's balance runs only on the (trial, edge) pairs whose face recedes from the finger: a trial's
     force and verdict over an edge are the same to the bit whether the edge comes alone or among the
-    pose's others (other pairs kept), and the pairs left out are exactly those that cannot tip."""
+    pose's others (other pairs kept).  That they are C.2's, pairs left out included, is what
+    tests/test_reference.py holds trial by trial against the scalar reference."""
     rng = np.random.default_rng(7)
     n = 400
     normal = rng.normal(size=(n, 3))
@@ -736,3 +737,21 @@ def test_the_least_force_from_the_passing_pairs_is_the_grids_argmin():
     ties = (candidate == candidate.min(axis=1, keepdims=True)).sum(axis=1) > 1
     assert (ties & some).any(), "the test needs rows whose least force two edges share"
     assert np.isinf(_least_passing((n, width), pair[:0], force.ravel()[:0])[1]).all()
+    # argmin's other rules: a NaN wins from where it stands, and -0.0 and 0.0 tie (the first is taken).
+    odd = np.array([[1.0, np.nan, 0.5, np.nan], [0.0, -0.0, 2.0, 1.0], [np.inf, np.inf, 3.0, np.inf]])
+    every = np.arange(odd.size)
+    edge, required = _least_passing(odd.shape, every, odd.ravel())
+    assert edge.tolist() == np.argmin(odd, axis=1).tolist() == [1, 0, 2]
+    assert required.tobytes() == odd[np.arange(3), edge].tobytes()
+
+
+def test_trials_take_rows_by_index_mask_or_slice_alike():
+    """``Trials.take`` gathers along the rows with ``ndarray.take``, which would read a boolean mask as
+    indices 0 and 1: a mask, its indices and a slice give the same trials."""
+    rng = np.random.default_rng(5)
+    trials = Trials(rng.random((6, 3)), rng.random((6, 3)), rng.random((6, 3)), rng.random(6), rng.random(6),
+                    rng.random(6) < 0.5, rng.random(6))
+    mask = np.array([False, True, True, True, False, False])
+    for rows in (np.flatnonzero(mask), slice(1, 4)):
+        for field in Trials.__dataclass_fields__:
+            assert np.array_equal(getattr(trials.take(mask), field), getattr(trials.take(rows), field))

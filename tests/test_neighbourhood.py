@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from schema.neighbourhood import BLOCK, MAX_ANGLE, RADIUS, Neighbours, _distances, _within, neighbour_mean, neighbour_pairs, neighbours
+from schema.neighbourhood import MAX_ANGLE, RADIUS, Neighbours, neighbour_mean, neighbour_pairs, neighbours
 from tests.test_service import client, dataset, planar_transform, stored_transform, tables, xyz  # noqa: F401 (fixtures)
 
 
@@ -138,25 +138,6 @@ def test_neighbours_found_once_give_every_mean_bit_for_bit():
                                   near=Neighbours(self_only, self_only, np.zeros(300), np.ones(300), 300, RADIUS, MAX_ANGLE))
     assert np.array_equal(alone, values[:, 0], equal_nan=True) and count.max() == 1, "the pairs given are the ones read"
     assert 3 < neighbour_mean(points, directions, values[:, 0], pool=250)[1].mean(), "the test needs real neighbourhoods"
-
-
-@pytest.mark.parametrize("size", [BLOCK - 1, BLOCK, BLOCK + 1, 2 * BLOCK + 1, 2 * BLOCK + 2])
-def test_pairs_found_a_block_at_a_time_are_those_of_one_pass_to_the_bit(size):
-    """``neighbour_pairs`` works through blocks of rows: its pairs, distances and cosines are those of every
-    row at once, also where the rows leave one over (a lone row is a matrix-vector product, which rounds
-    otherwise: it must join the block before)."""
-    rng = np.random.default_rng(size)
-    points = rng.uniform(-0.03, 0.03, (size, 3))
-    directions = np.array([1.0, 0.0, 0.0]) + 0.4 * rng.normal(size=(size, 3))
-    directions /= np.linalg.norm(directions, axis=1)[:, None]
-    every = np.arange(size)
-    distance2, cosine = _distances(points, directions, every)  # one pass over all rows
-    found = np.flatnonzero(_within(distance2, cosine, every, RADIUS, MAX_ANGLE, size - 3))
-    near = neighbour_pairs(points, directions, pool=size - 3)
-    assert np.array_equal(near.row * size + near.neighbour, found)
-    assert near.distance2.tobytes() == distance2.ravel()[found].tobytes()
-    assert near.cosine.tobytes() == cosine.ravel()[found].tobytes()
-    assert len(found) > 2 * size, "the test needs real neighbourhoods"
 
 
 def test_every_mean_is_summed_in_index_order_whatever_blas_threads_it_may_use():

@@ -74,8 +74,9 @@ TILE_ELEMENTS = 65536
 """Entries per row tile: (trial, edge) entries in ``trial_outcomes``, (trial, xyz) entries
 in ``noisy_trials``' rotations.  A whole block (n ~ 25 000 trials x E edges) in one pass
 would make each of the conditions' temporaries several MB; tiles bound that.  The size
-weighs cache against Python's cost per numpy call: the corrected model makes about 150
-calls per tile (C.2's balance, C.14's two points, C.11), and at 8192 entries (64 kB per
+weighs cache against Python's cost per numpy call: the corrected model made about 150
+calls per tile (C.2's balance, C.14's two points, C.11; since stop 54 C.14 and C.11 run once
+per block, and C.2 on the pairs that can tip), and at 8192 entries (64 kB per
 array, stop 8's choice for the thesis's few passes) that overhead was a seventh of the
 engine's time.  On 8 bench objects, four interleaved rounds (``reports/bench.json``,
 ``tile_sizes``), the median took 9.25 s at 8192, 8.24 s at 32768, 7.57 s at 65536 and
@@ -161,9 +162,12 @@ class Trials:
     stuck_draw: np.ndarray
 
     def take(self, rows) -> Trials:
-        """The trials at ``rows`` (an index array or slice) of every field."""
+        """The trials at ``rows`` (an index array, boolean mask or slice) of every field."""
         if isinstance(rows, slice):
             return Trials(*(getattr(self, f)[rows] for f in Trials.__dataclass_fields__))  # views
+        rows = np.asarray(rows)
+        if rows.dtype == bool:
+            rows = np.flatnonzero(rows)  # ``take`` would read a mask as indices 0 and 1
         # ``take`` along the rows: the same copy as fancy indexing, several times faster for (n, 3) arrays.
         return Trials(*(getattr(self, f).take(rows, axis=0) for f in Trials.__dataclass_fields__))
 
@@ -248,10 +252,11 @@ def trial_outcomes(trials: Trials, edges: EdgeGeometry, mass: float, config: Top
     Rows are trials (n), columns edges (E): per-trial columns (n, 1) broadcast against
     per-edge rows (E,) into (n, E).  An invalid trial passes no edge ((7.10) and C.2 both
     require ``valid``), so only the valid rows are computed and the others keep "no edge"
-    at infinite force, which is exactly what the conditions give them; the valid rows'
-    contacts and normals are finite (``nan_to_num`` keeps that a guarantee).  The rows run
-    in ``_row_tiles`` of about ``TILE_ELEMENTS`` (trial, edge) entries (every operation is
-    row-wise, so neither the row selection nor the tiling changes a result).
+    at infinite force, which is exactly what the conditions give them; the rows' contacts and
+    normals are made finite (``nan_to_num``) wherever some are not.  The least-force edge is
+    found in ``_row_tiles`` of about ``TILE_ELEMENTS`` (trial, edge) entries, the corrections that
+    follow it once for the whole block (every operation is row-wise, so neither the row
+    selection nor the tiling changes a result).
     """
     n = len(trials.mu_table)
     corrections = config.applied_corrections  # parsed once, not once per tile
@@ -263,8 +268,8 @@ def trial_outcomes(trials: Trials, edges: EdgeGeometry, mass: float, config: Top
         # block's gemm); compute every row instead, the invalid ones fail on ``valid``.
         live = np.arange(n)
     kept = trials.take(live)  # (m, ...)
-    if not kept.valid.all():
-        # Only where invalid rows came along: a valid row's ray hit, so its contact and normal are finite.
+    if not (np.isfinite(kept.contact).all() and np.isfinite(kept.normal).all()):
+        # Only where needed (the engine's valid rows hit the mesh, so they are finite): a copy each.
         kept = replace(kept, contact=np.nan_to_num(kept.contact), normal=np.nan_to_num(kept.normal))  # (m, 3) each
     kept_edge, kept_required = np.empty(len(live), dtype=np.intp), np.empty(len(live))  # (m,) each
     for rows in _row_tiles(len(live), len(edges.com_distance)):
@@ -337,8 +342,8 @@ def _least_passing(shape: tuple[int, int], pair: np.ndarray, force: np.ndarray) 
 
     shape : (n, E), the grid;  pair : (K,) int, passing places in the row-major grid, ascending
     force : (K,) float, N, theirs
-    returns : edge (n,) int (the first of the least, 0 where none passes), required_force (n,) float,
-      N (inf where none)
+    returns : edge (n,) int (argmin's: the first of the least, or the first NaN; 0 where none passes),
+      required_force (n,) float, N (inf where none)
     """
     edge = np.zeros(shape[0], dtype=np.intp)
     required = np.full(shape[0], np.inf)
@@ -346,9 +351,9 @@ def _least_passing(shape: tuple[int, int], pair: np.ndarray, force: np.ndarray) 
         return edge, required
     row, column = np.divmod(pair, shape[1])  # (K,) each, rows ascending, then columns
     start = np.flatnonzero(np.r_[True, row[1:] != row[:-1]])  # (G,): each passing row's first pair
-    least = np.minimum.reduceat(force, start)  # (G,)
-    at_least = np.flatnonzero(force == np.repeat(least, np.diff(np.r_[start, len(row)])))  # ascending
-    # argmin's tie rule: the first column with the least force in each row.
+    least = np.minimum.reduceat(force, start)  # (G,), NaN where the row has a NaN force
+    # argmin's rule: the first column with the least force in each row, or with NaN if the row has one.
+    at_least = np.flatnonzero((force == np.repeat(least, np.diff(np.r_[start, len(row)]))) | np.isnan(force))
     first = at_least[np.r_[True, row[at_least[1:]] != row[at_least[:-1]]]]  # (G,)
     edge[row[first]], required[row[first]] = column[first], force[first]
     return edge, required
@@ -360,7 +365,9 @@ def _check_corrections(
 ) -> None:
     """Apply the corrections that follow the least-force edge (C.10, C.14, C.11) to a block of n
     trials, in place: ``required`` (n,) float, N, becomes inf where the topple does not happen,
-    and ``edge``/``required`` take the stuck finger's edge and force where it tips a trial."""
+    and ``edge`` (n,) int and ``required`` take the stuck finger's edge and force where it tips a
+    trial.  A row with ``required`` inf carries an arbitrary edge (0), which the checks read
+    harmlessly and ``trial_outcomes`` replaces by ``OUTCOME_NO_EDGE``."""
     gravity, max_force = config.gravity, config.max_finger_force
     spin_stops = config.predicts_rotations and "edge_spin" not in corrections
     if "stroke" in corrections:
@@ -448,6 +455,8 @@ def holds_along_tip(
     trials : r trials whose least-force edge passed at the start;  edge : (r,) int, that edge
     returns : (r,) bool
     """
+    if points < 1:
+        return np.ones(len(edge), dtype=bool)  # no point between: nothing to check
     u, normal, contact = trials.push, trials.normal, trials.contact  # (r, 3) each
     rows_of = lambda a: a.take(edge, axis=0)  # each row's edge's entry of an (E, ...) array
     e, y0, origin = rows_of(edges.direction), rows_of(edges.start), rows_of(edges.origin)  # (r, 3) each
@@ -460,8 +469,10 @@ def holds_along_tip(
     theta = [apex * (k / (points + 1)) for k in range(1, points + 1)]  # (E,) each, rad
     turned = np.concatenate([np.einsum("rij,rj->ri", rows_of(axis_angle_matrices(edges.direction, t)), normal)
                              for t in theta])  # (points r, 3), n_t
-    # d_e sin(theta_e - theta) / sin(theta_e) of each row's edge, (points r, 1), m
-    inside = np.concatenate([rows_of(edges.com_distance * (np.sin(apex - t) / np.sin(apex))) for t in theta])[:, None]
+    # d_e sin(theta_e - theta) / sin(theta_e) of each row's edge, (points r, 1), m.  The table covers every
+    # edge; an edge with d_e = 0 (apex 0) gives 0 / 0 there, but no row reads it (its edge passed, so d_e > 0).
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inside = np.concatenate([rows_of(edges.com_distance * (np.sin(apex - t) / np.sin(apex))) for t in theta])[:, None]
     u, normal, contact, offset = stacked(u), stacked(normal), stacked(contact), stacked(offset)
     approach = np.einsum("ij,ij->i", turned, u)  # (points r,), n_t . u
     reaches = approach < 0.0
