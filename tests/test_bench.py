@@ -18,3 +18,17 @@ def test_bench_smoke_prints_json_with_the_agreed_keys():
         assert result[key] > 0, key
     # The bench re-runs trials through the scalar reference and raises on any disagreement.
     assert result["reference_trials"] == 10 and "all agree" in run.stdout
+
+
+def test_bench_beside_another_model_times_both_on_the_same_poses():
+    """``--beside thesis`` times the thesis model object by object in turn with the default and reports
+    its median and the default's time over its own (read from the JSON, never asserted against a goal)."""
+    run = subprocess.run(
+        [sys.executable, "-m", "pipeline.studies.bench", "--objects", "2", "--reference-trials", "2", "--beside", "thesis"],
+        capture_output=True, text=True, timeout=300, check=True,
+    )
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    beside = result["beside"]
+    assert beside["config"] == "thesis" and beside["median_s_per_pose"] > 0
+    assert beside["ratio_total"] > 0 and beside["ratio_median_per_pose"] > 0
+    assert "beside thesis" in run.stdout

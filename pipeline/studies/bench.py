@@ -50,6 +50,35 @@ def pin_to_one_core() -> int:
     return cpu
 
 
+def model_seconds(pose_seconds: dict[str, list[float]]) -> np.ndarray:
+    """A pose's toppling-model time from ``evaluate_object``'s ``pose_seconds``: its candidate pushes,
+    its toppling table, and its share of the contacts every pose shares.  returns : (P,) float, s"""
+    shared = pose_seconds["shared_contacts"][0] / len(pose_seconds["topple"])
+    return np.array(pose_seconds["actions"]) + np.array(pose_seconds["topple"]) + shared
+
+
+def beside(n_objects: int, config: Config, other: Config) -> dict:
+    """Time ``config``'s model and ``other``'s on the same objects, object by object in turn (which goes
+    first alternating), so that a machine whose speed drifts from minute to minute slows both alike.
+
+    returns : other's median s per pose, and config's time over other's: the ratio of their totals
+      over every pose, and the median of the per-pose ratios
+    """
+    seconds: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
+    for i, spec in enumerate(bench_specs(n_objects)):
+        for which in ((0, 1) if i % 2 == 0 else (1, 0)):
+            model = (config, other)[which]
+            timed: dict[str, list[float]] = {}
+            evaluate_object(load_object(spec, model), model, pose_seconds=timed)
+            seconds[which].append(model_seconds(timed))
+    mine, theirs = np.concatenate(seconds[0]), np.concatenate(seconds[1])  # (P,) each: the same poses
+    return {
+        "median_s_per_pose": round(float(np.median(theirs)), 4),
+        "ratio_total": round(float(mine.sum() / theirs.sum()), 3),
+        "ratio_median_per_pose": round(float(np.median(mine / theirs)), 3),
+    }
+
+
 def run(n_objects: int, reference_trials: int, config: Config) -> dict:
     """Time ``evaluate_object`` (the dataset job's own per-object evaluation) on each object,
     per pose, and re-run a subsample of its trials in the scalar reference."""
@@ -63,10 +92,7 @@ def run(n_objects: int, reference_trials: int, config: Config) -> dict:
         seconds: dict[str, list[float]] = {}
         result = evaluate_object(obj, config, pose_seconds=seconds)
         poses, tables, all_actions = result.poses, result.topple, result.actions
-        # A pose's model time: its candidate pushes, its toppling table, and its share of the
-        # contacts every pose shares.
-        shared = seconds["shared_contacts"][0] / len(poses)
-        per_pose = np.array(seconds["actions"]) + np.array(seconds["topple"]) + shared
+        per_pose = model_seconds(seconds)
         pose_seconds += per_pose.tolist()
         engine_seconds += float(per_pose.sum())
         engine_trials += sum(int((a.status == STATUS_OK).sum()) for a in all_actions) * topple.trials
@@ -118,10 +144,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--objects", type=int, default=20, help="random corpus objects to time (default 20)")
     parser.add_argument("--reference-trials", type=int, default=400, help="trials re-run by the scalar reference")
     parser.add_argument("--config", metavar="PRESET|FILE.toml", help="model parameters, e.g. thesis (default: the dataset's defaults)")
+    parser.add_argument("--beside", metavar="PRESET|FILE.toml",
+                        help="also time this model on the same objects, in turn with --config's, and report the ratio "
+                             "(e.g. thesis: read on a machine whose speed drifts)")
     args = parser.parse_args(argv)
     from ..cli import make_config
 
     config = make_config(argparse.Namespace(config=args.config, overrides=[], seed=None))
+    other = make_config(argparse.Namespace(config=args.beside, overrides=[], seed=None)) if args.beside else None
     cpu = pin_to_one_core()
     print(f"toppledb bench: {args.objects} pybullet random objects, all stable poses, "
           f"{config.contacts.n_contacts} contacts x {config.topple.trials} trials, variant {config.topple.variant}, CPU {cpu} only")
@@ -132,6 +162,10 @@ def main(argv: list[str] | None = None) -> None:
           f"(all agree); engine speed-up {result['speedup_vs_reference']}x per trial")
     print(f"suction V_s      median {result['vs_median_s_per_pose']:.3f} s/pose")
     print(f"value iteration  median {result['vi_median_s_per_object'] * 1e3:.2f} ms/object")
+    if other is not None:
+        result["beside"] = {"config": args.beside, **beside(args.objects, config, other)}
+        print(f"beside {args.beside}: median {result['beside']['median_s_per_pose']:.3f} s/pose; this model takes "
+              f"{result['beside']['ratio_total']}x its time (objects in turn; per-pose median {result['beside']['ratio_median_per_pose']}x)")
     print(f"peak memory      {result['peak_rss_mb']} MB")
     print(json.dumps(result))
 
