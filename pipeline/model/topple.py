@@ -260,6 +260,9 @@ def trial_outcomes(trials: Trials, edges: EdgeGeometry, mass: float, config: Top
     """
     n = len(trials.mu_table)
     corrections = config.applied_corrections  # parsed once, not once per tile
+    # C.9 (``edge_spin``): a moment about the vertical turns the object without stopping the
+    # topple, so the limit surface (7.9) keeps only its force term.
+    spin_stops = config.predicts_rotations and "edge_spin" not in corrections
     edge = np.full(n, OUTCOME_NO_EDGE, dtype=np.intp)  # (n,)
     required = np.full(n, np.inf)  # (n,), N
     live = np.flatnonzero(trials.valid)  # (m,) valid rows
@@ -273,10 +276,11 @@ def trial_outcomes(trials: Trials, edges: EdgeGeometry, mass: float, config: Top
         kept = replace(kept, contact=np.nan_to_num(kept.contact), normal=np.nan_to_num(kept.normal))  # (m, 3) each
     kept_edge, kept_required = np.empty(len(live), dtype=np.intp), np.empty(len(live))  # (m,) each
     for rows in _row_tiles(len(live), len(edges.com_distance)):
-        kept_edge[rows], kept_required[rows] = _least_force_edges(kept.take(rows), edges, mass, config, corrections)
+        kept_edge[rows], kept_required[rows] = _least_force_edges(kept.take(rows), edges, mass, config, corrections,
+                                                                    spin_stops)
     # The corrections below look at one edge per trial, or at few trials: whole-block arrays, one
     # pass each instead of one per tile (all row-wise, so the same numbers).
-    _check_corrections(kept, edges, kept_edge, kept_required, mass, config, corrections)
+    _check_corrections(kept, edges, kept_edge, kept_required, mass, config, corrections, spin_stops)
     edge[live] = np.where(np.isfinite(kept_required), kept_edge, OUTCOME_NO_EDGE)
     required[live] = kept_required
     return edge, required
@@ -309,15 +313,12 @@ def _unit_rows(vectors: np.ndarray) -> np.ndarray:
 
 
 def _least_force_edges(
-    trials: Trials, edges: EdgeGeometry, mass: float, config: ToppleConfig, corrections: frozenset[str]
+    trials: Trials, edges: EdgeGeometry, mass: float, config: ToppleConfig, corrections: frozenset[str], spin_stops: bool
 ) -> tuple[np.ndarray, np.ndarray]:
     """The least-force passing edge (10.6) of each trial of one tile of r trials (contact and normal
     finite): edge (r,) int (any index where none passes), required_force (r,) float, N (inf where
-    none).  corrections : ``config.applied_corrections``"""
+    none).  corrections : ``config.applied_corrections``;  spin_stops : as ``trial_outcomes`` finds it"""
     gravity, max_force = config.gravity, config.max_finger_force
-    # C.9 (``edge_spin``): a moment about the vertical turns the object without stopping the
-    # topple, so the limit surface (7.9) keeps only its force term.
-    spin_stops = config.predicts_rotations and "edge_spin" not in corrections
     # A finger pushes (F* > 0: a negative F* means the centre of mass is already past the edge,
     # not a push) and no harder than the arm can (MODEL.md C.1).
     limited = "force_limit" in corrections
@@ -329,8 +330,7 @@ def _least_force_edges(
         return _least_passing(shape, pair[passes], force[passes])
     force, passes = _thesis_conditions(trials, edges, mass, gravity, spin_stops)  # (n, E) each
     if limited:
-        passes &= force > 0.0
-        passes &= force <= max_force
+        passes &= (force > 0.0) & (force <= max_force)
     candidate = np.where(passes, force, np.inf)  # (n, E)
     # (10.6): the least-force passing edge; a row of all inf means no edge passes.
     edge = np.argmin(candidate, axis=1)  # (n,)
@@ -361,7 +361,7 @@ def _least_passing(shape: tuple[int, int], pair: np.ndarray, force: np.ndarray) 
 
 def _check_corrections(
     trials: Trials, edges: EdgeGeometry, edge: np.ndarray, required: np.ndarray, mass: float, config: ToppleConfig,
-    corrections: frozenset[str],
+    corrections: frozenset[str], spin_stops: bool,
 ) -> None:
     """Apply the corrections that follow the least-force edge (C.10, C.14, C.11) to a block of n
     trials, in place: ``required`` (n,) float, N, becomes inf where the topple does not happen,
@@ -369,7 +369,6 @@ def _check_corrections(
     trial.  A row with ``required`` inf carries an arbitrary edge (0), which the checks read
     harmlessly and ``trial_outcomes`` replaces by ``OUTCOME_NO_EDGE``."""
     gravity, max_force = config.gravity, config.max_finger_force
-    spin_stops = config.predicts_rotations and "edge_spin" not in corrections
     if "stroke" in corrections:
         # C.10: the object tips over the least-force edge, and falls back unless the finger's
         # stroke carries it to that edge's apex.  Only the chosen edge is checked.
@@ -462,7 +461,7 @@ def holds_along_tip(
     e, y0, origin = rows_of(edges.direction), rows_of(edges.start), rows_of(edges.origin)  # (r, 3) each
     offset = contact - y0  # (r, 3), p - y0
     # Every k's points for all r trials at once, k-major: (points r, ...) rows, each the same
-    # numbers as one k's pass (``_sliding_balance`` is row-wise).
+    # numbers as one k's pass (``_sliding_pairs`` is row-wise).
     stacked = lambda v: np.concatenate([v] * points)
     # theta and what depends on it alone are per (k, edge): (points, E) tables, read per row.
     apex = edges.apex_angle  # (E,), rad
@@ -481,9 +480,10 @@ def holds_along_tip(
     at_point = Trials(finger, turned, u, stacked(trials.mu_table), stacked(trials.mu_finger), stacked(trials.valid),
                       stacked(trials.stuck_draw))
     column = lambda v: stacked(v)[:, None]  # (points r, 1)
-    force, passes = _sliding_balance(at_point, column(e[:, 0]), column(e[:, 1]), column(y0[:, 0]), column(y0[:, 1]),
-                                     inside, column(origin[:, 0]), column(origin[:, 1]), column(rows_of(edges.half_span)),
-                                     mass, gravity, friction_scale, spin_stops)  # (points r, 1) each
+    force, passes = _on_grid(*_sliding_pairs(at_point, column(e[:, 0]), column(e[:, 1]), column(y0[:, 0]), column(y0[:, 1]),
+                                             inside, column(origin[:, 0]), column(origin[:, 1]),
+                                             column(rows_of(edges.half_span)), mass, gravity, friction_scale,
+                                             spin_stops))  # (points r, 1) each
     holds_at = reaches & passes[:, 0] & (force[:, 0] <= max_force)  # (points r,)
     return holds_at.reshape(points, len(edge)).all(axis=0)
 
@@ -634,32 +634,22 @@ def _on_grid(shape: tuple[int, int], pair: np.ndarray, force: np.ndarray, passes
     return force_grid, passes_grid
 
 
-def _sliding_balance(
-    trials: Trials, ex, ey, y0x, y0y, com_distance, origin_x, origin_y, half_span,
-    mass: float, gravity: float, friction_scale: float, spin_stops: bool,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``sliding_contact``'s balance with its edge quantities given as arrays that broadcast
-    against the trials' (n, 1) columns: (E,) each for every edge of every trial, (n, 1) each
-    for one edge per trial (``holds_along_tip``).  The same operations either way, so a
-    trial's result does not depend on which.
-
-    ex, ey : e's components;  y0x, y0y : y0's;  com_distance : d_e, m;  origin_x, origin_y : O_e's, m
-    half_span : h_e, m
-    returns : force, passes: (n, E) or (n, 1)
-    """
-    return _on_grid(*_sliding_pairs(trials, ex, ey, y0x, y0y, com_distance, origin_x, origin_y, half_span,
-                                    mass, gravity, friction_scale, spin_stops))
-
-
 def _sliding_pairs(
     trials: Trials, ex, ey, y0x, y0y, com_distance, origin_x, origin_y, half_span,
     mass: float, gravity: float, friction_scale: float, spin_stops: bool,
 ) -> tuple[tuple[int, int], np.ndarray, np.ndarray, np.ndarray]:
-    """``_sliding_balance`` on the (trial, edge) pairs whose face recedes from the finger, the only
-    ones that can tip (about a quarter of them, ``follows``), as 1-D arrays; the others have force
-    inf and do not pass, which is what the conditions give them.  Each pair's numbers are the
-    same operations in the same order as on the whole grid, so the same bits.
+    """``sliding_contact``'s balance with its edge quantities given as arrays that broadcast against
+    the trials' (n, 1) columns: (E,) each for every edge of every trial, (n, 1) each for one edge
+    per trial (``holds_along_tip``).  The same operations either way, so a trial's result does not
+    depend on which.
 
+    It runs on the (trial, edge) pairs whose face recedes from the finger, the only ones that can
+    tip (about a quarter of them, ``follows``), as 1-D arrays; the others have force inf and do not
+    pass, which is what the conditions give them.  Each pair's numbers are the same operations in
+    the same order as on the whole grid, so the same bits.
+
+    ex, ey : e's components;  y0x, y0y : y0's;  com_distance : d_e, m;  origin_x, origin_y : O_e's, m
+    half_span : h_e, m
     returns : shape (n, E) or (n, 1);  pair (K,) int, the pairs' places in the row-major grid, ascending;
       force (K,) float, N;  passes (K,) bool
     """
