@@ -32,3 +32,14 @@ def test_bench_beside_another_model_times_both_on_the_same_poses():
     assert beside["config"] == "thesis" and beside["median_s_per_pose"] > 0
     assert beside["ratio_total"] > 0 and beside["ratio_median_per_pose"] > 0
     assert "beside thesis" in run.stdout
+
+
+def test_bench_beside_a_model_with_other_stable_poses_is_refused(tmp_path):
+    """The ratio pairs the two models pose by pose: a model that finds other stable poses is refused by name."""
+    other = tmp_path / "few_poses.toml"
+    other.write_text("[poses]\nmin_probability = 0.3\n")
+    run = subprocess.run(
+        [sys.executable, "-m", "pipeline.studies.bench", "--objects", "1", "--reference-trials", "1", "--beside", str(other)],
+        capture_output=True, text=True, timeout=300, check=False,
+    )
+    assert run.returncode != 0 and "--beside needs a model with the same stable poses; random_000" in run.stderr

@@ -71,6 +71,9 @@ def beside(n_objects: int, config: Config, other: Config) -> dict:
             timed: dict[str, list[float]] = {}
             evaluate_object(load_object(spec, model), model, pose_seconds=timed)
             seconds[which].append(model_seconds(timed))
+        if len(seconds[0][-1]) != len(seconds[1][-1]):
+            raise SystemExit(f"toppledb bench: --beside needs a model with the same stable poses; {spec.object_id} has "
+                             f"{len(seconds[0][-1])} and {len(seconds[1][-1])}")
     mine, theirs = np.concatenate(seconds[0]), np.concatenate(seconds[1])  # (P,) each: the same poses
     return {
         "median_s_per_pose": round(float(np.median(theirs)), 4),
