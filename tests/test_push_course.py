@@ -408,7 +408,7 @@ def test_a_play_refuses_an_object_whose_stable_poses_differ_from_the_datasets(da
 
 def test_the_summary_by_hand_with_topples_clustered_by_object():
     def play(o, toppled, kind, side=None, landing=None, expected=None, landed=None, probability=None, direction="above"):
-        return Play(o, direction, 0.6, toppled, kind, side, landing, expected, landed, probability)
+        return Play(o, direction, 0.6, toppled, kind, side, landing, expected, landed, probability, 0, 0, 1 if toppled else 0)
 
     plays = [play("a", True, "tips first", "away", "first pose", 0.5, 0.7, 0.8),
              play("a", True, "slides, then tips", "towards", "elsewhere", 0.5, 0.1, 0.0),
@@ -443,10 +443,10 @@ def test_the_summary_by_hand_with_topples_clustered_by_object():
 def test_the_summary_keeps_every_class_with_plays_and_leaves_empty_what_it_cannot_estimate():
     # No pushes from above: the classes after it are still summed up.  One object a class: no standard error
     # from one cluster.  Topples whose rows gave them no chance (no expected value): no values at all.
-    plays = [Play("a", "side", 0.2, True, "tips first", "away", "first pose", None, 0.5, 0.0),
-             Play("a", "side", 0.2, False, "stays", None, None, None, None, None),
-             Play("b", "below", 0.9, True, "tips first", "away", "onward", 0.3, 0.6, 0.25),
-             Play("b", "below", 0.9, True, "slides, then tips", "sideways", "first pose", 0.3, 0.2, 0.5)]
+    plays = [Play("a", "side", 0.2, True, "tips first", "away", "first pose", None, 0.5, 0.0, 0, 3, 1),
+             Play("a", "side", 0.2, False, "stays", None, None, None, None, None, 0, 3, 0),
+             Play("b", "below", 0.9, True, "tips first", "away", "onward", 0.3, 0.6, 0.25, 1, 5, 0),
+             Play("b", "below", 0.9, True, "slides, then tips", "sideways", "first pose", 0.3, 0.2, 0.5, 1, 5, 2)]
     s = summary(plays)
     assert list(s) == ["side", "below"]
     side, below = s["side"], s["below"]
@@ -575,15 +575,17 @@ def test_the_command_refuses_a_missing_dataset_and_an_unknown_policy_in_one_line
 def test_the_command_passes_its_defaults_and_flags_to_the_study_and_checks_its_output_first(tmp_path, monkeypatch, capsys):
     calls = []
 
-    def traced(*args):
-        calls.append(args)
-        return {"dataset": str(args[0]), "policy": args[1], "per_class": args[2], "repeats": args[3], "seed": args[4], "pushes": 0,
-                "failed_objects": {}, "by_direction": {}}
+    def traced(*args, keep_plays):
+        calls.append(args + (keep_plays,))
+        result = {"dataset": str(args[0]), "policy": args[1], "per_class": args[2], "repeats": args[3], "seed": args[4],
+                  "pushes": 0, "failed_objects": {}, "by_direction": {}}
+        return {**result, "plays": [{"object_id": "a", "landed": 2}, {"object_id": "b", "landed": -1}]} if keep_plays else result
 
     monkeypatch.setattr(push_course, "study", traced)
     assert main([str(tmp_path)]) == 0
     assert main([str(tmp_path), "--policy", "greedy", "--per-class", "2", "--repeats", "3", "--seed", "4", "--workers", "2"]) == 0
-    (root, policy, per_class, repeats, seed, world, workers), flagged = calls
+    (root, policy, per_class, repeats, seed, world, workers, keep), flagged = calls
+    assert not keep and not flagged[-1]
     # The documented run: value iteration, 70 objects a class, 5 plays, seed 53, one worker, the thesis world's noise.
     assert (str(root), policy, per_class, repeats, seed, workers) == (str(tmp_path), "value_iteration", 70, 5, 53, 1)
     assert world == world_config("thesis") and world != Config()
@@ -595,13 +597,22 @@ def test_the_command_passes_its_defaults_and_flags_to_the_study_and_checks_its_o
     capsys.readouterr()
     assert main([str(tmp_path), "--json", str(tmp_path)]) == 2
     assert calls == [] and "cannot write" in capsys.readouterr().err
+    assert main([str(tmp_path), "--plays", str(tmp_path)]) == 2
+    assert calls == [] and "cannot write" in capsys.readouterr().err
+    # --plays: every play, a JSON line each, and the report without them.
+    plays, report = tmp_path / "plays.jsonl", tmp_path / "report.json"
+    assert main([str(tmp_path), "--plays", str(plays), "--json", str(report)]) == 0
+    assert calls[-1][-1] is True
+    assert [json.loads(line) for line in plays.read_text().splitlines()] == [{"object_id": "a", "landed": 2},
+                                                                             {"object_id": "b", "landed": -1}]
+    assert "plays" not in json.loads(report.read_text())
 
 
 def test_the_study_reports_an_object_it_could_not_play_and_summarises_the_others(dataset, monkeypatch):  # noqa: F811 (fixture)
     def play(plan, starts, rows, config, world, repeats, seed):  # one worker: the fan-out runs it in this process
         if plan.spec.object_id == "random_000":
             return "random_000: its mesh does not load"
-        return [Play(plan.spec.object_id, "side", 0.5, True, "tips first", "away", "first pose", 0.4, 0.6, 1.0)]
+        return [Play(plan.spec.object_id, "side", 0.5, True, "tips first", "away", "first pose", 0.4, 0.6, 1.0, 0, 0, 1)]
 
     monkeypatch.setattr(push_course, "play_object", play)
     monkeypatch.setattr(push_course, "chosen_pushes", lambda plans, policy, per_class, seed: [("random_000", 0, 0), ("random_002", 0, 0)])

@@ -486,13 +486,14 @@ def test_a_landing_from_few_topples_leans_on_the_pose_s_mean_landing():
     np.testing.assert_allclose(landing_prior_rows(rows, 0, 1e12, choosable, 100)[:2], [[0.9, 0.05, 0.05], [0.2, 0.4, 0.4]])
 
 
-@pytest.mark.parametrize("prior", [{"landing_prior": 0.0}, {"landing_trust": (0.0, 0.0, 0.0, 0.0)}])
+@pytest.mark.parametrize("prior", [{"landing_prior": 0.0}, {"landing_trust": (0.0, 0.0, 0.0, 0.0)},
+                                   {"landing_direction": (0.0, 0.0, 0.0)}])
 def test_a_prior_of_no_trials_or_a_full_trust_plays_exactly_what_each_counterpart_plays(dataset, prior):  # noqa: F811 (fixture)
     from pipeline.studies.robust_policy import PRIOR_POLICIES, experiment
 
     report, pushes = experiment(dataset, 8, seed=1, workers=1, **prior)
     name, value = next(iter(prior.items()))
-    assert report[name] == (list(value) if name == "landing_trust" else value)  # the report's JSON holds a list
+    assert report[name] == (list(value) if isinstance(value, tuple) else value)  # the report's JSON holds a list
     played_by = {}
     for push in pushes:
         played_by.setdefault(push.policy, []).append((push.trial, push.object_id, push.pose, push.action, push.after))
@@ -516,7 +517,32 @@ def test_the_study_plays_no_prior_policy_unless_asked_and_refuses_a_negative_pri
     assert main([str(dataset), "--trials", "2", "--landing-trust", "0.5", "0", "1.5", "0"]) == 2
     assert "the untrusted shares are 4 numbers in [0, 1], one per band of drop probability" in capsys.readouterr().err
     assert main([str(dataset), "--trials", "2", "--landing-trust", "0.5", "0", "0", "0", "--landing-prior", "10"]) == 2
-    assert "a landing prior or a landing trust, not both" in capsys.readouterr().err
+    assert "a landing prior, a landing trust or a landing doubted by direction, one at most" in capsys.readouterr().err
+    assert report["landing_direction"] is None
+    assert main([str(dataset), "--trials", "2", "--landing-direction", "0.5", "-0.1", "0"]) == 2
+    assert "the doubted shares are 3 numbers in [0, 1], one per push direction (above, side, below)" in capsys.readouterr().err
+    assert main([str(dataset), "--trials", "2", "--landing-direction", "0.5", "0", "0", "--landing-trust", "0", "0", "0", "0"]) == 2
+    assert "one at most" in capsys.readouterr().err
+
+
+def test_a_landing_doubted_by_direction_plays_the_prior_policies_over_the_doubted_rows(dataset, monkeypatch):  # noqa: F811
+    # The shares reach the planners: the rows they plan over are doubted_rows' of the candidates' own u_z.
+    from pipeline.studies import robust_policy
+    from pipeline.studies.robust_policy import PRIOR_POLICIES, experiment
+
+    seen = []
+    real = robust_policy.doubted_rows
+
+    def spy(rows, pose, direction_z, doubts):
+        seen.append((pose, len(direction_z) == len(rows) and np.all(np.abs(direction_z) <= 1.0), tuple(doubts)))
+        return real(rows, pose, direction_z, doubts)
+
+    monkeypatch.setattr(robust_policy, "doubted_rows", spy)
+    report, pushes = experiment(dataset, 8, seed=1, workers=1, landing_direction=(1.0, 0.5, 0.0))
+    assert report["landing_direction"] == [1.0, 0.5, 0.0]
+    assert seen and all(matches and doubts == (1.0, 0.5, 0.0) for _, matches, doubts in seen)  # one u_z per push
+    assert set(PRIOR_POLICIES) <= set(report["policies"])
+    assert {p.policy for p in pushes} & set(PRIOR_POLICIES)
 
 
 def shaky_landing_pose():

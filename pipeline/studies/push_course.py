@@ -31,6 +31,7 @@ description of mechanisms for the next model step, not a judgement of the model.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,7 @@ import numpy as np
 from schema.frames import transform_points, unit
 from schema.vocabulary import NO_OP, POLICIES
 
+from ..build.atomic import write_text_atomic
 from ..model.config import Config
 from ..model.outcomes import StablePose
 from ..model.rng import stream
@@ -194,7 +196,10 @@ def traced_play(body, transform: np.ndarray, point: np.ndarray, direction: np.nd
 
 @dataclass
 class Play:
-    """One traced play and what the rows say of its push."""
+    """One traced play and what the rows say of its push.
+
+    pose, action : the start and the push;  landed : the pose it came to rest in (-1: outside the pose
+    set; ``pose`` where it stayed)"""
 
     object_id: str
     direction: str
@@ -206,6 +211,9 @@ class Play:
     value_expected: float | None
     value_landed: float | None
     landing_probability: float | None
+    pose: int
+    action: int
+    landed: int
 
 
 def chosen_pushes(plans: dict[str, ObjectPlan], policy: str, per_class: int, seed: int) -> list[tuple[str, int, int]]:
@@ -270,7 +278,7 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
                 probability = float(row[landed] / topple) if topple > 0 and landed >= 0 else 0.0
             plays.append(Play(plan.spec.object_id, name, float(predicted), bool(toppled),
                               course_kind(c, toppled, config.topple.max_finger_force), side, landing,
-                              expected if toppled else None, landed_value, probability))
+                              expected if toppled else None, landed_value, probability, pose, action, int(landed)))
     return plays
 
 
@@ -323,8 +331,9 @@ def summary(plays: list[Play]) -> dict:
 
 
 def study(root: str | Path, policy: str = "value_iteration", per_class: int = 70, repeats: int = 5, seed: int = 53,
-          world: Config | None = None, workers: int | None = 1) -> dict:
-    """The chosen pushes of ``policy`` on the dataset at ``root``, traced in physics (``summary``)."""
+          world: Config | None = None, workers: int | None = 1, keep_plays: bool = False) -> dict:
+    """The chosen pushes of ``policy`` on the dataset at ``root``, traced in physics (``summary``); with
+    ``keep_plays`` every play too, under ``"plays"`` (``Play`` fields, in the draw's order)."""
     from schema.reader import Dataset, DatasetUnreadable
 
     from ..build.fanout import map_unordered
@@ -350,8 +359,11 @@ def study(root: str | Path, policy: str = "value_iteration", per_class: int = 70
     played = {object_id: found[object_id] for object_id in by_object}  # in the draw's order, whatever order they finished in
     failed = {object_id: found for object_id, found in played.items() if isinstance(found, str)}
     plays = [p for found in played.values() if not isinstance(found, str) for p in found]
-    return {"dataset": str(root), "policy": policy, "per_class": per_class, "repeats": repeats, "seed": seed,
-            "pushes": len(chosen), "failed_objects": failed, "by_direction": summary(plays)}
+    result = {"dataset": str(root), "policy": policy, "per_class": per_class, "repeats": repeats, "seed": seed,
+              "pushes": len(chosen), "failed_objects": failed, "by_direction": summary(plays)}
+    if keep_plays:
+        result["plays"] = [vars(p) for p in plays]
+    return result
 
 
 def _se(entry: dict) -> str:
@@ -389,15 +401,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=positive_int, default=1)
     parser.add_argument("--world", default="thesis", help="the simulated world's noise: a preset or a TOML file")
     parser.add_argument("--json", type=Path, help="write the result here")
+    parser.add_argument("--plays", type=Path, metavar="FILE.jsonl",
+                        help="write every play here, a JSON line each (what `landing_direction fit` reads)")
     args = parser.parse_args(argv)
-    if refused_outputs(args.json):
+    if refused_outputs(args.json, args.plays):
         return 2
     try:
-        result = study(args.dataset, args.policy, args.per_class, args.repeats, args.seed, world_config(args.world), args.workers)
+        result = study(args.dataset, args.policy, args.per_class, args.repeats, args.seed, world_config(args.world), args.workers,
+                       keep_plays=args.plays is not None)
     except ExperimentError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    return print_and_record(text(result), result, args.json)
+    plays = result.pop("plays", None)
+    if print_and_record(text(result), result, args.json):
+        return 2
+    if plays is not None:
+        write_text_atomic(args.plays, "".join(json.dumps(p) + "\n" for p in plays))
+    return 0
 
 
 if __name__ == "__main__":

@@ -33,7 +33,9 @@ against physical topple rates of the chosen pushes, where their topples came to 
 the model lands them (``landing_summary``), with per-push diagnostics.  With ``--landing-prior ALPHA``
 it also plays value iteration, ``belief_vi`` and ``belief_horizon_vi`` planned over rows whose landings
 are shrunk toward their pose's mean landing by their topple count (``landing_prior_rows``,
-``PRIOR_POLICIES``), each against its counterpart; with ``--gamma G``, ``--min-direction-z Z``,
+``PRIOR_POLICIES``), each against its counterpart (with ``--landing-trust U...`` over landings moved by the
+landing pose's drop probability instead, and with ``--landing-direction LAMBDA...`` by the push's direction,
+``landing_direction.doubted_rows``); with ``--gamma G``, ``--min-direction-z Z``,
 ``--choice-radius R`` and/or ``--choose-for-repeats [--repeats-then-grasp]``, value iteration, ``belief_vi``,
 ``smoothed_vi`` and ``aware_vi`` planned under that MDP instead of the dataset's (``VARIANT_POLICIES``: another
 discount, other choosable pushes, another choice of value iteration's push), each against its counterpart, so
@@ -57,6 +59,8 @@ from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 
 from ..build.atomic import write_text_atomic
 from ..model.config import Config, MDPConfig, field_range
+from ..model.landing_direction import CLASSES as DIRECTION_CLASSES
+from ..model.landing_direction import checked_doubts, doubted_rows
 from ..model.landing_trust import BANDS as TRUST_BANDS
 from ..model.landing_trust import checked_shares, trusted_rows
 from ..model.mdp import IMPROVEMENT, belief_value_iteration, choice_by_means, pose_values, value_iteration_policy
@@ -446,7 +450,8 @@ def prior_plan(v_s: np.ndarray, prior: list[np.ndarray], mdp: MDPConfig, choosab
                budget_choosable: list[np.ndarray] | None = None, candidates: list[PoseCandidates] | None = None,
                ) -> tuple[dict[str, np.ndarray], dict[str, list], dict[str, list]]:
     """``believing_tables`` of the ``PRIOR_POLICIES`` over ``prior``, every pose's rows with their landings
-    pulled toward a prior (``landing_prior_rows`` or ``landing_trust.trusted_rows``), with ``prior_vi``'s
+    pulled toward a prior (``landing_prior_rows``, ``landing_trust.trusted_rows`` or
+    ``landing_direction.doubted_rows``), with ``prior_vi``'s
     actions (``value_iteration_actions``; ``candidates`` as there) among the actions."""
     actions, q1, budget_q1 = believing_tables(v_s, prior, mdp, choosable, max_pushes,
                                               (PRIOR_BELIEF_POLICY, PRIOR_BELIEF_HORIZON_POLICY), budget_choosable)
@@ -595,7 +600,7 @@ def after_failure_choice(policy: str, pose: int, step: int, ruled_out: np.ndarra
 def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing(), *, max_pushes: int = 3, seed: int = 0,
                workers: int | None = 1, world: Config | None = None, progress: bool = False,
                exclusion: Exclusion = Exclusion(), landing_prior: float | None = None,
-               landing_trust: tuple[float, ...] | None = None,
+               landing_trust: tuple[float, ...] | None = None, landing_direction: tuple[float, ...] | None = None,
                variant: dict[str, float | bool] | None = None, per_trial: bool = False) -> tuple[dict, list[Push]]:
     """Play the ``COMPARED`` policies (and the ``PRIOR_POLICIES`` with a landing prior, the
     ``VARIANT_POLICIES`` under another MDP); the report
@@ -613,6 +618,9 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
     landing_trust : the untrusted share of a landing per band of its pose's drop probability
       (``landing_trust.trusted_rows``); given, the ``PRIOR_POLICIES`` are played over the trusted rows
       (stop 50), as with a landing prior (the same caveats); not with ``landing_prior``
+    landing_direction : the doubted share of a landing per push direction (``landing_direction.doubted_rows``,
+      candidate LD); given, the ``PRIOR_POLICIES`` are played over the doubted rows (stop 55), as with a
+      landing prior (the same caveats); not with either of the two above
     variant : ``mdp`` values (``VARIANT_FIELDS``) the ``VARIANT_POLICIES`` plan under, the dataset's
       for the others; given, they are played too (the same caveat on dropped trials).
     per_trial : the report also holds ``trial_records``, every played trial's record (``trial_records``)"""
@@ -632,11 +640,15 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         accepted = field_range(MDPConfig, name)
         if not accepted.contains(value):
             raise ValueError(f"{name} must be {accepted.text()}; got {value}")
-    if landing_prior is not None and landing_trust is not None:
-        raise ValueError("a landing prior or a landing trust, not both: the two play the same policies")
+    reshaped = [given for given in (landing_prior, landing_trust, landing_direction) if given is not None]
+    if len(reshaped) > 1:
+        raise ValueError("a landing prior, a landing trust or a landing doubted by direction, one at most: "
+                         "they play the same policies")
     if landing_trust is not None:
         landing_trust = checked_shares(landing_trust)
-    policies = COMPARED + (tuple(PRIOR_POLICIES) if landing_prior is not None or landing_trust is not None else ())
+    if landing_direction is not None:
+        landing_direction = checked_doubts(landing_direction)
+    policies = COMPARED + (tuple(PRIOR_POLICIES) if reshaped else ())
     policies += tuple(VARIANT_POLICIES) if variant else ()
     dataset, config, tables, starts, by_object = open_trials(root, n_trials, seed)
     variant_mdp = replace(config.mdp, **variant) if variant else None
@@ -662,11 +674,13 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         actions, belief_q1, belief_budget_q1 = believing_tables(plan.v_s, rows, config.mdp, choosable, max_pushes,
                                                                 budget_choosable=budget_choosable)
         plan.actions.update(actions)
-        if landing_prior is not None or landing_trust is not None:
+        if reshaped:
             if landing_prior is not None:
                 prior = [landing_prior_rows(r, x, landing_prior, choosable[x], config.topple.trials) for x, r in enumerate(rows)]
-            else:
+            elif landing_trust is not None:
                 prior = [trusted_rows(r, x, plan.drop_probabilities, landing_trust) for x, r in enumerate(rows)]
+            else:
+                prior = [doubted_rows(r, x, c.directions[:, 2], landing_direction) for x, (r, c) in enumerate(zip(rows, candidates))]
             actions, q1, budget_q1 = prior_plan(plan.v_s, prior, config.mdp, choosable, max_pushes, budget_choosable,
                                                 candidates)
             plan.actions.update(actions)
@@ -695,6 +709,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         pushes.extend(object_pushes)
     report = summarise(tables, starts, runs, pushes, policies)
     report.update({"landing_prior": landing_prior, "landing_trust": None if landing_trust is None else landing_trust.tolist(),
+                   "landing_direction": None if landing_direction is None else landing_direction.tolist(),
                    "variant": variant or None, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
                    "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
@@ -864,6 +879,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="also play them over rows whose landing on a pose keeps 1 - U of its share, U per band of the "
                              "pose's drop probability (edges " + ", ".join(map(str, TRUST_BANDS)) + "), the rest spread "
                              "by drop probability (landing_trust.trusted_rows); not with --landing-prior")
+    parser.add_argument("--landing-direction", type=float, nargs=len(DIRECTION_CLASSES), metavar="LAMBDA",
+                        help="also play them over rows whose landing moves LAMBDA of its share to the pose's mean "
+                             "landing, LAMBDA per push direction (" + ", ".join(DIRECTION_CLASSES) + "; candidate LD, "
+                             "landing_direction.doubted_rows); not with --landing-prior or --landing-trust")
     parser.add_argument("--gamma", type=float, metavar="G",
                         help="also play value iteration, belief_vi and smoothed_vi planned with this discount in (0, 1] "
                              "(variant_vi, variant_belief_vi, variant_smoothed_vi), each against its counterpart")
@@ -888,6 +907,7 @@ def main(argv: list[str] | None = None) -> int:
                                     workers=args.workers, world=world_config(args.world),
                                     exclusion=Exclusion(args.exclude_radius, args.exclude_angle),
                                     landing_prior=args.landing_prior, landing_trust=args.landing_trust,
+                                    landing_direction=args.landing_direction,
                                     variant={name: getattr(args, name) for name in VARIANT_FIELDS if getattr(args, name) is not None},
                                     per_trial=args.trials_out is not None)
     except (ExperimentError, ValueError) as err:
