@@ -127,6 +127,11 @@ def test_the_command_fits_plays_of_a_real_dataset_and_refuses_unknown_objects(da
                                  "toppled": True, "kind": "tips first", "landed": 1}) + "\n")
     assert main([str(dataset), str(plays)]) == 2
     assert "the plays name objects the dataset does not have: no_such_object" in capsys.readouterr().err
+    plays.write_text(json.dumps({"object_id": object_id, "pose": 0, "action": 0, "toppled": True, "kind": "tips first"}) + "\n")
+    assert main([str(dataset), str(plays)]) == 2
+    assert "a play lacks the field 'landed'" in capsys.readouterr().err
+    assert main([str(dataset), str(tmp_path / "none.jsonl")]) == 2
+    assert "none.jsonl" in capsys.readouterr().err
 
 
 from tests.test_policies_physics import dataset  # noqa: F401 (fixture)

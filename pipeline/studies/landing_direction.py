@@ -168,7 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         plays = [json.loads(line) for line in args.plays.read_text().splitlines() if line.strip()]
         result = fit(args.dataset, plays, args.seed)
-    except (OSError, ValueError, KeyError) as err:
+    except KeyError as err:
+        print(f"error: a play lacks the field {err}: give the plays `push_course --plays` writes", file=sys.stderr)
+        return 2
+    except (OSError, ValueError) as err:  # a file not there, a line not JSON, an object not in the dataset
         print(f"error: {err}", file=sys.stderr)
         return 2
     return print_and_record(text(result), result, args.json)
