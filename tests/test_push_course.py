@@ -7,9 +7,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from shapes import pose_with_down, standing_box
+from shapes import noise_free, pose_with_down, standing_box
 
 from pipeline.model.config import Config
+from pipeline.model.evaluation import evaluate
 from pipeline.studies import push_course
 from pipeline.studies.policies_physics import ExperimentError, dataset_config, object_plans, world_config
 from pipeline.studies.push_course import (
@@ -22,7 +23,9 @@ from pipeline.studies.push_course import (
     course,
     course_kind,
     landing_kind,
+    line_edge,
     main,
+    model_edge,
     play_object,
     study,
     summary,
@@ -33,7 +36,7 @@ from pipeline.studies.push_course import (
     traced_play,
 )
 from pipeline.studies.pushsim import PushNoise, body_model, draw_noise, play_push
-from schema.frames import transform_points
+from schema.frames import transform_points, unit
 from schema.vocabulary import NO_OP
 from tests.test_policies_physics import dataset  # noqa: F401 (fixture)
 
@@ -208,6 +211,48 @@ def test_the_tipped_edge_is_the_one_facing_the_lean_and_its_landing_is_named_by_
     other = next(p.index for p in pose_set.poses if p.index not in chain)
     assert landing_kind(pose, edge, other) == "elsewhere"
     assert set(LANDINGS) == {"first pose", "rolled on", "onward", "elsewhere"}
+
+
+def test_the_line_from_the_centre_of_mass_through_the_contact_crosses_the_edge_it_points_at():
+    # The standing box's base is 5 x 8 cm about its centre of mass's foot: a contact beyond the +x side, or
+    # above the base towards it, names that side; one towards a corner names the side the ray meets first.
+    obj, pose_set, standing = standing_box()
+    pose = pose_set.poses[standing]
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
+    base = pose.base_edges[:, :, :2]
+    half = np.abs(base.reshape(-1, 2)).max(axis=0)  # (2,): the base's half extents in the pose frame
+    geometry_outward = lambda edge: np.cross(pose.base_edges[edge, 1] - pose.base_edges[edge, 0], [0.0, 0.0, 1.0])[:2]
+    for direction in ([1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]):
+        for reach in (0.3, 1.5):  # over the base, and overhanging it
+            contact = center_mass + np.array([*(reach * half * direction), 0.05])
+            edge = line_edge(pose, center_mass, contact)
+            assert unit(geometry_outward(edge)) @ direction == pytest.approx(1.0)
+    # Towards a corner, the ray leaves through the side it meets first: at (0.9, 0.1) of the half extents the +x
+    # side (at 1 / 0.9 of the way against 1 / 0.1 for +y), at (0.1, 0.9) the +y side.
+    for share, side in (((0.9, 0.1), [1.0, 0.0]), ((0.1, 0.9), [0.0, 1.0])):
+        contact = center_mass + np.array([*(3 * half * share), 0.0])
+        assert unit(geometry_outward(line_edge(pose, center_mass, contact))) @ side == pytest.approx(1.0)
+    assert line_edge(pose, center_mass, center_mass + [0.0, 0.0, 0.07]) == -1  # straight above: no side
+
+
+def test_the_models_edge_of_a_push_is_the_one_its_trials_tip_over_most():
+    # The standing box pushed high from -x along +x tips over its +x side.  Pressed straight down on its top it does
+    # not tip without noise, and with the default's noise the most frequent edge of the few trials that tip.
+    obj, pose_set, standing = standing_box()
+    pose = pose_set.poses[standing]
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
+    config = Config()
+    extent = np.abs(pose.base_edges[:, :, 0]).max()
+    high = np.array([center_mass[0] - extent, center_mass[1], 0.14])
+    edge = model_edge(obj, pose_set, standing, high, np.array([1.0, 0.0, 0.0]), config, seed=3)
+    assert edge >= 0 and unit(np.cross(pose.base_edges[edge, 1] - pose.base_edges[edge, 0], [0.0, 0.0, 1.0])[:2]) @ [1.0, 0.0] \
+        == pytest.approx(1.0)
+    top, down = np.array([center_mass[0], center_mass[1], 0.15]), np.array([0.0, 0.0, -1.0])
+    assert model_edge(obj, pose_set, standing, top, down, dataclasses.replace(config, topple=noise_free()), seed=3) == -1
+    outcomes = evaluate(obj, pose_set, standing, points=top[None], directions=down[None], config=config, seed=3).table.outcomes[0]
+    tipped = np.bincount(outcomes[outcomes >= 0], minlength=len(pose.base_edges))
+    assert 0 < tipped.sum() < len(outcomes) / 2  # a few of the noisy trials tip
+    assert model_edge(obj, pose_set, standing, top, down, config, seed=3) == int(np.argmax(tipped))
 
 
 def test_landings_further_down_an_edges_chain_are_rolled_on_and_onward():
@@ -407,12 +452,15 @@ def test_a_play_refuses_an_object_whose_stable_poses_differ_from_the_datasets(da
 
 
 def test_the_summary_by_hand_with_topples_clustered_by_object():
-    def play(o, toppled, kind, side=None, landing=None, expected=None, landed=None, probability=None, direction="above"):
-        return Play(o, direction, 0.6, toppled, kind, side, landing, expected, landed, probability, 0, 0, 1 if toppled else 0)
+    def play(o, toppled, kind, side=None, landing=None, expected=None, landed=None, probability=None, direction="above",
+             edge=-1, model=-1, line=-1, angle=None):
+        return Play(o, direction, 0.6, toppled, kind, side, landing, expected, landed, probability, 0, 0, 1 if toppled else 0,
+                    edge, model, line, angle, 0.0)
 
-    plays = [play("a", True, "tips first", "away", "first pose", 0.5, 0.7, 0.8),
-             play("a", True, "slides, then tips", "towards", "elsewhere", 0.5, 0.1, 0.0),
-             play("b", False, "stalls"), play("b", True, "tips first", "away", "rolled on", 0.4, 0.4, 0.5),
+    plays = [play("a", True, "tips first", "away", "first pose", 0.5, 0.7, 0.8, edge=1, model=1, line=2, angle=10.0),
+             play("a", True, "slides, then tips", "towards", "elsewhere", 0.5, 0.1, 0.0, edge=2, model=1, line=2, angle=170.0),
+             play("b", False, "stalls", model=3, line=3), play("b", True, "tips first", "away", "rolled on", 0.4, 0.4, 0.5,
+                                                               edge=0, model=0, line=0, angle=20.0),
              play("c", False, "tips, falls back", direction="side")]
     s = summary(plays)
     above = s["above"]
@@ -436,6 +484,12 @@ def test_the_summary_by_hand_with_topples_clustered_by_object():
     mean = -0.2 / 3
     se = np.sqrt(2 / 1 * ((-0.2 - mean * 2) ** 2 + (0.0 - mean) ** 2) / 9)
     assert above["value_landed_minus_expected"]["se"] == pytest.approx(se)
+    # The edges named over the three topples: the model's 2 of 3, the line's 2 of 3; tipped back, one, the line's.
+    named = above["edge_named"]
+    assert named["model"]["mean"] == pytest.approx(2 / 3) and named["line"]["mean"] == pytest.approx(2 / 3)
+    assert named["line_minus_model"]["mean"] == pytest.approx(0.0) and named["model"]["topples"] == 3
+    back = above["edge_named_tipped_back"]
+    assert back["model"]["mean"] == 0.0 and back["line"]["mean"] == 1.0 and back["model"]["topples"] == 1
     assert s["side"]["topples"] == 0 and "sides" not in s["side"]
     assert "below" not in s
 
@@ -443,10 +497,11 @@ def test_the_summary_by_hand_with_topples_clustered_by_object():
 def test_the_summary_keeps_every_class_with_plays_and_leaves_empty_what_it_cannot_estimate():
     # No pushes from above: the classes after it are still summed up.  One object a class: no standard error
     # from one cluster.  Topples whose rows gave them no chance (no expected value): no values at all.
-    plays = [Play("a", "side", 0.2, True, "tips first", "away", "first pose", None, 0.5, 0.0, 0, 3, 1),
-             Play("a", "side", 0.2, False, "stays", None, None, None, None, None, 0, 3, 0),
-             Play("b", "below", 0.9, True, "tips first", "away", "onward", 0.3, 0.6, 0.25, 1, 5, 0),
-             Play("b", "below", 0.9, True, "slides, then tips", "sideways", "first pose", 0.3, 0.2, 0.5, 1, 5, 2)]
+    plays = [Play("a", "side", 0.2, True, "tips first", "away", "first pose", None, 0.5, 0.0, 0, 3, 1, 2, 2, 1, 10.0, 0.0),
+             Play("a", "side", 0.2, False, "stays", None, None, None, None, None, 0, 3, 0, -1, 2, 1, None, 0.0),
+             Play("b", "below", 0.9, True, "tips first", "away", "onward", 0.3, 0.6, 0.25, 1, 5, 0, 0, 0, 0, 5.0, 0.0),
+             Play("b", "below", 0.9, True, "slides, then tips", "sideways", "first pose", 0.3, 0.2, 0.5, 1, 5, 2, 1, 0, 0, 60.0,
+                  0.01)]
     s = summary(plays)
     assert list(s) == ["side", "below"]
     side, below = s["side"], s["below"]
@@ -612,7 +667,8 @@ def test_the_study_reports_an_object_it_could_not_play_and_summarises_the_others
     def play(plan, starts, rows, config, world, repeats, seed):  # one worker: the fan-out runs it in this process
         if plan.spec.object_id == "random_000":
             return "random_000: its mesh does not load"
-        return [Play(plan.spec.object_id, "side", 0.5, True, "tips first", "away", "first pose", 0.4, 0.6, 1.0, 0, 0, 1)]
+        return [Play(plan.spec.object_id, "side", 0.5, True, "tips first", "away", "first pose", 0.4, 0.6, 1.0, 0, 0, 1, 0, 0, 0,
+                     5.0, 0.0)]
 
     monkeypatch.setattr(push_course, "play_object", play)
     monkeypatch.setattr(push_course, "chosen_pushes", lambda plans, policy, per_class, seed: [("random_000", 0, 0), ("random_002", 0, 0)])

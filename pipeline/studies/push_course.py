@@ -17,6 +17,11 @@ traces every step of the finger's stroke.  Each play is then described three way
   edge's first pose (``edge_final_pose``), the pose a fall rolls on to (``edge_momentum_pose``, C.8),
   the one beyond it (``edge_onward_pose``, C.18), or elsewhere.
 
+For a topple, the edge it tipped over is set beside two predictions of it: the edge the model's own trials of
+the push tip over most often (``model_edge``) and the edge the line from the centre of mass's foot through the
+contact's crosses (``line_edge``, where a vertical press would tip it), overall and for the topples that tip back,
+more than 90 degrees from the push's horizontal direction.
+
 Beside them the rows: the predicted P(topple), the value the rows expect of a topple
 (sum over x' != x of P(x') V_s(x') / P(topple)) against the V_s where the plays landed (0 outside the
 pose set), and the rows' probability of the pose each topple landed in.  Standard errors are
@@ -177,6 +182,41 @@ def landing_kind(pose: StablePose, edge: int, landed: int) -> str:
     return "elsewhere"
 
 
+def line_edge(pose: StablePose, center_mass: np.ndarray, contact: np.ndarray) -> int:
+    """The base edge that the ray from the centre of mass's foot through the contact's foot crosses first.
+
+    Where a vertical press on the contact would tip the object (the centre of pressure of gravity and a
+    vertical force moves along that ray).  center_mass, contact : (3,) float, m, pose frame
+    returns : edge index; -1 when the two feet coincide
+    """
+    from ..model.edges import edge_geometry
+
+    edges = edge_geometry(pose.base_edges, center_mass)
+    ray = contact[:2] - center_mass[:2]
+    if not np.linalg.norm(ray) > 0:
+        return -1
+    outward = edges.outward[:, :2]  # (E, 2), unit: e x z of a unit e
+    # The foot lies inside the base, so the ray leaves through the edge line it meets first (t >= 0).
+    towards = outward @ ray  # (E,)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = np.einsum("ij,ij->i", edges.start[:, :2] - center_mass[:2], outward) / towards  # (E,)
+    reach = np.where((towards > 0) & (reach >= 0), reach, np.inf)
+    return int(np.argmin(reach)) if np.isfinite(reach).any() else -1
+
+
+def model_edge(obj, pose_set, pose: int, point: np.ndarray, direction: np.ndarray, config: Config, seed: int) -> int:
+    """The base edge the model's trials of one push (pose frame) topple over most often; -1 when none topples.
+
+    The push alone, evaluated with the dataset's model and noise (``evaluation.evaluate``, the topple
+    stream of ``seed``); the first of equally frequent edges."""
+    from ..model.evaluation import evaluate
+
+    outcomes = evaluate(obj, pose_set, pose, points=point[None], directions=direction[None], config=config,
+                        seed=seed).table.outcomes[0]
+    toppled = outcomes[outcomes >= 0]
+    return int(np.bincount(toppled).argmax()) if len(toppled) else -1
+
+
 def traced_play(body, transform: np.ndarray, point: np.ndarray, direction: np.ndarray, config: Config, noise):
     """``pushsim.play_push`` with every step of the stroke traced: (the played push, its ``Course``).
 
@@ -199,7 +239,12 @@ class Play:
     """One traced play and what the rows say of its push.
 
     pose, action : the start and the push;  landed : the pose it came to rest in (-1: outside the pose
-    set; ``pose`` where it stayed)"""
+    set; ``pose`` where it stayed)
+    edge : for a topple, the base edge it tipped over (``tipped_edge``), else -1;  model_edge : the edge the
+      model's trials of the push topple over most often (``model_edge``; -1: none topples);  line_edge : the
+      edge the line from the centre of mass's foot through the contact's crosses (``line_edge``)
+    tip_angle : for a topple, deg in [0, 180], the lean's angle from the push's horizontal direction, else None
+    slide : m, the most the base slid during the stroke"""
 
     object_id: str
     direction: str
@@ -214,6 +259,11 @@ class Play:
     pose: int
     action: int
     landed: int
+    edge: int
+    model_edge: int
+    line_edge: int
+    tip_angle: float | None
+    slide: float
 
 
 def chosen_pushes(plans: dict[str, ObjectPlan], policy: str, per_class: int, seed: int) -> list[tuple[str, int, int]]:
@@ -262,15 +312,19 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
         expected = float(row[others] @ plan.v_s[others] / topple) if topple > 0 else None
         name = CLASSES[direction_class(np.array([direction[2]]))[0]]
         center_mass = transform_points(transform, obj.center_mass[None])[0]  # (3,), pose frame
+        modelled = model_edge(obj, pose_set, pose, point, direction, config, seed)
+        crossed = line_edge(pose_set.poses[pose], center_mass, point)
         rng = stream(seed, f"{plan.spec.object_id}/course/{pose}/{action}", pose, PURPOSE)
         for _ in range(repeats):
             played, c = traced_play(body, transform, to_object[:3, :3] @ point + to_object[:3, 3], to_object[:3, :3] @ direction,
                                     config, draw_noise(world, rng, noise=True))
             landed = settle(pose_set, obj, played.final_transform[:3, :3])
             toppled = landed != pose
-            side = landing = probability = landed_value = None
+            side = landing = probability = landed_value = angle = None
+            edge = -1
             if toppled:
-                side = tip_side(tip_angle(c.tip_direction, played.direction))
+                angle = tip_angle(c.tip_direction, played.direction)
+                side = tip_side(angle)
                 lean = lean_in_pose_frame(c.tip_direction, transform, played.start_transform)
                 edge, _ = tipped_edge(pose_set.poses[pose], center_mass, lean)
                 landing = landing_kind(pose_set.poses[pose], edge, landed)
@@ -278,7 +332,8 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
                 probability = float(row[landed] / topple) if topple > 0 and landed >= 0 else 0.0
             plays.append(Play(plan.spec.object_id, name, float(predicted), bool(toppled),
                               course_kind(c, toppled, config.topple.max_finger_force), side, landing,
-                              expected if toppled else None, landed_value, probability, pose, action, int(landed)))
+                              expected if toppled else None, landed_value, probability, pose, action, int(landed),
+                              int(edge), modelled, crossed, None if angle is None else abs(angle), float(c.slide.max())))
     return plays
 
 
@@ -325,9 +380,23 @@ def summary(plays: list[Play]) -> dict:
                 "value_expected": described([p.value_expected for p in valued], of) if valued else None,
                 "value_landed": described([p.value_landed for p in valued], of) if valued else None,
                 "value_landed_minus_expected": described([p.value_landed - p.value_expected for p in valued], of) if valued else None,
+                "edge_named": edge_named(topples),
+                "edge_named_tipped_back": edge_named([p for p in topples if p.tip_angle is not None and p.tip_angle > 90.0]),
             })
         result[name] = entry
     return result
+
+
+def edge_named(topples: list[Play]) -> dict | None:
+    """How often the model's most frequent edge, and the centre-of-mass-to-contact line's, is the edge the topples
+    tipped over, and the difference, clustered by object; None for no topples."""
+    if not topples:
+        return None
+    objects = [p.object_id for p in topples]
+    model = np.array([p.edge == p.model_edge for p in topples], dtype=float)
+    line = np.array([p.edge == p.line_edge for p in topples], dtype=float)
+    return {"model": clustered_entry(model, objects, "topples"), "line": clustered_entry(line, objects, "topples"),
+            "line_minus_model": clustered_entry(line - model, objects, "topples")}
 
 
 def study(root: str | Path, policy: str = "value_iteration", per_class: int = 70, repeats: int = 5, seed: int = 53,
@@ -383,6 +452,12 @@ def text(result: dict) -> str:
             lines.append(f"  {e['topples']} pushed topples{untouched}; sides: " + ", ".join(f"{k} {v:.2f}" for k, v in e["sides"].items()))
             lines.append("  landings against the tipped edge's poses: " + ", ".join(f"{k} {v:.2f}" for k, v in e["landings"].items()))
             lines.append(f"  the rows' probability of the landing pose {e['landing_probability']['mean']:.3f}")
+            for label, key in (("", "edge_named"), (" (tipped back, over 90 degrees from the push)", "edge_named_tipped_back")):
+                named = e.get(key)
+                if named:
+                    lines.append(f"  the edge it tipped over{label}, {named['model']['topples']} topples: the model's most frequent "
+                                 f"{named['model']['mean']:.2f}, the centre of mass to contact line's {named['line']['mean']:.2f} "
+                                 f"(difference {named['line_minus_model']['mean']:+.2f}{_se(named['line_minus_model'])})")
             if e["value_expected"]:
                 lines.append(f"  V_s of a topple: expected {e['value_expected']['mean']:.3f}, landed {e['value_landed']['mean']:.3f}"
                              f" (difference {e['value_landed_minus_expected']['mean']:+.3f}{_se(e['value_landed_minus_expected'])})")
