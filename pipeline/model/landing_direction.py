@@ -1,4 +1,5 @@
-"""A push's landing doubted by the direction it pushes from (candidate LD, stop 55).
+"""A push's landing doubted by the direction it pushes from (candidate LD, stop 55: judged as a planner and not
+adopted, docs/MODEL.md C.21; ``robust_policy --landing-direction`` plays it).
 
 Traced in pybullet (docs/VALIDATION.md, stop 53), value iteration's pushes topple at least as often as
 their rows say in every direction, but a topple from above lands in poses worth 0.117 V_s less than the

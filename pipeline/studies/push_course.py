@@ -477,7 +477,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--world", default="thesis", help="the simulated world's noise: a preset or a TOML file")
     parser.add_argument("--json", type=Path, help="write the result here")
     parser.add_argument("--plays", type=Path, metavar="FILE.jsonl",
-                        help="write every play here, a JSON line each (what `landing_direction fit` reads)")
+                        help="write every play here, a JSON line each (what python -m pipeline.studies.landing_direction reads)")
     args = parser.parse_args(argv)
     if refused_outputs(args.json, args.plays):
         return 2
