@@ -244,15 +244,21 @@ def test_the_models_edge_of_a_push_is_the_one_its_trials_tip_over_most():
     config = Config()
     extent = np.abs(pose.base_edges[:, :, 0]).max()
     high = np.array([center_mass[0] - extent, center_mass[1], 0.14])
-    edge = model_edge(obj, pose_set, standing, high, np.array([1.0, 0.0, 0.0]), config, seed=3)
+    edge, force = model_edge(obj, pose_set, standing, high, np.array([1.0, 0.0, 0.0]), config, seed=3)
+    alone = evaluate(obj, pose_set, standing, points=high[None], directions=np.array([[1.0, 0.0, 0.0]]), config=config, seed=3)
+    # Its mean force is the push's own row's: above the frictionless balance m g d_e / h (0.25 kg, 2.5 cm, 14 cm up:
+    # 0.44 N), as the finger's friction (C.2) resists the tip, and well under twice it.
+    frictionless = 0.25 * 9.81 * 0.025 / 0.14
+    assert force == alone.table.mean_force[0] and frictionless < force < 2 * frictionless
     assert edge >= 0 and unit(np.cross(pose.base_edges[edge, 1] - pose.base_edges[edge, 0], [0.0, 0.0, 1.0])[:2]) @ [1.0, 0.0] \
         == pytest.approx(1.0)
     top, down = np.array([center_mass[0], center_mass[1], 0.15]), np.array([0.0, 0.0, -1.0])
-    assert model_edge(obj, pose_set, standing, top, down, dataclasses.replace(config, topple=noise_free()), seed=3) == -1
+    edge, force = model_edge(obj, pose_set, standing, top, down, dataclasses.replace(config, topple=noise_free()), seed=3)
+    assert edge == -1 and np.isnan(force)
     outcomes = evaluate(obj, pose_set, standing, points=top[None], directions=down[None], config=config, seed=3).table.outcomes[0]
     tipped = np.bincount(outcomes[outcomes >= 0], minlength=len(pose.base_edges))
     assert 0 < tipped.sum() < len(outcomes) / 2  # a few of the noisy trials tip
-    assert model_edge(obj, pose_set, standing, top, down, config, seed=3) == int(np.argmax(tipped))
+    assert model_edge(obj, pose_set, standing, top, down, config, seed=3)[0] == int(np.argmax(tipped))
 
 
 def test_landings_further_down_an_edges_chain_are_rolled_on_and_onward():
@@ -453,14 +459,17 @@ def test_a_play_refuses_an_object_whose_stable_poses_differ_from_the_datasets(da
 
 def test_the_summary_by_hand_with_topples_clustered_by_object():
     def play(o, toppled, kind, side=None, landing=None, expected=None, landed=None, probability=None, direction="above",
-             edge=-1, model=-1, line=-1, angle=None):
+             edge=-1, model=-1, line=-1, angle=None, force=np.nan, in_model=False, in_line=False):
         return Play(o, direction, 0.6, toppled, kind, side, landing, expected, landed, probability, 0, 0, 1 if toppled else 0,
-                    edge, model, line, angle, 0.0)
+                    edge, model, line, angle, 0.0, force, in_model, in_line)
 
-    plays = [play("a", True, "tips first", "away", "first pose", 0.5, 0.7, 0.8, edge=1, model=1, line=2, angle=10.0),
-             play("a", True, "slides, then tips", "towards", "elsewhere", 0.5, 0.1, 0.0, edge=2, model=1, line=2, angle=170.0),
+    plays = [play("a", True, "tips first", "away", "first pose", 0.5, 0.7, 0.8, edge=1, model=1, line=2, angle=10.0,
+                  force=0.5, in_model=True),
+             play("a", True, "slides, then tips", "towards", "elsewhere", 0.5, 0.1, 0.0, edge=2, model=1, line=2, angle=170.0,
+                  force=3.0, in_line=True),
              play("b", False, "stalls", model=3, line=3), play("b", True, "tips first", "away", "rolled on", 0.4, 0.4, 0.5,
-                                                               edge=0, model=0, line=0, angle=20.0),
+                                                               edge=0, model=0, line=0, angle=20.0, force=2.0,
+                                                               in_model=True, in_line=True),
              play("c", False, "tips, falls back", direction="side")]
     s = summary(plays)
     above = s["above"]
@@ -490,6 +499,11 @@ def test_the_summary_by_hand_with_topples_clustered_by_object():
     assert named["line_minus_model"]["mean"] == pytest.approx(0.0) and named["model"]["topples"] == 3
     back = above["edge_named_tipped_back"]
     assert back["model"]["mean"] == 0.0 and back["line"]["mean"] == 1.0 and back["model"]["topples"] == 1
+    # Landings by chain, split at TIP_BACK_FORCE (1.4 N): two hard pushes (3.0, 2.0 N) and one light (0.5 N).
+    hard, light = above["landing_chains"]["hard"], above["landing_chains"]["light"]
+    assert hard["model"]["topples"] == 2 and hard["model"]["mean"] == 0.5 and hard["line"]["mean"] == 1.0
+    assert hard["line_minus_model"]["mean"] == 0.5
+    assert light["model"]["topples"] == 1 and light["model"]["mean"] == 1.0 and light["line"]["mean"] == 0.0
     assert s["side"]["topples"] == 0 and "sides" not in s["side"]
     assert "below" not in s
 
@@ -497,11 +511,13 @@ def test_the_summary_by_hand_with_topples_clustered_by_object():
 def test_the_summary_keeps_every_class_with_plays_and_leaves_empty_what_it_cannot_estimate():
     # No pushes from above: the classes after it are still summed up.  One object a class: no standard error
     # from one cluster.  Topples whose rows gave them no chance (no expected value): no values at all.
-    plays = [Play("a", "side", 0.2, True, "tips first", "away", "first pose", None, 0.5, 0.0, 0, 3, 1, 2, 2, 1, 10.0, 0.0),
-             Play("a", "side", 0.2, False, "stays", None, None, None, None, None, 0, 3, 0, -1, 2, 1, None, 0.0),
-             Play("b", "below", 0.9, True, "tips first", "away", "onward", 0.3, 0.6, 0.25, 1, 5, 0, 0, 0, 0, 5.0, 0.0),
+    plays = [Play("a", "side", 0.2, True, "tips first", "away", "first pose", None, 0.5, 0.0, 0, 3, 1, 2, 2, 1, 10.0, 0.0, 1.0,
+                  True, False),
+             Play("a", "side", 0.2, False, "stays", None, None, None, None, None, 0, 3, 0, -1, 2, 1, None, 0.0, 1.0, False, False),
+             Play("b", "below", 0.9, True, "tips first", "away", "onward", 0.3, 0.6, 0.25, 1, 5, 0, 0, 0, 0, 5.0, 0.0, 2.0, True,
+                  True),
              Play("b", "below", 0.9, True, "slides, then tips", "sideways", "first pose", 0.3, 0.2, 0.5, 1, 5, 2, 1, 0, 0, 60.0,
-                  0.01)]
+                  0.01, 2.0, False, True)]
     s = summary(plays)
     assert list(s) == ["side", "below"]
     side, below = s["side"], s["below"]
@@ -668,7 +684,7 @@ def test_the_study_reports_an_object_it_could_not_play_and_summarises_the_others
         if plan.spec.object_id == "random_000":
             return "random_000: its mesh does not load"
         return [Play(plan.spec.object_id, "side", 0.5, True, "tips first", "away", "first pose", 0.4, 0.6, 1.0, 0, 0, 1, 0, 0, 0,
-                     5.0, 0.0)]
+                     5.0, 0.0, 1.0, True, True)]
 
     monkeypatch.setattr(push_course, "play_object", play)
     monkeypatch.setattr(push_course, "chosen_pushes", lambda plans, policy, per_class, seed: [("random_000", 0, 0), ("random_002", 0, 0)])

@@ -71,6 +71,9 @@ MOVED_SLIDE, MOVED_YAW = 0.005, 5.0
 """m and deg: a play that stayed moved it if it slid or turned this far."""
 STALL_SHARE = 0.9
 """A play that neither tipped nor moved stalled if the finger pressed with this share of its limit."""
+TIP_BACK_FORCE = 1.4
+"""N: the model's mean force over which a push from above is a hard press (reports/tip_back_rule_s55.md: the top
+quartile of the corpus's, stop 55), for ``landing_chains``."""
 
 
 @dataclass
@@ -182,6 +185,11 @@ def landing_kind(pose: StablePose, edge: int, landed: int) -> str:
     return "elsewhere"
 
 
+def in_chain(pose: StablePose, edge: int, landed: int) -> bool:
+    """Whether pose ``landed`` is in the chain of ``edge`` (its first, rolled-on or onward pose); False for edge -1."""
+    return edge >= 0 and landing_kind(pose, edge, landed) != "elsewhere"
+
+
 def line_edge(pose: StablePose, center_mass: np.ndarray, contact: np.ndarray) -> int:
     """The base edge that the ray from the centre of mass's foot through the contact's foot crosses first.
 
@@ -204,17 +212,18 @@ def line_edge(pose: StablePose, center_mass: np.ndarray, contact: np.ndarray) ->
     return int(np.argmin(reach)) if np.isfinite(reach).any() else -1
 
 
-def model_edge(obj, pose_set, pose: int, point: np.ndarray, direction: np.ndarray, config: Config, seed: int) -> int:
-    """The base edge the model's trials of one push (pose frame) topple over most often; -1 when none topples.
+def model_edge(obj, pose_set, pose: int, point: np.ndarray, direction: np.ndarray, config: Config, seed: int) -> tuple[int, float]:
+    """The base edge the model's trials of one push (pose frame) topple over most often, and their mean force.
 
     The push alone, evaluated with the dataset's model and noise (``evaluation.evaluate``, the topple
-    stream of ``seed``); the first of equally frequent edges."""
+    stream of ``seed``); the first of equally frequent edges.
+    returns : edge (-1 when no trial topples), N, the mean required force of the trials that topple (NaN when none)"""
     from ..model.evaluation import evaluate
 
-    outcomes = evaluate(obj, pose_set, pose, points=point[None], directions=direction[None], config=config,
-                        seed=seed).table.outcomes[0]
+    table = evaluate(obj, pose_set, pose, points=point[None], directions=direction[None], config=config, seed=seed).table
+    outcomes = table.outcomes[0]
     toppled = outcomes[outcomes >= 0]
-    return int(np.bincount(toppled).argmax()) if len(toppled) else -1
+    return (int(np.bincount(toppled).argmax()) if len(toppled) else -1), float(table.mean_force[0])
 
 
 def traced_play(body, transform: np.ndarray, point: np.ndarray, direction: np.ndarray, config: Config, noise):
@@ -244,7 +253,10 @@ class Play:
       model's trials of the push topple over most often (``model_edge``; -1: none topples);  line_edge : the
       edge the line from the centre of mass's foot through the contact's crosses (``line_edge``)
     tip_angle : for a topple, deg in [0, 180], the lean's angle from the push's horizontal direction, else None
-    slide : m, the most the base slid during the stroke"""
+    slide : m, the most the base slid during the stroke;  model_force : N, the mean force of the model's trials
+      that topple (``model_edge``; NaN when none does)
+    in_model_chain, in_line_chain : for a topple, whether it landed in a pose of the chain (``landing_kind``
+      other than elsewhere) of ``model_edge`` and of ``line_edge``; False otherwise"""
 
     object_id: str
     direction: str
@@ -264,6 +276,9 @@ class Play:
     line_edge: int
     tip_angle: float | None
     slide: float
+    model_force: float
+    in_model_chain: bool
+    in_line_chain: bool
 
 
 def chosen_pushes(plans: dict[str, ObjectPlan], policy: str, per_class: int, seed: int) -> list[tuple[str, int, int]]:
@@ -312,7 +327,7 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
         expected = float(row[others] @ plan.v_s[others] / topple) if topple > 0 else None
         name = CLASSES[direction_class(np.array([direction[2]]))[0]]
         center_mass = transform_points(transform, obj.center_mass[None])[0]  # (3,), pose frame
-        modelled = model_edge(obj, pose_set, pose, point, direction, config, seed)
+        modelled, force = model_edge(obj, pose_set, pose, point, direction, config, seed)
         crossed = line_edge(pose_set.poses[pose], center_mass, point)
         rng = stream(seed, f"{plan.spec.object_id}/course/{pose}/{action}", pose, PURPOSE)
         for _ in range(repeats):
@@ -333,7 +348,9 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
             plays.append(Play(plan.spec.object_id, name, float(predicted), bool(toppled),
                               course_kind(c, toppled, config.topple.max_finger_force), side, landing,
                               expected if toppled else None, landed_value, probability, pose, action, int(landed),
-                              int(edge), modelled, crossed, None if angle is None else abs(angle), float(c.slide.max())))
+                              int(edge), modelled, crossed, None if angle is None else abs(angle), float(c.slide.max()), force,
+                              bool(toppled) and in_chain(pose_set.poses[pose], modelled, landed),
+                              bool(toppled) and in_chain(pose_set.poses[pose], crossed, landed)))
     return plays
 
 
@@ -382,6 +399,8 @@ def summary(plays: list[Play]) -> dict:
                 "value_landed_minus_expected": described([p.value_landed - p.value_expected for p in valued], of) if valued else None,
                 "edge_named": edge_named(topples),
                 "edge_named_tipped_back": edge_named([p for p in topples if p.tip_angle is not None and p.tip_angle > 90.0]),
+                "landing_chains": {band: landing_chains([p for p in topples if p.landed >= 0 and keep(p.model_force)])
+                                   for band, keep in (("hard", lambda f: f > TIP_BACK_FORCE), ("light", lambda f: not f > TIP_BACK_FORCE))},
             })
         result[name] = entry
     return result
@@ -395,6 +414,19 @@ def edge_named(topples: list[Play]) -> dict | None:
     objects = [p.object_id for p in topples]
     model = np.array([p.edge == p.model_edge for p in topples], dtype=float)
     line = np.array([p.edge == p.line_edge for p in topples], dtype=float)
+    return {"model": clustered_entry(model, objects, "topples"), "line": clustered_entry(line, objects, "topples"),
+            "line_minus_model": clustered_entry(line - model, objects, "topples")}
+
+
+def landing_chains(topples: list[Play]) -> dict | None:
+    """How often topples landed in the chain of the model's most frequent edge and of the line's edge, and the
+    difference, clustered by object; None for no topples.  ``summary`` splits them at ``TIP_BACK_FORCE``:
+    "hard" over it, "light" at or under it or where the model's trials never topple (NaN)."""
+    if not topples:
+        return None
+    objects = [p.object_id for p in topples]
+    model = np.array([p.in_model_chain for p in topples], dtype=float)
+    line = np.array([p.in_line_chain for p in topples], dtype=float)
     return {"model": clustered_entry(model, objects, "topples"), "line": clustered_entry(line, objects, "topples"),
             "line_minus_model": clustered_entry(line - model, objects, "topples")}
 
@@ -458,6 +490,12 @@ def text(result: dict) -> str:
                     lines.append(f"  the edge it tipped over{label}, {named['model']['topples']} topples: the model's most frequent "
                                  f"{named['model']['mean']:.2f}, the centre of mass to contact line's {named['line']['mean']:.2f} "
                                  f"(difference {named['line_minus_model']['mean']:+.2f}{_se(named['line_minus_model'])})")
+            for band, chains in (e.get("landing_chains") or {}).items():
+                if chains:
+                    lines.append(f"  landed in the chain of the model's edge / the line's, {band} pushes (mean force "
+                                 f"{'over' if band == 'hard' else 'at most'} {TIP_BACK_FORCE} N), {chains['model']['topples']} "
+                                 f"topples: {chains['model']['mean']:.2f} / {chains['line']['mean']:.2f} (difference "
+                                 f"{chains['line_minus_model']['mean']:+.2f}{_se(chains['line_minus_model'])})")
             if e["value_expected"]:
                 lines.append(f"  V_s of a topple: expected {e['value_expected']['mean']:.3f}, landed {e['value_landed']['mean']:.3f}"
                              f" (difference {e['value_landed_minus_expected']['mean']:+.3f}{_se(e['value_landed_minus_expected'])})")
