@@ -61,6 +61,21 @@ def test_doubted_shares_are_three_numbers_in_the_unit_interval():
     for bad in ([0.5, 0.5], [0, 0, 1.01], [-0.1, 0, 0], [np.nan, 0, 0]):
         with pytest.raises(ValueError, match="the doubted shares are 3 numbers in \\[0, 1\\], one per push direction"):
             checked_doubts(bad)
+    with pytest.raises(ValueError) as refused:
+        checked_doubts([0.5, 0.5])
+    assert str(refused.value).endswith("(above, side, below); got [0.5, 0.5]")  # what they are for, and what came
+
+
+def test_rows_given_as_integers_are_doubted_in_floats():
+    # Rows of whole counts (a push that always leaves, into pose 1 or 2): the doubt's shares are fractions, not
+    # truncated to the input's integer type.
+    rows = np.array([[0, 1, 0], [0, 0, 1]])
+    doubted = doubted_rows(rows, 0, np.array([-0.9, 0.0]), (0.5, 0.5, 0.5))
+    np.testing.assert_allclose(doubted, [[0, 0.75, 0.25], [0, 0.25, 0.75]])
+    landing, leaving, mean = mean_landing(rows, 0)
+    np.testing.assert_allclose(landing, rows)
+    np.testing.assert_allclose(mean, [0, 0.5, 0.5])
+    np.testing.assert_array_equal(leaving, [1.0, 1.0])
 
 
 def test_the_maximum_likelihood_share_by_hand():
