@@ -33,12 +33,15 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_044", "corrected:finger_friction,force_limit,momentum,stuck_finger"),  # pushes down onto overhangs (C.11)
     ("random_044", "corrected:finger_friction,force_limit,tip_path"),  # tips that stall on the way (C.14)
     ("random_044", "corrected:finger_friction,tip_path"),  # no force limit on the way; TIP_POINTS angles
+    ("random_044", "corrected:finger_friction,force_limit,momentum,tip_back"),  # hard presses from above tip back (C.22)
 ]
 
 LOW_LIMIT = 1.0
 """N, a finger force limit below many of the box's required forces, so the cut is exercised."""
 SHORT_STROKE = 0.01
 """m, a stroke shorter than many of random_004's topples need (C.10), so the cut is exercised."""
+LOW_TIP_BACK = 0.3
+"""N, a ``tip_back`` threshold below many of random_044's forces from above, so the correction is exercised."""
 TIP_POINTS = 3
 """Angles checked on the way to the apex (C.14) when ``tip_path`` runs without ``force_limit``,
 so a count other than the default's 2 is held to the reference too."""
@@ -63,11 +66,13 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         topple = replace(topple, stroke=SHORT_STROKE)
     if "tip_path" in corrections.split(",") and "force_limit" not in corrections.split(","):
         topple = replace(topple, tip_path_points=TIP_POINTS)
+    if "tip_back" in corrections.split(","):
+        topple = replace(topple, tip_back_force=LOW_TIP_BACK)
     contacts = replace(config.contacts, n_contacts=60)
     points, normals = object_contacts(obj, contacts, seed=11)
     mesh_collision = collision_object(obj.mesh)
     pose_set = stable_poses(obj)
-    compared = agreed = toppled = capped = rolled = stuck = 0
+    compared = agreed = toppled = capped = rolled = stuck = backed = 0
     for pose in pose_set.poses:
         actions = pose_actions(points, normals, obj.mesh, mesh_collision, pose.transform, contacts)
         table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(11, obj.name, pose.index, "trials"))
@@ -94,6 +99,10 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                     start_only = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
                                                  topple.applied_corrections - {"tip_path"}, topple.max_finger_force)
                     capped += start_only[0] >= 0 and edge < 0
+                if "tip_back" in corrections:  # trials tipped back over another edge than the least force's
+                    away = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
+                                           topple.applied_corrections - {"tip_back"}, topple.max_finger_force)
+                    backed += edge >= 0 and away[0] >= 0 and edge != away[0]
                 if topple.stroke == SHORT_STROKE:  # trials the stroke stops: with an endless one they topple
                     endless = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
                                               topple.applied_corrections, topple.max_finger_force)
@@ -119,6 +128,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         assert stuck > 0, "some trials should topple only by the stuck finger"
     if "tip_path" in corrections:
         assert capped > 0, "the balance on the way should stop some trials that start to tip"
+    if "tip_back" in corrections:
+        assert backed > 0, "some hard presses from above should tip back over another edge"
 
 
 def test_reference_required_force_matches_engine_on_box():
@@ -149,7 +160,7 @@ def test_the_configured_trial_sets_every_parameter_of_the_reference(monkeypatch)
     calls = []
     monkeypatch.setattr(reference, "reference_trial", lambda *args, **kwargs: calls.append((args, kwargs)) or (-1, 0.0))
     topple = replace(Config().topple, stuck_finger_share=0.3, stroke=0.02, max_finger_force=7.0, finger_friction_scale=0.6,
-                     tip_path_points=3)
+                     tip_path_points=3, tip_back_force=2.5)
     assert reference.configured_trial("scene", "draw", topple) == (-1, 0.0)
     (args, kwargs), = calls
     signature = inspect.signature(reference_trial)  # the function itself, imported before the patch
@@ -157,5 +168,5 @@ def test_the_configured_trial_sets_every_parameter_of_the_reference(monkeypatch)
     assert set(bound.arguments) == set(signature.parameters), "a parameter left at its default"
     assert bound.arguments["stuck_share"] == 0.3 and bound.arguments["stroke"] == 0.02
     assert bound.arguments["max_force"] == 7.0 and bound.arguments["friction_scale"] == 0.6
-    assert bound.arguments["tip_points"] == 3
+    assert bound.arguments["tip_points"] == 3 and bound.arguments["tip_back_force"] == 2.5
     assert bound.arguments["corrections"] == topple.applied_corrections and "stuck_finger" in topple.applied_corrections

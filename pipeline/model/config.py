@@ -88,7 +88,7 @@ VARIANTS = THESIS_VARIANTS + ("corrected",)
 corrections of docs/MODEL.md "Corrections beyond the thesis" named in ``topple.corrections``)."""
 
 CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum", "edge_spin", "stroke", "stuck_finger",
-               "tip_path")
+               "tip_path", "tip_back")
 """Corrections the ``corrected`` variant can apply (docs/MODEL.md, "Corrections beyond the thesis"):
 ``finger_friction``: the finger's force follows Coulomb sliding at the contact while the object
 tips (friction in the moment balance, pushes from above, faces the finger wedges under);
@@ -102,7 +102,13 @@ base edge falls over that edge whatever the push;
 ``stuck_finger``: a push down onto a part that overhangs a base edge tips the object over it
 when nothing else does and the push can drag the base (the finger sticks, the base slides);
 ``tip_path``: ``finger_friction``'s balance must hold on the way to the apex too, at
-``tip_path_points`` angles between, not only at the start (it needs ``finger_friction``)."""
+``tip_path_points`` angles between, not only at the start (it needs ``finger_friction``);
+``tip_back``: a push from above (u_z < ``TIP_BACK_U_Z``) whose least force exceeds ``tip_back_force``
+presses the overhang down and tips the object back over the edge the line from the centre of
+mass's foot through the contact crosses (docs/MODEL.md C.22; not in the default)."""
+TIP_BACK_U_Z = -0.3
+"""``tip_back`` looks at pushes whose direction's vertical component (pose frame) is below this:
+the pushes from above of ``candidate_choice`` and the validation report."""
 
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply")
@@ -231,6 +237,10 @@ class ToppleConfig:
     made after every other draw, decides).  0.5: on the corpus log, pushes that qualify
     noise-free topple 0.43-0.53 of the time; 1, the rule taken at its word, scores the same
     there but makes the pushes the policies choose overconfident (docs/MODEL.md C.11)."""
+    tip_back_force: float = bounded(1.4, NON_NEGATIVE)
+    """N; a push from above whose least force exceeds this tips the object back (``tip_back``,
+    docs/MODEL.md C.22): the top quartile of value iteration's pushes from above on the corpus, where
+    traced topples landed in the chain of the line's edge twice as often as the model's (stop 55)."""
     tip_path_points: int = bounded(2, AT_LEAST_ONE)
     """How many angles between the start and the apex ``tip_path`` checks the balance at:
     k / (n + 1) of the apex angle for k = 1..n (docs/MODEL.md C.14)."""

@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
+from .config import TIP_BACK_U_Z
 from .topple import MIN_PUSH_TORQUE, landed_poses
 
 Vec = tuple[float, float, float]
@@ -147,11 +148,12 @@ def reference_trial(
     stroke: float = math.inf,
     stuck_share: float = 1.0,
     tip_points: int = 2,
+    tip_back_force: float = math.inf,
 ):
     """Outcome of one trial: (edge index or -1, required force in N or inf).
 
     ``corrections`` (names of ``config.CORRECTIONS``), ``max_force``, ``friction_scale``,
-    ``min_margin``, ``stroke``, ``stuck_share`` and ``tip_points`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
+    ``min_margin``, ``stroke``, ``stuck_share``, ``tip_points`` and ``tip_back_force`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
     empty, it is the thesis's trial.
     """
     if "stability_margin" in corrections:
@@ -202,6 +204,10 @@ def reference_trial(
         if not holds_along_tip(contact, normal, push, draw.mu_table, friction_scale * draw.mu_finger, y0, y1, com, weight,
                                spin_stops, limit, tip_points):  # C.14: the tip stalls on the way
             best_edge, best_force = -1, math.inf
+    if "tip_back" in corrections and best_edge >= 0 and best_force > tip_back_force and push[2] < TIP_BACK_U_Z:
+        back = line_edge(contact, scene.edges, com)  # C.22: a hard press from above tips the object back
+        if back >= 0:
+            best_edge = back
     if "stuck_finger" in corrections and best_edge < 0 and draw.stuck_draw < stuck_share and drags_base(push, draw.mu_table):
         for index, (y0, y1) in enumerate(scene.edges):  # C.11: the finger holds, the base slides
             e, outward, com_distance = _edge_frame(y0, y1, com)
@@ -221,8 +227,20 @@ def configured_trial(scene: Scene, draw: TrialDraw, topple) -> tuple[int, float]
     return reference_trial(
         scene, draw, topple.robust, topple.predicts_rotations, topple.ray_offset, topple.applied_corrections,
         topple.max_finger_force, topple.finger_friction_scale, topple.min_stability_margin, topple.stroke,
-        topple.stuck_finger_share, topple.tip_path_points,
+        topple.stuck_finger_share, topple.tip_path_points, topple.tip_back_force,
     )
+
+
+def line_edge(contact: Vec, edges, com: Vec) -> int:
+    """C.22: the base edge the line from the centre of mass's foot through the contact's foot meets first
+    (t = d_e / ((p - c) . o_e) over the edges it heads for), or -1 when it heads for none."""
+    best, best_reach = -1, math.inf
+    for index, (y0, y1) in enumerate(edges):
+        _, outward, com_distance = _edge_frame(y0, y1, com)
+        towards = _dot(_sub(contact, y0), outward) + com_distance  # (p - c) . o_e
+        if towards > 0.0 and com_distance / towards >= 0.0 and com_distance / towards < best_reach:
+            best, best_reach = index, com_distance / towards
+    return best
 
 
 def _edge_frame(y0: Vec, y1: Vec, com: Vec) -> tuple[Vec, Vec, float]:

@@ -51,7 +51,7 @@ from schema.neighbourhood import neighbour_mean, neighbour_pairs
 from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
 from .boosted_map import boosted_features, load_trees, map_boosted_rows
-from .config import ToppleConfig
+from .config import TIP_BACK_U_Z, ToppleConfig
 from .edges import EdgeGeometry, edge_geometry, push_torques
 from .feature_map import map_down_rows, map_rows, map_side_rows
 from .landing_onward import onward_shares
@@ -384,6 +384,15 @@ def _check_corrections(
             holds = holds_along_tip(trials.take(rows), edges, edge[rows], mass, gravity, config.finger_friction_scale,
                                     limit, spin_stops, config.tip_path_points)
             required[rows[~holds]] = np.inf
+    if "tip_back" in corrections:
+        # C.22: a push from above that needs a hard press to tip the object away presses the part
+        # beyond the base down instead, and the object tips back over the edge the line from the
+        # centre of mass's foot through the contact crosses.  Its force is the least force's still.
+        rows = np.flatnonzero(np.isfinite(required) & (required > config.tip_back_force) & (trials.push[:, 2] < TIP_BACK_U_Z))
+        if len(rows):
+            back = line_edges(trials.contact.take(rows, axis=0), edges)  # (r,)
+            crossed = back >= 0
+            edge[rows[crossed]] = back[crossed]
     if "stuck_finger" in corrections:
         # C.11: where nothing tips the object, a push down onto a part beyond a base edge may,
         # the finger holding on and the base sliding (a share of such trials, by the last draw).
@@ -403,6 +412,22 @@ def _check_corrections(
             stuck_edge, stuck_force = stuck_edge[: len(rows)], stuck_force[: len(rows)]
             takes = np.isfinite(stuck_force)
             edge[rows[takes]], required[rows[takes]] = stuck_edge[takes], stuck_force[takes]
+
+
+def line_edges(contact: np.ndarray, edges: EdgeGeometry) -> np.ndarray:
+    """The base edge that the line from the centre of mass's foot through each contact's foot leaves the
+    base by (``tip_back``, MODEL.md C.22): the edge line it meets first.
+
+    The ray c + t (p - c) meets edge e's line at t = d_e / ((p - c) . o_e), and (p - c) . o_e = L_e + d_e
+    with L_e = (p - y0) . o_e, so nothing but the edges' own quantities is needed.
+    contact : (r, 3) float, m, pose frame;  returns : (r,) int, -1 where the foot is the centre of mass's
+    """
+    overhang = contact @ edges.outward.T - np.einsum("ek,ek->e", edges.start, edges.outward)  # (r, E), L_e
+    towards = overhang + edges.com_distance  # (r, E), (p - c) . o_e
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = edges.com_distance / towards  # (r, E)
+    reach = np.where((towards > 0.0) & (reach >= 0.0), reach, np.inf)
+    return np.where(np.isfinite(reach).any(axis=1), np.argmin(reach, axis=1), -1)
 
 
 def stuck_finger(
