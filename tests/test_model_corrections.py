@@ -755,3 +755,57 @@ def test_trials_take_rows_by_index_mask_or_slice_alike():
     for rows in (np.flatnonzero(mask), slice(1, 4)):
         for field in Trials.__dataclass_fields__:
             assert np.array_equal(getattr(trials.take(mask), field), getattr(trials.take(rows), field))
+
+
+def test_tip_back_finds_the_edge_the_line_from_the_centre_of_mass_through_the_contact_leaves_by():
+    # C.22 on the standing box's 5 x 8 cm base: a contact's foot beyond or inside each side names that side; towards a
+    # corner the side the line meets first; at the centre of mass's own foot, none.  The reference agrees.
+    from pipeline.model.reference import line_edge
+    from pipeline.model.topple import line_edges
+
+    obj, pose_set, standing = standing_box()
+    pose = pose_set.poses[standing]
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
+    edges = edge_geometry(pose.base_edges, center_mass)
+    half = np.abs(pose.base_edges[:, :, :2].reshape(-1, 2)).max(axis=0)  # (2,)
+    side = lambda e: np.round(edges.outward[e, :2], 12).tolist()
+    contacts, expected = [], []
+    for direction in ([1, 0], [-1, 0], [0, 1], [0, -1]):
+        for reach in (0.4, 2.0):
+            contacts.append([*(reach * half * direction), 0.1])
+            expected.append([float(d) for d in direction])
+    contacts += [[*(3 * half * [0.9, 0.1]), 0.1], [*(3 * half * [0.1, 0.9]), 0.1], [0.0, 0.0, 0.12]]
+    expected += [[1.0, 0.0], [0.0, 1.0], None]
+    found = line_edges(np.array(contacts, dtype=float), edges)
+    for edge, want, contact in zip(found, expected, contacts):
+        assert (edge == -1) if want is None else side(edge) == want
+        assert edge == line_edge(tuple(contact), [tuple(map(tuple, e)) for e in pose.base_edges], tuple(center_mass))
+
+
+def test_tip_back_changes_only_hard_presses_from_above():
+    # random_044's pushes, with tip_back and a threshold over every force, and without it: the same outcomes; with a
+    # low threshold some trials move to another edge, none pushed from below, and what topples and its force do not.
+    obj = random_object(44)
+    from pipeline.model.collision import collision_object
+    from pipeline.model.contacts import object_contacts, pose_actions
+    from pipeline.model.poses import stable_poses
+
+    pose_set = stable_poses(obj)
+    contacts = replace(Config().contacts, n_contacts=80)
+    points, normals = object_contacts(obj, contacts, seed=5)
+    base = replace(Config().topple.counted(), n_trials=10)
+    moved = 0
+    for pose in pose_set.poses[:4]:
+        actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)
+        variants = (base, replace(base, corrections=base.corrections + ",tip_back", tip_back_force=1e9),
+                    replace(base, corrections=base.corrections + ",tip_back", tip_back_force=0.1))
+        without, never, low = [evaluate_pose(obj, pose, pose_set.probabilities, actions, topple,
+                                             stream(5, obj.name, pose.index, "trials")) for topple in variants]
+        np.testing.assert_array_equal(never.outcomes, without.outcomes)
+        np.testing.assert_array_equal(low.outcomes >= 0, without.outcomes >= 0)  # what topples does not change
+        np.testing.assert_array_equal(low.mean_force, without.mean_force)
+        changed = low.outcomes != without.outcomes  # (A, T)
+        # Only trials pushed from above move; their pushes are nominally from above or the side, never from below.
+        assert np.all(actions.directions[np.nonzero(changed)[0], 2] < 0.3)
+        moved += changed.sum()
+    assert moved > 0, "a low threshold should tip some trials back"
