@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.studies.play_score import brier, main, scored
+from pipeline.studies.play_score import brier, landing_given_topple, main, scored
 
 
 def test_the_brier_of_a_play_by_hand_counts_the_pose_set_and_outside():
@@ -31,6 +31,11 @@ def test_two_rows_compared_by_direction_clustered_by_object():
     assert above["variant"]["mean"] == pytest.approx((0.0 + 0.5) / 2)
     assert above["variant_minus_base"]["mean"] == pytest.approx(-0.25) and above["variant_minus_base"]["objects"] == 2
     assert out["side"]["variant_minus_base"]["mean"] == 0.0 and "below" not in out
+    # The topples into another pose: object a's from above (into pose 1) and from the side.
+    given = above["landing_given_topple"]
+    assert given["base"]["topples"] == 1 and given["base"]["mean"] == 1.0 and given["variant"]["mean"] == 1.0
+    assert landing_given_topple(np.array([0.5, 0.2, 0.3]), 0, 2) == pytest.approx(0.6)
+    assert landing_given_topple(np.array([1.0, 0.0]), 0, 1) == 0.0  # a row that never leaves
 
 
 def test_the_command_reads_plays_against_two_real_datasets_and_refuses_an_unknown_object(dataset, tmp_path, capsys):  # noqa: F811

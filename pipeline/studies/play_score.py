@@ -50,7 +50,22 @@ def scored(plays: list[dict], base_rows, variant_rows) -> dict:
         objects = [p["object_id"] for p in mine]
         out[name] = {"base": clustered_entry(base, objects, "plays"), "variant": clustered_entry(variant, objects, "plays"),
                      "variant_minus_base": clustered_entry(variant - base, objects, "plays")}
+        # The topples that came to rest in another pose of the set: each row's probability of it given a topple.
+        moved = [(k, p) for k, p in zip(keys, mine) if 0 <= p["landed"] != p["pose"]]
+        if moved:
+            of = [p["object_id"] for _, p in moved]
+            out[name]["landing_given_topple"] = {
+                label: clustered_entry([landing_given_topple(rows(*k), p["pose"], p["landed"]) for k, p in moved], of, "topples")
+                for label, rows in (("base", base_rows), ("variant", variant_rows))}
     return out
+
+
+def landing_given_topple(row: np.ndarray, pose: int, landed: int) -> float:
+    """P(landed | x, u, it left x) of a row: its share of the landed pose over everything but the stay (0 when the
+    row never leaves)."""
+    row = np.nan_to_num(np.asarray(row, dtype=float))
+    leaving = 1.0 - row[pose]
+    return float(row[landed] / leaving) if leaving > 0 else 0.0
 
 
 def dataset_rows(root: str | Path):
@@ -109,6 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         se = "" if d["se"] is None else f" +/- {d['se']:.4f}"
         lines.append(f"  from {name}: {d['plays']} plays on {d['objects']} objects, base {entry['base']['mean']:.4f}, "
                      f"variant {entry['variant']['mean']:.4f}, difference {d['mean']:+.4f}{se}")
+        if "landing_given_topple" in entry:
+            g = entry["landing_given_topple"]
+            lines.append(f"    the landed pose given a topple ({g['base']['topples']} topples): base {g['base']['mean']:.3f}, "
+                         f"variant {g['variant']['mean']:.3f}")
     return print_and_record("\n".join(lines), result, args.json)
 
 
