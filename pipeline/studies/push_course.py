@@ -47,7 +47,7 @@ from schema.frames import transform_points, unit
 from schema.vocabulary import NO_OP, POLICIES
 
 from ..build.atomic import write_text_atomic
-from ..model.config import Config
+from ..model.config import Config, ToppleConfig
 from ..model.outcomes import StablePose
 from ..model.rng import stream
 from .candidate_choice import CLASSES, direction_class
@@ -71,9 +71,9 @@ MOVED_SLIDE, MOVED_YAW = 0.005, 5.0
 """m and deg: a play that stayed moved it if it slid or turned this far."""
 STALL_SHARE = 0.9
 """A play that neither tipped nor moved stalled if the finger pressed with this share of its limit."""
-TIP_BACK_FORCE = 1.4
-"""N: the model's mean force over which a push from above is a hard press (reports/tip_back_rule_s55.md: the top
-quartile of the corpus's, stop 55), for ``landing_chains``."""
+TIP_BACK_FORCE = ToppleConfig().tip_back_force
+"""N: the model's mean force over which a push from above is a hard press (``topple.tip_back_force``, 1.4 N:
+reports/tip_back_rule_s55.md, the top quartile of the corpus's, stop 55), for ``landing_chains``."""
 
 
 @dataclass
@@ -191,25 +191,15 @@ def in_chain(pose: StablePose, edge: int, landed: int) -> bool:
 
 
 def line_edge(pose: StablePose, center_mass: np.ndarray, contact: np.ndarray) -> int:
-    """The base edge that the ray from the centre of mass's foot through the contact's foot crosses first.
+    """The base edge that the ray from the centre of mass's foot through the contact's foot crosses first:
+    where a vertical press on the contact would tip the object (``topple.line_edges``, C.22's edge).
 
-    Where a vertical press on the contact would tip the object (the centre of pressure of gravity and a
-    vertical force moves along that ray).  center_mass, contact : (3,) float, m, pose frame
-    returns : edge index; -1 when the two feet coincide
+    center_mass, contact : (3,) float, m, pose frame;  returns : edge index; -1 when the two feet coincide
     """
     from ..model.edges import edge_geometry
+    from ..model.topple import line_edges
 
-    edges = edge_geometry(pose.base_edges, center_mass)
-    ray = contact[:2] - center_mass[:2]
-    if not np.linalg.norm(ray) > 0:
-        return -1
-    outward = edges.outward[:, :2]  # (E, 2), unit: e x z of a unit e
-    # The foot lies inside the base, so the ray leaves through the edge line it meets first (t >= 0).
-    towards = outward @ ray  # (E,)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        reach = np.einsum("ij,ij->i", edges.start[:, :2] - center_mass[:2], outward) / towards  # (E,)
-    reach = np.where((towards > 0) & (reach >= 0), reach, np.inf)
-    return int(np.argmin(reach)) if np.isfinite(reach).any() else -1
+    return int(line_edges(np.asarray(contact, dtype=float)[None], edge_geometry(pose.base_edges, center_mass))[0])
 
 
 def model_edge(obj, pose_set, pose: int, point: np.ndarray, direction: np.ndarray, config: Config, seed: int) -> tuple[int, float]:
@@ -389,6 +379,7 @@ def summary(plays: list[Play]) -> dict:
         }
         if topples:
             valued = [p for p in topples if p.value_expected is not None]
+            landed = [p for p in topples if p.landed >= 0]  # into the pose set: on some chain or elsewhere
             of = [p.object_id for p in valued]
             entry.update({
                 "sides": shares((p.side for p in topples), SIDES),
@@ -399,8 +390,8 @@ def summary(plays: list[Play]) -> dict:
                 "value_landed_minus_expected": described([p.value_landed - p.value_expected for p in valued], of) if valued else None,
                 "edge_named": edge_named(topples),
                 "edge_named_tipped_back": edge_named([p for p in topples if p.tip_angle is not None and p.tip_angle > 90.0]),
-                "landing_chains": {band: landing_chains([p for p in topples if p.landed >= 0 and keep(p.model_force)])
-                                   for band, keep in (("hard", lambda f: f > TIP_BACK_FORCE), ("light", lambda f: not f > TIP_BACK_FORCE))},
+                "landing_chains": {"hard": landing_chains([p for p in landed if p.model_force > TIP_BACK_FORCE]),
+                                   "light": landing_chains([p for p in landed if not p.model_force > TIP_BACK_FORCE])},
             })
         result[name] = entry
     return result
@@ -408,27 +399,27 @@ def summary(plays: list[Play]) -> dict:
 
 def edge_named(topples: list[Play]) -> dict | None:
     """How often the model's most frequent edge, and the centre-of-mass-to-contact line's, is the edge the topples
-    tipped over, and the difference, clustered by object; None for no topples."""
-    if not topples:
-        return None
-    objects = [p.object_id for p in topples]
-    model = np.array([p.edge == p.model_edge for p in topples], dtype=float)
-    line = np.array([p.edge == p.line_edge for p in topples], dtype=float)
-    return {"model": clustered_entry(model, objects, "topples"), "line": clustered_entry(line, objects, "topples"),
-            "line_minus_model": clustered_entry(line - model, objects, "topples")}
+    tipped over (``_model_against_line``)."""
+    return _model_against_line(topples, lambda p: p.edge == p.model_edge, lambda p: p.edge == p.line_edge)
 
 
 def landing_chains(topples: list[Play]) -> dict | None:
-    """How often topples landed in the chain of the model's most frequent edge and of the line's edge, and the
-    difference, clustered by object; None for no topples.  ``summary`` splits them at ``TIP_BACK_FORCE``:
-    "hard" over it, "light" at or under it or where the model's trials never topple (NaN)."""
+    """How often topples landed in the chain of the model's most frequent edge and of the line's edge
+    (``_model_against_line``).  ``summary`` splits them at ``TIP_BACK_FORCE``: "hard" over it, "light" at or
+    under it or where the model's trials never topple (NaN)."""
+    return _model_against_line(topples, lambda p: p.in_model_chain, lambda p: p.in_line_chain)
+
+
+def _model_against_line(topples: list[Play], model, line) -> dict | None:
+    """The share of ``topples`` for which ``model(play)`` and ``line(play)`` hold, and the difference, clustered by
+    object; None for no topples."""
     if not topples:
         return None
     objects = [p.object_id for p in topples]
-    model = np.array([p.in_model_chain for p in topples], dtype=float)
-    line = np.array([p.in_line_chain for p in topples], dtype=float)
-    return {"model": clustered_entry(model, objects, "topples"), "line": clustered_entry(line, objects, "topples"),
-            "line_minus_model": clustered_entry(line - model, objects, "topples")}
+    by_model = np.array([model(p) for p in topples], dtype=float)
+    by_line = np.array([line(p) for p in topples], dtype=float)
+    return {"model": clustered_entry(by_model, objects, "topples"), "line": clustered_entry(by_line, objects, "topples"),
+            "line_minus_model": clustered_entry(by_line - by_model, objects, "topples")}
 
 
 def study(root: str | Path, policy: str = "value_iteration", per_class: int = 70, repeats: int = 5, seed: int = 53,
