@@ -103,12 +103,13 @@ base edge falls over that edge whatever the push;
 when nothing else does and the push can drag the base (the finger sticks, the base slides);
 ``tip_path``: ``finger_friction``'s balance must hold on the way to the apex too, at
 ``tip_path_points`` angles between, not only at the start (it needs ``finger_friction``);
-``tip_back``: a push from above (u_z < ``TIP_BACK_U_Z``) whose least force exceeds ``tip_back_force``
+``tip_back``: a push from above (u_z < ``FROM_ABOVE_U_Z``) whose least force exceeds ``tip_back_force``
 presses the overhang down and tips the object back over the edge the line from the centre of
 mass's foot through the contact crosses (docs/MODEL.md C.22; not in the default)."""
-TIP_BACK_U_Z = -0.3
-"""``tip_back`` looks at pushes whose direction's vertical component (pose frame) is below this:
-the pushes from above of ``candidate_choice`` and the validation report."""
+FROM_ABOVE_U_Z = -0.3
+"""A push is from above when its direction's vertical component (pose frame) is below this: the split of
+``candidate_choice`` and the validation report, the pushes ``tip_back`` looks at and LD's first class
+(``landing_direction``)."""
 
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply")

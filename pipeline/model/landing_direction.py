@@ -24,10 +24,12 @@ import numpy as np
 
 from schema.horizon import choosable_pushes
 
+from .config import FROM_ABOVE_U_Z
+
 CLASSES = ("above", "side", "below")
 """Push directions by u_z in the pose frame, as ``candidate_choice`` and the validation report split
 them: from above u_z < -0.3, from the side -0.3 <= u_z < 0.3, from below u_z >= 0.3."""
-SIDE_FLOOR, BELOW_FLOOR = -0.3, 0.3
+SIDE_FLOOR, BELOW_FLOOR = FROM_ABOVE_U_Z, 0.3
 """The lowest u_z of the side and from-below classes."""
 
 
@@ -54,19 +56,29 @@ def checked_doubts(doubts) -> np.ndarray:
     return shares
 
 
+def leaving_shares(rows: np.ndarray, pose: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each push's landing and how likely it leaves: (A, P) float, P(x' | x, u) over the leaving
+    part of the row (0 at x and on rows where nothing leaves), and (A,) float, the leaving mass
+    (P(topple); 0 on rows that are not ok).  The planners' studies read landings through it too.
+
+    rows : (A, P) float, P(x' | x, u), NaN rows unless ok;  pose : x"""
+    leaving = np.nan_to_num(np.asarray(rows, dtype=float), nan=0.0)
+    leaving[:, pose] = 0.0
+    total = leaving.sum(axis=1)
+    return np.divide(leaving, total[:, None], out=np.zeros_like(leaving), where=total[:, None] > 0), total
+
+
 def mean_landing(rows: np.ndarray, pose: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each push's landing given a topple, how likely it leaves, and the pose's mean landing m of (LD.1).
+    """Each push's landing given a topple, how likely it leaves (``leaving_shares``), and the pose's mean
+    landing m of (LD.1).
 
     rows : (A, P) float, P(x' | x, u), NaN rows unless ok;  pose : x
     returns : landing (A, P) float (rows of zeros where nothing leaves), leaving (A,) float
       (P(topple), 0 on rows that are not ok), mean (P,) float (zeros when no push leaves)
     """
-    leaving = np.nan_to_num(np.asarray(rows, dtype=float), nan=0.0)
-    leaving[:, pose] = 0.0
-    total = leaving.sum(axis=1)  # (A,)
-    landing = np.divide(leaving, total[:, None], out=np.zeros_like(leaving), where=total[:, None] > 0)
+    landing, total = leaving_shares(rows, pose)
     leaves = total > 0
-    mean = landing[leaves].mean(axis=0) if leaves.any() else np.zeros(leaving.shape[1])
+    mean = landing[leaves].mean(axis=0) if leaves.any() else np.zeros(landing.shape[1])
     return landing, total, mean
 
 

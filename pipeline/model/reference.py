@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
-from .config import TIP_BACK_U_Z
+from .config import FROM_ABOVE_U_Z
 from .topple import MIN_PUSH_TORQUE, landed_poses
 
 Vec = tuple[float, float, float]
@@ -204,7 +204,7 @@ def reference_trial(
         if not holds_along_tip(contact, normal, push, draw.mu_table, friction_scale * draw.mu_finger, y0, y1, com, weight,
                                spin_stops, limit, tip_points):  # C.14: the tip stalls on the way
             best_edge, best_force = -1, math.inf
-    if "tip_back" in corrections and best_edge >= 0 and best_force > tip_back_force and push[2] < TIP_BACK_U_Z:
+    if "tip_back" in corrections and best_edge >= 0 and best_force > tip_back_force and push[2] < FROM_ABOVE_U_Z:
         back = line_edge(contact, scene.edges, com)  # C.22: a hard press from above tips the object back
         if back >= 0:
             best_edge = back

@@ -51,7 +51,7 @@ from schema.neighbourhood import neighbour_mean, neighbour_pairs
 from schema.vocabulary import OUTCOME_NO_EDGE, OUTCOME_NOT_EVALUATED, STATUS_OK
 
 from .boosted_map import boosted_features, load_trees, map_boosted_rows
-from .config import TIP_BACK_U_Z, ToppleConfig
+from .config import FROM_ABOVE_U_Z, ToppleConfig
 from .edges import EdgeGeometry, edge_geometry, push_torques
 from .feature_map import map_down_rows, map_rows, map_side_rows
 from .landing_onward import onward_shares
@@ -388,7 +388,7 @@ def _check_corrections(
         # C.22: a push from above that needs a hard press to tip the object away presses the part
         # beyond the base down instead, and the object tips back over the edge the line from the
         # centre of mass's foot through the contact crosses.  Its force is the least force's still.
-        rows = np.flatnonzero(np.isfinite(required) & (required > config.tip_back_force) & (trials.push[:, 2] < TIP_BACK_U_Z))
+        rows = np.flatnonzero(np.isfinite(required) & (required > config.tip_back_force) & (trials.push[:, 2] < FROM_ABOVE_U_Z))
         if len(rows):
             back = line_edges(trials.contact.take(rows, axis=0), edges)  # (r,)
             crossed = back >= 0

@@ -60,7 +60,7 @@ from schema.vocabulary import NO_OP, STATUS_NAMES, STATUS_OK
 from ..build.atomic import write_text_atomic
 from ..model.config import Config, MDPConfig, field_range
 from ..model.landing_direction import CLASSES as DIRECTION_CLASSES
-from ..model.landing_direction import checked_doubts, doubted_rows
+from ..model.landing_direction import checked_doubts, doubted_rows, leaving_shares
 from ..model.landing_trust import BANDS as TRUST_BANDS
 from ..model.landing_trust import checked_shares, trusted_rows
 from ..model.mdp import IMPROVEMENT, belief_value_iteration, choice_by_means, pose_values, value_iteration_policy
@@ -379,18 +379,6 @@ class Landings:
     share: np.ndarray
     pose: np.ndarray
     v_s: np.ndarray
-
-
-def leaving_shares(rows: np.ndarray, pose: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each push's landing and how likely it leaves: (A, P) float, P(x' | x, u) over the leaving
-    part of the row (0 at x and on rows where nothing leaves), and (A,) float, the leaving mass
-    (P(topple); 0 on rows that are not ok).
-
-    rows : (A, P) float, P(x' | x, u), NaN rows unless ok (``next_pose_rows``)"""
-    leaving = np.nan_to_num(np.asarray(rows, dtype=float), nan=0.0)
-    leaving[:, pose] = 0.0
-    total = leaving.sum(axis=1)
-    return np.divide(leaving, total[:, None], out=np.zeros_like(leaving), where=total[:, None] > 0), total
 
 
 def pose_landings(rows: np.ndarray, pose: int, v_s: np.ndarray) -> Landings:
