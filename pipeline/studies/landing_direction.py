@@ -68,11 +68,14 @@ def play_terms(plays: list[dict], rows: dict[str, list[np.ndarray]], values: dic
       probability given a topple), value_own and value_mean (V_s expected), value_landed
     """
     terms = []
+    landings = {}  # (object, pose) -> mean_landing: a push is played several times, a pose's starts share it
     for play in plays:
         if not play["toppled"] or play["kind"] == "no contact" or play["landed"] < 0:
             continue
         object_id, pose, action, landed = play["object_id"], play["pose"], play["action"], play["landed"]
-        landing, total, mean = mean_landing(rows[object_id][pose], pose)
+        if (object_id, pose) not in landings:
+            landings[object_id, pose] = mean_landing(rows[object_id][pose], pose)
+        landing, total, mean = landings[object_id, pose]
         if total[action] <= 0:  # the rows say it cannot topple: nothing to mix
             continue
         v_s = values[object_id]

@@ -24,6 +24,7 @@ import numpy as np
 
 from .candidate_choice import CLASSES
 from .pooled_gain import clustered_entry
+from .scoring import brier_score
 
 
 def brier(row: np.ndarray, landed: int) -> float:
@@ -33,7 +34,7 @@ def brier(row: np.ndarray, landed: int) -> float:
     observed = np.zeros(len(row) + 1)
     observed[landed if landed >= 0 else len(row)] = 1.0
     predicted = np.append(row, max(0.0, 1.0 - row.sum()))
-    return float(np.sum((predicted - observed) ** 2))
+    return float(brier_score(predicted[None], observed[None])[0])
 
 
 def scored(plays: list[dict], base_rows, variant_rows) -> dict:
