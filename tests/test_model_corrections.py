@@ -210,6 +210,25 @@ def test_the_stuck_finger_share_is_the_fraction_of_qualifying_trials_that_topple
         assert low <= _push(frustum, point, direction, topple).p_topple[0] <= high, share
 
 
+def test_tip_back_re_aims_the_stuck_fingers_topple_at_the_lines_edge(frustum):
+    """C.22 after C.11: pushed 30 degrees below horizontal along +x onto the top face beyond the frustum's +x+y
+    corner (5 mm past the +x base edge, 15 mm past the +y one), the stuck finger tips it over +x, whose lever
+    h u_x + (x - a) |u_z| is the longer; the line from the centre of mass's foot through the contact meets y = a
+    first (at 4/7 of the way, x = a at 4/5), so a hard press tips it over +y instead, with the stuck finger's force."""
+    obj, pose_set, index = frustum
+    pose = pose_set.poses[index]
+    edges = edge_geometry(pose.base_edges, transform_points(pose.transform, obj.center_mass[None])[0])
+    side = lambda outward: int(np.argmax(edges.outward @ np.array(outward)))
+    direction = np.array([0.87, 0.0, -0.5]) / np.hypot(0.87, 0.5)
+    point = [[0.025, 0.035, FRUSTUM_HEIGHT]]
+    stuck = "finger_friction,stuck_finger,tip_back"
+    hard = _push(frustum, point, direction, noise_free(corrections=stuck, stuck_finger_share=1.0, tip_back_force=0.0))
+    light = _push(frustum, point, direction, noise_free(corrections=stuck, stuck_finger_share=1.0, tip_back_force=1e9))
+    assert light.outcomes[0, 0] == side([1.0, 0.0, 0.0]) and hard.outcomes[0, 0] == side([0.0, 1.0, 0.0])
+    lever = FRUSTUM_HEIGHT * direction[0] + (0.025 - FRUSTUM_BASE) * -direction[2]
+    assert hard.mean_force[0] == light.mean_force[0] == pytest.approx(obj.mass * 9.81 * FRUSTUM_BASE / lever, rel=1e-9)
+
+
 def test_thesis_model_ignores_finger_friction_in_the_moment_balance(box):
     """The thesis's threshold is d / mu_T whatever mu_f (the ``rotations`` variant, noise-free)."""
     d = 0.025

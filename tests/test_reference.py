@@ -33,7 +33,7 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_044", "corrected:finger_friction,force_limit,momentum,stuck_finger"),  # pushes down onto overhangs (C.11)
     ("random_044", "corrected:finger_friction,force_limit,tip_path"),  # tips that stall on the way (C.14)
     ("random_044", "corrected:finger_friction,tip_path"),  # no force limit on the way; TIP_POINTS angles
-    ("random_044", "corrected:finger_friction,force_limit,momentum,tip_back"),  # hard presses from above tip back (C.22)
+    ("random_044", "corrected:finger_friction,force_limit,momentum,stuck_finger,tip_back"),  # hard presses from above tip back (C.22), the stuck finger's too
 ]
 
 LOW_LIMIT = 1.0
@@ -72,7 +72,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
     points, normals = object_contacts(obj, contacts, seed=11)
     mesh_collision = collision_object(obj.mesh)
     pose_set = stable_poses(obj)
-    compared = agreed = toppled = capped = rolled = stuck = backed = 0
+    compared = agreed = toppled = capped = rolled = stuck = backed = stuck_backed = 0
     for pose in pose_set.poses:
         actions = pose_actions(points, normals, obj.mesh, mesh_collision, pose.transform, contacts)
         table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(11, obj.name, pose.index, "trials"))
@@ -103,6 +103,10 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                     away = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
                                            topple.applied_corrections - {"tip_back"}, topple.max_finger_force)
                     backed += edge >= 0 and away[0] >= 0 and edge != away[0]
+                    if "stuck_finger" in corrections:  # of them, the stuck finger's topples (C.22 after C.11)
+                        alone = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
+                                                topple.applied_corrections - {"stuck_finger", "tip_back"}, topple.max_finger_force)
+                        stuck_backed += edge >= 0 and away[0] >= 0 and edge != away[0] and alone[0] < 0
                 if topple.stroke == SHORT_STROKE:  # trials the stroke stops: with an endless one they topple
                     endless = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
                                               topple.applied_corrections, topple.max_finger_force)
@@ -130,6 +134,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         assert capped > 0, "the balance on the way should stop some trials that start to tip"
     if "tip_back" in corrections:
         assert backed > 0, "some hard presses from above should tip back over another edge"
+        if "stuck_finger" in corrections:
+            assert stuck_backed > 0, "some of the stuck finger's topples should tip back over another edge"
 
 
 def test_reference_required_force_matches_engine_on_box():

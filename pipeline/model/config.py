@@ -103,9 +103,10 @@ base edge falls over that edge whatever the push;
 when nothing else does and the push can drag the base (the finger sticks, the base slides);
 ``tip_path``: ``finger_friction``'s balance must hold on the way to the apex too, at
 ``tip_path_points`` angles between, not only at the start (it needs ``finger_friction``);
-``tip_back``: a push from above (u_z < ``FROM_ABOVE_U_Z``) whose least force exceeds ``tip_back_force``
-presses the overhang down and tips the object back over the edge the line from the centre of
-mass's foot through the contact crosses (docs/MODEL.md C.22; not in the default)."""
+``tip_back``: a push from above (u_z < ``FROM_ABOVE_U_Z``) that topples with a force over ``tip_back_force``,
+by the least force or by ``stuck_finger``, presses the overhang down and tips the object back over the
+edge the line from the centre of mass's foot through the contact crosses (docs/MODEL.md C.22; not in
+the default)."""
 FROM_ABOVE_U_Z = -0.3
 """A push is from above when its direction's vertical component (pose frame) is below this: the split of
 ``candidate_choice`` and the validation report, the pushes ``tip_back`` looks at and LD's first class
@@ -239,7 +240,7 @@ class ToppleConfig:
     noise-free topple 0.43-0.53 of the time; 1, the rule taken at its word, scores the same
     there but makes the pushes the policies choose overconfident (docs/MODEL.md C.11)."""
     tip_back_force: float = bounded(1.4, NON_NEGATIVE)
-    """N; a push from above whose least force exceeds this tips the object back (``tip_back``,
+    """N; a push from above that topples with a force over this tips the object back (``tip_back``,
     docs/MODEL.md C.22): the top quartile of value iteration's pushes from above on the corpus, where
     traced topples landed in the chain of the line's edge twice as often as the model's (stop 55)."""
     tip_path_points: int = bounded(2, AT_LEAST_ONE)

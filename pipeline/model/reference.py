@@ -204,10 +204,6 @@ def reference_trial(
         if not holds_along_tip(contact, normal, push, draw.mu_table, friction_scale * draw.mu_finger, y0, y1, com, weight,
                                spin_stops, limit, tip_points):  # C.14: the tip stalls on the way
             best_edge, best_force = -1, math.inf
-    if "tip_back" in corrections and best_edge >= 0 and best_force > tip_back_force and push[2] < FROM_ABOVE_U_Z:
-        back = line_edge(contact, scene.edges, com)  # C.22: a hard press from above tips the object back
-        if back >= 0:
-            best_edge = back
     if "stuck_finger" in corrections and best_edge < 0 and draw.stuck_draw < stuck_share and drags_base(push, draw.mu_table):
         for index, (y0, y1) in enumerate(scene.edges):  # C.11: the finger holds, the base slides
             e, outward, com_distance = _edge_frame(y0, y1, com)
@@ -217,6 +213,10 @@ def reference_trial(
             force = weight * com_distance / torque
             if force <= max_force and force < best_force:
                 best_edge, best_force = index, force
+    if "tip_back" in corrections and best_edge >= 0 and best_force > tip_back_force and push[2] < FROM_ABOVE_U_Z:
+        back = line_edge(contact, scene.edges, com)  # C.22, after C.11: a hard press from above tips it back
+        if back >= 0:
+            best_edge = back
     return best_edge, best_force
 
 

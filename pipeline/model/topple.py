@@ -363,7 +363,7 @@ def _check_corrections(
     trials: Trials, edges: EdgeGeometry, edge: np.ndarray, required: np.ndarray, mass: float, config: ToppleConfig,
     corrections: frozenset[str], spin_stops: bool,
 ) -> None:
-    """Apply the corrections that follow the least-force edge (C.10, C.14, C.11) to a block of n
+    """Apply the corrections that follow the least-force edge (C.10, C.14, C.11, C.22) to a block of n
     trials, in place: ``required`` (n,) float, N, becomes inf where the topple does not happen,
     and ``edge`` (n,) int and ``required`` take the stuck finger's edge and force where it tips a
     trial.  A row with ``required`` inf carries an arbitrary edge (0), which the checks read
@@ -384,15 +384,6 @@ def _check_corrections(
             holds = holds_along_tip(trials.take(rows), edges, edge[rows], mass, gravity, config.finger_friction_scale,
                                     limit, spin_stops, config.tip_path_points)
             required[rows[~holds]] = np.inf
-    if "tip_back" in corrections:
-        # C.22: a push from above that needs a hard press to tip the object away presses the part
-        # beyond the base down instead, and the object tips back over the edge the line from the
-        # centre of mass's foot through the contact crosses.  Its force is the least force's still.
-        rows = np.flatnonzero(np.isfinite(required) & (required > config.tip_back_force) & (trials.push[:, 2] < FROM_ABOVE_U_Z))
-        if len(rows):
-            back = line_edges(trials.contact.take(rows, axis=0), edges)  # (r,)
-            crossed = back >= 0
-            edge[rows[crossed]] = back[crossed]
     if "stuck_finger" in corrections:
         # C.11: where nothing tips the object, a push down onto a part beyond a base edge may,
         # the finger holding on and the base sliding (a share of such trials, by the last draw).
@@ -412,6 +403,16 @@ def _check_corrections(
             stuck_edge, stuck_force = stuck_edge[: len(rows)], stuck_force[: len(rows)]
             takes = np.isfinite(stuck_force)
             edge[rows[takes]], required[rows[takes]] = stuck_edge[takes], stuck_force[takes]
+    if "tip_back" in corrections:
+        # C.22: a push from above that needs a hard press to tip the object presses the part beyond the base down
+        # instead, and the object tips back over the edge the line from the centre of mass's foot through the
+        # contact crosses.  After C.11, so the stuck finger's topples, most of the hard presses', are re-aimed too;
+        # the force stays the trial's.
+        rows = np.flatnonzero(np.isfinite(required) & (required > config.tip_back_force) & (trials.push[:, 2] < FROM_ABOVE_U_Z))
+        if len(rows):
+            back = line_edges(trials.contact.take(rows, axis=0), edges)  # (r,)
+            crossed = back >= 0
+            edge[rows[crossed]] = back[crossed]
 
 
 def line_edges(contact: np.ndarray, edges: EdgeGeometry) -> np.ndarray:
