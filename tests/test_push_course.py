@@ -499,7 +499,7 @@ def test_the_summary_by_hand_with_topples_clustered_by_object():
     assert named["line_minus_model"]["mean"] == pytest.approx(0.0) and named["model"]["topples"] == 3
     back = above["edge_named_tipped_back"]
     assert back["model"]["mean"] == 0.0 and back["line"]["mean"] == 1.0 and back["model"]["topples"] == 1
-    # Landings by chain, split at TIP_BACK_FORCE (1.4 N): two hard pushes (3.0, 2.0 N) and one light (0.5 N).
+    # Landings by chain, split at TIP_BACK_FORCE (0.7 N): two hard pushes (3.0, 2.0 N) and one light (0.5 N).
     hard, light = above["landing_chains"]["hard"], above["landing_chains"]["light"]
     assert hard["model"]["topples"] == 2 and hard["model"]["mean"] == 0.5 and hard["line"]["mean"] == 1.0
     assert hard["line_minus_model"]["mean"] == 0.5

@@ -239,10 +239,10 @@ class ToppleConfig:
     made after every other draw, decides).  0.5: on the corpus log, pushes that qualify
     noise-free topple 0.43-0.53 of the time; 1, the rule taken at its word, scores the same
     there but makes the pushes the policies choose overconfident (docs/MODEL.md C.11)."""
-    tip_back_force: float = bounded(1.4, NON_NEGATIVE)
+    tip_back_force: float = bounded(0.7, NON_NEGATIVE)
     """N; a push from above that topples with a force over this tips the object back (``tip_back``,
-    docs/MODEL.md C.22): the top quartile of value iteration's pushes from above on the corpus, where
-    traced topples landed in the chain of the line's edge twice as often as the model's (stop 55)."""
+    docs/MODEL.md C.22): of 0.7, 1.4 and 2.8 N, the one whose rows scored the corpus's traced plays from
+    above best (stop 56; 1.4 N, the top quartile of value iteration's pushes from above, was stop 55's)."""
     tip_path_points: int = bounded(2, AT_LEAST_ONE)
     """How many angles between the start and the apex ``tip_path`` checks the balance at:
     k / (n + 1) of the apex angle for k = 1..n (docs/MODEL.md C.14)."""

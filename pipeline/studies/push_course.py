@@ -72,8 +72,9 @@ MOVED_SLIDE, MOVED_YAW = 0.005, 5.0
 STALL_SHARE = 0.9
 """A play that neither tipped nor moved stalled if the finger pressed with this share of its limit."""
 TIP_BACK_FORCE = ToppleConfig().tip_back_force
-"""N: the model's mean force over which a push from above is a hard press (``topple.tip_back_force``, 1.4 N:
-reports/tip_back_rule_s55.md, the top quartile of the corpus's, stop 55), for ``landing_chains``."""
+"""N: the model's mean force over which a push from above is a hard press (``topple.tip_back_force``, 0.7 N since
+stop 56; stop 55's hypothesis, reports/tip_back_rule_s55.md, split at 1.4 N, the top quartile of the corpus's), for
+``landing_chains``."""
 
 
 @dataclass
