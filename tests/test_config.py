@@ -11,7 +11,7 @@ from pipeline.model.config import NO_MAP, PRESETS, Config, ContactConfig, Range,
 
 def test_defaults_are_the_calibrated_corrected_model_and_the_thesis_preset_is_the_thesis():
     config = Config()
-    assert config.topple.variant == "corrected" and config.topple.applied_corrections == {"finger_friction", "force_limit", "momentum", "stuck_finger", "tip_path"}
+    assert config.topple.variant == "corrected" and config.topple.applied_corrections == {"finger_friction", "force_limit", "momentum", "stuck_finger", "tip_path", "tip_back"}
     assert config.topple.n_trials == 100 and config.contacts.n_contacts == 1000
     assert config.mdp.gamma == 0.95
     assert math.isclose(config.poses.same_pose_angle, math.radians(10))

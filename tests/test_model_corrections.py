@@ -282,7 +282,8 @@ def test_thesis_variants_apply_no_correction_and_unknown_names_are_refused():
     for variant in ("baseline", "rotations", "robustness", "robust"):
         assert replace(Config().topple, variant=variant, corrections="all").applied_corrections == frozenset()
     assert replace(Config().topple, variant="corrected", corrections="all").applied_corrections == frozenset(CORRECTIONS)
-    assert replace(Config().topple, variant="corrected").applied_corrections == {"finger_friction", "force_limit", "momentum", "stuck_finger", "tip_path"}
+    assert replace(Config().topple, variant="corrected").applied_corrections == {"finger_friction", "force_limit", "momentum", "stuck_finger", "tip_path",
+                                                                               "tip_back"}
     assert replace(Config().topple, variant="corrected", corrections="none").applied_corrections == frozenset()
     one = Config().with_overrides({"topple.variant": "corrected", "topple.corrections": "force_limit"})
     assert one.topple.applied_corrections == {"force_limit"}
@@ -812,7 +813,8 @@ def test_tip_back_changes_only_hard_presses_from_above():
     pose_set = stable_poses(obj)
     contacts = replace(Config().contacts, n_contacts=80)
     points, normals = object_contacts(obj, contacts, seed=5)
-    base = replace(Config().topple.counted(), n_trials=10)
+    default = Config().topple.counted()
+    base = replace(default, n_trials=10, corrections=",".join(sorted(default.applied_corrections - {"tip_back"})))
     moved = 0
     for pose in pose_set.poses[:4]:
         actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), pose.transform, contacts)

@@ -105,8 +105,8 @@ when nothing else does and the push can drag the base (the finger sticks, the ba
 ``tip_path_points`` angles between, not only at the start (it needs ``finger_friction``);
 ``tip_back``: a push from above (u_z < ``FROM_ABOVE_U_Z``) that topples with a force over ``tip_back_force``,
 by the least force or by ``stuck_finger``, presses the overhang down and tips the object back over the
-edge the line from the centre of mass's foot through the contact crosses (docs/MODEL.md C.22; not in
-the default)."""
+edge the line from the centre of mass's foot through the contact crosses (docs/MODEL.md C.22; in the
+default since stop 56)."""
 FROM_ABOVE_U_Z = -0.3
 """A push is from above when its direction's vertical component (pose frame) is below this: the split of
 ``candidate_choice`` and the validation report, the pushes ``tip_back`` looks at and LD's first class
@@ -210,7 +210,7 @@ class ToppleConfig:
     """m; the finger ray that re-finds a noisy contact starts this far outside it."""
     chunk_actions: int = bounded(256, AT_LEAST_ONE)
     """Actions evaluated per vectorised block; bounds peak memory, not results."""
-    corrections: str = "finger_friction,force_limit,momentum,stuck_finger,tip_path"
+    corrections: str = "finger_friction,force_limit,momentum,stuck_finger,tip_path,tip_back"
     """Comma-separated corrections the ``corrected`` variant applies (``CORRECTIONS``), or
     ``all`` or ``none``; the thesis's variants apply none, whatever this says.  The default
     leaves out ``stability_margin``, which physics does not support as a rule (docs/MODEL.md C.3),
