@@ -365,9 +365,10 @@ def _check_corrections(
 ) -> None:
     """Apply the corrections that follow the least-force edge (C.10, C.14, C.11, C.22) to a block of n
     trials, in place: ``required`` (n,) float, N, becomes inf where the topple does not happen,
-    and ``edge`` (n,) int and ``required`` take the stuck finger's edge and force where it tips a
-    trial.  A row with ``required`` inf carries an arbitrary edge (0), which the checks read
-    harmlessly and ``trial_outcomes`` replaces by ``OUTCOME_NO_EDGE``."""
+    ``edge`` (n,) int and ``required`` take the stuck finger's edge and force where it tips a
+    trial, and ``edge`` the line's edge where C.22 tips a hard press from above back.  A row with
+    ``required`` inf carries an arbitrary edge (0), which the checks read harmlessly and
+    ``trial_outcomes`` replaces by ``OUTCOME_NO_EDGE``."""
     gravity, max_force = config.gravity, config.max_finger_force
     if "stroke" in corrections:
         # C.10: the object tips over the least-force edge, and falls back unless the finger's
