@@ -24,6 +24,7 @@ import numpy as np
 
 from .candidate_choice import CLASSES
 from .pooled_gain import clustered_entry
+from .push_course import landing_given_topple
 from .scoring import brier_score
 
 
@@ -59,14 +60,6 @@ def scored(plays: list[dict], base_rows, variant_rows) -> dict:
                 label: clustered_entry([landing_given_topple(rows(*k), p["pose"], p["landed"]) for k, p in moved], of, "topples")
                 for label, rows in (("base", base_rows), ("variant", variant_rows))}
     return out
-
-
-def landing_given_topple(row: np.ndarray, pose: int, landed: int) -> float:
-    """P(landed | x, u, it left x) of a row: its share of the landed pose over everything but the stay (0 when the
-    row never leaves)."""
-    row = np.nan_to_num(np.asarray(row, dtype=float))
-    leaving = 1.0 - row[pose]
-    return float(row[landed] / leaving) if leaving > 0 else 0.0
 
 
 def dataset_rows(root: str | Path):

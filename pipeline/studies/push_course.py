@@ -186,6 +186,14 @@ def landing_kind(pose: StablePose, edge: int, landed: int) -> str:
     return "elsewhere"
 
 
+def landing_given_topple(row: np.ndarray, pose: int, landed: int) -> float:
+    """P(landed | x, u, it left x) of a row: its share of the landed pose over everything but the stay (0 when the
+    row never leaves).  row : (P,) float, P(x' | x, u);  pose : x;  landed : a pose of the set"""
+    row = np.nan_to_num(np.asarray(row, dtype=float))
+    leaving = 1.0 - row[pose]
+    return float(row[landed] / leaving) if leaving > 0 else 0.0
+
+
 def in_chain(pose: StablePose, edge: int, landed: int) -> bool:
     """Whether pose ``landed`` is in the chain of ``edge`` (its first, rolled-on or onward pose); False for edge -1."""
     return edge >= 0 and landing_kind(pose, edge, landed) != "elsewhere"
@@ -335,7 +343,7 @@ def play_object(plan: ObjectPlan, starts: list[tuple[int, int]], rows: list[np.n
                 edge, _ = tipped_edge(pose_set.poses[pose], center_mass, lean)
                 landing = landing_kind(pose_set.poses[pose], edge, landed)
                 landed_value = float(values[landed])
-                probability = float(row[landed] / topple) if topple > 0 and landed >= 0 else 0.0
+                probability = landing_given_topple(row, pose, landed) if landed >= 0 else 0.0
             plays.append(Play(plan.spec.object_id, name, float(predicted), bool(toppled),
                               course_kind(c, toppled, config.topple.max_finger_force), side, landing,
                               expected if toppled else None, landed_value, probability, pose, action, int(landed),
