@@ -5,6 +5,9 @@ real (tiny) dataset plays each policy's pushes, re-plans, and logs them in the p
 from __future__ import annotations
 
 import itertools
+import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +16,7 @@ from pipeline.cli import main as cli
 from pipeline.studies import playlog, policies_physics
 from pipeline.studies.policy_experiment import ACTION_SPAN, PolicyTables
 from schema.pushlog import row_problems
+from schema.reader import Dataset
 from schema.vocabulary import NO_OP, POLICIES
 from tests.test_service import SPARSE_CHOICE_FROM_THE_SIDE
 
@@ -142,3 +146,25 @@ def test_repeats_of_a_failed_push_are_read_apart_from_first_tries():
     assert (rows["after a failure"]["pushes"], rows["after a failure"]["physical_topple_rate"]) == (2, 0.5)
     assert list(rows) == ["first try", "after a failure"]
     assert [d["attempt"] for d in policies_physics.topple_rates_by_attempt(predicted[:1], toppled[:1], again[:1])] == ["first try"]
+
+
+def test_a_dataset_built_in_another_venv_finds_pybullets_meshes_in_this_one(dataset, tmp_path):
+    # The manifest records the absolute mesh path the build read; a copy of the dataset whose venv lived
+    # elsewhere must still be playable here, and only with the very bytes the manifest recorded.
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    here = {}
+    for entry in manifest["corpus"]["objects"]:
+        here[entry["object_id"]] = Path(entry["path"]).resolve()
+        inside = entry["path"].rsplit("/pybullet_data/", 1)[1]
+        entry["path"] = f"/another/machine/.venv/lib/python3.11/site-packages/pybullet_data/{inside}"
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    ids = sorted(here)
+    plans = policies_physics.object_plans(Dataset.open(copy), ids)
+    assert {i: Path(plans[i].spec.path).resolve() for i in ids} == here
+
+    manifest["corpus"]["objects"][0]["sha256"] = "0" * 64  # another file under the same name is not the mesh
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(policies_physics.ExperimentError, match="/another/machine/.* is missing or differs"):
+        policies_physics.object_plans(Dataset.open(copy), ids)

@@ -117,6 +117,27 @@ class ObjectPlan:
     pushes: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, float]]
 
 
+def mesh_file(path: str, source: str, sha256: str) -> Path:
+    """Where a manifest's mesh is on this machine: its recorded ``path``, or, for one of pybullet's meshes
+    recorded under another venv's ``pybullet_data`` (a dataset copied from another machine, a venv rebuilt
+    elsewhere), the same file under this one's when its bytes are the recorded ``sha256``.
+
+    The manifest records the absolute path the build read, so without this a dataset could be played in
+    physics only where it was built.
+    """
+    recorded = Path(path)
+    if not (source == PYBULLET_SOURCE or source.startswith(PYBULLET_SOURCE + "/")):
+        return recorded
+    if not recorded.is_absolute():
+        return pybullet_data_dir() / recorded
+    parts = recorded.parts
+    if file_sha256(recorded) == sha256 or "pybullet_data" not in parts:
+        return recorded
+    inside = parts[len(parts) - parts[::-1].index("pybullet_data"):]  # after the last pybullet_data
+    moved = pybullet_data_dir().joinpath(*inside)
+    return moved if file_sha256(moved) == sha256 else recorded
+
+
 def object_plans(dataset: Dataset, object_ids: list[str]) -> dict[str, ObjectPlan]:
     """Each object's spec (mesh path resolved, checked against the manifest's SHA-256) and policy pushes."""
     corpus = {o.object_id: o for o in dataset.manifest.corpus.objects}
@@ -128,9 +149,7 @@ def object_plans(dataset: Dataset, object_ids: list[str]) -> dict[str, ObjectPla
     plans = {}
     for object_id in object_ids:
         entry = corpus[object_id]
-        path = Path(entry.path)
-        if not path.is_absolute() and (entry.source == PYBULLET_SOURCE or entry.source.startswith(PYBULLET_SOURCE + "/")):
-            path = pybullet_data_dir() / path
+        path = mesh_file(entry.path, entry.source, entry.sha256)
         if file_sha256(path) != entry.sha256:
             raise ExperimentError(f"{object_id}: mesh {path} is missing or differs from the dataset's (sha256)")
         spec = ObjectSpec(object_id, str(path), entry.scale, entry.mass, entry.source, entry.sha256)
