@@ -59,9 +59,10 @@ logs: venv
 	$(PY) -m pipeline play --config thesis --objects heldout --count 50 --repeats 40 --noise-draws 1 --out data/logs/heldout_replay $(ARGS)
 
 # The six held-out datasets the policy runs are judged on (docs/VALIDATION.md): every object of the
-# held-out order outside the corpus, in sets of 100-200, each with its corpus list. Every set is built
-# or brought up to the current model: shards whose inputs are unchanged are reused (a few seconds a set),
-# so a killed run resumes and a changed default rebuilds. About 16 minutes on 2 cores from nothing.
+# held-out order outside the corpus, in sets of 100-200, each with its corpus list. Every set is checked
+# against the current model: shards whose inputs are unchanged are reused (a few seconds a set), so a killed
+# run resumes; a set built with another model stops it with the difference, and `make heldout ARGS=--force`
+# rebuilds them all (each old set stays until its new one is complete). About 16 minutes on 2 cores.
 HELDOUT_SETS := "a 100 0 first_100" "b 100 100 101_200" "c 200 200 201_400" "d 150 450 451_600" \
 	"e 150 600 601_750" "f 150 750 751_900"
 heldout: venv
