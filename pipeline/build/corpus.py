@@ -258,6 +258,12 @@ def load_corpus(corpus: str, default_mass: float, units: Units | None = None) ->
 # --- files ------------------------------------------------------------------------
 
 
+def is_pybullet_source(source: str) -> bool:
+    """Whether a mesh's ``source`` is pybullet's data (``pybullet_data`` or a path under it), whose mesh paths
+    are read relative to ``pybullet_data_dir``."""
+    return source == PYBULLET_SOURCE or source.startswith(PYBULLET_SOURCE + "/")
+
+
 def pybullet_data_dir() -> Path:
     try:
         import pybullet_data
@@ -398,7 +404,7 @@ def read_list(path: str | Path, default_mass: float, name: str | None = None) ->
 def _resolve(mesh: str, source: str, list_dir: Path) -> Path:
     if os.path.isabs(mesh):
         return Path(mesh)
-    if source == PYBULLET_SOURCE or source.startswith(PYBULLET_SOURCE + "/"):
+    if is_pybullet_source(source):
         return pybullet_data_dir() / mesh
     return (list_dir / mesh).resolve()
 

@@ -36,7 +36,7 @@ from schema.frames import DOWN, transform_points, unit
 from schema.pushlog import PUSHLOG, row_problems
 
 from ..build.atomic import file_sha256
-from ..build.corpus import PYBULLET_SOURCE, Corpus, CorpusError, pybullet_data_dir
+from ..build.corpus import Corpus, CorpusError, is_pybullet_source, pybullet_data_dir
 from ..model.config import Config
 from ..model.mesh import MeshError, ObjectModel, load_mesh
 from ..model.poses import PoseSet, face_below, stable_poses
@@ -247,7 +247,7 @@ def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
 
 def resolve_mesh(source: str, path: str, log_file: str) -> Path:
     """The mesh file a row names: relative to pybullet_data, absolute, or relative to the log file."""
-    if source == PYBULLET_SOURCE or source.startswith(PYBULLET_SOURCE + "/"):
+    if is_pybullet_source(source):
         return pybullet_data_dir() / path
     candidate = Path(path)
     return candidate if candidate.is_absolute() else Path(log_file).parent / candidate

@@ -42,7 +42,17 @@ from schema.pushlog import PUSHLOG, PUSHLOG_VERSION, row_problems
 from schema.vocabulary import STATUS_OK
 
 from ..build.atomic import write_atomic, write_text_atomic
-from ..build.corpus import DEFAULT_LIST, PYBULLET_SOURCE, CorpusError, ObjectSpec, candidate_specs, pybullet_data_dir, read_list, write_list
+from ..build.corpus import (
+    DEFAULT_LIST,
+    PYBULLET_SOURCE,
+    CorpusError,
+    ObjectSpec,
+    candidate_specs,
+    is_pybullet_source,
+    pybullet_data_dir,
+    read_list,
+    write_list,
+)
 from ..model.config import PRESETS, Config, parameter_table
 from ..model.rng import stream
 from .logreader import LogError, log_files, match_downs, object_downs, read_tables
@@ -188,7 +198,7 @@ def sample_actions(p_topple: np.ndarray, status: np.ndarray, k: int, rng: np.ran
 
 def mesh_location(spec: ObjectSpec) -> tuple[str, str]:
     """(mesh_source, mesh_path) of a log row: relative to pybullet_data when it comes from there."""
-    if spec.source == PYBULLET_SOURCE or spec.source.startswith(PYBULLET_SOURCE + "/"):
+    if is_pybullet_source(spec.source):
         try:
             return PYBULLET_SOURCE, Path(spec.path).resolve().relative_to(pybullet_data_dir().resolve()).as_posix()
         except (ValueError, CorpusError):

@@ -49,7 +49,7 @@ from schema.reader import Dataset, DatasetUnreadable
 from schema.vocabulary import NO_OP, POLICIES
 
 from ..build.atomic import file_sha256, write_json_atomic
-from ..build.corpus import PYBULLET_SOURCE, ObjectSpec, pybullet_data_dir
+from ..build.corpus import ObjectSpec, is_pybullet_source, pybullet_data_dir
 from ..model.config import Config
 from ..model.rng import stream
 from .playlog import ObjectLog, append_row, mesh_location, write_part
@@ -117,25 +117,22 @@ class ObjectPlan:
     pushes: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, float]]
 
 
-def mesh_file(path: str, source: str, sha256: str) -> Path:
-    """Where a manifest's mesh is on this machine: its recorded ``path``, or, for one of pybullet's meshes
-    recorded under another venv's ``pybullet_data`` (a dataset copied from another machine, a venv rebuilt
-    elsewhere), the same file under this one's when its bytes are the recorded ``sha256``.
+def mesh_file(path: str, source: str, sha256: str) -> Path | None:
+    """The file on this machine with a manifest mesh's recorded bytes (``sha256``), or None: its recorded
+    ``path``, or, for one of pybullet's meshes recorded under another venv's ``pybullet_data`` (a dataset
+    copied from another machine, a venv rebuilt elsewhere), the same file under this one's.
 
     The manifest records the absolute path the build read, so without this a dataset could be played in
     physics only where it was built.
     """
     recorded = Path(path)
-    if not (source == PYBULLET_SOURCE or source.startswith(PYBULLET_SOURCE + "/")):
-        return recorded
-    if not recorded.is_absolute():
-        return pybullet_data_dir() / recorded
-    parts = recorded.parts
-    if file_sha256(recorded) == sha256 or "pybullet_data" not in parts:
-        return recorded
-    inside = parts[len(parts) - parts[::-1].index("pybullet_data"):]  # after the last pybullet_data
-    moved = pybullet_data_dir().joinpath(*inside)
-    return moved if file_sha256(moved) == sha256 else recorded
+    candidates = [recorded]
+    if is_pybullet_source(source) and not recorded.is_absolute():
+        candidates = [pybullet_data_dir() / recorded]
+    elif is_pybullet_source(source) and "pybullet_data" in recorded.parts:
+        parts = recorded.parts
+        candidates.append(pybullet_data_dir().joinpath(*parts[len(parts) - parts[::-1].index("pybullet_data"):]))
+    return next((c for c in candidates if file_sha256(c) == sha256), None)
 
 
 def object_plans(dataset: Dataset, object_ids: list[str]) -> dict[str, ObjectPlan]:
@@ -150,8 +147,8 @@ def object_plans(dataset: Dataset, object_ids: list[str]) -> dict[str, ObjectPla
     for object_id in object_ids:
         entry = corpus[object_id]
         path = mesh_file(entry.path, entry.source, entry.sha256)
-        if file_sha256(path) != entry.sha256:
-            raise ExperimentError(f"{object_id}: mesh {path} is missing or differs from the dataset's (sha256)")
+        if path is None:
+            raise ExperimentError(f"{object_id}: mesh {entry.path} is missing or differs from the dataset's (sha256)")
         spec = ObjectSpec(object_id, str(path), entry.scale, entry.mass, entry.source, entry.sha256)
         rows = by_object[object_id]
         actions = {p: np.array([poses[f"{p}_action"][i] for i in rows]) for p in POLICIES}
