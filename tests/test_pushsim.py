@@ -444,7 +444,7 @@ def test_heldout_objects_exclude_every_corpus_object():
     assert [s.object_id for s in fresh] == [s.object_id for s in longer[len(named) + 5:]]
     with pytest.raises(playlog.PlayError, match="--skip"):
         playlog.select_objects("heldout", 3, seed=1, default_mass=0.25, skip=-1)
-    with pytest.raises(playlog.PlayError, match="choose one of corpus, heldout"):
+    with pytest.raises(playlog.PlayError, match="not 'corpus', 'heldout', a corpus list file or a directory"):
         playlog.select_objects("bunnies", 3, seed=1, default_mass=0.25)
     with pytest.raises(playlog.PlayError, match="passes over all"):
         playlog.select_objects("corpus", None, seed=1, default_mass=0.25, skip=len(corpus))
@@ -512,6 +512,48 @@ def test_play_list_writes_the_objects_a_log_of_the_same_arguments_plays(capsys, 
     for both in (["--list", str(out), "--out", str(tmp_path / "log")], []):
         assert playlog.main(["--objects", "heldout", "--count", "4", *both]) == 2
         assert "give --out (play a log) or --list" in capsys.readouterr().err
+
+
+def test_play_takes_a_corpus_of_ones_own_in_its_order_and_leaves_out_a_missing_file(capsys, tmp_path, monkeypatch):
+    """``--objects FILE.csv`` plays a list file's objects as ``toppledb dataset --corpus`` reads them, in the
+    list's order, with its scales and masses; --count and --skip apply to that order; a row whose mesh is
+    missing is named on stderr and not played; a directory of meshes is read as the dataset job reads one."""
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    for name, extents in (("tall", (0.05, 0.08, 0.15)), ("flat", (0.15, 0.1, 0.02)), ("cube", (0.06, 0.06, 0.06))):
+        trimesh.creation.box(extents=extents).export(meshes / f"{name}.stl")
+    listed = tmp_path / "mine.csv"
+    listed.write_text("object_id,path,scale,mass\n"
+                      "tall,meshes/tall.stl,1,0.3\n"
+                      "gone,meshes/gone.stl,1,0.3\n"
+                      "flat,meshes/flat.stl,2,0.5\n"
+                      "cube,meshes/cube.stl,1,0.1\n")
+    chosen = playlog.select_objects(str(listed), None, seed=1, default_mass=0.25)
+    assert [(s.object_id, s.scale, s.mass) for s in chosen] == [("tall", 1.0, 0.3), ("flat", 2.0, 0.5), ("cube", 1.0, 0.1)]
+    assert Path(chosen[1].path) == (meshes / "flat.stl").resolve() and chosen[1].sha256 == file_sha256(meshes / "flat.stl")
+    assert "not played: gone:" in capsys.readouterr().err
+    # The seed orders the built-in modes only: a list is played as written.
+    assert [s.object_id for s in playlog.select_objects(str(listed), 1, seed=2, default_mass=0.25, skip=1)] == ["flat"]
+    assert sorted(s.object_id for s in playlog.select_objects(str(meshes), None, 0, 0.25)) == ["cube", "flat", "tall"]
+
+    seen = {}
+
+    class Summary:
+        def __init__(self):
+            self.failed = {}
+
+        def text(self):
+            return "played"
+
+    def fake_play(specs, params, out, **kwargs):
+        seen.update(specs=[s.object_id for s in specs], run_info=kwargs["run_info"])
+        return Summary()
+
+    monkeypatch.setattr(playlog, "play", fake_play)
+    assert playlog.main(["--objects", str(listed), "--out", str(tmp_path / "log"), "--config", "thesis", "--no-progress"]) == 0
+    assert seen == {"specs": ["tall", "flat", "cube"], "run_info": {"objects": str(listed), "count": None, "skip": 0}}
+    assert playlog.main(["--objects", str(tmp_path / "nowhere.csv"), "--out", str(tmp_path / "log"), "--no-progress"]) == 2
+    assert "nowhere.csv: not 'corpus', 'heldout'" in capsys.readouterr().err
 
 
 def test_play_command_rejects_bad_input(capsys, tmp_path):

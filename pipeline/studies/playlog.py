@@ -10,10 +10,14 @@ contact point and push direction.  Every played push is one row of the push log
 
 Objects: ``corpus`` draws from the dataset's default corpus (to calibrate on);
 ``heldout`` from pybullet_data's objects outside it: the named meshes it does not
-list, then random objects it does not list, in an order shuffled by the seed.
+list, then random objects it does not list, in an order shuffled by the seed.  Any
+other value is a corpus of one's own, as ``toppledb dataset --corpus`` takes it (a CSV
+list file or a directory of meshes), played in its own order; its objects whose file
+is missing or changed are reported and left out.
 
     toppledb play --objects corpus --count 40 --out data/logs/corpus
     toppledb play --objects heldout --count 40 --out data/logs/heldout
+    toppledb play --objects my_objects.csv --out data/logs/mine
 
 The log is a directory: one Parquet file per object (``<object_id>.parquet``, written
 atomically once the object is done, with the parameters it was made with in its
@@ -49,6 +53,7 @@ from ..build.corpus import (
     ObjectSpec,
     candidate_specs,
     is_pybullet_source,
+    load_corpus,
     pybullet_data_dir,
     read_list,
     write_list,
@@ -157,23 +162,37 @@ def heldout_specs(default_mass: float) -> tuple[ObjectSpec, ...]:
     )
 
 
+def own_specs(corpus: str | Path, default_mass: float) -> list[ObjectSpec]:
+    """A corpus of one's own, as ``toppledb dataset --corpus`` reads it (a CSV list file or a directory of
+    meshes), in its order; entries whose file is missing or changed are left out, each reported on stderr."""
+    path = Path(corpus)
+    if not path.exists():
+        raise PlayError(f"--objects {corpus}: not 'corpus', 'heldout', a corpus list file or a directory of meshes")
+    found = load_corpus(str(path), default_mass)
+    for object_id, reason in found.problems.items():
+        print(f"not played: {object_id}: {reason}", file=sys.stderr)
+    return [s for s in found.specs if s.object_id not in found.problems]
+
+
 def select_objects(mode: str, count: int | None, seed: int, default_mass: float, skip: int = 0) -> list[ObjectSpec]:
     """``count`` objects (all when None) in a seeded order; a larger count extends a smaller one.
 
     corpus : the default corpus, shuffled;  heldout : the named meshes outside it first
-    (there are few and they are the realistic ones), then the random objects outside it, shuffled.
+    (there are few and they are the realistic ones), then the random objects outside it, shuffled;
+    any other mode : a corpus list file or a directory of meshes (``own_specs``), in its own order.
     skip : objects of that order passed over first, so a second log holds none of an earlier
       one's (``--skip 100 --count 50`` after a log or dataset of ``--count 100``)
     """
     if skip < 0:
         raise PlayError(f"--skip must be 0 or more, got {skip}")
-    if mode not in OBJECT_MODES:
-        raise PlayError(f"unknown --objects {mode!r}; choose one of {', '.join(OBJECT_MODES)}")
-    specs = corpus_specs(default_mass) if mode == "corpus" else heldout_specs(default_mass)
-    named = [s for s in specs if mode == "heldout" and not s.object_id.startswith("random_")]
-    rest = [s for s in specs if s not in named]
-    order = stream(seed, f"select:{mode}", SELECTION_STREAM, PURPOSE).permutation(len(rest))
-    chosen = named + [rest[i] for i in order]
+    if mode in OBJECT_MODES:
+        specs = corpus_specs(default_mass) if mode == "corpus" else heldout_specs(default_mass)
+        named = [s for s in specs if mode == "heldout" and not s.object_id.startswith("random_")]
+        rest = [s for s in specs if s not in named]
+        order = stream(seed, f"select:{mode}", SELECTION_STREAM, PURPOSE).permutation(len(rest))
+        chosen = named + [rest[i] for i in order]
+    else:
+        specs = chosen = own_specs(mode, default_mass)
     chosen = chosen[skip:]
     if not chosen:
         raise PlayError(f"--skip {skip} passes over all {len(specs)} {mode} objects")
@@ -506,8 +525,10 @@ def main(argv: list[str] | None = None) -> int:
     from ..cli import UsageError, make_config, positive_int
 
     parser = argparse.ArgumentParser(prog="toppledb play", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--objects", choices=OBJECT_MODES, default="corpus",
-                        help="'corpus': the default corpus (to calibrate on); 'heldout': pybullet_data objects outside it")
+    parser.add_argument("--objects", default="corpus", metavar="corpus|heldout|CORPUS",
+                        help="'corpus': the default corpus (to calibrate on); 'heldout': pybullet_data objects outside "
+                             "it; or a corpus of one's own as `toppledb dataset --corpus` takes it, a CSV list file or "
+                             "a directory of meshes, played in its order (default: %(default)s)")
     parser.add_argument("--out", type=Path, help="log directory (one Parquet file per object); required unless --list")
     parser.add_argument("--list", type=Path, metavar="FILE.csv",
                         help="write the chosen objects as a corpus list and play nothing: `toppledb dataset --corpus "
