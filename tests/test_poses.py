@@ -354,3 +354,24 @@ def test_congruent_yaw_anchors_on_a_point_off_the_axis():
     turned = pyramid @ trimesh.transformations.rotation_matrix(0.4, [0, 0, 1])[:3, :3].T
     yaw = congruent_yaw(pyramid, turned, 1e-9)
     assert yaw is not None and np.isclose(np.mod(yaw - 0.4 + 1e-12, np.pi / 2), 0, atol=1e-9)
+
+
+def test_a_zero_area_sliver_on_the_hull_rolls_on_without_a_warning():
+    """The xArm 6 base's hull (pybullet_data, scaled as the parts set has it) keeps a sliver of 1.6e-13 m^2,
+    whose barycentric coordinates divide by zero: it is never a resting face, and no RuntimeWarning reaches
+    the dataset job's output."""
+    import warnings
+
+    import pybullet_data
+
+    mesh = trimesh.load(f"{pybullet_data.getDataPath()}/xarm/xarm_description/meshes/xarm6/visual/base.stl", force="mesh")
+    mesh.apply_scale(0.773003)
+    hull = mesh.convex_hull
+    sliver = np.flatnonzero(hull.area_faces < 1e-12)
+    assert len(sliver) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rolls_onto = topple_graph(hull, hull.center_mass)
+    assert rolls_onto[sliver[0]] != sliver[0]
+    rests_on = sink_faces(rolls_onto)[sliver[0]]
+    assert rests_on != sliver[0] and rolls_onto[rests_on] == rests_on

@@ -81,7 +81,10 @@ def topple_graph(hull: trimesh.Trimesh, center_mass: np.ndarray) -> np.ndarray:
     normals = hull.face_normals
     depth = np.einsum("ij,ij->i", normals, center_mass - triangles[:, 0])
     projected = center_mass - depth[:, None] * normals
-    bary = trimesh.triangles.points_to_barycentric(triangles, projected)
+    # A hull of a finely faceted part can keep a zero-area sliver; its coordinates come out inf or nan,
+    # which no test below passes, so the sliver is never a resting face and rolls on like any other.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bary = trimesh.triangles.points_to_barycentric(triangles, projected)
     inside = np.all(bary >= -1e-9, axis=1)
     facets = facet_ids(hull)
     stable = np.isin(facets, facets[inside])
