@@ -280,6 +280,37 @@ def test_bad_rows_are_counted_by_reason_never_dropped_silently(box_file, box_pos
     assert log.counts()["rows_rejected"] == table.num_rows - 2
 
 
+def test_a_symmetric_objects_rows_are_read_by_their_transform_when_the_log_numbers_unmerged_poses(tmp_path):
+    """A square prism has 6 stable poses unmerged (the thesis's world, where logs are played) and 2 merged (the
+    default). A log row indexes the unmerged set; read with the default, its start transform decides the pose and
+    the row is used; read with the unmerged numbering, a wrong index is still rejected."""
+    from pipeline.model.mesh import load_mesh
+    from pipeline.model.poses import stable_poses
+
+    mesh = trimesh.creation.box((0.06, 0.06, 0.15))
+    mesh.apply_translation([0, 0, 0.075])
+    path = tmp_path / "prism.stl"
+    mesh.export(path)
+    unmerged_config = Config().with_overrides({"poses.merge_symmetric": False})
+    obj = load_mesh(path, mass=0.25)
+    unmerged, merged = stable_poses(obj, unmerged_config.poses), stable_poses(obj, Config().poses)
+    assert len(unmerged.poses) == 6 and len(merged.poses) == 2
+    lying = max(i for i, pose in enumerate(unmerged.poses) if abs(pose.down[2]) < 0.5)  # on a long side
+    assert lying >= len(merged.poses)
+    start = unmerged.poses[lying].transform
+    table = _rows(path, [(0, start, [0.03, 0.0, 0.02], [-1.0, 0.0, 0.0], [start, start])])
+    pq.write_table(_replace(table, "start_pose", [lying, lying]), tmp_path / "log.parquet")
+
+    default = read_log([tmp_path / "log.parquet"], Config())
+    assert default.rejected == {} and default.rows_used == 2
+    assert len(default.pushes) == 1 and abs(merged.poses[default.pushes[0].pose].down[2]) < 0.5
+    assert read_log([tmp_path / "log.parquet"], unmerged_config).rejected == {}
+    wrong = (lying + 1) % 6
+    pq.write_table(_replace(table, "start_pose", [wrong, wrong]), tmp_path / "log.parquet")
+    assert read_log([tmp_path / "log.parquet"], unmerged_config).rejected == {
+        "start_pose column disagrees with the pose start_transform matches": 2}
+
+
 def test_two_logs_that_use_the_same_push_id_keep_each_push_and_its_repeats(box_file, box_poses, tmp_path):
     """Push ids are unique within one log: two logs that both hold push 0 of the box hold two pushes
     (here one high that topples and one low that does not), every repeat kept, none rejected; the

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -346,6 +346,7 @@ def read_log(
     points = _vectors(table, "point")
     directions = unit(_vectors(table, "direction"))
     start_index = np.full(n, -1)
+    unmerged_index = np.full(n, -1)  # the start's pose among the unmerged poses, where the reader merges
     orientation = np.full(n, -1)  # index into the object's PoseSet.match_arrays()
     final_index = np.full(n, OUTSIDE)
     object_of_row = np.array(columns["object_id"], dtype=object)
@@ -372,6 +373,13 @@ def read_log(
         face = face_below(obj.model.hull, obj.model.center_mass, object_downs(final[rows]))
         start_index[rows] = matched
         final_index[rows] = obj.poses.face_pose[face]
+        if obj.poses.equivalents is not None:
+            # Merging symmetric poses renumbers them, and a log made in a world that does not merge (the
+            # thesis's, where every simulated log is played) numbers the unmerged set: the column may
+            # name the start transform's pose in either numbering.
+            unmerged = stable_poses(obj.model, replace(config.poses, merge_symmetric=False))
+            oriented, _ = match_downs(downs, unmerged.downs, config.poses.same_pose_angle)
+            unmerged_index[rows] = oriented
     for i in np.flatnonzero(usable):
         if start_index[i] == START_TILTED:
             reject(i, "start pose matches no stable pose (tilted beyond poses.same_pose_angle)")
@@ -379,7 +387,7 @@ def read_log(
         elif start_index[i] == START_MERGED_COPY:
             reject(i, "start pose rests on a copy of a stable pose merged into it (symmetry), not the pose's own orientation")
             usable[i] = False
-        elif start_pose[i] is not None and start_pose[i] != start_index[i]:
+        elif start_pose[i] is not None and start_pose[i] not in (start_index[i], unmerged_index[i]):
             reject(i, "start_pose column disagrees with the pose start_transform matches")
             usable[i] = False
 
