@@ -331,6 +331,21 @@ def test_toppledb_landing_writes_a_record_that_reads_back(tmp_path, capsys):
     assert record["marginal_landings"]["released"] == sum(row["carried"] for row in rows)
     agree = np.mean([row["physics"] == row["quasi_static"] for row in rows])
     assert record["agreement"]["quasi_static"] == pytest.approx(agree, abs=1e-4)
-    with pytest.raises(SystemExit) as exit_info:
-        main(["--objects", "nowhere"])
-    assert exit_info.value.code == 2
+    assert main(["--objects", str(tmp_path / "nowhere.csv")]) == 2
+    assert "nowhere.csv: not 'corpus', 'heldout', a corpus list file or a directory" in capsys.readouterr().err
+
+
+def test_toppledb_landing_releases_the_objects_of_a_list_file(tmp_path):
+    """``--objects`` takes a corpus of one's own as toppledb play does: a standing box released over its edges."""
+    import json
+
+    from pipeline.studies.landing import main
+
+    trimesh.creation.box(extents=(0.05, 0.08, 0.15)).export(tmp_path / "box.stl")
+    (tmp_path / "mine.csv").write_text("object_id,path,mass\nbox,box.stl,0.25\n")
+    out = tmp_path / "landing.json"
+    assert main(["--objects", str(tmp_path / "mine.csv"), "--workers", "1", "--json", str(out)]) == 0
+    record = json.loads(out.read_text())
+    rows = [dict(zip(record["row_fields"], row)) for row in record["rows"]]
+    assert record["objects"] == 1 and record["objects_mode"] == str(tmp_path / "mine.csv") and not record["failed"]
+    assert rows and {row["object"] for row in rows} == {"box"}

@@ -171,10 +171,12 @@ def main(argv: list[str] | None = None) -> int:
     from ..build.fanout import map_unordered
     from ..cli import UsageError, make_config, positive_int, refused_outputs
     from ..build.atomic import write_text_atomic
-    from .playlog import OBJECT_MODES, PlayError, select_objects
+    from .playlog import PlayError, select_objects
 
     parser = argparse.ArgumentParser(prog="toppledb landing", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--objects", choices=OBJECT_MODES, default="corpus", help="as toppledb play (default: %(default)s)")
+    parser.add_argument("--objects", default="corpus", metavar="corpus|heldout|CORPUS",
+                        help="as toppledb play: the default corpus, the held-out objects, or a list file or directory of "
+                             "meshes (default: %(default)s)")
     parser.add_argument("--count", type=positive_int, metavar="N", help="objects (default: all of the mode's)")
     parser.add_argument("--seed", type=int, default=0, help="object selection seed, as toppledb play (default: %(default)s)")
     parser.add_argument("--workers", type=positive_int, help="worker processes (default: all cores)")
