@@ -280,35 +280,45 @@ def test_bad_rows_are_counted_by_reason_never_dropped_silently(box_file, box_pos
     assert log.counts()["rows_rejected"] == table.num_rows - 2
 
 
-def test_a_symmetric_objects_rows_are_read_by_their_transform_when_the_log_numbers_unmerged_poses(tmp_path):
+def test_the_start_pose_column_is_read_in_the_numbering_of_the_world_the_log_records(tmp_path):
     """A square prism has 6 stable poses unmerged (the thesis's world, where logs are played) and 2 merged (the
-    default). A log row indexes the unmerged set; read with the default, its start transform decides the pose and
-    the row is used; read with the unmerged numbering, a wrong index is still rejected."""
+    default). A part file of ``toppledb play`` records its world's pose parameters, and its start_pose column is
+    held against that numbering only: the right index is used, an index right only in the reader's numbering,
+    or -1, is rejected. A log that records nothing (a robot's) is read in the reader's numbering."""
+    import json
+
     from pipeline.model.mesh import load_mesh
     from pipeline.model.poses import stable_poses
+    from pipeline.studies.logreader import PLAY_METADATA_KEY
 
     mesh = trimesh.creation.box((0.06, 0.06, 0.15))
     mesh.apply_translation([0, 0, 0.075])
     path = tmp_path / "prism.stl"
     mesh.export(path)
-    unmerged_config = Config().with_overrides({"poses.merge_symmetric": False})
+    thesis_world = Config().with_overrides({"poses.merge_symmetric": False})
     obj = load_mesh(path, mass=0.25)
-    unmerged, merged = stable_poses(obj, unmerged_config.poses), stable_poses(obj, Config().poses)
+    unmerged, merged = stable_poses(obj, thesis_world.poses), stable_poses(obj, Config().poses)
     assert len(unmerged.poses) == 6 and len(merged.poses) == 2
     lying = max(i for i, pose in enumerate(unmerged.poses) if abs(pose.down[2]) < 0.5)  # on a long side
-    assert lying >= len(merged.poses)
-    start = unmerged.poses[lying].transform
-    table = _rows(path, [(0, start, [0.03, 0.0, 0.02], [-1.0, 0.0, 0.0], [start, start])])
-    pq.write_table(_replace(table, "start_pose", [lying, lying]), tmp_path / "log.parquet")
+    standing = max(i for i, pose in enumerate(unmerged.poses) if abs(pose.down[2]) > 0.5)
+    merged_standing = next(i for i, pose in enumerate(merged.poses) if abs(pose.down[2]) > 0.5)
+    assert lying >= len(merged.poses) and standing != merged_standing
+    recorded = {PLAY_METADATA_KEY: json.dumps({"key": {"config": thesis_world.to_dict()}}).encode()}
 
-    default = read_log([tmp_path / "log.parquet"], Config())
-    assert default.rejected == {} and default.rows_used == 2
-    assert len(default.pushes) == 1 and abs(merged.poses[default.pushes[0].pose].down[2]) < 0.5
-    assert read_log([tmp_path / "log.parquet"], unmerged_config).rejected == {}
-    wrong = (lying + 1) % 6
-    pq.write_table(_replace(table, "start_pose", [wrong, wrong]), tmp_path / "log.parquet")
-    assert read_log([tmp_path / "log.parquet"], unmerged_config).rejected == {
-        "start_pose column disagrees with the pose start_transform matches": 2}
+    def log(start, column, metadata=recorded):
+        table = _rows(path, [(0, start, [0.03, 0.0, 0.02], [-1.0, 0.0, 0.0], [start, start])])
+        table = _replace(table, "start_pose", [column, column]).replace_schema_metadata(metadata)
+        pq.write_table(table, tmp_path / "log.parquet")
+        return read_log([tmp_path / "log.parquet"], Config())
+
+    read = log(unmerged.poses[lying].transform, lying)
+    assert read.rejected == {} and read.rows_used == 2
+    assert abs(merged.poses[read.pushes[0].pose].down[2]) < 0.5, "scored in the reader's numbering"
+    disagrees = {"start_pose column disagrees with the pose start_transform matches": 2}
+    assert log(unmerged.poses[standing].transform, merged_standing).rejected == disagrees, "right only in the reader's"
+    assert log(unmerged.poses[lying].transform, -1).rejected == disagrees
+    assert log(unmerged.poses[lying].transform, lying, metadata=None).rejected == disagrees, "a robot's log: the reader's"
+    assert log(unmerged.poses[standing].transform, merged_standing, metadata=None).rejected == {}
 
 
 def test_two_logs_that_use_the_same_push_id_keep_each_push_and_its_repeats(box_file, box_poses, tmp_path):

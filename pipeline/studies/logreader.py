@@ -23,9 +23,10 @@ each reason kept as examples.
 
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +38,7 @@ from schema.pushlog import PUSHLOG, row_problems
 
 from ..build.atomic import file_sha256
 from ..build.corpus import Corpus, CorpusError, is_pybullet_source, pybullet_data_dir
-from ..model.config import Config
+from ..model.config import Config, PoseConfig
 from ..model.mesh import MeshError, ObjectModel, load_mesh
 from ..model.poses import PoseSet, face_below, stable_poses
 
@@ -245,6 +246,30 @@ def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
     return pa.concat_tables(tables)
 
 
+PLAY_METADATA_KEY = b"toppledb_play"
+"""Parquet metadata key of a ``toppledb play`` part file: its per-object parameters and summary (JSON)."""
+
+
+def recorded_pose_config(file: str | Path) -> PoseConfig | None:
+    """The pose parameters a ``toppledb play`` part file was played with, whose numbering its start_pose
+    column uses; None for a log that does not record them (a robot's), which is read in the reader's."""
+    try:
+        recorded = json.loads((pq.read_schema(file).metadata or {})[PLAY_METADATA_KEY])["key"]["config"]["poses"]
+        return PoseConfig(**{f.name: recorded[f.name] for f in fields(PoseConfig) if f.name in recorded})
+    except (OSError, KeyError, TypeError, ValueError, pa.ArrowException):
+        return None
+
+
+def same_numbering(logged: PoseConfig, reader: PoseConfig, poses: PoseSet) -> bool:
+    """Whether a log played with ``logged`` numbers an object's stable poses as ``reader`` does (``poses``, the
+    object's set under ``reader``): the same parameters, or only the merging differs and the reader, merging, found
+    nothing to merge."""
+    if logged == reader:
+        return True
+    only_merging = logged == PoseConfig(**{**reader.__dict__, "merge_symmetric": logged.merge_symmetric})
+    return only_merging and reader.merge_symmetric and poses.equivalents is None
+
+
 def resolve_mesh(source: str, path: str, log_file: str) -> Path:
     """The mesh file a row names: relative to pybullet_data, absolute, or relative to the log file."""
     if is_pybullet_source(source):
@@ -346,7 +371,10 @@ def read_log(
     points = _vectors(table, "point")
     directions = unit(_vectors(table, "direction"))
     start_index = np.full(n, -1)
-    unmerged_index = np.full(n, -1)  # the start's pose among the unmerged poses, where the reader merges
+    logged_index = np.full(n, -1)  # the start's pose as the log's own world numbers its poses
+    logged_poses: dict[str, PoseConfig | None] = {}
+    logged_pose_sets: dict[tuple, tuple] = {}
+    file_of_row = np.array(columns["_file"], dtype=object)
     orientation = np.full(n, -1)  # index into the object's PoseSet.match_arrays()
     final_index = np.full(n, OUTSIDE)
     object_of_row = np.array(columns["object_id"], dtype=object)
@@ -373,13 +401,23 @@ def read_log(
         face = face_below(obj.model.hull, obj.model.center_mass, object_downs(final[rows]))
         start_index[rows] = matched
         final_index[rows] = obj.poses.face_pose[face]
-        if obj.poses.equivalents is not None:
-            # Merging symmetric poses renumbers them, and a log made in a world that does not merge (the
-            # thesis's, where every simulated log is played) numbers the unmerged set: the column may
-            # name the start transform's pose in either numbering.
-            unmerged = stable_poses(obj.model, replace(config.poses, merge_symmetric=False))
-            oriented, _ = match_downs(downs, unmerged.downs, config.poses.same_pose_angle)
-            unmerged_index[rows] = oriented
+        # The start_pose column numbers the poses of the world the log was played in.  A part file of
+        # ``toppledb play`` records its pose parameters; the thesis's world, where every simulated log is
+        # played, does not merge symmetric poses where the default does, and merging renumbers them.
+        numbered = matched.copy()
+        files = file_of_row[rows]
+        for file in dict.fromkeys(files):
+            logged = logged_poses.setdefault(file, recorded_pose_config(file))
+            if logged is None or same_numbering(logged, config.poses, obj.poses):
+                continue
+            in_file = files == file
+            key = (object_id, logged)
+            if key not in logged_pose_sets:
+                logged_pose_sets[key] = stable_poses(obj.model, logged).match_arrays()
+            logged_downs, _, logged_owner = logged_pose_sets[key]
+            oriented, _ = match_downs(downs[in_file], logged_downs, logged.same_pose_angle)
+            numbered[in_file] = np.where(oriented >= 0, logged_owner[np.maximum(oriented, 0)], -1)
+        logged_index[rows] = numbered
     for i in np.flatnonzero(usable):
         if start_index[i] == START_TILTED:
             reject(i, "start pose matches no stable pose (tilted beyond poses.same_pose_angle)")
@@ -387,7 +425,7 @@ def read_log(
         elif start_index[i] == START_MERGED_COPY:
             reject(i, "start pose rests on a copy of a stable pose merged into it (symmetry), not the pose's own orientation")
             usable[i] = False
-        elif start_pose[i] is not None and start_pose[i] not in (start_index[i], unmerged_index[i]):
+        elif start_pose[i] is not None and start_pose[i] != logged_index[i]:
             reject(i, "start_pose column disagrees with the pose start_transform matches")
             usable[i] = False
 
