@@ -60,7 +60,7 @@ from ..build.corpus import (
 )
 from ..model.config import PRESETS, Config, parameter_table
 from ..model.rng import stream
-from .logreader import LogError, log_files, match_downs, object_downs, read_tables
+from .logreader import PLAY_METADATA_KEY, LogError, log_files, match_downs, object_downs, read_tables
 from .pushsim import FINGER_SPEED, PlayedPush, body_model, draw_noise, play_push, player_parameters
 
 OBJECT_MODES = ("corpus", "heldout")
@@ -73,8 +73,6 @@ SELECTION_STREAM = -1
 PUSH_ID_SPAN = 10_000
 """push_id = pose * PUSH_ID_SPAN + action: unique within an object, readable, the same for a push's repeats."""
 DEFAULT_EPS = 0.05
-METADATA_KEY = b"toppledb_play"
-"""Parquet metadata key of a part file: its per-object parameters and summary (JSON)."""
 RUN_FILE = "_play.json"
 SOURCE = "pybullet"
 
@@ -163,15 +161,19 @@ def heldout_specs(default_mass: float) -> tuple[ObjectSpec, ...]:
 
 
 def own_specs(corpus: str | Path, default_mass: float) -> list[ObjectSpec]:
-    """A corpus of one's own, as ``toppledb dataset --corpus`` reads it (a CSV list file or a directory of
-    meshes), in its order; entries whose file is missing or changed are left out, each reported on stderr."""
+    """A corpus of one's own, read as ``toppledb dataset --corpus`` reads a CSV list file or a directory of meshes
+    (its sidecar's units and masses; there are no --units flags here), in its order; entries whose file is
+    missing or changed are left out, each reported on stderr."""
     path = Path(corpus)
     if not path.exists():
         raise PlayError(f"--objects {corpus}: not 'corpus', 'heldout', a corpus list file or a directory of meshes")
     found = load_corpus(str(path), default_mass)
     for object_id, reason in found.problems.items():
         print(f"not played: {object_id}: {reason}", file=sys.stderr)
-    return [s for s in found.specs if s.object_id not in found.problems]
+    usable = [s for s in found.specs if s.object_id not in found.problems]
+    if not usable:
+        raise PlayError(f"--objects {corpus}: none of its {len(found.specs)} objects has its mesh file as listed")
+    return usable
 
 
 def select_objects(mode: str, count: int | None, seed: int, default_mass: float, skip: int = 0) -> list[ObjectSpec]:
@@ -342,7 +344,7 @@ def write_part(out: Path, log: ObjectLog) -> None:
     if problems:  # a player bug, not bad input: never write a row the contract rejects
         raise RuntimeError(f"{log.object_id}: the player made {len(problems)} invalid row(s): {problems[0]}")
     metadata = dict(PUSHLOG.metadata)
-    metadata[METADATA_KEY] = json.dumps({"key": log.key, "summary": log.summary}, sort_keys=True).encode()
+    metadata[PLAY_METADATA_KEY] = json.dumps({"key": log.key, "summary": log.summary}, sort_keys=True).encode()
     table = log.table.replace_schema_metadata(metadata)
     write_atomic(part_path(out, log.object_id), lambda temp: pq.write_table(table, temp), check=lambda temp: pq.read_metadata(temp))
 
@@ -351,7 +353,7 @@ def read_part_record(path: Path) -> dict | None:
     """A part file's recorded key and summary; None when it is unreadable or not ours."""
     try:
         metadata = pq.read_schema(path).metadata or {}
-        return json.loads(metadata[METADATA_KEY])
+        return json.loads(metadata[PLAY_METADATA_KEY])
     except (OSError, KeyError, ValueError, pa.ArrowException):
         return None
 
