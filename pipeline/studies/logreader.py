@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import math
 from collections import Counter
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -266,7 +266,7 @@ def same_numbering(logged: PoseConfig, reader: PoseConfig, poses: PoseSet) -> bo
     nothing to merge."""
     if logged == reader:
         return True
-    only_merging = logged == PoseConfig(**{**reader.__dict__, "merge_symmetric": logged.merge_symmetric})
+    only_merging = logged == replace(reader, merge_symmetric=logged.merge_symmetric)
     return only_merging and reader.merge_symmetric and poses.equivalents is None
 
 
@@ -407,7 +407,9 @@ def read_log(
         numbered = matched.copy()
         files = file_of_row[rows]
         for file in dict.fromkeys(files):
-            logged = logged_poses.setdefault(file, recorded_pose_config(file))
+            if file not in logged_poses:  # one file may hold many objects: its metadata read once
+                logged_poses[file] = recorded_pose_config(file)
+            logged = logged_poses[file]
             if logged is None or same_numbering(logged, config.poses, obj.poses):
                 continue
             in_file = files == file
