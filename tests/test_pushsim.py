@@ -468,7 +468,8 @@ def test_playing_in_another_world_than_the_thesis_s_is_noted():
                        "not the thesis's that the shipped logs are played with (--config thesis)"
 
 
-def test_the_play_command_passes_skip_on_and_notes_the_world(capsys, tmp_path, monkeypatch):
+def _record_plays(monkeypatch) -> dict:
+    """``playlog.play`` replaced by a stub that records the objects it was given and the run's info."""
     seen = {}
 
     class Summary:
@@ -483,6 +484,11 @@ def test_the_play_command_passes_skip_on_and_notes_the_world(capsys, tmp_path, m
         return Summary()
 
     monkeypatch.setattr(playlog, "play", fake_play)
+    return seen
+
+
+def test_the_play_command_passes_skip_on_and_notes_the_world(capsys, tmp_path, monkeypatch):
+    seen = _record_plays(monkeypatch)
     args = ["--objects", "heldout", "--count", "2", "--skip", "3", "--out", str(tmp_path / "x"), "--no-progress"]
     assert playlog.main([*args, "--config", "thesis"]) == 0
     assert seen["specs"] == [s.object_id for s in playlog.select_objects("heldout", 2, 0, 0.25, skip=3)]
@@ -536,20 +542,7 @@ def test_play_takes_a_corpus_of_ones_own_in_its_order_and_leaves_out_a_missing_f
     assert [s.object_id for s in playlog.select_objects(str(listed), 1, seed=2, default_mass=0.25, skip=1)] == ["flat"]
     assert sorted(s.object_id for s in playlog.select_objects(str(meshes), None, 0, 0.25)) == ["cube", "flat", "tall"]
 
-    seen = {}
-
-    class Summary:
-        def __init__(self):
-            self.failed = {}
-
-        def text(self):
-            return "played"
-
-    def fake_play(specs, params, out, **kwargs):
-        seen.update(specs=[s.object_id for s in specs], run_info=kwargs["run_info"])
-        return Summary()
-
-    monkeypatch.setattr(playlog, "play", fake_play)
+    seen = _record_plays(monkeypatch)
     assert playlog.main(["--objects", str(listed), "--out", str(tmp_path / "log"), "--config", "thesis", "--no-progress"]) == 0
     assert seen == {"specs": ["tall", "flat", "cube"], "run_info": {"objects": str(listed), "count": None, "skip": 0}}
     assert playlog.main(["--objects", str(tmp_path / "nowhere.csv"), "--out", str(tmp_path / "log"), "--no-progress"]) == 2
