@@ -591,3 +591,24 @@ def test_push_noise_follows_the_configured_distributions():
     assert np.allclose(contact.std(axis=0), topple.contact_std, rtol=0.1)
     direction = np.array([d.direction_offset for d in draws])
     assert np.allclose(direction.std(axis=0), topple.direction_std, rtol=0.1)
+
+
+def test_a_symmetric_object_played_in_the_thesiss_world_is_read_whole_by_the_default(tmp_path):
+    """End to end, as the parts set ran: a square prism listed in a corpus file, played with the thesis's poses
+    (symmetric ones unmerged) and read with the default's (merged). Every row is read, none rejected, each in
+    the merged pose its start transform matches."""
+    from pipeline.studies.logreader import read_log
+
+    trimesh.creation.box((0.06, 0.06, 0.15)).export(tmp_path / "prism.stl")
+    (tmp_path / "mine.csv").write_text("object_id,path,mass\nprism,prism.stl,0.25\n")
+    thesis = Config.from_toml(PRESETS / "thesis.toml").with_overrides({"topple.n_trials": 20, "contacts.n_contacts": 60})
+    assert not thesis.poses.merge_symmetric and Config().poses.merge_symmetric
+    spec, = playlog.select_objects(str(tmp_path / "mine.csv"), None, 0, 0.25)
+    params = playlog.PlayParams(actions=1, repeats=2, eps=0.05, max_poses=3, seed=5, config=thesis)
+    summary = playlog.play([spec], params, tmp_path / "log", workers=1)
+    assert summary.objects == 1 and not summary.failed and summary.poses == 3
+    logged = playlog.read_log(tmp_path / "log")
+    assert max(logged.column("start_pose").to_pylist()) >= 2, "a pose index the merged set (2 poses) does not have"
+    log = read_log([tmp_path / "log"], Config())
+    assert log.rejected == {} and log.rows_used == logged.num_rows
+    assert {push.pose for push in log.pushes} <= {0, 1}
