@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import math
 from collections import Counter
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -223,8 +223,9 @@ def _files_under(directory: Path) -> list[Path]:
 
 
 def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
-    """All files concatenated, with a ``_file``, ``_row`` and ``_log`` column (``logs``: the log each
-    file belongs to, 0 for all when not given); raises ``LogError`` on unreadable files."""
+    """All files concatenated, with a ``_file``, ``_row``, ``_log`` and ``_world`` column (``logs``: the log each
+    file belongs to, 0 for all when not given; ``_world``: ``recorded_world`` of the file's metadata); raises
+    ``LogError`` on unreadable files."""
     tables = []
     required = set(PUSHLOG.names)
     for number, file in enumerate(files):
@@ -232,6 +233,7 @@ def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
             table = pq.read_table(file)
         except (OSError, pa.ArrowInvalid) as err:
             raise LogError(f"{file}: not a readable Parquet file ({str(err).splitlines()[0]})") from None
+        world = recorded_world(table.schema.metadata)
         missing = sorted(required - set(table.column_names))
         if missing:
             raise LogError(f"{file}: not a push log, missing column(s) {', '.join(missing)}")
@@ -242,6 +244,7 @@ def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
         n = table.num_rows
         table = table.append_column("_file", pa.array([str(file)] * n, type=pa.string())).append_column("_row", pa.array(np.arange(n), type=pa.int64()))
         table = table.append_column("_log", pa.array(np.full(n, logs[number] if logs else 0), type=pa.int64()))
+        table = table.append_column("_world", pa.array([world] * n, type=pa.string()))
         tables.append(table)
     return pa.concat_tables(tables)
 
@@ -250,14 +253,16 @@ PLAY_METADATA_KEY = b"toppledb_play"
 """Parquet metadata key of a ``toppledb play`` part file: its per-object parameters and summary (JSON)."""
 
 
-def recorded_pose_config(file: str | Path) -> PoseConfig | None:
-    """The pose parameters a ``toppledb play`` part file was played with, whose numbering its start_pose
-    column uses; None for a log that does not record them (a robot's), which is read in the reader's."""
+def recorded_world(metadata: dict[bytes, bytes] | None) -> str | None:
+    """The pose parameters a ``toppledb play`` part file was played with (from its schema ``metadata``), whose
+    numbering its start_pose column uses, as the JSON text of a ``PoseConfig``; None for a log that does not
+    record them (a robot's), which is read in the reader's."""
     try:
-        recorded = json.loads((pq.read_schema(file).metadata or {})[PLAY_METADATA_KEY])["key"]["config"]["poses"]
-        return PoseConfig(**{f.name: recorded[f.name] for f in fields(PoseConfig) if f.name in recorded})
-    except (OSError, KeyError, TypeError, ValueError, pa.ArrowException):
+        recorded = json.loads((metadata or {})[PLAY_METADATA_KEY])["key"]["config"]["poses"]
+        poses = PoseConfig(**{f.name: recorded[f.name] for f in fields(PoseConfig) if f.name in recorded})
+    except (KeyError, TypeError, ValueError):
         return None
+    return json.dumps(asdict(poses), sort_keys=True)
 
 
 def same_numbering(logged: PoseConfig, reader: PoseConfig, poses: PoseSet) -> bool:
@@ -372,9 +377,7 @@ def read_log(
     directions = unit(_vectors(table, "direction"))
     start_index = np.full(n, -1)
     logged_index = np.full(n, -1)  # the start's pose as the log's own world numbers its poses
-    logged_poses: dict[str, PoseConfig | None] = {}
-    logged_pose_sets: dict[tuple, tuple] = {}
-    file_of_row = np.array(columns["_file"], dtype=object)
+    world_of_row = np.array(table.column("_world").to_pylist(), dtype=object)
     orientation = np.full(n, -1)  # index into the object's PoseSet.match_arrays()
     final_index = np.full(n, OUTSIDE)
     object_of_row = np.array(columns["object_id"], dtype=object)
@@ -405,20 +408,17 @@ def read_log(
         # ``toppledb play`` records its pose parameters; the thesis's world, where every simulated log is
         # played, does not merge symmetric poses where the default does, and merging renumbers them.
         numbered = matched.copy()
-        files = file_of_row[rows]
-        for file in dict.fromkeys(files):
-            if file not in logged_poses:  # one file may hold many objects: its metadata read once
-                logged_poses[file] = recorded_pose_config(file)
-            logged = logged_poses[file]
-            if logged is None or same_numbering(logged, config.poses, obj.poses):
+        worlds = world_of_row[rows]
+        for world in dict.fromkeys(worlds):
+            if world is None:
                 continue
-            in_file = files == file
-            key = (object_id, logged)
-            if key not in logged_pose_sets:
-                logged_pose_sets[key] = stable_poses(obj.model, logged).match_arrays()
-            logged_downs, _, logged_owner = logged_pose_sets[key]
-            oriented, _ = match_downs(downs[in_file], logged_downs, logged.same_pose_angle)
-            numbered[in_file] = np.where(oriented >= 0, logged_owner[np.maximum(oriented, 0)], -1)
+            logged = PoseConfig(**json.loads(world))
+            if same_numbering(logged, config.poses, obj.poses):
+                continue
+            in_world = worlds == world
+            logged_downs, _, logged_owner = stable_poses(obj.model, logged).match_arrays()
+            oriented, _ = match_downs(downs[in_world], logged_downs, logged.same_pose_angle)
+            numbered[in_world] = np.where(oriented >= 0, logged_owner[np.maximum(oriented, 0)], -1)
         logged_index[rows] = numbered
     for i in np.flatnonzero(usable):
         if start_index[i] == START_TILTED:

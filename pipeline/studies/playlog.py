@@ -489,7 +489,7 @@ def read_log(out: str | Path) -> pa.Table:
         files = log_files([out])
     except LogError:  # no part file yet
         return empty_log()
-    return read_tables(files).drop_columns(["_file", "_row", "_log"])
+    return read_tables(files).drop_columns(["_file", "_row", "_log", "_world"])
 
 
 WORLD_FIELDS = (
