@@ -61,9 +61,8 @@ def chosen_members(names: list[str]) -> list[str]:
     for name in names:
         if "_col" in name or "/collision/" in name or LEFT_OUT.search(name) or PART_NOT_BODY.search(name):
             continue
-        if any(f"/assets/{d}/" in name for d in LIBERO_DIRS) and name.endswith(".obj"):
-            chosen.append(name)
-        elif name.startswith(ROBOSUITE_DIR) and name.endswith(".obj"):
+        from_libero = any(f"/assets/{d}/" in name for d in LIBERO_DIRS)
+        if name.endswith(".obj") and (from_libero or name.startswith(ROBOSUITE_DIR)):
             chosen.append(name)
     return sorted(chosen)
 

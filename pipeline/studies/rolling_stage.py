@@ -1,0 +1,174 @@
+"""Candidate RS (stop 59): a second map over the default's P(topple), fitted with shapes that roll.
+
+The default's boosted map (docs/MODEL.md C.19) learned the model's errors on the corpus's random shapes, which
+rarely roll. On the rolling set (``pipeline.studies.rolling_set``: generated rods, prisms, frusta, bottles,
+capsules, coarse ellipsoids) the default predicts topples too rarely, most of all for pushes from above onto rods
+lying on their side (informative TV 0.246, AP 0.637, ECE 0.083). This asks whether the remedy is data: a second
+map, boosted trees over the same 24 features plus the default's own P as a logit, fitted on the corpus's log and
+the rolling set's log together, so that it can learn where the rolling shapes differ without forgetting the corpus.
+
+    python -m pipeline.studies.rolling_stage --fit data/logs/corpus data/logs/rolling \\
+        --judge data/logs/household --out reports/rolling_stage_household.json
+
+fits RS on the ``--fit`` logs, reports its object-grouped cross-validation there (folds by object), and scores
+the default and RS on each ``--judge`` log with the validation report's metrics and paired differences over
+objects. RS replaces a push's P(topple) by its own q and scales the row's leaving part to q, keeping where it
+lands, as C.19 does; a push whose row has no leaving part (the model knows no landing) keeps its row.
+
+This is a study, not an engine map: its trees live in the process that fits them. Only if it passes its rule
+(``reports/household_rule_s59.md``) would it become a map the engine applies.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..build.corpus import DEFAULT_LIST, read_list
+from ..model.boosted_map import FEATURES
+from ..model.config import Config
+from .logreader import read_log
+from .scoring import Scorer, Scores
+from .validation import BOOTSTRAP, bootstrap_metric_difference, predictor_summary, to_json
+
+FIT_PARAMS = {"max_iter": 100, "learning_rate": 0.05, "max_leaf_nodes": 8, "min_samples_leaf": 40, "l2_regularization": 1.0}
+"""The trees' settings: the first of three tried in the rolling set's cross-validation (corpus + rolling logs,
+5 folds by object), chosen before any judging log was read; smaller than C.19's because the data are."""
+FOLDS = 5
+LOGIT_CLIP = 1e-3
+
+
+@dataclass
+class LogPushes:
+    """One log read and evaluated by the default: its scorer, the default's predictions and RS's inputs.
+
+    features : (n, len(FEATURES) + 1) float, C.19's inputs and the default's P as a logit (last column)
+    predictions : per group, as ``Scorer.predict`` gives them
+    """
+
+    name: str
+    scorer: Scorer
+    predictions: list[tuple[np.ndarray, np.ndarray]]
+    features: np.ndarray
+
+    @property
+    def p_topple(self) -> np.ndarray:
+        """(n,) float, the default's P(topple) in log order."""
+        p = np.empty(len(self.scorer))
+        for group, (_, p_group) in zip(self.scorer.groups, self.predictions):
+            p[group.rows] = p_group
+        return p
+
+
+def logit(p: np.ndarray) -> np.ndarray:
+    p = np.clip(p, LOGIT_CLIP, 1 - LOGIT_CLIP)
+    return np.log(p / (1 - p))
+
+
+def read_pushes(path: str, config: Config) -> LogPushes:
+    """A log scored by ``config``'s model (the corpus's objects as in a held-out report: all read).
+
+    path : a log, or several joined by commas, read as one (the 498 fresh objects' ten logs)
+    """
+    log = read_log(path.split(","), config, read_list(DEFAULT_LIST, config.mesh.default_mass))
+    scorer = Scorer(log, config.seed, config.contacts)
+    inputs, _, _ = scorer.boosted_inputs(config.topple)
+    pushes = LogPushes(path, scorer, scorer.predict(config.topple), np.empty(0))
+    pushes.features = np.column_stack([inputs, logit(pushes.p_topple)])
+    return pushes
+
+
+def fit_trees(features: np.ndarray, observed: np.ndarray, repeats: np.ndarray, seed: int = 0):
+    """Boosted trees of P(topple) (scikit-learn), each push two rows weighted by its toppled and stayed repeats."""
+    from sklearn.ensemble import HistGradientBoostingClassifier
+
+    x = np.vstack([features, features])
+    y = np.r_[np.ones(len(features)), np.zeros(len(features))]
+    weight = np.r_[observed * repeats, (1 - observed) * repeats]
+    return HistGradientBoostingClassifier(**FIT_PARAMS, early_stopping=False, random_state=seed).fit(x, y, sample_weight=weight)
+
+
+def with_stage(pushes: LogPushes, q: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The default's predictions with P(topple) replaced by q where the row has a leaving part.
+
+    q : (n,) float, log order;  returns : per group, (rows (pushes, P + 1), P(topple) (pushes,))
+    """
+    out = []
+    for group, (rows, p) in zip(pushes.scorer.groups, pushes.predictions):
+        rows, p = rows.copy(), p.copy()
+        new = q[group.rows]
+        leaving = p > 0
+        start = group.pose.index
+        scale = np.where(leaving, new / np.where(leaving, p, 1.0), 1.0)
+        stay = rows[:, start].copy()
+        rows *= scale[:, None]
+        rows[:, start] = np.where(leaving, 1.0 - new, stay)
+        out.append((rows, np.where(leaving, new, p)))
+    return out
+
+
+def cross_validate(logs: list[LogPushes], seed: int = 0) -> dict:
+    """RS fitted out of fold (folds of objects across all logs) against the default, per log: Brier of P(topple)."""
+    keys = [(i, oid) for i, pushes in enumerate(logs) for oid in pushes.scorer.object_ids]
+    order = np.random.default_rng(seed).permutation(len(keys))
+    fold_of = {keys[k]: n % FOLDS for n, k in enumerate(order)}
+    folds = [np.array([fold_of[(i, pushes.scorer.object_ids[o])] for o in pushes.scorer.object_index]) for i, pushes in enumerate(logs)]
+    q = [np.full(len(pushes.scorer), np.nan) for pushes in logs]
+    for k in range(FOLDS):
+        train = [(p.features[f != k], p.scorer.empirical_topple[f != k], p.scorer.repeats[f != k]) for p, f in zip(logs, folds)]
+        trees = fit_trees(*(np.concatenate(parts) for parts in zip(*train)), seed=seed)
+        for p, f, out in zip(logs, folds, q):
+            if (f == k).any():
+                out[f == k] = trees.predict_proba(p.features[f == k])[:, 1]
+    return {p.name: {"pushes": len(p.scorer), "brier_p_default": float(np.mean((p.p_topple - p.scorer.empirical_topple) ** 2)),
+                     "brier_p_rs_out_of_fold": float(np.mean((out - p.scorer.empirical_topple) ** 2))}
+            for p, out in zip(logs, q)}
+
+
+def judge(pushes: LogPushes, trees, n_resamples: int = BOOTSTRAP, seed: int = 0) -> dict:
+    """The default and RS on one log: the validation report's metrics of each and RS minus the default, paired over objects."""
+    scorer = pushes.scorer
+    q = trees.predict_proba(pushes.features)[:, 1]
+    default: Scores = scorer.score_predictions(pushes.predictions)
+    stage: Scores = scorer.score_predictions(with_stage(pushes, q))
+    return {
+        "pushes": len(scorer), "objects": len(scorer.object_ids),
+        "kept_rows": int(np.sum(pushes.p_topple <= 0)),
+        "default": predictor_summary(default, scorer, n_resamples=n_resamples, seed=seed),
+        "rs": predictor_summary(stage, scorer, n_resamples=n_resamples, seed=seed),
+        "rs_minus_default": bootstrap_metric_difference(stage, default, scorer.empirical_topple, scorer.object_index, n_resamples, seed),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pipeline.studies.rolling_stage", description=__doc__.split("\n")[0])
+    parser.add_argument("--fit", nargs="+", required=True, help="logs to fit RS on (the corpus's and the rolling set's)")
+    parser.add_argument("--judge", nargs="*", default=[], help="logs to score the default and RS on, each one log or several joined by commas")
+    parser.add_argument("--out", type=Path, required=True, help="JSON report")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    config = Config()
+    fit_logs = [read_pushes(p, config) for p in args.fit]
+    result = {"fit": args.fit, "fit_params": FIT_PARAMS, "features": [*FEATURES, "logit_p_default"],
+              "cross_validation": cross_validate(fit_logs, args.seed)}
+    trees = fit_trees(np.concatenate([p.features for p in fit_logs]), np.concatenate([p.scorer.empirical_topple for p in fit_logs]),
+                      np.concatenate([p.scorer.repeats for p in fit_logs]), seed=args.seed)
+    result["judged"] = {path: judge(read_pushes(path, config), trees, seed=args.seed) for path in args.judge}
+    args.out.write_text(json.dumps(to_json(result), indent=1))
+    for name, cv in result["cross_validation"].items():
+        print(f"{name}: Brier of P, default {cv['brier_p_default']:.4f}, RS out of fold {cv['brier_p_rs_out_of_fold']:.4f}")
+    for name, j in result["judged"].items():
+        d = j["rs_minus_default"]
+        print(f"{name} ({j['pushes']} pushes, {j['objects']} objects): " + ", ".join(
+            f"{k} {j['default'][k]:.3f} -> {j['rs'][k]:.3f} ({d[k]['difference']:+.3f} [{d[k]['ci'][0]:+.3f}, {d[k]['ci'][1]:+.3f}])"
+            for k in ("tv_informative", "brier", "ap", "ece")))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
