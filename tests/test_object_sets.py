@@ -109,3 +109,48 @@ def test_a_jittered_prisms_facets_are_stable_poses_of_their_own(tmp_path, monkey
     monkeypatch.setattr(rolling_set, "RADIAL_JITTER", 0.0)
     regular = rolling_set.lathe([(0.02, 0.0), (0.02, 0.08)], 8, np.random.default_rng(0))
     assert _lying_poses(regular, tmp_path / "regular.stl") == 1
+
+
+def _pushes(rows: np.ndarray, start: int):
+    from types import SimpleNamespace
+
+    from pipeline.studies.rolling_stage import LogPushes
+
+    class OneGroup(SimpleNamespace):
+        def __len__(self) -> int:
+            return len(rows)
+
+    scorer = OneGroup(groups=[SimpleNamespace(rows=np.arange(len(rows)), pose=SimpleNamespace(index=start))])
+    return LogPushes("log", scorer, [(rows, 1.0 - rows[:, start])], np.empty((len(rows), 0)))
+
+
+def test_the_second_map_moves_p_and_keeps_where_the_row_lands():
+    from pipeline.studies.rolling_stage import with_stage
+
+    # three pushes on a pose set of three poses (+ the outside bucket), starting in pose 1
+    rows = np.array([[0.2, 0.6, 0.2, 0.0],   # P 0.4, landing in 0 and 2 alike
+                     [0.0, 1.0, 0.0, 0.0],   # P 0: the model knows no landing, the row stays
+                     [0.1, 0.7, 0.0, 0.2]])  # P 0.3, a third of it outside the set
+    pushes = _pushes(rows, start=1)
+    assert pushes.p_topple == pytest.approx([0.4, 0.0, 0.3])
+    (new_rows, new_p), = with_stage(pushes, np.array([0.8, 0.5, 0.15]))
+    assert new_p == pytest.approx([0.8, 0.0, 0.15])
+    assert new_rows.sum(axis=1) == pytest.approx(1.0)
+    assert new_rows[:, 1] == pytest.approx([0.2, 1.0, 0.85])
+    assert new_rows[0, [0, 2]] == pytest.approx([0.4, 0.4])
+    assert new_rows[2, [0, 3]] == pytest.approx([0.05, 0.1])
+    assert rows[0, 1] == 0.6  # the default's predictions are not changed in place
+
+
+def test_the_second_maps_trees_follow_the_observed_rate():
+    from pipeline.studies.rolling_stage import fit_trees, logit
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1, 1, (600, 2))
+    truth = np.where(x[:, 0] > 0, 0.8, 0.1)
+    repeats = np.full(600, 10)
+    observed = rng.binomial(repeats, truth) / repeats
+    trees = fit_trees(np.column_stack([x, logit(np.full(600, 0.3))]), observed, repeats)
+    q = trees.predict_proba(np.column_stack([[0.5, -0.5], [0.0, 0.0], logit(np.array([0.3, 0.3]))]))[:, 1]
+    assert q[0] == pytest.approx(0.8, abs=0.08) and q[1] == pytest.approx(0.1, abs=0.08)
+    assert logit(np.array([0.0, 0.5, 1.0])) == pytest.approx([np.log(1e-3 / (1 - 1e-3)), 0.0, np.log((1 - 1e-3) / 1e-3)])
