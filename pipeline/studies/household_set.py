@@ -23,7 +23,7 @@ Which meshes, fixed before any was evaluated (``reports/household_rule_s59.md``)
   a group of several objects (``dining_set_group``), a part that is not an object (robosuite's
   ``handles``) and robosuite's primitives (``cube``, ``cylinder``, ``sphere8``);
 - colour variants and re-used meshes once: byte-identical files, and files whose meshes have the same
-  vertex and face counts and, scaled alike, the same extents and volume (``same_shape``);
+  vertex and face counts and, scaled alike, the same extents and volume (``shape_key``);
 - each scaled so its largest extent is 0.12 m and weighing 0.1 kg, the corpus's medians (as the
   parts set), so that the set asks about shape, not size.
 """
@@ -81,11 +81,6 @@ def shape_key(mesh: trimesh.Trimesh) -> tuple:
     extents = np.sort(mesh.extents) / float(mesh.extents.max())
     volume = abs(float(mesh.volume)) / float(mesh.extents.max()) ** 3
     return (len(mesh.vertices), len(mesh.faces), *np.round(extents, 4), round(volume, 3))
-
-
-def same_shape(a: trimesh.Trimesh, b: trimesh.Trimesh) -> bool:
-    """Whether two meshes are one object's copies (``shape_key`` equal)."""
-    return shape_key(a) == shape_key(b)
 
 
 def write_set(wheels: list[Path], out: Path) -> list[tuple[str, str, str]]:

@@ -1,8 +1,8 @@
 """The rolling set: generated shapes that roll, to tune on (stop 59).
 
-The corpus's random shapes rarely roll, and the two sets that showed rolling shapes' errors (the parts set's
-shafts, the household set's cans and bottles) are for judging.  This writes shapes made to roll, from a seed, so
-that a correction for them can be tuned without reading either: faceted rods, prisms, cones, frusta, bottles,
+The corpus's random shapes rarely roll. The parts set showed the model's errors on shapes that do (its faceted
+shafts), but it and the household set are for judging, not tuning.  This writes shapes made to roll, from a seed,
+so that a correction for them can be tuned without reading either: faceted rods, prisms, cones, frusta, bottles,
 capsules and coarse ellipsoids.  Every cross-section's vertices are moved radially by a few per cent
 (``RADIAL_JITTER``), so that each facet is a stable pose of its own, as on a real object, rather than one pose
 that symmetry merges (a roll onto the next facet of a regular prism lands in the pose it left).
