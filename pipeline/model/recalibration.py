@@ -91,11 +91,22 @@ def recalibrate_rows(next_pose: np.ndarray, start: int, x, y) -> tuple[np.ndarra
     start : the pose the rows leave from;  x, y : knots (empty: the input is returned unchanged)
     returns : next_pose (A, P), p_topple (A,) = 1 - next_pose[:, start]
     """
+    p = 1.0 - np.asarray(next_pose, dtype=float)[:, start]  # (A,)
+    if len(x) == 0:
+        return np.array(next_pose, dtype=float), p
+    return rows_toppling(next_pose, start, apply_map(p, x, y))
+
+
+def rows_toppling(next_pose: np.ndarray, start: int, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Transition rows whose P(topple) is moved to ``g``, keeping where they land: each row that leaves
+    ``start`` has its leaving part scaled to g; a row that never leaves (no landing to scale), or a NaN row,
+    stays as it is.
+
+    next_pose : (A, P) float, rows sum to 1;  g : (A,) float, the new P(topple)
+    returns : next_pose (A, P), a copy;  p_topple (A,) = 1 - next_pose[:, start]
+    """
     next_pose = np.array(next_pose, dtype=float)
     p = 1.0 - next_pose[:, start]  # (A,)
-    if len(x) == 0:
-        return next_pose, p
-    g = apply_map(p, x, y)  # (A,)
     moves = p > 0  # (A,), False for NaN rows and rows that never topple
     scale = np.where(moves, g / np.where(moves, p, 1.0), 1.0)  # (A,)
     others = np.ones(next_pose.shape[1], dtype=bool)

@@ -32,9 +32,11 @@ from pathlib import Path
 import numpy as np
 
 from ..build.corpus import DEFAULT_LIST, read_list
-from ..model.boosted_map import FEATURES
+from ..model.boosted_map import FEATURES, fitted_logit
 from ..model.config import Config
+from ..model.recalibration import rows_toppling
 from .logreader import read_log
+from .recalibrate import push_folds
 from .scoring import Scorer, Scores
 from .validation import BOOTSTRAP, bootstrap_metric_difference, predictor_summary, to_json
 
@@ -44,34 +46,26 @@ cross-validation on the corpus's and the rolling set's logs (5 folds by object, 
 judging log was read. Brier of P out of fold, rolling / corpus: these 0.0625 / 0.0400; 200 trees of 8 leaves, 80
 rows a leaf, learning rate 0.03: 0.0640 / 0.0422; 50 trees of 4 leaves, 80 rows a leaf: 0.0727 / 0.0423."""
 FOLDS = 5
-LOGIT_CLIP = 1e-3
 
 
 @dataclass
 class LogPushes:
-    """One log read and evaluated by the default: its scorer, the default's predictions and RS's inputs.
+    """One log read and evaluated by the default: its scorer, the default's predictions and scores, RS's inputs.
 
+    predictions : per group, as ``Scorer.predict`` gives them;  default : their ``Scores`` (P(topple) in log order)
     features : (n, len(FEATURES) + 1) float, C.19's inputs and the default's P as a logit (last column)
-    predictions : per group, as ``Scorer.predict`` gives them
     """
 
     name: str
     scorer: Scorer
     predictions: list[tuple[np.ndarray, np.ndarray]]
+    default: Scores
     features: np.ndarray
 
     @property
     def p_topple(self) -> np.ndarray:
         """(n,) float, the default's P(topple) in log order."""
-        p = np.empty(len(self.scorer))
-        for group, (_, p_group) in zip(self.scorer.groups, self.predictions):
-            p[group.rows] = p_group
-        return p
-
-
-def logit(p: np.ndarray) -> np.ndarray:
-    p = np.clip(p, LOGIT_CLIP, 1 - LOGIT_CLIP)
-    return np.log(p / (1 - p))
+        return self.default.p_topple
 
 
 def read_pushes(path: str, config: Config) -> LogPushes:
@@ -82,13 +76,17 @@ def read_pushes(path: str, config: Config) -> LogPushes:
     log = read_log(path.split(","), config, read_list(DEFAULT_LIST, config.mesh.default_mass))
     scorer = Scorer(log, config.seed, config.contacts)
     inputs, _, _ = scorer.boosted_inputs(config.topple)
-    pushes = LogPushes(path, scorer, scorer.predict(config.topple), np.empty(0))
-    pushes.features = np.column_stack([inputs, logit(pushes.p_topple)])
-    return pushes
+    predictions = scorer.predict(config.topple)
+    default = scorer.score_predictions(predictions)
+    return LogPushes(path, scorer, predictions, default, np.column_stack([inputs, fitted_logit(default.p_topple)]))
 
 
 def fit_trees(features: np.ndarray, observed: np.ndarray, repeats: np.ndarray, seed: int = 0):
-    """Boosted trees of P(topple) (scikit-learn), each push two rows weighted by its toppled and stayed repeats."""
+    """Boosted trees of P(topple) (scikit-learn), each push two rows weighted by its toppled and stayed repeats.
+
+    Not ``boosted_map.fit_trees``: that writes the engine's tree format, whose columns are C.19's 24 features, and
+    it leaves out rows of weight 0, which moves scikit-learn's bins; RS was frozen and judged with these (its
+    trees fitted the other way differ by up to 0.12 in P on the fit logs)."""
     from sklearn.ensemble import HistGradientBoostingClassifier
 
     x = np.vstack([features, features])
@@ -98,33 +96,24 @@ def fit_trees(features: np.ndarray, observed: np.ndarray, repeats: np.ndarray, s
 
 
 def with_stage(pushes: LogPushes, q: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The default's predictions with P(topple) replaced by ``staged_p``: each row's leaving part scaled to q,
-    keeping where it lands; a row with no leaving part as it was.
+    """The default's predictions with P(topple) replaced by ``staged_p`` (``recalibration.rows_toppling``: each
+    row's leaving part scaled to q, keeping where it lands; a row with no leaving part as it was).
 
     q : (n,) float, log order;  returns : per group, (rows (pushes, P + 1), P(topple) (pushes,))
     """
-    out = []
-    for group, (rows, p) in zip(pushes.scorer.groups, pushes.predictions):
-        new = staged_p(p, q[group.rows])
-        leaving = p > 0
-        rows = rows * np.where(leaving, new / np.where(leaving, p, 1.0), 1.0)[:, None]
-        start = group.pose.index
-        rows[:, start] = np.where(leaving, 1.0 - new, rows[:, start])
-        out.append((rows, new))
-    return out
+    return [rows_toppling(rows, group.pose.index, q[group.rows])
+            for group, (rows, _) in zip(pushes.scorer.groups, pushes.predictions)]
 
 
 def object_folds(object_keys: list[np.ndarray], seed: int = 0) -> list[np.ndarray]:
-    """Folds of objects across several logs: every push of an object is in its object's one fold.
+    """Folds of objects across several logs, drawn as ``toppledb recalibrate`` draws them (``recalibrate.push_folds``):
+    every push of an object in its object's one fold, an object of two logs counting as two.
 
-    object_keys : per log, (n,) the object of each push (an object of two logs counts as two objects)
-    returns : per log, (n,) int, the fold of each push, in 0 .. FOLDS - 1, objects dealt round the folds in a
-      seeded order
+    object_keys : per log, (n,) the object of each push;  returns : per log, (n,) int, each push's fold
     """
-    keys = sorted({(i, str(o)) for i, objects in enumerate(object_keys) for o in objects})
-    order = np.random.default_rng(seed).permutation(len(keys))
-    fold_of = {keys[k]: n % FOLDS for n, k in enumerate(order)}
-    return [np.array([fold_of[(i, str(o))] for o in objects], dtype=int) for i, objects in enumerate(object_keys)]
+    keys = [f"{i}:{o}" for i, objects in enumerate(object_keys) for o in objects]
+    _, fold_of = push_folds(keys, FOLDS, seed)
+    return np.split(fold_of, np.cumsum([len(objects) for objects in object_keys])[:-1])
 
 
 def staged_p(p_default: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -136,8 +125,8 @@ def staged_p(p_default: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def cross_validate(logs: list[LogPushes], seed: int = 0) -> dict:
-    """RS fitted out of fold (``object_folds``) against the default, per log: the Brier score of P(topple), RS's
-    as judged (``staged_p``) and, for comparison, with q on every push."""
+    """RS fitted out of fold against the default, per log: the Brier score of P(topple), RS's as judged
+    (``staged_p``) and, for comparison, with q on every push, in ``object_folds``."""
     folds = object_folds([np.asarray(p.scorer.object_ids)[p.scorer.object_index] for p in logs], seed)
     q = [np.full(len(pushes.scorer), np.nan) for pushes in logs]
     for k in range(FOLDS):
@@ -161,8 +150,8 @@ def judge(pushes: LogPushes, trees, n_resamples: int = BOOTSTRAP, seed: int = 0)
     """The default and RS on one log: the validation report's metrics of each and RS minus the default, paired over objects."""
     scorer = pushes.scorer
     q = trees.predict_proba(pushes.features)[:, 1]
-    default: Scores = scorer.score_predictions(pushes.predictions)
-    stage: Scores = scorer.score_predictions(with_stage(pushes, q))
+    default = pushes.default
+    stage = scorer.score_predictions(with_stage(pushes, q))
     return {
         "pushes": len(scorer), "objects": len(scorer.object_ids),
         "kept_rows": int(np.sum(pushes.p_topple <= 0)),
