@@ -119,3 +119,17 @@ def stroke_to_apex(height, d=0.04, w=0.08, com_height=0.075):
     h tan(theta_a) - w (sec(theta_a) - 1) past the contact.  Defaults: across the 8 cm side."""
     apex = np.arctan2(d, com_height)
     return height * np.tan(apex) - w * (1.0 / np.cos(apex) - 1.0)
+
+
+def faceted_rod(sides=12, radius=0.02, length=0.12, mass=0.1):
+    """(object, pose set, index of a pose lying on a facet) for a regular prism of ``sides`` sides lying on its
+    side: circumradius ``radius``, its axis along the object's y.  Every facet is the same pose (merged by
+    symmetry), so a roll onto the next facet lands where it left: test its trials, not its rows."""
+    from pipeline.model.poses import stable_poses
+
+    mesh = trimesh.creation.cylinder(radius=radius, height=length, sections=sides)
+    mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    obj = model_from_mesh(mesh, mass=mass, name=f"rod{sides}")
+    pose_set = stable_poses(obj)
+    lying = next(p.index for p in pose_set.poses if abs(p.down[1]) < 1e-6)
+    return obj, pose_set, lying

@@ -34,6 +34,8 @@ CASES = [  # (object, variant): several meshes, every pose, noise and no noise
     ("random_044", "corrected:finger_friction,force_limit,tip_path"),  # tips that stall on the way (C.14)
     ("random_044", "corrected:finger_friction,tip_path"),  # no force limit on the way; TIP_POINTS angles
     ("random_044", "corrected:finger_friction,force_limit,momentum,stuck_finger,tip_back"),  # hard presses from above tip back (C.22), the stuck finger's too
+    # the default's corrections and the carried finger (C.23): presses from above that C.2's friction holds roll
+    ("random_044", "corrected:finger_friction,force_limit,momentum,stuck_finger,tip_path,tip_back,carried_finger"),
 ]
 
 LOW_LIMIT = 1.0
@@ -72,7 +74,7 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
     points, normals = object_contacts(obj, contacts, seed=11)
     mesh_collision = collision_object(obj.mesh)
     pose_set = stable_poses(obj)
-    compared = agreed = toppled = capped = rolled = stuck = backed = stuck_backed = 0
+    compared = agreed = toppled = capped = rolled = stuck = backed = stuck_backed = carried = 0
     for pose in pose_set.poses:
         actions = pose_actions(points, normals, obj.mesh, mesh_collision, pose.transform, contacts)
         table = evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(11, obj.name, pose.index, "trials"))
@@ -107,6 +109,10 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
                         alone = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
                                                 topple.applied_corrections - {"stuck_finger", "tip_back"}, topple.max_finger_force)
                         stuck_backed += edge >= 0 and away[0] >= 0 and edge != away[0] and alone[0] < 0
+                if "carried_finger" in corrections:  # trials only the carried finger tips
+                    held = configured_trial(scene, draw_of(actions, noise, action, trial),
+                                            replace(topple, corrections=",".join(topple.applied_corrections - {"carried_finger"})))
+                    carried += edge >= 0 and held[0] < 0
                 if topple.stroke == SHORT_STROKE:  # trials the stroke stops: with an endless one they topple
                     endless = reference_trial(scene, draw_of(actions, noise, action, trial), True, True, topple.ray_offset,
                                               topple.applied_corrections, topple.max_finger_force)
@@ -132,6 +138,8 @@ def test_engine_matches_reference_trial_by_trial(name, variant):
         assert stuck > 0, "some trials should topple only by the stuck finger"
     if "tip_path" in corrections:
         assert capped > 0, "the balance on the way should stop some trials that start to tip"
+    if "carried_finger" in corrections:
+        assert carried > 0, "some presses from above should tip only with the finger carried"
     if "tip_back" in corrections:
         assert backed > 0, "some hard presses from above should tip back over another edge"
         if "stuck_finger" in corrections:
@@ -166,7 +174,7 @@ def test_the_configured_trial_sets_every_parameter_of_the_reference(monkeypatch)
     calls = []
     monkeypatch.setattr(reference, "reference_trial", lambda *args, **kwargs: calls.append((args, kwargs)) or (-1, 0.0))
     topple = replace(Config().topple, stuck_finger_share=0.3, stroke=0.02, max_finger_force=7.0, finger_friction_scale=0.6,
-                     tip_path_points=3, tip_back_force=2.5)
+                     tip_path_points=3, tip_back_force=2.5, carried_slide=0.007)
     assert reference.configured_trial("scene", "draw", topple) == (-1, 0.0)
     (args, kwargs), = calls
     signature = inspect.signature(reference_trial)  # the function itself, imported before the patch
@@ -175,4 +183,5 @@ def test_the_configured_trial_sets_every_parameter_of_the_reference(monkeypatch)
     assert bound.arguments["stuck_share"] == 0.3 and bound.arguments["stroke"] == 0.02
     assert bound.arguments["max_force"] == 7.0 and bound.arguments["friction_scale"] == 0.6
     assert bound.arguments["tip_points"] == 3 and bound.arguments["tip_back_force"] == 2.5
+    assert bound.arguments["carried_slide"] == 0.007
     assert bound.arguments["corrections"] == topple.applied_corrections and "stuck_finger" in topple.applied_corrections

@@ -88,7 +88,7 @@ VARIANTS = THESIS_VARIANTS + ("corrected",)
 corrections of docs/MODEL.md "Corrections beyond the thesis" named in ``topple.corrections``)."""
 
 CORRECTIONS = ("finger_friction", "force_limit", "stability_margin", "rolling", "momentum", "edge_spin", "stroke", "stuck_finger",
-               "tip_path", "tip_back")
+               "tip_path", "tip_back", "carried_finger")
 """Corrections the ``corrected`` variant can apply (docs/MODEL.md, "Corrections beyond the thesis"):
 ``finger_friction``: the finger's force follows Coulomb sliding at the contact while the object
 tips (friction in the moment balance, pushes from above, faces the finger wedges under);
@@ -106,7 +106,11 @@ when nothing else does and the push can drag the base (the finger sticks, the ba
 ``tip_back``: a push from above (u_z < ``FROM_ABOVE_U_Z``) that topples with a force over ``tip_back_force``,
 by the least force or by ``stuck_finger``, presses the overhang down and tips the object back over the
 edge the line from the centre of mass's foot through the contact crosses (docs/MODEL.md C.22; in the
-default since stop 56)."""
+default since stop 56);
+``carried_finger``: where nothing else tips a push from above (u_z < ``FROM_ABOVE_U_Z``), a tip whose face
+would slide at most ``carried_slide`` along the fingertip before the apex carries the finger with it instead:
+it presses along the face's normal, without friction (it needs ``finger_friction``; docs/MODEL.md C.23,
+opt-in since stop 60)."""
 FROM_ABOVE_U_Z = -0.3
 """A push is from above when its direction's vertical component (pose frame) is below this: the split of
 ``candidate_choice`` and the validation report, the pushes ``tip_back`` looks at and LD's first class
@@ -243,6 +247,10 @@ class ToppleConfig:
     """N; a push from above that topples with a force over this tips the object back (``tip_back``,
     docs/MODEL.md C.22): of 0.7, 1.4 and 2.8 N, the one whose rows scored the corpus's traced plays from
     above best (stop 56; 1.4 N, the top quartile of value iteration's pushes from above, was stop 55's)."""
+    carried_slide: float = bounded(0.016, NON_NEGATIVE)
+    """m; a tip whose face would slide at most this far along the fingertip on the way to the apex carries
+    the finger with it (``carried_finger``, docs/MODEL.md C.23): the 16 mm the push player's finger was
+    carried sideways with a rod's face while the rod rolled, traced at stop 59 (docs/VALIDATION.md)."""
     tip_path_points: int = bounded(2, AT_LEAST_ONE)
     """How many angles between the start and the apex ``tip_path`` checks the balance at:
     k / (n + 1) of the apex angle for k = 1..n (docs/MODEL.md C.14)."""
@@ -371,6 +379,9 @@ class ToppleConfig:
             )
         if "tip_path" in names and "finger_friction" not in names:
             raise ValueError("topple.corrections: tip_path checks finger_friction's balance on the way to the apex; "
+                             "add finger_friction")
+        if "carried_finger" in names and "finger_friction" not in names:
+            raise ValueError("topple.corrections: carried_finger takes finger_friction's balance without its friction; "
                              "add finger_friction")
         return frozenset(names) if self.variant == "corrected" else frozenset()
 

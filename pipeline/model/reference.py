@@ -149,11 +149,12 @@ def reference_trial(
     stuck_share: float = 1.0,
     tip_points: int = 2,
     tip_back_force: float = math.inf,
+    carried_slide: float = 0.0,
 ):
     """Outcome of one trial: (edge index or -1, required force in N or inf).
 
     ``corrections`` (names of ``config.CORRECTIONS``), ``max_force``, ``friction_scale``,
-    ``min_margin``, ``stroke``, ``stuck_share``, ``tip_points`` and ``tip_back_force`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
+    ``min_margin``, ``stroke``, ``stuck_share``, ``tip_points``, ``tip_back_force`` and ``carried_slide`` are the corrected variant's (docs/MODEL.md "Corrections beyond the thesis");
     empty, it is the thesis's trial.
     """
     if "stability_margin" in corrections:
@@ -204,6 +205,15 @@ def reference_trial(
         if not holds_along_tip(contact, normal, push, draw.mu_table, friction_scale * draw.mu_finger, y0, y1, com, weight,
                                spin_stops, limit, tip_points):  # C.14: the tip stalls on the way
             best_edge, best_force = -1, math.inf
+    if "carried_finger" in corrections and best_edge < 0 and push[2] < FROM_ABOVE_U_Z:
+        limit = max_force if "force_limit" in corrections else math.inf
+        for index, (y0, y1) in enumerate(scene.edges):  # C.23: the finger carried with the face, pressing along its normal
+            e, _, com_distance = _edge_frame(y0, y1, com)
+            force = sliding_force(contact, normal, push, draw.mu_table, 0.0, e, y0, y1, com, weight, com_distance, spin_stops)
+            if force is None or not 0.0 < force <= limit or face_slide(contact, normal, push, y0, y1, com) > carried_slide:
+                continue
+            if force < best_force:
+                best_edge, best_force = index, force
     if "stuck_finger" in corrections and best_edge < 0 and draw.stuck_draw < stuck_share and drags_base(push, draw.mu_table):
         for index, (y0, y1) in enumerate(scene.edges):  # C.11: the finger holds, the base slides
             e, outward, com_distance = _edge_frame(y0, y1, com)
@@ -227,7 +237,7 @@ def configured_trial(scene: Scene, draw: TrialDraw, topple) -> tuple[int, float]
     return reference_trial(
         scene, draw, topple.robust, topple.predicts_rotations, topple.ray_offset, topple.applied_corrections,
         topple.max_finger_force, topple.finger_friction_scale, topple.min_stability_margin, topple.stroke,
-        topple.stuck_finger_share, topple.tip_path_points, topple.tip_back_force,
+        topple.stuck_finger_share, topple.tip_path_points, topple.tip_back_force, topple.carried_slide,
     )
 
 
@@ -266,6 +276,15 @@ def finger_travel(contact: Vec, normal: Vec, push: Vec, y0: Vec, y1: Vec, com: V
         return math.inf
     offset = _sub(contact, y0)
     return (_dot(normal, offset) - _dot(apex_normal, offset)) / approach
+
+
+def face_slide(contact: Vec, normal: Vec, push: Vec, y0: Vec, y1: Vec, com: Vec) -> float:
+    """C.23: how far the face slides along the fingertip on the way to the apex of the edge y0 -> y1, to first
+    order: |v_e - s_e u| theta_e with v_e = e x (p - y0) and s_e = v_e . n / u . n (m; the finger moves into the face)."""
+    e, _, com_distance = _edge_frame(y0, y1, com)
+    velocity = _cross(e, _sub(contact, y0))
+    advance = _dot(velocity, normal) / _dot(push, normal)
+    return _norm(_sub(velocity, _scale(push, advance))) * math.atan2(com_distance, com[2])
 
 
 def holds_along_tip(contact: Vec, normal: Vec, push: Vec, mu_table: float, mu_finger: float, y0: Vec, y1: Vec, com: Vec,

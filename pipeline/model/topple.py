@@ -260,16 +260,39 @@ def trial_outcomes(trials: Trials, edges: EdgeGeometry, mass: float, config: Top
     """
     n = len(trials.mu_table)
     corrections = config.applied_corrections  # parsed once, not once per tile
-    # C.9 (``edge_spin``): a moment about the vertical turns the object without stopping the
-    # topple, so the limit surface (7.9) keeps only its force term.
-    spin_stops = config.predicts_rotations and "edge_spin" not in corrections
+    spin_stops = _spin_stops(config, corrections)
     edge = np.full(n, OUTCOME_NO_EDGE, dtype=np.intp)  # (n,)
     required = np.full(n, np.inf)  # (n,), N
+    live, kept, kept_edge, kept_required = _least_force_block(trials, edges, mass, config, corrections, spin_stops)
+    # The corrections below look at one edge per trial, or at few trials: whole-block arrays, one
+    # pass each instead of one per tile (all row-wise, so the same numbers).
+    _check_corrections(kept, edges, kept_edge, kept_required, mass, config, corrections, spin_stops)
+    edge[live] = np.where(np.isfinite(kept_required), kept_edge, OUTCOME_NO_EDGE)
+    required[live] = kept_required
+    return edge, required
+
+
+def _spin_stops(config: ToppleConfig, corrections: frozenset[str]) -> bool:
+    """Whether the slip check (7.9) counts the moment about the vertical: the variants that predict
+    rotations, unless C.9 (``edge_spin``), where that moment turns the object without stopping the
+    topple and the limit surface keeps only its force term."""
+    return config.predicts_rotations and "edge_spin" not in corrections
+
+
+def _least_force_block(
+    trials: Trials, edges: EdgeGeometry, mass: float, config: ToppleConfig, corrections: frozenset[str], spin_stops: bool
+) -> tuple[np.ndarray, Trials, np.ndarray, np.ndarray]:
+    """The least-force passing edge (10.6) of the rows ``trial_outcomes`` computes, before the corrections
+    that follow it: live (m,) int, those rows of the n trials; kept, their trials (contacts and normals
+    made finite); edge (m,) int and required (m,) float, N (inf where no edge passes).
+
+    Only the valid rows are computed (an invalid trial passes no edge: (7.10) and C.2 both require
+    ``valid``), unless fewer than two are valid, in tiles of about ``TILE_ELEMENTS`` (trial, edge) entries."""
     live = np.flatnonzero(trials.valid)  # (m,) valid rows
     if len(live) < 2:
         # A lone valid row would make the tile's matrix products 1-row ones (a gemv, not the
         # block's gemm); compute every row instead, the invalid ones fail on ``valid``.
-        live = np.arange(n)
+        live = np.arange(len(trials.mu_table))
     kept = trials.take(live)  # (m, ...)
     if not (np.isfinite(kept.contact).all() and np.isfinite(kept.normal).all()):
         # Only where needed (the engine's valid rows hit the mesh, so they are finite): a copy each.
@@ -278,12 +301,62 @@ def trial_outcomes(trials: Trials, edges: EdgeGeometry, mass: float, config: Top
     for rows in _row_tiles(len(live), len(edges.com_distance)):
         kept_edge[rows], kept_required[rows] = _least_force_edges(kept.take(rows), edges, mass, config, corrections,
                                                                     spin_stops)
-    # The corrections below look at one edge per trial, or at few trials: whole-block arrays, one
-    # pass each instead of one per tile (all row-wise, so the same numbers).
-    _check_corrections(kept, edges, kept_edge, kept_required, mass, config, corrections, spin_stops)
-    edge[live] = np.where(np.isfinite(kept_required), kept_edge, OUTCOME_NO_EDGE)
-    required[live] = kept_required
-    return edge, required
+    return live, kept, kept_edge, kept_required
+
+
+TRIAL_STAGES = ("invalid", "face_never_recedes", "friction_holds", "table_slides", "over_force_limit",
+                "stops_before_apex", "tips", "carried_finger_tips", "stuck_finger_tips")
+"""Where ``trial_stages`` finds each trial of the C.2 family decided, in the order the balance checks
+them: the finger missed the object; no base edge's face recedes from the advancing finger; the finger's
+friction leaves no edge a tipping moment; every edge that would turn needs more grip than the table
+has; every edge that passes needs more than the finger's force limit (C.1); the least-force edge
+passes but the object stops on the way to its apex (C.14) or short of the finger's stroke (C.10); the
+object tips (C.2); nothing of the above tips it, but the carried finger does (C.23); nor that, but the
+stuck finger does (C.11)."""
+
+
+def trial_stages(trials: Trials, edges: EdgeGeometry, mass: float, config: ToppleConfig) -> np.ndarray:
+    """Where each trial's topple is decided, as ``trial_outcomes`` decides it: a study's account of why the
+    model says a push stays (docs/VALIDATION.md, "Where the model says no").
+
+    trials : n trials;  mass : kg;  config : a variant with ``finger_friction`` (C.2), whose balance has
+      the stages; the thesis's conditions (section 7) are checked all at once and have none
+    returns : (n,) int8, index into ``TRIAL_STAGES``.  A trial ``trial_outcomes`` topples is at "tips" or
+      "stuck_finger_tips" and every other trial at an earlier stage: how far its best edge got.
+    """
+    corrections = config.applied_corrections
+    if "finger_friction" not in corrections:
+        raise ValueError("trial_stages follows C.2's balance: the variant must apply finger_friction "
+                         f"(it applies {', '.join(sorted(corrections)) or 'none'})")
+    spin_stops = _spin_stops(config, corrections)
+    stage = np.zeros(len(trials.mu_table), dtype=np.int8)  # "invalid" until a stage is reached
+    live, kept, edge, required = _least_force_block(trials, edges, mass, config, corrections, spin_stops)
+    shape, pair, force, passes = sliding_pairs(kept, edges, mass, config.gravity, config.finger_friction_scale, spin_stops)
+    # How far each (trial, edge) pair gets: 2 its face recedes (every pair listed), 3 it turns, 4 the table
+    # holds, 5 within the force limit; a valid trial with no pair stops at 1.
+    level = 2 + np.isfinite(force).astype(np.int8) + passes
+    if "force_limit" in corrections:
+        level = level + (passes & (force > 0.0) & (force <= config.max_finger_force))
+    else:
+        level = level + passes
+    row = pair // shape[1]
+    counted = kept.valid[row]  # every row is computed when fewer than two are valid: those stay "invalid"
+    reached = kept.valid.astype(np.int8)  # (m,)
+    np.maximum.at(reached, row[counted], level[counted].astype(np.int8))
+    # The least-force edge passed where ``required`` is finite; the corrections that stop a passing
+    # trial (C.10, C.14) are applied alone, those that tip a stopped one (C.23, C.11) and tip_back left out.
+    stopping = corrections - {"carried_finger", "stuck_finger", "tip_back"}
+    _check_corrections(kept, edges, edge, required, mass, config, stopping, spin_stops)
+    tips = np.isfinite(required)
+    reached[tips] = TRIAL_STAGES.index("tips")
+    if "carried_finger" in corrections:
+        _check_corrections(kept, edges, edge, required, mass, config, frozenset({"carried_finger"}) | corrections & {"force_limit"},
+                           spin_stops)
+        reached[np.isfinite(required) & ~tips] = TRIAL_STAGES.index("carried_finger_tips")
+    stage[live] = reached
+    toppled = trial_outcomes(trials, edges, mass, config)[0] >= 0
+    stage[toppled & (stage < TRIAL_STAGES.index("tips"))] = TRIAL_STAGES.index("stuck_finger_tips")
+    return stage
 
 
 def _row_tiles(n: int, per_row: int) -> list[slice]:
@@ -385,6 +458,24 @@ def _check_corrections(
             holds = holds_along_tip(trials.take(rows), edges, edge[rows], mass, gravity, config.finger_friction_scale,
                                     limit, spin_stops, config.tip_path_points)
             required[rows[~holds]] = np.inf
+    if "carried_finger" in corrections:
+        # C.23: where nothing above tips a push from above, the finger presses on to its force limit and gives
+        # way sideways; a tip whose face slides only a short way along the fingertip before the apex carries
+        # it along, pressing along the normal without friction.  Before C.11, whose finger holds while the
+        # base slides.
+        rows = np.flatnonzero(~np.isfinite(required) & trials.valid & (trials.push[:, 2] < FROM_ABOVE_U_Z))
+        if len(rows):
+            # A lone row is evaluated twice, the first kept, as for C.11 below (a 1-row product's last bits).
+            both = np.append(rows, rows) if len(rows) == 1 else rows
+            carried = trials.take(both)
+            limit = max_force if "force_limit" in corrections else np.inf
+            carried_edge, carried_force = np.empty(len(both), dtype=np.intp), np.empty(len(both))
+            for tile in _row_tiles(len(both), len(edges.com_distance)):
+                carried_edge[tile], carried_force[tile] = carried_finger(carried.take(tile), edges, mass, gravity, limit,
+                                                                         config.carried_slide, spin_stops)
+            carried_edge, carried_force = carried_edge[: len(rows)], carried_force[: len(rows)]
+            takes = np.isfinite(carried_force)
+            edge[rows[takes]], required[rows[takes]] = carried_edge[takes], carried_force[takes]
     if "stuck_finger" in corrections:
         # C.11: where nothing tips the object, a push down onto a part beyond a base edge may,
         # the finger holding on and the base sliding (a share of such trials, by the last draw).
@@ -414,6 +505,33 @@ def _check_corrections(
             back = line_edges(trials.contact.take(rows, axis=0), edges)  # (r,)
             crossed = back >= 0
             edge[rows[crossed]] = back[crossed]
+
+
+def carried_finger(
+    trials: Trials, edges: EdgeGeometry, mass: float, gravity: float, max_force: float, slide_limit: float, spin_stops: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``carried_finger`` correction (MODEL.md C.23): the edge a finger carried with the face tips.
+
+    C.2's finger follows its path, so a tipping face slides along the fingertip at v_rel = v_e - s_e u
+    per radian (``sliding_contact``) and the finger's friction opposes it.  Pressing from above onto an
+    object nothing tips, a real finger, and the push player's, presses on to its force limit and gives
+    way sideways (the caller picks those trials): where the face would slide at most ``slide_limit`` before the apex,
+    |v_rel| theta_e <= slide_limit (to first order in theta_e), the finger is carried with it and
+    presses along the normal alone.  The trial tips over the edge of least force among those whose
+    frictionless balance (C.2 with k = 0: table grip, weight, the moment about the vertical unless
+    ``spin_stops`` is off) passes with 0 < |f| <= ``max_force`` and whose slide is that short.
+
+    trials : r trials;  max_force : N (inf without ``force_limit``);  slide_limit : m
+    returns : edge (r,) int (any index where none qualifies), force (r,) float, N (inf where none)
+    """
+    shape, pair, force, passes = sliding_pairs(trials, edges, mass, gravity, 0.0, spin_stops)
+    row, edge = np.divmod(pair, shape[1])  # (K,) each
+    contact, normal, u = (a.take(row, axis=0) for a in (trials.contact, trials.normal, trials.push))  # (K, 3) each
+    velocity = _cross_rows(edges.direction.take(edge, axis=0), contact - edges.start.take(edge, axis=0))  # (K, 3), v_e
+    advance = np.einsum("kj,kj->k", velocity, normal) / np.einsum("kj,kj->k", u, normal)  # (K,), s_e (u . n < 0 on pairs)
+    slide = np.linalg.norm(velocity - advance[:, None] * u, axis=1) * edges.apex_angle.take(edge)  # (K,), m
+    keeps = passes & (force > 0.0) & (force <= max_force) & (slide <= slide_limit)
+    return _least_passing(shape, pair[keeps], force[keeps])
 
 
 def line_edges(contact: np.ndarray, edges: EdgeGeometry) -> np.ndarray:
@@ -800,6 +918,20 @@ def landed_poses(pose: StablePose, corrections: frozenset[str]) -> np.ndarray:
     return landed
 
 
+def pose_noise(rng: np.random.Generator, n_actions: int, n_candidates: int, config: ToppleConfig) -> TrialNoise:
+    """Every trial's noise for a pose's A actions, as ``evaluate_pose`` draws it: the first
+    ``n_candidates`` (the candidate set) first, then the probes', so a probe never changes a candidate's
+    draws.  Drawn for all A actions, ok or not, before blocking: blocking never changes a draw.
+
+    returns : (A, T) and (A, T, 3) fields"""
+    noise = sample_noise(rng, n_candidates, config)
+    if n_candidates < n_actions:
+        probe_noise = sample_noise(rng, n_actions - n_candidates, config)
+        noise = TrialNoise(*(np.concatenate([getattr(noise, f), getattr(probe_noise, f)])
+                             for f in TrialNoise.__dataclass_fields__))
+    return noise
+
+
 def evaluate_pose(
     obj: ObjectModel,
     pose: StablePose,
@@ -827,12 +959,7 @@ def evaluate_pose(
     n_poses = len(drop_probabilities)  # P
     n_actions, trials = len(actions.status), config.trials  # A, T
     n_candidates = n_actions if candidates is None else int(candidates)
-    # Drawn once for all A actions, ok or not, before blocking: blocking never changes a draw.
-    noise = sample_noise(rng, n_candidates, config)  # (A, T), (A, T, 3) fields
-    if n_candidates < n_actions:
-        probe_noise = sample_noise(rng, n_actions - n_candidates, config)
-        noise = TrialNoise(*(np.concatenate([getattr(noise, f), getattr(probe_noise, f)])
-                             for f in TrialNoise.__dataclass_fields__))
+    noise = pose_noise(rng, n_actions, n_candidates, config)  # (A, T), (A, T, 3) fields
     center_mass = transform_points(pose.transform, obj.center_mass[None])[0]  # (3,), pose frame
     edges = edge_geometry(pose.base_edges, center_mass)  # (E, ...) fields
     final_pose = np.append(landed_poses(pose, config.applied_corrections), pose.index)  # (E + 1,); -1: stays
