@@ -144,7 +144,7 @@ def test_the_study_replays_the_engine_trials_of_every_logged_push(model_logs, tm
         engine = evaluate_pose(obj, group.pose, group.drop_probabilities, pool.actions, config.topple,
                                stream(config.seed, obj.name, group.pose.index, "trials"), candidates=pool.candidates)
         toppled = (engine.outcomes[pool.index] >= 0).mean(axis=1)
-        np.testing.assert_array_equal(table.tips.to_numpy()[group.rows] + table.stuck_finger_tips.to_numpy()[group.rows], toppled)
+        np.testing.assert_array_equal(table[list(study.TOPPLING)].to_numpy()[group.rows].sum(axis=1), toppled)
 
     out = tmp_path / "stages.json"
     assert study.main([path, "--json", str(out), "--table", str(tmp_path / "stages.csv")]) == 0
@@ -158,6 +158,24 @@ def test_the_study_replays_the_engine_trials_of_every_logged_push(model_logs, tm
     # Another model's trials by --set; the thesis's variants have no stages and are refused.
     carried = tmp_path / "carried.json"
     assert study.main([path, "--json", str(carried), "--set", "topple.corrections=finger_friction,carried_finger"]) == 0
-    assert json.loads(carried.read_text())["corrections"] == ["carried_finger", "finger_friction"]
+    result = json.loads(carried.read_text())
+    assert result["corrections"] == ["carried_finger", "finger_friction"]
+    for directions in result["by_log"].values():
+        for blocks in directions.values():  # what topples is every toppling stage's, the carried finger's included
+            b = blocks["all"]
+            assert b["model_trials_topple"] == pytest.approx(sum(b["stages"][name] for name in study.TOPPLING))
     with pytest.raises(SystemExit):
         study.main([path, "--json", str(tmp_path / "thesis.json"), "--config", "thesis"])
+
+
+def test_the_summary_counts_every_toppling_stage_and_splits_by_physics():
+    """Two pushes from above, one that physics topples: the model's toppling share is every toppling stage's."""
+    shares = {name: [0.0, 0.0] for name in TRIAL_STAGES}
+    shares["tips"], shares["carried_finger_tips"], shares["stuck_finger_tips"] = [0.2, 0.0], [0.5, 0.1], [0.1, 0.0]
+    shares["friction_holds"] = [0.2, 0.9]
+    table = pd.DataFrame({"log": "L", "object_id": ["a", "b"], "start_pose": 0, "u_z": -0.9, "direction": "above",
+                          "physics": [0.8, 0.1], "repeats": 10, "served_p": [0.6, 0.2], **shares})
+    above = study.summarise(table)["L"]["above"]
+    assert above["toppled_in_physics"]["model_trials_topple"] == pytest.approx(0.8)
+    assert above["stayed_in_physics"]["model_trials_topple"] == pytest.approx(0.1)
+    assert above["all"]["pushes"] == 2 and above["all"]["stages"]["friction_holds"] == pytest.approx(0.55)

@@ -11,7 +11,7 @@ set and probes) and counts, per push, the share of its trials that ends at each 
 
 The summary is per log and push direction (from above, the side, below, as ``landing_direction`` splits them),
 and within each, apart for the pushes that toppled in most of physics' repeats and those that did not: where the
-model stops the pushes physics topples is what it gets wrong. The shares of "tips" and "stuck_finger_tips" are
+model stops the pushes physics topples is what it gets wrong. The shares of the last stages (``TOPPLING``) are
 the trials ``trial_outcomes`` topples, before the neighbourhood mean (C.12) and the maps (C.7, C.15, C.16, C.19)
 that make the served P(topple), which is reported beside them. A diagnosis, not a judgement: read it on tuning
 logs (the corpus's, the rolling set's) before a correction is built.
@@ -42,6 +42,8 @@ from .validation import config_from_args, to_json
 
 TOPPLED = 0.5
 """A push counts as toppling in physics when at least this share of its repeats toppled."""
+TOPPLING = TRIAL_STAGES[TRIAL_STAGES.index("tips"):]
+"""The stages of the trials ``trial_outcomes`` topples: by C.2, the carried finger (C.23) or the stuck finger (C.11)."""
 
 
 def group_stages(scorer: Scorer, group: Group, topple: ToppleConfig) -> np.ndarray:
@@ -104,7 +106,7 @@ def summarise(table: pd.DataFrame) -> dict:
 
     def block(rows: pd.DataFrame) -> dict:
         out = {"pushes": len(rows), "objects": int(rows.object_id.nunique()), "physics": rows.physics.mean(),
-               "served_p": rows.served_p.mean(), "model_trials_topple": (rows.tips + rows.stuck_finger_tips).mean()}
+               "served_p": rows.served_p.mean(), "model_trials_topple": rows[list(TOPPLING)].sum(axis=1).mean()}
         out["stages"] = {name: rows[name].mean() for name in TRIAL_STAGES}
         return out
 
