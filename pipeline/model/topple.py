@@ -321,8 +321,9 @@ def trial_stages(trials: Trials, edges: EdgeGeometry, mass: float, config: Toppl
 
     trials : n trials;  mass : kg;  config : a variant with ``finger_friction`` (C.2), whose balance has
       the stages; the thesis's conditions (section 7) are checked all at once and have none
-    returns : (n,) int8, index into ``TRIAL_STAGES``.  A trial ``trial_outcomes`` topples is at "tips" or
-      "stuck_finger_tips" and every other trial at an earlier stage: how far its best edge got.
+    returns : (n,) int8, index into ``TRIAL_STAGES``.  A trial ``trial_outcomes`` topples is at "tips" or a
+      later stage (the carried or the stuck finger's) and every other trial at an earlier one: how far its
+      best edge got.
     """
     corrections = config.applied_corrections
     if "finger_friction" not in corrections:
@@ -515,9 +516,9 @@ def carried_finger(
     C.2's finger follows its path, so a tipping face slides along the fingertip at v_rel = v_e - s_e u
     per radian (``sliding_contact``) and the finger's friction opposes it.  Pressing from above onto an
     object nothing tips, a real finger, and the push player's, presses on to its force limit and gives
-    way sideways (the caller picks those trials): where the face would slide at most ``slide_limit`` before the apex,
-    |v_rel| theta_e <= slide_limit (to first order in theta_e), the finger is carried with it and
-    presses along the normal alone.  The trial tips over the edge of least force among those whose
+    way sideways (the caller picks those trials): where the face would slide at most ``slide_limit``
+    before the apex, |v_rel| theta_e <= slide_limit (to first order in theta_e), the finger is carried
+    with it and presses along the normal alone.  The trial tips over the edge of least force among those whose
     frictionless balance (C.2 with k = 0: table grip, weight, the moment about the vertical unless
     ``spin_stops`` is off) passes with 0 < |f| <= ``max_force`` and whose slide is that short.
 
