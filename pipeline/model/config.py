@@ -107,7 +107,8 @@ when nothing else does and the push can drag the base (the finger sticks, the ba
 by the least force or by ``stuck_finger``, presses the overhang down and tips the object back over the
 edge the line from the centre of mass's foot through the contact crosses (docs/MODEL.md C.22; in the
 default since stop 56);
-``carried_finger``: where nothing else tips a push from above (u_z < ``FROM_ABOVE_U_Z``), a tip whose face
+``carried_finger``: where C.2 (after ``stroke`` and ``tip_path``) tips no push from above (u_z < ``FROM_ABOVE_U_Z``,
+the trial's noisy push), a tip whose face
 would slide at most ``carried_slide`` along the fingertip before the apex carries the finger with it instead:
 it presses along the face's normal, without friction (it needs ``finger_friction``; docs/MODEL.md C.23,
 opt-in since stop 60)."""

@@ -437,10 +437,10 @@ def _check_corrections(
     trials: Trials, edges: EdgeGeometry, edge: np.ndarray, required: np.ndarray, mass: float, config: ToppleConfig,
     corrections: frozenset[str], spin_stops: bool,
 ) -> None:
-    """Apply the corrections that follow the least-force edge (C.10, C.14, C.11, C.22) to a block of n
-    trials, in place: ``required`` (n,) float, N, becomes inf where the topple does not happen,
-    ``edge`` (n,) int and ``required`` take the stuck finger's edge and force where it tips a
-    trial, and ``edge`` the line's edge where C.22 tips a hard press from above back.  A row with
+    """Apply the corrections that follow the least-force edge (C.10, C.14, C.23, C.11, C.22, in this order)
+    to a block of n trials, in place: ``required`` (n,) float, N, becomes inf where the topple does not
+    happen, ``edge`` (n,) int and ``required`` take the carried or the stuck finger's edge and force where
+    it tips a trial, and ``edge`` the line's edge where C.22 tips a hard press from above back.  A row with
     ``required`` inf carries an arbitrary edge (0), which the checks read harmlessly and
     ``trial_outcomes`` replaces by ``OUTCOME_NO_EDGE``."""
     gravity, max_force = config.gravity, config.max_finger_force
