@@ -38,7 +38,7 @@ from ..model.edges import EdgeGeometry, edge_geometry
 from ..model.feature_map import DOWN_FEATURES, FEATURES, SIDE_FEATURES, down_features, landing_rows, pose_features, side_features, side_rows
 from ..model.outcomes import Actions, StablePose, ToppleTable
 from ..model.rng import stream
-from ..model.topple import evaluate_pose
+from ..model.topple import TrialNoise, Trials, evaluate_pose, noisy_trials, pose_noise
 from .logreader import SAME_PUSH_TOLERANCE, LogError, Push, PushLog
 
 
@@ -182,7 +182,7 @@ class Scorer:
         lands = np.zeros(len(self), dtype=bool)
         for group in self.groups:
             table, actions, index = self._evaluate(group, topple, candidates=True)
-            center_mass, edges = self._pose_edges(group)
+            center_mass, edges = self.pose_edges(group)
             out[group.rows] = down_features(table.p_topple[index], actions.points[index], actions.normals[index],
                                             actions.directions[index], edges, center_mass)
             p[group.rows] = table.p_topple[index]
@@ -201,7 +201,7 @@ class Scorer:
         taken = np.zeros(len(self), dtype=bool)
         for group in self.groups:
             table, actions, index = self._evaluate(group, topple)
-            _, edges = self._pose_edges(group)
+            _, edges = self.pose_edges(group)
             p[group.rows] = table.p_topple[index]
             out[group.rows] = side_features(table.p_topple[index], actions.points[index], actions.directions[index], edges)
             taken[group.rows] = side_rows(table.p_topple[index], actions.directions[index, 2], topple.side_map_band)
@@ -223,7 +223,7 @@ class Scorer:
         for group in self.groups:
             table, actions, index = self._evaluate(group, topple, candidates=True)
             unmapped, _, _ = self._evaluate(group, unmapped_model, candidates=True)
-            center_mass, edges = self._pose_edges(group)
+            center_mass, edges = self.pose_edges(group)
             pool = self.pose_candidates(group).candidates
             obj = self.log.objects[group.object_id].model
             features = boosted_features(table.p_topple, unmapped.p_topple, table.mean_force, actions, edges, center_mass,
@@ -240,7 +240,7 @@ class Scorer:
                                pool=self.pose_candidates(group).candidates, rows=index)
         return landing.sum(axis=1) > 0
 
-    def _pose_edges(self, group: Group) -> tuple[np.ndarray, EdgeGeometry]:
+    def pose_edges(self, group: Group) -> tuple[np.ndarray, EdgeGeometry]:
         """The centre of mass of ``group``'s object in its pose's frame, (3,) float, m (not the
         mesh's: the engine's maps read the pose frame's), and the pose's ``edge_geometry``."""
         model = self.log.objects[group.object_id].model
@@ -248,17 +248,42 @@ class Scorer:
         return center_mass, edge_geometry(group.pose.base_edges, center_mass)
 
     def _evaluate(self, group: Group, topple: ToppleConfig, candidates: bool = False) -> tuple[ToppleTable, Actions, np.ndarray]:
-        """``group``'s table: over its pose's candidates and its probes when the model needs them
-        (``ToppleConfig.needs_candidates``) or ``candidates`` asks, else over its pushes alone.
+        """``group``'s table (``_evaluated_actions``' actions).
         returns : the table, its actions, and (pushes,) int, the row that predicts each push"""
-        obj, drop = self.log.objects[group.object_id].model, group.drop_probabilities
-        rng = stream(self.seed, obj.name, group.pose.index, "trials")
+        obj = self.log.objects[group.object_id].model
+        actions, n_candidates, index = self._evaluated_actions(group, topple, candidates)
+        table = evaluate_pose(obj, group.pose, group.drop_probabilities, actions, topple, self._trial_stream(group),
+                              candidates=n_candidates)
+        return table, actions, index
+
+    def _evaluated_actions(self, group: Group, topple: ToppleConfig, candidates: bool = False) -> tuple[Actions, int, np.ndarray]:
+        """What ``group``'s table is evaluated over: its pose's candidates and its probes when the model needs
+        them (``ToppleConfig.needs_candidates``) or ``candidates`` asks, else its pushes alone.
+        returns : the actions, how many of them lead as the candidate set (``evaluate_pose``'s ``candidates``),
+          and (pushes,) int, each logged push's action"""
         if topple.needs_candidates or candidates:
             pool = self.pose_candidates(group)
-            table = evaluate_pose(obj, group.pose, drop, pool.actions, topple, rng, candidates=pool.candidates)
-            return table, pool.actions, pool.index
-        table = evaluate_pose(obj, group.pose, drop, group.actions, topple, rng)
-        return table, group.actions, np.arange(len(group.rows))
+            return pool.actions, pool.candidates, pool.index
+        return group.actions, len(group.rows), np.arange(len(group.rows))
+
+    def _trial_stream(self, group: Group) -> np.random.Generator:
+        """The engine's stream of ``group``'s pose's trials for this scorer's seed (``rng.stream``)."""
+        return stream(self.seed, self.log.objects[group.object_id].model.name, group.pose.index, "trials")
+
+    def logged_trials(self, group: Group, topple: ToppleConfig) -> tuple[Trials, EdgeGeometry, np.ndarray]:
+        """The engine's trials of ``group``'s logged pushes, drawn as ``_evaluate``'s ``evaluate_pose`` draws them
+        (``topple.pose_noise``: the candidates' noise first, the logged pushes' as probes), and the pose's edges.
+
+        returns : trials (pushes T, ...), action-major;  edges;  (pushes,) bool, the pushes the engine evaluates
+          (``ok``; the others' trials are drawn but never decided)"""
+        obj = self.log.objects[group.object_id].model
+        actions, n_candidates, index = self._evaluated_actions(group, topple)
+        noise = pose_noise(self._trial_stream(group), len(actions.status), n_candidates, topple)
+        noise = TrialNoise(*(getattr(noise, f).take(index, axis=0) for f in TrialNoise.__dataclass_fields__))
+        center_mass, edges = self.pose_edges(group)
+        trials = noisy_trials(obj, group.pose.transform, center_mass, actions.points[index], actions.normals[index],
+                              actions.directions[index], noise, topple)
+        return trials, edges, actions.status[index] == STATUS_OK
 
     def pose_candidates(self, group: Group) -> CandidatesAndProbes:
         """The candidate pushes of ``group``'s pose as the dataset job makes them, plus its logged

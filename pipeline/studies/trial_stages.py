@@ -26,16 +26,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from schema.frames import transform_points
-from schema.vocabulary import STATUS_OK
-
 from ..build.atomic import write_json_atomic, write_text_atomic
 from ..build.corpus import DEFAULT_LIST, read_list
 from ..model.config import Config, ToppleConfig
-from ..model.edges import edge_geometry
 from ..model.landing_direction import CLASSES, direction_classes
-from ..model.rng import stream
-from ..model.topple import TRIAL_STAGES, TrialNoise, noisy_trials, pose_noise, trial_stages
+from ..model.topple import TRIAL_STAGES, trial_stages
 from .logreader import read_log
 from .scoring import Group, Scorer
 from .validation import config_from_args, to_json
@@ -47,31 +42,17 @@ TOPPLING = TRIAL_STAGES[TRIAL_STAGES.index("tips"):]
 
 
 def group_stages(scorer: Scorer, group: Group, topple: ToppleConfig) -> np.ndarray:
-    """The share of each logged push's trials ending at each stage, as the engine draws them for ``scorer``.
-
-    The trials are the engine's: the same stream (seed, object, pose, "trials"), and when ``topple``'s model
-    needs its pose's candidates (the maps, the smoothing), the candidates' noise drawn first and the logged
-    pushes' as probes after them (``evaluate_pose``, ``pose_noise``).
+    """The share of each logged push's trials ending at each stage, the engine's trials for ``scorer``
+    (``Scorer.logged_trials``).
 
     returns : (pushes, len(TRIAL_STAGES)) float, rows summing to 1; NaN for a logged push that is not ``ok``
       (blocked: the engine evaluates no trial of it)
     """
-    obj = scorer.log.objects[group.object_id].model
-    rng = stream(scorer.seed, obj.name, group.pose.index, "trials")
-    if topple.needs_candidates:
-        pool = scorer.pose_candidates(group)
-        actions, candidates, index = pool.actions, pool.candidates, pool.index
-    else:
-        actions, candidates, index = group.actions, len(group.rows), np.arange(len(group.rows))
-    noise = pose_noise(rng, len(actions.status), candidates, topple)
-    noise = TrialNoise(*(getattr(noise, f).take(index, axis=0) for f in TrialNoise.__dataclass_fields__))
-    center_mass = transform_points(group.pose.transform, obj.center_mass[None])[0]  # pose frame
-    edges = edge_geometry(group.pose.base_edges, center_mass)
-    trials = noisy_trials(obj, group.pose.transform, center_mass, actions.points[index], actions.normals[index],
-                          actions.directions[index], noise, topple)
-    stages = trial_stages(trials, edges, obj.mass, topple).reshape(len(index), -1)  # (pushes, T)
+    trials, edges, evaluated = scorer.logged_trials(group, topple)
+    mass = scorer.log.objects[group.object_id].model.mass
+    stages = trial_stages(trials, edges, mass, topple).reshape(len(group.rows), -1)  # (pushes, T)
     shares = (stages[:, :, None] == np.arange(len(TRIAL_STAGES))).mean(axis=1)
-    shares[actions.status[index] != STATUS_OK] = np.nan
+    shares[~evaluated] = np.nan
     return shares
 
 
