@@ -344,19 +344,19 @@ def trial_stages(trials: Trials, edges: EdgeGeometry, mass: float, config: Toppl
     counted = kept.valid[row]  # every row is computed when fewer than two are valid: those stay "invalid"
     reached = kept.valid.astype(np.int8)  # (m,)
     np.maximum.at(reached, row[counted], level[counted].astype(np.int8))
-    # The least-force edge passed where ``required`` is finite; the corrections that stop a passing
-    # trial (C.10, C.14) are applied alone, those that tip a stopped one (C.23, C.11) and tip_back left out.
-    stopping = corrections - {"carried_finger", "stuck_finger", "tip_back"}
-    _check_corrections(kept, edges, edge, required, mass, config, stopping, spin_stops)
-    tips = np.isfinite(required)
-    reached[tips] = TRIAL_STAGES.index("tips")
-    if "carried_finger" in corrections:
-        _check_corrections(kept, edges, edge, required, mass, config, frozenset({"carried_finger"}) | corrections & {"force_limit"},
-                           spin_stops)
-        reached[np.isfinite(required) & ~tips] = TRIAL_STAGES.index("carried_finger_tips")
+    # The least-force edge passed where ``required`` is finite.  ``trial_outcomes``' corrections follow in
+    # its order on the same arrays: first those that stop a passing trial (C.10, C.14), then each that tips
+    # a stopped one (C.23, C.11) alone, its new topples labelled; tip_back only re-aims, so it is left out.
+    _check_corrections(kept, edges, edge, required, mass, config, corrections - {"carried_finger", "stuck_finger", "tip_back"},
+                       spin_stops)
+    reached[np.isfinite(required)] = TRIAL_STAGES.index("tips")
+    for name, tipped in (("carried_finger", "carried_finger_tips"), ("stuck_finger", "stuck_finger_tips")):
+        if name in corrections:
+            stopped = ~np.isfinite(required)
+            _check_corrections(kept, edges, edge, required, mass, config, frozenset({name}) | corrections & {"force_limit"},
+                               spin_stops)
+            reached[stopped & np.isfinite(required)] = TRIAL_STAGES.index(tipped)
     stage[live] = reached
-    toppled = trial_outcomes(trials, edges, mass, config)[0] >= 0
-    stage[toppled & (stage < TRIAL_STAGES.index("tips"))] = TRIAL_STAGES.index("stuck_finger_tips")
     return stage
 
 
