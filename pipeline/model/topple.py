@@ -526,13 +526,16 @@ def carried_finger(
     returns : edge (r,) int (any index where none qualifies), force (r,) float, N (inf where none)
     """
     shape, pair, force, passes = sliding_pairs(trials, edges, mass, gravity, 0.0, spin_stops)
+    # The slide only of the pairs whose frictionless balance passes within the limit (still ascending).
+    within = passes & (force > 0.0) & (force <= max_force)
+    pair, force = pair[within], force[within]  # (K,) each
     row, edge = np.divmod(pair, shape[1])  # (K,) each
     contact, normal, u = (a.take(row, axis=0) for a in (trials.contact, trials.normal, trials.push))  # (K, 3) each
     velocity = _cross_rows(edges.direction.take(edge, axis=0), contact - edges.start.take(edge, axis=0))  # (K, 3), v_e
     advance = np.einsum("kj,kj->k", velocity, normal) / np.einsum("kj,kj->k", u, normal)  # (K,), s_e (u . n < 0 on pairs)
     slide = np.linalg.norm(velocity - advance[:, None] * u, axis=1) * edges.apex_angle.take(edge)  # (K,), m
-    keeps = passes & (force > 0.0) & (force <= max_force) & (slide <= slide_limit)
-    return _least_passing(shape, pair[keeps], force[keeps])
+    short = slide <= slide_limit
+    return _least_passing(shape, pair[short], force[short])
 
 
 def line_edges(contact: np.ndarray, edges: EdgeGeometry) -> np.ndarray:
