@@ -53,6 +53,11 @@ def _push(rod, point, direction, topple):
     return evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(0, obj.name, index, "trials"))
 
 
+def carried_config(**fields):
+    """The noise-free trial with C.2, the force limit and the carried finger."""
+    return noise_free(corrections="finger_friction,force_limit,carried_finger", **fields)
+
+
 def _slide(phi_degrees):
     phi, a, h = np.radians(phi_degrees), RADIUS * np.sin(SIXTH), RADIUS * np.cos(SIXTH)
     return (h * (1 + np.cos(phi)) + a * np.sin(phi)) * SIXTH
@@ -63,17 +68,13 @@ def test_a_rod_pressed_from_above_rolls_with_the_carried_finger_at_the_closed_fo
     obj, pose_set, index = rod
     point, normal, center_mass = _facet_push(rod, phi)
     held = _push(rod, point, -normal, noise_free(corrections="finger_friction,force_limit"))
-    carried = _push(rod, point, -normal, noise_free(corrections="finger_friction,force_limit,carried_finger"))
+    carried = _push(rod, point, -normal, carried_config())
     assert held.outcomes[0, 0] < 0 and carried.outcomes[0, 0] >= 0
     weight = obj.mass * carried_config().gravity
     assert carried.mean_force[0] == pytest.approx(weight * np.sin(SIXTH) / np.sin(np.radians(phi) - SIXTH), rel=1e-6)
     # It rolls away from the pushed facet: over the base edge on the far side of the centre of mass.
     edges = edge_geometry(pose_set.poses[index].base_edges, center_mass)
     assert edges.outward[carried.outcomes[0, 0]] @ normal < -0.1
-
-
-def carried_config(**fields):
-    return noise_free(corrections="finger_friction,force_limit,carried_finger", **fields)
 
 
 @pytest.mark.parametrize("phi", [30.0, 60.0])

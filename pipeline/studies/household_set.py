@@ -97,12 +97,12 @@ def write_set(wheels: list[Path], out: Path) -> list[tuple[str, str, str]]:
     """
     meshes_dir = out / "meshes"
     meshes_dir.mkdir(parents=True, exist_ok=True)
-    kept, specs, seen_bytes, seen_shapes = [], [], set(), set()
+    kept, specs, seen_ids, seen_bytes, seen_shapes = [], [], set(), set(), set()
     for wheel in sorted(wheels, key=lambda p: p.name):
         with zipfile.ZipFile(wheel) as archive:
             for member in chosen_members(archive.namelist()):
                 oid = object_id(member)
-                if any(oid == k[0] for k in kept):
+                if oid in seen_ids:
                     print(f"household_set: {member}: the id {oid} is taken by a kept object, left out", file=sys.stderr)
                     continue
                 target = meshes_dir / oid / Path(member).name
@@ -117,6 +117,7 @@ def write_set(wheels: list[Path], out: Path) -> list[tuple[str, str, str]]:
                     if not any(target.parent.iterdir()):
                         target.parent.rmdir()
                     continue
+                seen_ids.add(oid)
                 seen_bytes.add(sha)
                 seen_shapes.add(key)
                 scale = LARGEST_EXTENT / float(mesh.extents.max())
