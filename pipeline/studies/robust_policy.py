@@ -90,8 +90,11 @@ pushes are ranked by Q1."""
 BELIEF_HORIZON_POLICY = "belief_horizon_vi"
 """``horizon_vi`` over the fresh and failed-here states of ``belief_vi`` (``belief_budget_tables``):
 Q0_h in a fresh pose, Q1_h over the pushes no failure ruled out after one, h the pushes left."""
+BUDGET_POLICY = "budget_vi"
+"""``belief_horizon_vi``'s fresh-pose push with h pushes left, in whatever pose, for a client that sends ``/plan``
+its ``pushes_left`` and not its failures: Q0_h of (12.14) after a failure too, as a fresh ask with one push fewer."""
 CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY,
-               BELIEF_POLICY, BELIEF_HORIZON_POLICY)
+               BELIEF_POLICY, BELIEF_HORIZON_POLICY, BUDGET_POLICY)
 """The policies each compared with value iteration, paired."""
 PRIOR_POLICY = "prior_vi"
 PRIOR_BELIEF_POLICY = "prior_belief_vi"
@@ -662,6 +665,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
         actions, belief_q1, belief_budget_q1 = believing_tables(plan.v_s, rows, config.mdp, choosable, max_pushes,
                                                                 budget_choosable=budget_choosable)
         plan.actions.update(actions)
+        plan.actions[BUDGET_POLICY] = plan.actions[BELIEF_HORIZON_POLICY]  # never told of a failure
         if reshaped:
             if landing_prior is not None:
                 prior = [landing_prior_rows(r, x, landing_prior, choosable[x], config.topple.trials) for x, r in enumerate(rows)]
