@@ -357,6 +357,42 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset, study_
     assert min(checked.values()) > 0, f"no push after a failure for some policy: {checked}"
 
 
+def test_budget_vi_asks_afresh_with_one_push_fewer_after_a_failure(dataset, study_run):  # noqa: F811 (fixtures)
+    """``budget_vi`` is ``/plan`` with ``pushes_left`` and no ``failed_actions``: every push, after a failure too,
+    is argmax Q0_h of (12.14) in its pose with h the pushes left (``tests.test_horizon.reference_belief_budget``),
+    where ``belief_horizon_vi`` would rank by Q1_h over the untried pushes."""
+    from pipeline.studies.policies_physics import object_plans, open_trials
+    from pipeline.studies.robust_policy import BUDGET_POLICY, REPORTS_FAILURES, read_candidates
+    from schema import horizon, retry
+    from schema.reader import Dataset
+    from tests.test_horizon import reference_belief_budget
+
+    assert BUDGET_POLICY not in REPORTS_FAILURES
+    report, pushes = study_run
+    data, _, _, _, _ = open_trials(dataset, 8, 1)
+    mdp = data.manifest.parameters.mdp
+    budget_pushes = report["max_pushes"]
+    by_trial: dict[tuple, list] = {}
+    for push in pushes:
+        if push.policy == BUDGET_POLICY:
+            by_trial.setdefault((push.object_id, push.trial), []).append(push)
+    after_failure, cache = 0, {}
+    for (object_id, _), played in by_trial.items():
+        if object_id not in cache:
+            candidates = read_candidates(Dataset.open(dataset), object_id)
+            rows = next_pose_rows(Dataset.open(dataset), object_id, [len(c.q) for c in candidates])
+            choosable = [horizon.choosable_pushes(c.directions[:, 2], mdp.budget_min_direction_z) for c in candidates]
+            v_s = object_plans(data, [object_id])[object_id].v_s
+            q0s, _ = reference_belief_budget(rows, v_s, mdp.after_failure_power, budget_pushes, choosable)
+            cache[object_id] = (choosable, v_s, q0s)
+        choosable, v_s, q0s = cache[object_id]
+        for step, push in enumerate(played):
+            after_failure += step > 0 and not played[step - 1].toppled
+            values = q0s[budget_pushes - step - 1][push.pose]
+            assert push.action == retry.best_untried(values, choosable[push.pose], float(v_s[push.pose]), horizon.IMPROVEMENT)
+    assert after_failure > 0, "no push of budget_vi after a failure: the test would not tell it from belief_horizon_vi"
+
+
 def test_aware_vi_plays_what_plan_serves_a_client_that_reports_its_failures(dataset, study_run):  # noqa: F811 (fixtures)
     """``aware_vi``, push by push, is the service's own choice (``service.planning.untried_push``, as ``/plan``
     calls it) given the pushes of the trial that failed from that pose so far: the stored push (the choice by

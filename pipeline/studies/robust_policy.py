@@ -25,7 +25,8 @@ the experiment's push budget, ``schema.horizon``), ``untried_vi`` (what /plan's
 ``failed_actions`` serves), ``once_vi`` (value iteration without retries, docs/MODEL.md
 (12.9)), ``aware_vi`` (``untried_vi`` ranking the pushes after a failure by their believed
 P(topple)^k, ``aware_choice``), ``belief_vi`` (12.13) and ``belief_horizon_vi`` (12.14, what
-``/plan`` serves for ``pushes_left`` in a build that believes failures) in pybullet from the same starts and
+``/plan`` serves for ``pushes_left`` in a build that believes failures) and ``budget_vi`` (its fresh push only, a
+client that sends ``pushes_left`` and not its failures) in pybullet from the same starts and
 noise draws as ``toppledb policies-physics`` (common random numbers, so max_height and
 value_iteration reproduce that report's numbers), and reports each policy's V_s gain over
 max_height on useful trials, the 'never push' baseline, and predicted (raw and smoothed)
