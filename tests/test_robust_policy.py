@@ -383,14 +383,23 @@ def test_budget_vi_asks_afresh_with_one_push_fewer_after_a_failure(dataset, stud
             rows = next_pose_rows(Dataset.open(dataset), object_id, [len(c.q) for c in candidates])
             choosable = [horizon.choosable_pushes(c.directions[:, 2], mdp.budget_min_direction_z) for c in candidates]
             v_s = object_plans(data, [object_id])[object_id].v_s
-            q0s, _ = reference_belief_budget(rows, v_s, mdp.after_failure_power, budget_pushes, choosable)
-            cache[object_id] = (choosable, v_s, q0s)
-        choosable, v_s, q0s = cache[object_id]
+            q0s, q1s = reference_belief_budget(rows, v_s, mdp.after_failure_power, budget_pushes, choosable)
+            cache[object_id] = (candidates, choosable, v_s, q0s, q1s)
+        candidates, choosable, v_s, q0s, q1s = cache[object_id]
+        failed: dict[int, np.ndarray] = {}
         for step, push in enumerate(played):
-            after_failure += step > 0 and not played[step - 1].toppled
-            values = q0s[budget_pushes - step - 1][push.pose]
-            assert push.action == retry.best_untried(values, choosable[push.pose], float(v_s[push.pose]), horizon.IMPROVEMENT)
-    assert after_failure > 0, "no push of budget_vi after a failure: the test would not tell it from belief_horizon_vi"
+            h, stay = budget_pushes - step - 1, float(v_s[push.pose])
+            expected = retry.best_untried(q0s[h][push.pose], choosable[push.pose], stay, horizon.IMPROVEMENT)
+            assert push.action == expected
+            if push.pose in failed:  # where belief_horizon_vi would rank the untried pushes by Q1_h instead
+                reporting = retry.best_untried(q1s[h][push.pose], choosable[push.pose] & ~failed[push.pose], stay,
+                                               horizon.IMPROVEMENT)
+                after_failure += reporting != expected
+            if not push.toppled:
+                c = candidates[push.pose]
+                failed[push.pose] = failed.get(push.pose, np.zeros(len(c.q), dtype=bool)) | retry.ruled_out(
+                    c.points, c.directions, [push.action])
+    assert after_failure > 0, "no push of budget_vi after a failure where belief_horizon_vi's rule picks another"
 
 
 def test_aware_vi_plays_what_plan_serves_a_client_that_reports_its_failures(dataset, study_run):  # noqa: F811 (fixtures)
