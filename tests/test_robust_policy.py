@@ -286,6 +286,24 @@ def test_once_vi_takes_the_surer_push_where_value_iteration_counts_on_retrying_a
     assert once_actions(np.array([0.9, 1.0, 0.5]), [rows[0][:1], rows[1], rows[2]], MDPConfig(choice_radius=0.0)).tolist() == [NO_OP] * 3
 
 
+def _played_object(root, data, object_id: str, min_direction_z: float, budget_pushes: int):
+    """One object of a study run's dataset (``root``) as the tests below re-derive its pushes: its candidates, next-pose rows,
+    the pushes a rule may choose (u_z >= ``min_direction_z``), V_s per pose and (Q0_h, Q1_h) of (12.14) by explicit
+    backward induction (``tests.test_horizon.reference_belief_budget``)."""
+    from pipeline.studies.policies_physics import object_plans
+    from pipeline.studies.robust_policy import read_candidates
+    from schema import horizon
+    from schema.reader import Dataset
+    from tests.test_horizon import reference_belief_budget
+
+    candidates = read_candidates(Dataset.open(root), object_id)
+    rows = next_pose_rows(Dataset.open(root), object_id, [len(c.q) for c in candidates])
+    choosable = [horizon.choosable_pushes(c.directions[:, 2], min_direction_z) for c in candidates]
+    v_s = object_plans(data, [object_id])[object_id].v_s
+    power = data.manifest.parameters.mdp.after_failure_power
+    return candidates, rows, choosable, v_s, reference_belief_budget(rows, v_s, power, budget_pushes, choosable)
+
+
 def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset, study_run):  # noqa: F811 (fixture)
     """Played on a tiny dataset: in a fresh pose ``aware_vi`` pushes as value iteration,
     ``belief_vi`` as argmax Q0 and ``belief_horizon_vi`` as argmax Q0_h (h pushes left); once a
@@ -295,17 +313,14 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset, study_
     from dataclasses import replace
 
     from pipeline.model.mdp import IMPROVEMENT
-    from pipeline.studies.policies_physics import object_plans, open_trials
+    from pipeline.studies.policies_physics import open_trials
     from pipeline.studies.robust_policy import (
         AWARE_POLICY,
         BELIEF_HORIZON_POLICY,
         BELIEF_POLICY,
         belief_tables,
-        read_candidates,
     )
     from schema import horizon, retry
-    from schema.reader import Dataset
-    from tests.test_horizon import reference_belief_budget
 
     report, pushes = study_run
     assert not report["failed_objects"]
@@ -320,12 +335,9 @@ def test_aware_and_belief_vi_play_their_own_rule_after_a_failure(dataset, study_
     cache: dict[str, tuple] = {}
     for (object_id, _), played in by_trial.items():
         if object_id not in cache:
-            candidates = read_candidates(Dataset.open(dataset), object_id)
-            rows = next_pose_rows(Dataset.open(dataset), object_id, [len(c.q) for c in candidates])
-            choosable = [horizon.choosable_pushes(c.directions[:, 2], mdp.min_direction_z) for c in candidates]
-            v_s = object_plans(data, [object_id])[object_id].v_s
-            cache[object_id] = (candidates, choosable, v_s, *belief_tables(v_s, rows, mdp_config, choosable),
-                                reference_belief_budget(rows, v_s, mdp.after_failure_power, budget_pushes, choosable))
+            candidates, rows, choosable, v_s, budget = _played_object(dataset, data, object_id, mdp.min_direction_z,
+                                                                     budget_pushes)
+            cache[object_id] = (candidates, choosable, v_s, *belief_tables(v_s, rows, mdp_config, choosable), budget)
         candidates, choosable, v_s, belief_first, belief_q1, (q0s, q1s) = cache[object_id]
         vi = played.get("value_iteration", [])
         for policy in (AWARE_POLICY, BELIEF_POLICY, BELIEF_HORIZON_POLICY):
@@ -361,11 +373,9 @@ def test_budget_vi_asks_afresh_with_one_push_fewer_after_a_failure(dataset, stud
     """``budget_vi`` is ``/plan`` with ``pushes_left`` and no ``failed_actions``: every push, after a failure too,
     is argmax Q0_h of (12.14) in its pose with h the pushes left (``tests.test_horizon.reference_belief_budget``),
     where ``belief_horizon_vi`` would rank by Q1_h over the untried pushes."""
-    from pipeline.studies.policies_physics import object_plans, open_trials
-    from pipeline.studies.robust_policy import BUDGET_POLICY, REPORTS_FAILURES, read_candidates
+    from pipeline.studies.policies_physics import open_trials
+    from pipeline.studies.robust_policy import BUDGET_POLICY, REPORTS_FAILURES
     from schema import horizon, retry
-    from schema.reader import Dataset
-    from tests.test_horizon import reference_belief_budget
 
     assert BUDGET_POLICY not in REPORTS_FAILURES
     report, pushes = study_run
@@ -379,11 +389,8 @@ def test_budget_vi_asks_afresh_with_one_push_fewer_after_a_failure(dataset, stud
     after_failure, cache = 0, {}
     for (object_id, _), played in by_trial.items():
         if object_id not in cache:
-            candidates = read_candidates(Dataset.open(dataset), object_id)
-            rows = next_pose_rows(Dataset.open(dataset), object_id, [len(c.q) for c in candidates])
-            choosable = [horizon.choosable_pushes(c.directions[:, 2], mdp.budget_min_direction_z) for c in candidates]
-            v_s = object_plans(data, [object_id])[object_id].v_s
-            q0s, q1s = reference_belief_budget(rows, v_s, mdp.after_failure_power, budget_pushes, choosable)
+            candidates, _, choosable, v_s, (q0s, q1s) = _played_object(dataset, data, object_id,
+                                                                      mdp.budget_min_direction_z, budget_pushes)
             cache[object_id] = (candidates, choosable, v_s, q0s, q1s)
         candidates, choosable, v_s, q0s, q1s = cache[object_id]
         failed: dict[int, np.ndarray] = {}
