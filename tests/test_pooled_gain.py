@@ -65,6 +65,18 @@ def test_runs_pool_their_counted_trials_and_cluster_by_object_across_runs(tmp_pa
     assert pool([first, second], policy="max_height", baseline="value_iteration")["pooled"] == pytest.approx(-differences.mean())
 
 
+def test_never_pushing_pools_as_zero_gain_on_every_counted_trial(tmp_path):
+    run = write(tmp_path / "s.jsonl", [record(0, 3, gains(0.5, 0.1), object_id="a"), record(1, 4, gains(0.2, -0.3), object_id="b"),
+                                       record(2, 5, gains(0.9, 0.4), useful=False, object_id="c"),
+                                       record(3, 6, gains(0.0, 0.2), object_id="c")])
+    never = pool([run], "never_push", "max_height")
+    height = pool([run], "max_height", "never_push")
+    assert never["trials"] == 3 and never["pooled"] == pytest.approx(-np.mean([0.1, -0.3, 0.2]))
+    assert height["pooled"] == pytest.approx(-never["pooled"]) and height["objects_se"] == pytest.approx(never["objects_se"])
+    # Against value iteration: minus its gain, trial by trial.
+    assert pool([run], "never_push", "value_iteration")["pooled"] == pytest.approx(-np.mean([0.5, 0.2, 0.0]))
+
+
 def test_the_pool_of_a_real_run_is_the_runs_reported_gain(dataset, tmp_path, capsys):  # noqa: F811
     from pipeline.studies.robust_policy import main as study
 
@@ -124,7 +136,7 @@ def test_help_names_the_default_policies(capsys, monkeypatch):
         main(["--help"])
     assert exit_.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    assert "--policy POLICY (default: value_iteration)" in text and "--baseline BASELINE (default: max_height)" in text
+    assert "--policy POLICY (default: value_iteration; never_push: 0 on every trial)" in text and "--baseline BASELINE (default: max_height)" in text
 
 
 def test_one_object_has_no_clustered_se_and_the_record_stays_json(tmp_path, capsys):

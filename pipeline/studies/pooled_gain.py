@@ -14,7 +14,9 @@ cluster-robust one), with the 95 % interval each gives.
 
 A trial counts as in ``robust_policy``'s ``gain_over_max_height``: inside the pose set and useful.
 Trials are clustered by ``object_id`` across every file, so the files must name their objects
-(``robust_policy`` writes ``object_id`` since stop 45).
+(``robust_policy`` writes ``object_id`` since stop 45).  ``never_push``, the trivial planner that grasps
+where the object lies, gains nothing on any trial; the files do not hold it, and ``--policy never_push``
+pools it as 0 so that it is shown with the same intervals as the planners.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ from .paired_trials import PairingError, read_trials
 from .policies_physics import mean_se
 
 Z_95 = 1.959963984540054
+NEVER_PUSH = "never_push"
+"""The planner that never pushes: its V_s gain is 0 on every trial (``robust_policy``'s ``never_push``)."""
 
 
 def run_differences(trials: dict[int, dict], policy: str, baseline: str, path: str | Path) -> tuple[np.ndarray, list[str]]:
@@ -43,13 +47,14 @@ def run_differences(trials: dict[int, dict], policy: str, baseline: str, path: s
         record = trials[t]
         if record["outside"] or not record["useful"]:
             continue
-        missing = [name for name in (policy, baseline) if name not in record["gains"]]
+        gains = {NEVER_PUSH: 0.0, **record["gains"]}
+        missing = [name for name in (policy, baseline) if name not in gains]
         if missing:
             raise PairingError(f"{path}: trial {t} has no policy {missing[0]!r}; it played {', '.join(sorted(record['gains']))}")
         if not record["object_id"]:
             raise PairingError(f"{path}: trial {t} names no object_id (a file written before stop 45?); "
                                "its trials cannot be grouped by object")
-        differences.append(float(record["gains"][policy]) - float(record["gains"][baseline]))
+        differences.append(float(gains[policy]) - float(gains[baseline]))
         objects.append(str(record["object_id"]))
     return np.array(differences, dtype=float), objects
 
@@ -126,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.studies.pooled_gain", description=__doc__.split("\n\n")[0])
     parser.add_argument("files", nargs="+", metavar="RUN.jsonl", help="runs' --trials-out files (robust_policy)")
-    parser.add_argument("--policy", default="value_iteration", help="(default: %(default)s)")
+    parser.add_argument("--policy", default="value_iteration", help=f"(default: %(default)s; {NEVER_PUSH}: 0 on every trial)")
     parser.add_argument("--baseline", default="max_height", help="(default: %(default)s)")
     parser.add_argument("--json", type=Path, help="write the result here")
     args = parser.parse_args(argv)
