@@ -160,6 +160,47 @@ def test_horizon_actions_are_played_most_pushes_left_first():
     np.testing.assert_array_equal(masked[:, 0], [1, 1, 1])
 
 
+def test_chosen_horizon_takes_the_best_neighbourhood_mean_not_the_best_push_alone():
+    from pipeline.studies.robust_policy import PoseCandidates, chosen_horizon_actions, pose_scores
+
+    # Pose 0 (V_s 0): five pushes within 4 mm of each other toppling onto pose 1 (V_s 1) 0.3 of the time but one
+    # of them 0.7 (a mean of 0.38 for each), and one 10 cm away toppling 0.6 of the time, alone in its
+    # neighbourhood.  Pose 1 has no pushes.
+    v_s = np.array([0.0, 1.0])
+    shares = np.array([0.3, 0.7, 0.3, 0.3, 0.3, 0.6])
+    rows = [np.column_stack([1 - shares, shares]), np.zeros((0, 2))]
+    points = np.array([[0.001 * i, 0.0, 0.05] for i in range(5)] + [[0.1, 0.0, 0.05]])
+    directions = np.tile([1.0, 0.0, 0.0], (6, 1))
+    pose = PoseCandidates(points, directions, shares.copy(), shares.copy(), np.ones(6))
+    choosable = [np.ones(6, dtype=bool), np.zeros(0, dtype=bool)]
+    plain = horizon_actions(v_s, rows, 2, choosable)
+    assert (plain[:, 0] == 1).all(), "the plain budget takes the best push alone"
+    # Enough neighbours: the cluster's first push (equal means); one is enough: the lone push, whose mean is its own.
+    for neighbours, expected in ((5, 0), (1, 5)):
+        scores = [pose_scores(pose, Smoothing(min_neighbours=neighbours), rows[0]),
+                  pose_scores(PoseCandidates(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0)),
+                              Smoothing(min_neighbours=neighbours), rows[1])]
+        chosen = chosen_horizon_actions(v_s, rows, scores, 2, choosable, neighbours)
+        assert chosen.shape == (2, 2) and (chosen[:, 0] == expected).all() and (chosen[:, 1] == NO_OP).all(), neighbours
+    # Pushes each alone in their neighbourhood choose as the plain budget, pushes left by pushes left: pose 0's long
+    # shot (0.3 onto pose 2, V_s 1) with two or three left, the sure push onto pose 1 (V_s 0.35) with one.
+    chain = [np.array([[0.7, 0.0, 0.3], [0.0, 1.0, 0.0]]), np.full((1, 3), np.nan), np.zeros((0, 3))]
+    alone = PoseCandidates(np.array([[0.0, 0.0, 0.05], [0.1, 0.0, 0.05]]), np.tile([1.0, 0.0, 0.0], (2, 1)),
+                           np.array([0.3, 1.0]), np.array([0.3, 1.0]), np.ones(2))
+    empty = PoseCandidates(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0))
+    nan_one = PoseCandidates(np.zeros((1, 3)), np.tile([1.0, 0.0, 0.0], (1, 1)), np.full(1, np.nan), np.full(1, np.nan), np.ones(1))
+    chain_scores = [pose_scores(c, Smoothing(min_neighbours=1), r) for c, r in zip((alone, nan_one, empty), chain)]
+    chain_choosable = [np.ones(2, dtype=bool), np.ones(1, dtype=bool), np.zeros(0, dtype=bool)]
+    chain_v_s = np.array([0.0, 0.35, 1.0])
+    np.testing.assert_array_equal(chosen_horizon_actions(chain_v_s, chain, chain_scores, 3, chain_choosable, 1),
+                                  horizon_actions(chain_v_s, chain, 3, chain_choosable))
+    np.testing.assert_array_equal(horizon_actions(chain_v_s, chain, 3, chain_choosable)[:, 0], [0, 0, 1])
+    # With the cluster not choosable and the lone push short of neighbours, the pose falls back to argmax Q_h.
+    scores[0] = pose_scores(pose, Smoothing(min_neighbours=5), rows[0])
+    fallback = chosen_horizon_actions(v_s, rows, scores, 2, [np.arange(6) == 5, choosable[1]], 5)
+    assert (fallback[:, 0] == 5).all()
+
+
 def test_bad_smoothing_is_a_clear_error():
     with pytest.raises(ValueError, match="min_neighbours"):
         Smoothing(radius=0.01, max_angle=0.3, min_neighbours=0)

@@ -26,7 +26,8 @@ the experiment's push budget, ``schema.horizon``), ``untried_vi`` (what /plan's
 (12.9)), ``aware_vi`` (``untried_vi`` ranking the pushes after a failure by their believed
 P(topple)^k, ``aware_choice``), ``belief_vi`` (12.13) and ``belief_horizon_vi`` (12.14, what
 ``/plan`` serves for ``pushes_left`` in a build that believes failures) and ``budget_vi`` (its fresh push only, a
-client that sends ``pushes_left`` and not its failures) in pybullet from the same starts and
+client that sends ``pushes_left`` and not its failures) and ``chosen_horizon_vi`` (``horizon_vi`` choosing by
+neighbourhood, (12.15)) in pybullet from the same starts and
 noise draws as ``toppledb policies-physics`` (common random numbers, so max_height and
 value_iteration reproduce that report's numbers), and reports each policy's V_s gain over
 max_height on useful trials, the 'never push' baseline, and predicted (raw and smoothed)
@@ -94,8 +95,11 @@ Q0_h in a fresh pose, Q1_h over the pushes no failure ruled out after one, h the
 BUDGET_POLICY = "budget_vi"
 """``belief_horizon_vi``'s fresh-pose push with h pushes left, in whatever pose, for a client that sends ``/plan``
 its ``pushes_left`` and not its failures: Q0_h of (12.14) after a failure too, as a fresh ask with one push fewer."""
+CHOSEN_HORIZON_POLICY = "chosen_horizon_vi"
+"""``horizon_vi`` whose push is chosen as value iteration's is ((12.15)): the choosable push of highest
+neighbourhood-mean Q_h among those with enough neighbours (``chosen_horizon_actions``)."""
 CHALLENGERS = (ROBUST_POLICY, HORIZON_POLICY, SMOOTHED_HORIZON_POLICY, UNTRIED_POLICY, ONCE_POLICY, AWARE_POLICY,
-               BELIEF_POLICY, BELIEF_HORIZON_POLICY, BUDGET_POLICY)
+               BELIEF_POLICY, BELIEF_HORIZON_POLICY, BUDGET_POLICY, CHOSEN_HORIZON_POLICY)
 """The policies each compared with value iteration, paired."""
 PRIOR_POLICY = "prior_vi"
 PRIOR_BELIEF_POLICY = "prior_belief_vi"
@@ -370,6 +374,28 @@ def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int, choosa
     mask = None if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])
     actions, _ = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes, mask)
     return actions[::-1]  # row k: pushes - k left, the order the pushes are played in
+
+
+def chosen_horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], scores: list[PoseScores], pushes: int,
+                           choosable: list[np.ndarray], min_neighbours: int) -> np.ndarray:
+    """(pushes, P) int: ``chosen_horizon_vi``'s push per pose with ``pushes - k`` pushes left (row k).
+
+    The values are (12.8)'s, V_{h-1} of ``horizon.budget_choices``; only the choice moves, as (12.15) moves value
+    iteration's: the push of highest mean Q_h over its neighbourhood, which is its smoothed row times V_{h-1}
+    (``PoseScores.smoothed_rows``, NaN with fewer than ``min_neighbours``), pushed iff that beats V_s
+    (``mdp.choice_by_means`` undiscounted; a pose where no choosable push has the neighbours takes argmax Q_h).
+    rows : per pose (A_x, P) (``next_pose_rows``);  scores : per pose, with ``smoothed_rows``;  choosable : per pose (A_x,) bool
+    """
+    mask = np.concatenate([np.zeros(0, dtype=bool), *choosable])
+    _, values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes, mask)
+    actions = np.full((pushes, len(v_s)), NO_OP, dtype=np.int64)
+    for h in range(pushes):
+        before = np.asarray(v_s, dtype=float) if h == 0 else values[h - 1]
+        for x, (row, score) in enumerate(zip(rows, scores)):
+            if len(row):
+                actions[h, x] = choice_by_means(float(v_s[x]), score.smoothed_rows @ before, score.count, row @ before,
+                                                choosable[x], 1.0, min_neighbours)
+    return actions[::-1]  # row k: pushes - k left, as horizon_actions
 
 
 @dataclass
@@ -667,6 +693,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
                                                                 budget_choosable=budget_choosable)
         plan.actions.update(actions)
         plan.actions[BUDGET_POLICY] = plan.actions[BELIEF_HORIZON_POLICY]  # never told of a failure
+        plan.actions[CHOSEN_HORIZON_POLICY] = chosen_horizon_actions(plan.v_s, rows, scores, max_pushes, budget_choosable,
+                                                                     smoothing.min_neighbours)
         if reshaped:
             if landing_prior is not None:
                 prior = [landing_prior_rows(r, x, landing_prior, choosable[x], config.topple.trials) for x, r in enumerate(rows)]
