@@ -42,6 +42,7 @@ Vectorisation identities (numbered as in docs/MODEL.md section 10):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -465,18 +466,9 @@ def _check_corrections(
         # it along, pressing along the normal without friction.  Before C.11, whose finger holds while the
         # base slides.
         rows = np.flatnonzero(~np.isfinite(required) & trials.valid & (trials.push[:, 2] < FROM_ABOVE_U_Z))
-        if len(rows):
-            # A lone row is evaluated twice, the first kept, as for C.11 below (a 1-row product's last bits).
-            both = np.append(rows, rows) if len(rows) == 1 else rows
-            carried = trials.take(both)
-            limit = max_force if "force_limit" in corrections else np.inf
-            carried_edge, carried_force = np.empty(len(both), dtype=np.intp), np.empty(len(both))
-            for tile in _row_tiles(len(both), len(edges.com_distance)):
-                carried_edge[tile], carried_force[tile] = carried_finger(carried.take(tile), edges, mass, gravity, limit,
-                                                                         config.carried_slide, spin_stops)
-            carried_edge, carried_force = carried_edge[: len(rows)], carried_force[: len(rows)]
-            takes = np.isfinite(carried_force)
-            edge[rows[takes]], required[rows[takes]] = carried_edge[takes], carried_force[takes]
+        limit = max_force if "force_limit" in corrections else np.inf
+        _tip_stopped(trials, edges, edge, required, rows,
+                     lambda block: carried_finger(block, edges, mass, gravity, limit, config.carried_slide, spin_stops))
     if "stuck_finger" in corrections:
         # C.11: where nothing tips the object, a push down onto a part beyond a base edge may,
         # the finger holding on and the base sliding (a share of such trials, by the last draw).
@@ -485,17 +477,7 @@ def _check_corrections(
         # of them, for less work.
         rows = np.flatnonzero(~np.isfinite(required) & (trials.stuck_draw < config.stuck_finger_share)
                               & drags_base(trials.push, trials.mu_table) & trials.valid)
-        if len(rows):
-            # A lone row would make the matrix products 1-row ones (a gemv, other last bits than
-            # the gemm of a block, as in ``trial_outcomes``): evaluate it twice, keep the first.
-            both = np.append(rows, rows) if len(rows) == 1 else rows
-            stuck = trials.take(both)
-            stuck_edge, stuck_force = np.empty(len(both), dtype=np.intp), np.empty(len(both))
-            for tile in _row_tiles(len(both), len(edges.com_distance)):
-                stuck_edge[tile], stuck_force[tile] = stuck_finger(stuck.take(tile), edges, mass, gravity, max_force)
-            stuck_edge, stuck_force = stuck_edge[: len(rows)], stuck_force[: len(rows)]
-            takes = np.isfinite(stuck_force)
-            edge[rows[takes]], required[rows[takes]] = stuck_edge[takes], stuck_force[takes]
+        _tip_stopped(trials, edges, edge, required, rows, lambda block: stuck_finger(block, edges, mass, gravity, max_force))
     if "tip_back" in corrections:
         # C.22: a push from above that needs a hard press to tip the object presses the part beyond the base down
         # instead, and the object tips back over the edge the line from the centre of mass's foot through the
@@ -506,6 +488,25 @@ def _check_corrections(
             back = line_edges(trials.contact.take(rows, axis=0), edges)  # (r,)
             crossed = back >= 0
             edge[rows[crossed]] = back[crossed]
+
+
+def _tip_stopped(trials: Trials, edges: EdgeGeometry, edge: np.ndarray, required: np.ndarray, rows: np.ndarray,
+                 tip: Callable[[Trials], tuple[np.ndarray, np.ndarray]]) -> None:
+    """Where a correction that tips stopped trials (C.23, C.11) tips ``rows`` of the block, in place: ``tip`` maps
+    a block of trials to (edge (r,) int, force (r,) float, N, inf where it does not tip them), evaluated in tiles
+    of about ``TILE_ELEMENTS``; ``edge`` and ``required`` take its edge and force where the force is finite."""
+    if not len(rows):
+        return
+    # A lone row would make the matrix products 1-row ones (a gemv, other last bits than the gemm of a block,
+    # as in ``trial_outcomes``): evaluate it twice, keep the first.
+    both = np.append(rows, rows) if len(rows) == 1 else rows
+    block = trials.take(both)
+    tipped_edge, tipped_force = np.empty(len(both), dtype=np.intp), np.empty(len(both))
+    for tile in _row_tiles(len(both), len(edges.com_distance)):
+        tipped_edge[tile], tipped_force[tile] = tip(block.take(tile))
+    tipped_edge, tipped_force = tipped_edge[: len(rows)], tipped_force[: len(rows)]
+    takes = np.isfinite(tipped_force)
+    edge[rows[takes]], required[rows[takes]] = tipped_edge[takes], tipped_force[takes]
 
 
 def carried_finger(
