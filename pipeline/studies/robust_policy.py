@@ -25,7 +25,7 @@ the experiment's push budget, ``schema.horizon``), ``untried_vi`` (what /plan's
 ``failed_actions`` serves), ``once_vi`` (value iteration without retries, docs/MODEL.md
 (12.9)), ``aware_vi`` (``untried_vi`` ranking the pushes after a failure by their believed
 P(topple)^k, ``aware_choice``), ``belief_vi`` (12.13) and ``belief_horizon_vi`` (12.14, what
-``/plan`` serves for ``pushes_left`` in a build that believes failures) and ``budget_vi`` (its fresh push only, a
+``/plan`` serves for ``pushes_left`` in a build that believes failures), ``budget_vi`` (its fresh push only, a
 client that sends ``pushes_left`` and not its failures) and ``chosen_horizon_vi`` (``horizon_vi`` choosing by
 neighbourhood, (12.15)) in pybullet from the same starts and
 noise draws as ``toppledb policies-physics`` (common random numbers, so max_height and
@@ -354,8 +354,7 @@ def belief_budget_tables(v_s: np.ndarray, rows: list[np.ndarray], mdp: MDPConfig
     the pushes once one has failed: ``schema.horizon.belief_budget_choices`` and ``pose_belief_q``
     over ``next_pose_rows``, as ``/plan`` serves ``pushes_left``."""
     action_offsets, transition_offsets, next_pose, probability = csr = horizon.csr_from_rows(rows)
-    mask = np.concatenate([np.zeros(0, dtype=bool), *choosable])
-    actions, fresh, failed = horizon.belief_budget_choices(v_s, *csr, pushes, mdp.after_failure_power, mask)
+    actions, fresh, failed = horizon.belief_budget_choices(v_s, *csr, pushes, mdp.after_failure_power, _row_mask(choosable))
     q1s = [[horizon.budget_q(v_s, fresh, failed, h, x, slice(int(action_offsets[x]), int(action_offsets[x + 1])),
                              transition_offsets, next_pose, probability, mdp.after_failure_power, after_failure=True)
             for x in range(len(v_s))] for h in range(1, pushes + 1)]
@@ -371,9 +370,13 @@ def horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], pushes: int, choosa
     of 2,709 pose-budgets of the default dataset's first 80 objects, 3 pushes) the two may
     pick different pushes of equal value.  choosable : per pose (A_x,) bool, as ``robust_actions``.
     """
-    mask = None if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])
-    actions, _ = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes, mask)
+    actions, _ = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes, _row_mask(choosable))
     return actions[::-1]  # row k: pushes - k left, the order the pushes are played in
+
+
+def _row_mask(choosable: list[np.ndarray] | None) -> np.ndarray | None:
+    """Per-pose choosable masks as one mask over ``horizon.csr_from_rows``' action rows (None: every push)."""
+    return None if choosable is None else np.concatenate([np.zeros(0, dtype=bool), *choosable])
 
 
 def chosen_horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], scores: list[PoseScores], pushes: int,
@@ -386,8 +389,7 @@ def chosen_horizon_actions(v_s: np.ndarray, rows: list[np.ndarray], scores: list
     (``mdp.choice_by_means`` undiscounted; a pose where no choosable push has the neighbours takes argmax Q_h).
     rows : per pose (A_x, P) (``next_pose_rows``);  scores : per pose, with ``smoothed_rows``;  choosable : per pose (A_x,) bool
     """
-    mask = np.concatenate([np.zeros(0, dtype=bool), *choosable])
-    _, values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes, mask)
+    _, values = horizon.budget_choices(v_s, *horizon.csr_from_rows(rows), pushes, _row_mask(choosable))
     actions = np.full((pushes, len(v_s)), NO_OP, dtype=np.int64)
     for h in range(pushes):
         before = np.asarray(v_s, dtype=float) if h == 0 else values[h - 1]
