@@ -133,3 +133,22 @@ def faceted_rod(sides=12, radius=0.02, length=0.12, mass=0.1):
     pose_set = stable_poses(obj)
     lying = next(p.index for p in pose_set.poses if abs(p.down[1]) < 1e-6)
     return obj, pose_set, lying
+
+
+def explicit_trials(shape, points, directions, topple, seed=0):
+    """The engine's trials of explicit pushes on ``shape`` ((object, pose set, pose index)), drawn as
+    ``evaluate_pose`` draws them (``topple.pose_noise``), and the pose's edges: (object, trials, edges).
+    points, directions : (n, 3), pose frame."""
+    from pipeline.model.contacts import explicit_actions
+    from pipeline.model.edges import edge_geometry
+    from pipeline.model.rng import stream
+    from pipeline.model.topple import noisy_trials, pose_noise
+    from schema.frames import transform_points
+
+    obj, pose_set, index = shape
+    pose = pose_set.poses[index]
+    actions = explicit_actions(obj, pose.transform, np.asarray(points, float), np.asarray(directions, float))
+    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
+    noise = pose_noise(stream(seed, obj.name, index, "trials"), len(actions.status), len(actions.status), topple)
+    trials = noisy_trials(obj, pose.transform, center_mass, actions.points, actions.normals, actions.directions, noise, topple)
+    return obj, trials, edge_geometry(pose.base_edges, center_mass)

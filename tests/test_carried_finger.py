@@ -19,7 +19,7 @@ every facet tilted 23-69 degrees off the top).
 
 import numpy as np
 import pytest
-from shapes import faceted_rod, noise_free, standing_box
+from shapes import explicit_trials, faceted_rod, noise_free, standing_box
 
 from pipeline.model.contacts import explicit_actions
 from pipeline.model.edges import edge_geometry
@@ -107,15 +107,11 @@ def test_the_carried_finger_pushes_no_harder_than_the_finger_can(rod):
 
 
 def test_the_stage_census_names_the_carried_finger(rod):
-    from pipeline.model.topple import noisy_trials, pose_noise, trial_stages
+    from pipeline.model.topple import trial_stages
 
-    obj, pose_set, index = rod
-    pose = pose_set.poses[index]
-    point, normal, center_mass = _facet_push(rod, 30.0)
-    actions = explicit_actions(obj, pose.transform, point[None], -normal[None])
+    point, normal, _ = _facet_push(rod, 30.0)
     names = []
     for topple in (noise_free(corrections="finger_friction,force_limit"), carried_config()):
-        noise = pose_noise(stream(0, obj.name, index, "trials"), 1, 1, topple)
-        trials = noisy_trials(obj, pose.transform, center_mass, actions.points, actions.normals, actions.directions, noise, topple)
-        names += [TRIAL_STAGES[s] for s in trial_stages(trials, edge_geometry(pose.base_edges, center_mass), obj.mass, topple)]
+        obj, trials, edges = explicit_trials(rod, point[None], -normal[None], topple)
+        names += [TRIAL_STAGES[s] for s in trial_stages(trials, edges, obj.mass, topple)]
     assert names[0] not in ("tips", "carried_finger_tips", "stuck_finger_tips") and names[1] == "carried_finger_tips"

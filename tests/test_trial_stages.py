@@ -11,11 +11,11 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
-from shapes import noise_free, overhanging_frustum, random_object, standing_box, stroke_to_apex
+from shapes import explicit_trials, noise_free, overhanging_frustum, random_object, standing_box, stroke_to_apex
 
 from pipeline.model.collision import collision_object
 from pipeline.model.config import Config, ContactConfig
-from pipeline.model.contacts import explicit_actions, object_contacts, pose_actions
+from pipeline.model.contacts import object_contacts, pose_actions
 from pipeline.model.edges import edge_geometry
 from pipeline.model.poses import stable_poses
 from pipeline.model.rng import stream
@@ -31,19 +31,8 @@ MU_T, MU_F = 0.43, 0.98
 FRUSTUM_HEIGHT = 0.06
 
 
-def _trials(shape, points, directions, topple, seed=0):
-    """The engine's trials of explicit pushes (pose frame) and the pose's edges."""
-    obj, pose_set, index = shape
-    pose = pose_set.poses[index]
-    actions = explicit_actions(obj, pose.transform, np.asarray(points, float), np.asarray(directions, float))
-    center_mass = transform_points(pose.transform, obj.center_mass[None])[0]
-    noise = pose_noise(stream(seed, obj.name, index, "trials"), len(actions.status), len(actions.status), topple)
-    trials = noisy_trials(obj, pose.transform, center_mass, actions.points, actions.normals, actions.directions, noise, topple)
-    return obj, trials, edge_geometry(pose.base_edges, center_mass)
-
-
 def _stage_names(shape, points, direction, topple):
-    obj, trials, edges = _trials(shape, points, np.tile(direction, (len(points), 1)), topple)
+    obj, trials, edges = explicit_trials(shape, points, np.tile(direction, (len(points), 1)), topple)
     return [TRIAL_STAGES[s] for s in trial_stages(trials, edges, obj.mass, topple)]
 
 
@@ -132,7 +121,7 @@ def test_stages_agree_with_the_engine_trial_by_trial():
 
 def test_a_lone_valid_trial_leaves_the_invalid_ones_invalid(box):
     """With fewer than two valid trials the engine computes every row; the invalid ones still read "invalid"."""
-    obj, trials, edges = _trials(box, [[-0.025, 0.0, 0.12]] * 3, [[1.0, 0.0, 0.0]] * 3, noise_free(corrections="finger_friction"))
+    obj, trials, edges = explicit_trials(box, [[-0.025, 0.0, 0.12]] * 3, [[1.0, 0.0, 0.0]] * 3, noise_free(corrections="finger_friction"))
     trials = Trials(trials.contact, trials.normal, trials.push, trials.mu_table, trials.mu_finger,
                     np.array([True, False, False]), trials.stuck_draw)
     names = [TRIAL_STAGES[s] for s in trial_stages(trials, edges, obj.mass, noise_free(corrections="finger_friction"))]
@@ -140,7 +129,7 @@ def test_a_lone_valid_trial_leaves_the_invalid_ones_invalid(box):
 
 
 def test_the_thesis_variants_are_refused(box):
-    obj, trials, edges = _trials(box, [[-0.025, 0.0, 0.12]], [[1.0, 0.0, 0.0]], noise_free("robust"))
+    obj, trials, edges = explicit_trials(box, [[-0.025, 0.0, 0.12]], [[1.0, 0.0, 0.0]], noise_free("robust"))
     with pytest.raises(ValueError, match="finger_friction"):
         trial_stages(trials, edges, obj.mass, noise_free("robust"))
 
