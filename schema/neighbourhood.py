@@ -9,7 +9,9 @@ selection has not inflated: for those same pushes it is 0.38 on corpus objects a
 against 0.35 physical on held-out objects.  The service reports it beside every chosen
 push (``p_topple_neighbourhood``); the robust-choice study ranks by it.
 
-numpy only: the service and the pipeline's studies share it.
+numpy, and scipy's KD-tree where every candidate's neighbourhood is searched at once (the pipeline's
+path; without scipy, as in the service's install, the same pairs are found by brute force): the
+service and the pipeline's studies share it.
 """
 
 from __future__ import annotations
@@ -55,12 +57,14 @@ def neighbour_mean(
     points, directions, values = (np.asarray(a, dtype=float) for a in (points, directions, values))
     flat = values.ndim == 1
     values = values[:, None] if flat else values
-    rows = np.arange(len(points)) if rows is None else np.asarray(rows, dtype=np.int64)
+    rows_given = rows is not None  # a few rows are searched by brute force, every row through the KD-tree
+    rows = np.asarray(rows, dtype=np.int64) if rows_given else np.arange(len(points))
     finite = np.isfinite(values).all(axis=1)
-    if near is None:
+    if near is None and rows_given:
         found = _near(points, directions, rows, radius, max_angle, pool) & finite[None, :] & finite[rows, None]
         row, neighbour = np.nonzero(found)  # row-major: each row's neighbours in index order
     else:
+        near = neighbour_pairs(points, directions, radius, max_angle, pool) if near is None else near
         row, neighbour = near.pairs_of(rows, finite)
     count = np.bincount(row, minlength=len(rows))
     # Summed one neighbour after another, in index order: a BLAS product's order follows its thread
@@ -133,10 +137,54 @@ def neighbour_pairs(points: np.ndarray, directions: np.ndarray, radius: float = 
     """
     points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
     size = len(points)
-    distance2, cosine = _distances(points, directions, np.arange(size))
-    found = np.flatnonzero(_within(distance2, cosine, np.arange(size), radius, max_angle, pool))  # row-major
-    row, neighbour = np.divmod(found, max(size, 1))
-    return Neighbours(row, neighbour, distance2.ravel()[found], cosine.ravel()[found], size, radius, max_angle)
+    row, neighbour = _pairs_within(points, radius)  # every pair as near in contact as the limit, or nearer
+    distance2, cosine = _pair_geometry(points, directions, row, neighbour)
+    # Every candidate is its own neighbour whatever the rounding (or a NaN); the pairs are then put in
+    # row-major order: each row's neighbours in index order, the order a mean adds them in.
+    keep = np.flatnonzero((_limits_hold(distance2, cosine, radius, max_angle)
+                           & (neighbour < (size if pool is None else pool))) | (row == neighbour))
+    order = keep[np.argsort(row.take(keep) * size + neighbour.take(keep))]
+    return Neighbours(row.take(order), neighbour.take(order), distance2.take(order), cosine.take(order), size, radius,
+                      max_angle)
+
+
+def _pairs_within(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every ordered pair of candidates whose contacts may lie within ``radius`` of each other, each
+    candidate with itself included: a superset that ``_limits_hold`` decides.
+
+    points : (A, 3) float, m;  returns : row, neighbour (M,) int, in no particular order
+    """
+    size = len(points)
+    finite = np.flatnonzero(np.isfinite(points).all(axis=1))  # a NaN contact is only its own neighbour
+    try:
+        from scipy.spatial import cKDTree
+    except ImportError:  # the service's install: brute force, ~5x slower for ~1,000 candidates
+        row, neighbour = np.divmod(np.arange(len(finite) ** 2), max(len(finite), 1))
+        row, neighbour = finite.take(row), finite.take(neighbour)
+        apart = row != neighbour
+    else:
+        # The tree measures distance in its own arithmetic; a search a hair wider than the limit finds
+        # every pair that ``_pair_geometry``'s arithmetic puts within it.
+        limit = (radius + TOLERANCE) * (1.0 + 1e-9) + 1e-12
+        found = cKDTree(points.take(finite, axis=0)).query_pairs(limit, output_type="ndarray")  # (m, 2), i < j
+        row, neighbour = finite.take(found[:, 0]), finite.take(found[:, 1])
+        row, neighbour = np.concatenate([row, neighbour]), np.concatenate([neighbour, row])
+        apart = slice(None)
+    itself = np.arange(size)
+    return np.concatenate([row[apart], itself]), np.concatenate([neighbour[apart], itself])
+
+
+def _pair_geometry(points: np.ndarray, directions: np.ndarray, row: np.ndarray,
+                   neighbour: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Squared distance (m^2) between each pair's contacts and the cosine between their directions, (M,) float each.
+
+    Written out coordinate by coordinate, in the same order whichever search asks: a pair gets the same
+    bits from the KD-tree's path and from ``_near``'s, and the same both ways round.
+    """
+    gap = points.take(row, axis=0) - points.take(neighbour, axis=0)  # (M, 3)
+    a, b = directions.take(row, axis=0), directions.take(neighbour, axis=0)
+    return (gap[:, 0] * gap[:, 0] + gap[:, 1] * gap[:, 1] + gap[:, 2] * gap[:, 2],
+            a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2])
 
 
 def neighbours(
@@ -157,35 +205,28 @@ def neighbours(
 
 def _near(points: np.ndarray, directions: np.ndarray, rows: np.ndarray, radius: float, max_angle: float,
           pool: int | None = None) -> np.ndarray:
-    """Which candidates are in each of ``rows``' neighbourhoods, whatever their values.
+    """Which candidates are in each of ``rows``' neighbourhoods, whatever their values, by brute force
+    (for a few rows: every row is ``neighbour_pairs``').
 
     points, directions : (A, 3) float;  rows : (R,) int
     pool : only the first ``pool`` candidates are others' neighbours (``neighbour_mean``)
     returns : (R, A) bool, a candidate is its own neighbour whatever the rounding
     """
-    return _within(*_distances(points, directions, rows), rows, radius, max_angle, pool)
-
-
-def _distances(points: np.ndarray, directions: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Squared distances (m^2) and direction cosines of ``rows`` to every candidate, (R, A) float each."""
-    # |a - b|^2 by one matrix product: ~100x faster than broadcasting (R, A, 3) for A ~ 1,000.
-    square = np.einsum("ij,ij->i", points, points)
-    twice_dot = points[rows] @ points.T
-    twice_dot *= 2.0
-    distance2 = np.add.outer(square[rows], square)
-    distance2 -= twice_dot  # (|a|^2 + |b|^2) - 2 a.b, in place: the same sum without two (R, A) temporaries
-    return distance2, directions[rows] @ directions.T
-
-
-def _within(distance2: np.ndarray, cosine: np.ndarray, rows: np.ndarray, radius: float, max_angle: float,
-            pool: int | None) -> np.ndarray:
-    """``_near`` from ``_distances``: (R, A) bool."""
-    limit = radius + TOLERANCE
-    near = (distance2 <= limit * limit) & (cosine >= np.cos(max_angle) - TOLERANCE)
+    points, directions = np.asarray(points, dtype=float), np.asarray(directions, dtype=float)
+    rows = np.asarray(rows, dtype=np.int64)
+    size = len(points)
+    row, neighbour = np.repeat(rows, size), np.tile(np.arange(size), len(rows))  # (R A,), row-major
+    near = _limits_hold(*_pair_geometry(points, directions, row, neighbour), radius, max_angle).reshape(len(rows), size)
     if pool is not None:
         near[:, pool:] = False
     near[np.arange(len(rows)), rows] = True
     return near
+
+
+def _limits_hold(distance2: np.ndarray, cosine: np.ndarray, radius: float, max_angle: float) -> np.ndarray:
+    """Contacts within ``radius`` (m) and directions within ``max_angle`` (rad), each with ``TOLERANCE``'s slack."""
+    limit = radius + TOLERANCE
+    return (distance2 <= limit * limit) & (cosine >= np.cos(max_angle) - TOLERANCE)
 
 
 def chosen_means(

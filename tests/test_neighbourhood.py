@@ -213,3 +213,36 @@ def test_float32_candidates_have_the_neighbourhoods_and_means_of_their_float64_v
     _, count = neighbour_mean(points, directions, values, rows=[0])
     _, expected_count = neighbour_mean(points.astype(np.float64), directions.astype(np.float64), values.astype(np.float64), rows=[0])
     assert count.tolist() == expected_count.tolist() == [near.sum()]
+
+
+@pytest.mark.parametrize("pool", [None, 150])
+def test_the_kd_tree_finds_the_pairs_brute_force_finds_bit_for_bit(monkeypatch, pool):
+    """Every row's neighbourhood comes from scipy's KD-tree, a few rows' by brute force, and the service's
+    install (no scipy) brute-forces every row: all three must agree pair for pair, to the bit, with contacts
+    strewn about the limit, repeated contacts, a NaN contact and a zero direction among them."""
+    from schema import neighbourhood
+
+    rng = np.random.default_rng(11)
+    centre = rng.uniform(-0.05, 0.05, (40, 3))
+    offsets = rng.normal(size=(200, 3))
+    offsets *= (RADIUS * (1 + rng.uniform(-1e-6, 1e-6, 200)) / np.linalg.norm(offsets, axis=1))[:, None]
+    points = np.vstack([centre, centre[rng.integers(0, 40, 200)] + offsets, centre[:5]])  # 245: on the limit, repeated
+    points[7] = np.nan
+    directions = rng.normal(size=(245, 3)) * [1.0, 1.0, 0.2] + [3.0, 0.0, 0.0]
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    directions[9] = 0.0
+    tree = neighbour_pairs(points, directions, pool=pool)
+    matrix = neighbourhood._near(points, directions, np.arange(245), RADIUS, MAX_ANGLE, pool)
+    row, neighbour = np.nonzero(matrix)
+    assert np.array_equal(tree.row, row) and np.array_equal(tree.neighbour, neighbour), "the same pairs, in the same order"
+    assert tree.row[tree.neighbour == 7].tolist() == [7] and tree.row[tree.neighbour == 9].tolist() == [9]
+    monkeypatch.setitem(__import__("sys").modules, "scipy.spatial", None)  # ``import`` now raises ImportError
+    brute = neighbour_pairs(points, directions, pool=pool)
+    for field in ("row", "neighbour", "distance2", "cosine"):
+        assert np.array_equal(getattr(tree, field), getattr(brute, field), equal_nan=True), field
+    values = rng.random(245)
+    assert np.array_equal(neighbour_mean(points, directions, values, pool=pool, near=tree)[0],
+                          neighbour_mean(points, directions, values, pool=pool, rows=np.arange(245))[0])
+    apart = tree.row != tree.neighbour
+    assert apart.sum() > 245 and (np.abs(np.sqrt(tree.distance2[apart]) - RADIUS) < 1e-7).sum() > 20, \
+        "the test needs neighbours, many of them on the limit"
