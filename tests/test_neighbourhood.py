@@ -209,6 +209,8 @@ def test_float32_candidates_have_the_neighbourhoods_and_means_of_their_float64_v
     near = neighbours(points, directions, 0)
     assert near.tolist() == neighbours(points.astype(np.float64), directions.astype(np.float64), 0).tolist()
     assert 5 <= near.sum() <= 36, "the ring straddles the limit"
+    pairs = neighbour_pairs(points, directions)  # the KD-tree's path, as the pipeline calls it, in float64 too
+    assert pairs.neighbour[pairs.row == 0].tolist() == np.flatnonzero(near).tolist()
     values = np.linspace(0.0, 1.0, 41, dtype=np.float32)
     _, count = neighbour_mean(points, directions, values, rows=[0])
     _, expected_count = neighbour_mean(points.astype(np.float64), directions.astype(np.float64), values.astype(np.float64), rows=[0])
@@ -246,3 +248,24 @@ def test_the_kd_tree_finds_the_pairs_brute_force_finds_bit_for_bit(monkeypatch, 
     apart = tree.row != tree.neighbour
     assert apart.sum() > 245 and (np.abs(np.sqrt(tree.distance2[apart]) - RADIUS) < 1e-7).sum() > 20, \
         "the test needs neighbours, many of them on the limit"
+
+
+def test_pairs_on_the_limits_are_kept_by_the_tree_and_by_narrower_limits():
+    """The KD-tree searches a hair beyond RADIUS + TOLERANCE, so a pair that only the slack admits is still
+    found; and ``narrower`` keeps the pairs exactly on its limits, as a fresh search with them does."""
+    def heading(angle):
+        return [math.cos(angle), math.sin(angle), 0.0]
+
+    from schema.neighbourhood import TOLERANCE
+
+    x = heading(0.3)
+    hair = RADIUS + TOLERANCE - 5e-12  # inside the limit by less than the tree's own rounding could misplace
+    points = np.array([[0.1, 0.2, 0.0], [0.1 + hair, 0.2, 0.0], [0.1 + 0.01, 0.2, 0.0], [0.1, 0.2, 0.0]])
+    directions = np.array([x, x, x, heading(0.3 + 0.35)])
+    assert neighbours(points, directions, 0).tolist() == [True, True, True, True], "brute force: all on their limits"
+    near = neighbour_pairs(points, directions)
+    assert near.neighbour[near.row == 0].tolist() == [0, 1, 2, 3], "the tree finds the pair the slack admits"
+    narrow = near.narrower(0.01, 0.35)
+    fresh = neighbour_pairs(points, directions, 0.01, 0.35)
+    assert narrow.neighbour[narrow.row == 0].tolist() == fresh.neighbour[fresh.row == 0].tolist() == [0, 2, 3]
+    assert np.array_equal(narrow.row, fresh.row) and np.array_equal(narrow.neighbour, fresh.neighbour)
