@@ -28,6 +28,9 @@ MAX_ANGLE = 0.5
 """rad, largest angle between two neighbours' push directions (chosen with RADIUS)."""
 TOLERANCE = 1e-9
 """Slack on the distance (m) and cosine limits, so that rounding does not split a boundary case."""
+BRUTE_FORCE_ROWS = 32
+"""Up to this many rows a mean searches their neighbourhoods by brute force (R x A pairs); more rows go
+through ``neighbour_pairs``' KD-tree.  Both decide every pair alike: this sets the speed only."""
 
 
 def neighbour_mean(
@@ -57,10 +60,11 @@ def neighbour_mean(
     points, directions, values = (np.asarray(a, dtype=float) for a in (points, directions, values))
     flat = values.ndim == 1
     values = values[:, None] if flat else values
-    rows_given = rows is not None  # a few rows are searched by brute force, every row through the KD-tree
-    rows = np.asarray(rows, dtype=np.int64) if rows_given else np.arange(len(points))
+    rows = np.arange(len(points)) if rows is None else np.asarray(rows, dtype=np.int64)
     finite = np.isfinite(values).all(axis=1)
-    if near is None and rows_given:
+    # A few rows (or repeated ones, which shared pairs cannot number) by brute force, more through the KD-tree.
+    few = len(rows) <= BRUTE_FORCE_ROWS or len(np.unique(rows)) < len(rows)
+    if near is None and few:
         found = _near(points, directions, rows, radius, max_angle, pool) & finite[None, :] & finite[rows, None]
         row, neighbour = np.nonzero(found)  # row-major: each row's neighbours in index order
     else:
@@ -158,7 +162,7 @@ def _pairs_within(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.nda
     finite = np.flatnonzero(np.isfinite(points).all(axis=1))  # a NaN contact is only its own neighbour
     try:
         from scipy.spatial import cKDTree
-    except ImportError:  # the service's install: brute force, ~5x slower for ~1,000 candidates
+    except ImportError:  # an install without scipy (the service's): every pair, ~60 ms for 1,000 candidates
         row, neighbour = np.divmod(np.arange(len(finite) ** 2), max(len(finite), 1))
         row, neighbour = finite.take(row), finite.take(neighbour)
         apart = row != neighbour

@@ -243,8 +243,11 @@ def test_the_kd_tree_finds_the_pairs_brute_force_finds_bit_for_bit(monkeypatch, 
     for field in ("row", "neighbour", "distance2", "cosine"):
         assert np.array_equal(getattr(tree, field), getattr(brute, field), equal_nan=True), field
     values = rng.random(245)
-    assert np.array_equal(neighbour_mean(points, directions, values, pool=pool, near=tree)[0],
-                          neighbour_mean(points, directions, values, pool=pool, rows=np.arange(245))[0])
+    whole = neighbour_mean(points, directions, values, pool=pool)  # every row: through the tree
+    for chunk in np.array_split(np.arange(245), 10):  # a few rows at a time: by brute force
+        assert len(chunk) <= neighbourhood.BRUTE_FORCE_ROWS
+        part = neighbour_mean(points, directions, values, pool=pool, rows=chunk)
+        assert np.array_equal(part[0], whole[0][chunk]) and np.array_equal(part[1], whole[1][chunk])
     apart = tree.row != tree.neighbour
     assert apart.sum() > 245 and (np.abs(np.sqrt(tree.distance2[apart]) - RADIUS) < 1e-7).sum() > 20, \
         "the test needs neighbours, many of them on the limit"
@@ -269,3 +272,24 @@ def test_pairs_on_the_limits_are_kept_by_the_tree_and_by_narrower_limits():
     fresh = neighbour_pairs(points, directions, 0.01, 0.35)
     assert narrow.neighbour[narrow.row == 0].tolist() == fresh.neighbour[fresh.row == 0].tolist() == [0, 2, 3]
     assert np.array_equal(narrow.row, fresh.row) and np.array_equal(narrow.neighbour, fresh.neighbour)
+
+
+def test_many_rows_go_through_the_tree_and_a_few_or_repeated_ones_by_brute_force(monkeypatch):
+    """A map that asks for every row by number (``feature_map.pose_features``) must not build an (A, A) search."""
+    from schema import neighbourhood
+
+    rng = np.random.default_rng(2)
+    points, directions = rng.uniform(-0.03, 0.03, (100, 3)), np.tile([1.0, 0.0, 0.0], (100, 1))
+    values = rng.random(100)
+    expected = neighbour_mean(points, directions, values)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("brute force")
+
+    monkeypatch.setattr(neighbourhood, "_near", refused)
+    many = np.arange(neighbourhood.BRUTE_FORCE_ROWS + 1)
+    assert np.array_equal(neighbour_mean(points, directions, values, rows=many)[0], expected[0][many])
+    with pytest.raises(AssertionError, match="brute force"):
+        neighbour_mean(points, directions, values, rows=[3, 4])
+    with pytest.raises(AssertionError, match="brute force"):
+        neighbour_mean(points, directions, values, rows=np.append(many, 0))  # repeated: pairs cannot number them

@@ -16,7 +16,8 @@ indicator marks), d_z the push direction's vertical component in the pose frame.
 keeps its shape: q goes to where the push lands (C.13.2, ``landing_rows``), 1 - q stays.
 
 The weights are fitted by ``fit_weights`` (``toppledb recalibrate --features``) on observed
-pushes: drawn ones and ones a policy chose, so the map learns what selection does.  numpy only.
+pushes: drawn ones and ones a policy chose, so the map learns what selection does.  numpy, and
+``schema.neighbourhood``'s KD-tree (scipy) for a pose's neighbourhoods.
 """
 
 from __future__ import annotations
