@@ -84,12 +84,16 @@ def test_the_default_budget_may_choose_the_pushes_from_above_a_cut_keeps_from_va
     dataset's policies take only those with u_z >= -0.3 (docs/VALIDATION.md, "Choosing from above again")."""
     from service.store import Store
 
+    from schema.vocabulary import STATUS_OK
+
     store = Store.load(dataset)
     assert store.manifest.parameters.mdp.budget_min_direction_z == BUDGET_DIRECTION_Z == -1.0 < MIN_DIRECTION_Z
     wider = 0
     for obj in store.objects.values():
         budget, policies = obj.budget_choosable(slice(None)), obj.choosable(slice(None))
         assert np.all(policies <= budget)
+        # At -1 the store skips reading the directions: the same pushes as comparing every u_z.
+        np.testing.assert_array_equal(budget, (obj.status == STATUS_OK) & (obj.directions[:, 2] >= np.float32(-1.0)))
         wider += int(np.count_nonzero(budget & ~policies))
     assert wider > 0, "the test dataset should have ok pushes from above"
 
