@@ -82,9 +82,8 @@ def test_a_budget_chooses_only_pushes_the_build_lets_the_budget_choose(dataset, 
 def test_the_default_budget_may_choose_the_pushes_from_above_a_cut_keeps_from_value_iteration(dataset):
     """The default build's budget takes every ok push (mdp.budget_min_direction_z = -1) where the test
     dataset's policies take only those with u_z >= -0.3 (docs/VALIDATION.md, "Choosing from above again")."""
-    from service.store import Store
-
     from schema.vocabulary import STATUS_OK
+    from service.store import Store
 
     store = Store.load(dataset)
     assert store.manifest.parameters.mdp.budget_min_direction_z == BUDGET_DIRECTION_Z == -1.0 < MIN_DIRECTION_Z
