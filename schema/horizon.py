@@ -47,7 +47,12 @@ def choosable_pushes(direction_z: np.ndarray, min_direction_z: float) -> np.ndar
 
     Compared in float32, as the served tables store directions, so the dataset job and the
     service choose from the same pushes.  direction_z : (N,) float
+    A limit at or below -1 passes every push without reading ``direction_z``: no unit direction's z
+    lies below it, and the service's directions are a memory-mapped column (the default budget's
+    limit would map 26 MB of it for nothing).
     """
+    if min_direction_z <= -1.0:
+        return np.ones(len(direction_z), dtype=bool)
     return np.asarray(direction_z, dtype=np.float32) >= np.float32(min_direction_z)
 
 

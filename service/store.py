@@ -181,12 +181,7 @@ class ObjectData:
 
     def _ok_above(self, rows: slice | list[int], min_direction_z: float) -> np.ndarray:
         """(n,) bool: ``ok`` and u_z at least ``min_direction_z`` (``schema.horizon.choosable_pushes``)."""
-        ok = self.status[rows] == STATUS_OK
-        if min_direction_z <= -1.0:
-            # Every unit direction passes (the default budget's limit): reading the directions of every
-            # row, as solving the budgets does, would map 26 MB of the served file for nothing.
-            return ok
-        return ok & horizon.choosable_pushes(self.directions[rows, 2], min_direction_z)
+        return (self.status[rows] == STATUS_OK) & horizon.choosable_pushes(self.directions[rows, 2], min_direction_z)
 
     def neighbourhood_p(self, pose: int, action: int) -> float:
         """The mean P(topple) around one push of a pose (``schema.neighbourhood``; the served

@@ -109,6 +109,7 @@ def test_choosable_pushes_compare_as_the_served_float32_directions():
     # A float64 just below -0.3 rounds to float32 -0.3, as the service reads it: choosable there, so here.
     assert choosable_pushes(np.array([-0.3 - 1e-9]), -0.3)[0]
     assert choosable_pushes(np.array([-1.0]), -1.0)[0]
+    assert choosable_pushes(np.full(3, np.nan), -1.0).all(), "at -1 every push passes, its direction unread"
 
 
 # ---------------------------------------------------------------- (12.14): a budget that believes its failures
