@@ -123,9 +123,7 @@ class Neighbours:
         ``neighbour_pairs`` finds with them, without a second search."""
         if not self.covers(radius, max_angle):
             raise ValueError(f"({radius}, {max_angle}) is not within ({self.radius}, {self.max_angle})")
-        limit = radius + TOLERANCE
-        keep = ((self.distance2 <= limit * limit) & (self.cosine >= np.cos(max_angle) - TOLERANCE)) \
-            | (self.row == self.neighbour)
+        keep = _limits_hold(self.distance2, self.cosine, radius, max_angle) | (self.row == self.neighbour)
         return Neighbours(self.row[keep], self.neighbour[keep], self.distance2[keep], self.cosine[keep], self.size,
                           radius, max_angle)
 
@@ -143,10 +141,8 @@ def neighbour_pairs(points: np.ndarray, directions: np.ndarray, radius: float = 
     size = len(points)
     row, neighbour = _pairs_within(points, radius)  # every pair as near in contact as the limit, or nearer
     distance2, cosine = _pair_geometry(points, directions, row, neighbour)
-    # Every candidate is its own neighbour whatever the rounding (or a NaN); the pairs are then put in
-    # row-major order: each row's neighbours in index order, the order a mean adds them in.
-    keep = np.flatnonzero((_limits_hold(distance2, cosine, radius, max_angle)
-                           & (neighbour < (size if pool is None else pool))) | (row == neighbour))
+    keep = np.flatnonzero(_kept(row, neighbour, distance2, cosine, radius, max_angle, pool))
+    # In row-major order: each row's neighbours in index order, the order a mean adds them in.
     order = keep[np.argsort(row.take(keep) * size + neighbour.take(keep))]
     return Neighbours(row.take(order), neighbour.take(order), distance2.take(order), cosine.take(order), size, radius,
                       max_angle)
@@ -220,11 +216,16 @@ def _near(points: np.ndarray, directions: np.ndarray, rows: np.ndarray, radius: 
     rows = np.asarray(rows, dtype=np.int64)
     size = len(points)
     row, neighbour = np.repeat(rows, size), np.tile(np.arange(size), len(rows))  # (R A,), row-major
-    near = _limits_hold(*_pair_geometry(points, directions, row, neighbour), radius, max_angle).reshape(len(rows), size)
-    if pool is not None:
-        near[:, pool:] = False
-    near[np.arange(len(rows)), rows] = True
-    return near
+    return _kept(row, neighbour, *_pair_geometry(points, directions, row, neighbour), radius, max_angle,
+                 pool).reshape(len(rows), size)
+
+
+def _kept(row: np.ndarray, neighbour: np.ndarray, distance2: np.ndarray, cosine: np.ndarray, radius: float,
+          max_angle: float, pool: int | None) -> np.ndarray:
+    """(M,) bool, which pairs are neighbours: within the limits and ``neighbour`` in the pool, or a candidate with
+    itself whatever the rounding (a NaN contact or a zero direction included)."""
+    in_pool = True if pool is None else neighbour < pool
+    return (_limits_hold(distance2, cosine, radius, max_angle) & in_pool) | (row == neighbour)
 
 
 def _limits_hold(distance2: np.ndarray, cosine: np.ndarray, radius: float, max_angle: float) -> np.ndarray:
