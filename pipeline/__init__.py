@@ -19,6 +19,12 @@ does not pull in the geometry stack::
 
 from importlib import import_module
 
+# Before anything loads numpy: one BLAS kernel on every machine, so a build's numbers do not
+# depend on the processor it ran on (pipeline.numerics).
+from pipeline.numerics import pin_blas_kernel
+
+pin_blas_kernel()
+
 from schema.version import CODE_VERSION as __version__
 
 _PUBLIC = ("Config", "MeshError", "NotResting", "ObjectModel", "ObjectResult", "ObservedPose", "Plan", "PoseEvaluation",

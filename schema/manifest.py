@@ -114,6 +114,9 @@ class CodeVersion(_Open):
     git_commit: str | None = None
     python: str
     libraries: dict[str, str | None] = {}
+    blas: dict[str, str | None] = Field(default={}, description=(
+        "numpy's BLAS in the building process: library, version, kernel, and the kernel requested by "
+        "OPENBLAS_CORETYPE (pipeline.numerics pins one on x86-64); empty in manifests before stop 63"))
 
 
 class CorpusObject(_Closed):

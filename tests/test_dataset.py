@@ -122,6 +122,9 @@ def test_dataset_builds_with_manifest_and_verifies(reference, capsys):
     assert manifest.parameters.topple.n_trials == 5
     assert manifest.seed == 0 and manifest.schema_version
     assert manifest.code_version.package
+    blas = manifest.code_version.blas  # the kernel the build computed with (pipeline.numerics)
+    assert set(blas) == {"library", "version", "kernel", "requested"}
+    assert blas["library"] == "openblas" and blas["kernel"]
     assert [o.object_id for o in manifest.corpus.objects] == OBJECTS
     assert all(len(o.sha256) == 64 for o in manifest.corpus.objects)
     assert set(manifest.shards) == set(OBJECTS)

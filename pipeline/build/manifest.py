@@ -37,8 +37,11 @@ LIBRARIES = ("numpy", "scipy", "trimesh", "embreex", "python-fcl", "pyarrow", "h
 
 def code_version() -> dict[str, Any]:
     """Package version, git commit of the source tree when there is one, Python and
-    library versions (they can change floating-point results)."""
+    library versions, and the BLAS kernel (each can change floating-point results;
+    ``pipeline.numerics``)."""
     from importlib import metadata
+
+    from ..numerics import blas_kernel
 
     def version(name: str) -> str | None:
         try:
@@ -51,6 +54,7 @@ def code_version() -> dict[str, Any]:
         "git_commit": _git_commit(),
         "python": platform.python_version(),
         "libraries": {name: version(name) for name in LIBRARIES},
+        "blas": blas_kernel(),
     }
 
 

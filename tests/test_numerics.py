@@ -1,0 +1,78 @@
+"""One BLAS kernel wherever the dataset job runs (pipeline.numerics): named before numpy loads,
+only where it can run and nobody chose another, and recorded in the manifest."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline.numerics import KERNEL_VARIABLE, NEEDS, PINNED_KERNEL, blas_kernel, cpu_flags, pin_blas_kernel
+
+ROOT = Path(__file__).resolve().parent.parent
+HASWELL_FLAGS = frozenset({"sse4_2", "avx", "avx2", "fma"})
+
+
+def test_the_kernel_is_named_on_an_x86_64_processor_with_avx2_and_fma():
+    environ = {}
+    assert pin_blas_kernel(environ, HASWELL_FLAGS, "x86_64", modules={}) == PINNED_KERNEL
+    assert environ == {KERNEL_VARIABLE: PINNED_KERNEL}
+    assert pin_blas_kernel({}, HASWELL_FLAGS, "AMD64", modules={}) == PINNED_KERNEL
+
+
+@pytest.mark.parametrize("flags, machine", [
+    (frozenset({"sse4_2", "avx", "fma"}), "x86_64"),  # no AVX2: Haswell's kernels would not run
+    (frozenset({"sse4_2", "avx", "avx2"}), "x86_64"),  # no FMA
+    (frozenset(), "x86_64"),  # no /proc/cpuinfo
+    (HASWELL_FLAGS, "aarch64"),  # another instruction set: OpenBLAS's own choice
+])
+def test_nothing_is_named_where_the_kernel_cannot_run(flags, machine):
+    environ = {}
+    assert pin_blas_kernel(environ, flags, machine, modules={}) is None
+    assert environ == {}
+
+
+def test_a_kernel_the_user_named_stands():
+    environ = {KERNEL_VARIABLE: "Sandybridge"}
+    assert pin_blas_kernel(environ, HASWELL_FLAGS, "x86_64", modules={}) == "Sandybridge"
+    assert environ == {KERNEL_VARIABLE: "Sandybridge"}
+
+
+def test_nothing_is_named_once_numpy_has_loaded():
+    # Its OpenBLAS has chosen; naming another now would make workers started from here differ from it.
+    environ = {}
+    assert pin_blas_kernel(environ, HASWELL_FLAGS, "x86_64", modules={"numpy": object()}) is None
+    assert environ == {}
+
+
+def test_the_flags_are_read_from_cpuinfo(tmp_path):
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse4_2 avx avx2 fma\n\nprocessor\t: 1\n")
+    assert cpu_flags(str(info)) == frozenset({"fpu", "sse4_2", "avx", "avx2", "fma"})
+    assert cpu_flags(str(tmp_path / "missing")) == frozenset()
+
+
+def _fresh_python(code: str, **environ: str) -> str:
+    env = {k: v for k, v in os.environ.items() if k != KERNEL_VARIABLE}
+    env.update(environ, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=120).stdout.strip()
+
+
+ELIGIBLE = sys.platform == "linux" and os.uname().machine == "x86_64" and NEEDS <= cpu_flags()
+
+
+@pytest.mark.skipif(not ELIGIBLE, reason="needs an x86-64 processor with AVX2 and FMA")
+def test_importing_pipeline_first_makes_numpy_compute_with_the_pinned_kernel():
+    code = "import pipeline, os; from pipeline.numerics import blas_kernel; print(os.environ['%s'], blas_kernel()['kernel'])"
+    assert _fresh_python(code % KERNEL_VARIABLE).split() == [PINNED_KERNEL, PINNED_KERNEL]
+    # Another kernel named by the user is the one numpy computes with: the variable reaches OpenBLAS.
+    assert _fresh_python(code % KERNEL_VARIABLE, OPENBLAS_CORETYPE="Sandybridge").split() == ["Sandybridge"] * 2
+
+
+def test_the_description_names_numpys_blas():
+    info = blas_kernel()
+    assert set(info) == {"library", "version", "kernel", "requested"}
+    assert info["requested"] == os.environ.get(KERNEL_VARIABLE)
+    assert info["library"] == "openblas" and info["kernel"]  # numpy's wheels carry OpenBLAS
