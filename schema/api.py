@@ -21,6 +21,7 @@ distribution; a policy that chooses not to push has ``action`` null.  Errors are
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Literal
 
 import numpy as np
@@ -116,6 +117,22 @@ def check_rigid(matrix: list[list[float]]) -> list[list[float]]:
 Finite = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 """A finite JSON number; strict, so that true or "1" is an error rather than 1.0."""
 
+LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def check_text(value: str) -> str:
+    """A request's id or frame as UTF-8 can carry it. JSON may escape a lone UTF-16 surrogate
+    (\\ud800), which Python keeps in the string but no UTF-8 response can hold, so an error that
+    named the id would fail to encode (a 500); it is refused here instead."""
+    if not value.isascii() and LONE_SURROGATE.search(value):
+        raise ValueError("is not Unicode text: it holds a lone UTF-16 surrogate (\\ud800-\\udfff)")
+    return value
+
+
+Text = Annotated[str, AfterValidator(check_text)]
+"""An id or frame name in a request: any Unicode text, nothing UTF-8 cannot encode."""
+
+
 RigidTransform = Annotated[
     list[Annotated[list[Finite], Field(min_length=4, max_length=4)]],
     Field(min_length=4, max_length=4),
@@ -166,7 +183,7 @@ class RosPose(Model):
 
     position: Point
     orientation: Quaternion
-    frame_id: str = Field(description="Must be the service's table frame (z up, table at z = 0), 'world' unless configured; "
+    frame_id: Text = Field(description="Must be the service's table frame (z up, table at z = 0), 'world' unless configured; "
                           "the service does not know other frames: transform the pose into it first")
 
     def matrix(self) -> np.ndarray:
@@ -374,7 +391,7 @@ StrictInt = Annotated[int, Field(strict=True)]
 
 
 class TransitionQuery(Model):
-    object_id: str
+    object_id: Text
     pose: StrictInt
     action: StrictInt
 
@@ -394,7 +411,7 @@ class PlanRequest(Model):
     # absent field is None while an explicit null is refused), which the schema says with oneOf.
     model_config = ConfigDict(extra="forbid", json_schema_extra={"oneOf": [{"required": ["pose"]}, {"required": ["ros_pose"]}]})
 
-    object_id: str
+    object_id: Text
     pose: RigidTransform = Field(
         None, description="Observed pose, object frame -> world frame (z up, table z = 0), 4x4 row-major; "
         "give this or ros_pose"
@@ -597,7 +614,7 @@ class HeapObject(Model):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"oneOf": [{"required": ["pose"]}, {"required": ["ros_pose"]}]})
 
-    object_id: str = Field(description="Dataset object id (its hull and centre of mass come from the dataset)")
+    object_id: Text = Field(description="Dataset object id (its hull and centre of mass come from the dataset)")
     pose: RigidTransform = Field(None, description="Object frame -> world frame (the bin frame), 4x4 row-major; give this or ros_pose")
     ros_pose: RosPose = Field(None, description="The same as ROS sends it (position, orientation x, y, z, w, frame_id); give this or pose")
 
