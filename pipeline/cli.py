@@ -116,6 +116,19 @@ def plot_problem(path: Path | None) -> str | None:
     return output_problem(path)
 
 
+def path_text(text: str) -> str:
+    """An argparse type for a path: refuses the empty string, which ``Path`` would read as the working
+    directory (``--out ""`` from an unset shell variable built a dataset into it)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; name a file or directory ('.' is the working directory)")
+    return text
+
+
+def path_arg(text: str) -> Path:
+    """``path_text`` as a ``Path``."""
+    return Path(path_text(text))
+
+
 def positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -165,11 +178,12 @@ def parser() -> argparse.ArgumentParser:
     dataset.add_argument(
         "--corpus",
         default="default",
+        type=path_text,
         help="'default' (the committed 189-object list), 'pybullet_data' (every candidate), "
         "a directory of OBJ/STL/PLY meshes (units: see below), or a CSV list with columns "
         "path[,scale,mass,object_id,source,sha256] (default: %(default)s)",
     )
-    dataset.add_argument("--out", default="data/dataset", help="dataset directory (default: %(default)s)")
+    dataset.add_argument("--out", default="data/dataset", type=path_text, help="dataset directory (default: %(default)s)")
     dataset.add_argument("--limit", type=positive_int, metavar="N", help="only the first N objects of the corpus")
     dataset.add_argument("--contacts", type=int, metavar="N", help=f"candidate pushes per pose (contacts.n_contacts, default: {defaults.contacts.n_contacts})")
     dataset.add_argument("--trials", type=int, metavar="N", help=f"Monte Carlo trials per push (topple.n_trials, default: {defaults.topple.n_trials})")
@@ -192,8 +206,8 @@ def parser() -> argparse.ArgumentParser:
         description="Add one mesh to a finished dataset with the dataset's own parameters; only the new object "
         "is computed and the manifest is replaced atomically (a running service picks it up on reload).",
     )
-    add.add_argument("directory", help="a finished dataset")
-    add.add_argument("mesh", type=Path, help="OBJ, STL or PLY file")
+    add.add_argument("directory", type=path_text, help="a finished dataset")
+    add.add_argument("mesh", type=path_arg, help="OBJ, STL or PLY file")
     add.add_argument("--id", dest="object_id", help="object id (default: from the file name)")
     add.add_argument("--units", choices=("mm", "cm", "m", "in"), help="the mesh's length unit")
     add.add_argument("--scale", type=positive_float, help="metres per file unit (default: 1)")
@@ -202,17 +216,17 @@ def parser() -> argparse.ArgumentParser:
     add.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     verify = commands.add_parser("verify", help="check a dataset against its manifest")
-    verify.add_argument("directory", help="dataset directory")
+    verify.add_argument("directory", type=path_text, help="dataset directory")
 
     policies = commands.add_parser("policies", help="replay the thesis 4.4.3 policy experiment on a dataset")
-    policies.add_argument("directory", help="dataset directory")
+    policies.add_argument("directory", type=path_text, help="dataset directory")
     policies.add_argument("--trials", type=positive_int, default=20_000, help="trials (default: %(default)s)")
     policies.add_argument("--steps", type=positive_int, default=5, help="most pushes per trial (default: %(default)s, the thesis's)")
     policies.add_argument("--seed", type=int, default=0, help="seed of the trial draws (default: %(default)s)")
     policies.add_argument("--plot", type=Path, metavar="PNG", help="also draw the mean gains to this file")
 
     corpus = commands.add_parser("corpus", help="regenerate the default corpus list (thesis 4.4.1 selection)")
-    corpus.add_argument("--out", default=None, help="list to write (default: pipeline/build/corpus_default.csv)")
+    corpus.add_argument("--out", default=None, type=path_text, help="list to write (default: pipeline/build/corpus_default.csv)")
     corpus.add_argument("--count", type=positive_int, default=189, help="objects to keep (default: %(default)s)")
     corpus.add_argument("--limit", type=positive_int, metavar="N", help="consider only the first N candidates")
     _add_execution(corpus)

@@ -32,6 +32,13 @@ def _ranged(kind: type, low: float, high: float | None = None, low_open: bool = 
     return parse
 
 
+def _name(text: str) -> str:
+    """A frame's name: not empty, since a client could only match it by sending an empty frame_id."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty name")
+    return text
+
+
 def build_parser(prog: str = "python -m service") -> argparse.ArgumentParser:
     """The options; ``prog`` is the command the usage names (``toppledb serve`` from ``pipeline.cli``)."""
     parser = argparse.ArgumentParser(prog=prog, description="Serve a toppledb dataset over HTTP.")
@@ -43,7 +50,7 @@ def build_parser(prog: str = "python -m service") -> argparse.ArgumentParser:
     parser.add_argument("--max-body-bytes", type=int, default=None, help="largest request body, else 413")
     parser.add_argument("--height-tolerance", type=float, default=None, help="m, largest |z_offset| of an observed pose")
     parser.add_argument("--finger-force-limit", type=float, default=None, help="N, overrides the manifest's")
-    parser.add_argument("--frame-id", default=None, help="the table frame a ROS pose must be in (default world)")
+    parser.add_argument("--frame-id", type=_name, default=None, help="the table frame a ROS pose must be in (default world)")
     parser.add_argument("--watch-seconds", type=_ranged(float, 0), default=None, help="s between checks for a rebuilt dataset; 0: SIGHUP only")
     parser.add_argument("--limit-concurrency", type=_ranged(int, 2), default=DEFAULT_LIMIT_CONCURRENCY, help="503 beyond this many connections (at least 2: uvicorn counts the one being served)")
     parser.add_argument("--timeout-keep-alive", type=_ranged(int, 0), default=DEFAULT_KEEP_ALIVE, help="s an idle connection stays open")

@@ -89,6 +89,21 @@ def test_argparse_rejects_bad_values(argv, capsys):
     assert "error:" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("argv", [
+    ["dataset", "--out", ""], ["dataset", "--out", "  "], ["dataset", "--corpus", ""], ["verify", ""], ["policies", ""],
+    ["add", "", "part.stl"], ["add", "data/dataset", ""], ["corpus", "--out", ""], ["heaps", "--out", ""],
+    ["play", "--out", ""], ["figures", "part.stl", "--out", ""], ["serve", "--frame-id", ""],
+])
+def test_an_empty_path_is_refused_not_read_as_the_working_directory(argv, tmp_path, monkeypatch, capsys):
+    # --out "" from an unset shell variable once built a whole dataset into the working directory.
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    assert "an empty " in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_verify_of_a_path_that_is_no_dataset_is_a_usage_error(tmp_path, capsys):
     """Exit 2, as every command gives a bad path; 1 is kept for a dataset that fails its checks."""
     assert main(["verify", str(tmp_path / "nothing")]) == 2

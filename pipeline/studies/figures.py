@@ -132,6 +132,7 @@ def scene_file(obj, result, pose: int, path: str | Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from ..cli import path_arg
     from ..model.config import Config
     from ..model.evaluation import evaluate_object
     from ..model.mesh import UNIT_SCALES, MeshError, load_mesh
@@ -145,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pose", type=int, default=0, help="pose of figure 4.5 (default: %(default)s)")
     parser.add_argument("--contacts", type=int, default=200, help="candidate pushes per pose (default: %(default)s)")
     parser.add_argument("--trials", type=int, default=20, help="trials per push (default: %(default)s)")
-    parser.add_argument("--out", type=Path, default=Path("figures"), help="directory (default: %(default)s)")
+    parser.add_argument("--out", type=path_arg, default=Path("figures"), help="directory (default: %(default)s)")
     args = parser.parse_args(argv)
     try:
         config = Config().with_overrides({"contacts.n_contacts": args.contacts, "topple.n_trials": args.trials})

@@ -524,14 +524,14 @@ def world_note(config: Config) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """``toppledb play``: choose objects, play their pushes, write the log; prints a summary line."""
-    from ..cli import UsageError, make_config, positive_int
+    from ..cli import UsageError, make_config, path_arg, positive_int
 
     parser = argparse.ArgumentParser(prog="toppledb play", description=__doc__.split("\n\n")[0])
     parser.add_argument("--objects", default="corpus", metavar="corpus|heldout|CORPUS",
                         help="'corpus': the default corpus (to calibrate on); 'heldout': pybullet_data objects outside "
                              "it; or a corpus of one's own as `toppledb dataset --corpus` takes it, a CSV list file or "
                              "a directory of meshes, played in its order (default: %(default)s)")
-    parser.add_argument("--out", type=Path, help="log directory (one Parquet file per object); required unless --list")
+    parser.add_argument("--out", type=path_arg, help="log directory (one Parquet file per object); required unless --list")
     parser.add_argument("--list", type=Path, metavar="FILE.csv",
                         help="write the chosen objects as a corpus list and play nothing: `toppledb dataset --corpus "
                              "FILE.csv` then builds the dataset of the very objects a log of these arguments plays")
