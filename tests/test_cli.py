@@ -13,7 +13,7 @@ import pytest
 
 from pipeline.build.dataset import staging_dir
 from pipeline.cli import main, make_config, parser
-from pipeline.model.config import parameter_table
+from pipeline.model.config import Config, parameter_table
 
 
 def test_parameters_come_from_defaults_toml_set_then_flags(tmp_path):
@@ -39,6 +39,7 @@ def test_parameters_come_from_defaults_toml_set_then_flags(tmp_path):
         (["dataset", "--set", "bogus.key=1"],
          "unknown config section 'bogus' in 'bogus.key' (sections: contacts, mdp, mesh, poses, suction, topple)"),
         (["dataset", "--set", "topple.n_trials.x=1"], "config key 'topple.n_trials' is a value, not a section"),
+        (["dataset", "--set", "topple=oops"], "config key 'topple' is a section, not a value: set one of its keys, e.g. topple."),
         (["dataset", "--set", "topple.mu_table_mean=nan"], "config key 'topple.mu_table_mean' must be a finite number, got 'nan'"),
         (["dataset", "--set", "mdp.gamma=inf"], "config key 'mdp.gamma' must be a finite number, got 'inf'"),
         (["dataset", "--set", "topple.boosted_map=nonexist"],
@@ -79,6 +80,17 @@ def test_bad_toml_is_reported(tmp_path, capsys):
     toml.write_text("[topple]\nvariant = 'fast'\n")
     assert main(["dataset", "--config", str(toml)]) == 2
     assert "unknown variant 'fast'" in capsys.readouterr().err
+    # A section that is no table is refused, not replaced by defaults (contacts.push_depth once filled it
+    # with the stroke alone), and a fraction is no count of trials (int() would cut 1.5 to 1).
+    toml.write_text("topple = 'whatever'\n[contacts]\npush_depth = 0.03\n")
+    assert main(["dataset", "--config", str(toml)]) == 2
+    assert "config section 'topple' must be a table" in capsys.readouterr().err
+    for value in ("1.5", "99.99"):
+        toml.write_text(f"[topple]\nn_trials = {value}\n")
+        assert main(["dataset", "--config", str(toml)]) == 2
+        assert f"config key 'topple.n_trials' expects int, got {value}" in capsys.readouterr().err
+    toml.write_text("[topple]\nn_trials = 30.0\n")  # a whole number written as a float is still the count
+    assert Config.from_toml(toml).topple.n_trials == 30
 
 
 @pytest.mark.parametrize("argv", [["dataset", "--limit", "0"], ["dataset", "--variant", "best"], ["dataset", "--workers", "x"]])

@@ -650,8 +650,11 @@ class Config:
         (a config file, or a manifest written before the stroke existed) sets the stroke too, and
         a ``[topple]`` map of its own given without ``down_map`` or ``side_map`` comes without that map."""
         contacts, topple = data.get("contacts"), data.get("topple")
-        if isinstance(contacts, dict) and "push_depth" in contacts and not (isinstance(topple, dict) and "stroke" in topple):
-            data = {**data, "topple": {**(topple if isinstance(topple, dict) else {}), "stroke": contacts["push_depth"]}}
+        # Only into a [topple] table or none: a topple that is not a table must stay one, to be refused
+        # (``_build``), not replaced by a table holding the stroke alone and every other default.
+        if (isinstance(contacts, dict) and "push_depth" in contacts and (topple is None or isinstance(topple, dict))
+                and not (isinstance(topple, dict) and "stroke" in topple)):
+            data = {**data, "topple": {**(topple or {}), "stroke": contacts["push_depth"]}}
         topple = data.get("topple")
         if isinstance(topple, dict) and _own_map(topple):
             # A map belongs to the probabilities it was fitted on: a file with a map of its own,
@@ -689,6 +692,8 @@ class Config:
                 node = node[part]
             if leaf not in node:
                 raise ValueError(f"unknown config key {key!r}")
+            if isinstance(node[leaf], dict):
+                raise ValueError(f"config key {key!r} is a section, not a value: set one of its keys, e.g. {key}.{next(iter(node[leaf]))}")
             node[leaf] = value
         return Config.from_dict(data)
 
@@ -791,7 +796,9 @@ def _coerce(value: Any, default: Any, key: str) -> Any:
             if value.lower() in ("0", "false", "no", "off"):
                 return False
             raise ValueError(value)
-        if kind is int and isinstance(value, float) and value.is_integer():
+        if kind is int and isinstance(value, float):
+            if not value.is_integer():  # int() would cut a TOML 1.5 trials to 1
+                raise ValueError(value)
             return int(value)
         if kind is float and isinstance(value, int):
             return float(value)
