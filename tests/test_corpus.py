@@ -172,6 +172,18 @@ def test_directory_corpus(tmp_path):
     assert sorted(s.object_id.lower() for s in scan_directory(tmp_path / "cased", default_mass=0.4).specs) == ["a", "a-2"]
 
 
+def test_a_dangling_link_in_a_directory_corpus_is_listed_as_a_problem(tmp_path):
+    # Skipped unseen, a mesh the user meant to build would be missing from the dataset without a word.
+    (tmp_path / "b.obj").write_text(CUBE_OBJ)
+    (tmp_path / "gone.obj").symlink_to(tmp_path / "nowhere.obj")
+    (tmp_path / "fine.obj").symlink_to(tmp_path / "b.obj")
+    (tmp_path / "gone.txt").symlink_to(tmp_path / "nowhere.txt")  # not a mesh's name: not listed
+    corpus = scan_directory(tmp_path, default_mass=0.4)
+    assert [s.object_id for s in corpus.specs] == ["b", "fine", "gone"]
+    assert corpus.problems == {"gone": f"mesh file not found: {tmp_path / 'gone.obj'} (a symbolic link to "
+                                       f"{tmp_path / 'nowhere.obj'}, which is not there)"}
+
+
 def test_unknown_corpus_argument():
     with pytest.raises(CorpusError, match="corpus not found"):
         load_corpus("/no/such/corpus", default_mass=0.25)

@@ -304,11 +304,17 @@ def _check_ids(ids: list[str], where: str) -> None:
         raise CorpusError(f"{where}: duplicate object ids {duplicates[:5]} (ids name files, so case does not tell them apart)")
 
 
+def _dangling(path: Path) -> bool:
+    """A symbolic link whose target does not exist."""
+    return path.is_symlink() and not path.exists()
+
+
 def _check_files(specs: list[ObjectSpec], expected_sha: dict[str, str]) -> dict[str, str]:
     problems = {}
     for spec in specs:
         if not os.path.isfile(spec.path):
-            problems[spec.object_id] = f"mesh file not found: {spec.path}"
+            link = f" (a symbolic link to {os.readlink(spec.path)}, which is not there)" if _dangling(Path(spec.path)) else ""
+            problems[spec.object_id] = f"mesh file not found: {spec.path}{link}"
         elif not spec.sha256:
             problems[spec.object_id] = f"mesh file cannot be read: {spec.path}"
         elif expected_sha.get(spec.object_id) and expected_sha[spec.object_id] != spec.sha256:
@@ -328,7 +334,8 @@ def scan_directory(directory: str | Path, default_mass: float, units: Units | No
     scale 1 and ``default_mass`` (see ``SIDECAR_HELP``)."""
     directory = Path(directory).resolve()
     files = sorted(
-        (p for p in directory.rglob("*") if p.is_file() and p.suffix.lower() in MESH_SUFFIXES),
+        # A link whose target is gone is listed too, so that the build reports it rather than skip it unseen.
+        (p for p in directory.rglob("*") if (p.is_file() or _dangling(p)) and p.suffix.lower() in MESH_SUFFIXES),
         key=lambda p: p.relative_to(directory).as_posix(),
     )
     if not files:
