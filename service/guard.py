@@ -6,10 +6,10 @@ never reaches the JSON parser on the event loop.  Order, outermost first:
 
 1. metrics: every response counted and timed per route (``service.metrics``);
 2. token: ``Authorization: Bearer <token>`` on every path except /health, when set (401);
-3. body: a request with a body must say ``content-type: application/json`` (415) and be at
-   most ``max_body_bytes`` for /batch/* and ``SINGLE_BODY_BYTES`` for the others (413, from
-   content-length before reading, or while reading a chunked body); the body is read here
-   once and handed on.
+3. body: a POST to a route that takes one (``POST_PATHS``) must say ``content-type:
+   application/json`` (415); any body must be at most ``max_body_bytes`` for /batch/* and
+   ``SINGLE_BODY_BYTES`` for the others (413, from content-length before reading, or while
+   reading a chunked body); a POST route's body is read here once and handed on.
 """
 
 from __future__ import annotations
@@ -29,6 +29,10 @@ BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
 READ_METHODS = frozenset({"POST"})
 """Methods whose body the guard checks and reads: the API's only one.  A PUT or PATCH within the
 limit goes on unread to the router, which answers 405 (not a 415 about a body no route takes)."""
+
+POST_PATHS = frozenset({"/plan", "/batch/plan", "/batch/transitions", "/heaps/plan"})
+"""The routes that take a body (the API's POST routes). A POST elsewhere goes on unread to the router,
+which answers 404 (no such path) or 405 (a GET route), not a 415 about a body no route takes."""
 
 SINGLE_BODY_BYTES = 64 * 1024
 """Largest body of a request that is not a batch (a /plan body is under 2 kB): such bodies are
@@ -127,7 +131,7 @@ class Guard:
             await self._reply(send, 413, f"request body of {length.decode('latin-1')[:20]} bytes; at most {limit}",
                               [(b"connection", b"close")])
             return
-        if scope["method"] not in READ_METHODS:
+        if scope["method"] not in READ_METHODS or scope["path"] not in POST_PATHS:
             await self.app(scope, receive, send)
             return
         if not is_json(headers.get(b"content-type", b"")):

@@ -255,6 +255,21 @@ def test_a_method_no_route_takes_is_405_with_or_without_a_body(client, method):
         assert huge.status_code == 413 and huge.headers["connection"] == "close"
 
 
+def test_a_post_no_route_takes_is_404_or_405_whatever_its_content_type(client):
+    # Not a 415 asking for JSON that no route there would take (schemathesis flagged it).
+    for headers in ({}, {"content-type": "text/plain"}, JSON):
+        for path, status in (("/objects", 405), ("/health", 405), ("/objects/random_000/poses/0", 405), ("/nowhere", 404)):
+            response = client.post(path, content=b"{}", headers=headers)
+            assert response.status_code == status, (path, headers, response.text)
+
+
+def test_the_guard_reads_the_body_of_every_post_route_and_only_those(client):
+    from service.guard import POST_PATHS
+
+    paths = client.get("/openapi.json").json()["paths"]
+    assert POST_PATHS == {path for path, operations in paths.items() if "post" in operations}
+
+
 def test_single_requests_have_a_small_body_limit_batches_a_large_one(client):
     from service.guard import SINGLE_BODY_BYTES
 
