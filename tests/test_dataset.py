@@ -159,6 +159,28 @@ def test_rerun_reuses_every_shard(reference, corpus, tmp_path, capsys):
     assert_same_dataset(reference, copy)
 
 
+def test_a_rerun_rewrites_consolidated_tables_damaged_since_the_build(reference, corpus, tmp_path, capsys):
+    # Every shard intact, but poses.parquet cut short and a served table overwritten in place: a rerun
+    # used to say "up to date" and leave them (verify found them); it now writes them again from the shards.
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    poses = copy / "poses.parquet"
+    poses.write_bytes(poses.read_bytes()[:1000])
+    served_actions = copy / "served" / "actions.arrow"
+    damaged = bytearray(served_actions.read_bytes())
+    damaged[len(damaged) // 2: len(damaged) // 2 + 4] = b"XXXX"
+    served_actions.write_bytes(bytes(damaged))
+    assert main(["verify", str(copy)]) == 1
+    capsys.readouterr()
+    assert build(corpus, copy, "--workers", "2") == 0
+    err = capsys.readouterr().err
+    assert "every shard is complete but poses.parquet: sha256" in err and "(and 1 more)" in err
+    assert "computed" not in err or "0 computed" in err
+    assert main(["verify", str(copy)]) == 0
+    assert_same_dataset(reference, copy)
+    assert file_sha256(served_actions) == file_sha256(reference / "served" / "actions.arrow")
+
+
 def snapshot(root: Path) -> dict[str, tuple[str, int]]:
     """Every file under ``root`` (but the lock) -> (SHA-256, mtime)."""
     return {

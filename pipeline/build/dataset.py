@@ -289,8 +289,12 @@ def _build_locked(
 
     current = _current_manifest(out)
     if not todo and not staged and not force and _up_to_date(out, current, config, corpus, records, failures):
-        log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
-        return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
+        damaged = _damaged_tables(out, current)
+        if not damaged:
+            log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
+            return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
+        log(f"{out}: every shard is complete but {damaged[0]}{f' (and {len(damaged) - 1} more)' if len(damaged) > 1 else ''}; "
+            "writing the tables again from the shards")
     if reused:
         # Name the directory that holds them: a killed run's shards wait in the staging directory,
         # and --out may not exist yet.
@@ -532,6 +536,14 @@ def _up_to_date(
         and [(f.object_id, f.reason) for f in current.failures]
         == [(s.object_id, failures[s.object_id].reason) for s in corpus.specs if s.object_id in failures]
     )
+
+
+def _damaged_tables(out: Path, current: Manifest) -> list[str]:
+    """Why the consolidated tables (objects, poses, served) are not the bytes ``current`` records, one
+    line each: a file damaged after the build, which a rerun rewrites from the shards."""
+    from .verify import checksum_problem
+
+    return [problem for problem in (checksum_problem(out, current, name) for name in CONSOLIDATED_FILES) if problem]
 
 
 def _make_directory(path: Path, what: str) -> None:

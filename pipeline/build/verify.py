@@ -44,7 +44,7 @@ def verify_dataset(root: str | Path) -> list[str]:
 
     expected_rows = {layout.OBJECTS_FILE: ("objects", len(entries)), layout.POSES_FILE: ("poses", counts.poses)}
     for name, (table, rows) in expected_rows.items():
-        problem = _checksum_problem(root, manifest, name)
+        problem = checksum_problem(root, manifest, name)
         problems += [problem] if problem else shards.parquet_problems(root / name, name, tables.TABLES[table], rows)
 
     problems += _served_problems(root, manifest)
@@ -52,7 +52,7 @@ def verify_dataset(root: str | Path) -> list[str]:
     return problems
 
 
-def _checksum_problem(root: Path, manifest, name: str) -> str | None:
+def checksum_problem(root: Path, manifest, name: str) -> str | None:
     """Why the consolidated file ``name`` is not the one the manifest records, or None."""
     entry = manifest.tables.get(name)
     if entry is None:
@@ -67,7 +67,7 @@ def _checksum_problem(root: Path, manifest, name: str) -> str | None:
 
 def _served_problems(root: Path, manifest) -> list[str]:
     """The served tables: recorded in the manifest, same bytes, readable, rows as recorded."""
-    problems = [p for p in (_checksum_problem(root, manifest, relative) for relative in served.FILES.values()) if p]
+    problems = [p for p in (checksum_problem(root, manifest, relative) for relative in served.FILES.values()) if p]
     if problems:
         return problems
     try:
