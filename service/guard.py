@@ -19,6 +19,7 @@ import time
 
 import orjson
 
+from .errors import validation_body
 from .metrics import Metrics
 
 OPEN_PATHS = frozenset({"/health"})
@@ -70,6 +71,13 @@ def is_json(content_type: bytes) -> bool:
     """application/json or application/<x>+json, parameters (charset) allowed."""
     media = content_type.split(b";", 1)[0].strip().lower()
     return media == b"application/json" or (media.startswith(b"application/") and media.endswith(b"+json"))
+
+
+def not_utf8(body: bytes) -> bool:
+    """A JSON text in UTF-16 or UTF-32, which Python's JSON decoder would read by its byte pattern
+    (RFC 7159 allowed them) though JSON on the wire is UTF-8 (RFC 8259): a byte-order mark, or a NUL in
+    the first four bytes, which UTF-8 JSON never has (its first character is ASCII)."""
+    return body[:2] in (b"\xff\xfe", b"\xfe\xff") or b"\x00" in body[:4]
 
 
 CLIENT_CLOSED = 499
@@ -151,7 +159,12 @@ class Guard:
             chunks.append(chunk)
             if not message.get("more_body", False):
                 break
-        whole = {"type": "http.request", "body": b"".join(chunks), "more_body": False}
+        body = b"".join(chunks)
+        if not_utf8(body):
+            await self._send(send, 422, validation_body([{"loc": ("body",), "type": "json_invalid",
+                                                          "msg": "JSON decode error: the body is UTF-16 or UTF-32; send UTF-8"}]))
+            return
+        whole = {"type": "http.request", "body": body, "more_body": False}
         await self.app(scope, replay(whole, receive), send)
 
     @staticmethod
@@ -159,3 +172,10 @@ class Guard:
         start, body = error_messages(status, detail, list(headers))
         await send(start)
         await send(body)
+
+    @staticmethod
+    async def _send(send, status: int, content: dict) -> None:
+        body = orjson.dumps(content)
+        await send({"type": "http.response.start", "status": status,
+                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})

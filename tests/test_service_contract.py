@@ -255,6 +255,15 @@ def test_a_method_no_route_takes_is_405_with_or_without_a_body(client, method):
         assert huge.status_code == 413 and huge.headers["connection"] == "close"
 
 
+@pytest.mark.parametrize("path", ["/plan", "/batch/plan", "/heaps/plan"])
+def test_a_body_in_utf16_or_utf32_is_422_as_docs_service_says(client, path):
+    # Python's JSON decoder reads UTF-16 and UTF-32 by their byte pattern; JSON on the wire is UTF-8.
+    for encoding in ("utf-16", "utf-16-le", "utf-16-be", "utf-32", "utf-32-le"):
+        response = client.post(path, content='{"items": []}'.encode(encoding), headers=JSON)
+        assert response.status_code == 422, (encoding, response.text)
+        assert "UTF-16 or UTF-32; send UTF-8" in response.json()["detail"]
+
+
 def test_a_post_no_route_takes_is_404_or_405_whatever_its_content_type(client):
     # Not a 415 asking for JSON that no route there would take (schemathesis flagged it).
     for headers in ({}, {"content-type": "text/plain"}, JSON):
