@@ -427,13 +427,17 @@ The same command, killed and run again by the same code, reuses them; any other 
 
 def _forced_run() -> str:
     """What a --force run's staged shards are computed by, as the JSON text of ``FORCED_RUN``: the
-    package and git commit (``manifest.code_version``) and a digest of the source files, which an
-    uncommitted edit changes."""
+    package, git commit, libraries and BLAS kernel (``manifest.code_version``) and a digest of the
+    source files, which an uncommitted edit changes."""
     root = Path(__file__).resolve().parents[2]
     digest = hashlib.sha256()
     for path in sorted([*root.glob("pipeline/**/*.py"), *root.glob("schema/**/*.py")]):
         digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
-    return json.dumps({"code_version": manifest.code_version(), "sources_sha256": digest.hexdigest()}, sort_keys=True)
+    version = manifest.code_version()
+    # The kernel computed with, not who named it: a run whose numpy loaded before ``pipeline`` (a test,
+    # a Python session) computes with the same kernel as ``python -m pipeline`` on this machine.
+    version["blas"] = {k: v for k, v in version["blas"].items() if k != "requested"}
+    return json.dumps({"code_version": version, "sources_sha256": digest.hexdigest()}, sort_keys=True)
 
 
 def _resumes(staging: Path, forced: str) -> bool:
