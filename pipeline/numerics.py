@@ -11,8 +11,10 @@ SSE4.2 loops was byte-identical.
 
 ``pin_blas_kernel`` names one kernel for OpenBLAS to use, Haswell's, which every x86-64 processor
 with AVX2 and FMA runs, before numpy loads. ``pipeline/__init__.py`` calls it first, so the dataset
-job, its loky workers (which inherit the environment) and the studies compute with the same kernel
-wherever they run. Nothing here imports numpy.
+job, its loky workers (which inherit the environment) and the studies compute with the same kernel on
+any such Linux machine. A dask worker has loaded numpy before any task imports ``pipeline``: start it
+with ``OPENBLAS_CORETYPE=Haswell`` in its environment. Only numpy's own OpenBLAS (the PyPI wheels)
+is pinned; an MKL or system BLAS build is not. Nothing here imports numpy.
 """
 
 from __future__ import annotations
@@ -49,10 +51,11 @@ def pin_blas_kernel(environ: MutableMapping[str, str] = os.environ, flags: froze
 
     Nothing is set where the user has named a kernel already (theirs stands), where numpy is already
     loaded (its OpenBLAS has chosen; workers started from this process then choose as it did), on a
-    processor that is not x86-64 or lacks AVX2 or FMA (``NEEDS``; Haswell's kernels would not run).
+    processor that is not x86-64 or lacks AVX2 or FMA (``NEEDS``; Haswell's kernels would not run), or
+    where the flags cannot be read (``cpu_flags`` reads Linux's /proc/cpuinfo: macOS and Windows are not pinned).
     returns : the kernel now named in ``environ``, or None where OpenBLAS chooses by itself"""
-    if KERNEL_VARIABLE in environ:
-        return environ[KERNEL_VARIABLE]
+    if environ.get(KERNEL_VARIABLE, "").strip():
+        return environ[KERNEL_VARIABLE]  # OpenBLAS reads an empty value as none, so an empty one does not count
     if "numpy" in modules:
         return None
     if (machine if machine is not None else platform.machine()).lower() not in ("x86_64", "amd64"):

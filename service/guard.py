@@ -73,6 +73,13 @@ def is_json(content_type: bytes) -> bool:
     return media == b"application/json" or (media.startswith(b"application/") and media.endswith(b"+json"))
 
 
+def route_path(scope) -> str:
+    """The request's path as the routes name it: behind a proxy that mounts the API under a prefix
+    (uvicorn's ``--root-path``), the ASGI ``path`` starts with ``root_path``, which the router strips."""
+    path, root = scope["path"], scope.get("root_path", "")
+    return (path[len(root):] or "/") if root and path.startswith(root) else path
+
+
 def not_utf8(body: bytes) -> bool:
     """A JSON text in UTF-16 or UTF-32, which Python's JSON decoder would read by its byte pattern
     (RFC 7159 allowed them) though JSON on the wire is UTF-8 (RFC 8259): a byte-order mark, or a NUL in
@@ -121,7 +128,8 @@ class Guard:
 
     async def _guarded(self, scope, receive, send):
         headers = dict(scope["headers"])
-        if self.token is not None and scope["path"] not in OPEN_PATHS:
+        path = route_path(scope)
+        if self.token is not None and path not in OPEN_PATHS:
             given = headers.get(b"authorization", b"")
             scheme, _, credentials = given.partition(b" ")
             # The scheme's name is case-insensitive (RFC 7235); the token is compared in constant time.
@@ -132,14 +140,14 @@ class Guard:
         if scope["method"] not in BODY_METHODS:
             await self.app(scope, receive, send)
             return
-        limit = self.max_body_bytes if scope["path"].startswith(BATCH_PREFIX) else min(self.max_body_bytes, SINGLE_BODY_BYTES)
+        limit = self.max_body_bytes if path.startswith(BATCH_PREFIX) else min(self.max_body_bytes, SINGLE_BODY_BYTES)
         length = headers.get(b"content-length")
         if length is not None and (not length.isdigit() or int(length) > limit):
             # connection: close, so the server does not go on reading (and discarding) the rest.
             await self._reply(send, 413, f"request body of {length.decode('latin-1')[:20]} bytes; at most {limit}",
                               [(b"connection", b"close")])
             return
-        if scope["method"] not in READ_METHODS or scope["path"] not in POST_PATHS:
+        if scope["method"] not in READ_METHODS or path not in POST_PATHS:
             await self.app(scope, receive, send)
             return
         if not is_json(headers.get(b"content-type", b"")):

@@ -12,6 +12,7 @@ from pipeline.numerics import KERNEL_VARIABLE, NEEDS, PINNED_KERNEL, blas_kernel
 
 ROOT = Path(__file__).resolve().parent.parent
 HASWELL_FLAGS = frozenset({"sse4_2", "avx", "avx2", "fma"})
+ELIGIBLE = sys.platform == "linux" and os.uname().machine == "x86_64" and NEEDS <= cpu_flags()
 
 
 def test_the_kernel_is_named_on_an_x86_64_processor_with_avx2_and_fma():
@@ -37,6 +38,18 @@ def test_a_kernel_the_user_named_stands():
     environ = {KERNEL_VARIABLE: "Sandybridge"}
     assert pin_blas_kernel(environ, HASWELL_FLAGS, "x86_64", modules={}) == "Sandybridge"
     assert environ == {KERNEL_VARIABLE: "Sandybridge"}
+    # An empty value names none (OpenBLAS then chooses by itself), so it does not stop the pin.
+    for empty in ("", " "):
+        environ = {KERNEL_VARIABLE: empty}
+        assert pin_blas_kernel(environ, HASWELL_FLAGS, "x86_64", modules={}) == PINNED_KERNEL
+        assert environ == {KERNEL_VARIABLE: PINNED_KERNEL}
+
+
+@pytest.mark.skipif(not ELIGIBLE, reason="needs an x86-64 processor with AVX2 and FMA")
+def test_the_test_process_computes_with_the_kernel_the_command_line_does():
+    # tests/conftest.py imports pipeline before any test module loads numpy, so this process (and the
+    # workers it starts) computes as `python -m pipeline` does: the pinned kernel, or the one the user named.
+    assert blas_kernel()["kernel"].lower() == os.environ[KERNEL_VARIABLE].lower()
 
 
 def test_nothing_is_named_once_numpy_has_loaded():
@@ -58,9 +71,6 @@ def _fresh_python(code: str, **environ: str) -> str:
     env.update(environ, PYTHONPATH=str(ROOT))
     return subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=120).stdout.strip()
-
-
-ELIGIBLE = sys.platform == "linux" and os.uname().machine == "x86_64" and NEEDS <= cpu_flags()
 
 
 @pytest.mark.skipif(not ELIGIBLE, reason="needs an x86-64 processor with AVX2 and FMA")

@@ -463,6 +463,9 @@ def test_a_lone_surrogate_in_an_id_is_422_not_500(client, path, body):
     response = client.post(path, content=text.encode(), headers={"content-type": "application/json"})
     assert response.status_code == 422, response.text
     assert "lone UTF-16 surrogate" in response.json()["detail"]
+
+
+def test_a_lone_surrogate_in_a_batch_of_transitions_is_422(client):
     transitions = client.post("/batch/transitions", content=('{"items": [{"object_id": %s, "pose": 0, "action": 0}]}'
                                                               % LONE_SURROGATE_ID).encode(), headers={"content-type": "application/json"})
     assert transitions.status_code == 422 and "body.items.0.object_id" in transitions.json()["detail"]

@@ -272,6 +272,16 @@ def test_a_post_no_route_takes_is_404_or_405_whatever_its_content_type(client):
             assert response.status_code == status, (path, headers, response.text)
 
 
+def test_behind_a_root_path_the_guard_still_checks_the_post_routes(dataset):
+    # uvicorn --root-path puts the prefix in the ASGI path; the guard must match the routes without it.
+    with TestClient(create_app(dataset), root_path="/api") as prefixed:
+        response = prefixed.post("/api/plan", content=b'{"object_id": "x"}', headers={"content-type": "text/plain"})
+        assert response.status_code == 415, response.text
+        padded = b'{"object_id": "x", "pose": [' + b" " * (70 * 1024) + b"]}"
+        assert prefixed.post("/api/plan", content=padded, headers=JSON).status_code == 413
+        assert prefixed.post("/api/objects", content=b"{}", headers={"content-type": "text/plain"}).status_code == 405
+
+
 def test_the_guard_reads_the_body_of_every_post_route_and_only_those(client):
     from service.guard import POST_PATHS
 
