@@ -338,6 +338,32 @@ def test_dask_backend_gives_the_same_dataset_as_loky(reference, corpus, tmp_path
     assert_same_dataset(reference, tmp_path / "dask")
 
 
+def test_dask_workers_on_another_blas_kernel_are_named_in_a_warning(capsys, monkeypatch):
+    # A dask worker loads numpy before any task imports pipeline, so its kernel is whatever the
+    # environment it started in says (LocalCluster's env= comes too late); the parent says so
+    # before it submits anything.
+    from distributed import LocalCluster
+
+    from pipeline.build.fanout import backend
+    from pipeline.numerics import blas_kernel
+
+    own = blas_kernel()["kernel"]
+    other = "Sandybridge" if own != "Sandybridge" else "Nehalem"
+    with monkeypatch.context() as started_in:
+        started_in.setenv("OPENBLAS_CORETYPE", other)  # the workers' environment at their start
+        cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None)
+    with cluster:
+        with backend(scheduler=cluster.scheduler_address):
+            pass
+    err = capsys.readouterr().err
+    assert f"warning: 1 of 1 dask workers compute with BLAS kernel {other}, this process with {own}" in err
+    assert f"start them with OPENBLAS_CORETYPE={own}" in err
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        with backend(scheduler=cluster.scheduler_address):
+            pass
+    assert "warning" not in capsys.readouterr().err, "workers in this process compute as it does"
+
+
 KILLABLE = (
     "import sys, time, pipeline.model.evaluation as objects\n"
     "compute, seen = objects.process_object, []\n"

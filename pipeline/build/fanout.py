@@ -19,6 +19,7 @@ from typing import Any
 import joblib
 from tqdm import tqdm
 
+from ..numerics import blas_kernel
 
 CONNECT_TIMEOUT_S = 10.0
 """How long to try reaching a dask scheduler before giving up (distributed retries within it)."""
@@ -49,10 +50,25 @@ def backend(workers: int | None = None, scheduler: str | None = None) -> Iterato
     except (OSError, TimeoutError, ValueError) as err:
         raise SchedulerError(f"cannot connect to the dask scheduler at {scheduler}: {err}") from None
     try:
+        warning = kernel_mismatch(blas_kernel()["kernel"], client.run(blas_kernel))
+        if warning:
+            print(f"warning: {warning}", file=sys.stderr)
         with joblib.parallel_config(backend="dask"):
             yield -1  # the cluster decides how many tasks run at once
     finally:
         client.close()
+
+
+def kernel_mismatch(own: str | None, workers: dict[str, dict]) -> str | None:
+    """One line when some dask workers compute with another BLAS kernel than this process (a dask
+    worker loads numpy before any task imports ``pipeline``, so ``pipeline.numerics`` cannot pin it),
+    else None.  workers : ``client.run(blas_kernel)``, worker address -> ``blas_kernel()``"""
+    other = sorted({str(info.get("kernel")) for info in workers.values() if info.get("kernel") != own})
+    if not other:
+        return None
+    return (f"{sum(info.get('kernel') != own for info in workers.values())} of {len(workers)} dask workers compute with "
+            f"BLAS kernel {', '.join(other)}, this process with {own}, so their shards may differ in the last bits from "
+            f"a local build's; start them with OPENBLAS_CORETYPE={own} (docs/DATASET.md, \"Reproducible across machines\")")
 
 
 def map_unordered(
