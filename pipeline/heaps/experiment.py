@@ -348,16 +348,22 @@ def write_outputs(out: Path, records: list[dict], config: HeapConfig, elapsed: f
     return report
 
 
-def parser() -> argparse.ArgumentParser:
-    from ..cli import path_arg
+def _output_directory(text: str) -> Path:
+    """--out as a path, refusing "" (``Path("")`` is the working directory; as ``pipeline.cli.path_arg``,
+    which this layer does not import)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; name a directory ('.' is the working directory)")
+    return Path(text)
 
+
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="toppledb heaps",
         description="Pushing in clutter (thesis chapter 3): hard heaps in pybullet, five push policies, "
         "grasp-confidence gains and a robust regression.  Resumable: rerun the same command.",
     )
     p.add_argument("--heaps", type=int, default=20, metavar="N", help="hard heaps (pushing scenarios) to collect (default 20)")
-    p.add_argument("--out", type=path_arg, required=True, help="output directory (tables, report.json, gains.png)")
+    p.add_argument("--out", type=_output_directory, required=True, help="output directory (tables, report.json, gains.png)")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="run on this dask.distributed scheduler, e.g. tcp://host:8786")
     p.add_argument("--seed", type=int, default=0, help="experiment seed (default 0)")
