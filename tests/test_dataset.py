@@ -352,15 +352,14 @@ def test_dask_workers_on_another_blas_kernel_are_named_in_a_warning(capsys, monk
     with monkeypatch.context() as started_in:
         started_in.setenv("OPENBLAS_CORETYPE", other)  # the workers' environment at their start
         cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None)
-    with cluster:
-        with backend(scheduler=cluster.scheduler_address):
-            pass
+    with cluster, backend(scheduler=cluster.scheduler_address):
+        pass
     err = capsys.readouterr().err
     assert f"warning: 1 of 1 dask workers compute with BLAS kernel {other}, this process with {own}" in err
     assert f"start them with OPENBLAS_CORETYPE={own}" in err
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
-        with backend(scheduler=cluster.scheduler_address):
-            pass
+    with (LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
+          backend(scheduler=cluster.scheduler_address)):
+        pass
     assert "warning" not in capsys.readouterr().err, "workers in this process compute as it does"
 
 

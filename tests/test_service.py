@@ -451,29 +451,32 @@ LONE_SURROGATE_ID = '"\\ud800"'
 """A JSON string holding a lone UTF-16 surrogate: valid JSON, but no UTF-8 response can echo it."""
 
 
+ROS_POSE_IN_FRAME = ('{"object_id": "random_000", "ros_pose": {"position": {"x": 0, "y": 0, "z": 0}, '
+                     '"orientation": {"x": 0, "y": 0, "z": 0, "w": 1}, "frame_id": ID}}')
+
+
 @pytest.mark.parametrize("path, body", [
-    ("/plan", '{"object_id": %s, "pose": %s}'),
-    ("/batch/plan", '{"items": [{"object_id": %s, "pose": %s}]}'),
-    ("/heaps/plan", '{"objects": [{"object_id": %s, "pose": %s}], "policy": "free_space"}'),
-    ("/plan", '{"object_id": "random_000", "ros_pose": {"position": {"x": 0, "y": 0, "z": 0}, '
-              '"orientation": {"x": 0, "y": 0, "z": 0, "w": 1}, "frame_id": %s}}%.0s'),
+    ("/plan", '{"object_id": ID, "pose": POSE}'),
+    ("/batch/plan", '{"items": [{"object_id": ID, "pose": POSE}]}'),
+    ("/heaps/plan", '{"objects": [{"object_id": ID, "pose": POSE}], "policy": "free_space"}'),
+    ("/plan", ROS_POSE_IN_FRAME),
 ])
 def test_a_lone_surrogate_in_an_id_is_422_not_500(client, path, body):
-    text = body % (LONE_SURROGATE_ID, json.dumps(np.eye(4).tolist()))
+    text = body.replace("ID", LONE_SURROGATE_ID).replace("POSE", json.dumps(np.eye(4).tolist()))
     response = client.post(path, content=text.encode(), headers={"content-type": "application/json"})
     assert response.status_code == 422, response.text
     assert "lone UTF-16 surrogate" in response.json()["detail"]
 
 
 def test_a_lone_surrogate_in_a_batch_of_transitions_is_422(client):
-    transitions = client.post("/batch/transitions", content=('{"items": [{"object_id": %s, "pose": 0, "action": 0}]}'
-                                                              % LONE_SURROGATE_ID).encode(), headers={"content-type": "application/json"})
+    text = '{"items": [{"object_id": ID, "pose": 0, "action": 0}]}'.replace("ID", LONE_SURROGATE_ID)
+    transitions = client.post("/batch/transitions", content=text.encode(), headers={"content-type": "application/json"})
     assert transitions.status_code == 422 and "body.items.0.object_id" in transitions.json()["detail"]
 
 
 def test_an_id_with_a_surrogate_pair_is_text_and_unknown(client):
     # An escaped pair is one character (U+1F600), valid Unicode: the id is simply not in the dataset.
-    text = '{"object_id": "mug\\ud83d\\ude00", "pose": %s}' % json.dumps(np.eye(4).tolist())
+    text = '{"object_id": "mug\\ud83d\\ude00", "pose": POSE}'.replace("POSE", json.dumps(np.eye(4).tolist()))
     response = client.post("/plan", content=text.encode(), headers={"content-type": "application/json"})
     assert response.status_code == 404 and "unknown object 'mug\U0001f600'" in response.json()["detail"]
 

@@ -798,7 +798,7 @@ def _coerce(value: Any, default: Any, key: str) -> Any:
             raise ValueError(value)
         if kind is int and isinstance(value, float):
             if not value.is_integer():  # int() would cut a TOML 1.5 trials to 1
-                raise ValueError(value)
+                raise TypeError(value)
             return int(value)
         if kind is float and isinstance(value, int):
             return float(value)
