@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import re
+from decimal import Decimal
 from typing import Annotated, Literal
 
 import numpy as np
@@ -53,6 +54,8 @@ def height_in_mm(z_offset: float, height_tolerance: float) -> str:
     """|z_offset| in millimetres for a refusal: one decimal, or four where one would read as the
     tolerance itself ("5.0 mm ... tolerance 5.0 mm" for an object 5.001 mm up)."""
     height, tolerance = abs(z_offset) * 1000, height_tolerance * 1000
+    if not height < 1e9:  # past 1,000 km: four figures, in decimal so that 1e308 m is not "inf" mm
+        return f"{(Decimal(repr(abs(z_offset))) * 1000).normalize():.4g}"
     return f"{height:.1f}" if f"{height:.1f}" != f"{tolerance:.1f}" else f"{height:.4f}"
 
 

@@ -467,3 +467,4 @@ def test_the_edge_of_the_table_is_inside_and_a_nan_height_is_not():
     assert height_in_mm(0.25, 0.1) == "250.0" and height_in_mm(-0.0125, 0.005) == "12.5"
     assert height_in_mm(0.005001, 0.005) == "5.0010" and height_in_mm(-0.00504, 0.005) == "5.0400", "not the tolerance's 5.0"
     assert height_in_mm(0.0051, 0.005) == "5.1"
+    assert height_in_mm(1e308, 0.005) == "1e+311" and height_in_mm(-2.5e6, 0.005) == "2.5e+9", "not inf mm"
