@@ -1,4 +1,4 @@
-"""One BLAS kernel on every x86-64 machine, so that a dataset's numbers do not depend on the processor.
+"""One BLAS kernel on every x86-64 Linux machine, so that a dataset's numbers do not depend on the processor.
 
 numpy's matrix products go to OpenBLAS, which picks its kernels by the processor it finds when it
 loads: Haswell's on an AVX2 machine, SkylakeX's on an AVX-512 one, Sandybridge's without FMA. The
@@ -6,7 +6,7 @@ kernels round differently, so the same build moves contacts, normals and forces 
 from one machine to another, and the Monte Carlo thresholds turn some of those bits into other
 outcomes: with Sandybridge's kernels in place of Haswell's, 40 corpus objects built again changed
 P(topple) on 2,033 of 470,470 pushes, by up to 0.013, and Q_T on 59,781 (stop 63, docs/DATASET.md,
-"Reproducible"). numpy's own SIMD loops were not the cause: the same build with numpy held to its
+"Reproducible across machines"). numpy's own SIMD loops were not the cause: the same build with numpy held to its
 SSE4.2 loops was byte-identical.
 
 ``pin_blas_kernel`` names one kernel for OpenBLAS to use, Haswell's, which every x86-64 processor

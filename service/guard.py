@@ -43,7 +43,12 @@ BATCH_PREFIX = "/batch/"
 
 def error_messages(status: int, detail: str, headers: list[tuple[bytes, bytes]] = ()) -> tuple[dict, dict]:
     """The two ASGI messages (start, body) of a JSON error ``{"detail": detail}`` with ``status``."""
-    body = orjson.dumps({"detail": detail})
+    return json_messages(status, {"detail": detail}, headers)
+
+
+def json_messages(status: int, content: dict, headers: list[tuple[bytes, bytes]] = ()) -> tuple[dict, dict]:
+    """The two ASGI messages (start, body) of the JSON body ``content`` with ``status``."""
+    body = orjson.dumps(content)
     start = {
         "type": "http.response.start",
         "status": status,
@@ -169,8 +174,9 @@ class Guard:
                 break
         body = b"".join(chunks)
         if not_utf8(body):
-            await self._send(send, 422, validation_body([{"loc": ("body",), "type": "json_invalid",
-                                                          "msg": "JSON decode error: the body is UTF-16 or UTF-32; send UTF-8"}]))
+            for message in json_messages(422, validation_body([{"loc": ("body",), "type": "json_invalid",
+                                                                "msg": "JSON decode error: the body is UTF-16 or UTF-32; send UTF-8"}])):
+                await send(message)
             return
         whole = {"type": "http.request", "body": body, "more_body": False}
         await self.app(scope, replay(whole, receive), send)
@@ -180,10 +186,3 @@ class Guard:
         start, body = error_messages(status, detail, list(headers))
         await send(start)
         await send(body)
-
-    @staticmethod
-    async def _send(send, status: int, content: dict) -> None:
-        body = orjson.dumps(content)
-        await send({"type": "http.response.start", "status": status,
-                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
-        await send({"type": "http.response.body", "body": body})
