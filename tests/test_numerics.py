@@ -20,6 +20,7 @@ def test_the_kernel_is_named_on_an_x86_64_processor_with_avx2_and_fma():
     assert pin_blas_kernel(environ, HASWELL_FLAGS, "x86_64", modules={}) == PINNED_KERNEL
     assert environ == {KERNEL_VARIABLE: PINNED_KERNEL}
     assert pin_blas_kernel({}, HASWELL_FLAGS, "AMD64", modules={}) == PINNED_KERNEL
+    assert pin_blas_kernel({}, NEEDS, "x86_64", modules={}) == PINNED_KERNEL  # AVX2 and FMA are all it needs
 
 
 @pytest.mark.parametrize("flags, machine", [
@@ -61,9 +62,12 @@ def test_nothing_is_named_once_numpy_has_loaded():
 
 def test_the_flags_are_read_from_cpuinfo(tmp_path):
     info = tmp_path / "cpuinfo"
-    info.write_text("processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse4_2 avx avx2 fma\n\nprocessor\t: 1\n")
+    # A model name in Latin-1 (a byte UTF-8 and ASCII cannot decode) must not stop the flags being read.
+    info.write_bytes(b"processor\t: 0\nmodel name\t: Intel\xae Xeon\nflags\t\t: fpu sse4_2 avx avx2 fma\n\nprocessor\t: 1\n")
     assert cpu_flags(str(info)) == frozenset({"fpu", "sse4_2", "avx", "avx2", "fma"})
     assert cpu_flags(str(tmp_path / "missing")) == frozenset()
+    if Path("/proc/cpuinfo").is_file():  # by default, this machine's
+        assert cpu_flags() == cpu_flags("/proc/cpuinfo") != frozenset()
 
 
 def _fresh_python(code: str, **environ: str) -> str:
@@ -85,4 +89,4 @@ def test_the_description_names_numpys_blas():
     info = blas_kernel()
     assert set(info) == {"library", "version", "kernel", "requested"}
     assert info["requested"] == os.environ.get(KERNEL_VARIABLE)
-    assert info["library"] == "openblas" and info["kernel"]  # numpy's wheels carry OpenBLAS
+    assert info["library"] == "openblas" and info["kernel"] and info["version"]  # numpy's wheels carry OpenBLAS
