@@ -155,8 +155,11 @@ class Guard:
         if scope["method"] not in READ_METHODS or path not in POST_PATHS:
             await self.app(scope, receive, send)
             return
-        if not is_json(headers.get(b"content-type", b"")):
-            given = headers.get(b"content-type", b"").decode("latin-1")[:60] or "none"
+        # Every Content-Type header, not the last one only: the framework reads the first, so two that
+        # disagree would have the guard pass a body the route then reads as another type.
+        types = [value for name, value in scope["headers"] if name == b"content-type"]
+        if len(types) != 1 or not is_json(types[0]):
+            given = b", ".join(types).decode("latin-1")[:60] or "none"
             await self._reply(send, 415, f"content-type {given!r}: send the body as application/json")
             return
         chunks, size = [], 0

@@ -264,6 +264,13 @@ def test_a_body_in_utf16_or_utf32_is_422_as_docs_service_says(client, path):
         assert "UTF-16 or UTF-32; send UTF-8" in response.json()["detail"]
 
 
+def test_two_content_types_are_415_even_if_one_is_json(client):
+    for pair in ([("content-type", "text/plain"), ("content-type", "application/json")],
+                 [("content-type", "application/json"), ("content-type", "application/json")]):
+        response = client.post("/plan", content=b"{}", headers=pair)
+        assert response.status_code == 415 and "application/json" in response.json()["detail"], response.text
+
+
 def test_a_post_no_route_takes_is_404_or_405_whatever_its_content_type(client):
     # Not a 415 asking for JSON that no route there would take (schemathesis flagged it).
     for headers in ({}, {"content-type": "text/plain"}, JSON):
