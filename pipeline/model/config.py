@@ -652,8 +652,8 @@ class Config:
         contacts, topple = data.get("contacts"), data.get("topple")
         # Only into a [topple] table or none: a topple that is not a table must stay one, to be refused
         # (``_build``), not replaced by a table holding the stroke alone and every other default.
-        if (isinstance(contacts, dict) and "push_depth" in contacts and (topple is None or isinstance(topple, dict))
-                and not (isinstance(topple, dict) and "stroke" in topple)):
+        if (isinstance(contacts, dict) and "push_depth" in contacts
+                and (topple is None or (isinstance(topple, dict) and "stroke" not in topple))):
             data = {**data, "topple": {**(topple or {}), "stroke": contacts["push_depth"]}}
         topple = data.get("topple")
         if isinstance(topple, dict) and _own_map(topple):
