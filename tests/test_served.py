@@ -91,6 +91,34 @@ def test_a_tampered_served_file_fails_verify(dataset, tmp_path):
     assert any(p.startswith("served/poses.arrow: sha256") for p in verify_dataset(copy))
 
 
+def test_a_served_file_damaged_after_the_build_is_not_served(dataset, tmp_path, caplog):
+    """A bit pattern changed inside a mapped table would be served as it stands (an Arrow file
+    has no checksums of its own): the load hashes the mapped bytes and serves the Parquet
+    tables instead, naming the file."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    good = Store.load(dataset)
+    path = copy / "served" / "poses.arrow"
+    data = path.read_bytes()
+    # A pose probability whose 8 bytes occur once in the file: replacing them changes that number alone.
+    first = next(b for b in (p.tobytes() for o in good.objects.values() for p in o.probability) if data.count(b) == 1)
+    path.write_bytes(data.replace(first, np.float64(7.5).tobytes()))  # same size, same schema, one number wrong
+    tampered = served.read_served(copy)["poses"]  # still a readable table...
+    assert 7.5 in tampered.column("probability").to_pylist()
+    with caplog.at_level(logging.WARNING, logger="service"):
+        store = Store.load(copy)
+    assert re.search(r"served/poses\.arrow: sha256 \w{12}\.\.\. differs from the manifest's", caplog.text)
+    assert "reading the Parquet tables instead" in caplog.text
+    same_objects(store, good)  # ...but what is served is the build's numbers
+    assert 7.5 not in np.concatenate([o.probability for o in store.objects.values()])
+    # The build's own check of its tables hashes them separately (``_damaged_tables``), so it reads them unhashed.
+    from schema.manifest import read_manifest
+
+    assert served.read_current(copy, read_manifest(copy), verify=False)["poses"].num_rows == tampered.num_rows
+    with pytest.raises(served.ServedError, match="served/poses.arrow: sha256"):
+        served.read_current(copy, read_manifest(copy))
+
+
 @pytest.fixture(scope="module")
 def parquet(dataset):
     table = Dataset.open(dataset)
