@@ -11,7 +11,7 @@ from collections.abc import Callable
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 
-from .errors import ServiceError
+from .errors import ServiceError, undecodable_body
 
 
 class BatchInvalid(Exception):
@@ -34,11 +34,11 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
         # The standard library parser, as FastAPI uses: it reads NaN and Infinity, which
         # validation then refuses with a message naming the field (orjson would not say where).
         data = json.loads(body)
-    except (ValueError, UnicodeDecodeError) as err:
-        raise BatchInvalid([{"type": "json_invalid", "loc": ("body", getattr(err, "pos", 0)), "msg": "JSON decode error",
-                            "ctx": {"error": getattr(err, "msg", "")}}]) from None
-    except RecursionError:  # thousands of nested brackets: malformed input, not a server error
-        raise BatchInvalid([{"type": "json_invalid", "loc": ("body",), "msg": "JSON decode error (nested too deeply)"}]) from None
+    except json.JSONDecodeError as err:
+        raise BatchInvalid([{"type": "json_invalid", "loc": ("body", err.pos), "msg": "JSON decode error",
+                            "ctx": {"error": err.msg}}]) from None
+    except (ValueError, RecursionError) as err:  # no position: not UTF-8, nested thousands deep, a huge integer
+        raise BatchInvalid([{"type": "json_invalid", "loc": ("body",), "msg": undecodable_body(err)}]) from None
     try:
         parsed = request_model.model_validate(data)
     except ValidationError as err:

@@ -12,6 +12,7 @@ it without FastAPI; ``service.handlers`` turns these errors into FastAPI's respo
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 
@@ -135,6 +136,19 @@ def _message(error: dict) -> str:
         if len(loc) > 1 and isinstance(loc[1], int):
             message += f" at character {loc[1]}"
     return message
+
+
+def undecodable_body(cause: BaseException | None) -> str:
+    """The 422's message for a JSON body the parser gave up on without a position (no
+    ``JSONDecodeError``): bytes that are not UTF-8, thousands of nested brackets, or an integer
+    longer than Python converts (``sys.get_int_max_str_digits``, 4,300 digits by default)."""
+    if isinstance(cause, UnicodeDecodeError):
+        return "JSON decode error: not UTF-8 text"
+    if isinstance(cause, RecursionError):
+        return "JSON decode error: nested too deeply"
+    if isinstance(cause, ValueError) and "integer string conversion" in str(cause):
+        return f"JSON decode error: a number of more than {sys.get_int_max_str_digits()} digits"
+    return "JSON decode error (not UTF-8 text, or nested too deeply)"
 
 
 def _location(loc) -> str:

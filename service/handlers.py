@@ -9,7 +9,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from .errors import ServiceError, tracebacks, validation_body
+from .errors import ServiceError, tracebacks, undecodable_body, validation_body
 
 log = logging.getLogger("service")
 
@@ -29,7 +29,7 @@ served as the 422 every other malformed JSON gets."""
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     if exc.status_code == 400 and exc.detail == FASTAPI_PARSE_ERROR:
-        return JSONResponse(validation_body([{"loc": ("body",), "msg": "JSON decode error (not UTF-8 text, or nested too deeply)", "type": "json_invalid"}]),
+        return JSONResponse(validation_body([{"loc": ("body",), "msg": undecodable_body(exc.__cause__), "type": "json_invalid"}]),
                             status_code=422)
     return JSONResponse({"detail": str(exc.detail)}, status_code=exc.status_code, headers=getattr(exc, "headers", None))
 
