@@ -11,6 +11,7 @@ Every query here is also in docs/DATASET.md ("Reading the tables").
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import duckdb
@@ -58,7 +59,7 @@ def main() -> None:
         join '{root}/poses.parquet' p on p.object_id = t.object_id and p.pose = t.next_pose
         join '{root}/poses.parquet' s on s.object_id = t.object_id and s.pose = t.pose
         group by t.object_id, t.pose, t.action, s.v_s
-        order by expected_v_s - v_s_now desc
+        order by expected_v_s - v_s_now desc, t.object_id, t.pose, t.action
         limit 5
         """
     ).df()
@@ -73,9 +74,14 @@ def main() -> None:
     ranked = topple_by_object["mean_p_topple"].to_numpy()
     left.plot(range(len(ranked)), ranked)
     left.set(xlabel="object (ranked)", ylabel="mean P(topple) of ok pushes", title="Topple probability by object")
-    counts, edges, _ = middle.hist(poses["v_s"], bins=np.linspace(0, 1, 11), edgecolor="white")
+    # V_s is a share of suction.n_samples grasps (20), so it takes 21 values: one bar each, centred on it.
+    # Bins of 0.1 would cut through them, and float edges (0.30000000000000004) move 0.3 one bin down.
+    samples = json.loads((root / "manifest.json").read_text())["parameters"]["suction"]["n_samples"]
+    values = np.arange(samples + 1) / samples
+    counts = np.bincount(np.rint(poses["v_s"].to_numpy() * samples).astype(int), minlength=samples + 1)
+    middle.bar(values, counts, width=0.8 / samples)
     middle.set(xlabel="V_s", ylabel="stable poses", title=f"Suction quality V_s over {len(poses)} poses")
-    print("V_s histogram (bins of 0.1):", counts.astype(int).tolist(), f"mean {poses['v_s'].mean():.3f}")
+    print(f"V_s by value (0, 1/{samples}, ..., 1):", counts.tolist(), f"mean {poses['v_s'].mean():.3f}")
     right.scatter(poses["v_s"], poses["v_t"], s=6, alpha=0.5)
     right.plot([0, 1], [0, 1], color="grey", linewidth=0.8)
     right.set(xlabel="V_s (grasp now)", ylabel="V_T (topple first, value iteration)", title="Value of each stable pose")

@@ -70,11 +70,21 @@ OBJECTS = pa.schema(
     metadata={"table": "objects", "description": "One row per object that was evaluated successfully"},
 )
 
+POLICY_NO_PUSH = {"max_height": " (also when its push is not ok, or the pose already has the object's best V_s)"}
+"""Why a policy does not push, beyond that grasping now is worth as much (docs/MODEL.md section 12)."""
+
+POLICY_VALUE = {
+    "max_height": "greedy of its push (it pushes even into an expected loss)",
+    "greedy": "greedy of its push",
+    "value_iteration": "q of its push, before gamma's discount",
+}
+"""What a policy's ``<policy>_value`` is when it pushes."""
+
 POSES = pa.schema(
     [
         OBJECT_ID,
         POSE,
-        column("probability", pa.float64(), "Probability of coming to rest in this pose when dropped"),
+        column("probability", pa.float64(), "Probability of coming to rest in this pose when dropped; poses below poses.min_probability are left out unless a topple reaches them, and the rest are not renormalised, so an object's may sum to less than 1"),
         column(
             "transform",
             pa.list_(pa.float64(), 16),
@@ -95,16 +105,16 @@ POSES = pa.schema(
         column("n_base_edges", pa.int32(), "Edges of the support polygon"),
         column("n_actions", pa.int32(), "Candidate pushes, Max-Height baseline's included"),
         column("n_ok_actions", pa.int32(), "Candidate pushes whose status is ok"),
-        column("v_s", pa.float64(), "V_s: robust quality of the best suction grasp from above, in [0, 1]"),
+        column("v_s", pa.float64(), "V_s: robust quality of the best suction grasp from above, in [0, 1]: the share of suction.n_samples noisy grasps that hold, so a multiple of 1/n_samples"),
         *xyz("grasp_point", "Best suction grasp contact point, pose frame; null when there is none", "m", nullable=True),
         *xyz("grasp_axis", "Best grasp approach axis, unit, gripper -> object, pose frame; null when none", nullable=True),
-        column("v_t", pa.float64(), "V_T: value of the pose under value iteration (thesis 4.3.3)"),
+        column("v_t", pa.float64(), "V_T = max(V_s, gamma max_u Q_T): value of the pose under value iteration (thesis 4.3.3), by the single best push; the stored value_iteration choice ranks pushes by their neighbourhood's mean (docs/MODEL.md (12.15)), so it may push another or none"),
         *[
             field
             for policy in POLICIES
             for field in (
-                column(f"{policy}_action", pa.int32(), f"Action chosen by the {policy} policy, {NO_OP} = no push"),
-                column(f"{policy}_value", pa.float64(), f"Expected value of the {policy} policy's choice"),
+                column(f"{policy}_action", pa.int32(), f"Action chosen by the {policy} policy, {NO_OP} = no push{POLICY_NO_PUSH.get(policy, '')}"),
+                column(f"{policy}_value", pa.float64(), f"Expected value of the {policy} policy's choice: {POLICY_VALUE[policy]}; v_s when it does not push"),
             )
         ],
     ],
@@ -121,11 +131,11 @@ ACTIONS = pa.schema(
         *xyz("normal", "Outward unit surface normal at the contact, pose frame"),
         *xyz("direction", "Unit push direction, pose frame"),
         column("is_max_height", pa.bool_(), "This is the Max-Height baseline's action (thesis 4.3.1)"),
-        column("p_topple", pa.float64(), "P(next pose != pose); null unless status is ok", nullable=True),
+        column("p_topple", pa.float64(), "P(next pose != pose), of the row as stored, smoothed over neighbouring pushes and mapped (docs/MODEL.md C.12-C.19), not the share of this push's trials that toppled; null unless status is ok", nullable=True),
         column(
             "mean_force",
             pa.float64(),
-            "Mean required push force over trials that topple over some edge; null when none does or not ok",
+            "Mean required push force over this push's own trials that topple over some edge (blocked edges included); null when none does or not ok, which p_topple, a smoothed and mapped estimate, need not agree with",
             "N",
             nullable=True,
         ),

@@ -2,11 +2,13 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-SCHEMA_VERSION = "1.1"
+SCHEMA_VERSION = "1.2"
 """Changes whenever a table, the HDF5 layout or the dataset layout changes.
 
 1.1: objects.hull_vertices, poses.equivalent_transforms (symmetric poses merged), and
-the served tables (``served/*.arrow``, memory-mapped by the service)."""
+the served tables (``served/*.arrow``, memory-mapped by the service).
+1.2: the HDF5 arrays' ``edge_landed_pose``, ``edge_onward_pose`` and ``edge_onward_share``: where the
+build's variant lands each edge's topples (``edge_final_pose`` is the thesis's landing)."""
 
 try:
     CODE_VERSION = version("toppledb")

@@ -15,6 +15,7 @@ from pipeline.model.poses import settle, stable_poses
 from pipeline.model.reference import landed_masses
 from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose
+from schema.vocabulary import STATUS_OK
 from tests.test_momentum import QUADRILATERAL, pivot_edge, planar_roll_on, prism, quad, side_down  # noqa: F401 (fixture)
 
 DROP = np.array([0.3, 0.05, 0.1, 0.4, 0.15])
@@ -113,6 +114,35 @@ def test_the_engine_carries_marginal_landings_on_trial_by_trial(marginal_pose, c
                 kinds["at tau"] += len(masses) == 2 and drop[landed] == below
         np.testing.assert_allclose(carried.next_pose[action], expected, atol=1e-12)
     assert min(kinds.values()) >= 3, f"the test needs trials of every kind: {kinds}"
+
+
+def test_the_table_s_edge_landings_count_its_rows_from_its_outcomes(marginal_pose):
+    """The table's per-edge landings (stored in the HDF5 file beside the outcomes) turn a pose's
+    trials into its counted rows: a trial over edge k counts 1 - share in the landing, share onward.
+    The thesis's variants land on ``edge_final_pose`` and carry nothing."""
+    _, pose_set, pose, actions = marginal_pose
+    below = float(pose_set.probabilities[4])
+    counted = replace(Config().topple.counted(), n_trials=40, landing_onward=0.4, landing_onward_below=below)
+    thesis = replace(Config.from_toml(PRESETS / "thesis.toml").topple, n_trials=40)
+    for topple in (counted, thesis):
+        table = _table(marginal_pose, topple)
+        ok = np.flatnonzero(actions.status == STATUS_OK)
+        recounted = np.zeros((len(ok), len(pose_set.poses)))
+        for row, action in enumerate(ok):
+            for edge in table.outcomes[action]:
+                if edge < 0:
+                    recounted[row, pose.index] += 1
+                    continue
+                recounted[row, table.edge_landed_pose[edge]] += 1 - table.edge_onward_share[edge]
+                recounted[row, table.edge_onward_pose[edge]] += table.edge_onward_share[edge]
+        np.testing.assert_allclose(table.next_pose[ok], recounted / topple.n_trials, atol=1e-12)
+        if topple is thesis:
+            np.testing.assert_array_equal(table.edge_landed_pose, pose.edge_final_pose)
+            assert not table.edge_onward_share.any()
+        else:
+            # The case holds both kinds: C.8's landings that are not the thesis's, and shares carried on.
+            assert (table.edge_landed_pose != pose.edge_final_pose).any() and table.edge_onward_share.any()
+            assert set(np.unique(table.edge_onward_share)) <= {0.0, 0.4}
 
 
 def test_the_maps_keep_the_carried_landing_and_the_thesis_ignores_it(marginal_pose):

@@ -42,6 +42,9 @@ def test_hdf5_layout_check_names_what_is_wrong(tmp_path):
         group["down"] = np.zeros(3)
         group["base_edges"] = np.zeros((4, 2, 3))
         group["edge_final_pose"] = np.zeros(5, dtype=np.int32)  # E disagrees with base_edges
+        group["edge_landed_pose"] = np.zeros(4, dtype=np.int32)
+        group["edge_onward_pose"] = np.zeros(4, dtype=np.int32)
+        group["edge_onward_share"] = np.zeros(4)
         group["edge_blocked"] = np.zeros(4, dtype=bool)
         group["apex_angle"] = np.zeros(4)
         group["outcomes"] = np.zeros((7, 4), dtype=np.int16)

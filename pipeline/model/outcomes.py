@@ -81,12 +81,23 @@ class ToppleTable:
     mean_force : (A,) float, N, mean required force over the trials that topple over
       some edge; NaN when none does
     outcomes : (A, T) int16, per trial: base edge toppled over, ``OUTCOME_NO_EDGE``, or ``OUTCOME_NOT_EVALUATED``
+    edge_landed_pose : (E,) int, pose a topple over each base edge lands in under this variant
+      (``topple.landed_poses``: the thesis's ``edge_final_pose``, or C.6's and C.8's landings)
+    edge_onward_pose : (E,) int, pose a share of that landing is carried on to (MODEL.md C.18)
+    edge_onward_share : (E,) float in [0, 1], that share; 0 where nothing is carried on (every thesis variant)
+
+    A trial that topples over edge k counts 1 - share[k] in ``edge_landed_pose[k]`` and share[k] in
+    ``edge_onward_pose[k]``: the rows before the smoothing and the maps (C.12-C.19) and the landing
+    spread (C.17), which act on rows, not edges.
     """
 
     next_pose: np.ndarray
     p_topple: np.ndarray
     mean_force: np.ndarray
     outcomes: np.ndarray
+    edge_landed_pose: np.ndarray
+    edge_onward_pose: np.ndarray
+    edge_onward_share: np.ndarray
 
 
 @dataclass

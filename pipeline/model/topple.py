@@ -1010,12 +1010,12 @@ def evaluate_pose(
     edge_of_trial = outcomes[ok].ravel()  # (n_ok T,) edge or -1; -1 reads the tables' last entry (stays)
     row_start = np.repeat(np.arange(len(ok)), trials) * n_poses  # (n_ok T,), each trial's row * P
     landed_cells = row_start + final_pose[edge_of_trial]  # (n_ok T,), row * P + pose landed in
+    # MODEL.md C.18: a share of each landing in a marginal pose goes one fall further.  The stay
+    # entry has share 0, so the start column keeps whole counts: P(topple) is unchanged.
+    edge_share = onward_shares(final_pose, onward_pose, pose.index, drop_probabilities, onward_share,
+                               config.landing_onward_below) if onward_share else np.zeros(len(final_pose))  # (E + 1,)
     if onward_share:
-        # MODEL.md C.18: a share of each landing in a marginal pose goes one fall further, per
-        # trial.  Trials that stay have share 0, so the start column keeps whole counts: P(topple)
-        # is unchanged.
-        share = onward_shares(final_pose, onward_pose, pose.index, drop_probabilities, onward_share,
-                              config.landing_onward_below)[edge_of_trial]  # (n_ok T,)
+        share = edge_share[edge_of_trial]  # (n_ok T,)
         cells = np.concatenate([landed_cells, row_start + onward_pose[edge_of_trial]])
         counts = np.bincount(cells, weights=np.concatenate([1.0 - share, share]), minlength=len(ok) * n_poses)
     else:
@@ -1063,4 +1063,5 @@ def evaluate_pose(
         # with the spread, which is linear in the toppled mass).
         prior = landing_prior(drop_probabilities, pose.index, config.landing_spread_poses)
         next_pose = spread_landings(next_pose, pose.index, prior, spread)
-    return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes)
+    return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes,
+                       edge_landed_pose=final_pose[:-1], edge_onward_pose=onward_pose[:-1], edge_onward_share=edge_share[:-1])
