@@ -13,6 +13,7 @@ manifest that lacks one is refused at load time, not at the first request.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Literal
@@ -190,6 +191,25 @@ class Manifest(_Closed):
 
     def to_json(self) -> str:
         return json.dumps(self.model_dump(mode="json"), indent=1)
+
+    def recorded_sha256(self, relative: str) -> str | None:
+        """The SHA-256 this build recorded for a file (a consolidated table or a shard's file, by
+        its path relative to the dataset), None when it recorded none."""
+        if relative in self.tables:
+            return self.tables[relative].sha256
+        for shard in self.shards.values():
+            if relative in shard.files:
+                return shard.files[relative]
+        return None
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of a file's bytes, "" when it cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+    except OSError:
+        return ""
 
 
 def read_manifest(root: str | Path) -> Manifest:

@@ -37,7 +37,7 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
     except json.JSONDecodeError as err:
         raise BatchInvalid([{"type": "json_invalid", "loc": ("body", err.pos), "msg": "JSON decode error",
                             "ctx": {"error": err.msg}}]) from None
-    except (ValueError, RecursionError) as err:  # no position: not UTF-8, nested thousands deep, a huge integer
+    except (ValueError, RecursionError) as err:  # no position: not UTF-8, nested a thousand deep, a huge integer
         raise BatchInvalid([{"type": "json_invalid", "loc": ("body",), "msg": undecodable_body(err)}]) from None
     try:
         parsed = request_model.model_validate(data)

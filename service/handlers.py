@@ -23,8 +23,8 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
 
 
 FASTAPI_PARSE_ERROR = "There was an error parsing the body"
-"""FastAPI's 400 for a JSON body it cannot decode (not UTF-8, or nested past Python's recursion limit);
-served as the 422 every other malformed JSON gets."""
+"""FastAPI's 400 for a JSON body it cannot decode (not UTF-8, nested past Python's recursion limit, or an
+integer past its digits limit); served as the 422 every other malformed JSON gets, saying which."""
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:

@@ -35,7 +35,7 @@ import pyarrow as pa
 
 from schema import horizon, layout, neighbourhood, served
 from schema.api import FINGER_FORCE_LIMIT
-from schema.manifest import Manifest, ManifestError, read_manifest
+from schema.manifest import Manifest, ManifestError, file_sha256, read_manifest
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .errors import NotFound
@@ -318,9 +318,25 @@ class Store:
         not a dataset this service reads.  A dataset without them (or whose served files do
         not match its manifest) is served from its Parquet tables, converted in memory:
         seconds instead of milliseconds, and in this process's memory, not the file cache
-        (workers forked afterwards share it; a reload converts again in each)."""
-        started = time.perf_counter()
+        (workers forked afterwards share it; a reload converts again in each).
+
+        A rebuild commits its files one rename at a time, the manifest last: a load in between
+        finds new files under the old manifest, which the checksums refuse, and is made again
+        once the manifest has changed (up to ``LOAD_ATTEMPTS`` times)."""
         root = Path(root)
+        for attempt in range(1, LOAD_ATTEMPTS + 1):
+            stamp = manifest_stamp(root)
+            try:
+                return cls._load_once(root)
+            except DatasetError:
+                if attempt == LOAD_ATTEMPTS or manifest_stamp(root) == stamp:
+                    raise
+        raise AssertionError("unreachable: the last attempt returns or raises")
+
+    @classmethod
+    def _load_once(cls, root: Path) -> Store:
+        """One load of the dataset as its files are now (``load``)."""
+        started = time.perf_counter()
         try:
             manifest_sha256 = hashlib.sha256((root / layout.MANIFEST).read_bytes()).hexdigest()
         except OSError:
@@ -333,12 +349,7 @@ class Store:
             tables = served.read_current(root, manifest)
         except served.ServedError as err:
             log.warning("%s; reading the Parquet tables instead (slower start, a copy in memory)", err)
-            from schema.reader import Dataset, DatasetUnreadable  # pyarrow.parquet: only on this path
-
-            try:
-                tables = served.served_from_parquet(Dataset(root, manifest))
-            except (served.ServedError, DatasetUnreadable) as err:
-                raise DatasetError(f"{root}: {err}") from None
+            tables = _tables_from_parquet(root, manifest)
         mdp = manifest.parameters.mdp
         objects = _objects(tables, mdp.min_direction_z, mdp.failure_power, mdp.budget_min_direction_z)
         store = cls(root, manifest, objects, time.perf_counter() - started, manifest_sha256)
@@ -349,6 +360,25 @@ class Store:
                 f"check it with `toppledb verify {root}`"
             )
         return store
+
+
+def _tables_from_parquet(root: Path, manifest: Manifest) -> dict[str, pa.Table]:
+    """The served tables converted from the Parquet tables, each file of which must be the bytes the
+    manifest records (as ``read_current`` checks the served files); DatasetError otherwise."""
+    from schema.reader import Dataset, DatasetUnreadable  # pyarrow.parquet: only on this path
+
+    read = [layout.OBJECTS_FILE, layout.POSES_FILE,
+            *(layout.partition_file(table, object_id) for object_id in manifest.shards for table in ("actions", "transitions"))]
+    for relative in read:
+        recorded, actual = manifest.recorded_sha256(relative), file_sha256(root / relative)
+        if recorded is None or actual != recorded:
+            found = "missing or unreadable" if not actual else "not recorded" if recorded is None else \
+                f"sha256 {actual[:12]}... differs from the manifest's {recorded[:12]}..."
+            raise DatasetError(f"{root}: {relative}: {found}; check it with `toppledb verify {root}`")
+    try:
+        return served.served_from_parquet(Dataset(root, manifest))
+    except (served.ServedError, DatasetUnreadable) as err:
+        raise DatasetError(f"{root}: {err}") from None
 
 
 def _objects(tables: dict[str, pa.Table], min_direction_z: float = -1.0, failure_power: float | None = None,
@@ -424,6 +454,10 @@ def manifest_stamp(root: Path) -> tuple | None:
     except OSError:
         return None
     return (st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+LOAD_ATTEMPTS = 3
+"""Loads of a dataset whose manifest changed while it was read (``Store.load``)."""
 
 
 class LiveStore:

@@ -6,6 +6,7 @@ served from Parquet instead or refused with a message naming the problem."""
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import re
@@ -155,7 +156,32 @@ def test_a_dataset_whose_tables_do_not_fit_is_not_served(dataset, tmp_path):
     ids = pq.read_table(copy / "objects.parquet").column("object_id").to_pylist()
     part = copy / "actions" / f"object_id={ids[0]}" / "part-0.parquet"
     pq.write_table(pq.read_table(part).slice(1), part)
+    with pytest.raises(DatasetError, match=rf"actions/object_id={ids[0]}/part-0.parquet: sha256 \w{{12}}\.\.\. differs from the manifest's"):
+        Store.load(copy)  # not the bytes the build wrote
+    # As if a build had written them so (recorded their checksum): the tables still have to fit together.
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["shards"][ids[0]]["files"][f"actions/object_id={ids[0]}/part-0.parquet"] = hashlib.sha256(part.read_bytes()).hexdigest()
+    (copy / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(DatasetError, match="actions partition does not hold"):
+        Store.load(copy)
+
+
+def test_the_parquet_tables_a_damaged_served_file_falls_back_to_are_checked_too(dataset, tmp_path, caplog):
+    """Served from Parquet because a served file is damaged, the Parquet files must be the build's
+    bytes too: a damaged poses.parquet is refused, not served (it would give its numbers as they stand)."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    (copy / "served" / "poses.arrow").write_bytes(b"")  # empty: unreadable
+    poses = pq.read_table(copy / "poses.parquet")
+    v_s = poses.column("v_s").to_pylist()
+    pq.write_table(poses.set_column(poses.schema.get_field_index("v_s"), poses.schema.field("v_s"),
+                                    pa.array([0.123, *v_s[1:]], pa.float64())), copy / "poses.parquet")
+    with caplog.at_level(logging.WARNING, logger="service"), \
+            pytest.raises(DatasetError, match=r"poses.parquet: sha256 \w{12}\.\.\. differs from the manifest's.*toppledb verify"):
+        Store.load(copy)
+    assert "served/poses.arrow: unreadable" in caplog.text
+    (copy / "poses.parquet").unlink()
+    with pytest.raises(DatasetError, match="poses.parquet: missing or unreadable"):
         Store.load(copy)
 
 
@@ -187,3 +213,31 @@ def test_a_dataset_without_current_served_tables_gets_them_without_recomputing(d
     assert summary.computed == 0 and summary.reused == 3
     assert verify_dataset(copy) == []
     same_objects(Store.load(copy), Store.load(dataset))
+
+
+def test_a_load_that_meets_a_rebuild_s_commit_is_made_again_once_the_manifest_changed(dataset, tmp_path, monkeypatch):
+    """A rebuild renames its files into place one by one, the manifest last: a load in between is
+    refused by the checksums, and made again when the manifest changed meanwhile; a refusal with the
+    manifest unchanged is the answer."""
+    import service.store as store_module
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    real, calls = store_module.Store._load_once, []
+
+    def mid_commit(root):
+        calls.append(root)
+        if len(calls) == 1:  # the rebuild's last rename lands while this load reads
+            manifest = copy / "manifest.json"
+            (copy / "manifest.new").write_bytes(manifest.read_bytes())
+            (copy / "manifest.new").replace(manifest)
+            raise DatasetError("served/actions.arrow: sha256 differs (new files, old manifest)")
+        return real(root)
+
+    monkeypatch.setattr(store_module.Store, "_load_once", mid_commit)
+    assert Store.load(copy).counts["objects"] == 3 and len(calls) == 2
+    calls.clear()
+    monkeypatch.setattr(store_module.Store, "_load_once", lambda root: (calls.append(root), real(copy / "nowhere"))[1])
+    with pytest.raises(DatasetError, match="no such dataset directory"):
+        Store.load(copy)
+    assert len(calls) == 1, "nothing changed: refused at once"

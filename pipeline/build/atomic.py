@@ -16,15 +16,7 @@ from pathlib import Path
 from typing import Callable
 
 from schema import layout
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex SHA-256 of a file's bytes, "" when it cannot be read."""
-    try:
-        with open(path, "rb") as f:
-            return hashlib.file_digest(f, "sha256").hexdigest()
-    except OSError:
-        return ""
+from schema.manifest import file_sha256  # noqa: F401 (the pipeline's callers import it from here)
 
 
 def write_atomic(path: str | Path, write: Callable[[Path], None], check: Callable[[Path], None] | None = None) -> str:
