@@ -59,7 +59,7 @@ def main() -> None:
         join '{root}/poses.parquet' p on p.object_id = t.object_id and p.pose = t.next_pose
         join '{root}/poses.parquet' s on s.object_id = t.object_id and s.pose = t.pose
         group by t.object_id, t.pose, t.action, s.v_s
-        order by expected_v_s - v_s_now desc, t.object_id, t.pose, t.action
+        order by round(expected_v_s - v_s_now, 12) desc, t.object_id, t.pose, t.action
         limit 5
         """
     ).df()

@@ -10,8 +10,8 @@
     /poses/000/down         (3,)       float64  unit, object frame, points onto the table
     /poses/000/base_edges   (E, 2, 3)  float64  m, pose frame, counter-clockwise from above
     /poses/000/edge_final_pose (E,)    int32    pose reached by toppling over the edge (the thesis's landing)
-    /poses/000/edge_landed_pose (E,)   int32    pose this build's model lands that topple in
-    /poses/000/edge_onward_pose (E,)   int32    pose a share of that landing is carried on to
+    /poses/000/edge_landed_pose (E,)   int32    pose this build's model lands that topple in (before C.17's spread)
+    /poses/000/edge_onward_pose (E,)   int32    pose a share of that landing is carried on to (the landing if none)
     /poses/000/edge_onward_share (E,)  float64  that share, in [0, 1]
     /poses/000/edge_blocked (E,)       bool     another part of the hull meets the table first
     /poses/000/apex_angle   (E,)       float64  rad, rotation about the edge to bring the COM above it
@@ -51,8 +51,8 @@ POSE_ARRAYS = (
     ArraySpec("down", np.dtype("float64"), (3,), "unit vector, object frame, pointing onto the table"),
     ArraySpec("base_edges", np.dtype("float64"), ("E", 2, 3), "m, support polygon edges, pose frame"),
     ArraySpec("edge_final_pose", np.dtype("int32"), ("E",), "pose reached by toppling over each edge (the thesis's landing)"),
-    ArraySpec("edge_landed_pose", np.dtype("int32"), ("E",), "pose the build's variant lands a topple over each edge in"),
-    ArraySpec("edge_onward_pose", np.dtype("int32"), ("E",), "pose a share of that landing is carried on to (C.18)"),
+    ArraySpec("edge_landed_pose", np.dtype("int32"), ("E",), "pose the build's variant lands a topple over each edge in (before C.17's spread)"),
+    ArraySpec("edge_onward_pose", np.dtype("int32"), ("E",), "pose a share of that landing is carried on to (C.18); the landing where none is"),
     ArraySpec("edge_onward_share", np.dtype("float64"), ("E",), "share of the landing carried on, in [0, 1]; 0 when none"),
     ArraySpec("edge_blocked", np.dtype("bool"), ("E",), "topple over the edge is blocked by the hull"),
     ArraySpec("apex_angle", np.dtype("float64"), ("E",), "rad, rotation about the edge until the COM is above it"),

@@ -108,7 +108,7 @@ POSES = pa.schema(
         column("v_s", pa.float64(), "V_s: robust quality of the best suction grasp from above, in [0, 1]: the share of suction.n_samples noisy grasps that hold, so a multiple of 1/n_samples"),
         *xyz("grasp_point", "Best suction grasp contact point, pose frame; null when there is none", "m", nullable=True),
         *xyz("grasp_axis", "Best grasp approach axis, unit, gripper -> object, pose frame; null when none", nullable=True),
-        column("v_t", pa.float64(), "V_T = max(V_s, gamma max_u Q_T): value of the pose under value iteration (thesis 4.3.3), by the single best push; the stored value_iteration choice ranks pushes by their neighbourhood's mean (docs/MODEL.md (12.15)), so it may push another or none"),
+        column("v_t", pa.float64(), "V_T = max(V_s, gamma max_u Q_T): value of the pose under value iteration (thesis 4.3.3), by the single best push; with mdp.choice_radius > 0 (the default) the stored value_iteration choice ranks pushes by their neighbourhood's mean instead (docs/MODEL.md (12.15)), and may push another or none"),
         *[
             field
             for policy in POLICIES
@@ -131,11 +131,11 @@ ACTIONS = pa.schema(
         *xyz("normal", "Outward unit surface normal at the contact, pose frame"),
         *xyz("direction", "Unit push direction, pose frame"),
         column("is_max_height", pa.bool_(), "This is the Max-Height baseline's action (thesis 4.3.1)"),
-        column("p_topple", pa.float64(), "P(next pose != pose), of the row as stored, smoothed over neighbouring pushes and mapped (docs/MODEL.md C.12-C.19), not the share of this push's trials that toppled; null unless status is ok", nullable=True),
+        column("p_topple", pa.float64(), "P(next pose != pose) of the row as stored; the default's rows are recalibrated, smoothed over neighbouring pushes and mapped (docs/MODEL.md C.7, C.12-C.19), so it is not the share of this push's own trials that toppled; null unless status is ok", nullable=True),
         column(
             "mean_force",
             pa.float64(),
-            "Mean required push force over this push's own trials that topple over some edge (blocked edges included); null when none does or not ok, which p_topple, a smoothed and mapped estimate, need not agree with",
+            "Mean required push force over this push's own trials that topple over some edge (blocked edges included); null when none does or not ok (p_topple, where smoothed or mapped, need not be 0 there)",
             "N",
             nullable=True,
         ),

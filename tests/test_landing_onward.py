@@ -136,6 +136,8 @@ def test_the_table_s_edge_landings_count_its_rows_from_its_outcomes(marginal_pos
                 recounted[row, table.edge_landed_pose[edge]] += 1 - table.edge_onward_share[edge]
                 recounted[row, table.edge_onward_pose[edge]] += table.edge_onward_share[edge]
         np.testing.assert_allclose(table.next_pose[ok], recounted / topple.n_trials, atol=1e-12)
+        stays = table.edge_onward_share == 0  # nothing goes on: the onward pose is the landing, not C.18's pose
+        np.testing.assert_array_equal(table.edge_onward_pose[stays], table.edge_landed_pose[stays])
         if topple is thesis:
             np.testing.assert_array_equal(table.edge_landed_pose, pose.edge_final_pose)
             assert not table.edge_onward_share.any()

@@ -83,7 +83,8 @@ class ToppleTable:
     outcomes : (A, T) int16, per trial: base edge toppled over, ``OUTCOME_NO_EDGE``, or ``OUTCOME_NOT_EVALUATED``
     edge_landed_pose : (E,) int, pose a topple over each base edge lands in under this variant
       (``topple.landed_poses``: the thesis's ``edge_final_pose``, or C.6's and C.8's landings)
-    edge_onward_pose : (E,) int, pose a share of that landing is carried on to (MODEL.md C.18)
+    edge_onward_pose : (E,) int, pose a share of that landing is carried on to (MODEL.md C.18);
+      ``edge_landed_pose`` where nothing is
     edge_onward_share : (E,) float in [0, 1], that share; 0 where nothing is carried on (every thesis variant)
 
     A trial that topples over edge k counts 1 - share[k] in ``edge_landed_pose[k]`` and share[k] in

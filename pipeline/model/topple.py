@@ -1064,4 +1064,6 @@ def evaluate_pose(
         prior = landing_prior(drop_probabilities, pose.index, config.landing_spread_poses)
         next_pose = spread_landings(next_pose, pose.index, prior, spread)
     return ToppleTable(next_pose=next_pose, p_topple=p_topple, mean_force=mean_force, outcomes=outcomes,
-                       edge_landed_pose=final_pose[:-1], edge_onward_pose=onward_pose[:-1], edge_onward_share=edge_share[:-1])
+                       edge_landed_pose=final_pose[:-1], edge_onward_share=edge_share[:-1],
+                       # Where nothing goes on, the landing itself: C.18's onward pose of such an edge is no landing.
+                       edge_onward_pose=np.where(edge_share[:-1] > 0, onward_pose[:-1], final_pose[:-1]))
