@@ -109,6 +109,7 @@ POSES = pa.schema(
         *xyz("grasp_point", "Best suction grasp contact point, pose frame; null when there is none", "m", nullable=True),
         *xyz("grasp_axis", "Best grasp approach axis, unit, gripper -> object, pose frame; null when none", nullable=True),
         column("v_t", pa.float64(), "V_T = max(V_s, gamma max_u Q_T): value of the pose under value iteration (thesis 4.3.3), by the single best push; with mdp.choice_radius > 0 (the default) the stored value_iteration choice ranks pushes by their neighbourhood's mean instead (docs/MODEL.md (12.15)), and may push another or none"),
+        column("v_failed", pa.float64(), "What q counts this pose at when a push leaves the object in it: V1 of docs/MODEL.md (12.13) with mdp.believe_failures (the default), else v_t (mdp.retry_failed) or v_s; so an action's q = sum over next_pose != pose of P v_t(next_pose) + P(next_pose = pose) v_failed"),
         *[
             field
             for policy in POLICIES
@@ -139,7 +140,7 @@ ACTIONS = pa.schema(
             "N",
             nullable=True,
         ),
-        column("q", pa.float64(), "Q_T(pose, action): expected V_T after this push, value iteration planning over the pushes the policies may choose (mdp.min_direction_z); where it leaves the object in its pose, that pose is worth its grasp V_s if mdp.retry_failed is false, and its failed state's value V1 if mdp.believe_failures is true (Q0 of docs/MODEL.md (12.13)); null unless ok", nullable=True),
+        column("q", pa.float64(), "Q_T(pose, action): expected V_T after this push, value iteration planning over the pushes the policies may choose (mdp.min_direction_z); where it leaves the object in its pose, that pose is worth the poses table's v_failed: its grasp V_s if mdp.retry_failed is false, its failed state's value V1 if mdp.believe_failures is true (Q0 of docs/MODEL.md (12.13)); null unless ok", nullable=True),
         column("greedy", pa.float64(), "E[V_s(next pose)], the Greedy policy's score; null unless ok", nullable=True),
     ],
     metadata={"table": "actions", "description": "Every candidate push of every pose; partitioned by object_id"},

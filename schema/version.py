@@ -8,7 +8,8 @@ SCHEMA_VERSION = "1.2"
 1.1: objects.hull_vertices, poses.equivalent_transforms (symmetric poses merged), and
 the served tables (``served/*.arrow``, memory-mapped by the service).
 1.2: the HDF5 arrays' ``edge_landed_pose``, ``edge_onward_pose`` and ``edge_onward_share``: where the
-build's variant lands each edge's topples (``edge_final_pose`` is the thesis's landing)."""
+build's variant lands each edge's topples (``edge_final_pose`` is the thesis's landing); ``poses.v_failed``,
+the value an action's ``q`` gives the pose when the push leaves the object in it."""
 
 try:
     CODE_VERSION = version("toppledb")

@@ -262,6 +262,20 @@ def test_analysts_read_the_tables_and_counts_match_the_manifest(reference):
     for object_id, pose, action, _, expected in joined:
         assert stored[(object_id, pose, action)] == pytest.approx(expected, abs=1e-9)
 
+    # Every q from the tables alone: V_T where the push leads, the failed pose's value where it stays.
+    q = con.execute(
+        f"""
+        select t.object_id, t.pose, t.action, a.q,
+               sum(t.probability * case when t.next_pose = t.pose then s.v_failed else p.v_t end) as recomputed
+        from {glob.format(root, 'transitions')} t
+        join {glob.format(root, 'actions')} a using (object_id, pose, action)
+        join '{root}/poses.parquet' p on p.object_id = t.object_id and p.pose = t.next_pose
+        join '{root}/poses.parquet' s on s.object_id = t.object_id and s.pose = t.pose
+        group by all
+        """
+    ).fetchall()
+    assert len(q) == ok and all(stored == pytest.approx(recomputed, abs=1e-9) for *_, stored, recomputed in q)
+
 
 def test_verify_fails_after_a_shard_is_corrupted(reference, tmp_path, capsys):
     copy = tmp_path / "dataset"

@@ -998,3 +998,29 @@ def test_the_choice_by_neighbourhood_reads_its_angle_from_the_config():
     for apart, angle, expected in [(0.3, 0.1, 0), (0.3, 0.5, 2), (0.7, 0.5, 0), (0.7, 1.0, 2)]:
         config = MDPConfig(choice_neighbours=1, choice_angle=angle)
         assert neighbourhood_choice(0, v_s, q, *_fan([0.0, apart, np.pi, np.pi]), every, config).action == expected
+
+
+@pytest.mark.parametrize("config", [
+    MDPConfig(choice_radius=0.0),  # the default's planning: believes failures, k = 2.1, V1 of (12.13)
+    MDPConfig(choice_radius=0.0, believe_failures=False),  # the thesis: a failed push is retried, V_T
+    MDPConfig(choice_radius=0.0, believe_failures=False, retry_failed=False),  # grasped where it failed, V_s (12.9)
+])
+def test_every_q_is_the_stored_values_of_where_its_push_leads(config):
+    """The tables store V_T and the failed pose's value, so an analyst recomputes any Q_T from a row:
+    q = sum_{x' != x} P(x' | x, u) V_T(x') + P(x | x, u) failed_value(x), whichever way failures are valued."""
+    tables, v_s = random_mdp(np.random.default_rng(7), 5, 6)
+    tables = [np.asarray(t, dtype=float) for t in tables]
+    values = pose_values(tables, v_s, [-1] * 5, config)
+    v_t = np.array([v.value for v in values])
+    failed = np.array([v.failed_value for v in values])
+    if not config.retry_failed:
+        np.testing.assert_array_equal(failed, v_s)
+    elif not config.believe_failures:
+        np.testing.assert_array_equal(failed, v_t)
+    else:  # V1: a failure is evidence against the pose's pushes, worth no more than V_T and no less than V_s
+        assert np.all(failed <= v_t + 1e-12) and np.all(failed >= v_s - 1e-12) and np.any(failed < v_t - 1e-6)
+    for x, (table, value) in enumerate(zip(tables, values)):
+        ok = ~np.isnan(table).any(axis=1)
+        leave = np.where(np.arange(5) == x, 0.0, table[ok])
+        np.testing.assert_allclose(value.q[ok], leave @ v_t + table[ok, x] * failed[x], atol=1e-12)
+        assert np.isnan(value.q[~ok]).all()

@@ -204,6 +204,7 @@ def _pose_row(object_id: str, pose, equivalents, n_actions: int, n_ok: int, suct
         **{f"grasp_point_{a}": x for a, x in zip("xyz", _vector_or_none(suction.point))},
         **{f"grasp_axis_{a}": x for a, x in zip("xyz", _vector_or_none(suction.axis))},
         "v_t": float(values.value),
+        "v_failed": float(values.failed_value),
     }
     for policy in POLICIES:
         choice = values.policies[policy]

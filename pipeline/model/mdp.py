@@ -472,17 +472,18 @@ def pose_values(
       choice by neighbourhood (``config.choice_radius`` > 0, ``neighbourhood_choice``) needs
     returns : list of P PoseValues (q = Q_T, greedy = E[V_s(x')], value = V_T(x), and
       policies ``max_height``, ``greedy``, ``value_iteration``); when ``config`` believes failures
-      (``believe_failures`` with k > 1), q = Q0 and value = V0 of ``belief_value_iteration``
+      (``believe_failures`` with k > 1), q = Q0, value = V0 and failed_value = V1 of ``belief_value_iteration``
     """
     v_s = np.asarray(v_s, dtype=float)
     if config.choice_radius > 0 and pushes is None and len(next_pose):
         raise ValueError("mdp.choice_radius > 0 chooses value iteration's push by its neighbourhood: give each pose's pushes")
     if config.plans_with_failures:
-        v_t, _, q, _ = belief_value_iteration(next_pose, v_s, config.gamma, config.after_failure_power, config.tolerance,
-                                              config.max_iterations, choosable)
+        v_t, failed, q, _ = belief_value_iteration(next_pose, v_s, config.gamma, config.after_failure_power, config.tolerance,
+                                                   config.max_iterations, choosable)
     else:
         v_t, q = value_iteration(next_pose, v_s, config.gamma, config.tolerance, config.max_iterations, choosable,
                                  config.retry_failed)
+        failed = v_t if config.retry_failed else v_s
     ranked = q
     if config.choose_for_repeats:
         _, ranked = repeat_value_iteration(next_pose, v_s, config.gamma, config.after_failure_power, config.tolerance,
@@ -500,7 +501,7 @@ def pose_values(
             "greedy": greedy_policy(x, v_s, np.where(mine, greedy[x], np.nan)),
             "value_iteration": choice,
         }
-        out.append(PoseValues(q=q[x], greedy=greedy[x], value=float(v_t[x]), policies=policies))
+        out.append(PoseValues(q=q[x], greedy=greedy[x], value=float(v_t[x]), policies=policies, failed_value=float(failed[x])))
     return out
 
 

@@ -131,12 +131,16 @@ class PoseValues:
     greedy : (A,) float, E[V_s(x')] for every action (NaN when not ``ok``)
     value : float, V_T(x)
     policies : dict name -> PolicyChoice for ``max_height``, ``greedy``, ``value_iteration``
+    failed_value : float, what ``q`` counts the pose at when a push leaves the object in it: V1(x) of
+      (12.13) when the build plans with its failures, else V_T(x) (retries, (12.1)) or V_s(x) ((12.9));
+      so q(u) = sum_{x' != x} P(x' | x, u) V_T(x') + P(x | x, u) failed_value
     """
 
     q: np.ndarray
     greedy: np.ndarray
     value: float
     policies: dict[str, PolicyChoice]
+    failed_value: float
 
 
 @dataclass
