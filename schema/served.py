@@ -108,13 +108,16 @@ DOWN = np.array([0.0, 0.0, -1.0])
 # --- reading --------------------------------------------------------------------------------
 
 
-def read_served(root: str | Path, checksums: dict[str, str] | None = None) -> dict[str, pa.Table]:
+def read_served(root: str | Path, checksums: dict[str, str] | None = None,
+                mapped: dict[str, tuple[mmap.mmap, str]] | None = None) -> dict[str, pa.Table]:
     """Every served table of the dataset at ``root``, memory-mapped (no copy, no decoding).
 
-    checksums : table name -> the hex SHA-256 its file must have (about 0.1 s for the default
-      dataset's 180 MB): each file is read through once and hashed, then mapped from the same open
-      file, so the bytes checked are the file served; reading, not the map, keeps the hash from
-      faulting every page into this process
+    checksums : table name -> the hex SHA-256 its file must have; a file not in ``mapped`` is
+      then read through once and hashed, and mapped from the same open file, so the bytes
+      checked are the file served
+    mapped : table name -> (read-only mapping of its file, SHA-256 of the mapped bytes): files the
+      caller mapped and hashed already (the service's ``service.prefetch.map_and_hash``, which
+      hashes through the map and leaves the pages in the file cache, not the process)
 
     ServedError when a file is missing, unreadable or not the recorded bytes (the caller falls
     back to the Parquet tables, or rebuilds)."""
@@ -122,15 +125,18 @@ def read_served(root: str | Path, checksums: dict[str, str] | None = None) -> di
     for name, relative in FILES.items():
         path = Path(root) / relative
         try:
-            with open(path, "rb") as f:
-                actual = hashlib.file_digest(f, "sha256").hexdigest() if checksums is not None else None
-                mapped = pa.py_buffer(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ))  # outlives the descriptor
-            table = pa.ipc.open_file(mapped).read_all()
+            if mapped is not None and name in mapped:
+                view, actual = mapped[name]
+            else:
+                with open(path, "rb") as f:
+                    actual = hashlib.file_digest(f, "sha256").hexdigest() if checksums is not None else None
+                    view = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)  # outlives the descriptor
+            table = pa.ipc.open_file(pa.py_buffer(view)).read_all()
         except FileNotFoundError:
             raise ServedError(f"{path}: missing") from None
         except (OSError, ValueError, pa.ArrowException) as err:  # ValueError: mmap of an empty file
             raise ServedError(f"{path}: unreadable: {' '.join(str(err).split())[:200]}") from None
-        if actual is not None and actual != checksums[name]:
+        if checksums is not None and actual != checksums[name]:
             # Damaged after the build (a disk, a copy, a hand): an Arrow file has no checksums of its own.
             raise ServedError(f"{relative}: sha256 {actual[:12]}... differs from the manifest's {checksums[name][:12]}... "
                               "(changed after the build; a rerun of the build rewrites it)")
@@ -140,20 +146,23 @@ def read_served(root: str | Path, checksums: dict[str, str] | None = None) -> di
     return out
 
 
-def read_current(root: str | Path, manifest, verify: bool = True) -> dict[str, pa.Table]:
+def read_current(root: str | Path, manifest, verify: bool = True,
+                 mapped: dict[str, tuple[mmap.mmap, str]] | None = None) -> dict[str, pa.Table]:
     """``read_served``, and ServedError unless they are the files this manifest's build wrote
     (each recorded, with the recorded rows, and with ``verify`` the recorded SHA-256).
 
     manifest : ``schema.manifest.Manifest`` of ``root``
-    verify : hash every file as it is mapped (about 0.1 s for the default dataset); off only where
-      the caller checks the bytes itself.  A file written into after the load is not seen: a
-      rebuild replaces files (``pipeline.build.atomic``), it never writes into them
+    verify : check every file's SHA-256 (about 0.1 s for the default dataset from the file cache,
+      0.5 s from disk); off only where the caller checks the bytes itself.  A file written into
+      after the load is not seen: a rebuild replaces files (``pipeline.build.atomic``), it never
+      writes into them
+    mapped : as ``read_served``'s, files mapped and hashed already
     """
     entries = {name: manifest.tables.get(relative) for name, relative in FILES.items()}
     for name, entry in entries.items():
         if entry is None:
             raise ServedError(f"manifest.json records no {FILES[name]} (built by an older toppledb)")
-    tables = read_served(root, {name: entry.sha256 for name, entry in entries.items()} if verify else None)
+    tables = read_served(root, {name: entry.sha256 for name, entry in entries.items()} if verify else None, mapped)
     for name, relative in FILES.items():
         if entries[name].rows != tables[name].num_rows:
             raise ServedError(f"{relative} holds {tables[name].num_rows} rows, manifest.json says {entries[name].rows}")

@@ -14,16 +14,19 @@ The service imports numpy, pyarrow and FastAPI only, never the geometry stack (t
 fcl, embreex, scipy).
 """
 
-from .store import DatasetError, Store
-
 __all__ = ["DatasetError", "Store", "create_app"]
 
 
 def __getattr__(name: str):
-    # FastAPI is imported on first use of ``create_app``, not with the package:
-    # ``python -m service`` answers /health and /plan before it has imported FastAPI.
+    # Imported on first use, not with the package: ``python -m service`` starts checking the
+    # served files (``prefetch``) before numpy, pyarrow and pydantic load, and answers /health
+    # and /plan before it has imported FastAPI.
     if name == "create_app":
         from .app import create_app
 
         return create_app
+    if name in ("DatasetError", "Store"):
+        from . import store
+
+        return getattr(store, name)
     raise AttributeError(f"module 'service' has no attribute {name!r}")

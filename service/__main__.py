@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 
 from .server import DEFAULT_KEEP_ALIVE, DEFAULT_LIMIT_CONCURRENCY, DEFAULT_REQUEST_TIMEOUT
@@ -62,6 +63,11 @@ def build_parser(prog: str = "python -m service") -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None, prog: str = "python -m service") -> int:
     args = build_parser(prog).parse_args(argv)
+    from .prefetch import Prefetch
+
+    # The served files' check (SHA-256 of 180 MB) runs while the imports below do: a hint the load
+    # takes only if it is the directory Settings names (DEFAULT_DATASET, as service.settings says).
+    prefetch = Prefetch(args.dataset or os.environ.get("TOPPLEDB_DATASET") or "data/dataset")
     from .server import listen_problem
 
     problem = listen_problem(args.host, args.port, args.workers)  # before the load: a port in use is said at once, in a line
@@ -84,7 +90,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m service") -> int:
             dataset=args.dataset, token=args.token, max_body_bytes=args.max_body_bytes, height_tolerance=args.height_tolerance,
             finger_force_limit=args.finger_force_limit, frame_id=args.frame_id, watch_seconds=args.watch_seconds,
         )
-        runtime = Runtime.open(settings)  # once: several workers are forked from this process
+        runtime = Runtime.open(settings, prefetch)  # once: several workers are forked from this process
     except (DatasetError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -21,6 +21,7 @@ from schema.version import CODE_VERSION
 
 from .lane import Lane
 from .metrics import Metrics
+from .prefetch import Prefetch
 from .settings import Settings
 from .store import LiveStore, Store
 
@@ -37,9 +38,10 @@ class Runtime:
     """Called after a rebuilt dataset is swapped in (the OpenAPI document names served objects)."""
 
     @classmethod
-    def open(cls, settings: Settings) -> Runtime:
-        """Map the dataset ``settings.dataset``; raises ``service.DatasetError`` if it is not one."""
-        live = LiveStore(Store.load(settings.dataset))
+    def open(cls, settings: Settings, prefetch: Prefetch | None = None) -> Runtime:
+        """Map the dataset ``settings.dataset``; raises ``service.DatasetError`` if it is not one.
+        ``prefetch``: its served files mapped and hashed already (``service.prefetch``)."""
+        live = LiveStore(Store.load(settings.dataset, prefetch))
         runtime = cls(settings, live, Metrics(), Lane())
         runtime.metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
         return runtime

@@ -24,6 +24,7 @@ import datetime
 import hashlib
 import json
 import logging
+import mmap
 import os
 import threading
 import time
@@ -39,6 +40,7 @@ from schema.manifest import Manifest, ManifestError, file_sha256, read_manifest
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .errors import NotFound
+from .prefetch import Prefetch, map_and_hash
 
 log = logging.getLogger("service")
 
@@ -313,7 +315,7 @@ class Store:
             raise NotFound(f"unknown object {_quoted(object_id)} ({len(self.objects)} objects; GET /objects lists them)") from None
 
     @classmethod
-    def load(cls, root: str | Path) -> Store:
+    def load(cls, root: str | Path, prefetch: Prefetch | None = None) -> Store:
         """Map a finished dataset's served tables (``schema.served``); DatasetError if it is
         not a dataset this service reads.  A dataset without them (or whose served files do
         not match its manifest) is served from its Parquet tables, converted in memory:
@@ -322,19 +324,22 @@ class Store:
 
         A rebuild commits its files one rename at a time, the manifest last: a load in between
         finds new files under the old manifest, which the checksums refuse, and is made again
-        once the manifest has changed (up to ``LOAD_ATTEMPTS`` times)."""
+        once the manifest has changed (up to ``LOAD_ATTEMPTS`` times).
+
+        prefetch : the served files mapped and hashed while the service was starting
+          (``service.prefetch``), used if they are this directory's under this manifest"""
         root = Path(root)
         for attempt in range(1, LOAD_ATTEMPTS + 1):
             stamp = manifest_stamp(root)
             try:
-                return cls._load_once(root)
+                return cls._load_once(root, prefetch)
             except DatasetError:
                 if attempt == LOAD_ATTEMPTS or manifest_stamp(root) == stamp:
                     raise
         raise AssertionError("unreachable: the last attempt returns or raises")
 
     @classmethod
-    def _load_once(cls, root: Path) -> Store:
+    def _load_once(cls, root: Path, prefetch: Prefetch | None = None) -> Store:
         """One load of the dataset as its files are now (``load``)."""
         started = time.perf_counter()
         try:
@@ -346,7 +351,7 @@ class Store:
         except ManifestError as err:
             raise DatasetError(str(err)) from None
         try:
-            tables = served.read_current(root, manifest)
+            tables = served.read_current(root, manifest, mapped=_mapped(root, manifest_sha256, prefetch))
         except served.ServedError as err:
             log.warning("%s; reading the Parquet tables instead (slower start, a copy in memory)", err)
             tables = _tables_from_parquet(root, manifest)
@@ -360,6 +365,20 @@ class Store:
                 f"check it with `toppledb verify {root}`"
             )
         return store
+
+
+def _mapped(root: Path, manifest_sha256: str, prefetch: Prefetch | None) -> dict[str, tuple[mmap.mmap, str]]:
+    """Table name -> (mapping, SHA-256) of each served file: the prefetched ones if they are this
+    build's, the others mapped and hashed now; a file that cannot be is left to ``read_served``,
+    which says why."""
+    prefetched = prefetch.mapped(root, manifest_sha256) if prefetch is not None else {}
+    out = {}
+    for name, relative in served.FILES.items():
+        try:
+            out[name] = prefetched.get(relative) or map_and_hash(root / relative)
+        except (OSError, ValueError):
+            continue
+    return out
 
 
 def _tables_from_parquet(root: Path, manifest: Manifest) -> dict[str, pa.Table]:

@@ -225,19 +225,49 @@ def test_a_load_that_meets_a_rebuild_s_commit_is_made_again_once_the_manifest_ch
     shutil.copytree(dataset, copy)
     real, calls = store_module.Store._load_once, []
 
-    def mid_commit(root):
+    def mid_commit(root, prefetch=None):
         calls.append(root)
         if len(calls) == 1:  # the rebuild's last rename lands while this load reads
             manifest = copy / "manifest.json"
             (copy / "manifest.new").write_bytes(manifest.read_bytes())
             (copy / "manifest.new").replace(manifest)
             raise DatasetError("served/actions.arrow: sha256 differs (new files, old manifest)")
-        return real(root)
+        return real(root, prefetch)
 
     monkeypatch.setattr(store_module.Store, "_load_once", mid_commit)
     assert Store.load(copy).counts["objects"] == 3 and len(calls) == 2
     calls.clear()
-    monkeypatch.setattr(store_module.Store, "_load_once", lambda root: (calls.append(root), real(copy / "nowhere"))[1])
+    monkeypatch.setattr(store_module.Store, "_load_once", lambda root, prefetch=None: (calls.append(root), real(copy / "nowhere"))[1])
     with pytest.raises(DatasetError, match="no such dataset directory"):
         Store.load(copy)
     assert len(calls) == 1, "nothing changed: refused at once"
+
+
+def test_the_service_takes_prefetched_mappings_only_for_the_build_it_loads(dataset, tmp_path, caplog):
+    """``python -m service`` maps and hashes the served files while it imports (``service.prefetch``):
+    the load uses those digests for the same directory and manifest, and maps its own otherwise."""
+    import hashlib as _hashlib
+
+    from service.prefetch import Prefetch
+
+    manifest_sha256 = _hashlib.sha256((dataset / "manifest.json").read_bytes()).hexdigest()
+    prefetch = Prefetch(dataset)
+    files = prefetch.mapped(dataset, manifest_sha256)
+    assert sorted(files) == sorted(served.FILES.values())
+    for relative, (mapping, digest) in files.items():
+        assert digest == _hashlib.sha256((dataset / relative).read_bytes()).hexdigest() and len(mapping) > 0
+    assert prefetch.mapped(tmp_path, manifest_sha256) == {} and prefetch.mapped(dataset, "0" * 64) == {}
+    same_objects(Store.load(dataset, prefetch), Store.load(dataset))
+    # The load trusts the prefetched digest of the bytes it serves: a wrong one is a damaged file.
+    prefetch._files["served/hulls.arrow"] = (files["served/hulls.arrow"][0], "0" * 64)
+    with caplog.at_level(logging.WARNING, logger="service"):
+        Store.load(dataset, prefetch)
+    assert "served/hulls.arrow: sha256 000000000000... differs" in caplog.text
+    # Another directory's prefetch, or one that found nothing, leaves the load to map its own.
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="service"):
+        same_objects(Store.load(copy, prefetch), Store.load(dataset))
+        same_objects(Store.load(copy, Prefetch(tmp_path / "nowhere")), Store.load(dataset))
+    assert "Parquet" not in caplog.text
