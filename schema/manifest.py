@@ -212,9 +212,10 @@ def file_sha256(path: str | Path) -> str:
         return ""
 
 
-def read_manifest(root: str | Path) -> Manifest:
+def read_manifest(root: str | Path, raw: bytes | None = None) -> Manifest:
     """The dataset's manifest; ``ManifestError`` with a one-line reason when the
-    directory is missing, unfinished, unreadable, malformed or of another schema version."""
+    directory is missing, unfinished, unreadable, malformed or of another schema version.
+    ``raw``: the file's bytes as the caller read them (and hashed them), parsed instead of reading it again."""
     root = Path(root)
     path = root / layout.MANIFEST
     if not root.is_dir():
@@ -222,7 +223,7 @@ def read_manifest(root: str | Path) -> Manifest:
     if not path.is_file():
         raise ManifestError(f"no {layout.MANIFEST} in {root}: not a dataset, or its build did not finish")
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_bytes() if raw is None else raw)
     except (OSError, ValueError) as err:
         raise ManifestError(f"{path}: not valid JSON ({err})") from None
     version = data.get("schema_version") if isinstance(data, dict) else None

@@ -128,6 +128,8 @@ def read_served(root: str | Path, checksums: dict[str, str] | None = None,
             if mapped is not None and name in mapped:
                 view, actual = mapped[name]
             else:
+                if path.exists() and not path.is_file():  # a named pipe would block the open
+                    raise ServedError(f"{path}: not a regular file")
                 with open(path, "rb") as f:
                     actual = hashlib.file_digest(f, "sha256").hexdigest() if checksums is not None else None
                     view = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)  # outlives the descriptor

@@ -343,11 +343,12 @@ class Store:
         """One load of the dataset as its files are now (``load``)."""
         started = time.perf_counter()
         try:
-            manifest_sha256 = hashlib.sha256((root / layout.MANIFEST).read_bytes()).hexdigest()
+            raw = (root / layout.MANIFEST).read_bytes()  # hashed and parsed once: a rebuild may replace it meanwhile
         except OSError:
-            manifest_sha256 = ""  # read_manifest below says what is wrong
+            raw = None  # read_manifest below says what is wrong
+        manifest_sha256 = hashlib.sha256(raw).hexdigest() if raw is not None else ""
         try:
-            manifest = read_manifest(root)
+            manifest = read_manifest(root, raw)
         except ManifestError as err:
             raise DatasetError(str(err)) from None
         try:

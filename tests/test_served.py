@@ -247,6 +247,7 @@ def test_the_service_takes_prefetched_mappings_only_for_the_build_it_loads(datas
     """``python -m service`` maps and hashes the served files while it imports (``service.prefetch``):
     the load uses those digests for the same directory and manifest, and maps its own otherwise."""
     import hashlib as _hashlib
+    import os
 
     from service.prefetch import Prefetch
 
@@ -256,18 +257,32 @@ def test_the_service_takes_prefetched_mappings_only_for_the_build_it_loads(datas
     assert sorted(files) == sorted(served.FILES.values())
     for relative, (mapping, digest) in files.items():
         assert digest == _hashlib.sha256((dataset / relative).read_bytes()).hexdigest() and len(mapping) > 0
-    assert prefetch.mapped(tmp_path, manifest_sha256) == {} and prefetch.mapped(dataset, "0" * 64) == {}
-    same_objects(Store.load(dataset, prefetch), Store.load(dataset))
+    assert prefetch.mapped(dataset, manifest_sha256) == {}, "handed over once: it keeps no old build mapped"
+    assert Prefetch(dataset).mapped(tmp_path, manifest_sha256) == {}
+    assert Prefetch(dataset).mapped(dataset, "0" * 64) == {}
+    same_objects(Store.load(dataset, Prefetch(dataset)), Store.load(dataset))
     # The load trusts the prefetched digest of the bytes it serves: a wrong one is a damaged file.
-    prefetch._files["served/hulls.arrow"] = (files["served/hulls.arrow"][0], "0" * 64)
+    wrong = Prefetch(dataset)
+    wrong._thread.join()
+    wrong._files["served/hulls.arrow"] = (wrong._files["served/hulls.arrow"][0], "0" * 64)
     with caplog.at_level(logging.WARNING, logger="service"):
-        Store.load(dataset, prefetch)
+        Store.load(dataset, wrong)
     assert "served/hulls.arrow: sha256 000000000000... differs" in caplog.text
     # Another directory's prefetch, or one that found nothing, leaves the load to map its own.
     copy = tmp_path / "dataset"
     shutil.copytree(dataset, copy)
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="service"):
-        same_objects(Store.load(copy, prefetch), Store.load(dataset))
+        same_objects(Store.load(copy, Prefetch(dataset)), Store.load(dataset))
         same_objects(Store.load(copy, Prefetch(tmp_path / "nowhere")), Store.load(dataset))
     assert "Parquet" not in caplog.text
+    # A symlink loop or a named pipe in place of a served file is the load's to report, not a hang or a crash.
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    with pytest.raises(DatasetError, match="no such dataset directory"):
+        Store.load(loop, Prefetch(loop))
+    (copy / "served" / "poses.arrow").unlink()
+    os.mkfifo(copy / "served" / "poses.arrow")
+    with caplog.at_level(logging.WARNING, logger="service"):
+        same_objects(Store.load(copy, Prefetch(copy)), Store.load(dataset))  # from Parquet
+    assert "served/poses.arrow: not a regular file" in caplog.text
