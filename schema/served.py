@@ -124,12 +124,12 @@ def read_served(root: str | Path, checksums: dict[str, str] | None = None,
     out = {}
     for name, relative in FILES.items():
         path = Path(root) / relative
+        if (mapped is None or name not in mapped) and path.exists() and not path.is_file():
+            raise ServedError(f"{path}: not a regular file")  # opening a named pipe would wait for a writer
         try:
             if mapped is not None and name in mapped:
                 view, actual = mapped[name]
             else:
-                if path.exists() and not path.is_file():  # a named pipe would block the open
-                    raise ServedError(f"{path}: not a regular file")
                 with open(path, "rb") as f:
                     actual = hashlib.file_digest(f, "sha256").hexdigest() if checksums is not None else None
                     view = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)  # outlives the descriptor
