@@ -115,9 +115,8 @@ def read_served(root: str | Path, checksums: dict[str, str] | None = None,
     checksums : table name -> the hex SHA-256 its file must have; a file not in ``mapped`` is
       then read through once and hashed, and mapped from the same open file, so the bytes
       checked are the file served
-    mapped : table name -> (read-only mapping of its file, SHA-256 of the mapped bytes): files the
-      caller mapped and hashed already (the service's ``service.prefetch.map_and_hash``, which
-      hashes through the map and leaves the pages in the file cache, not the process)
+    mapped : table name -> (read-only mapping of its file, SHA-256 of its bytes): files the caller
+      mapped and hashed already (``service.prefetch``, while the service imports)
 
     ServedError when a file is missing, unreadable or not the recorded bytes (the caller falls
     back to the Parquet tables, or rebuilds)."""

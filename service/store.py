@@ -40,7 +40,7 @@ from schema.manifest import Manifest, ManifestError, file_sha256, read_manifest
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .errors import NotFound
-from .prefetch import Prefetch, map_and_hash
+from .prefetch import Prefetch
 
 log = logging.getLogger("service")
 
@@ -369,17 +369,10 @@ class Store:
 
 
 def _mapped(root: Path, manifest_sha256: str, prefetch: Prefetch | None) -> dict[str, tuple[mmap.mmap, str]]:
-    """Table name -> (mapping, SHA-256) of each served file: the prefetched ones if they are this
-    build's, the others mapped and hashed now; a file that cannot be is left to ``read_served``,
-    which says why."""
+    """Table name -> (mapping, SHA-256) of the served files ``prefetch`` mapped and hashed, if they are
+    this build's; ``read_served`` maps and hashes the others (and says why one cannot be)."""
     prefetched = prefetch.mapped(root, manifest_sha256) if prefetch is not None else {}
-    out = {}
-    for name, relative in served.FILES.items():
-        try:
-            out[name] = prefetched.get(relative) or map_and_hash(root / relative)
-        except (OSError, ValueError):
-            continue
-    return out
+    return {name: prefetched[relative] for name, relative in served.FILES.items() if relative in prefetched}
 
 
 def _tables_from_parquet(root: Path, manifest: Manifest) -> dict[str, pa.Table]:

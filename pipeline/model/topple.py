@@ -1013,7 +1013,7 @@ def evaluate_pose(
     # MODEL.md C.18: a share of each landing in a marginal pose goes one fall further.  The stay
     # entry has share 0, so the start column keeps whole counts: P(topple) is unchanged.
     edge_share = onward_shares(final_pose, onward_pose, pose.index, drop_probabilities, onward_share,
-                               config.landing_onward_below) if onward_share else np.zeros(len(final_pose))  # (E + 1,)
+                               config.landing_onward_below)  # (E + 1,); all 0 when nothing is carried on
     if onward_share:
         share = edge_share[edge_of_trial]  # (n_ok T,)
         cells = np.concatenate([landed_cells, row_start + onward_pose[edge_of_trial]])
