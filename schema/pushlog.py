@@ -18,13 +18,26 @@ pybullet_data when ``mesh_source`` is ``pybullet_data``, like corpus lists).
 
 Nothing is trusted: a reader checks every row (``row_problems``) and reports the
 bad ones with a reason, never drops them silently.
+
+A robot's own pushes: ``dataset_meshes`` names each object as the dataset's build read it,
+``robot_row`` turns a ``/plan`` answer the robot executed, and the poses it observed before and
+after, into a row, and ``write_log`` writes rows as one log file, checked and all or nothing.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 import pyarrow as pa
+import pyarrow.parquet as pq
 
+from schema.manifest import read_manifest
 from schema.tables import column, xyz
 
 PUSHLOG_VERSION = "1.0"
@@ -110,3 +123,139 @@ def rigid(matrices: np.ndarray, tolerance: float = RIGID_TOLERANCE) -> np.ndarra
         proper = np.abs(np.linalg.det(np.nan_to_num(rotation)) - 1.0) <= tolerance
         last_row = np.abs(matrices[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1) <= tolerance
     return orthogonal & proper & last_row
+
+
+# --- a robot's own pushes -----------------------------------------------------------------
+
+PYBULLET_DATA = "pybullet_data"
+
+
+@dataclass(frozen=True)
+class LoggedMesh:
+    """How a log row names its object: the mesh the model reads, in metres, and the mass.
+
+    mesh_source : 'pybullet_data' (``mesh_path`` relative to it, so the log reads on any machine
+      with pybullet installed) or 'file' (``mesh_path`` absolute)
+    scale : mesh units -> metres;  mass : kg;  mesh_sha256 : hex SHA-256 of the mesh file
+    """
+
+    object_id: str
+    mesh_source: str
+    mesh_path: str
+    scale: float
+    mass: float
+    mesh_sha256: str
+
+
+def dataset_meshes(root: str | Path) -> dict[str, LoggedMesh]:
+    """Object id -> ``LoggedMesh`` for every object of the dataset at ``root``, as its manifest's
+    corpus records it (path, scale, mass and the SHA-256 of the file the build read).
+
+    ``schema.manifest.ManifestError`` when ``root`` is not a finished dataset of this schema."""
+    meshes = {}
+    for entry in read_manifest(root).corpus.objects:
+        source, path = "file", entry.path
+        # The build records absolute paths; one inside pybullet's data is logged relative to it,
+        # as ``toppledb play`` logs it, so the log does not name this machine's install.
+        parts = Path(entry.path).parts
+        if (entry.source == PYBULLET_DATA or entry.source.startswith(PYBULLET_DATA + "/")) and PYBULLET_DATA in parts:
+            last = len(parts) - 1 - parts[::-1].index(PYBULLET_DATA)
+            source, path = PYBULLET_DATA, Path(*parts[last + 1:]).as_posix()
+        meshes[entry.object_id] = LoggedMesh(entry.object_id, source, path, entry.scale, entry.mass, entry.sha256)
+    return meshes
+
+
+def robot_row(
+    plan: Mapping[str, Any] | Any,
+    start_transform: Any,
+    final_transform: Any,
+    mesh: LoggedMesh,
+    *,
+    push_id: int,
+    finger_speed: float,
+    finger_radius: float,
+    source: str,
+    repeat: int = 0,
+    mu_table: float | None = None,
+    mu_finger: float | None = None,
+) -> dict[str, Any]:
+    """One log row for a push the robot executed as ``/plan`` answered it.
+
+    plan : the ``/plan`` answer (its JSON as a dict, or ``service.client``'s model of it) that
+      chose the push; it must have chosen one (``decision`` 'push')
+    start_transform : (4, 4) float, object -> world as observed before the push: the pose sent
+      to ``/plan`` (the same world frame, table at z = 0)
+    final_transform : (4, 4) float, object -> world as observed once the object was at rest again
+    mesh : the object's ``LoggedMesh`` (``dataset_meshes``); its id must be the plan's
+    push_id, repeat : the push's id in this log, and which repeat of it this is
+    finger_speed : m/s;  finger_radius : m;  source : 'robot:<name>'
+    mu_table, mu_finger : friction coefficients, if measured
+
+    The push is logged in the object frame (the world push mapped through the inverse of
+    ``start_transform``), with the approach and stroke the plan gave, and the plan's pose and
+    action as hints. ValueError when the plan chose no push or names another object."""
+    if hasattr(plan, "model_dump"):
+        plan = plan.model_dump()
+    push = plan.get("push")
+    if push is None:
+        raise ValueError(f"the plan chose no push (decision {plan.get('decision')!r}): there is nothing to log")
+    if plan.get("object_id") != mesh.object_id:
+        raise ValueError(f"the plan is for object {plan.get('object_id')!r}, the mesh is {mesh.object_id!r}")
+    start = np.asarray(start_transform, dtype=float)
+    final = np.asarray(final_transform, dtype=float)
+    for name, matrix in (("start_transform", start), ("final_transform", final)):
+        if matrix.shape != (4, 4):
+            raise ValueError(f"{name} must be a 4x4 matrix, not shape {matrix.shape}")
+    to_object = np.linalg.inv(start)
+    point = to_object[:3, :3] @ np.asarray(push["point"], dtype=float) + to_object[:3, 3]
+    direction = to_object[:3, :3] @ np.asarray(push["direction"], dtype=float)
+    return {
+        "object_id": mesh.object_id, "mesh_sha256": mesh.mesh_sha256, "mesh_source": mesh.mesh_source,
+        "mesh_path": mesh.mesh_path, "scale": float(mesh.scale), "mass": float(mesh.mass),
+        "push_id": int(push_id), "repeat": int(repeat), "start_pose": plan.get("match", {}).get("pose"),
+        "start_transform": start.ravel().tolist(),
+        "point_x": point[0], "point_y": point[1], "point_z": point[2],
+        "direction_x": direction[0], "direction_y": direction[1], "direction_z": direction[2],
+        "action": plan.get("action"), "finger_speed": float(finger_speed),
+        "approach_offset": float(push["approach_offset"]), "push_depth": float(push["push_depth"]),
+        "finger_radius": float(finger_radius), "final_transform": final.ravel().tolist(),
+        "mu_table": mu_table, "mu_finger": mu_finger, "source": source, "seed": None,
+    }
+
+
+def write_log(rows: Iterable[Mapping[str, Any]], path: str | Path) -> Path:
+    """Write push-log rows (``robot_row``'s, or any with ``PUSHLOG``'s columns) as one Parquet file.
+
+    All or nothing: every row is checked first (``row_problems``), and a ValueError names each bad
+    row and why, with nothing written; the file appears whole or not at all, and an existing file
+    is never replaced (FileExistsError), so a session's log is not lost to the next. A log may be a
+    directory of such files: write each session to a new file in it."""
+    path = Path(path)
+    rows = list(rows)
+    if not rows:
+        raise ValueError("no rows to write")
+    columns = {name: [row.get(name) for row in rows] for name in PUSHLOG.names}
+    missing = sorted({name for row in rows for name in PUSHLOG.names if name not in row})
+    if missing:
+        raise ValueError(f"rows lack the columns {missing}")
+    try:
+        table = pa.Table.from_pydict(columns, schema=PUSHLOG)
+    except (pa.ArrowException, TypeError, ValueError) as err:
+        raise ValueError(f"rows do not fit the push log's schema: {' '.join(str(err).split())[:200]}") from None
+    bad = [f"row {i}: {problem}" for i, problem in enumerate(row_problems(table)) if problem is not None]
+    if bad:
+        raise ValueError(f"{len(bad)} of {len(rows)} rows cannot be used, nothing written: " + "; ".join(bad[:5]))
+    if path.exists():
+        raise FileExistsError(f"{path} exists: a log file is never replaced; write to a new file")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # Named to be skipped by log readers ('.' prefix) while it is written.
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(handle)
+    try:
+        pq.write_table(table, temporary)
+        os.link(temporary, path)  # fails, rather than replaces, if the file appeared meanwhile
+    except FileExistsError:
+        raise FileExistsError(f"{path} exists: a log file is never replaced; write to a new file") from None
+    finally:
+        os.unlink(temporary)
+    return path

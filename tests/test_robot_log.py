@@ -1,0 +1,153 @@
+# ruff: noqa: F811  (pytest fixtures imported from tests/test_service.py)
+"""A robot's own pushes as a push log (``schema.pushlog``: ``dataset_meshes``, ``robot_row``,
+``write_log``): the row is the ``/plan`` push in the object frame, and the log reader reads it back
+as the dataset's push from the planned pose."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from pipeline.build.corpus import pybullet_data_dir
+from pipeline.model.config import Config
+from pipeline.studies.logreader import read_log
+from schema.api import PlanResponse
+from schema.manifest import ManifestError, file_sha256
+from schema.pushlog import LoggedMesh, dataset_meshes, robot_row, write_log
+from tests.test_service import client, dataset, planar_transform, stored_transform, tables  # noqa: F401
+
+ROBOT = {"finger_speed": 0.05, "finger_radius": 0.004, "source": "robot:test"}
+
+
+@pytest.fixture(scope="module")
+def executed(client, tables):
+    """(object_id, pose, observed start, observed final, answer) for every pose of the tiny dataset seen
+    at a random yaw and place where value iteration pushes; the final is the push's likeliest next pose,
+    turned and moved again."""
+    rng = np.random.default_rng(11)
+    out = []
+    for (object_id, pose), _ in sorted(tables["poses"].items()):
+        observed = planar_transform(rng.uniform(-math.pi, math.pi), *rng.uniform(-0.5, 0.5, 2)) @ stored_transform(tables, object_id, pose)
+        answer = client.post("/plan", json={"object_id": object_id, "pose": observed.tolist()}).json()
+        if answer["push"] is None:
+            continue
+        likeliest = max(answer["next_poses"], key=lambda n: n["probability"])["next_pose"]
+        final = planar_transform(rng.uniform(-math.pi, math.pi), *rng.uniform(-0.5, 0.5, 2)) @ stored_transform(tables, object_id, likeliest)
+        out.append((object_id, pose, observed, final, answer))
+    assert len(out) >= 5, "the tiny dataset should have poses where value iteration pushes"
+    return out
+
+
+def test_a_row_is_the_plan_s_push_in_the_object_frame(executed, dataset, tables):
+    meshes = dataset_meshes(dataset)
+    contacts = tables["manifest"]["parameters"]["contacts"]
+    for push_id, (object_id, pose, observed, final, answer) in enumerate(executed):
+        row = robot_row(answer, observed, final, meshes[object_id], push_id=push_id, **ROBOT)
+        start = np.array(row["start_transform"]).reshape(4, 4)
+        point = np.array([row[f"point_{a}"] for a in "xyz"])
+        direction = np.array([row[f"direction_{a}"] for a in "xyz"])
+        np.testing.assert_array_equal(start, observed)
+        np.testing.assert_array_equal(np.array(row["final_transform"]).reshape(4, 4), final)
+        # The world push, as the robot executed it, is the logged push placed by the start pose.
+        np.testing.assert_allclose(start[:3, :3] @ point + start[:3, 3], answer["push"]["point"], atol=1e-12)
+        np.testing.assert_allclose(start[:3, :3] @ direction, answer["push"]["direction"], atol=1e-12)
+        assert (row["start_pose"], row["action"], row["push_id"], row["repeat"]) == (pose, answer["action"], push_id, 0)
+        assert (row["approach_offset"], row["push_depth"]) == (contacts["approach_offset"], contacts["push_depth"])
+        assert (row["finger_speed"], row["finger_radius"], row["source"], row["seed"]) == (0.05, 0.004, "robot:test", None)
+        assert (row["mesh_sha256"], row["scale"], row["mass"]) == (meshes[object_id].mesh_sha256, 0.015, 0.1)
+
+
+def test_the_log_reads_back_as_the_dataset_s_pushes_from_the_planned_poses(executed, dataset, tables, tmp_path):
+    meshes = dataset_meshes(dataset)
+    rows = [robot_row(answer, observed, final, meshes[object_id], push_id=i, **ROBOT)
+            for i, (object_id, _, observed, final, answer) in enumerate(executed)]
+    path = write_log(rows, tmp_path / "robot" / "session-1.parquet")
+    assert [p.name for p in path.parent.iterdir()] == ["session-1.parquet"], "no temporary file is left behind"
+    log = read_log([path.parent], Config())
+    assert log.rejected == {} and len(log.pushes) == len(executed)
+    by_id = {push.push_id: push for push in log.pushes}
+    for i, (object_id, pose, _, final, answer) in enumerate(executed):
+        push, action = by_id[i], tables["actions"][(object_id, pose, answer["action"])]
+        assert push.object_id == object_id and push.pose == pose
+        # The reader's pose-frame push is the dataset's candidate (stored in float32).
+        np.testing.assert_allclose(push.point, [action[f"point_{a}"] for a in "xyz"], atol=1e-6)
+        np.testing.assert_allclose(push.direction, [action[f"direction_{a}"] for a in "xyz"], atol=1e-6)
+        likeliest = max(answer["next_poses"], key=lambda n: n["probability"])["next_pose"]
+        assert push.outcomes.tolist() == [likeliest]
+
+
+def test_the_client_s_model_of_the_answer_gives_the_same_row(executed, dataset):
+    object_id, _, observed, final, answer = executed[0]
+    mesh = dataset_meshes(dataset)[object_id]
+    typed = PlanResponse.model_validate(answer)
+    assert robot_row(typed, observed, final, mesh, push_id=3, repeat=2, **ROBOT) == robot_row(
+        answer, observed, final, mesh, push_id=3, repeat=2, **ROBOT)
+
+
+def test_a_plan_without_a_push_another_object_or_a_bad_matrix_is_refused(client, executed, dataset, tables):
+    meshes = dataset_meshes(dataset)
+    object_id, _, observed, final, answer = executed[0]
+    grasping = [(o, p) for (o, p), row in tables["poses"].items() if row["value_iteration_action"] == -1]
+    assert grasping, "the tiny dataset should have a pose where value iteration does not push"
+    other, pose = grasping[0]
+    seen = stored_transform(tables, other, pose)
+    no_push = client.post("/plan", json={"object_id": other, "pose": seen.tolist()}).json()
+    with pytest.raises(ValueError, match="chose no push"):
+        robot_row(no_push, seen, seen, meshes[other], push_id=0, **ROBOT)
+    stranger = next(mesh for name, mesh in meshes.items() if name != object_id)
+    with pytest.raises(ValueError, match=f"plan is for object '{object_id}'"):
+        robot_row(answer, observed, final, stranger, push_id=0, **ROBOT)
+    with pytest.raises(ValueError, match=r"start_transform must be a 4x4 matrix, not shape \(3, 3\)"):
+        robot_row(answer, observed[:3, :3], final, meshes[object_id], push_id=0, **ROBOT)
+    with pytest.raises(ValueError, match="final_transform must be a 4x4"):
+        robot_row(answer, observed, final.ravel(), meshes[object_id], push_id=0, **ROBOT)
+
+
+def test_write_log_writes_all_or_nothing_and_never_replaces_a_file(executed, dataset, tmp_path):
+    meshes = dataset_meshes(dataset)
+    rows = [robot_row(answer, observed, final, meshes[object_id], push_id=i, **ROBOT)
+            for i, (object_id, _, observed, final, answer) in enumerate(executed[:3])]
+    skewed = dict(rows[1], final_transform=(np.diag([1.0, 2.0, 1.0, 1.0])).ravel().tolist())
+    target = tmp_path / "log.parquet"
+    with pytest.raises(ValueError, match=r"1 of 3 rows cannot be used, nothing written: row 1: final_transform is not a rigid"):
+        write_log([rows[0], skewed, rows[2]], target)
+    with pytest.raises(ValueError, match="no rows"):
+        write_log([], target)
+    with pytest.raises(ValueError, match=r"rows lack the columns \['mu_finger'\]"):
+        write_log([{k: v for k, v in rows[0].items() if k != "mu_finger"}], target)
+    with pytest.raises(ValueError, match="do not fit the push log's schema"):
+        write_log([dict(rows[0], push_id="first")], target)
+    assert list(tmp_path.iterdir()) == [], "a refused write leaves nothing"
+    write_log(rows, target)
+    written = target.read_bytes()
+    with pytest.raises(FileExistsError, match="never replaced"):
+        write_log(rows[:1], target)
+    assert target.read_bytes() == written and [p.name for p in tmp_path.iterdir()] == ["log.parquet"]
+
+
+def test_dataset_meshes_name_each_object_as_the_build_read_it(dataset, tmp_path):
+    meshes = dataset_meshes(dataset)
+    assert sorted(meshes) == ["random_000", "random_001", "random_002"]
+    for object_id, mesh in meshes.items():
+        # pybullet's meshes are named relative to its data, so the log reads on another machine.
+        assert (mesh.mesh_source, mesh.mesh_path) == ("pybullet_data", f"random_urdfs/{object_id[-3:]}/{object_id[-3:]}.obj")
+        assert mesh.mesh_sha256 == file_sha256(pybullet_data_dir() / mesh.mesh_path)
+        assert (mesh.scale, mesh.mass) == (0.015, 0.1)
+    # A mesh of one's own is logged by its absolute path.
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    manifest = json.loads((dataset / "manifest.json").read_text())
+    manifest["corpus"]["objects"][0].update(source="file", path="/meshes/part.obj")
+    manifest["corpus"]["objects"][1].update(source="pybullet_data/random_urdfs", path="/elsewhere/part.obj")
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    own = dataset_meshes(copy)
+    assert own["random_000"] == LoggedMesh("random_000", "file", "/meshes/part.obj", 0.015, 0.1,
+                                            manifest["corpus"]["objects"][0]["sha256"])
+    assert (own["random_001"].mesh_source, own["random_001"].mesh_path) == ("file", "/elsewhere/part.obj")
+    shutil.rmtree(copy)
+    with pytest.raises(ManifestError, match="no such dataset directory"):
+        dataset_meshes(copy)
