@@ -245,15 +245,13 @@ def write_log(rows: Iterable[Mapping[str, Any]], path: str | Path) -> Path:
     bad = [f"row {i}: {problem}" for i, problem in enumerate(row_problems(table)) if problem is not None]
     if bad:
         raise ValueError(f"{len(bad)} of {len(rows)} rows cannot be used, nothing written: " + "; ".join(bad[:5]))
-    if path.exists():
-        raise FileExistsError(f"{path} exists: a log file is never replaced; write to a new file")
     path.parent.mkdir(parents=True, exist_ok=True)
     # Named to be skipped by log readers ('.' prefix) while it is written.
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(handle)
     try:
         pq.write_table(table, temporary)
-        os.link(temporary, path)  # fails, rather than replaces, if the file appeared meanwhile
+        os.link(temporary, path)  # unlike a rename, fails rather than replaces an existing file
     except FileExistsError:
         raise FileExistsError(f"{path} exists: a log file is never replaced; write to a new file") from None
     finally:
