@@ -151,3 +151,43 @@ def test_dataset_meshes_name_each_object_as_the_build_read_it(dataset, tmp_path)
     shutil.rmtree(copy)
     with pytest.raises(ManifestError, match="no such dataset directory"):
         dataset_meshes(copy)
+
+
+def test_the_documented_robot_loop_runs_as_written(executed, dataset, tmp_path, monkeypatch):
+    """docs/VALIDATION.md's example, with a stub robot whose push moves the object to the push's
+    likeliest next pose the first time and leaves it where it is after that."""
+    from pathlib import Path
+
+    from fastapi.testclient import TestClient
+
+    import service.client
+    from service import create_app
+
+    text = (Path(__file__).resolve().parent.parent / "docs" / "VALIDATION.md").read_text()
+    after = text.index("**Logging a robot's pushes.**")
+    block = text[text.index("```python\n", after) + len("```python\n"):text.index("```", text.index("```python\n", after) + 3)]
+    object_id, pose, observed, final, answer = executed[0]
+    state = {"pose": observed, "executed": []}
+
+    def observe(name):
+        assert name == object_id
+        return state["pose"]
+
+    def execute(start, end):
+        state["executed"].append((start, end))
+        if state["pose"] is observed:
+            state["pose"] = final
+
+    real = service.client.Client
+    monkeypatch.setattr(service.client, "Client", lambda base_url, **kw: real(http=TestClient(create_app(dataset)), **kw))
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "dataset").symlink_to(dataset)
+    monkeypatch.chdir(tmp_path)
+    exec(compile(block, "docs/VALIDATION.md", "exec"), {"object_id": object_id, "observe": observe, "execute": execute})
+
+    np.testing.assert_allclose(state["executed"][0], [answer["push"]["start"], answer["push"]["end"]], atol=1e-12)
+    log = read_log([tmp_path / "data" / "logs" / "robot"], Config())
+    assert log.rejected == {} and len(log.pushes) == len(state["executed"]) >= 1
+    first = min(log.pushes, key=lambda push: push.push_id)
+    likeliest = max(answer["next_poses"], key=lambda n: n["probability"])["next_pose"]
+    assert (first.pose, first.outcomes.tolist()) == (pose, [likeliest])
