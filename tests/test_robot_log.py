@@ -8,16 +8,20 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
 
+import service.client
 from pipeline.build.corpus import pybullet_data_dir
 from pipeline.model.config import Config
 from pipeline.studies.logreader import read_log
 from schema.api import PlanResponse
 from schema.manifest import ManifestError, file_sha256
 from schema.pushlog import LoggedMesh, dataset_meshes, robot_row, write_log
+from service import create_app
 from tests.test_service import client, dataset, planar_transform, stored_transform, tables  # noqa: F401
 
 ROBOT = {"finger_speed": 0.05, "finger_radius": 0.004, "source": "robot:test"}
@@ -156,13 +160,6 @@ def test_dataset_meshes_name_each_object_as_the_build_read_it(dataset, tmp_path)
 def test_the_documented_robot_loop_runs_as_written(executed, dataset, tmp_path, monkeypatch):
     """docs/VALIDATION.md's example, with a stub robot whose push moves the object to the push's
     likeliest next pose the first time and leaves it where it is after that."""
-    from pathlib import Path
-
-    from fastapi.testclient import TestClient
-
-    import service.client
-    from service import create_app
-
     text = (Path(__file__).resolve().parent.parent / "docs" / "VALIDATION.md").read_text()
     after = text.index("**Logging a robot's pushes.**")
     block = text[text.index("```python\n", after) + len("```python\n"):text.index("```", text.index("```python\n", after) + 3)]
@@ -183,7 +180,7 @@ def test_the_documented_robot_loop_runs_as_written(executed, dataset, tmp_path, 
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "dataset").symlink_to(dataset)
     monkeypatch.chdir(tmp_path)
-    exec(compile(block, "docs/VALIDATION.md", "exec"), {"object_id": object_id, "observe": observe, "execute": execute})
+    exec(compile(block, "docs/VALIDATION.md", "exec"), {"object_id": object_id, "observe": observe, "execute": execute})  # noqa: S102  (the docs run as written)
 
     np.testing.assert_allclose(state["executed"][0], [answer["push"]["start"], answer["push"]["end"]], atol=1e-12)
     log = read_log([tmp_path / "data" / "logs" / "robot"], Config())
