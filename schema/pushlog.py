@@ -21,22 +21,26 @@ bad ones with a reason, never drops them silently.
 
 A robot's own pushes: ``dataset_meshes`` names each object as the dataset's build read it,
 ``robot_row`` turns a ``/plan`` answer the robot executed, and the poses it observed before and
-after, into a row, and ``write_log`` writes rows as one log file, checked and all or nothing.
+after, into a row, and ``write_log`` writes a session's rows as one log, checked and all or nothing.
 """
 
 from __future__ import annotations
 
+import errno
+import json
+import operator
 import os
-import tempfile
+import uuid
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from schema import layout
 from schema.manifest import read_manifest
 from schema.tables import column, xyz
 
@@ -128,6 +132,11 @@ def rigid(matrices: np.ndarray, tolerance: float = RIGID_TOLERANCE) -> np.ndarra
 # --- a robot's own pushes -----------------------------------------------------------------
 
 PYBULLET_DATA = "pybullet_data"
+POSES_METADATA_KEY = b"toppledb_poses"
+"""Parquet metadata key of a log ``write_log`` wrote for a dataset: that dataset's pose parameters
+(JSON), the numbering its ``start_pose`` column uses, whatever configuration reads it later."""
+LOG_FILE = "pushes.parquet"
+"""The file ``write_log`` writes in a session's directory."""
 
 
 @dataclass(frozen=True)
@@ -135,7 +144,7 @@ class LoggedMesh:
     """How a log row names its object: the mesh the model reads, in metres, and the mass.
 
     mesh_source : 'pybullet_data' (``mesh_path`` relative to it, so the log reads on any machine
-      with pybullet installed) or 'file' (``mesh_path`` absolute)
+      with pybullet installed) or 'file' (``mesh_path`` as the build read it)
     scale : mesh units -> metres;  mass : kg;  mesh_sha256 : hex SHA-256 of the mesh file
     """
 
@@ -151,16 +160,17 @@ def dataset_meshes(root: str | Path) -> dict[str, LoggedMesh]:
     """Object id -> ``LoggedMesh`` for every object of the dataset at ``root``, as its manifest's
     corpus records it (path, scale, mass and the SHA-256 of the file the build read).
 
+    A mesh the build took from pybullet's data is named relative to it (the reader finds it in
+    the pybullet it has installed; a copy that differs is rejected there as a changed mesh).
     ``schema.manifest.ManifestError`` when ``root`` is not a finished dataset of this schema."""
     meshes = {}
     for entry in read_manifest(root).corpus.objects:
         source, path = "file", entry.path
-        # The build records absolute paths; one inside pybullet's data is logged relative to it,
-        # as ``toppledb play`` logs it, so the log does not name this machine's install.
-        parts = Path(entry.path).parts
+        # A build on Windows records C:\...\pybullet_data\...: its parts, not this machine's.
+        parts = (PureWindowsPath if "\\" in entry.path else PurePosixPath)(entry.path).parts
         if (entry.source == PYBULLET_DATA or entry.source.startswith(PYBULLET_DATA + "/")) and PYBULLET_DATA in parts:
             last = len(parts) - 1 - parts[::-1].index(PYBULLET_DATA)
-            source, path = PYBULLET_DATA, Path(*parts[last + 1:]).as_posix()
+            source, path = PYBULLET_DATA, PurePosixPath(*parts[last + 1:]).as_posix()
         meshes[entry.object_id] = LoggedMesh(entry.object_id, source, path, entry.scale, entry.mass, entry.sha256)
     return meshes
 
@@ -183,17 +193,18 @@ def robot_row(
 
     plan : the ``/plan`` answer (its JSON as a dict, or ``service.client``'s model of it) that
       chose the push; it must have chosen one (``decision`` 'push')
-    start_transform : (4, 4) float, object -> world as observed before the push: the pose sent
-      to ``/plan`` (the same world frame, table at z = 0)
+    start_transform : (4, 4) float, object -> world as observed before the push: the very pose sent
+      to ``/plan`` (for a ``ros_pose``, ``RosPose(...).matrix()``), in its world frame (table at
+      z = 0). The push is mapped into the object frame through it, so another pose (one observed
+      again after planning) logs a push the robot did not make, which nothing downstream can tell.
     final_transform : (4, 4) float, object -> world as observed once the object was at rest again
     mesh : the object's ``LoggedMesh`` (``dataset_meshes``); its id must be the plan's
-    push_id, repeat : the push's id in this log, and which repeat of it this is
+    push_id, repeat : the push's id in this session's log, and which repeat of it this is (integers)
     finger_speed : m/s;  finger_radius : m;  source : 'robot:<name>'
     mu_table, mu_finger : friction coefficients, if measured
 
-    The push is logged in the object frame (the world push mapped through the inverse of
-    ``start_transform``), with the approach and stroke the plan gave, and the plan's pose and
-    action as hints. ValueError when the plan chose no push or names another object."""
+    The push is logged in the object frame, with the approach and stroke the plan gave, and the
+    plan's pose and action as hints. ValueError when the plan chose no push or names another object."""
     if hasattr(plan, "model_dump"):
         plan = plan.model_dump()
     push = plan.get("push")
@@ -212,8 +223,8 @@ def robot_row(
     return {
         "object_id": mesh.object_id, "mesh_sha256": mesh.mesh_sha256, "mesh_source": mesh.mesh_source,
         "mesh_path": mesh.mesh_path, "scale": float(mesh.scale), "mass": float(mesh.mass),
-        "push_id": int(push_id), "repeat": int(repeat), "start_pose": plan.get("match", {}).get("pose"),
-        "start_transform": start.ravel().tolist(),
+        "push_id": _integer(push_id, "push_id"), "repeat": _integer(repeat, "repeat"),
+        "start_pose": plan.get("match", {}).get("pose"), "start_transform": start.ravel().tolist(),
         "point_x": point[0], "point_y": point[1], "point_z": point[2],
         "direction_x": direction[0], "direction_y": direction[1], "direction_z": direction[2],
         "action": plan.get("action"), "finger_speed": float(finger_speed),
@@ -223,37 +234,93 @@ def robot_row(
     }
 
 
-def write_log(rows: Iterable[Mapping[str, Any]], path: str | Path) -> Path:
-    """Write push-log rows (``robot_row``'s, or any with ``PUSHLOG``'s columns) as one Parquet file.
+def write_log(rows: Iterable[Mapping[str, Any]], directory: str | Path, dataset: str | Path | None = None) -> Path:
+    """Write a session's push-log rows (``robot_row``'s, or any with ``PUSHLOG``'s columns) as one
+    log: ``directory/pushes.parquet``. Returns the file.
 
-    All or nothing: every row is checked first (``row_problems``), and a ValueError names each bad
-    row and why, with nothing written; the file appears whole or not at all, and an existing file
-    is never replaced (FileExistsError), so a session's log is not lost to the next. A log may be a
-    directory of such files: write each session to a new file in it."""
-    path = Path(path)
+    Push ids are unique within one log, so each session gets a directory of its own; the
+    directories of several sessions side by side (``logs/robot/session-1``, ``.../session-2``) are read
+    as that many logs (``toppledb report logs/robot``).
+    dataset : the dataset the plans came from; its pose parameters are recorded in the file, so
+      the reader numbers the rows' ``start_pose`` as the dataset did whatever configuration it
+      reads with (without it the column is read in the reader's numbering)
+
+    All or nothing: every row is checked first (``row_problems``, and no empty text or id), and a
+    ValueError names each bad row and why, with nothing written; the file is flushed to disk and
+    appears whole or not at all; a directory that holds anything already is never written into
+    (FileExistsError)."""
+    directory = Path(directory)
     rows = list(rows)
     if not rows:
         raise ValueError("no rows to write")
-    columns = {name: [row.get(name) for row in rows] for name in PUSHLOG.names}
     missing = sorted({name for row in rows for name in PUSHLOG.names if name not in row})
     if missing:
         raise ValueError(f"rows lack the columns {missing}")
-    try:
-        table = pa.Table.from_pydict(columns, schema=PUSHLOG)
-    except (pa.ArrowException, TypeError, ValueError) as err:
-        raise ValueError(f"rows do not fit the push log's schema: {' '.join(str(err).split())[:200]}") from None
-    bad = [f"row {i}: {problem}" for i, problem in enumerate(row_problems(table)) if problem is not None]
+    bad = []
+    for i, row in enumerate(rows):
+        for field in PUSHLOG:
+            value = row[field.name]
+            if value is None and not field.nullable:
+                bad.append(f"row {i}: {field.name} is empty")
+            elif value is not None and pa.types.is_integer(field.type):
+                try:
+                    operator.index(value)
+                except TypeError:
+                    bad.append(f"row {i}: {field.name} must be an integer, not {value!r}")
+    if not bad:
+        try:
+            table = pa.Table.from_pydict({name: [row[name] for row in rows] for name in PUSHLOG.names}, schema=PUSHLOG)
+        except (pa.ArrowException, TypeError, ValueError) as err:
+            raise ValueError(f"rows do not fit the push log's schema: {' '.join(str(err).split())[:200]}") from None
+        bad = [f"row {i}: {problem}" for i, problem in enumerate(row_problems(table)) if problem is not None]
     if bad:
-        raise ValueError(f"{len(bad)} of {len(rows)} rows cannot be used, nothing written: " + "; ".join(bad[:5]))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # Named to be skipped by log readers ('.' prefix) while it is written.
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(handle)
-    try:
-        pq.write_table(table, temporary)
-        os.link(temporary, path)  # unlike a rename, fails rather than replaces an existing file
-    except FileExistsError:
-        raise FileExistsError(f"{path} exists: a log file is never replaced; write to a new file") from None
-    finally:
-        os.unlink(temporary)
+        raise ValueError(f"{len(bad)} problem{'s' * (len(bad) > 1)} in {len(rows)} rows, nothing written: " + "; ".join(bad[:5]))
+    if dataset is not None:
+        poses = read_manifest(dataset).parameters.poses.model_dump()
+        table = table.replace_schema_metadata({**PUSHLOG.metadata, POSES_METADATA_KEY: json.dumps(poses, sort_keys=True).encode()})
+    if directory.name.startswith(("_", ".")):
+        raise ValueError(f"{directory.name!r}: log readers skip names that start with '_' or '.'")
+    if directory.exists() and not directory.is_dir():
+        raise NotADirectoryError(f"{directory} is a file: a session's log is a directory")
+    if directory.is_dir() and any(directory.iterdir()):
+        # Holding a log, or the sessions of one robot: a file here would join them into one log.
+        raise FileExistsError(f"{directory} is not empty: write each session to a new directory")
+    path = directory / LOG_FILE
+    directory.mkdir(parents=True, exist_ok=True)
+    _publish(path, lambda temp: pq.write_table(table, temp))
     return path
+
+
+def _publish(path: Path, write) -> None:
+    """``write(temp)`` beside ``path``, flushed to disk, then linked in as ``path`` only if no file
+    is there (a rename would replace one), and the directory flushed; the temporary is removed
+    whatever happens. Where the file system has no hard links, the name is claimed first."""
+    temp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}{layout.TEMP_SUFFIX}")  # readers skip '.' names
+    try:
+        write(temp)
+        with open(temp, "rb") as f:
+            os.fsync(f.fileno())
+        try:
+            os.link(temp, path)
+        except FileExistsError:
+            raise FileExistsError(f"{path} appeared while the log was written; nothing replaced it") from None
+        except OSError as err:
+            if err.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK, errno.EXDEV):
+                raise
+            with open(path, "xb"):  # FAT, SMB, FUSE: claim the name, then move the whole file onto the claim
+                pass
+            os.replace(temp, path)
+        descriptor = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
+    finally:
+        temp.unlink(missing_ok=True)
+
+
+def _integer(value: Any, name: str) -> int:
+    try:
+        return operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be an integer, not {value!r}") from None

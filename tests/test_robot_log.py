@@ -5,19 +5,23 @@ as the dataset's push from the planned pose."""
 
 from __future__ import annotations
 
+import errno
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
 
+import schema.pushlog
 import service.client
 from pipeline.build.corpus import pybullet_data_dir
-from pipeline.model.config import Config
-from pipeline.studies.logreader import read_log
+from pipeline.model.config import Config, PoseConfig
+from pipeline.studies.logreader import read_log, recorded_world
 from schema.api import PlanResponse
 from schema.manifest import ManifestError, file_sha256
 from schema.pushlog import LoggedMesh, dataset_meshes, robot_row, write_log
@@ -69,19 +73,28 @@ def test_the_log_reads_back_as_the_dataset_s_pushes_from_the_planned_poses(execu
     meshes = dataset_meshes(dataset)
     rows = [robot_row(answer, observed, final, meshes[object_id], push_id=i, **ROBOT)
             for i, (object_id, _, observed, final, answer) in enumerate(executed)]
-    path = write_log(rows, tmp_path / "robot" / "session-1.parquet")
-    assert [p.name for p in path.parent.iterdir()] == ["session-1.parquet"], "no temporary file is left behind"
-    log = read_log([path.parent], Config())
+    # Two sessions that number their pushes alike, side by side: two logs, every push kept.
+    half = len(rows) // 2
+    first = write_log(rows[:half], tmp_path / "robot" / "session-1", dataset=dataset)
+    second = write_log([dict(row, push_id=row["push_id"] - half) for row in rows[half:]], tmp_path / "robot" / "session-2",
+                       dataset=dataset)
+    assert (first, second) == (tmp_path / "robot" / "session-1" / "pushes.parquet", tmp_path / "robot" / "session-2" / "pushes.parquet")
+    assert sorted(p.name for p in (tmp_path / "robot").rglob("*")) == ["pushes.parquet", "pushes.parquet", "session-1", "session-2"]
+    log = read_log([tmp_path / "robot"], Config())
     assert log.rejected == {} and len(log.pushes) == len(executed)
-    by_id = {push.push_id: push for push in log.pushes}
+    by_id = {(push.log, push.push_id): push for push in log.pushes}
     for i, (object_id, pose, _, final, answer) in enumerate(executed):
-        push, action = by_id[i], tables["actions"][(object_id, pose, answer["action"])]
+        push, action = by_id[(int(i >= half), i - half * (i >= half))], tables["actions"][(object_id, pose, answer["action"])]
         assert push.object_id == object_id and push.pose == pose
         # The reader's pose-frame push is the dataset's candidate (stored in float32).
         np.testing.assert_allclose(push.point, [action[f"point_{a}"] for a in "xyz"], atol=1e-6)
         np.testing.assert_allclose(push.direction, [action[f"direction_{a}"] for a in "xyz"], atol=1e-6)
         likeliest = max(answer["next_poses"], key=lambda n: n["probability"])["next_pose"]
         assert push.outcomes.tolist() == [likeliest]
+    # The file names the dataset's pose numbering, which its start_pose column uses.
+    recorded = recorded_world(pq.read_schema(first).metadata)
+    assert recorded is not None and PoseConfig(**json.loads(recorded)) == PoseConfig(**tables["manifest"]["parameters"]["poses"])
+    assert recorded_world(pq.read_schema(write_log(rows[:1], tmp_path / "plain")).metadata) is None
 
 
 def test_the_client_s_model_of_the_answer_gives_the_same_row(executed, dataset):
@@ -111,26 +124,63 @@ def test_a_plan_without_a_push_another_object_or_a_bad_matrix_is_refused(client,
         robot_row(answer, observed, final.ravel(), meshes[object_id], push_id=0, **ROBOT)
 
 
-def test_write_log_writes_all_or_nothing_and_never_replaces_a_file(executed, dataset, tmp_path):
+def test_write_log_writes_all_or_nothing_and_never_writes_into_a_log(executed, dataset, tmp_path):
     meshes = dataset_meshes(dataset)
     rows = [robot_row(answer, observed, final, meshes[object_id], push_id=i, **ROBOT)
             for i, (object_id, _, observed, final, answer) in enumerate(executed[:3])]
     skewed = dict(rows[1], final_transform=(np.diag([1.0, 2.0, 1.0, 1.0])).ravel().tolist())
-    target = tmp_path / "log.parquet"
-    with pytest.raises(ValueError, match=r"1 of 3 rows cannot be used, nothing written: row 1: final_transform is not a rigid"):
-        write_log([rows[0], skewed, rows[2]], target)
-    with pytest.raises(ValueError, match="no rows"):
-        write_log([], target)
-    with pytest.raises(ValueError, match=r"rows lack the columns \['mu_finger'\]"):
-        write_log([{k: v for k, v in rows[0].items() if k != "mu_finger"}], target)
-    with pytest.raises(ValueError, match="do not fit the push log's schema"):
-        write_log([dict(rows[0], push_id="first")], target)
+    target = tmp_path / "session"
+    refused = {
+        r"1 problem in 3 rows, nothing written: row 1: final_transform is not a rigid": [rows[0], skewed, rows[2]],
+        "no rows": [],
+        r"rows lack the columns \['mu_finger'\]": [{k: v for k, v in rows[0].items() if k != "mu_finger"}],
+        r"2 problems in 1 rows, nothing written: row 0: push_id must be an integer, not 3.7; row 0: source is empty": [dict(rows[0], source=None, push_id=3.7)],
+        "row 1: repeat must be an integer, not '1'": [rows[0], dict(rows[1], repeat="1")],
+    }
+    for message, bad in refused.items():
+        with pytest.raises(ValueError, match=message):
+            write_log(bad, target)
+    with pytest.raises(ValueError, match="push_id must be an integer, not 2.5"):
+        robot_row(executed[0][4], executed[0][2], executed[0][3], meshes[executed[0][0]], push_id=2.5, **ROBOT)
+    with pytest.raises(ValueError, match="log readers skip names that start with '_' or '.'"):
+        write_log(rows, tmp_path / "_session")
     assert list(tmp_path.iterdir()) == [], "a refused write leaves nothing"
-    write_log(rows, target)
-    written = target.read_bytes()
-    with pytest.raises(FileExistsError, match="never replaced"):
+    path = write_log(rows, target)
+    written = path.read_bytes()
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask, "a log is as readable as any file its writer makes"
+    with pytest.raises(FileExistsError, match="is not empty: write each session to a new directory"):
         write_log(rows[:1], target)
-    assert target.read_bytes() == written and [p.name for p in tmp_path.iterdir()] == ["log.parquet"]
+    with pytest.raises(FileExistsError, match="is not empty"):
+        write_log(rows[:1], tmp_path)  # the sessions' parent: a file there would join them into one log
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(NotADirectoryError, match="is a file"):
+        write_log(rows[:1], tmp_path / "a-file")
+    assert path.read_bytes() == written and sorted(p.name for p in tmp_path.rglob("*")) == ["a-file", "pushes.parquet", "session"]
+
+
+def test_a_failed_write_leaves_no_file_and_a_claimed_name_is_kept(executed, dataset, tmp_path, monkeypatch):
+    meshes = dataset_meshes(dataset)
+    rows = [robot_row(answer, observed, final, meshes[object_id], push_id=i, **ROBOT)
+            for i, (object_id, _, observed, final, answer) in enumerate(executed[:2])]
+
+    def half_written(table, where):
+        Path(where).write_bytes(b"PAR1")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(schema.pushlog.pq, "write_table", half_written)
+    with pytest.raises(OSError, match="No space left on device"):
+        write_log(rows, tmp_path / "full")
+    assert list((tmp_path / "full").iterdir()) == [], "neither the log nor its temporary is left"
+    monkeypatch.undo()
+    # A file system without hard links (FAT, SMB, FUSE): the name is claimed, then the whole file moved onto it.
+    def no_links(source, target):
+        raise OSError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(schema.pushlog.os, "link", no_links)
+    path = write_log(rows, tmp_path / "fat")
+    assert len(read_log([path.parent], Config()).pushes) == 2 and [p.name for p in path.parent.iterdir()] == ["pushes.parquet"]
 
 
 def test_dataset_meshes_name_each_object_as_the_build_read_it(dataset, tmp_path):
@@ -147,11 +197,15 @@ def test_dataset_meshes_name_each_object_as_the_build_read_it(dataset, tmp_path)
     manifest = json.loads((dataset / "manifest.json").read_text())
     manifest["corpus"]["objects"][0].update(source="file", path="/meshes/part.obj")
     manifest["corpus"]["objects"][1].update(source="pybullet_data/random_urdfs", path="/elsewhere/part.obj")
+    windows = "C:\\envs\\site-packages\\pybullet_data\\random_urdfs\\002\\002.obj"
+    manifest["corpus"]["objects"][2].update(path=windows)
     (copy / "manifest.json").write_text(json.dumps(manifest))
     own = dataset_meshes(copy)
     assert own["random_000"] == LoggedMesh("random_000", "file", "/meshes/part.obj", 0.015, 0.1,
                                             manifest["corpus"]["objects"][0]["sha256"])
     assert (own["random_001"].mesh_source, own["random_001"].mesh_path) == ("file", "/elsewhere/part.obj")
+    # A build on Windows: pybullet's mesh is still named relative to pybullet_data.
+    assert (own["random_002"].mesh_source, own["random_002"].mesh_path) == ("pybullet_data", "random_urdfs/002/002.obj")
     shutil.rmtree(copy)
     with pytest.raises(ManifestError, match="no such dataset directory"):
         dataset_meshes(copy)

@@ -34,7 +34,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from schema.frames import DOWN, transform_points, unit
-from schema.pushlog import PUSHLOG, row_problems
+from schema.pushlog import POSES_METADATA_KEY, PUSHLOG, row_problems
 
 from ..build.atomic import file_sha256
 from ..build.corpus import Corpus, CorpusError, is_pybullet_source, pybullet_data_dir
@@ -254,11 +254,16 @@ PLAY_METADATA_KEY = b"toppledb_play"
 
 
 def recorded_world(metadata: dict[bytes, bytes] | None) -> str | None:
-    """The pose parameters a ``toppledb play`` part file was played with (from its schema ``metadata``), whose
-    numbering its start_pose column uses, as the JSON text of a ``PoseConfig``; None for a log that does not
-    record them (a robot's), which is read in the reader's."""
+    """The pose parameters a ``toppledb play`` part file was played with, or the dataset a robot's log was
+    planned on (``schema.pushlog.write_log``), from its schema ``metadata``, whose numbering its start_pose column
+    uses, as the JSON text of a ``PoseConfig``; None for a log that does not record them, which is read in the
+    reader's."""
+    metadata = metadata or {}
     try:
-        recorded = json.loads((metadata or {})[PLAY_METADATA_KEY])["key"]["config"]["poses"]
+        if POSES_METADATA_KEY in metadata:
+            recorded = json.loads(metadata[POSES_METADATA_KEY])
+        else:
+            recorded = json.loads(metadata[PLAY_METADATA_KEY])["key"]["config"]["poses"]
         poses = PoseConfig(**{f.name: recorded[f.name] for f in fields(PoseConfig) if f.name in recorded})
     except (KeyError, TypeError, ValueError):
         return None
