@@ -182,6 +182,15 @@ def test_a_failed_write_leaves_no_file_and_a_claimed_name_is_kept(executed, data
     path = write_log(rows, tmp_path / "fat")
     assert len(read_log([path.parent], Config()).pushes) == 2 and [p.name for p in path.parent.iterdir()] == ["pushes.parquet"]
 
+    def raced(source, target):  # another writer's file appears at the name just before it is claimed
+        Path(target).write_bytes(b"theirs")
+        raise OSError(errno.ENOTSUP, "Operation not supported")
+
+    monkeypatch.setattr(schema.pushlog.os, "link", raced)
+    with pytest.raises(FileExistsError):
+        write_log(rows, tmp_path / "shared")
+    assert [(p.name, p.read_bytes()) for p in (tmp_path / "shared").iterdir()] == [("pushes.parquet", b"theirs")]
+
 
 def test_dataset_meshes_name_each_object_as_the_build_read_it(dataset, tmp_path):
     meshes = dataset_meshes(dataset)
