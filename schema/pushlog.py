@@ -309,7 +309,11 @@ def _publish(path: Path, write) -> None:
                 raise
             with open(path, "xb"):  # FAT, SMB, FUSE: claim the name, then move the whole file onto the claim
                 pass
-            os.replace(temp, path)
+            try:
+                os.replace(temp, path)
+            except BaseException:
+                path.unlink(missing_ok=True)  # the empty claim, which a reader would take for a broken log
+                raise
         descriptor = os.open(path.parent, os.O_RDONLY)
         try:
             os.fsync(descriptor)

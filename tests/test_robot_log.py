@@ -191,6 +191,14 @@ def test_a_failed_write_leaves_no_file_and_a_claimed_name_is_kept(executed, data
         write_log(rows, tmp_path / "shared")
     assert [(p.name, p.read_bytes()) for p in (tmp_path / "shared").iterdir()] == [("pushes.parquet", b"theirs")]
 
+    def interrupted(source, target):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(schema.pushlog.os, "replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        write_log(rows, tmp_path / "stopped")
+    assert list((tmp_path / "stopped").iterdir()) == [], "neither the claim nor the temporary is left"
+
 
 def test_dataset_meshes_name_each_object_as_the_build_read_it(dataset, tmp_path):
     meshes = dataset_meshes(dataset)
