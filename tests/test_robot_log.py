@@ -194,6 +194,7 @@ def test_a_failed_write_leaves_no_file_and_a_claimed_name_is_kept(executed, data
     def interrupted(source, target):
         raise KeyboardInterrupt
 
+    monkeypatch.setattr(schema.pushlog.os, "link", no_links)
     monkeypatch.setattr(schema.pushlog.os, "replace", interrupted)
     with pytest.raises(KeyboardInterrupt):
         write_log(rows, tmp_path / "stopped")
