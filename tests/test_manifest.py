@@ -6,7 +6,9 @@ and the code version names the commit and library versions a dataset was compute
 
 from __future__ import annotations
 
+import copy
 import datetime
+import json
 import re
 import subprocess
 from importlib import metadata
@@ -19,7 +21,7 @@ import pytest
 from pipeline.build import manifest
 from pipeline.build.atomic import file_sha256
 from schema import layout, tables
-from schema.manifest import read_manifest
+from schema.manifest import ManifestError, read_manifest
 from schema.version import CODE_VERSION, SCHEMA_VERSION
 from tests.test_rows import SMALL
 from tests.test_verify import OBJECTS, build_small, small_corpus
@@ -129,6 +131,32 @@ def test_a_written_manifest_reads_back(built, tmp_path):
     original = read_manifest(built)
     manifest.write_manifest(tmp_path, original)
     assert read_manifest(tmp_path) == original
+
+
+def test_a_manifest_is_parsed_from_the_bytes_given_and_refused_with_a_one_line_reason(built, tmp_path):
+    """``read_manifest``: the bytes a caller read and hashed are parsed, not the file read again (a
+    rebuild may have replaced it meanwhile); a file that is not JSON, of another schema version or
+    not a manifest is refused with where and why."""
+    raw = (built / "manifest.json").read_bytes()
+    data = json.loads(raw)
+    (tmp_path / "manifest.json").write_bytes(raw)
+    assert read_manifest(tmp_path, json.dumps({**data, "seed": data["seed"] + 1}).encode()).seed == data["seed"] + 1
+    assert read_manifest(tmp_path).seed == data["seed"]
+    path = tmp_path / "manifest.json"
+
+    def refused(content: str, reason: str) -> None:
+        path.write_text(content)
+        with pytest.raises(ManifestError) as refusal:
+            read_manifest(tmp_path)
+        assert str(refusal.value) == reason
+
+    refused('{"schema_version": ', f"{path}: not valid JSON (Expecting value: line 1 column 20 (char 19))")
+    refused(json.dumps({**data, "schema_version": "0.9"}),
+            f"{tmp_path}: dataset schema version '0.9', this code reads '{SCHEMA_VERSION}'; rebuild the dataset with "
+            "this code (make dataset) or read it with the code that wrote it")
+    bad = copy.deepcopy(data)
+    bad["counts"]["poses"] = "many"
+    refused(json.dumps(bad), f"{path}: counts.poses: Input should be a valid integer, unable to parse string as an integer")
 
 
 def test_the_code_version_names_the_package_the_commit_and_the_libraries(monkeypatch):

@@ -9,9 +9,13 @@ import dataclasses
 import hashlib
 import json
 import logging
+import os
 import re
 import shutil
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -22,8 +26,9 @@ import pytest
 from pipeline.build.verify import verify_dataset
 from schema import served
 from schema.reader import Dataset
-from service.store import DatasetError, Store
-from tests.test_service import dataset  # noqa: F401 (fixture)
+from service.prefetch import Prefetch, map_and_hash
+from service.store import LOAD_ATTEMPTS, DatasetError, Store
+from tests.test_service import ROOT, dataset  # noqa: F401 (fixture)
 
 
 def same_objects(a: Store, b: Store) -> None:
@@ -108,7 +113,9 @@ def test_a_served_file_damaged_after_the_build_is_not_served(dataset, tmp_path, 
     assert 7.5 in tampered.column("probability").to_pylist()
     with caplog.at_level(logging.WARNING, logger="service"):
         store = Store.load(copy)
-    assert re.search(r"served/poses\.arrow: sha256 \w{12}\.\.\. differs from the manifest's", caplog.text)
+    recorded = json.loads((copy / "manifest.json").read_text())["tables"]["served/poses.arrow"]["sha256"]
+    assert re.search(rf"served/poses\.arrow: sha256 \w{{12}}\.\.\. differs from the manifest's {recorded[:12]}\.\.\. "
+                     r"\(changed after the build; a rerun of the build rewrites it\); reading the Parquet", caplog.text)
     assert "reading the Parquet tables instead" in caplog.text
     same_objects(store, good)  # ...but what is served is the build's numbers
     assert 7.5 not in np.concatenate([o.probability for o in store.objects.values()])
@@ -118,6 +125,48 @@ def test_a_served_file_damaged_after_the_build_is_not_served(dataset, tmp_path, 
     assert served.read_current(copy, read_manifest(copy), verify=False)["poses"].num_rows == tampered.num_rows
     with pytest.raises(served.ServedError, match="served/poses.arrow: sha256"):
         served.read_current(copy, read_manifest(copy))
+
+
+def test_served_files_the_manifest_does_not_record_or_of_another_schema_are_not_served(dataset, tmp_path, caplog):
+    """A manifest from before the served files records none of them, and a served file may be another
+    code's layout with the bytes its manifest records: either way the load serves the Parquet tables."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    good = Store.load(dataset)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    entry = manifest["tables"].pop("served/hulls.arrow")
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    with caplog.at_level(logging.WARNING, logger="service"):
+        same_objects(Store.load(copy), good)
+    assert "manifest.json records no served/hulls.arrow (built by an older toppledb); reading the Parquet tables instead" in caplog.text
+    # float32 vertices: a readable table of the same rows, recorded by its manifest, but not this code's schema.
+    path = copy / "served" / "hulls.arrow"
+    hulls = pa.ipc.open_file(pa.py_buffer(path.read_bytes())).read_all()
+    other = hulls.cast(pa.schema([("vertex", pa.list_(pa.float32(), 3))]))
+    with pa.ipc.new_file(tmp_path / "hulls.arrow", other.schema) as writer:
+        writer.write_table(other)
+    os.replace(tmp_path / "hulls.arrow", path)
+    manifest["tables"]["served/hulls.arrow"] = {**entry, "sha256": hashlib.sha256(path.read_bytes()).hexdigest()}
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="service"):
+        same_objects(Store.load(copy), good)
+    assert f"{path}: not the served hulls table of this code (schema differs); reading the Parquet tables instead" in caplog.text
+
+
+def test_a_served_file_that_cannot_be_opened_is_reported_with_its_reason_cut_to_200_characters(dataset, tmp_path, caplog):
+    """A symlink loop in place of a served file: open's reason names the path, which is long here, so
+    the log line gives its first 200 characters (a reason may be kilobytes) and serves the Parquet tables."""
+    copy = tmp_path / ("long-" * 30) / "dataset"
+    shutil.copytree(dataset, copy)
+    path = copy / "served" / "objects.arrow"
+    path.unlink()
+    path.symlink_to(path)
+    reason = f"[Errno 40] Too many levels of symbolic links: '{path}'"
+    assert len(reason) > 200
+    with caplog.at_level(logging.WARNING, logger="service"):
+        same_objects(Store.load(copy), Store.load(dataset))
+    assert f"{path}: unreadable: {reason[:200]}; reading the Parquet tables instead" in caplog.text
 
 
 @pytest.fixture(scope="module")
@@ -156,10 +205,17 @@ def test_a_dataset_whose_tables_do_not_fit_is_not_served(dataset, tmp_path):
     ids = pq.read_table(copy / "objects.parquet").column("object_id").to_pylist()
     part = copy / "actions" / f"object_id={ids[0]}" / "part-0.parquet"
     pq.write_table(pq.read_table(part).slice(1), part)
-    with pytest.raises(DatasetError, match=rf"actions/object_id={ids[0]}/part-0.parquet: sha256 \w{{12}}\.\.\. differs from the manifest's"):
-        Store.load(copy)  # not the bytes the build wrote
-    # As if a build had written them so (recorded their checksum): the tables still have to fit together.
     manifest = json.loads((copy / "manifest.json").read_text())
+    recorded = manifest["shards"][ids[0]]["files"][f"actions/object_id={ids[0]}/part-0.parquet"]
+    with pytest.raises(DatasetError, match=rf"actions/object_id={ids[0]}/part-0.parquet: sha256 \w{{12}}\.\.\. differs from the manifest's "
+                                           rf"{recorded[:12]}\.\.\.; check it with `toppledb verify"):
+        Store.load(copy)  # not the bytes the build wrote
+    # A file the manifest does not record is not the build's either, whatever it holds.
+    del manifest["shards"][ids[0]]["files"][f"actions/object_id={ids[0]}/part-0.parquet"]
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(DatasetError, match=rf"actions/object_id={ids[0]}/part-0.parquet: not recorded; check it with `toppledb verify"):
+        Store.load(copy)
+    # As if a build had written them so (recorded their checksum): the tables still have to fit together.
     manifest["shards"][ids[0]]["files"][f"actions/object_id={ids[0]}/part-0.parquet"] = hashlib.sha256(part.read_bytes()).hexdigest()
     (copy / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(DatasetError, match="actions partition does not hold"):
@@ -179,7 +235,7 @@ def test_the_parquet_tables_a_damaged_served_file_falls_back_to_are_checked_too(
     with caplog.at_level(logging.WARNING, logger="service"), \
             pytest.raises(DatasetError, match=r"poses.parquet: sha256 \w{12}\.\.\. differs from the manifest's.*toppledb verify"):
         Store.load(copy)
-    assert "served/poses.arrow: unreadable" in caplog.text
+    assert "served/poses.arrow: unreadable: cannot mmap an empty file; reading the Parquet tables instead" in caplog.text
     (copy / "poses.parquet").unlink()
     with pytest.raises(DatasetError, match="poses.parquet: missing or unreadable"):
         Store.load(copy)
@@ -241,6 +297,41 @@ def test_a_load_that_meets_a_rebuild_s_commit_is_made_again_once_the_manifest_ch
     with pytest.raises(DatasetError, match="no such dataset directory"):
         Store.load(copy)
     assert len(calls) == 1, "nothing changed: refused at once"
+    # A manifest that changes during every load (rebuilds in a loop) is given up on after LOAD_ATTEMPTS loads.
+    calls.clear()
+
+    def always_mid_commit(root, prefetch=None):
+        calls.append(root)
+        (copy / "manifest.new").write_bytes((copy / "manifest.json").read_bytes())
+        (copy / "manifest.new").replace(copy / "manifest.json")
+        raise DatasetError(f"served/actions.arrow: sha256 differs (load {len(calls)})")
+
+    monkeypatch.setattr(store_module.Store, "_load_once", always_mid_commit)
+    with pytest.raises(DatasetError, match=f"load {LOAD_ATTEMPTS}\\)"):
+        Store.load(copy)
+    assert len(calls) == LOAD_ATTEMPTS
+
+
+def test_the_load_parses_the_manifest_bytes_it_hashed(dataset, tmp_path, monkeypatch):
+    """The store names its build by the SHA-256 of manifest.json's bytes: a rebuild that replaces the
+    file between the load's read and its parse must not pair the old hash with the new manifest."""
+    import service.store as store_module
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    raw = (copy / "manifest.json").read_bytes()
+    real = store_module.read_manifest
+
+    def replaced_meanwhile(root, raw_read=None):
+        rebuilt = json.loads(raw)
+        rebuilt["created"] = "2099-01-01T00:00:00+00:00"
+        (copy / "manifest.json").write_text(json.dumps(rebuilt))
+        return real(root, raw_read)
+
+    monkeypatch.setattr(store_module, "read_manifest", replaced_meanwhile)
+    store = Store.load(copy)
+    assert store.manifest_sha256 == hashlib.sha256(raw).hexdigest()
+    assert store.manifest.created == json.loads(raw)["created"] != "2099-01-01T00:00:00+00:00"
 
 
 def test_the_service_takes_prefetched_mappings_only_for_the_build_it_loads(dataset, tmp_path, caplog):
@@ -287,3 +378,50 @@ def test_the_service_takes_prefetched_mappings_only_for_the_build_it_loads(datas
         same_objects(Store.load(copy, Prefetch(copy)), Store.load(dataset))  # from Parquet
     assert f"{copy / 'served' / 'poses.arrow'}: not a regular file; reading the Parquet tables instead" in caplog.text
     assert "unreadable" not in caplog.text
+
+
+def smaps_rss_kb(path: Path) -> list[int]:
+    """Resident kB of each of this process's mappings of ``path`` (/proc/self/smaps)."""
+    rss, current = [], False
+    with open("/proc/self/smaps") as smaps:
+        for line in smaps:
+            first = line.split(maxsplit=1)[0]
+            if "-" in first and not first.endswith(":"):  # a mapping's header: address range, ..., path
+                current = line.rstrip("\n").endswith(str(path))
+            elif current and first == "Rss:":
+                rss.append(int(line.split()[1]))
+    return rss
+
+
+def test_map_and_hash_refuses_what_it_cannot_map_and_leaves_the_hashed_pages_out_of_the_resident_set(tmp_path):
+    """The prefetch's digest is of the mapped bytes; hashed, the pages are advised away, so a worker's
+    resident set holds only what its requests touch (the pages stay in the shared file cache)."""
+    path = tmp_path / "blob.arrow"
+    data = np.random.default_rng(0).bytes(4 << 20)
+    path.write_bytes(data)
+    mapping, digest = map_and_hash(path)
+    assert digest == hashlib.sha256(data).hexdigest()
+    if os.path.exists("/proc/self/smaps"):  # Linux
+        assert smaps_rss_kb(path) == [0], "hashed pages left in the resident set"
+    assert mapping[:] == data, "read again from the file cache"
+    mapping.close()
+    os.mkfifo(tmp_path / "pipe")
+    (tmp_path / "empty.arrow").write_bytes(b"")
+    for name in ("pipe", "nowhere.arrow", "."):
+        with pytest.raises(ValueError, match=f"{re.escape(str(tmp_path / name))}: not a regular file"):
+            map_and_hash(tmp_path / name)  # a named pipe would wait for a writer
+    with pytest.raises(ValueError, match="cannot mmap an empty file"):
+        map_and_hash(tmp_path / "empty.arrow")
+
+
+def test_a_prefetch_waiting_for_its_manifest_hands_over_nothing_and_does_not_keep_the_process_alive(tmp_path):
+    """The prefetch reads manifest.json on a daemon thread: should that read wait (a stalled network disk;
+    a named pipe here), a service that stops before it loads (a port in use, a bad option) still exits."""
+    os.mkfifo(tmp_path / "manifest.json")
+    prefetch = Prefetch(tmp_path)
+    with open(tmp_path / "manifest.json", "wb"):
+        pass  # the prefetch's read ends, empty: not JSON
+    assert prefetch.mapped(tmp_path, "") == {}, "the load passes '' when it could not read the manifest"
+    code = "import sys; from service.prefetch import Prefetch; Prefetch(sys.argv[1]); print('exiting')"
+    result = subprocess.run([sys.executable, "-c", code, str(tmp_path)], check=False, capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert result.returncode == 0 and result.stdout == "exiting\n", result.stderr
