@@ -218,10 +218,13 @@ def read_manifest(root: str | Path, raw: bytes | None = None) -> Manifest:
     ``raw``: the file's bytes as the caller read them (and hashed them), parsed instead of reading it again."""
     root = Path(root)
     path = root / layout.MANIFEST
-    if not root.is_dir():
-        raise ManifestError(f"{root}: no such dataset directory")
-    if not path.is_file():
-        raise ManifestError(f"no {layout.MANIFEST} in {root}: not a dataset, or its build did not finish")
+    try:
+        if not root.is_dir():
+            raise ManifestError(f"{root}: no such dataset directory")
+        if not path.is_file():
+            raise ManifestError(f"no {layout.MANIFEST} in {root}: not a dataset, or its build did not finish")
+    except OSError as err:  # a directory on the way this user may not enter (Python 3.11 raises there)
+        raise ManifestError(f"{root}: cannot be read ({err.strerror or err})") from None
     try:
         data = json.loads(path.read_bytes() if raw is None else raw)
     except (OSError, ValueError) as err:

@@ -123,8 +123,11 @@ def read_served(root: str | Path, checksums: dict[str, str] | None = None,
     out = {}
     for name, relative in FILES.items():
         path = Path(root) / relative
-        if (mapped is None or name not in mapped) and path.exists() and not path.is_file():
-            raise ServedError(f"{path}: not a regular file")  # opening a named pipe would wait for a writer
+        try:
+            if (mapped is None or name not in mapped) and path.exists() and not path.is_file():
+                raise ServedError(f"{path}: not a regular file")  # opening a named pipe would wait for a writer
+        except OSError as err:  # served/ this user may not enter (Python 3.11's exists raises there)
+            raise ServedError(f"{path}: unreadable: {err.strerror or err}") from None
         try:
             if mapped is not None and name in mapped:
                 view, actual = mapped[name]

@@ -425,3 +425,35 @@ def test_a_prefetch_waiting_for_its_manifest_hands_over_nothing_and_does_not_kee
     code = "import sys; from service.prefetch import Prefetch; Prefetch(sys.argv[1]); print('exiting')"
     result = subprocess.run([sys.executable, "-c", code, str(tmp_path)], check=False, capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert result.returncode == 0 and result.stdout == "exiting\n", result.stderr
+
+
+def test_directories_this_user_may_not_enter_are_reported_not_raised(dataset, tmp_path, monkeypatch, caplog):
+    """As root the tests cannot be refused a directory, so Path refuses as Python 3.11 does for another user."""
+    from schema.manifest import ManifestError, read_manifest
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    real_exists, real_is_dir = Path.exists, Path.is_dir
+
+    def refused_below(directory):
+        def check(real):
+            def call(self, *args, **kwargs):
+                if directory in self.parents or self == directory:
+                    raise PermissionError(13, "Permission denied", str(self))
+                return real(self, *args, **kwargs)
+            return call
+        return check
+
+    # served/ is not ours to enter: the service says which file and falls back to the Parquet tables.
+    monkeypatch.setattr(Path, "exists", refused_below(copy / "served")(real_exists))
+    with caplog.at_level(logging.WARNING):
+        store = Store.load(copy)
+    assert store.counts["objects"] == 3
+    assert "served/objects.arrow: unreadable: Permission denied; reading the Parquet tables instead" in caplog.text
+    # The dataset lies below a directory not ours to enter: a one-line refusal, not a traceback.
+    monkeypatch.setattr(Path, "exists", real_exists)
+    monkeypatch.setattr(Path, "is_dir", refused_below(tmp_path)(real_is_dir))
+    with pytest.raises(ManifestError, match=r"dataset: cannot be read \(Permission denied\)"):
+        read_manifest(copy)
+    with pytest.raises(DatasetError, match="cannot be read"):
+        Store.load(copy)
