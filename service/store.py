@@ -329,14 +329,14 @@ class Store:
         prefetch : the served files mapped and hashed while the service was starting
           (``service.prefetch``), used if they are this directory's under this manifest"""
         root = Path(root)
-        for attempt in range(1, LOAD_ATTEMPTS + 1):
+        for _ in range(LOAD_ATTEMPTS - 1):
             stamp = manifest_stamp(root)
             try:
                 return cls._load_once(root, prefetch)
             except DatasetError:
-                if attempt == LOAD_ATTEMPTS or manifest_stamp(root) == stamp:
+                if manifest_stamp(root) == stamp:
                     raise
-        raise AssertionError("unreachable: the last attempt returns or raises")
+        return cls._load_once(root, prefetch)
 
     @classmethod
     def _load_once(cls, root: Path, prefetch: Prefetch | None = None) -> Store:
