@@ -13,7 +13,6 @@ manifest that lacks one is refused at load time, not at the first request.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Literal
@@ -201,15 +200,6 @@ class Manifest(_Closed):
             if relative in shard.files:
                 return shard.files[relative]
         return None
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex SHA-256 of a file's bytes, "" when it cannot be read."""
-    try:
-        with open(path, "rb") as f:
-            return hashlib.file_digest(f, "sha256").hexdigest()
-    except OSError:
-        return ""
 
 
 def read_manifest(root: str | Path, raw: bytes | None = None) -> Manifest:

@@ -26,11 +26,8 @@ after, into a row, and ``write_log`` writes a session's rows as one log, checked
 
 from __future__ import annotations
 
-import errno
 import json
 import operator
-import os
-import uuid
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
@@ -40,7 +37,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from schema import layout
+from schema.files import write_atomic
 from schema.manifest import read_manifest
 from schema.tables import column, xyz
 
@@ -286,41 +283,8 @@ def write_log(rows: Iterable[Mapping[str, Any]], directory: str | Path, dataset:
         # Holding a log, or the sessions of one robot: a file here would join them into one log.
         raise FileExistsError(f"{directory} is not empty: write each session to a new directory")
     path = directory / LOG_FILE
-    directory.mkdir(parents=True, exist_ok=True)
-    _publish(path, lambda temp: pq.write_table(table, temp))
+    write_atomic(path, lambda temp: pq.write_table(table, temp), exclusive=True)
     return path
-
-
-def _publish(path: Path, write) -> None:
-    """``write(temp)`` beside ``path``, flushed to disk, then linked in as ``path`` only if no file
-    is there (a rename would replace one), and the directory flushed; the temporary is removed
-    whatever happens. Where the file system has no hard links, the name is claimed first."""
-    temp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}{layout.TEMP_SUFFIX}")  # readers skip '.' names
-    try:
-        write(temp)
-        with open(temp, "rb") as f:
-            os.fsync(f.fileno())
-        try:
-            os.link(temp, path)
-        except FileExistsError:
-            raise FileExistsError(f"{path} appeared while the log was written; nothing replaced it") from None
-        except OSError as err:
-            if err.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK, errno.EXDEV):
-                raise
-            with open(path, "xb"):  # FAT, SMB, FUSE: claim the name, then move the whole file onto the claim
-                pass
-            try:
-                os.replace(temp, path)
-            except BaseException:
-                path.unlink(missing_ok=True)  # the empty claim, which a reader would take for a broken log
-                raise
-        descriptor = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(descriptor)
-        finally:
-            os.close(descriptor)
-    finally:
-        temp.unlink(missing_ok=True)
 
 
 def _integer(value: Any, name: str) -> int:

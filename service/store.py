@@ -36,7 +36,8 @@ import pyarrow as pa
 
 from schema import horizon, layout, neighbourhood, served
 from schema.api import FINGER_FORCE_LIMIT
-from schema.manifest import Manifest, ManifestError, file_sha256, read_manifest
+from schema.files import file_sha256
+from schema.manifest import Manifest, ManifestError, read_manifest
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .errors import NotFound

@@ -17,13 +17,15 @@ import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
 
+import schema.files
 import schema.pushlog
 import service.client
 from pipeline.build.corpus import pybullet_data_dir
 from pipeline.model.config import Config, PoseConfig
 from pipeline.studies.logreader import read_log, recorded_world
 from schema.api import PlanResponse
-from schema.manifest import ManifestError, file_sha256
+from schema.files import file_sha256
+from schema.manifest import ManifestError
 from schema.pushlog import LoggedMesh, dataset_meshes, robot_row, write_log
 from service import create_app
 from tests.test_service import client, dataset, planar_transform, stored_transform, tables  # noqa: F401
@@ -178,7 +180,7 @@ def test_a_failed_write_leaves_no_file_and_a_claimed_name_is_kept(executed, data
     def no_links(source, target):
         raise OSError(errno.EPERM, "Operation not permitted")
 
-    monkeypatch.setattr(schema.pushlog.os, "link", no_links)
+    monkeypatch.setattr(schema.files.os, "link", no_links)
     path = write_log(rows, tmp_path / "fat")
     assert len(read_log([path.parent], Config()).pushes) == 2 and [p.name for p in path.parent.iterdir()] == ["pushes.parquet"]
 
@@ -186,7 +188,7 @@ def test_a_failed_write_leaves_no_file_and_a_claimed_name_is_kept(executed, data
         Path(target).write_bytes(b"theirs")
         raise OSError(errno.ENOTSUP, "Operation not supported")
 
-    monkeypatch.setattr(schema.pushlog.os, "link", raced)
+    monkeypatch.setattr(schema.files.os, "link", raced)
     with pytest.raises(FileExistsError):
         write_log(rows, tmp_path / "shared")
     assert [(p.name, p.read_bytes()) for p in (tmp_path / "shared").iterdir()] == [("pushes.parquet", b"theirs")]
@@ -194,8 +196,8 @@ def test_a_failed_write_leaves_no_file_and_a_claimed_name_is_kept(executed, data
     def interrupted(source, target):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(schema.pushlog.os, "link", no_links)
-    monkeypatch.setattr(schema.pushlog.os, "replace", interrupted)
+    monkeypatch.setattr(schema.files.os, "link", no_links)
+    monkeypatch.setattr(schema.files.os, "replace", interrupted)
     with pytest.raises(KeyboardInterrupt):
         write_log(rows, tmp_path / "stopped")
     assert list((tmp_path / "stopped").iterdir()) == [], "neither the claim nor the temporary is left"

@@ -1,46 +1,16 @@
 """Atomic file writes: a file is either absent, the old version, or the complete
 new one, whatever moment the process is killed at (power loss included).
 
-Every file of a dataset goes through ``write_atomic``: written to a temporary name
-beside its target, optionally read back, flushed to disk, renamed into place, and
-then the directory entry is flushed too, so the rename itself survives a crash.
+Every file of a dataset goes through ``write_atomic`` (``schema.files``, where a robot's push
+log is written too); here are its text, JSON and figure forms.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
-import uuid
 from pathlib import Path
-from typing import Callable
 
-from schema import layout
-from schema.manifest import file_sha256  # noqa: F401 (the pipeline's callers import it from here)
-
-
-def write_atomic(path: str | Path, write: Callable[[Path], None], check: Callable[[Path], None] | None = None) -> str:
-    """Write ``path`` via ``write(temp)``; ``check(temp)`` (read it back) if given; fsync the
-    file, rename it into place, fsync the directory.  Returns the file's SHA-256.
-
-    The temporary file (``.<name>.<random>.tmp``, which dataset readers skip) is removed
-    when anything fails, and the old ``path`` is left as it was.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}{layout.TEMP_SUFFIX}")
-    try:
-        write(temp)
-        if check is not None:
-            check(temp)
-        with open(temp, "rb") as f:
-            digest = hashlib.file_digest(f, "sha256").hexdigest()
-            os.fsync(f.fileno())
-        os.replace(temp, path)
-        fsync_directory(path.parent)
-    finally:
-        temp.unlink(missing_ok=True)
-    return digest
+from schema.files import file_sha256, fsync_directory, write_atomic  # noqa: F401 (the pipeline's callers import them from here)
 
 
 def write_text_atomic(path: str | Path, text: str) -> str:
@@ -63,12 +33,3 @@ def write_figure_atomic(path: str | Path, figure, dpi: int = 100) -> str:
     """``write_atomic`` of a matplotlib figure in the format its suffix names (the temporary file's
     own suffix would say nothing); returns its SHA-256."""
     return write_atomic(path, lambda temp: figure.savefig(temp, format=figure_format(path), dpi=dpi))
-
-
-def fsync_directory(directory: str | Path) -> None:
-    """Flush a directory's entries (renames, unlinks) to disk."""
-    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
