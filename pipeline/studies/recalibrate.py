@@ -386,6 +386,39 @@ def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: in
             "wall_s": round(time.perf_counter() - started, 1), "trees": fitted, "fold_trees": fold_trees}
 
 
+def all_maps_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
+    """Refit every map of P(topple) in the order the engine applies them (docs/MODEL.md C.19): the centred
+    and down maps on the unmapped P (``down_recalibrate``), the side map over them (``side_recalibrate``),
+    the boosted map over all three (``boosted_recalibrate``).  What three ``toppledb recalibrate`` runs,
+    each on the file the last one wrote, give; the base model's own maps are replaced.
+
+    Each step's cross-validation holds the earlier steps' maps at their fit on every push, so its
+    held-out figures are a step's own gain, not the chain's: ``toppledb report`` on objects outside the
+    log judges the chain.  The steps share the folds (the same log, seed and object order).
+    returns : {"down", "side", "boosted": each step's record (``fold_trees`` dropped), "maps": the
+      [topple] values fitted (``boosted_map`` is the trees, to be written to a file), and the log's
+      ``variant``, ``pushes``, ``objects``, ``wall_s``}
+    """
+    config = config or Config()
+    started = time.perf_counter()
+    down = down_recalibrate(log, config, folds=folds, seed=seed)
+    maps = {**NO_MAP, "recalibration_x": tuple(down["knots"]["x"]), "recalibration_y": tuple(down["knots"]["y"]),
+            "down_map": tuple(down["weights"]), "down_map_z": down["down_map_z"]}
+    # Scoring reads no [mdp] value; the cut only lets a down map without the boosted map be a Config.
+    cut = max(config.mdp.min_direction_z, down["down_map_z"])
+    config = dataclasses.replace(config, topple=dataclasses.replace(config.topple, **maps),
+                                 mdp=dataclasses.replace(config.mdp, min_direction_z=cut))
+    side = side_recalibrate(log, config, folds=folds, seed=seed)
+    maps.update(side_map=tuple(side["weights"]), side_map_band=tuple(side["band"]))
+    config = dataclasses.replace(config, topple=dataclasses.replace(config.topple, **maps))
+    boosted = boosted_recalibrate(log, config, folds=folds, seed=seed)
+    boosted.pop("fold_trees")  # fitted over maps that saw every object: no fold's map is out of fold
+    maps["boosted_map"] = boosted.pop("trees")
+    return {"variant": config.topple.variant, "pushes": down["pushes"], "objects": down["objects"], "folds": folds,
+            "seed": seed, "down": down, "side": side, "boosted": boosted, "maps": maps,
+            "wall_s": round(time.perf_counter() - started, 1)}
+
+
 def write_fold_maps(directory: Path, fold_trees: list[dict], fold_objects: list[list[str]], corpus: Corpus) -> list[Path]:
     """Each fold's boosted map and its objects' corpus list, to build the corpus out of fold.
 
@@ -483,6 +516,17 @@ def with_and_without(cv: dict, name: str, folds: int, seed: int | str) -> str:
             f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, with it {cv[name]['ece']:.3f} / {cv[name]['brier']:.4f}")
 
 
+def write_trees(trees: dict, out: Path) -> str:
+    """Write a fitted boosted map beside the config TOML ``out`` (suffix .trees.json); its absolute path.
+
+    Absolute: the TOML names the file, and a relative name would be read against whatever
+    directory the TOML is used from.  To ship a map, copy it into pipeline/model/presets/."""
+    trees_file = out.with_suffix(".trees.json").resolve()
+    trees_file.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(trees_file, json.dumps(trees, separators=(",", ":")))
+    return str(trees_file)
+
+
 def main(argv: list[str] | None = None) -> int:
     """``toppledb recalibrate LOG...``: fit g on corpus pushes, write a config TOML and a JSON record."""
     from ..build.corpus import CorpusError, load_corpus
@@ -509,6 +553,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--boosted", action="store_true",
                         help=("fit the boosted map (docs/MODEL.md C.19) on top of the model's other maps, which are kept; "
                               "its trees go to OUT with the suffix .trees.json, which the TOML names"))
+    parser.add_argument("--all-maps", action="store_true",
+                        help=("refit every map in the engine's order: the centred and down maps, the side map over them, "
+                              "the boosted map over all three (what --down, --side, --boosted in turn give); "
+                              "its trees go to OUT with the suffix .trees.json"))
     parser.add_argument("--fold-maps", type=Path, metavar="DIR",
                         help=("with --boosted: also write each fold's map (fitted without its objects) and its objects' "
                               "corpus list to DIR, to build the corpus out of fold (fold_K.trees.json, fold_K.csv)"))
@@ -520,12 +568,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     try:
-        if args.features + args.down + args.side + args.boosted > 1:
-            raise UsageError("--features, --down, --side and --boosted fit different maps; choose one")
-        if args.fold_maps is not None and not args.boosted:
-            raise UsageError("--fold-maps writes the boosted map's folds; give --boosted")
-        if args.folds_from is not None and not args.boosted:
-            raise UsageError("--folds-from gives the boosted map's folds; give --boosted")
+        if args.features + args.down + args.side + args.boosted + args.all_maps > 1:
+            raise UsageError("--features, --down, --side, --boosted and --all-maps fit different maps; choose one")
+        for option, given in (("--fold-maps", args.fold_maps), ("--folds-from", args.folds_from)):
+            if given is not None and args.all_maps:
+                # Out of fold means no map under the fold's trees saw the fold's objects either.
+                raise UsageError(f"{option} is for the boosted map fitted alone (--boosted): under --all-maps it sits on "
+                                 "maps fitted on every object, so no fold's map would be out of fold")
+            if given is not None and not args.boosted:
+                raise UsageError(f"{option} {'writes' if option == '--fold-maps' else 'gives'} the boosted map's folds; give --boosted")
         config = config_from_args(args)
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
@@ -554,6 +605,8 @@ def main(argv: list[str] | None = None) -> int:
             result = down_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
         elif args.side:
             result = side_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
+        elif args.all_maps:
+            result = all_maps_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed)
         elif args.boosted:
             result = boosted_recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, fold_objects=given)
             result["folds_from"] = None if args.folds_from is None else str(args.folds_from)
@@ -600,19 +653,34 @@ def main(argv: list[str] | None = None) -> int:
         comments = ["toppledb recalibrate --side: the side map of P(topple) (docs/MODEL.md C.16), the model's other maps kept",
                     logs_line, with_and_without(cv, "side_map", args.folds, args.seed)]
         fitted_map = {**kept_maps(config.topple), "side_map": tuple(result["weights"]), "side_map_band": tuple(result["band"])}
+    elif args.all_maps:
+        steps = [("centred and down maps", "down", format_down_record), ("side map", "side", format_side_record),
+                 ("boosted map", "boosted", format_boosted_record)]
+        for n, (name, key, format_step) in enumerate(steps, 1):
+            print(f"{n}. the {name}\n{format_step(result[key])}")
+        maps = result.pop("maps")
+        result["trees_file"] = write_trees(maps.pop("boosted_map"), args.out)
+        down_cv, side_cv, boosted_cv = (result[key]["cross_validated"] for key in ("down", "side", "boosted"))
+        comments = ["toppledb recalibrate --all-maps: every map of P(topple) refitted in turn, centred and down, side, "
+                    "boosted (docs/MODEL.md C.7, C.15, C.16, C.19)",
+                    logs_line,
+                    (f"{args.folds}-fold CV grouped by object (seed {args.seed}), each step over the steps before it, "
+                     "held-out ECE / Brier:"),
+                    (f"  centred and down: unmapped {down_cv['identity']['ece']:.3f} / {down_cv['identity']['brier']:.4f}, "
+                     f"mapped {down_cv['down_map']['ece']:.3f} / {down_cv['down_map']['brier']:.4f}"),
+                    (f"  side: without {side_cv['identity']['ece']:.3f} / {side_cv['identity']['brier']:.4f}, "
+                     f"with {side_cv['side_map']['ece']:.3f} / {side_cv['side_map']['brier']:.4f}"),
+                    (f"  boosted: without {boosted_cv['identity']['ece']:.3f} / {boosted_cv['identity']['brier']:.4f}, "
+                     f"with {boosted_cv['boosted_map']['ece']:.3f} / {boosted_cv['boosted_map']['brier']:.4f}")]
+        fitted_map = {**maps, "boosted_map": result["trees_file"]}
     elif args.boosted:
         print(format_boosted_record(result))
         cv = result["cross_validated"]
-        # Absolute: the TOML names the file, and a relative name would be read against whatever
-        # directory the TOML is used from.  To ship a map, copy it into pipeline/model/presets/.
-        trees_file = args.out.with_suffix(".trees.json").resolve()
-        trees_file.parent.mkdir(parents=True, exist_ok=True)
-        trees_file.write_text(json.dumps(result.pop("trees"), separators=(",", ":")))
-        result["trees_file"] = str(trees_file)
+        result["trees_file"] = write_trees(result.pop("trees"), args.out)
         comments = ["toppledb recalibrate --boosted: the boosted map of P(topple) (docs/MODEL.md C.19), the model's other maps kept",
                     logs_line, with_and_without(cv, "boosted_map", result["folds"],
                                                 args.seed if args.folds_from is None else str(args.folds_from))]
-        fitted_map = {**kept_maps(config.topple), "boosted_map": str(trees_file)}
+        fitted_map = {**kept_maps(config.topple), "boosted_map": result["trees_file"]}
     else:
         print(format_record(result))
         cv = result["cross_validated"]

@@ -1,0 +1,81 @@
+"""``toppledb recalibrate --all-maps``: every map of P(topple) refitted in the engine's order in one run
+(docs/MODEL.md C.19), the same file as ``--down``, ``--side`` and ``--boosted`` run in turn, each on the
+file the one before wrote."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from pipeline.model.boosted_map import load_trees
+from pipeline.model.config import Config, MDPConfig
+from tests.test_validation import model_logs  # noqa: F401 (fixture)
+
+pytest.importorskip("sklearn")  # the boosted map's fit
+
+
+def _options(folds: int = 3, seed: int = 2) -> list[str]:
+    from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
+
+    return ["--corpus", "none", "--folds", str(folds), "--seed", str(seed), "--set", f"contacts.n_contacts={CANDIDATES_PER_POSE}",
+            "--set", f"seed={seed}"]
+
+
+def _maps(path: Path) -> dict:
+    """The [topple] section a config file gives, the boosted map's trees read in place of its file name."""
+    topple = Config.from_toml(path).topple
+    values = {name: getattr(topple, name) for name in topple.__dataclass_fields__}
+    values["boosted_map"] = json.loads(Path(topple.boosted_map).read_text())
+    return values
+
+
+def test_all_maps_is_the_three_fits_run_in_turn_on_each_others_files(model_logs, tmp_path, capsys):  # noqa: F811
+    from pipeline.studies.recalibrate import main
+
+    log = str(model_logs / "reported.parquet")
+    by_hand = []
+    base: list[str] = []
+    for step in ("--down", "--side", "--boosted"):
+        out = tmp_path / f"{step[2:]}.toml"
+        assert main([log, step, *_options(), *base, "--out", str(out), "--json", str(out.with_suffix(".json"))]) == 0
+        by_hand.append(out)
+        base = ["--config", str(out)]
+    out, record = tmp_path / "all.toml", tmp_path / "all.json"
+    assert main([log, "--all-maps", *_options(), "--out", str(out), "--json", str(record)]) == 0
+    printed = capsys.readouterr().out
+    assert "1. the centred and down maps" in printed and "3. the boosted map" in printed
+
+    chained, one_run = _maps(by_hand[-1]), _maps(out)
+    assert chained == one_run, {k: (chained[k], one_run[k]) for k in chained if chained[k] != one_run[k]}
+    default = Config().topple
+    assert all(one_run[name] != getattr(default, name) for name in ("recalibration_x", "down_map", "side_map")), \
+        "every map is refitted, none is the default's"
+    assert Config.from_toml(out).mdp == MDPConfig(), "with the boosted map over the down map, planners choose from above"
+    assert load_trees(Config.from_toml(out).topple.boosted_map) is not None
+
+    result = json.loads(record.read_text())
+    assert result["down"]["fold_objects"] == result["side"]["fold_objects"] == result["boosted"]["fold_objects"], \
+        "the steps share their folds"
+    assert result["trees_file"] == str(tmp_path / "all.trees.json") and "fold_trees" not in result["boosted"]
+    # Each step's record is its own command's, the same folds, the same maps under it.
+    for step, path in zip(("down", "side", "boosted"), by_hand):
+        alone = json.loads(path.with_suffix(".json").read_text())
+        assert result[step]["cross_validated"] == alone["cross_validated"], step
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--boosted"], "choose one"),
+    (["--fold-maps", "DIR"], "--fold-maps is for the boosted map fitted alone"),
+    (["--folds-from", "DIR"], "--folds-from is for the boosted map fitted alone"),
+])
+def test_all_maps_refuses_what_it_cannot_keep_out_of_fold_before_reading_a_log(extra, message, tmp_path, capsys):
+    from pipeline.studies.recalibrate import main
+
+    extra = [str(tmp_path / "folds") if part == "DIR" else part for part in extra]
+    # The log does not exist: the options are refused first.
+    code = main([str(tmp_path / "no_log.parquet"), "--all-maps", *extra, "--out", str(tmp_path / "m.toml"),
+                 "--json", str(tmp_path / "m.json")])
+    assert code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "m.toml").exists() and not (tmp_path / "m.trees.json").exists()
