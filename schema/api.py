@@ -262,7 +262,9 @@ class DatasetIdentity(Model):
     manifest_sha256: str = Field(description="SHA-256 of manifest.json: names the build (its tables' checksums are in it)")
     created: str = Field(description="UTC, ISO 8601, when the build finished (manifest created)")
     code_version: str = Field(description="toppledb version that built it, with the git commit when known")
-    parameters_sha256: str = Field(description="SHA-256 of the manifest's parameters (canonical JSON): equal digests, equal model")
+    parameters_sha256: str = Field(description=(
+        "SHA-256 of the manifest's parameters (canonical JSON), a parameter that names a file taken as its "
+        "content's SHA-256 (manifest parameter_files): equal digests, equal model"))
     loaded_at: str = Field(description="UTC, ISO 8601, when this worker loaded it")
 
 

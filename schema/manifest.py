@@ -13,6 +13,7 @@ manifest that lacks one is refused at load time, not at the first request.
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Literal
@@ -187,9 +188,22 @@ class Manifest(_Closed):
     failures: list[Failure]
     timings: Timings
     run: dict[str, object] = Field(description="workers, backend, scheduler, computed, reused")
+    parameter_files: dict[str, str] = Field(default_factory=dict, description=(
+        "a parameter that names a file (section.key, e.g. topple.boosted_map) -> SHA-256 of the content the build "
+        "read: the file's name says nothing of what it held; empty when no parameter names a file, and before stop 66"))
 
     def to_json(self) -> str:
         return json.dumps(self.model_dump(mode="json"), indent=1)
+
+    def parameters_sha256(self) -> str:
+        """SHA-256 of ``parameters`` as canonical JSON, each parameter of ``parameter_files`` taken as
+        ``sha256:<its content's digest>``: equal digests, equal model, wherever its files lie and
+        whatever was written to their names since (a manifest without files: the parameters alone)."""
+        parameters = self.parameters.model_dump(mode="json")
+        for name, digest in self.parameter_files.items():
+            section, key = name.split(".", 1)
+            parameters[section][key] = f"sha256:{digest}"
+        return hashlib.sha256(json.dumps(parameters, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
     def recorded_sha256(self, relative: str) -> str | None:
         """The SHA-256 this build recorded for a file (a consolidated table or a shard's file, by

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import datetime
 import hashlib
-import json
 import logging
 import mmap
 import os
@@ -248,9 +247,7 @@ class Store:
         """SHA-256 of manifest.json's bytes as read before the tables: names the build."""
         self.loaded_at = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
         parameters = manifest.parameters
-        self.parameters_sha256 = hashlib.sha256(
-            json.dumps(parameters.model_dump(mode="json"), sort_keys=True, separators=(",", ":")).encode()
-        ).hexdigest()
+        self.parameters_sha256 = manifest.parameters_sha256()
         code = manifest.code_version
         self.code_version = code.package + (f"+g{code.git_commit[:12]}" if code.git_commit else "")
         manifest_limit = (parameters.topple.model_extra or {}).get("max_finger_force")

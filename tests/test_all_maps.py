@@ -79,3 +79,16 @@ def test_all_maps_refuses_what_it_cannot_keep_out_of_fold_before_reading_a_log(e
                  "--json", str(tmp_path / "m.json")])
     assert code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "m.toml").exists() and not (tmp_path / "m.trees.json").exists()
+
+
+@pytest.mark.parametrize("fit", ["--boosted", "--all-maps"])
+def test_trees_a_config_file_may_name_are_never_replaced(fit, tmp_path, capsys):
+    """A config file names its trees by path (a copy of it, a dataset's parameters): a second fit to the same
+    --out is refused before any log is read, and the trees stay as they were."""
+    from pipeline.studies.recalibrate import main
+
+    trees = tmp_path / "robot.trees.json"
+    trees.write_text("{}")
+    code = main([str(tmp_path / "no_log.parquet"), fit, "--out", str(tmp_path / "robot.toml"), "--json", str(tmp_path / "r.json")])
+    assert code == 2 and f"{trees} exists" in capsys.readouterr().err
+    assert trees.read_text() == "{}" and not (tmp_path / "robot.toml").exists()

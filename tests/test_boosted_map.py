@@ -356,6 +356,7 @@ def test_fold_maps_are_each_fitted_without_their_objects_and_list_them_as_a_corp
     capsys.readouterr()
     assert main([*common, "--fold-maps", str(folds_dir)]) == 2
     assert "--fold-maps writes the boosted map's folds; give --boosted" in capsys.readouterr().err
+    (tmp_path / "b.trees.json").unlink()  # a second fit to the same --out is refused (test_all_maps)
     assert main([*common[:1], "--corpus", "none", *common[3:], "--boosted", "--fold-maps", str(folds_dir)]) == 2
     assert "--fold-maps writes corpus lists: give a --corpus, not 'none'" in capsys.readouterr().err
 
@@ -382,7 +383,12 @@ def test_folds_from_an_earlier_fold_maps_directory_are_the_folds_used(model_logs
     common = [str(path), "--corpus", str(corpus_list), "--boosted", "--folds", "3", "--set", f"contacts.n_contacts={CANDIDATES_PER_POSE}",
               "--seed", "2", "--set", "seed=2", "--out", str(tmp_path / "b.toml"), "--json", str(tmp_path / "b.json")]
     out_dir = tmp_path / "out"
-    assert main([*common, "--folds-from", str(given), "--fold-maps", str(out_dir)]) == 0
+
+    def fit(*options: str, log: str = str(path)) -> int:
+        (tmp_path / "b.trees.json").unlink(missing_ok=True)  # a second fit to the same --out is refused (test_all_maps)
+        return main([log, *common[1:], *options])
+
+    assert fit("--folds-from", str(given), "--fold-maps", str(out_dir)) == 0
     result = json.loads((tmp_path / "b.json").read_text())
     assert result["fold_objects"] == [["box0", "box2"], ["box1"]] and result["folds"] == 2
     assert sorted(p.name for p in out_dir.iterdir()) == ["fold_0.csv", "fold_0.trees.json", "fold_1.csv", "fold_1.trees.json"]
@@ -390,7 +396,7 @@ def test_folds_from_an_earlier_fold_maps_directory_are_the_folds_used(model_logs
 
     # The folds it wrote, read back, and --folds 3 ignored: the same folds and, fitted on the same pushes, the same maps.
     again = tmp_path / "again"
-    assert main([*common, "--folds-from", str(out_dir), "--fold-maps", str(again)]) == 0
+    assert fit("--folds-from", str(out_dir), "--fold-maps", str(again)) == 0
     record = json.loads((tmp_path / "b.json").read_text())
     assert record["fold_objects"] == [["box0", "box2"], ["box1"]] and record["folds_from"] == str(out_dir)
     for k in range(2):
@@ -400,23 +406,23 @@ def test_folds_from_an_earlier_fold_maps_directory_are_the_folds_used(model_logs
     capsys.readouterr()
     (given / "fold_1.csv").unlink()
     write_list([specs["box0"]], given / "fold_0.csv", None)
-    assert main([*common, "--folds-from", str(given)]) == 2
+    assert fit("--folds-from", str(given)) == 2
     assert "holds 1 fold list(s)" in capsys.readouterr().err
     write_list([specs["box2"]], given / "fold_1.csv", None)
-    assert main([*common, "--folds-from", str(given)]) == 2
+    assert fit("--folds-from", str(given)) == 2
     assert "1 logged object(s) in no fold: box1" in capsys.readouterr().err
     write_list([specs["box1"], specs["box2"]], given / "fold_1.csv", None)
     write_list([specs["box0"], specs["box2"]], given / "fold_0.csv", None)
-    assert main([*common, "--folds-from", str(given)]) == 2
+    assert fit("--folds-from", str(given)) == 2
     assert "object 'box2' is in folds 0 and 1" in capsys.readouterr().err
     # A fold list naming an object the corpus does not hold is refused before the fit, not when the lists are written.
     write_list([specs["box1"]], given / "fold_1.csv", None)
     write_list([specs["box0"], specs["box2"], ObjectSpec("stranger", specs["box0"].path, 1.0, 0.25, "test", specs["box0"].sha256)],
                given / "fold_0.csv", None)
-    assert main([*common, "--folds-from", str(given), "--fold-maps", str(tmp_path / "never")]) == 2
+    assert fit("--folds-from", str(given), "--fold-maps", str(tmp_path / "never")) == 2
     assert "folds hold 1 object(s) not in corpus" in capsys.readouterr().err and not (tmp_path / "never").exists()
     # ... and before any log is read: a log that does not exist is not what it reports.
-    assert main([str(tmp_path / "no_such_log"), *common[1:], "--folds-from", str(given), "--fold-maps", str(tmp_path / "never")]) == 2
+    assert fit("--folds-from", str(given), "--fold-maps", str(tmp_path / "never"), log=str(tmp_path / "no_such_log")) == 2
     assert "folds hold 1 object(s) not in corpus" in capsys.readouterr().err
     assert main([*common[:3], *common[4:], "--folds-from", str(given)]) == 2
     assert "--folds-from gives the boosted map's folds; give --boosted" in capsys.readouterr().err

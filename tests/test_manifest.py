@@ -194,3 +194,46 @@ def test_the_commit_is_none_outside_git_or_without_it(monkeypatch):
 
     monkeypatch.setattr(manifest.subprocess, "run", hung)
     assert manifest.code_version()["git_commit"] is None
+
+
+def test_a_parameter_that_names_a_file_is_recorded_and_digested_by_the_files_content(tmp_path):
+    """The boosted map is a parameter that names a file: the manifest records the content it read, and
+    the parameters' digest (``/health``'s ``parameters_sha256``) follows the content, not the name."""
+    import hashlib
+
+    from pipeline.model.boosted_map import load_trees
+    from schema.manifest import Manifest
+    from tests.test_boosted_map import _map, _stump
+
+    def built(config):
+        load_trees.cache_clear()  # the build process reads the file as it is now
+        made = manifest.make_manifest(config, small_corpus(()), {}, {}, [], {"wall_s": 0.0})
+        return Manifest.model_validate(json.loads(made.to_json()))  # as a reader gets it
+
+    trees = tmp_path / "robot.trees.json"
+    trees.write_text(json.dumps(_map(_stump(0, 0.0, -1.0, 2.0))))
+    named = SMALL.with_overrides({"topple.boosted_map": str(trees)})
+    first = built(named)
+    assert first.parameter_files == {"topple.boosted_map": hashlib.sha256(trees.read_bytes()).hexdigest()}
+
+    trees.write_text(json.dumps(_map(_stump(0, 0.0, -1.0, 3.0))))  # a refit written to the same name
+    second = built(named)
+    assert second.parameters == first.parameters, "the parameters alone cannot tell the two models apart"
+    assert second.parameter_files != first.parameter_files
+    assert second.parameters_sha256() != first.parameters_sha256()
+
+    elsewhere = tmp_path / "copy" / "robot.trees.json"
+    elsewhere.parent.mkdir()
+    elsewhere.write_bytes(trees.read_bytes())
+    moved = built(SMALL.with_overrides({"topple.boosted_map": str(elsewhere)}))
+    assert moved.parameters != second.parameters and moved.parameters_sha256() == second.parameters_sha256(), \
+        "the same trees elsewhere are the same model"
+
+    without = built(SMALL.with_overrides({"topple.boosted_map": "", "mdp.min_direction_z": SMALL.topple.down_map_z}))
+    assert without.parameter_files == {}
+    canonical = json.dumps(without.parameters.model_dump(mode="json"), sort_keys=True, separators=(",", ":")).encode()
+    assert without.parameters_sha256() == hashlib.sha256(canonical).hexdigest(), "no file: the parameters' digest as before"
+    # A manifest from before the field reads as one whose parameters name no file.
+    older = json.loads(without.to_json())
+    del older["parameter_files"]
+    assert Manifest.model_validate(older).parameters_sha256() == without.parameters_sha256()

@@ -30,7 +30,7 @@ from schema.version import CODE_VERSION, SCHEMA_VERSION
 from ..model.config import Config
 from .corpus import Corpus
 from .atomic import write_atomic, write_text_atomic
-from .shards import PARQUET_COMPRESSION
+from .shards import PARQUET_COMPRESSION, parameter_files
 
 LIBRARIES = ("numpy", "scipy", "trimesh", "embreex", "python-fcl", "pyarrow", "h5py", "joblib", "pybullet")
 
@@ -146,6 +146,7 @@ def make_manifest(
             "cpu_s_total": round(sum(cpu_by_stage.values()), 3),
         },
         "run": run,
+        "parameter_files": parameter_files(config),
     })
 
 

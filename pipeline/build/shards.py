@@ -103,11 +103,20 @@ def shard_inputs(spec: ObjectSpec, config: Config) -> dict[str, Any]:
     for section, keys in unused_by_shards(config).items():
         parameters[section] = {k: v for k, v in parameters[section].items() if k not in keys}
     inputs = {"schema_version": SCHEMA_VERSION, "engine_revision": ENGINE_REVISION, "config": parameters, "object": identity}
-    if config.topple.applied_boosted_map:
+    files = parameter_files(config)
+    if files:
         # The parameter names a file: its content, not its name or place, makes the shard (docs/MODEL.md C.19).
         parameters["topple"].pop("boosted_map")
-        inputs["boosted_map_sha256"] = load_trees(config.topple.applied_boosted_map).sha256
+        inputs["boosted_map_sha256"] = files["topple.boosted_map"]
     return inputs
+
+
+def parameter_files(config: Config) -> dict[str, str]:
+    """SHA-256 of the content of each file a parameter of ``config`` names and the build reads, by the
+    parameter's dotted name (the boosted map's trees when applied; ``Manifest.parameter_files``)."""
+    if not config.topple.applied_boosted_map:
+        return {}
+    return {"topple.boosted_map": load_trees(config.topple.applied_boosted_map).sha256}
 
 
 def fingerprint(inputs: dict[str, Any]) -> str:

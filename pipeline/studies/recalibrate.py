@@ -577,6 +577,12 @@ def main(argv: list[str] | None = None) -> int:
                                  "maps fitted on every object, so no fold's map would be out of fold")
             if given is not None and not args.boosted:
                 raise UsageError(f"{option} {'writes' if option == '--fold-maps' else 'gives'} the boosted map's folds; give --boosted")
+        trees_file = args.out.with_suffix(".trees.json")
+        if (args.boosted or args.all_maps) and trees_file.exists():
+            # Config files name the trees by path: new trees under the name would change what every one
+            # written with the old gives, and a dataset's parameters would not show it.
+            raise UsageError(f"{trees_file} exists: a config file that names it would give another model if it were "
+                             "replaced; remove it, or write to another --out")
         config = config_from_args(args)
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
