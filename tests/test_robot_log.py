@@ -232,8 +232,8 @@ def test_dataset_meshes_name_each_object_as_the_build_read_it(dataset, tmp_path)
 
 
 def test_the_documented_robot_loop_runs_as_written(executed, dataset, tmp_path, monkeypatch):
-    """docs/VALIDATION.md's example, with a stub robot whose push moves the object to the push's
-    likeliest next pose the first time and leaves it where it is after that."""
+    """docs/VALIDATION.md's example, with a stub robot whose first push leaves the object where it was
+    and whose second moves it to the first push's likeliest next pose."""
     text = (Path(__file__).resolve().parent.parent / "docs" / "VALIDATION.md").read_text()
     after = text.index("**Logging a robot's pushes.**")
     block = text[text.index("```python\n", after) + len("```python\n"):text.index("```", text.index("```python\n", after) + 3)]
@@ -246,7 +246,7 @@ def test_the_documented_robot_loop_runs_as_written(executed, dataset, tmp_path, 
 
     def execute(start, end):
         state["executed"].append((start, end))
-        if state["pose"] is observed:
+        if len(state["executed"]) == 2:
             state["pose"] = final
 
     real = service.client.Client
@@ -258,7 +258,10 @@ def test_the_documented_robot_loop_runs_as_written(executed, dataset, tmp_path, 
 
     np.testing.assert_allclose(state["executed"][0], [answer["push"]["start"], answer["push"]["end"]], atol=1e-12)
     log = read_log([tmp_path / "data" / "logs" / "robot"], Config())
-    assert log.rejected == {} and len(log.pushes) == len(state["executed"]) >= 1
-    first = min(log.pushes, key=lambda push: push.push_id)
+    assert log.rejected == {} and len(log.pushes) == len(state["executed"]) >= 2
+    first, second = sorted(log.pushes, key=lambda push: push.push_id)[:2]
     likeliest = max(answer["next_poses"], key=lambda n: n["probability"])["next_pose"]
-    assert (first.pose, first.outcomes.tolist()) == (pose, [likeliest])
+    assert (first.pose, first.outcomes.tolist()) == (pose, [pose]), "the first push failed"
+    assert (second.pose, second.outcomes.tolist()) == (pose, [likeliest])
+    assert not np.allclose(second.point, first.point) or not np.allclose(second.direction, first.direction), \
+        "a push that left the object where it was is not served again"
