@@ -33,7 +33,7 @@ DELEGATED = {
     "bench": ("pipeline.studies.bench", "time the engine, suction and value iteration on one core (make bench)"),
     "report": ("pipeline.studies.validation", "score the model variants against push logs (validation report)"),
     "calibrate": ("pipeline.studies.calibrate", "search the noise parameters on push logs, write a config TOML"),
-    "recalibrate": ("pipeline.studies.recalibrate", "fit the monotone recalibration of P(topple) on push logs, write a config TOML"),
+    "recalibrate": ("pipeline.studies.recalibrate", "refit the maps of P(topple) on push logs (monotone, down, side, boosted, or all in turn), write a config TOML"),
     "serve": ("service.__main__", "serve a finished dataset over HTTP (make serve)"),
     "figures": ("pipeline.studies.figures", "draw thesis figures 4.5 and 4.6 for a mesh (PNG) and a 3D view (GLB)"),
     "play": ("pipeline.studies.playlog", "play pushes in pybullet and write a push-outcome log"),

@@ -1,6 +1,7 @@
-"""Fit the probability recalibration g of P(topple) on a push log (docs/MODEL.md C.7).
+"""Refit the maps of P(topple) on push logs: the monotone map g (docs/MODEL.md C.7), or with --down, --side,
+--boosted, --features the maps of C.15, C.16, C.19, C.13, or with --all-maps every map in the engine's order.
 
-The model's raw P(topple) of every logged push (``scoring.Scorer`` with the configuration's
+Without an option, the monotone map: the model's raw P(topple) of every logged push (``scoring.Scorer`` with the configuration's
 recalibration removed) is set against the observed topple frequency.  Each method of
 ``pipeline.model.recalibration.METHODS`` is cross-validated with folds grouped by object
 (``calibrate.grouped_folds``): fitted on the other folds' pushes, applied to the fold's.
