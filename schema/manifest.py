@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -191,6 +192,17 @@ class Manifest(_Closed):
     parameter_files: dict[str, str] = Field(default_factory=dict, description=(
         "a parameter that names a file (section.key, e.g. topple.boosted_map) -> SHA-256 of the content the build "
         "read: the file's name says nothing of what it held; empty when no parameter names a file, and before stop 66"))
+
+    @model_validator(mode="after")
+    def _files_name_parameters(self) -> "Manifest":
+        recorded = self.parameters.model_dump(mode="json")
+        for name, digest in self.parameter_files.items():
+            section, _, key = name.partition(".")
+            if key not in recorded.get(section, {}):
+                raise ValueError(f"{name!r} names no parameter of the build")
+            if not re.fullmatch(r"[0-9a-f]{64}", digest):
+                raise ValueError(f"{name}: {digest!r} is no SHA-256 (64 hex digits)")
+        return self
 
     def to_json(self) -> str:
         return json.dumps(self.model_dump(mode="json"), indent=1)

@@ -237,3 +237,21 @@ def test_a_parameter_that_names_a_file_is_recorded_and_digested_by_the_files_con
     older = json.loads(without.to_json())
     del older["parameter_files"]
     assert Manifest.model_validate(older).parameters_sha256() == without.parameters_sha256()
+
+
+@pytest.mark.parametrize("files, message", [
+    ({"topple.no_such_key": "ab" * 32}, "names no parameter"),
+    ({"boosted_map": "ab" * 32}, "names no parameter"),
+    ({"topple.boosted_map": "not a digest"}, "is no SHA-256"),
+])
+def test_a_recorded_file_that_names_no_parameter_or_holds_no_digest_is_refused_in_one_line(built, tmp_path, files, message):
+    import shutil
+
+    copy_dir = tmp_path / "copy"
+    shutil.copytree(built, copy_dir)
+    data = json.loads((copy_dir / layout.MANIFEST).read_text())
+    data["parameter_files"] = files
+    (copy_dir / layout.MANIFEST).write_text(json.dumps(data))
+    with pytest.raises(ManifestError, match=f"parameter_files.*{message}|{message}") as raised:
+        read_manifest(copy_dir)
+    assert "\n" not in str(raised.value)
