@@ -19,7 +19,7 @@ import re
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from schema import layout
 from schema.version import SCHEMA_VERSION
@@ -193,16 +193,18 @@ class Manifest(_Closed):
         "a parameter that names a file (section.key, e.g. topple.boosted_map) -> SHA-256 of the content the build "
         "read: the file's name says nothing of what it held; empty when no parameter names a file, and before stop 66"))
 
-    @model_validator(mode="after")
-    def _files_name_parameters(self) -> "Manifest":
-        recorded = self.parameters.model_dump(mode="json")
-        for name, digest in self.parameter_files.items():
+    @field_validator("parameter_files")
+    @classmethod
+    def _files_name_parameters(cls, files: dict[str, str], info: ValidationInfo) -> dict[str, str]:
+        parameters = info.data.get("parameters")  # absent when it failed itself: that error is the one reported
+        recorded = parameters.model_dump(mode="json") if parameters is not None else {}
+        for name, digest in files.items():
             section, _, key = name.partition(".")
-            if key not in recorded.get(section, {}):
+            if parameters is not None and key not in recorded.get(section, {}):
                 raise ValueError(f"{name!r} names no parameter of the build")
             if not re.fullmatch(r"[0-9a-f]{64}", digest):
                 raise ValueError(f"{name}: {digest!r} is no SHA-256 (64 hex digits)")
-        return self
+        return files
 
     def to_json(self) -> str:
         return json.dumps(self.model_dump(mode="json"), indent=1)
