@@ -13,6 +13,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
@@ -26,7 +27,7 @@ from pipeline.studies.logreader import read_log, recorded_world
 from schema.api import PlanResponse
 from schema.files import file_sha256
 from schema.manifest import ManifestError
-from schema.pushlog import LoggedMesh, dataset_meshes, robot_row, write_log
+from schema.pushlog import PUSHLOG, LoggedMesh, dataset_meshes, rigid, robot_row, row_problems, write_log
 from service import create_app
 from tests.test_service import client, dataset, planar_transform, stored_transform, tables  # noqa: F401
 
@@ -115,7 +116,7 @@ def test_a_plan_without_a_push_another_object_or_a_bad_matrix_is_refused(client,
     other, pose = grasping[0]
     seen = stored_transform(tables, other, pose)
     no_push = client.post("/plan", json={"object_id": other, "pose": seen.tolist()}).json()
-    with pytest.raises(ValueError, match="chose no push"):
+    with pytest.raises(ValueError, match=f"chose no push \\(decision {no_push['decision']!r}\\)"):
         robot_row(no_push, seen, seen, meshes[other], push_id=0, **ROBOT)
     stranger = next(mesh for name, mesh in meshes.items() if name != object_id)
     with pytest.raises(ValueError, match=f"plan is for object '{object_id}'"):
@@ -265,3 +266,114 @@ def test_the_documented_robot_loop_runs_as_written(executed, dataset, tmp_path, 
     assert (second.pose, second.outcomes.tolist()) == (pose, [likeliest])
     assert not np.allclose(second.point, first.point) or not np.allclose(second.direction, first.direction), \
         "a push that left the object where it was is not served again"
+
+
+def test_a_pose_observed_in_single_precision_is_mapped_in_double(executed, dataset):
+    """A camera pipeline may give float32 poses: the row is the one of the same pose in float64, the push
+    mapped into the object frame in double precision."""
+    object_id, _, observed, final, answer = executed[0]
+    mesh = dataset_meshes(dataset)[object_id]
+    single = observed.astype(np.float32)
+    assert robot_row(answer, single, final, mesh, push_id=0, **ROBOT) == robot_row(
+        answer, single.astype(float), final, mesh, push_id=0, **ROBOT)
+    with pytest.raises(ValueError, match="repeat must be an integer, not 1.5"):
+        robot_row(answer, observed, final, mesh, push_id=0, repeat=1.5, **ROBOT)
+
+
+def test_a_mesh_of_one_s_own_under_a_folder_named_pybullet_data_keeps_its_path(dataset, tmp_path):
+    manifest = json.loads((dataset / "manifest.json").read_text())
+    manifest["corpus"]["objects"][0].update(source="file", path="/home/me/pybullet_data/parts/part.obj")
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    own = dataset_meshes(tmp_path)["random_000"]
+    assert (own.mesh_source, own.mesh_path) == ("file", "/home/me/pybullet_data/parts/part.obj")
+
+
+def test_write_log_writes_the_push_log_s_schema_and_refuses_what_does_not_fit_it(executed, dataset, tmp_path):
+    meshes = dataset_meshes(dataset)
+    rows = [robot_row(answer, observed, final, meshes[object_id], push_id=i, **ROBOT)
+            for i, (object_id, _, observed, final, answer) in enumerate(executed[:2])]
+    path = write_log(rows, tmp_path / "session")
+    written = pq.read_schema(path)
+    assert written.equals(PUSHLOG) and written.metadata == PUSHLOG.metadata, "the columns' types and the log's version"
+    assert [written.field(name).metadata for name in PUSHLOG.names] == [field.metadata for field in PUSHLOG]
+    refused = {
+        "^no rows to write$": [],
+        r"^rows do not fit the push log's schema: Length of item not correct: expected 16 but got array of size 15$":
+            [rows[0], dict(rows[1], final_transform=rows[1]["final_transform"][:15])],
+        "^7 problems in 7 rows, nothing written: row 0: mass must be positive and finite; row 1: .*; row 4: mass must be "
+        "positive and finite$": [dict(rows[0], push_id=i, mass=0.0) for i in range(7)],
+    }
+    for message, bad in refused.items():
+        with pytest.raises(ValueError, match=message):
+            write_log(bad, tmp_path / "refused")
+    with pytest.raises(ValueError) as long:
+        write_log([dict(rows[0], mass="heavy " * 100)], tmp_path / "refused")
+    assert str(long.value) == "rows do not fit the push log's schema: " + f"Could not convert {'heavy ' * 100!r}"[:200]
+    with pytest.raises(ValueError, match="log readers skip names that start with '_' or '.'"):
+        write_log(rows, tmp_path / ".session")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["session"], "a refused write leaves nothing"
+
+
+# --- row_problems: every row checked, each bad one with its reason ---------------------------
+
+
+def plain_row(**changes) -> dict:
+    """A usable log row (an object standing at the origin, pushed along +x), with ``changes``."""
+    row = {
+        "object_id": "box", "mesh_sha256": "0" * 64, "mesh_source": "file", "mesh_path": "/meshes/box.stl",
+        "scale": 1.0, "mass": 0.25, "push_id": 0, "repeat": 0, "start_pose": None,
+        "start_transform": np.eye(4).ravel().tolist(), "point_x": -0.02, "point_y": 0.0, "point_z": 0.05,
+        "direction_x": 1.0, "direction_y": 0.0, "direction_z": 0.0, "action": None, "finger_speed": 0.05,
+        "approach_offset": 0.015, "push_depth": 0.04, "finger_radius": 0.004,
+        "final_transform": np.eye(4).ravel().tolist(), "mu_table": None, "mu_finger": None, "source": "test", "seed": None,
+    }
+    return {**row, **changes}
+
+
+def problems_of(*rows: dict) -> list[str | None]:
+    return row_problems(pa.Table.from_pylist(list(rows), schema=PUSHLOG))
+
+
+def test_each_number_of_a_row_is_held_to_its_own_bound():
+    assert problems_of(plain_row()) == [None]
+    for name in ("mass", "scale", "finger_speed"):
+        assert problems_of(*(plain_row(**{name: v}) for v in (0.0, -1.0, math.nan, math.inf))) == [
+            f"{name} must be positive and finite"] * 4, name
+    for name in ("approach_offset", "push_depth", "finger_radius"):
+        assert problems_of(*(plain_row(**{name: v}) for v in (0.0, -1e-6, math.nan, -math.inf))) == [
+            None] + [f"{name} must be non-negative and finite"] * 3, name
+
+
+def test_a_point_or_direction_with_nan_or_infinite_entries_is_named():
+    assert problems_of(plain_row(), plain_row(point_y=math.nan), plain_row(direction_z=math.inf), plain_row(),
+                       plain_row(direction_x=1e-12)) == [
+        None, "point has NaN or infinite entries", "direction has NaN or infinite entries", None, "direction is zero"]
+
+
+def test_a_missing_or_partly_missing_transform_is_named_and_the_other_column_still_checked():
+    stretched = np.diag([2.0, 2.0, 2.0, 1.0]).ravel().tolist()
+    holed = np.eye(4).ravel().tolist()
+    holed[5] = None  # a null inside the matrix, as a Parquet file may hold
+    assert problems_of(plain_row(start_transform=None), plain_row(final_transform=stretched), plain_row()) == [
+        "start_transform missing", "final_transform is not a rigid transform (rotation with det +1, last row 0 0 0 1)", None]
+    assert problems_of(plain_row(), plain_row(start_transform=holed)) == [None, "start_transform has NaN or infinite entries"]
+
+
+def test_a_rigid_transform_is_a_rotation_with_det_one_and_the_last_row_0_0_0_1_each_within_the_tolerance():
+    shear = np.eye(4)
+    shear[0, 1] = 0.5  # det 1, not a rotation
+    lifted = np.eye(4)
+    lifted[3, 2] = 0.5  # a rotation, but the last row is not 0 0 0 1
+    turned = np.eye(4)
+    turned[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+    assert rigid(np.stack([turned, shear, lifted, np.eye(4)])).tolist() == [True, False, False, True]
+    # The tolerance is the largest deviation accepted (exact in binary: 1.0625**2 - 1 = 0.12890625).
+    tolerance = 1.0625**2 - 1
+    scaled = np.diag([1.0625, 1.0625, 1.0, 1.0])  # R^T R - I and det R - 1 both exactly the tolerance
+    raised = np.eye(4)
+    raised[3, 0] = tolerance
+    assert rigid(np.stack([scaled, raised]), tolerance).tolist() == [True, True]
+    assert rigid(np.stack([scaled, raised]), np.nextafter(tolerance, 0.0)).tolist() == [False, False]
+    leaning = np.eye(4)
+    leaning[0, 1] = 1e-3  # R^T R - I is 1e-3 off the diagonal, det R is 1: the default tolerance exactly
+    assert rigid(leaning[None]).tolist() == [True]
