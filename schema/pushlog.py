@@ -94,8 +94,13 @@ def row_problems(table: pa.Table) -> list[str | None]:
         values = table.column(name).combine_chunks()
         matrices = np.asarray(values.flatten().to_numpy(zero_copy_only=False), dtype=float)
         if values.null_count or len(matrices) != 16 * n:
-            flag(np.array([v is None for v in values.to_pylist()]), f"{name} missing")
-            continue
+            # A row without a whole matrix is named; every other row is still checked (a null inside a
+            # matrix reads as NaN, as it does on the fast path).
+            cells = values.to_pylist()
+            whole = np.array([cell is not None and len(cell) == 16 for cell in cells], dtype=bool)
+            flag(~whole, f"{name} missing")
+            matrices = np.array([[np.nan if v is None else v for v in cell] if ok else np.eye(4).ravel()
+                                 for cell, ok in zip(cells, whole)], dtype=float)
         matrices = matrices.reshape(n, 4, 4)
         flag(~np.isfinite(matrices).all(axis=(1, 2)), f"{name} has NaN or infinite entries")
         flag(~rigid(matrices), f"{name} is not a rigid transform (rotation with det +1, last row 0 0 0 1)")
