@@ -454,6 +454,25 @@ def test_unreadable_logs_are_one_line_errors(tmp_path, capsys):
     assert err.startswith("error: push log not found") and "\n" not in err
 
 
+def test_a_log_with_nulls_where_every_row_needs_a_value_is_a_one_line_error(box_file, tmp_path, capsys):
+    """A log another tool wrote: a null object id, or a missing transform in a column of plain lists (as pandas
+    and polars write 16-number lists), is the file's one-line refusal, not a traceback."""
+    table = _rows(box_file, [(0, np.eye(4), [0.0, 0.0, 0.1], [1.0, 0.0, 0.0], [np.eye(4)] * 2)])
+    ids = table.schema.get_field_index("object_id")
+    no_id = table.set_column(ids, pa.field("object_id", pa.string()), pa.array([None] * table.num_rows, pa.string()))
+    pq.write_table(no_id, tmp_path / "no_id.parquet")
+    with pytest.raises(LogError, match=r"no_id.parquet: null values in column\(s\) a push log requires in every row: object_id \(2\)"):
+        read_log([tmp_path / "no_id.parquet"])
+    plain = pa.list_(pa.float64())
+    finals = table.column("final_transform").to_pylist()
+    no_final = table.set_column(table.schema.get_field_index("final_transform"), pa.field("final_transform", plain),
+                                pa.array([finals[0], None], plain))
+    pq.write_table(no_final, tmp_path / "no_final.parquet")
+    assert main([str(tmp_path / "no_final.parquet"), "--out", str(tmp_path / "r.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no_final.parquet: null values in column(s)" in err and "final_transform (1)" in err and "\n" not in err
+
+
 # ---------------------------------------------------------------- the report end to end
 
 

@@ -237,9 +237,13 @@ def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
         missing = sorted(required - set(table.column_names))
         if missing:
             raise LogError(f"{file}: not a push log, missing column(s) {', '.join(missing)}")
+        empty = [f"{field.name} ({table.column(field.name).null_count})" for field in PUSHLOG
+                 if not field.nullable and table.column(field.name).null_count]
+        if empty:  # a file another tool wrote; the cast would only say it cannot
+            raise LogError(f"{file}: null values in column(s) a push log requires in every row: {', '.join(empty)}")
         try:
             table = table.select(PUSHLOG.names).cast(PUSHLOG)
-        except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as err:
+        except (ValueError, pa.ArrowNotImplementedError) as err:  # ArrowInvalid is a ValueError
             raise LogError(f"{file}: columns do not have the push-log types ({str(err).splitlines()[0]})") from None
         n = table.num_rows
         table = table.append_column("_file", pa.array([str(file)] * n, type=pa.string())).append_column("_row", pa.array(np.arange(n), type=pa.int64()))
