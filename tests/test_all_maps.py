@@ -46,6 +46,8 @@ def test_all_maps_is_the_three_fits_run_in_turn_on_each_others_files(model_logs,
     assert main([log, "--all-maps", *_options(), "--out", str(out), "--json", str(record)]) == 0
     printed = capsys.readouterr().out
     assert "1. the centred and down maps" in printed and "3. the boosted map" in printed
+    assert "note: steps 2 and 3 score the maps under them as fitted on every push of this log" in printed, \
+        "the steps' 'without' rows are in-sample, and the output says so"
 
     chained, one_run = _maps(by_hand[-1]), _maps(out)
     assert chained == one_run, {k: (chained[k], one_run[k]) for k in chained if chained[k] != one_run[k]}
