@@ -358,9 +358,9 @@ def test_a_missing_or_partly_missing_transform_is_named_and_the_other_column_sti
         "start_transform missing", "final_transform is not a rigid transform (rotation with det +1, last row 0 0 0 1)", None]
     assert problems_of(plain_row(), plain_row(start_transform=holed)) == [None, "start_transform has NaN or infinite entries"]
     # A row without a matrix leaves the column's other rows checked.
+    not_rigid = "final_transform is not a rigid transform (rotation with det +1, last row 0 0 0 1)"
     assert problems_of(plain_row(final_transform=None), plain_row(final_transform=stretched), plain_row(final_transform=holed),
-                       plain_row()) == ["final_transform missing", "final_transform is not a rigid transform (rotation with det +1, "
-                                        "last row 0 0 0 1)", "final_transform has NaN or infinite entries", None]
+                       plain_row()) == ["final_transform missing", not_rigid, "final_transform has NaN or infinite entries", None]
 
 
 def test_a_rigid_transform_is_a_rotation_with_det_one_and_the_last_row_0_0_0_1_each_within_the_tolerance():
