@@ -19,10 +19,14 @@ import re
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from schema import layout
 from schema.version import SCHEMA_VERSION
+
+
+FILE_PARAMETERS = ("topple.boosted_map",)
+"""The parameters that name a file the build reads (``Manifest.parameter_files``), as section.key."""
 
 
 class ManifestError(ValueError):
@@ -195,13 +199,10 @@ class Manifest(_Closed):
 
     @field_validator("parameter_files")
     @classmethod
-    def _files_name_parameters(cls, files: dict[str, str], info: ValidationInfo) -> dict[str, str]:
-        parameters = info.data.get("parameters")  # absent when it failed itself: that error is the one reported
-        recorded = parameters.model_dump(mode="json") if parameters is not None else {}
+    def _files_name_parameters(cls, files: dict[str, str]) -> dict[str, str]:
         for name, digest in files.items():
-            section, _, key = name.partition(".")
-            if parameters is not None and key not in recorded.get(section, {}):
-                raise ValueError(f"{name!r} names no parameter of the build")
+            if name not in FILE_PARAMETERS:
+                raise ValueError(f"{name!r} is no parameter that names a file ({', '.join(FILE_PARAMETERS)})")
             if not re.fullmatch(r"[0-9a-f]{64}", digest):
                 raise ValueError(f"{name}: {digest!r} is no SHA-256 (64 hex digits)")
         return files

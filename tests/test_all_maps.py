@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.model.boosted_map import load_trees
 from pipeline.model.config import Config, MDPConfig
 from tests.test_validation import model_logs  # noqa: F401 (fixture)
 
@@ -19,8 +18,7 @@ pytest.importorskip("sklearn")  # the boosted map's fit
 def _options(folds: int = 3, seed: int = 2) -> list[str]:
     from pipeline.studies.synthetic_log import CANDIDATES_PER_POSE
 
-    return ["--corpus", "none", "--folds", str(folds), "--seed", str(seed), "--set", f"contacts.n_contacts={CANDIDATES_PER_POSE}",
-            "--set", f"seed={seed}"]
+    return ["--corpus", "none", "--folds", str(folds), "--seed", str(seed), "--set", f"contacts.n_contacts={CANDIDATES_PER_POSE}"]
 
 
 def _maps(path: Path) -> dict:
@@ -31,19 +29,26 @@ def _maps(path: Path) -> dict:
     return values
 
 
-def test_all_maps_is_the_three_fits_run_in_turn_on_each_others_files(model_logs, tmp_path, capsys):  # noqa: F811
+@pytest.mark.parametrize("base_model", [None, "[topple]\nmu_table_mean = 0.5\nrotation_std = 0.3\n"])
+def test_all_maps_is_the_three_fits_run_in_turn_on_each_others_files(base_model, model_logs, tmp_path, capsys):  # noqa: F811
+    """From the defaults, and from a file of [topple] values (a ``toppledb calibrate`` result, say), whose
+    values every step's file carries on."""
     from pipeline.studies.recalibrate import main
 
     log = str(model_logs / "reported.parquet")
     by_hand = []
     base: list[str] = []
+    if base_model is not None:
+        (tmp_path / "base.toml").write_text(base_model)
+        base = ["--config", str(tmp_path / "base.toml")]
+    first_base = base
     for step in ("--down", "--side", "--boosted"):
         out = tmp_path / f"{step[2:]}.toml"
         assert main([log, step, *_options(), *base, "--out", str(out), "--json", str(out.with_suffix(".json"))]) == 0
         by_hand.append(out)
         base = ["--config", str(out)]
     out, record = tmp_path / "all.toml", tmp_path / "all.json"
-    assert main([log, "--all-maps", *_options(), "--out", str(out), "--json", str(record)]) == 0
+    assert main([log, "--all-maps", *_options(), *first_base, "--out", str(out), "--json", str(record)]) == 0
     printed = capsys.readouterr().out
     assert "1. the centred and down maps" in printed and "3. the boosted map" in printed
     assert "note: steps 2 and 3 score the maps under them as fitted on every push of this log" in printed, \
@@ -55,7 +60,8 @@ def test_all_maps_is_the_three_fits_run_in_turn_on_each_others_files(model_logs,
     assert all(one_run[name] != getattr(default, name) for name in ("recalibration_x", "down_map", "side_map")), \
         "every map is refitted, none is the default's"
     assert Config.from_toml(out).mdp == MDPConfig(), "with the boosted map over the down map, planners choose from above"
-    assert load_trees(Config.from_toml(out).topple.boosted_map) is not None
+    if base_model is not None:
+        assert (one_run["mu_table_mean"], one_run["rotation_std"]) == (0.5, 0.3), "the base model's values are written"
 
     result = json.loads(record.read_text())
     assert result["down"]["fold_objects"] == result["side"]["fold_objects"] == result["boosted"]["fold_objects"], \
@@ -94,3 +100,26 @@ def test_trees_a_config_file_may_name_are_never_replaced(fit, tmp_path, capsys):
     code = main([str(tmp_path / "no_log.parquet"), fit, "--out", str(tmp_path / "robot.toml"), "--json", str(tmp_path / "r.json")])
     assert code == 2 and f"{trees} exists" in capsys.readouterr().err
     assert trees.read_text() == "{}" and not (tmp_path / "robot.toml").exists()
+
+
+def test_fold_maps_a_dataset_may_name_are_never_replaced(tmp_path, capsys):
+    from pipeline.studies.recalibrate import main
+
+    folds = tmp_path / "folds"
+    folds.mkdir()
+    (folds / "fold_0.trees.json").write_text("{}")
+    code = main([str(tmp_path / "no_log.parquet"), "--boosted", "--fold-maps", str(folds), "--out", str(tmp_path / "b.toml"),
+                 "--json", str(tmp_path / "b.json")])
+    assert code == 2 and f"{folds} holds fold maps already" in capsys.readouterr().err
+    assert (folds / "fold_0.trees.json").read_text() == "{}"
+
+
+def test_trees_written_since_the_check_are_not_replaced(tmp_path):
+    """Two runs to one --out both pass the check before fitting; the second to write its trees is refused."""
+    from pipeline.studies.recalibrate import trees_path, write_trees
+
+    out = tmp_path / "robot.toml"
+    assert write_trees({"first": 1}, out) == str(trees_path(out))
+    with pytest.raises(FileExistsError, match="robot.trees.json exists"):
+        write_trees({"second": 2}, out)
+    assert json.loads(trees_path(out).read_text()) == {"first": 1}

@@ -357,7 +357,7 @@ def test_fold_maps_are_each_fitted_without_their_objects_and_list_them_as_a_corp
     assert main([*common, "--fold-maps", str(folds_dir)]) == 2
     assert "--fold-maps writes the boosted map's folds; give --boosted" in capsys.readouterr().err
     (tmp_path / "b.trees.json").unlink()  # a second fit to the same --out is refused (test_all_maps)
-    assert main([*common[:1], "--corpus", "none", *common[3:], "--boosted", "--fold-maps", str(folds_dir)]) == 2
+    assert main([*common[:1], "--corpus", "none", *common[3:], "--boosted", "--fold-maps", str(tmp_path / "other")]) == 2
     assert "--fold-maps writes corpus lists: give a --corpus, not 'none'" in capsys.readouterr().err
 
 

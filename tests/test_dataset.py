@@ -159,6 +159,22 @@ def test_rerun_reuses_every_shard(reference, corpus, tmp_path, capsys):
     assert_same_dataset(reference, copy)
 
 
+def test_a_rerun_records_the_map_file_of_a_build_from_before_parameter_files(reference, corpus, tmp_path, capsys):
+    """A dataset built before the manifest recorded the boosted map's content is not up to date: the rerun
+    reuses every shard and writes a manifest that names the content, so /health's digest is the model's."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    data = json.loads((copy / "manifest.json").read_text())
+    recorded = data.pop("parameter_files")
+    assert recorded, "the default model's boosted map is a file"
+    (copy / "manifest.json").write_text(json.dumps(data))
+    capsys.readouterr()
+    assert build(corpus, copy, "--workers", "2") == 0
+    assert "up to date" not in capsys.readouterr().err
+    rebuilt = read_manifest(copy)
+    assert rebuilt.parameter_files == recorded and (rebuilt.run["computed"], rebuilt.run["reused"]) == (0, len(OBJECTS))
+
+
 def test_a_rerun_rewrites_consolidated_tables_damaged_since_the_build(reference, corpus, tmp_path, capsys):
     # Every shard intact, but poses.parquet cut short and a served table overwritten in place: a rerun
     # used to say "up to date" and leave them (verify found them); it now writes them again from the shards.

@@ -240,8 +240,10 @@ def test_a_parameter_that_names_a_file_is_recorded_and_digested_by_the_files_con
 
 
 @pytest.mark.parametrize("files, message", [
-    ({"topple.no_such_key": "ab" * 32}, "names no parameter"),
-    ({"boosted_map": "ab" * 32}, "names no parameter"),
+    ({"topple.no_such_key": "ab" * 32}, "is no parameter that names a file"),
+    ({"boosted_map": "ab" * 32}, "is no parameter that names a file"),
+    ({"seed": "ab" * 32}, "is no parameter that names a file"),
+    ({"topple.variant": "ab" * 32}, "is no parameter that names a file"),
     ({"topple.boosted_map": "not a digest"}, "is no SHA-256"),
 ])
 def test_a_recorded_file_that_names_no_parameter_or_holds_no_digest_is_refused_in_one_line(built, tmp_path, files, message):

@@ -471,6 +471,11 @@ def test_a_log_with_nulls_where_every_row_needs_a_value_is_a_one_line_error(box_
     assert main([str(tmp_path / "no_final.parquet"), "--out", str(tmp_path / "r.json")]) == 2
     err = capsys.readouterr().err.strip()
     assert "no_final.parquet: null values in column(s)" in err and "final_transform (1)" in err and "\n" not in err
+    short = pa.list_(pa.float64(), 15)  # a fixed size the push log does not have: arrow's type error, one line too
+    pq.write_table(table.set_column(table.schema.get_field_index("final_transform"), pa.field("final_transform", short),
+                                    pa.array([f[:15] for f in finals], short)), tmp_path / "short.parquet")
+    with pytest.raises(LogError, match="short.parquet: columns do not have the push-log types"):
+        read_log([tmp_path / "short.parquet"])
 
 
 # ---------------------------------------------------------------- the report end to end

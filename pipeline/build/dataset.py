@@ -538,6 +538,7 @@ def _up_to_date(
         and all(current.shards[i].fingerprint == records[i]["fingerprint"] for i in order)
         and [o.model_dump() for o in current.corpus.objects] == [dataclasses.asdict(s) for s in corpus.specs]
         and current.parameters.model_dump() == config.to_dict()
+        and current.parameter_files == shards.parameter_files(config)  # one from before the field names the file only
         and [(f.object_id, f.reason) for f in current.failures]
         == [(s.object_id, failures[s.object_id].reason) for s in corpus.specs if s.object_id in failures]
     )

@@ -243,7 +243,7 @@ def read_tables(files: list[Path], logs: list[int] | None = None) -> pa.Table:
             raise LogError(f"{file}: null values in column(s) a push log requires in every row: {', '.join(empty)}")
         try:
             table = table.select(PUSHLOG.names).cast(PUSHLOG)
-        except (ValueError, pa.ArrowNotImplementedError) as err:  # ArrowInvalid is a ValueError
+        except (ValueError, TypeError, pa.ArrowException) as err:  # ArrowInvalid is a ValueError, ArrowTypeError a TypeError
             raise LogError(f"{file}: columns do not have the push-log types ({str(err).splitlines()[0]})") from None
         n = table.num_rows
         table = table.append_column("_file", pa.array([str(file)] * n, type=pa.string())).append_column("_row", pa.array(np.arange(n), type=pa.int64()))

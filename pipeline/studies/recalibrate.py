@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..build.atomic import write_text_atomic
+from ..build.atomic import write_atomic
 from ..build.corpus import Corpus, write_list
 from ..model.boosted_map import FEATURES as BOOSTED_FEATURES
 from ..model.boosted_map import FIT_PARAMS, boosted_probability, fit_trees, trees_from_dict
@@ -391,7 +391,9 @@ def all_maps_recalibrate(log: PushLog, config: Config | None = None, *, folds: i
     """Refit every map of P(topple) in the order the engine applies them (docs/MODEL.md C.19): the centred
     and down maps on the unmapped P (``down_recalibrate``), the side map over them (``side_recalibrate``),
     the boosted map over all three (``boosted_recalibrate``).  What three ``toppledb recalibrate`` runs,
-    each on the file the last one wrote, give; the base model's own maps are replaced.
+    each on the file the last one wrote, give from the defaults or a file of [topple] values (each step here
+    keeps ``config`` whole, its side map's band too, where the chain's files carry [topple] alone); the base
+    model's own maps are replaced.
 
     Each step's cross-validation holds the earlier steps' maps at their fit on every push, so its
     held-out figures are a step's own gain, not the chain's: ``toppledb report`` on objects outside the
@@ -433,7 +435,9 @@ def write_fold_maps(directory: Path, fold_trees: list[dict], fold_objects: list[
     by_id = {spec.object_id: spec for spec in corpus.specs}
     lists = []
     for k, (trees, members) in enumerate(zip(fold_trees, fold_objects)):
-        write_text_atomic(directory / f"fold_{k}.trees.json", json.dumps(trees, separators=(",", ":")))
+        # Never replaced: datasets built out of fold name the file by path.
+        write_atomic(directory / f"fold_{k}.trees.json", lambda temp, t=trees: temp.write_text(json.dumps(t, separators=(",", ":"))),
+                     exclusive=True)
         lists.append(directory / f"fold_{k}.csv")
         write_list([by_id[name] for name in sorted(members)], lists[-1], None)
     return lists
@@ -525,15 +529,20 @@ the maps under it (on a log of value iteration's pushes, stop 66, the boosted ma
 Brier this way, and helped on held-out objects; docs/VALIDATION.md)."""
 
 
-def write_trees(trees: dict, out: Path) -> str:
-    """Write a fitted boosted map beside the config TOML ``out`` (suffix .trees.json); its absolute path.
+def trees_path(out: Path) -> Path:
+    """Where a fitted boosted map goes beside the config TOML ``out`` (suffix .trees.json), absolute: the TOML
+    names the file, and a relative name would be read against whatever directory the TOML is used from.
+    To ship a map, copy it into pipeline/model/presets/."""
+    return out.with_suffix(".trees.json").resolve()
 
-    Absolute: the TOML names the file, and a relative name would be read against whatever
-    directory the TOML is used from.  To ship a map, copy it into pipeline/model/presets/."""
-    trees_file = out.with_suffix(".trees.json").resolve()
-    trees_file.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(trees_file, json.dumps(trees, separators=(",", ":")))
-    return str(trees_file)
+
+def write_trees(trees: dict, out: Path) -> str:
+    """Write a fitted boosted map to ``trees_path(out)``, never over a file there (``FileExistsError``):
+    config files and datasets' parameters name it by path.  returns : the path written"""
+    path = trees_path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, lambda temp: temp.write_text(json.dumps(trees, separators=(",", ":"))), exclusive=True)
+    return str(path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -586,12 +595,14 @@ def main(argv: list[str] | None = None) -> int:
                                  "maps fitted on every object, so no fold's map would be out of fold")
             if given is not None and not args.boosted:
                 raise UsageError(f"{option} {'writes' if option == '--fold-maps' else 'gives'} the boosted map's folds; give --boosted")
-        trees_file = args.out.with_suffix(".trees.json")
-        if (args.boosted or args.all_maps) and trees_file.exists():
-            # Config files name the trees by path: new trees under the name would change what every one
-            # written with the old gives, and a dataset's parameters would not show it.
-            raise UsageError(f"{trees_file} exists: a config file that names it would give another model if it were "
-                             "replaced; remove it, or write to another --out")
+        # Config files and datasets name trees by path: new trees under the name would change what every
+        # one written with the old gives.  Checked here too, before minutes of fitting (write_trees refuses as well).
+        if (args.boosted or args.all_maps) and trees_path(args.out).exists():
+            raise UsageError(f"{trees_path(args.out)} exists: a config file that names it would give another model if it "
+                             "were replaced; remove it, or write to another --out")
+        if args.fold_maps is not None and any(args.fold_maps.glob("fold_*.trees.json")):
+            raise UsageError(f"{args.fold_maps} holds fold maps already, which datasets built out of fold name by path; "
+                             "remove them, or write to another directory")
         config = config_from_args(args)
         if config.topple.variant != "corrected":
             raise UsageError(f"only the corrected variant applies a recalibration, the model is {config.topple.variant!r}")
@@ -630,7 +641,7 @@ def main(argv: list[str] | None = None) -> int:
                 result["fold_lists"] = [str(p) for p in write_fold_maps(args.fold_maps, fold_trees, result["fold_objects"], corpus)]
         else:
             result = recalibrate(logs[0][1], config, folds=args.folds, seed=args.seed, methods=tuple(args.methods))
-    except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError) as err:
+    except (UsageError, CorpusError, LogError, CalibrationError, RecalibrationError, FeatureMapError, FileExistsError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except ImportError as err:  # the boosted map's fit needs scikit-learn, which only the pipeline extra installs
@@ -664,8 +675,6 @@ def main(argv: list[str] | None = None) -> int:
                       "down_map": tuple(result["weights"]), "down_map_z": result["down_map_z"]}
     elif args.side:
         print(format_side_record(result))
-        if args.config:
-            print(IN_SAMPLE_UNDER.format(under=f"if the maps of {args.config} were fitted on these logs, they are scored here in-sample"))
         cv = result["cross_validated"]
         comments = ["toppledb recalibrate --side: the side map of P(topple) (docs/MODEL.md C.16), the model's other maps kept",
                     logs_line, with_and_without(cv, "side_map", args.folds, args.seed)]
@@ -675,9 +684,8 @@ def main(argv: list[str] | None = None) -> int:
                  ("boosted map", "boosted", format_boosted_record)]
         for n, (name, key, format_step) in enumerate(steps, 1):
             print(f"{n}. the {name}\n{format_step(result[key])}")
-        print(IN_SAMPLE_UNDER.format(under="steps 2 and 3 score the maps under them as fitted on every push of this log"))
         maps = result.pop("maps")
-        result["trees_file"] = write_trees(maps.pop("boosted_map"), args.out)
+        trees = maps.pop("boosted_map")
         down_cv, side_cv, boosted_cv = (result[key]["cross_validated"] for key in ("down", "side", "boosted"))
         comments = [("toppledb recalibrate --all-maps: every map of P(topple) refitted in turn, centred and down, side, "
                      "boosted (docs/MODEL.md C.7, C.15, C.16, C.19)"),
@@ -691,17 +699,15 @@ def main(argv: list[str] | None = None) -> int:
                     (f"  boosted: without {boosted_cv['identity']['ece']:.3f} / {boosted_cv['identity']['brier']:.4f}, "
                      f"with {boosted_cv['boosted_map']['ece']:.3f} / {boosted_cv['boosted_map']['brier']:.4f}"),
                     "  (the side and boosted steps' 'without' holds the maps under them in-sample; toppledb report judges the file)"]
-        fitted_map = {**maps, "boosted_map": result["trees_file"]}
+        fitted_map = maps
     elif args.boosted:
         print(format_boosted_record(result))
-        if args.config:
-            print(IN_SAMPLE_UNDER.format(under=f"if the maps of {args.config} were fitted on these logs, they are scored here in-sample"))
         cv = result["cross_validated"]
-        result["trees_file"] = write_trees(result.pop("trees"), args.out)
+        trees = result.pop("trees")
         comments = ["toppledb recalibrate --boosted: the boosted map of P(topple) (docs/MODEL.md C.19), the model's other maps kept",
                     logs_line, with_and_without(cv, "boosted_map", result["folds"],
                                                 args.seed if args.folds_from is None else str(args.folds_from))]
-        fitted_map = {**kept_maps(config.topple), "boosted_map": result["trees_file"]}
+        fitted_map = kept_maps(config.topple)
     else:
         print(format_record(result))
         cv = result["cross_validated"]
@@ -713,6 +719,16 @@ def main(argv: list[str] | None = None) -> int:
              + ", ".join(f"{m} {v['ece']:.3f} / {v['brier']:.4f}" for m, v in [("identity", cv["identity"])] + list(cv["methods"].items()))),
         ]
         fitted_map = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"])}
+    if args.all_maps:
+        print(IN_SAMPLE_UNDER.format(under="steps 2 and 3 score the maps under them as fitted on every push of this log"))
+    elif (args.side or args.boosted) and args.config:
+        print(IN_SAMPLE_UNDER.format(under=f"if the maps of {args.config} were fitted on these logs, they are scored here in-sample"))
+    if args.all_maps or args.boosted:
+        try:
+            result["trees_file"] = fitted_map["boosted_map"] = write_trees(trees, args.out)
+        except FileExistsError as err:  # another run wrote it since the check
+            print(f"error: {err}", file=sys.stderr)
+            return 2
     topple = config.topple
     # A map belongs to the probabilities it was fitted on, so the file carries the model they
     # come from: every [topple] value of the base model that is not the default's (its noise,
