@@ -24,7 +24,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from schema import layout
 from schema.version import SCHEMA_VERSION
 
-
 FILE_PARAMETERS = ("topple.boosted_map",)
 """The parameters that name a file the build reads (``Manifest.parameter_files``), as section.key."""
 
