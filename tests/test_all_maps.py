@@ -63,6 +63,15 @@ def test_all_maps_is_the_three_fits_run_in_turn_on_each_others_files(base_model,
     if base_model is not None:
         assert (one_run["mu_table_mean"], one_run["rotation_std"]) == (0.5, 0.3), "the base model's values are written"
 
+    # The TOML names its trees beside it: the two files copied elsewhere are the same model.
+    assert 'boosted_map = "all.trees.json"' in out.read_text()
+    moved = tmp_path / "robot_machine"
+    moved.mkdir()
+    for name in ("all.toml", "all.trees.json"):
+        (moved / name).write_bytes((tmp_path / name).read_bytes())
+    assert Config.from_toml(moved / "all.toml").topple.boosted_map == str((moved / "all.trees.json").resolve())
+    assert _maps(moved / "all.toml") == one_run
+
     result = json.loads(record.read_text())
     assert result["down"]["fold_objects"] == result["side"]["fold_objects"] == result["boosted"]["fold_objects"], \
         "the steps share their folds"

@@ -119,3 +119,21 @@ def test_config_accepts_a_preset_name_and_lists_the_presets_when_it_is_neither()
 
 def test_numpy_booleans_set_switches_and_only_switches():
     assert Config().with_overrides({"mdp.retry_failed": np.False_, "mdp.believe_failures": np.False_}).mdp.retry_failed is False
+
+
+def test_a_boosted_map_a_config_file_names_by_a_relative_path_is_the_file_beside_it(tmp_path, monkeypatch):
+    """As ``toppledb recalibrate`` writes a TOML and its trees: the two move together.  An absolute path and a
+    packaged map's name are taken as written; ``--set`` on the command line reads from the working directory."""
+    (tmp_path / "robot").mkdir()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    for value, expected in [("robot.trees.json", str((tmp_path / "robot" / "robot.trees.json").resolve())),
+                            ("maps/robot.trees.json", str((tmp_path / "robot" / "maps" / "robot.trees.json").resolve())),
+                            ("/srv/maps/robot.trees.json", "/srv/maps/robot.trees.json"),
+                            ("boosted_map_s41", "boosted_map_s41"), ("", "")]:
+        (tmp_path / "robot" / "robot.toml").write_text(f'[topple]\nboosted_map = "{value}"\n'
+                                                      + ("[mdp]\nmin_direction_z = -0.3\n" if not value else ""))
+        assert Config.from_toml(tmp_path / "robot" / "robot.toml").topple.boosted_map == expected, value
+    on_the_line = Config().with_overrides({"topple.boosted_map": "robot.trees.json"})
+    assert on_the_line.topple.boosted_map == "robot.trees.json"

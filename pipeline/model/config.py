@@ -670,8 +670,17 @@ class Config:
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "Config":
+        """The file's configuration.  A boosted map it names by a relative path (``topple.boosted_map``
+        ending in .json) is the file beside it, as ``toppledb recalibrate`` writes the two: they move
+        together, to another directory or machine.  (On the command line, ``--set`` names a path from
+        the working directory.)"""
         with open(path, "rb") as f:
-            return cls.from_dict(tomllib.load(f))
+            data = tomllib.load(f)
+        topple = data.get("topple")
+        name = topple.get("boosted_map") if isinstance(topple, dict) else None
+        if isinstance(name, str) and name.endswith(".json") and not Path(name).is_absolute():
+            data = {**data, "topple": {**topple, "boosted_map": str((Path(path).parent / name).resolve())}}
+        return cls.from_dict(data)
 
     def with_overrides(self, overrides: dict[str, Any]) -> "Config":
         """Return a copy with dotted keys replaced, e.g. ``{"topple.n_trials": 10}``; the stroke

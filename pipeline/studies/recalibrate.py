@@ -530,9 +530,9 @@ Brier this way, and helped on held-out objects; docs/VALIDATION.md)."""
 
 
 def trees_path(out: Path) -> Path:
-    """Where a fitted boosted map goes beside the config TOML ``out`` (suffix .trees.json), absolute: the TOML
-    names the file, and a relative name would be read against whatever directory the TOML is used from.
-    To ship a map, copy it into pipeline/model/presets/."""
+    """Where a fitted boosted map goes beside the config TOML ``out`` (suffix .trees.json), absolute.  The TOML
+    names it by its file name, which ``Config.from_toml`` reads beside the TOML, so the two move together.
+    To ship a map with the package, copy it into pipeline/model/presets/."""
     return out.with_suffix(".trees.json").resolve()
 
 
@@ -725,7 +725,8 @@ def main(argv: list[str] | None = None) -> int:
         print(IN_SAMPLE_UNDER.format(under=f"if the maps of {args.config} were fitted on these logs, they are scored here in-sample"))
     if args.all_maps or args.boosted:
         try:
-            result["trees_file"] = fitted_map["boosted_map"] = write_trees(trees, args.out)
+            result["trees_file"] = write_trees(trees, args.out)
+            fitted_map["boosted_map"] = Path(result["trees_file"]).name  # beside the TOML, wherever both go
         except FileExistsError as err:  # another run wrote it since the check
             print(f"error: {err}", file=sys.stderr)
             return 2
