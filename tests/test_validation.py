@@ -712,6 +712,8 @@ def test_report_against_accepts_a_model_of_the_same_stroke(model_logs, tmp_path,
     assert main([reported, "--config", str(stroke), "--variants", "corrected", "--against", str(stroke),
                  "--corpus", "", "--bootstrap", "0", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
+    assert result["model"] == str(stroke) and f"model (corrected): {stroke}\n" in capsys.readouterr().out, \
+        "the report says which file its corrected rows are"
     assert result["against"][str(stroke)]["corrections"] == ["finger_friction", "stroke"]
     assert result["against"][str(stroke)]["difference"]["brier"]["difference"] == 0.0
 

@@ -539,6 +539,8 @@ def format_report(result: dict) -> str:
     ]
     for reason, count in c["rejected_by_reason"].items():
         lines.append(f"  rejected {count} rows: {reason}")
+    if "model" in result:
+        lines.append(f"model ({result['main_variant']}): {result['model']}")
     rows = _rows(result)
     width = max([15] + [len(name) for name, _ in rows])
     lines.append(f"{'predictor':<{width}} {'TV inform.':>26} {'TV all':>8} {'Brier':>7} {'AP':>26} {'mAP':>7} {'ECE':>7} {'inform.':>8}")
@@ -732,6 +734,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     result["wall_s"] = round(time.perf_counter() - started, 1)
+    # Which file the variant's rows are: a table row reads "corrected" whatever --config gave.
+    result["model"] = " ".join(filter(None, [str(args.config or "the defaults"), *(f"--set {o}" for o in args.overrides)]))
     print(format_report(result))
     write_text_atomic(args.out, json.dumps(to_json(result), indent=1, allow_nan=False) + "\n")
     print(f"report: {args.out} ({result['wall_s']} s)")
