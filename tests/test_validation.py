@@ -1,6 +1,7 @@
 """The validation report: metrics on hand-made cases, the log reader's per-row checks, the report end to end."""
 
 import json
+import math
 import re
 from dataclasses import replace
 
@@ -150,6 +151,16 @@ def test_paired_bootstrap_of_a_difference():
     better = bootstrap_difference(Scores(tv * 0.8, predicted, tv), Scores(tv, predicted, tv), observed, objects, n_resamples=100)
     assert better["tv_all"]["difference"] == pytest.approx(-0.2 * tv.mean())
     assert better["tv_all"]["ci"][1] < 0 and better["tv_informative"]["ci"][1] < 0
+
+
+def test_a_difference_the_log_cannot_define_is_shown_as_a_dash():
+    """AP of a log without a topple is undefined: the report's difference line shows "-", not "+nan"."""
+    from pipeline.studies.validation import _difference
+
+    assert _difference({"difference": math.nan, "ci": [math.nan, math.nan]}) == "-"
+    assert _difference({"difference": None, "ci": None}) == "-"  # as JSON reads NaN back
+    assert _difference({"difference": 0.0123, "ci": [math.nan, math.nan]}) == "+0.012"
+    assert _difference({"difference": -0.0123, "ci": [-0.02, -0.004]}) == "-0.012 [-0.020, -0.004]"
 
 
 # ---------------------------------------------------------------- hand-made logs

@@ -584,6 +584,8 @@ def _difference(d: dict) -> str:
     """A paired difference with its interval ("+0.012 [+0.004, +0.020]"); without resamples
     (``--bootstrap 0``) the interval is NaN and only the difference is shown."""
     low, high = d.get("ci") or (None, None)
+    if d["difference"] is None or math.isnan(d["difference"]):  # a metric the log cannot define (AP without a topple)
+        return "-"
     if low is None or high is None or math.isnan(low) or math.isnan(high):  # None: read back from JSON
         return f"{d['difference']:+.3f}"
     return f"{d['difference']:+.3f} [{low:+.3f}, {high:+.3f}]"
