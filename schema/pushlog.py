@@ -133,7 +133,8 @@ def rigid(matrices: np.ndarray, tolerance: float = RIGID_TOLERANCE) -> np.ndarra
 
 # --- a robot's own pushes -----------------------------------------------------------------
 
-PYBULLET_DATA = "pybullet_data"
+PYBULLET_SOURCE = "pybullet_data"
+"""``mesh_source`` (and a corpus entry's ``source``, or a path under it) of one of pybullet's meshes."""
 POSES_METADATA_KEY = b"toppledb_poses"
 """Parquet metadata key of a log ``write_log`` wrote for a dataset: that dataset's pose parameters
 (JSON), the numbering its ``start_pose`` column uses, whatever configuration reads it later."""
@@ -158,6 +159,22 @@ class LoggedMesh:
     mesh_sha256: str
 
 
+def is_pybullet_source(source: str) -> bool:
+    """Whether a mesh's ``source`` is pybullet's data (``pybullet_data`` or a path under it), whose mesh paths
+    are read relative to wherever pybullet is installed."""
+    return source == PYBULLET_SOURCE or source.startswith(PYBULLET_SOURCE + "/")
+
+
+def below_pybullet_data(path: str) -> str | None:
+    """What follows the last ``pybullet_data`` part of a recorded mesh path, as a POSIX path; None when it has
+    no such part.  The path may be any machine's install: a build on Windows records C:\\...\\pybullet_data\\...,
+    read by its parts, not this machine's."""
+    parts = (PureWindowsPath if "\\" in path else PurePosixPath)(path).parts
+    if PYBULLET_SOURCE not in parts:
+        return None
+    return PurePosixPath(*parts[len(parts) - parts[::-1].index(PYBULLET_SOURCE):]).as_posix()
+
+
 def dataset_meshes(root: str | Path) -> dict[str, LoggedMesh]:
     """Object id -> ``LoggedMesh`` for every object of the dataset at ``root``, as its manifest's
     corpus records it (path, scale, mass and the SHA-256 of the file the build read).
@@ -167,12 +184,8 @@ def dataset_meshes(root: str | Path) -> dict[str, LoggedMesh]:
     ``schema.manifest.ManifestError`` when ``root`` is not a finished dataset of this schema."""
     meshes = {}
     for entry in read_manifest(root).corpus.objects:
-        source, path = "file", entry.path
-        # A build on Windows records C:\...\pybullet_data\...: its parts, not this machine's.
-        parts = (PureWindowsPath if "\\" in entry.path else PurePosixPath)(entry.path).parts
-        if (entry.source == PYBULLET_DATA or entry.source.startswith(PYBULLET_DATA + "/")) and PYBULLET_DATA in parts:
-            last = len(parts) - 1 - parts[::-1].index(PYBULLET_DATA)
-            source, path = PYBULLET_DATA, PurePosixPath(*parts[last + 1:]).as_posix()
+        below = below_pybullet_data(entry.path) if is_pybullet_source(entry.source) else None
+        source, path = ("file", entry.path) if below is None else (PYBULLET_SOURCE, below)
         meshes[entry.object_id] = LoggedMesh(entry.object_id, source, path, entry.scale, entry.mass, entry.sha256)
     return meshes
 

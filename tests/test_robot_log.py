@@ -381,3 +381,12 @@ def test_a_rigid_transform_is_a_rotation_with_det_one_and_the_last_row_0_0_0_1_e
     leaning = np.eye(4)
     leaning[0, 1] = 1e-3  # R^T R - I is 1e-3 off the diagonal, det R is 1: the default tolerance exactly
     assert rigid(leaning[None]).tolist() == [True]
+
+
+def test_a_mesh_below_pybullet_data_is_named_from_its_last_such_part_on_any_machine():
+    from schema.pushlog import below_pybullet_data
+
+    assert below_pybullet_data("/venv/lib/site-packages/pybullet_data/random_urdfs/002/002.obj") == "random_urdfs/002/002.obj"
+    assert below_pybullet_data("C:\\envs\\site-packages\\pybullet_data\\duck.obj") == "duck.obj"
+    assert below_pybullet_data("/home/me/pybullet_data/copy/pybullet_data/bunny.obj") == "bunny.obj"
+    assert below_pybullet_data("/home/me/meshes/part.obj") is None

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from schema.layout import check_object_id, object_id_key
+from schema.pushlog import PYBULLET_SOURCE, is_pybullet_source
 
 from ..model.config import MESH_SUFFIXES
 from .atomic import file_sha256, write_text_atomic
@@ -44,7 +45,6 @@ from .atomic import file_sha256, write_text_atomic
 DEFAULT_LIST = Path(__file__).with_name("corpus_default.csv")
 LIST_COLUMNS = ("object_id", "source", "path", "scale", "mass", "sha256")
 """Columns of the default list as written by ``write_list``."""
-PYBULLET_SOURCE = "pybullet_data"
 
 NAMED_MESHES = (
     # (object id, URDF giving mesh/scale/mass, or mesh with scale and mass when there is no URDF)
@@ -256,12 +256,6 @@ def load_corpus(corpus: str, default_mass: float, units: Units | None = None) ->
 
 
 # --- files ------------------------------------------------------------------------
-
-
-def is_pybullet_source(source: str) -> bool:
-    """Whether a mesh's ``source`` is pybullet's data (``pybullet_data`` or a path under it), whose mesh paths
-    are read relative to ``pybullet_data_dir``."""
-    return source == PYBULLET_SOURCE or source.startswith(PYBULLET_SOURCE + "/")
 
 
 def pybullet_data_dir() -> Path:

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from schema.pushlog import PUSHLOG
+from schema.pushlog import PUSHLOG, below_pybullet_data
 from schema.reader import Dataset, DatasetUnreadable
 from schema.vocabulary import NO_OP, POLICIES
 
@@ -129,9 +129,8 @@ def mesh_file(path: str, source: str, sha256: str) -> Path | None:
     candidates = [recorded]
     if is_pybullet_source(source) and not recorded.is_absolute():
         candidates = [pybullet_data_dir() / recorded]
-    elif is_pybullet_source(source) and "pybullet_data" in recorded.parts:
-        parts = recorded.parts
-        candidates.append(pybullet_data_dir().joinpath(*parts[len(parts) - parts[::-1].index("pybullet_data"):]))
+    elif is_pybullet_source(source) and (below := below_pybullet_data(path)) is not None:
+        candidates.append(pybullet_data_dir() / below)
     return next((c for c in candidates if file_sha256(c) == sha256), None)
 
 
