@@ -259,7 +259,8 @@ def feature_recalibrate(logs: list[tuple[str, PushLog]], config: Config | None =
                       per_log=[{"log": part["name"], **both(source == i), "counts": part["counts"]} for i, part in enumerate(parts)])
 
 
-def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
+def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0,
+                     scorer: Scorer | None = None) -> dict:
     """Cross-validate the down map (docs/MODEL.md C.15) beside the centred map, fit both on all.
 
     Every fold fits the centred map (C.7) on all its training pushes and the down map on the
@@ -269,10 +270,11 @@ def down_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
     the down map is adopted by.
     returns : a JSON-ready record with ``weights`` (one per ``DOWN_FEATURES``), ``knots`` (the
       centred map on all pushes), pooled held-out metrics of both (all pushes and the down ones)
+    scorer : ``Scorer(log, config.seed, config.contacts)`` made already, whose pose candidates are reused
     """
     config = config or Config()
     started = time.perf_counter()
-    scorer = Scorer(log, config.seed, config.contacts)
+    scorer = scorer if scorer is not None else Scorer(log, config.seed, config.contacts)
     features, p, lands = scorer.down_map_inputs(config.topple)
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
     # As the engine takes them: the evaluated push's direction, and only pushes with a P.
@@ -319,7 +321,8 @@ def cross_validated_map(features: np.ndarray, observed: np.ndarray, weight: np.n
     return held_out, weights
 
 
-def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0) -> dict:
+def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0,
+                     scorer: Scorer | None = None) -> dict:
     """Cross-validate the side map (docs/MODEL.md C.16) on top of ``config``'s other maps, fit it on all.
 
     Every fold fits the weights on its training pushes the map takes (``feature_map.side_rows``:
@@ -327,10 +330,11 @@ def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
     ``identity`` is P as the model without a side map gives it: the comparison the map is adopted by.
     returns : a JSON-ready record with ``weights`` (one per ``SIDE_FEATURES``) and pooled held-out
       metrics of both (all pushes and the mapped ones)
+    scorer : ``Scorer(log, config.seed, config.contacts)`` made already, whose pose candidates are reused
     """
     config = config or Config()
     started = time.perf_counter()
-    scorer = Scorer(log, config.seed, config.contacts)
+    scorer = scorer if scorer is not None else Scorer(log, config.seed, config.contacts)
     features, p, side = scorer.side_map_inputs(config.topple)
     band = config.topple.side_map_band
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
@@ -350,7 +354,7 @@ def side_recalibrate(log: PushLog, config: Config | None = None, *, folds: int =
 
 
 def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: int = 6, seed: int = 0,
-                        fold_objects: list[list[str]] | None = None) -> dict:
+                        fold_objects: list[list[str]] | None = None, scorer: Scorer | None = None) -> dict:
     """Cross-validate the boosted map (docs/MODEL.md C.19) on top of ``config``'s other maps, fit it on all.
 
     Every fold fits trees (``boosted_map.fit_trees``, ``FIT_PARAMS``) on its training pushes and maps its
@@ -360,10 +364,11 @@ def boosted_recalibrate(log: PushLog, config: Config | None = None, *, folds: in
       push), ``fold_trees`` (fold k's, fitted without the objects of ``fold_objects[k]``: what maps them
       out of fold, ``write_fold_maps``) and pooled held-out metrics of both
     fold_objects : the folds to use (``read_fold_lists``) instead of ``folds`` drawn with ``seed``
+    scorer : ``Scorer(log, config.seed, config.contacts)`` made already, whose pose candidates are reused
     """
     config = config or Config()
     started = time.perf_counter()
-    scorer = Scorer(log, config.seed, config.contacts)
+    scorer = scorer if scorer is not None else Scorer(log, config.seed, config.contacts)
     observed, weight, objects = scorer.empirical_topple, scorer.repeats.astype(float), scorer.object_index
     names = [scorer.object_ids[i] for i in objects]
     if fold_objects is None:
@@ -404,17 +409,18 @@ def all_maps_recalibrate(log: PushLog, config: Config | None = None, *, folds: i
     """
     config = config or Config()
     started = time.perf_counter()
-    down = down_recalibrate(log, config, folds=folds, seed=seed)
+    scorer = Scorer(log, config.seed, config.contacts)  # its pose candidates serve every step: seed and contacts stay
+    down = down_recalibrate(log, config, folds=folds, seed=seed, scorer=scorer)
     maps = {**NO_MAP, "recalibration_x": tuple(down["knots"]["x"]), "recalibration_y": tuple(down["knots"]["y"]),
             "down_map": tuple(down["weights"]), "down_map_z": down["down_map_z"]}
     # Scoring reads no [mdp] value; the cut only lets a down map without the boosted map be a Config.
     cut = max(config.mdp.min_direction_z, down["down_map_z"])
     config = dataclasses.replace(config, topple=dataclasses.replace(config.topple, **maps),
                                  mdp=dataclasses.replace(config.mdp, min_direction_z=cut))
-    side = side_recalibrate(log, config, folds=folds, seed=seed)
+    side = side_recalibrate(log, config, folds=folds, seed=seed, scorer=scorer)
     maps.update(side_map=tuple(side["weights"]), side_map_band=tuple(side["band"]))
     config = dataclasses.replace(config, topple=dataclasses.replace(config.topple, **maps))
-    boosted = boosted_recalibrate(log, config, folds=folds, seed=seed)
+    boosted = boosted_recalibrate(log, config, folds=folds, seed=seed, scorer=scorer)
     boosted.pop("fold_trees")  # fitted over maps that saw every object: no fold's map is out of fold
     maps["boosted_map"] = boosted.pop("trees")
     return {"variant": config.topple.variant, "pushes": down["pushes"], "objects": down["objects"], "folds": folds,
