@@ -518,13 +518,18 @@ def kept_maps(topple: ToppleConfig) -> dict:
             "side_map_band": topple.side_map_band}
 
 
+def ece_brier(m: dict) -> str:
+    """A predictor's held-out metrics (``metrics``) as the TOML comments give them: "ECE / Brier"."""
+    return f"{m['ece']:.3f} / {m['brier']:.4f}"
+
+
 def with_and_without(cv: dict, name: str, folds: int, seed: int | str) -> str:
     """The TOML comment line of a map fitted on top of the others: held-out ECE and Brier without and with it.
 
     seed : the folds' seed, or where they were read from"""
     drawn = f"seed {seed}" if isinstance(seed, int) else f"the folds of {seed}"
     return (f"{folds}-fold CV grouped by object ({drawn}), held-out ECE / Brier: without it "
-            f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, with it {cv[name]['ece']:.3f} / {cv[name]['brier']:.4f}")
+            f"{ece_brier(cv['identity'])}, with it {ece_brier(cv[name])}")
 
 
 IN_SAMPLE_UNDER = ("note: {under}, so the 'identity' row, the model without the map fitted here, is scored on pushes its "
@@ -661,8 +666,8 @@ def main(argv: list[str] | None = None) -> int:
             "toppledb recalibrate --features: feature map of P(topple) fitted on push logs (docs/MODEL.md C.13)",
             logs_line,
             (f"{args.folds}-fold CV grouped by object (seed {args.seed}), held-out ECE / Brier: identity "
-             f"{pooled['identity']['ece']:.3f} / {pooled['identity']['brier']:.4f}, feature map "
-             f"{pooled['feature_map']['ece']:.3f} / {pooled['feature_map']['brier']:.4f}"),
+             f"{ece_brier(pooled['identity'])}, feature map "
+             f"{ece_brier(pooled['feature_map'])}"),
         ]
         fitted_map = {"feature_map": tuple(result["weights"])}
     elif args.down:
@@ -673,8 +678,8 @@ def main(argv: list[str] | None = None) -> int:
              f"u_z < {result['down_map_z']} (docs/MODEL.md C.7, C.15)"),
             logs_line,
             (f"{args.folds}-fold CV grouped by object (seed {args.seed}), held-out ECE / Brier: identity "
-             f"{cv['identity']['ece']:.3f} / {cv['identity']['brier']:.4f}, centred {cv['centred']['ece']:.3f} / "
-             f"{cv['centred']['brier']:.4f}, centred and down map {cv['down_map']['ece']:.3f} / {cv['down_map']['brier']:.4f}"),
+             f"{ece_brier(cv['identity'])}, centred {ece_brier(cv['centred'])}, "
+             f"centred and down map {ece_brier(cv['down_map'])}"),
         ]
         # The cut travels with the weights fitted below it, whatever the defaults become.
         fitted_map = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"]),
@@ -698,12 +703,12 @@ def main(argv: list[str] | None = None) -> int:
                     logs_line,
                     (f"{args.folds}-fold CV grouped by object (seed {args.seed}), each step over the steps before it, "
                      "held-out ECE / Brier:"),
-                    (f"  centred and down: unmapped {down_cv['identity']['ece']:.3f} / {down_cv['identity']['brier']:.4f}, "
-                     f"mapped {down_cv['down_map']['ece']:.3f} / {down_cv['down_map']['brier']:.4f}"),
-                    (f"  side: without {side_cv['identity']['ece']:.3f} / {side_cv['identity']['brier']:.4f}, "
-                     f"with {side_cv['side_map']['ece']:.3f} / {side_cv['side_map']['brier']:.4f}"),
-                    (f"  boosted: without {boosted_cv['identity']['ece']:.3f} / {boosted_cv['identity']['brier']:.4f}, "
-                     f"with {boosted_cv['boosted_map']['ece']:.3f} / {boosted_cv['boosted_map']['brier']:.4f}"),
+                    (f"  centred and down: unmapped {ece_brier(down_cv['identity'])}, "
+                     f"mapped {ece_brier(down_cv['down_map'])}"),
+                    (f"  side: without {ece_brier(side_cv['identity'])}, "
+                     f"with {ece_brier(side_cv['side_map'])}"),
+                    (f"  boosted: without {ece_brier(boosted_cv['identity'])}, "
+                     f"with {ece_brier(boosted_cv['boosted_map'])}"),
                     "  (the side and boosted steps' 'without' holds the maps under them in-sample; toppledb report judges the file)"]
         fitted_map = maps
     elif args.boosted:
@@ -722,7 +727,7 @@ def main(argv: list[str] | None = None) -> int:
             logs_line,
             (f"method {result['chosen']}, chosen among {' '.join(result['methods'])} by {args.folds}-fold CV grouped by object (seed {args.seed}) on held-out "
              f"{result['select_by']}; held-out ECE / Brier: "
-             + ", ".join(f"{m} {v['ece']:.3f} / {v['brier']:.4f}" for m, v in [("identity", cv["identity"])] + list(cv["methods"].items()))),
+             + ", ".join(f"{m} {ece_brier(v)}" for m, v in [("identity", cv["identity"])] + list(cv["methods"].items()))),
         ]
         fitted_map = {"recalibration_x": tuple(result["knots"]["x"]), "recalibration_y": tuple(result["knots"]["y"])}
     if args.all_maps:
