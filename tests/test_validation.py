@@ -709,6 +709,7 @@ def test_report_against_other_models_pairs_them_with_the_configured_one(model_lo
     printed = capsys.readouterr().out
     assert "corrected - thesis (robust; paired" in printed and "\nthesis " in printed
     assert "corrected - same (corrected; paired" in printed  # a file by its stem, as in the table
+    assert printed.count("or above 0 in AP or mAP, favours corrected)") == 1  # which sign is better, said once
     assert main([reported, "--variants", "corrected", "--against", "thesis", "--corpus", "",
                  "--bootstrap", "0", "--out", str(out)]) == 0
     printed = capsys.readouterr().out

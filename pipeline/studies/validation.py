@@ -571,6 +571,10 @@ def format_report(result: dict) -> str:
         if other.get("ranking_by_direction"):
             lines.append(f"{_shown(name)} ranking within each push direction: "
                          + ", ".join(f"{d['direction']} {cell(d['ap'])}" for d in other["ranking_by_direction"]))
+    if "recalibration" in result or result.get("against"):
+        # The lines above subtract the other model from this one; the docs' tables read a candidate
+        # "against the default", the other way round, so say which sign is better here.
+        lines.append(f"  (a difference below 0 in TV, Brier or ECE, or above 0 in AP or mAP, favours {result['main_variant']})")
     return "\n".join(lines)
 
 
