@@ -32,12 +32,22 @@ OBJECT_ID_PATTERN = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,127}$")
 """Object ids are file names and hive partition values: no '/', '=', spaces; they start
 with a letter or '_' so that no reader mistakes them for numbers."""
 
+READER_WORDS = frozenset({"inf", "infinity", "nan", "true", "false", "epoch"})
+"""Ids (in any case) that a reader of one object's partition would type as something other than a
+string: duckdb 2.0 reads ``inf``, ``infinity`` and ``epoch`` as DATEs, polars 2.1 ``inf`` and ``NaN``
+as floats and ``true``/``false`` as booleans; tests/test_layout.py reads every accepted near miss back as a string
+through each of them."""
+
 
 def check_object_id(object_id: str) -> str:
     """Return ``object_id`` or raise ValueError saying why it cannot be used."""
     if not OBJECT_ID_PATTERN.match(object_id):
         raise ValueError(
             f"bad object id {object_id!r}: use letters, digits, '_', '.', '-', starting with a letter or '_'"
+        )
+    if object_id.lower() in READER_WORDS:
+        raise ValueError(
+            f"bad object id {object_id!r}: Parquet readers would read it as a number, date or boolean, not a name"
         )
     return object_id
 

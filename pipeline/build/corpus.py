@@ -36,7 +36,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from schema.layout import check_object_id, object_id_key
+from schema.layout import READER_WORDS, check_object_id, object_id_key
 from schema.pushlog import PYBULLET_SOURCE, is_pybullet_source
 
 from ..model.config import MESH_SUFFIXES
@@ -268,9 +268,11 @@ def pybullet_data_dir() -> Path:
 
 def object_id_from_name(name: str) -> str:
     """A valid object id from a file stem: other characters become '_', and ids that
-    would start with a digit get an ``obj_`` prefix (readers would take them for numbers)."""
+    would start with a digit, or are a word such as ``inf`` or ``true`` (``schema.layout.READER_WORDS``),
+    get an ``obj_`` prefix (readers would take them for numbers, dates or booleans)."""
     cleaned = re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:120] or "obj"
-    return cleaned if re.match(r"[A-Za-z_]", cleaned) else f"obj_{cleaned}"
+    readable = re.match(r"[A-Za-z_]", cleaned) and cleaned.lower() not in READER_WORDS
+    return cleaned if readable else f"obj_{cleaned}"
 
 
 def _unique(ids: list[str]) -> list[str]:
