@@ -28,6 +28,7 @@ def test_dataset_docs_show_the_current_schemas():
         assert describe(schema) in text, f"docs/DATASET.md is out of date for table {name}"
     for spec in hdf5.OBJECT_ARRAYS + hdf5.POSE_ARRAYS:
         assert spec.name in text
+    assert f"It describes schema {SCHEMA_VERSION};" in text
 
 
 def test_hdf5_layout_check_names_what_is_wrong(tmp_path):
