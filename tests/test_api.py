@@ -313,6 +313,37 @@ def test_evaluate_takes_its_overrides_and_explicit_pushes(box):
     assert given.table.p_topple.shape == (2,)
 
 
+def test_explicit_pushes_are_predicted_among_the_poses_candidates_as_the_dataset_predicts_them(box):
+    """The default smooths and maps a row over the pose's candidates (MODEL.md C.12-C.19): a candidate asked
+    about explicitly gets the very row the object's evaluation stores, whatever else is asked beside it, and
+    another push is a probe, averaged over the candidates near it."""
+    obj, poses, _, result = box
+    assert CONFIG.topple.needs_candidates
+    for pose in range(len(poses.poses)):
+        actions, table = result.actions[pose], result.topple[pose]
+        ok = np.flatnonzero(actions.status == STATUS_OK)
+        if len(ok) >= 4 and np.nanmax(table.p_topple[ok]) > 0:
+            break
+    chosen = ok[np.argsort(-table.p_topple[ok], kind="stable")[:4]]  # the pose's likeliest topples, where rows differ most
+    # A probe 0.3 mm from the first of them, on the surface: a push no candidate is.
+    normal = actions.normals[chosen[0]]
+    along = np.cross(normal, [0.0, 0.0, 1.0] if abs(normal[2]) < 0.9 else [1.0, 0.0, 0.0])
+    probe = actions.points[chosen[0]] + 3e-4 * along / np.linalg.norm(along)
+    points = np.vstack([actions.points[chosen[:2]], probe, actions.points[chosen[2:]]])
+    directions = np.vstack([actions.directions[chosen[:2]], actions.directions[chosen[0]], actions.directions[chosen[2:]]])
+    asked = toppledb.evaluate(obj, poses, pose, points=points, directions=directions, config=CONFIG, seed=CONFIG.seed)
+    rows = [0, 1, 3, 4]
+    np.testing.assert_array_equal(asked.table.p_topple[rows], table.p_topple[chosen])
+    np.testing.assert_array_equal(asked.table.next_pose[rows], table.next_pose[chosen])
+    np.testing.assert_array_equal(asked.table.outcomes[rows], table.outcomes[chosen])
+    alone = toppledb.evaluate(obj, poses, pose, points=points[rows[2:]], directions=directions[rows[2:]], config=CONFIG,
+                              seed=CONFIG.seed)
+    np.testing.assert_array_equal(alone.table.p_topple, table.p_topple[chosen[2:]])
+    assert asked.table.next_pose[2].sum() == pytest.approx(1.0)
+    # Averaged over the candidates near it, the probe reads much as its neighbour does.
+    assert abs(asked.table.p_topple[2] - table.p_topple[chosen[0]]) < 0.15
+
+
 def test_an_objects_result_carries_its_identity_and_what_each_stage_cost(box):
     obj, poses, _, _ = box
     timings, per_pose = {}, {}

@@ -190,3 +190,40 @@ def explicit_actions(obj: ObjectModel, transform: np.ndarray, points: np.ndarray
     points = transform_points(transform, closest)
     directions = -normals if directions is None else unit(np.atleast_2d(np.asarray(directions, dtype=float)))
     return Actions(points, normals, directions, np.full(len(points), STATUS_OK, dtype=np.int8), max_height=-1)
+
+
+SAME_PUSH_TOLERANCE = 1e-6
+"""m (points) and unit-vector components (directions): a push this close to a candidate is that candidate."""
+
+
+def with_probes(pool: Actions, pushes: Actions, points: np.ndarray, directions: np.ndarray,
+                tolerance: float = SAME_PUSH_TOLERANCE) -> tuple[Actions, int, np.ndarray]:
+    """A pose's candidate pushes followed by the pushes asked about that are none of them (probes):
+    what ``topple.evaluate_pose(..., candidates=n)`` takes to predict a push among the candidates, as
+    the dataset's rows are (the smoothing and maps of docs/MODEL.md C.12-C.19 read them).
+
+    pool : the pose's candidates (``pose_actions``);  pushes : (k,) the pushes as actions
+    points, directions : (k, 3) float, pose frame, each push as given, matched to the ``ok`` candidates
+      within ``tolerance`` (the first that matches)
+    returns : the actions (candidates, then probes), n (how many lead as candidates), and (k,) int,
+      the row of the actions that predicts each push
+    """
+    ok = np.flatnonzero(pool.status == STATUS_OK)
+    index = np.empty(len(points), dtype=np.int64)
+    probes: list[int] = []
+    for i, (point, direction) in enumerate(zip(np.asarray(points, dtype=float), np.asarray(directions, dtype=float))):
+        same = ok[np.all(np.abs(pool.points[ok] - point) <= tolerance, axis=1)
+                  & np.all(np.abs(pool.directions[ok] - direction) <= tolerance, axis=1)]
+        if len(same):
+            index[i] = same[0]
+        else:
+            index[i] = len(pool.status) + len(probes)
+            probes.append(i)
+    actions = Actions(
+        points=np.vstack([pool.points, pushes.points[probes]]),
+        normals=np.vstack([pool.normals, pushes.normals[probes]]),
+        directions=np.vstack([pool.directions, pushes.directions[probes]]),
+        status=np.concatenate([pool.status, pushes.status[probes]]),
+        max_height=pool.max_height,
+    )
+    return actions, len(pool.status), index

@@ -24,7 +24,7 @@ from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .collision import collision_object
 from .config import Config
-from .contacts import explicit_actions, object_contacts, pose_actions
+from .contacts import explicit_actions, object_contacts, pose_actions, with_probes
 from .mdp import pose_values
 from .mesh import ObjectModel, load_mesh
 from .outcomes import Actions, ObjectResult, PolicyChoice, PoseValues, StablePose, SuctionResult, ToppleTable
@@ -208,7 +208,10 @@ def evaluate(
     """Evaluate the toppling model on one stable pose.
 
     points, directions : optional explicit pushes, (A, 3) pose frame; otherwise the
-      pose's ``n_contacts`` candidates plus the Max-Height action
+      pose's ``n_contacts`` candidates plus the Max-Height action.  A model that smooths or maps
+      its rows over the candidates (the default) predicts each push among them, as the dataset
+      does: a push that is a candidate (within 1e-6) gets its row, any other is averaged over the
+      candidates and itself (docs/MODEL.md C.12, "Probes")
     n_contacts, n_trials, variant : override ``config.contacts`` / ``config.topple``
     seed : root of the random streams (same seed, same result)
     """
@@ -221,13 +224,28 @@ def evaluate(
             variant=topple_config.variant if variant is None else variant,
         )
     stable = poses.poses[pose]
-    if points is not None:
-        actions = explicit_actions(obj, stable.transform, points, directions)
-    else:
+    trials = stream(seed, obj.name, pose, "trials")
+    if points is None or topple_config.needs_candidates:
         contacts, normals = object_contacts(obj, contact_config, seed)
-        actions = pose_actions(contacts, normals, obj.mesh, collision_object(obj.mesh), stable.transform, contact_config)
-    table = evaluate_pose(obj, stable, poses.probabilities, actions, topple_config, stream(seed, obj.name, pose, "trials"))
-    return PoseEvaluation(pose=pose, actions=actions, table=table)
+        candidates = pose_actions(contacts, normals, obj.mesh, collision_object(obj.mesh), stable.transform, contact_config)
+    if points is None:
+        table = evaluate_pose(obj, stable, poses.probabilities, candidates, topple_config, trials)
+        return PoseEvaluation(pose=pose, actions=candidates, table=table)
+    pushes = explicit_actions(obj, stable.transform, points, directions)
+    if not topple_config.needs_candidates:  # each push's row is its own trials alone
+        return PoseEvaluation(pose=pose, actions=pushes, table=evaluate_pose(obj, stable, poses.probabilities, pushes, topple_config, trials))
+    # A model that smooths or maps a row over the pose's candidates (docs/MODEL.md C.12-C.19) predicts a push among
+    # them, as the dataset does: a push that is a candidate gets that candidate's row, any other is a probe.
+    given = np.atleast_2d(np.asarray(points, dtype=float))
+    evaluated, n_candidates, rows = with_probes(candidates, pushes, given, pushes.directions)
+    table = evaluate_pose(obj, stable, poses.probabilities, evaluated, topple_config, trials, candidates=n_candidates)
+    return PoseEvaluation(pose=pose, actions=pushes, table=table_rows(table, rows))
+
+
+def table_rows(table: ToppleTable, rows: np.ndarray) -> ToppleTable:
+    """The rows ``rows`` of a pose's table, its edges' landings as they are."""
+    return replace(table, next_pose=table.next_pose[rows], p_topple=table.p_topple[rows],
+                   mean_force=table.mean_force[rows], outcomes=table.outcomes[rows])
 
 
 def grasp_quality(obj: ObjectModel, poses: PoseSet, pose: int, config: Config = Config()) -> SuctionResult:

@@ -34,6 +34,7 @@ from ..model.boosted_map import boosted_features
 from ..model.collision import collision_object
 from ..model.config import ContactConfig, ToppleConfig
 from ..model.contacts import explicit_actions, object_contacts, pose_actions
+from ..model.contacts import with_probes as probed_candidates
 from ..model.edges import EdgeGeometry, edge_geometry
 from ..model.feature_map import DOWN_FEATURES, FEATURES, SIDE_FEATURES, down_features, landing_rows, pose_features, side_features, side_rows
 from ..model.outcomes import Actions, StablePose, ToppleTable
@@ -390,30 +391,16 @@ class Scorer:
 
 
 def with_probes(pool: Actions, logged: Actions, pushes: list[Push]) -> CandidatesAndProbes:
-    """``pool`` (a pose's candidates) followed by the logged pushes that are not ok candidates of it.
+    """``pool`` (a pose's candidates) followed by the logged pushes that are not ok candidates of it
+    (``contacts.with_probes``, as ``pipeline.evaluate`` places explicit pushes).
 
     logged : the pushes as explicit actions;  pushes : the log's ``Push`` of each, whose recorded
     point and direction (pose frame) are matched to a candidate within ``SAME_PUSH_TOLERANCE``
     """
-    ok = np.flatnonzero(pool.status == STATUS_OK)
-    index = np.empty(len(pushes), dtype=np.int64)
-    probes: list[int] = []
-    for i, push in enumerate(pushes):
-        same = ok[np.all(np.abs(pool.points[ok] - push.point) <= SAME_PUSH_TOLERANCE, axis=1)
-                  & np.all(np.abs(pool.directions[ok] - push.direction) <= SAME_PUSH_TOLERANCE, axis=1)]
-        if len(same):
-            index[i] = same[0]
-        else:
-            index[i] = len(pool.status) + len(probes)
-            probes.append(i)
-    actions = Actions(
-        points=np.vstack([pool.points, logged.points[probes]]),
-        normals=np.vstack([pool.normals, logged.normals[probes]]),
-        directions=np.vstack([pool.directions, logged.directions[probes]]),
-        status=np.concatenate([pool.status, logged.status[probes]]),
-        max_height=pool.max_height,
-    )
-    return CandidatesAndProbes(actions=actions, candidates=len(pool.status), index=index)
+    actions, candidates, index = probed_candidates(
+        pool, logged, np.array([p.point for p in pushes]).reshape(-1, 3), np.array([p.direction for p in pushes]).reshape(-1, 3),
+        SAME_PUSH_TOLERANCE)
+    return CandidatesAndProbes(actions=actions, candidates=candidates, index=index)
 
 
 def topple_spread(group: Group) -> np.ndarray:
