@@ -248,6 +248,33 @@ def test_high_push_known_outcomes_give_known_tv(box_file, box_poses, tmp_path):
     assert never.p_topple[0] == 0.0 and never.tv[0] == pytest.approx(0.25)
 
 
+def test_a_logged_push_is_predicted_along_its_own_direction(box_file, box_poses, tmp_path):
+    """The scorer's actions keep each logged direction (pose frame), not the surface's inward normal,
+    and its per-push arrays follow the log: object index, repeats, observed topple rate, empirical
+    next-pose distribution (the outside bucket last)."""
+    from pipeline.model.config import ContactConfig
+
+    poses, standing, lying, _ = box_poses
+    stand, lie = poses.poses[standing].transform, poses.poses[lying].transform
+    downward = np.array([-0.8, 0.0, -0.6])  # into the +x face and down, not along its normal
+    pushes = [(0, stand, *_object_frame(poses.poses[standing], HIGH_PUSH[0], downward), [lie, stand, stand]),
+              (1, stand, *_object_frame(poses.poses[standing], *HIGH_PUSH), [lie, lie])]
+    pq.write_table(_rows(box_file, pushes), tmp_path / "log.parquet")
+    log = read_log([tmp_path], Config())
+    contacts = ContactConfig(n_contacts=17)
+    scorer = Scorer(log, 3, contacts)
+    assert scorer.seed == 3 and scorer.contacts == contacts and Scorer(log).contacts == ContactConfig()
+    (group,) = scorer.groups
+    np.testing.assert_allclose(group.actions.directions, [downward, HIGH_PUSH[1]], atol=1e-9)
+    np.testing.assert_allclose(group.actions.normals[0], [1.0, 0.0, 0.0], atol=1e-9)
+    assert scorer.object_ids == ["box"] and scorer.object_index.tolist() == [0, 0] and scorer.repeats.tolist() == [3, 2]
+    np.testing.assert_allclose(scorer.empirical_topple, [1 / 3, 1.0])
+    expected = np.zeros((2, len(poses.poses) + 1))
+    expected[0, [lying, standing]] = [1 / 3, 2 / 3]
+    expected[1, lying] = 1.0
+    np.testing.assert_allclose(group.empirical, expected)
+
+
 def test_bad_rows_are_counted_by_reason_never_dropped_silently(box_file, box_poses, tmp_path):
     poses, standing, lying, _ = box_poses
     stand, lie = poses.poses[standing].transform, poses.poses[lying].transform
@@ -639,11 +666,12 @@ def test_a_log_replayed_by_itself_scores_perfectly_and_a_mismatched_replay_is_re
     first = table.column("push_id")[0].as_py()
     keep = pa.compute.not_equal(table.column("push_id"), first)
     pq.write_table(table.filter(keep), tmp_path / "short.parquet")
-    with pytest.raises(LogError, match="no usable rows for 1 of"):
+    with pytest.raises(LogError, match="no usable rows for 1 of.*replay the same objects and pushes, one replay per log in the logs' order$"):
         scorer.replay(read_log([tmp_path / "short.parquet"]))
     moved = table.column("point_z").to_numpy() + np.where(table.column("push_id").to_numpy() == first, 0.01, 0.0)
     pq.write_table(_replace(table, "point_z", moved), tmp_path / "moved.parquet")
-    with pytest.raises(LogError, match="is another push in the replay"):
+    with pytest.raises(LogError, match=r"is another push in the replay \(start pose, point or direction differ\); "
+                                       "replay with the log's own seed and parameters$"):
         scorer.replay(read_log([tmp_path / "moved.parquet"]))
     # The same push is within SAME_PUSH_TOLERANCE (1e-6) in every component, as the log's own
     # repeats are, however large the component (no tolerance relative to it).
@@ -652,6 +680,16 @@ def test_a_log_replayed_by_itself_scores_perfectly_and_a_mismatched_replay_is_re
     turned[np.argmax(np.abs(turned))] += 5e-6
     with pytest.raises(LogError, match="is another push in the replay"):
         scorer.replay(PushLog(log.objects, [replace(push, direction=turned), *log.pushes[1:]]))
+    # Within 1e-6 (not 1e-8) it is the same push: a point or direction off by 5e-7 in every component.
+    near = replace(push, point=push.point + 5e-7, direction=push.direction - 5e-7)
+    np.testing.assert_array_equal(scorer.replay(PushLog(log.objects, [near, *log.pushes[1:]])).brier, itself.brier)
+    # Past 1e-6 it is another push, however large the component: the point's largest, off by 1.2e-6.
+    big = int(np.argmax(np.abs(push.point)))
+    assert abs(push.point[big]) > 0.03  # where a tolerance relative to it would allow 1.3e-6 or more
+    moved_point = push.point.copy()
+    moved_point[big] += 1.2e-6
+    with pytest.raises(LogError, match="is another push in the replay"):
+        scorer.replay(PushLog(log.objects, [replace(push, point=moved_point), *log.pushes[1:]]))
 
 
 def test_report_scores_a_replay_as_the_physics_reference(model_logs, tmp_path, capsys):
