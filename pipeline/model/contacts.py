@@ -192,12 +192,13 @@ def explicit_actions(obj: ObjectModel, transform: np.ndarray, points: np.ndarray
     return Actions(points, normals, directions, np.full(len(points), STATUS_OK, dtype=np.int8), max_height=-1)
 
 
-SAME_PUSH_TOLERANCE = 1e-6
-"""m (points) and unit-vector components (directions): a push this close to a candidate is that candidate."""
+SAME_CANDIDATE_TOLERANCE = 1e-6
+"""m (points) and unit-vector components (directions): a push this close to a candidate is that candidate
+(as close as a log's repeats of one push must agree, ``logreader.SAME_PUSH_TOLERANCE``)."""
 
 
 def with_probes(pool: Actions, pushes: Actions, points: np.ndarray, directions: np.ndarray,
-                tolerance: float = SAME_PUSH_TOLERANCE) -> tuple[Actions, int, np.ndarray]:
+                tolerance: float = SAME_CANDIDATE_TOLERANCE) -> tuple[Actions, int, np.ndarray]:
     """A pose's candidate pushes followed by the pushes asked about that are none of them (probes):
     what ``topple.evaluate_pose(..., candidates=n)`` takes to predict a push among the candidates, as
     the dataset's rows are (the smoothing and maps of docs/MODEL.md C.12-C.19 read them).

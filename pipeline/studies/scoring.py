@@ -395,11 +395,10 @@ def with_probes(pool: Actions, logged: Actions, pushes: list[Push]) -> Candidate
     (``contacts.with_probes``, as ``pipeline.evaluate`` places explicit pushes).
 
     logged : the pushes as explicit actions;  pushes : the log's ``Push`` of each, whose recorded
-    point and direction (pose frame) are matched to a candidate within ``SAME_PUSH_TOLERANCE``
+    point and direction (pose frame) are matched to a candidate
     """
     actions, candidates, index = probed_candidates(
-        pool, logged, np.array([p.point for p in pushes]).reshape(-1, 3), np.array([p.direction for p in pushes]).reshape(-1, 3),
-        SAME_PUSH_TOLERANCE)
+        pool, logged, np.array([p.point for p in pushes]).reshape(-1, 3), np.array([p.direction for p in pushes]).reshape(-1, 3))
     return CandidatesAndProbes(actions=actions, candidates=candidates, index=index)
 
 
