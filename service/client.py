@@ -26,7 +26,7 @@ from typing import Any, Self, TypeVar
 
 import httpx
 import numpy as np
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from schema.api import (
     ActionDetail,
@@ -216,5 +216,11 @@ def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None 
             raise InvalidRequest(422, "pose: every entry must be a finite number")
         item["pose"] = matrix.tolist()
     else:
-        item["ros_pose"] = ros_pose.model_dump() if isinstance(ros_pose, RosPose) else ros_pose
+        try:
+            # A failed TF lookup often gives NaN, which JSON cannot carry: refused here as the service would (422).
+            checked = ros_pose if isinstance(ros_pose, RosPose) else RosPose.model_validate(ros_pose)
+        except ValidationError as err:
+            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors())
+            raise InvalidRequest(422, f"ros_pose: {problems}", {"errors": err.errors(include_url=False, include_context=False)}) from None
+        item["ros_pose"] = checked.model_dump()
     return item

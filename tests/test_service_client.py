@@ -106,6 +106,12 @@ def test_retries_transport_errors_and_503_but_never_4xx(dataset):
         assert isinstance(gone.value.__cause__, httpx.ConnectError)
         with pytest.raises(InvalidRequest, match="finite"):
             refused.plan("x", pose=np.full((4, 4), np.nan))
+        # A ROS pose with NaN (a failed TF lookup) is refused the same way, before anything is sent.
+        nan_ros = {"position": {"x": float("nan"), "y": 0.0, "z": 0.0},
+                   "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}, "frame_id": "world"}
+        with pytest.raises(InvalidRequest, match=r"ros_pose: position\.x: .*finite") as bad:
+            refused.plan("x", ros_pose=nan_ros)
+        assert bad.value.status == 422 and bad.value.body["errors"][0]["loc"] == ("position", "x")
         with pytest.raises(NotFound):
             flaky.health()
         assert calls[3:] == ["404"], "a 404 is an answer, not a failure to retry"
