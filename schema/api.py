@@ -276,6 +276,10 @@ class Health(Model):
     counts: Counts
     load_seconds: float = Field(description="s, time taken to load the dataset")
     reloads: int = Field(description="Datasets swapped in since start (SIGHUP or a changed manifest.json)")
+    reload_error: str | None = Field(
+        None, description="Why the dataset on disk could not be swapped in (a half-written or broken rebuild): the build "
+                          "named in dataset is still served. Null when the last reload succeeded, found nothing new, or "
+                          "none was tried")
 
 
 # --- objects and poses -------------------------------------------------------------

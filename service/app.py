@@ -118,7 +118,7 @@ def build_api(runtime: Runtime) -> FastAPI:
 
     @app.get("/health", response_model=Health, tags=["service"], summary="Liveness and which build is served")
     async def health() -> Response:
-        return Response(runtime.health().model_dump_json(), media_type="application/json")
+        return Response(runtime.health_json(), media_type="application/json")
 
     metrics = runtime.metrics
 

@@ -38,6 +38,9 @@ class Metrics:
             "toppledb_dataset_info", "The served build (value 1)", ["manifest_sha256", "created", "pid"], registry=self.registry
         )
         self.reloads = Counter("toppledb_dataset_reloads", "Rebuilt datasets swapped in", registry=self.registry)
+        self.reload_failures = Counter("toppledb_dataset_reload_failures",
+                                       "Rebuilt datasets that could not be loaded (the previous build stays served)",
+                                       registry=self.registry)
         self._children: dict[tuple, tuple] = {}
         """(method, route, status) -> (counter, histogram) children: ``labels()`` looks them up
         under a lock on every call, a few microseconds of every request."""

@@ -64,7 +64,14 @@ class Runtime:
             counts=Counts(**store.counts),
             load_seconds=round(store.load_seconds, 3),
             reloads=self.live.reloads,
+            reload_error=self.live.reload_error,
         )
+
+    def health_json(self) -> bytes:
+        """/health's body.  ``reload_error`` is left out while there is none, so that a client from before it
+        existed (whose models forbid fields they do not know) still reads a healthy answer."""
+        health = self.health()
+        return health.model_dump_json(exclude=None if health.reload_error else {"reload_error"}).encode()
 
     def solve_budgets(self) -> None:
         """Solve every object's push budgets (``Store.solve_budgets``, about 0.6 s for the full
@@ -73,7 +80,9 @@ class Runtime:
 
     async def reload(self, force: bool = False) -> bool:
         """Swap in a rebuilt dataset (in a thread: loading takes seconds); True when swapped."""
+        failed = self.live.failed_reloads
         swapped = await asyncio.to_thread(self.live.reload, force)
+        self.metrics.reload_failures.inc(self.live.failed_reloads - failed)
         if swapped:
             for callback in self.on_swap:
                 callback()

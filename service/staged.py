@@ -5,7 +5,7 @@ more than everything else together; a robot controller waiting for the service n
 /health and POST /plan.  So a worker serves through this ASGI app:
 
 - from the first moment: the guard (token, body limits, content type, metrics), /health
-  (``Runtime.health``, the same body as the FastAPI route) and every valid POST /plan
+  (``Runtime.health_json``, the same body as the FastAPI route) and every valid POST /plan
   (``service.fastplan``: the same validation, planning and bytes as the FastAPI route);
 - everything else — other routes, /plan requests that do not validate or match no pose
   (their 404/409/422 come from the FastAPI route), /docs, /openapi.json — is passed to the
@@ -59,7 +59,7 @@ class StagedApp:
 
     async def _route(self, scope, receive, send):
         if scope["type"] == "http" and scope["path"] == "/health" and scope["method"] == "GET":
-            body = self.runtime.health().model_dump_json().encode()
+            body = self.runtime.health_json()
             scope["route"] = HEALTH
             await send({"type": "http.response.start", "status": 200,
                         "headers": [*HEADERS, (b"content-length", str(len(body)).encode())]})

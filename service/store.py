@@ -477,12 +477,16 @@ class LiveStore:
     A request takes ``live.store`` once (``dependencies.get_store``) and uses that object to
     the end, so a swap never mixes two builds in one answer nor fails a request in flight;
     the old store is freed when its last request finishes.  A failed reload (half-written
-    rebuild, wrong schema) keeps the old store and is logged once per manifest stamp.
+    rebuild, wrong schema) keeps the old store, is logged once per manifest stamp, counted in
+    ``failed_reloads`` and kept in ``reload_error`` (what /health shows) until a reload succeeds
+    or finds the served build again.
     """
 
     def __init__(self, store: Store):
         self.store = store
         self.reloads = 0
+        self.failed_reloads = 0
+        self.reload_error: str | None = None
         self._stamp = manifest_stamp(store.root)
         self._failed_stamp: tuple | None = None
         self._lock = threading.Lock()
@@ -505,8 +509,11 @@ class LiveStore:
                 if stamp != self._failed_stamp:
                     log.warning("reload of %s failed, still serving manifest %s: %s", self.store.root,
                                 self.store.manifest_sha256[:12], err)
+                    self.failed_reloads += 1
                 self._failed_stamp = stamp
+                self.reload_error = str(err)
                 return False
+            self.reload_error = None
             if fresh.manifest_sha256 == self.store.manifest_sha256 and not force:
                 self._stamp = stamp
                 return False

@@ -63,9 +63,16 @@ def test_live_store_swaps_only_for_a_new_readable_build(dataset, tmp_path):
     assert live.store is not first and live.store.manifest.created == "2030-01-01T00:00:00+00:00"
     assert live.store.manifest_sha256 != first.manifest_sha256
     # A half-written rebuild is refused; the good build keeps being served, and is not retried until it changes.
+    good = (copy / "manifest.json").read_bytes()
     (copy / "manifest.json").write_text("{")
     served = live.store
+    assert live.reload_error is None and live.failed_reloads == 0
     assert live.changed() and not live.reload() and live.store is served and not live.changed()
+    assert live.failed_reloads == 1 and "manifest.json" in live.reload_error
+    # The served build written back: nothing to swap, and nothing wrong any more.
+    (copy / "manifest.json").write_bytes(good)
+    assert live.changed() and not live.reload() and live.store is served
+    assert live.reload_error is None and live.failed_reloads == 1 and live.reloads == 1
 
 
 def test_live_store_keeps_an_identical_build_swaps_when_forced_and_logs_each_swap_and_failure_once(dataset, tmp_path, caplog):
@@ -114,6 +121,14 @@ def test_the_watcher_swaps_builds_while_requests_keep_succeeding(dataset, tmp_pa
         assert health["dataset"]["manifest_sha256"] != before and health["dataset"]["created"].startswith("2031")
         assert set(statuses) == {200}
         assert 'toppledb_dataset_reloads_total 1.0' in client.get("/metrics").text
+        assert "reload_error" not in health  # left out while there is none: older clients' models forbid it
+        # A broken rebuild: still served, and /health and /metrics say why the new one is not.
+        (copy / "manifest.json").write_text("[]")
+        broken = wait_for(lambda: client.get("/health").json().get("reload_error"), "the watcher to try the broken build")
+        assert "schema version None" in broken
+        assert client.get("/health").json()["dataset"]["manifest_sha256"] == health["dataset"]["manifest_sha256"]
+        assert 'toppledb_dataset_reload_failures_total 1.0' in client.get("/metrics").text
+        assert client.get("/objects/random_001/poses/0/q").status_code == 200
 
 
 def free_port() -> int:
