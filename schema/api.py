@@ -278,8 +278,8 @@ class Health(Model):
     reloads: int = Field(description="Datasets swapped in since start (SIGHUP or a changed manifest.json)")
     reload_error: str | None = Field(
         None, description="Why the dataset on disk could not be swapped in (a half-written or broken rebuild): the build "
-                          "named in dataset is still served. Null when the last reload succeeded, found nothing new, or "
-                          "none was tried")
+                          "named in dataset is still served. Absent when the last reload succeeded, found nothing new, "
+                          "or none was tried, or when the served build's manifest is back")
 
 
 # --- objects and poses -------------------------------------------------------------

@@ -35,8 +35,12 @@ with a letter or '_' so that no reader mistakes them for numbers."""
 READER_WORDS = frozenset({"inf", "infinity", "nan", "true", "false", "epoch"})
 """Ids (in any case) that a reader of one object's partition would type as something other than a
 string: duckdb 2.0 reads ``inf``, ``infinity`` and ``epoch`` as DATEs, polars 2.1 ``inf`` and ``NaN``
-as floats and ``true``/``false`` as booleans; tests/test_layout.py reads every accepted near miss back as a string
-through each of them."""
+as floats and ``true``/``false`` as booleans.  tests/test_layout.py reads every accepted near miss
+back as a string through each of them."""
+
+HIVE_NULL = "__HIVE_DEFAULT_PARTITION__"
+"""The hive partition value every reader reads as null (pyarrow refuses a dataset of it alone);
+refused in this spelling only, the readers' own."""
 
 
 def check_object_id(object_id: str) -> str:
@@ -45,9 +49,9 @@ def check_object_id(object_id: str) -> str:
         raise ValueError(
             f"bad object id {object_id!r}: use letters, digits, '_', '.', '-', starting with a letter or '_'"
         )
-    if object_id.lower() in READER_WORDS:
+    if object_id.lower() in READER_WORDS or object_id == HIVE_NULL:
         raise ValueError(
-            f"bad object id {object_id!r}: Parquet readers would read it as a number, date or boolean, not a name"
+            f"bad object id {object_id!r}: Parquet readers would read it as a number, date, boolean or null, not a name"
         )
     return object_id
 

@@ -218,9 +218,11 @@ def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None 
     else:
         try:
             # A failed TF lookup often gives NaN, which JSON cannot carry: refused here as the service would (422).
-            checked = ros_pose if isinstance(ros_pose, RosPose) else RosPose.model_validate(ros_pose)
+            # A RosPose is checked again: its fields may have been assigned since it was made.
+            checked = RosPose.model_validate(ros_pose.model_dump() if isinstance(ros_pose, RosPose) else ros_pose)
         except ValidationError as err:
-            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors())
-            raise InvalidRequest(422, f"ros_pose: {problems}", {"errors": err.errors(include_url=False, include_context=False)}) from None
+            errors = [{"loc": ["ros_pose", *e["loc"]], "msg": e["msg"], "type": e["type"]} for e in err.errors()]
+            detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors)
+            raise InvalidRequest(422, detail, {"detail": detail, "errors": errors}) from None
         item["ros_pose"] = checked.model_dump()
     return item

@@ -43,6 +43,7 @@ class Runtime:
         ``prefetch``: its served files mapped and hashed already (``service.prefetch``)."""
         live = LiveStore(Store.load(settings.dataset, prefetch))
         runtime = cls(settings, live, Metrics(), Lane())
+        live.on_failure = runtime.metrics.reload_failures.inc  # counted where it happens, once however many reloads overlap
         runtime.metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
         return runtime
 
@@ -69,9 +70,10 @@ class Runtime:
 
     def health_json(self) -> bytes:
         """/health's body.  ``reload_error`` is left out while there is none, so that a client from before it
-        existed (whose models forbid fields they do not know) still reads a healthy answer."""
+        existed (whose models forbid fields they do not know) reads a healthy answer as before; while a reload
+        is failing such a client cannot read /health (docs/SERVICE.md)."""
         health = self.health()
-        return health.model_dump_json(exclude=None if health.reload_error else {"reload_error"}).encode()
+        return health.model_dump_json(exclude=None if health.reload_error is not None else {"reload_error"}).encode()
 
     def solve_budgets(self) -> None:
         """Solve every object's push budgets (``Store.solve_budgets``, about 0.6 s for the full
@@ -80,9 +82,7 @@ class Runtime:
 
     async def reload(self, force: bool = False) -> bool:
         """Swap in a rebuilt dataset (in a thread: loading takes seconds); True when swapped."""
-        failed = self.live.failed_reloads
         swapped = await asyncio.to_thread(self.live.reload, force)
-        self.metrics.reload_failures.inc(self.live.failed_reloads - failed)
         if swapped:
             for callback in self.on_swap:
                 callback()

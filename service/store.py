@@ -487,12 +487,17 @@ class LiveStore:
         self.reloads = 0
         self.failed_reloads = 0
         self.reload_error: str | None = None
+        self.on_failure = None
+        """Called (in the reloading thread, under the reload's lock) once per build that fails to load."""
         self._stamp = manifest_stamp(store.root)
         self._failed_stamp: tuple | None = None
         self._lock = threading.Lock()
 
     def changed(self) -> bool:
         stamp = manifest_stamp(self.store.root)
+        if stamp == self._stamp and self.reload_error is not None:
+            # The served build's manifest is back (renamed into place): nothing is wrong any more.
+            self.reload_error, self._failed_stamp = None, None
         return stamp is not None and stamp != self._stamp and stamp != self._failed_stamp
 
     def reload(self, force: bool = False) -> bool:
@@ -510,6 +515,8 @@ class LiveStore:
                     log.warning("reload of %s failed, still serving manifest %s: %s", self.store.root,
                                 self.store.manifest_sha256[:12], err)
                     self.failed_reloads += 1
+                    if self.on_failure is not None:
+                        self.on_failure()
                 self._failed_stamp = stamp
                 self.reload_error = str(err)
                 return False

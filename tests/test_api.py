@@ -340,6 +340,11 @@ def test_explicit_pushes_are_predicted_among_the_poses_candidates_as_the_dataset
                               seed=CONFIG.seed)
     np.testing.assert_array_equal(alone.table.p_topple, table.p_topple[chosen[2:]])
     assert asked.table.next_pose[2].sum() == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="one direction per point"):
+        toppledb.evaluate(obj, poses, pose, points=points, directions=directions[:1], config=CONFIG, seed=CONFIG.seed)
+    # The dataset's seed is the default: the same rows without naming it.
+    np.testing.assert_array_equal(toppledb.evaluate(obj, poses, pose, points=points, directions=directions, config=CONFIG).table.p_topple,
+                                  asked.table.p_topple)
     # Averaged over the candidates near it, the probe reads much as its neighbour does.
     assert abs(asked.table.p_topple[2] - table.p_topple[chosen[0]]) < 0.15
 

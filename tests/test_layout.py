@@ -12,11 +12,11 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.build.corpus import object_id_from_name
-from schema.layout import READER_WORDS, check_object_id, partition_file
+from schema.layout import HIVE_NULL, READER_WORDS, check_object_id, partition_file
 
 # Near misses of the words the readers type, and ids that look like other literals.
 ACCEPTED = ["random_001", "nanx", "infinite", "Inf_1", "_inf", "truee", "t", "f", "null", "None", "na", "today",
-            "now", "e5", "x1", "_1", "inf.0", "epoch_2"]
+            "now", "e5", "x1", "_1", "inf.0", "epoch_2", "__hive_default_partition__"]
 
 
 def _partition_type(root, object_id):
@@ -37,9 +37,9 @@ def test_every_accepted_id_is_read_back_as_itself_by_pyarrow_polars_and_duckdb(t
     assert _partition_type(tmp_path, object_id) == ("string", object_id, "String", object_id, "VARCHAR", object_id)
 
 
-@pytest.mark.parametrize("word", sorted(READER_WORDS | {w.upper() for w in READER_WORDS} | {w.title() for w in READER_WORDS}))
+@pytest.mark.parametrize("word", sorted(READER_WORDS | {w.upper() for w in READER_WORDS} | {w.title() for w in READER_WORDS} | {HIVE_NULL}))
 def test_ids_a_reader_would_type_are_refused_and_a_file_name_that_is_one_gets_a_prefix(word):
-    with pytest.raises(ValueError, match=f"bad object id '{word}': Parquet readers would read it as a number"):
+    with pytest.raises(ValueError, match=f"bad object id '{word}': Parquet readers would read it as a number, date, boolean or null"):
         check_object_id(word)
     derived = object_id_from_name(word)
     assert derived == f"obj_{word}" and check_object_id(derived) == derived

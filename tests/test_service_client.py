@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from schema.api import PlanResponse
+from schema.api import PlanResponse, RosPose
 from schema.vocabulary import NO_OP
 from service import create_app
 from service.client import Client, InvalidRequest, NoStablePose, NotFound, OffTable, ServiceError, Unauthorized, Unreachable, plan_item
@@ -109,9 +109,13 @@ def test_retries_transport_errors_and_503_but_never_4xx(dataset):
         # A ROS pose with NaN (a failed TF lookup) is refused the same way, before anything is sent.
         nan_ros = {"position": {"x": float("nan"), "y": 0.0, "z": 0.0},
                    "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}, "frame_id": "world"}
-        with pytest.raises(InvalidRequest, match=r"ros_pose: position\.x: .*finite") as bad:
+        with pytest.raises(InvalidRequest, match=r"ros_pose\.position\.x: .*finite") as bad:
             refused.plan("x", ros_pose=nan_ros)
-        assert bad.value.status == 422 and bad.value.body["errors"][0]["loc"] == ("position", "x")
+        assert bad.value.status == 422 and bad.value.body["errors"][0]["loc"] == ["ros_pose", "position", "x"]  # as the service's
+        reused = RosPose.model_validate({**nan_ros, "position": {"x": 0.0, "y": 0.0, "z": 0.0}})
+        reused.position.x = float("inf")  # a message refreshed in place from TF
+        with pytest.raises(InvalidRequest, match=r"ros_pose\.position\.x"):
+            refused.plan("x", ros_pose=reused)
         with pytest.raises(NotFound):
             flaky.health()
         assert calls[3:] == ["404"], "a 404 is an answer, not a failure to retry"

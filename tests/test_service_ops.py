@@ -5,6 +5,7 @@ forked workers of ``--workers N`` (the tiny dataset of tests/test_service.py).""
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import json
 import logging
@@ -73,6 +74,20 @@ def test_live_store_swaps_only_for_a_new_readable_build(dataset, tmp_path):
     (copy / "manifest.json").write_bytes(good)
     assert live.changed() and not live.reload() and live.store is served
     assert live.reload_error is None and live.failed_reloads == 1 and live.reloads == 1
+    # Broken again, then the served manifest renamed back into place: its stamp is the served one, so no
+    # reload is tried, and the error goes with the broken file.
+    (copy / "manifest.json").rename(copy / "served.json")
+    (copy / "manifest.json").write_text("{")
+    assert live.changed() and not live.reload() and live.reload_error is not None and live.failed_reloads == 2
+    failures = []
+    live.on_failure = lambda: failures.append(1)
+    (copy / "served.json").replace(copy / "manifest.json")
+    assert not live.changed() and live.reload_error is None
+    # Overlapping reloads of one broken build count it once.
+    (copy / "manifest.json").write_text("[]")
+    with concurrent.futures.ThreadPoolExecutor(4) as pool:
+        assert not any(pool.map(lambda force: live.reload(force=force), [False, True, True, True]))
+    assert failures == [1] and live.failed_reloads == 3 and live.store is served
 
 
 def test_live_store_keeps_an_identical_build_swaps_when_forced_and_logs_each_swap_and_failure_once(dataset, tmp_path, caplog):

@@ -36,7 +36,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from schema.layout import READER_WORDS, check_object_id, object_id_key
+from schema.layout import HIVE_NULL, READER_WORDS, check_object_id, object_id_key
 from schema.pushlog import PYBULLET_SOURCE, is_pybullet_source
 
 from ..model.config import MESH_SUFFIXES
@@ -271,7 +271,7 @@ def object_id_from_name(name: str) -> str:
     would start with a digit, or are a word such as ``inf`` or ``true`` (``schema.layout.READER_WORDS``),
     get an ``obj_`` prefix (readers would take them for numbers, dates or booleans)."""
     cleaned = re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:120] or "obj"
-    readable = re.match(r"[A-Za-z_]", cleaned) and cleaned.lower() not in READER_WORDS
+    readable = re.match(r"[A-Za-z_]", cleaned) and cleaned.lower() not in READER_WORDS and cleaned != HIVE_NULL
     return cleaned if readable else f"obj_{cleaned}"
 
 

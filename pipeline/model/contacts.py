@@ -209,10 +209,14 @@ def with_probes(pool: Actions, pushes: Actions, points: np.ndarray, directions: 
     returns : the actions (candidates, then probes), n (how many lead as candidates), and (k,) int,
       the row of the actions that predicts each push
     """
+    points, directions = np.asarray(points, dtype=float).reshape(-1, 3), np.asarray(directions, dtype=float).reshape(-1, 3)
+    if not len(points) == len(directions) == len(pushes.status):
+        raise ValueError(f"with_probes needs one point and one direction per push: {len(points)} points, "
+                         f"{len(directions)} directions, {len(pushes.status)} pushes")
     ok = np.flatnonzero(pool.status == STATUS_OK)
-    index = np.empty(len(points), dtype=np.int64)
+    index = np.full(len(points), -1, dtype=np.int64)
     probes: list[int] = []
-    for i, (point, direction) in enumerate(zip(np.asarray(points, dtype=float), np.asarray(directions, dtype=float))):
+    for i, (point, direction) in enumerate(zip(points, directions, strict=True)):
         same = ok[np.all(np.abs(pool.points[ok] - point) <= tolerance, axis=1)
                   & np.all(np.abs(pool.directions[ok] - direction) <= tolerance, axis=1)]
         if len(same):

@@ -202,7 +202,7 @@ def evaluate(
     n_contacts: int | None = None,
     n_trials: int | None = None,
     variant: str | None = None,
-    seed: int = 0,
+    seed: int | None = None,
     config: Config = Config(),
 ) -> PoseEvaluation:
     """Evaluate the toppling model on one stable pose.
@@ -210,11 +210,16 @@ def evaluate(
     points, directions : optional explicit pushes, (A, 3) pose frame; otherwise the
       pose's ``n_contacts`` candidates plus the Max-Height action.  A model that smooths or maps
       its rows over the candidates (the default) predicts each push among them, as the dataset
-      does: a push that is a candidate (within 1e-6) gets its row, any other is averaged over the
-      candidates and itself (docs/MODEL.md C.12, "Probes")
+      does: a push that is an ok candidate (within 1e-6) gets its row, any other is averaged over
+      the candidates and itself (docs/MODEL.md C.12, "Probes"), its noise drawn after theirs in the
+      order given
     n_contacts, n_trials, variant : override ``config.contacts`` / ``config.topple``
-    seed : root of the random streams (same seed, same result)
+    seed : root of the random streams (same seed, same result); default ``config.seed``, the
+      dataset's, so that a push is predicted as the dataset built with ``config`` predicts it.  With
+      the default model, explicit pushes cost a whole pose's evaluation (a few tenths of a second):
+      ask about many pushes of a pose in one call
     """
+    seed = config.seed if seed is None else seed
     contact_config = config.contacts if n_contacts is None else replace(config.contacts, n_contacts=n_contacts)
     topple_config = config.topple
     if n_trials is not None or variant is not None:
@@ -232,6 +237,9 @@ def evaluate(
         table = evaluate_pose(obj, stable, poses.probabilities, candidates, topple_config, trials)
         return PoseEvaluation(pose=pose, actions=candidates, table=table)
     pushes = explicit_actions(obj, stable.transform, points, directions)
+    if len(pushes.directions) != len(pushes.points):
+        raise ValueError(f"evaluate needs one direction per point (or none): {len(pushes.points)} points, "
+                         f"{len(pushes.directions)} directions")
     if not topple_config.needs_candidates:  # each push's row is its own trials alone
         return PoseEvaluation(pose=pose, actions=pushes, table=evaluate_pose(obj, stable, poses.probabilities, pushes, topple_config, trials))
     # A model that smooths or maps a row over the pose's candidates (docs/MODEL.md C.12-C.19) predicts a push among
