@@ -245,7 +245,9 @@ def test_the_models_edge_of_a_push_is_the_one_its_trials_tip_over_most():
     extent = np.abs(pose.base_edges[:, :, 0]).max()
     high = np.array([center_mass[0] - extent, center_mass[1], 0.14])
     edge, force = model_edge(obj, pose_set, standing, high, np.array([1.0, 0.0, 0.0]), config, seed=3)
-    alone = evaluate(obj, pose_set, standing, points=high[None], directions=np.array([[1.0, 0.0, 0.0]]), config=config, seed=3)
+    # The model's trials alone: the counts' config needs no candidates, and smoothing or maps change no trial.
+    counts = dataclasses.replace(config, topple=config.topple.counted())
+    alone = evaluate(obj, pose_set, standing, points=high[None], directions=np.array([[1.0, 0.0, 0.0]]), config=counts, seed=3)
     # Its mean force is the push's own row's: above the frictionless balance m g d_e / h (0.25 kg, 2.5 cm, 14 cm up:
     # 0.44 N), as the finger's friction (C.2) resists the tip, and well under twice it.
     frictionless = 0.25 * 9.81 * 0.025 / 0.14
@@ -255,7 +257,7 @@ def test_the_models_edge_of_a_push_is_the_one_its_trials_tip_over_most():
     top, down = np.array([center_mass[0], center_mass[1], 0.15]), np.array([0.0, 0.0, -1.0])
     edge, force = model_edge(obj, pose_set, standing, top, down, dataclasses.replace(config, topple=noise_free()), seed=3)
     assert edge == -1 and np.isnan(force)
-    outcomes = evaluate(obj, pose_set, standing, points=top[None], directions=down[None], config=config, seed=3).table.outcomes[0]
+    outcomes = evaluate(obj, pose_set, standing, points=top[None], directions=down[None], config=counts, seed=3).table.outcomes[0]
     tipped = np.bincount(outcomes[outcomes >= 0], minlength=len(pose.base_edges))
     assert 0 < tipped.sum() < len(outcomes) / 2  # a few of the noisy trials tip
     assert model_edge(obj, pose_set, standing, top, down, config, seed=3)[0] == int(np.argmax(tipped))
