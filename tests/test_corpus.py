@@ -170,6 +170,11 @@ def test_directory_corpus(tmp_path):
     (tmp_path / "cased" / "A.obj").write_text(CUBE_OBJ)
     (tmp_path / "cased" / "a.STL").write_text("solid x\nendsolid x\n")
     assert sorted(s.object_id.lower() for s in scan_directory(tmp_path / "cased", default_mass=0.4).specs) == ["a", "a-2"]
+    # A file whose own name is a suffix the others would take: every id is still unique.
+    (tmp_path / "cased" / "sub").mkdir()
+    (tmp_path / "cased" / "sub" / "a-2.obj").write_text(CUBE_OBJ)
+    ids = [s.object_id.lower() for s in scan_directory(tmp_path / "cased", default_mass=0.4).specs]
+    assert sorted(ids) == ["a", "a-2", "a-2-2"]
 
 
 def test_a_dangling_link_in_a_directory_corpus_is_listed_as_a_problem(tmp_path):

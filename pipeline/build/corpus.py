@@ -277,13 +277,20 @@ def object_id_from_name(name: str) -> str:
 
 def _unique(ids: list[str]) -> list[str]:
     """Make derived ids unique deterministically: the second ``x`` (or ``X``) becomes ``x-2``
-    (``X-2``); case does not tell ids apart (``schema.layout.object_id_key``)."""
+    (``X-2``), the third ``x-3``, skipping any suffix an id already takes (``x``, ``x``, ``x-2``
+    give ``x``, ``x-2``, ``x-2-2``); case does not tell ids apart (``schema.layout.object_id_key``)."""
+    taken: set[str] = set()
     seen: dict[str, int] = {}
     out = []
     for object_id in ids:
         key = object_id_key(object_id)
         seen[key] = seen.get(key, 0) + 1
-        out.append(object_id if seen[key] == 1 else f"{object_id}-{seen[key]}")
+        unique, n = object_id, max(seen[key], 2)
+        while object_id_key(unique) in taken:
+            unique = f"{object_id}-{n}"
+            n += 1
+        taken.add(object_id_key(unique))
+        out.append(unique)
     return out
 
 
