@@ -113,7 +113,9 @@ def check_rigid(matrix: list[list[float]]) -> list[list[float]]:
     if not abs(det - 1.0) <= ROTATION_TOLERANCE:
         raise ValueError(f"the upper-left 3x3 block is not a rotation: det = {det:.3g}, expected +1 (a reflection?)")
     if max(abs(a - b) for a, b in zip(matrix[3], (0.0, 0.0, 0.0, 1.0))) > 1e-9:
-        raise ValueError(f"the last row must be [0, 0, 0, 1], got {list(matrix[3])}")
+        transposed = max(abs(matrix[i][3] - (1.0 if i == 3 else 0.0)) for i in range(4)) <= 1e-9
+        hint = " (the last column is [0, 0, 0, 1]: is the matrix column-major? send it row by row)" if transposed else ""
+        raise ValueError(f"the last row must be [0, 0, 0, 1], got {list(matrix[3])}{hint}")
     return matrix
 
 

@@ -352,6 +352,9 @@ MALFORMED = [
     (json.dumps({"object_id": "random_001", "pose": np.diag([1.0, 1, -1, 1]).tolist()}), "det = -1"),
     (json.dumps({"object_id": "random_001", "pose": _identity_with(0, 1, 0.1)}), "not orthonormal"),
     (json.dumps({"object_id": "random_001", "pose": _identity_with(3, 2, 0.5)}), "last row must be [0, 0, 0, 1]"),
+    # A translated pose sent column-major: the translation lands in the last row, and the message says so.
+    (json.dumps({"object_id": "random_001", "pose": np.array([[1.0, 0, 0, 0.3], [0, 1, 0, -0.1], [0, 0, 1, 0], [0, 0, 0, 1]]).T.tolist()}),
+     "the last column is [0, 0, 0, 1]: is the matrix column-major? send it row by row"),
     (json.dumps({"object_id": "random_001", "pose": np.eye(3).tolist()}), "at least 4 items"),
     (json.dumps({"object_id": "random_001", "pose": np.eye(4).ravel().tolist()}), "at most 4 items"),
     (json.dumps({"object_id": "random_001", "pose": _identity_with(1, 1, "one")}), "valid number"),
