@@ -280,15 +280,11 @@ def _unique(ids: list[str]) -> list[str]:
     (``X-2``), the third ``x-3``, skipping any suffix an id already takes (``x``, ``x``, ``x-2``
     give ``x``, ``x-2``, ``x-2-2``); case does not tell ids apart (``schema.layout.object_id_key``)."""
     taken: set[str] = set()
-    seen: dict[str, int] = {}
     out = []
     for object_id in ids:
-        key = object_id_key(object_id)
-        seen[key] = seen.get(key, 0) + 1
-        unique, n = object_id, max(seen[key], 2)
-        while object_id_key(unique) in taken:
-            unique = f"{object_id}-{n}"
-            n += 1
+        unique, n = object_id, 2
+        while object_id_key(unique) in taken:  # the smallest free suffix
+            unique, n = f"{object_id}-{n}", n + 1
         taken.add(object_id_key(unique))
         out.append(unique)
     return out
