@@ -441,9 +441,7 @@ def write_fold_maps(directory: Path, fold_trees: list[dict], fold_objects: list[
     by_id = {spec.object_id: spec for spec in corpus.specs}
     lists = []
     for k, (trees, members) in enumerate(zip(fold_trees, fold_objects)):
-        # Never replaced: datasets built out of fold name the file by path.
-        write_atomic(directory / f"fold_{k}.trees.json", lambda temp, t=trees: temp.write_text(json.dumps(t, separators=(",", ":"))),
-                     exclusive=True)
+        write_trees_file(trees, directory / f"fold_{k}.trees.json")  # datasets built out of fold name it by path
         lists.append(directory / f"fold_{k}.csv")
         write_list([by_id[name] for name in sorted(members)], lists[-1], None)
     return lists
@@ -548,12 +546,16 @@ def trees_path(out: Path) -> Path:
 
 
 def write_trees(trees: dict, out: Path) -> str:
-    """Write a fitted boosted map to ``trees_path(out)``, never over a file there (``FileExistsError``):
-    config files and datasets' parameters name it by path.  returns : the path written"""
+    """Write a fitted boosted map to ``trees_path(out)`` (``write_trees_file``).  returns : the path written"""
     path = trees_path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, lambda temp: temp.write_text(json.dumps(trees, separators=(",", ":"))), exclusive=True)
+    write_trees_file(trees, path)
     return str(path)
+
+
+def write_trees_file(trees: dict, path: Path) -> None:
+    """A boosted map's trees as compact JSON at ``path``, atomically and never over a file there
+    (``FileExistsError``): config files and datasets' parameters name trees by path."""
+    write_atomic(path, lambda temp: temp.write_text(json.dumps(trees, separators=(",", ":"))), exclusive=True)
 
 
 def main(argv: list[str] | None = None) -> int:
