@@ -38,7 +38,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -214,16 +214,14 @@ def line_edge(pose: StablePose, center_mass: np.ndarray, contact: np.ndarray) ->
 def model_edge(obj, pose_set, pose: int, point: np.ndarray, direction: np.ndarray, config: Config, seed: int) -> tuple[int, float]:
     """The base edge the model's trials of one push (pose frame) topple over most often, and their mean force.
 
-    The push alone, evaluated with the dataset's model and noise (``topple.evaluate_pose`` on this one action, the
-    topple stream of ``seed``; the edges and forces of its own trials, which no smoothing or map changes); the
-    first of equally frequent edges.
+    The push alone, evaluated with the dataset's model and noise (``evaluation.evaluate``, the topple stream of
+    ``seed``) as its counts (``ToppleConfig.counted``): its own trials' edges and forces, which no smoothing or
+    map changes, and which need none of the pose's other candidates; the first of equally frequent edges.
     returns : edge (-1 when no trial topples), N, the mean required force of the trials that topple (NaN when none)"""
-    from ..model.contacts import explicit_actions
-    from ..model.topple import evaluate_pose
+    from ..model.evaluation import evaluate
 
-    stable = pose_set.poses[pose]
-    alone = explicit_actions(obj, stable.transform, point[None], direction[None])
-    table = evaluate_pose(obj, stable, pose_set.probabilities, alone, config.topple, stream(seed, obj.name, pose, "trials"))
+    counts = replace(config, topple=config.topple.counted())
+    table = evaluate(obj, pose_set, pose, points=point[None], directions=direction[None], config=counts, seed=seed).table
     outcomes = table.outcomes[0]
     toppled = outcomes[outcomes >= 0]
     return (int(np.bincount(toppled).argmax()) if len(toppled) else -1), float(table.mean_force[0])
