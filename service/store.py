@@ -27,6 +27,7 @@ import mmap
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -487,7 +488,7 @@ class LiveStore:
         self.reloads = 0
         self.failed_reloads = 0
         self.reload_error: str | None = None
-        self.on_failure = None
+        self.on_failure: Callable[[], None] | None = None
         """Called (in the reloading thread, under the reload's lock) once per build that fails to load."""
         self._stamp = manifest_stamp(store.root)
         self._failed_stamp: tuple | None = None
