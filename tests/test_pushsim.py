@@ -29,16 +29,18 @@ from pipeline.build.corpus import DEFAULT_LIST, ObjectSpec, read_list
 from pipeline.model.config import PRESETS, Config
 from pipeline.model.contacts import explicit_actions
 from pipeline.model.mesh import model_from_mesh
-from pipeline.model.poses import stable_poses
+from pipeline.model.poses import settle, stable_poses
 from pipeline.model.rng import stream
 from pipeline.model.topple import evaluate_pose
 from pipeline.studies import playlog
 from pipeline.studies.logreader import empirical_distribution
 from pipeline.studies.pushsim import (
+    DEFAULT_PLAYER,
     FINGER_MASS,
     FINGER_SPEED,
     SOLVER_ITERATIONS,
     TIME_STEP,
+    PlayerSettings,
     _client,
     _quaternion,
     body_model,
@@ -46,9 +48,11 @@ from pipeline.studies.pushsim import (
     draw_noise,
     drive_finger,
     finger_row_limit,
+    finger_steps,
     link_pose,
     object_transform,
     play_push,
+    player_parameters,
     rest_on_table,
     simulate_push,
 )
@@ -299,6 +303,95 @@ def test_noisy_push_is_reproducible_from_the_rng(box):
     np.testing.assert_array_equal(first, second)
 
 
+# ---------------------------------------------------------------- the player's own numerics
+
+
+@pytest.mark.parametrize("settings", [
+    {"time_step": 0.0}, {"time_step": -1 / 240}, {"time_step": float("nan")}, {"time_step": float("inf")},
+    {"time_step": 0.2}, {"solver_iterations": 0}, {"solver_iterations": True}, {"solver_iterations": 2.5},
+    {"finger_speed": 0.0}, {"finger_speed": float("nan")}, {"finger_speed": "fast"},
+])
+def test_player_settings_refuse_what_bullet_cannot_play(settings):
+    with pytest.raises(ValueError, match=next(iter(settings))):
+        PlayerSettings(**settings)
+
+
+def test_the_default_settings_are_what_every_log_was_played_with():
+    """Logs made before the settings existed recorded these values: a log's part files are reused only
+    while its recorded parameters are equal, so the default must record them unchanged."""
+    recorded = player_parameters()
+    assert recorded == player_parameters(PlayerSettings(1.0 / 240.0, 50, 0.05))
+    assert (recorded["time_step"], recorded["solver_iterations"], recorded["finger_speed"], recorded["rest_steps"]) == (
+        TIME_STEP, SOLVER_ITERATIONS, FINGER_SPEED, 24)
+    halved = player_parameters(PlayerSettings(time_step=TIME_STEP / 2))
+    assert halved["rest_steps"] == 48, "the rest window stays 0.1 s"
+    assert playlog.PlayParams(player=PlayerSettings(finger_speed=0.025)).record() != playlog.PlayParams().record()
+
+
+def test_the_stroke_takes_as_many_steps_as_its_length_over_speed_and_step():
+    config = Config()
+    stroke = config.contacts.approach_offset + config.contacts.push_depth
+    assert finger_steps(config) == round(stroke / FINGER_SPEED / TIME_STEP)
+    assert finger_steps(config, PlayerSettings(finger_speed=FINGER_SPEED / 2)) == pytest.approx(2 * finger_steps(config), abs=1)
+    assert finger_steps(config, PlayerSettings(time_step=TIME_STEP / 2)) == pytest.approx(2 * finger_steps(config), abs=1)
+
+
+def test_bullet_integrates_with_the_settings_asked(box):
+    obj, pose_set, standing = box
+    settings = PlayerSettings(time_step=1 / 480, solver_iterations=7)
+    rest_on_table(body_model(obj), pose_set.poses[standing].transform, duration=0.05, settings=settings)
+    pb, client = _client()
+    engine = pb.getPhysicsEngineParameters(physicsClientId=client)
+    assert engine["fixedTimeStep"] == pytest.approx(1 / 480) and engine["numSolverIterations"] == 7
+    rest_on_table(body_model(obj), pose_set.poses[standing].transform, duration=0.05)
+    engine = pb.getPhysicsEngineParameters(physicsClientId=client)
+    assert engine["fixedTimeStep"] == pytest.approx(TIME_STEP) and engine["numSolverIterations"] == SOLVER_ITERATIONS
+
+
+@pytest.mark.parametrize("settings", [PlayerSettings(time_step=TIME_STEP / 2), PlayerSettings(finger_speed=FINGER_SPEED / 2),
+                                      PlayerSettings(solver_iterations=2 * SOLVER_ITERATIONS)],
+                         ids=["half_step", "half_speed", "twice_iterations"])
+def test_the_standing_box_topples_high_and_slides_low_whatever_the_numerics(box, settings):
+    """The analytic box of the two tests above: above the sliding threshold it topples onto the face
+    it is pushed towards, below it it slides the stroke's depth and stays standing."""
+    obj, pose_set, standing = box
+    body, transform = body_model(obj), pose_set.poses[standing].transform
+    high = play_push(body, transform, PUSH["point"], PUSH["direction"], THESIS, settings=settings)
+    assert settle(pose_set, obj, high.final_transform[:3, :3]) == pose_with_down(pose_set, [-1, 0, 0])
+    low = play_push(body, transform, np.array([0.025, 0.0, 0.5 * 0.05 / (2 * MU_TABLE)]), PUSH["direction"], Config(),
+                    settings=settings)
+    assert low.at_rest and settle(pose_set, obj, low.final_transform[:3, :3]) == standing
+    moved = low.final_transform[:3, 3] - low.start_transform[:3, 3]
+    assert moved[0] == pytest.approx(-Config().contacts.push_depth, abs=0.005)
+
+
+def test_a_log_played_with_other_settings_records_them_and_never_mixes_with_the_log(reference_log, specs, tmp_path):
+    slow = replace(PARAMS, player=PlayerSettings(finger_speed=FINGER_SPEED / 2))
+    with pytest.raises(playlog.PlayError, match="other parameters"):
+        playlog.play(specs, slow, reference_log, workers=1)
+    playlog.play(specs[:1], slow, tmp_path / "slow", workers=1)
+    rows = playlog.read_log(tmp_path / "slow").to_pandas()
+    assert set(rows.finger_speed) == {FINGER_SPEED / 2}
+    # The same pushes with the same noise draws: only the player's numerics differ.
+    log = playlog.read_log(reference_log).to_pandas()
+    log = log[log.object_id == specs[0].object_id]
+    same = ["object_id", "push_id", "repeat", "mu_table", "mu_finger"] + [f"{k}_{a}" for k in ("point", "direction") for a in "xyz"]
+    assert rows[same].reset_index(drop=True).equals(log[same].reset_index(drop=True))
+    finals = np.stack(rows.final_transform.to_numpy()), np.stack(log.final_transform.to_numpy())
+    assert not np.allclose(*finals, atol=1e-9), "played at the settings asked, not the default"
+
+
+def test_the_play_command_takes_the_players_settings(capsys, tmp_path, monkeypatch):
+    seen = _record_plays(monkeypatch)
+    args = ["--objects", "heldout", "--count", "1", "--out", str(tmp_path / "x"), "--no-progress", "--config", "thesis"]
+    assert playlog.main(args) == 0 and seen["params"].player == DEFAULT_PLAYER
+    assert playlog.main([*args, "--time-step", "0.001", "--solver-iterations", "80", "--finger-speed", "0.02"]) == 0
+    assert seen["params"].player == PlayerSettings(0.001, 80, 0.02)
+    for option, value in [("--time-step", "0"), ("--solver-iterations", "0"), ("--finger-speed", "nan")]:
+        assert playlog.main([*args, option, value]) == 2
+        assert option.lstrip("-").replace("-", "_") in capsys.readouterr().err
+
+
 def test_empirical_distribution_puts_unknown_poses_last():
     assert np.allclose(empirical_distribution(np.array([0, 0, 2, -1]), 3), [0.5, 0, 0.25, 0.25])
 
@@ -482,7 +575,7 @@ def _record_plays(monkeypatch) -> dict:
             return "played"
 
     def fake_play(specs, params, out, **kwargs):
-        seen.update(specs=[s.object_id for s in specs], run_info=kwargs["run_info"])
+        seen.update(specs=[s.object_id for s in specs], run_info=kwargs["run_info"], params=params)
         return Summary()
 
     monkeypatch.setattr(playlog, "play", fake_play)

@@ -61,7 +61,7 @@ from ..build.corpus import (
 from ..model.config import PRESETS, Config, parameter_table
 from ..model.rng import stream
 from .logreader import PLAY_METADATA_KEY, LogError, log_files, match_downs, object_downs, read_tables
-from .pushsim import FINGER_SPEED, PlayedPush, body_model, draw_noise, play_push, player_parameters
+from .pushsim import DEFAULT_PLAYER, FINGER_SPEED, PlayedPush, PlayerSettings, body_model, draw_noise, play_push, player_parameters
 
 OBJECT_MODES = ("corpus", "heldout")
 PURPOSE = "play"
@@ -94,6 +94,8 @@ class PlayParams:
     noise_draws : 0: the noise comes from the stream the pushes were drawn from (a log);
       k > 0: the same pushes, played with the k-th independent set of noise draws (a replay
       of a log, which the report scores as physics predicting itself)
+    player : the player's numerics (``pushsim.PlayerSettings``); every log of the docs has the default, and
+      another plays the same pushes with the same noise draws (the judge against its own numerics)
     """
 
     actions: int = 3
@@ -103,6 +105,7 @@ class PlayParams:
     seed: int = 0
     config: Config = field(default_factory=Config)
     noise_draws: int = 0
+    player: PlayerSettings = DEFAULT_PLAYER
 
     def record(self) -> dict:
         """The parameters as JSON-ready values (with the player's constants and the log version)."""
@@ -113,7 +116,7 @@ class PlayParams:
             "max_poses": self.max_poses,
             "seed": self.seed,
             "config": self.config.to_dict(),
-            "player": player_parameters(),
+            "player": player_parameters(self.player),
             "pushlog_version": PUSHLOG_VERSION,
         }
         if self.noise_draws:  # absent means 0, so the part files of logs made before the option are reused
@@ -266,14 +269,15 @@ def play_object(spec: ObjectSpec, params: PlayParams) -> ObjectLog:
             point = to_object[:3, :3] @ table.actions.points[action] + to_object[:3, 3]
             direction = to_object[:3, :3] @ table.actions.directions[action]
             for repeat in range(params.repeats):
-                played = play_push(body, transform, point, direction, config, draw_noise(config, noise, noise=True))
+                played = play_push(body, transform, point, direction, config, draw_noise(config, noise, noise=True),
+                                   settings=params.player)
                 final_pose = settle(pose_set, obj, played.final_transform[:3, :3])
                 toppled += int(final_pose != pose)
                 outside += int(final_pose < 0)
                 at_rest += int(played.at_rest)
                 moved_before += int(left_pose(played.start_transform, pose_set.poses[pose].down, config.poses.same_pose_angle))
                 append_row(columns, spec, source, path, pose * PUSH_ID_SPAN + int(action), repeat, pose, int(action),
-                            point, direction, played, config, params.seed)
+                            point, direction, played, config, params.seed, params.player.finger_speed)
     table = pa.Table.from_pydict(columns, schema=PUSHLOG)
     summary = {"poses": n_poses, "pushes": table.num_rows, "toppled": toppled, "outside": outside, "at_rest": at_rest,
                "moved_before": moved_before}
@@ -292,11 +296,13 @@ def left_pose(start_transform: np.ndarray, down: np.ndarray, tolerance: float) -
     return bool(matched[0] < 0)
 
 
-def append_row(columns, spec, source, path, push_id, repeat, pose, action, point, direction, played: PlayedPush, config, seed) -> None:
+def append_row(columns, spec, source, path, push_id, repeat, pose, action, point, direction, played: PlayedPush, config, seed,
+               finger_speed: float = FINGER_SPEED) -> None:
     """Append one played push to ``columns`` (column name -> values, ``PUSHLOG``'s names).
 
     spec : the object;  source, path : ``mesh_location(spec)``;  point, direction : (3,) float,
     object frame, the push as commanded (the noise is in ``played``);  config : its finger geometry
+    finger_speed : float, m/s, what the finger was played at
     """
     c = config.contacts
     row = {
@@ -311,7 +317,7 @@ def append_row(columns, spec, source, path, push_id, repeat, pose, action, point
         "start_pose": pose,
         "start_transform": played.start_transform.ravel().tolist(),
         "action": action,
-        "finger_speed": FINGER_SPEED,
+        "finger_speed": finger_speed,
         "approach_offset": c.approach_offset,
         "push_depth": c.push_depth,
         "finger_radius": c.finger_radius,
@@ -550,6 +556,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--noise-draws", type=int, default=0, metavar="K",
                         help="0: a log (default); K > 0: the same pushes as the log of these arguments, played with "
                              "the K-th independent set of noise draws (a replay, for `report --replay`)")
+    parser.add_argument("--time-step", type=float, default=DEFAULT_PLAYER.time_step, metavar="S",
+                        help="the player's simulation step, s (default: 1/240): with the two options below, to "
+                             "measure how much physics depends on its own numerics (docs/VALIDATION.md)")
+    parser.add_argument("--solver-iterations", type=int, default=DEFAULT_PLAYER.solver_iterations, metavar="N",
+                        help="Bullet's constraint solver iterations per step (default: %(default)s)")
+    parser.add_argument("--finger-speed", type=float, default=DEFAULT_PLAYER.finger_speed, metavar="V",
+                        help="the finger's speed along its stroke, m/s (default: %(default)s)")
     parser.add_argument("--workers", type=positive_int, help="worker processes (default: all cores)")
     parser.add_argument("--config", type=Path, metavar="FILE.toml", help="model and noise parameters from a TOML file")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -565,7 +578,11 @@ def main(argv: list[str] | None = None) -> int:
         if (args.out is None) == (args.list is None):
             raise UsageError("give --out (play a log) or --list (write the objects' corpus list), not both or neither")
         config = make_config(args)
-        params = PlayParams(args.actions, args.repeats, args.eps, args.max_poses, args.seed, config, args.noise_draws)
+        try:
+            player = PlayerSettings(args.time_step, args.solver_iterations, args.finger_speed)
+        except ValueError as err:
+            raise UsageError(str(err)) from None
+        params = PlayParams(args.actions, args.repeats, args.eps, args.max_poses, args.seed, config, args.noise_draws, player)
         specs = select_objects(args.objects, args.count, args.seed, config.mesh.default_mass, skip=args.skip)
         if args.count is not None and len(specs) < args.count:
             print(f"note: only {len(specs)} {args.objects} objects remain after --skip {args.skip}", file=sys.stderr)

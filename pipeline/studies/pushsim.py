@@ -79,8 +79,8 @@ REST_SPEED = 5e-3
 REST_SPIN = 2e-2
 """rad/s, angular speed below which the object may be at rest (Bullet lets a small hull creep at
 about 1e-3 rad/s on the table; a 0.1 s window at this speed turns it by 0.1 degree)."""
-REST_STEPS = 24
-"""Steps in a row below both speeds that count as at rest (0.1 s)."""
+REST_WINDOW = 0.1
+"""s in a row below both speeds that count as at rest."""
 CONVEX_VOLUME_SHARE = 0.98
 """A closed mesh with less than this share of its hull's volume is concave: it collides as
 its convex parts (``convex_parts``), not as its hull."""
@@ -94,21 +94,59 @@ PLAYER_VERSION = "5"
 """Bumped whenever the player's physics changes, so that push logs made before are not resumed into."""
 
 
-def player_parameters() -> dict:
-    """The player's constants, for the parameters recorded with a push log."""
+@dataclass(frozen=True)
+class PlayerSettings:
+    """The player's numerical settings: how Bullet integrates a push, not what the push is.
+
+    time_step : float, s, one simulation step;  solver_iterations : int, Bullet's constraint
+    solver iterations per step;  finger_speed : float, m/s, along the stroke
+
+    The defaults are the player's (``TIME_STEP``, ``SOLVER_ITERATIONS``, ``FINGER_SPEED``) and
+    every log is played with them. Others play the same pushes with the same noise draws, to
+    measure how much the judge itself depends on its numerics (``toppledb play --time-step``,
+    docs/VALIDATION.md, "The judge's own numerics"): a quasi-static world would not depend on the
+    finger's speed, an exact integrator not on the step or the iterations.
+    """
+
+    time_step: float = TIME_STEP
+    solver_iterations: int = SOLVER_ITERATIONS
+    finger_speed: float = FINGER_SPEED
+
+    def __post_init__(self):
+        for name in ("time_step", "finger_speed"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise ValueError(f"player {name} must be a positive number, got {value!r}")
+        if isinstance(self.solver_iterations, bool) or not isinstance(self.solver_iterations, int) or self.solver_iterations < 1:
+            raise ValueError(f"player solver_iterations must be a positive integer, got {self.solver_iterations!r}")
+        if self.time_step > REST_WINDOW:
+            raise ValueError(f"player time_step must be at most {REST_WINDOW} s (the rest window), got {self.time_step}")
+
+    @property
+    def rest_steps(self) -> int:
+        """Steps in a row at rest that make ``REST_WINDOW`` (24 at the default step)."""
+        return max(1, round(REST_WINDOW / self.time_step))
+
+
+DEFAULT_PLAYER = PlayerSettings()
+"""The settings every log is played with."""
+
+
+def player_parameters(settings: PlayerSettings = DEFAULT_PLAYER) -> dict:
+    """The player's constants and ``settings``, for the parameters recorded with a push log."""
     return {
         "player_version": PLAYER_VERSION,
-        "time_step": TIME_STEP,
-        "solver_iterations": SOLVER_ITERATIONS,
+        "time_step": settings.time_step,
+        "solver_iterations": settings.solver_iterations,
         "collision_margin": COLLISION_MARGIN,
         "table_half_size": TABLE_HALF_SIZE,
-        "finger_speed": FINGER_SPEED,
+        "finger_speed": settings.finger_speed,
         "finger_mass": FINGER_MASS,
         "rest_before": REST_BEFORE,
         "settle_time": SETTLE_TIME,
         "rest_speed": REST_SPEED,
         "rest_spin": REST_SPIN,
-        "rest_steps": REST_STEPS,
+        "rest_steps": settings.rest_steps,
         "min_friction": MIN_FRICTION,
         "convex_volume_share": CONVEX_VOLUME_SHARE,
         "vhacd_resolution": VHACD_RESOLUTION,
@@ -333,10 +371,10 @@ def finger_row_limit(force: np.ndarray, limit: float) -> float:
     return float(limit) * float(np.max(np.abs(force))) / norm
 
 
-def finger_steps(config: Config) -> int:
-    """Simulation steps of the finger's stroke at ``FINGER_SPEED``."""
+def finger_steps(config: Config, settings: PlayerSettings = DEFAULT_PLAYER) -> int:
+    """Simulation steps of the finger's stroke at ``settings.finger_speed``."""
     stroke = config.contacts.approach_offset + config.contacts.push_depth
-    return max(2, round(stroke / FINGER_SPEED / TIME_STEP))
+    return max(2, round(stroke / settings.finger_speed / settings.time_step))
 
 
 @dataclass
@@ -369,6 +407,7 @@ def play_push(
     config: Config = DEFAULT_CONFIG,
     noise: PushNoise | None = None,
     observe=None,
+    settings: PlayerSettings = DEFAULT_PLAYER,
 ) -> PlayedPush:
     """Play one push of an object placed at ``transform`` on the table.
 
@@ -380,18 +419,19 @@ def play_push(
     observe : called after every step of the finger's stroke as ``observe(pb, client, pushed, pressing)``
       (the object's body id, and the normal force in N the finger pressed it with at that step), to trace
       the push (``push_course``); it must only read
+    settings : the player's numerics (``PlayerSettings``; every log is played with the default)
 
     The push is mapped to the world through the object's transform observed once it
     has come to rest, as a robot maps a planned push through the pose it sees.
     """
     noise = noise or draw_noise(config, None, noise=False)
     pb, client = _client()
-    table, obj_id = _place(pb, client, body, transform, noise.mu_table, config)
+    table, obj_id = _place(pb, client, body, transform, noise.mu_table, config, settings=settings)
     start = _observe(pb, client, obj_id, body)
 
     world_point = transform_points(start, np.asarray(point, dtype=float)[None])[0] + noise.contact_offset
     world_direction = unit(start[:3, :3] @ unit(np.asarray(direction, dtype=float)) + noise.direction_offset)
-    path = finger_path(world_point, world_direction, config, finger_steps(config))
+    path = finger_path(world_point, world_direction, config, finger_steps(config, settings))
     sphere = pb.createCollisionShape(pb.GEOM_SPHERE, radius=config.contacts.finger_radius, physicsClientId=client)
     finger = pb.createMultiBody(FINGER_MASS, sphere, basePosition=path[0].tolist(), physicsClientId=client)
     pb.changeDynamics(finger, -1, lateralFriction=noise.mu_finger / noise.mu_table, physicsClientId=client)
@@ -399,15 +439,15 @@ def play_push(
     peak_force = drive_finger(pb, client, finger, path, obj_id, config.topple.max_finger_force, config.topple.gravity, observe)
     # Withdraw the finger so it neither props the object up nor pushes it further.
     pb.removeBody(finger, physicsClientId=client)
-    still = 0
-    for _ in range(int(SETTLE_TIME / TIME_STEP)):
+    still, rest_steps = 0, settings.rest_steps
+    for _ in range(int(SETTLE_TIME / settings.time_step)):
         pb.stepSimulation(physicsClientId=client)
         linear, angular = pb.getBaseVelocity(obj_id, physicsClientId=client)
         still = still + 1 if np.linalg.norm(linear) < REST_SPEED and np.linalg.norm(angular) < REST_SPIN else 0
-        if still >= REST_STEPS:
+        if still >= rest_steps:
             break
     final = _observe(pb, client, obj_id, body)
-    return PlayedPush(start, final, still >= REST_STEPS, world_point, world_direction, noise, peak_force)
+    return PlayedPush(start, final, still >= rest_steps, world_point, world_direction, noise, peak_force)
 
 
 def drive_finger(pb, client: int, finger: int, path: np.ndarray, pushed: int, limit: float, gravity: float, observe=None) -> float:
@@ -442,13 +482,14 @@ def drive_finger(pb, client: int, finger: int, path: np.ndarray, pushed: int, li
     return peak_force
 
 
-def rest_on_table(body: BodyModel, transform: np.ndarray, config: Config = DEFAULT_CONFIG, duration: float = REST_BEFORE) -> np.ndarray:
+def rest_on_table(body: BodyModel, transform: np.ndarray, config: Config = DEFAULT_CONFIG, duration: float = REST_BEFORE,
+                  settings: PlayerSettings = DEFAULT_PLAYER) -> np.ndarray:
     """Place the object at ``transform`` (object -> world), leave it ``duration`` s, and observe it.
 
     What ``play_push`` does before the finger comes; the object's transform then, (4, 4).
     """
     pb, client = _client()
-    _, obj_id = _place(pb, client, body, transform, config.topple.mu_table_mean, config, duration)
+    _, obj_id = _place(pb, client, body, transform, config.topple.mu_table_mean, config, duration, settings)
     return _observe(pb, client, obj_id, body)
 
 
@@ -468,7 +509,8 @@ def _client():
     return pb, _CLIENTS[pid]
 
 
-def _place(pb, client, body: BodyModel, transform: np.ndarray, mu_table: float, config: Config, duration: float = REST_BEFORE) -> tuple[int, int]:
+def _place(pb, client, body: BodyModel, transform: np.ndarray, mu_table: float, config: Config, duration: float = REST_BEFORE,
+           settings: PlayerSettings = DEFAULT_PLAYER) -> tuple[int, int]:
     """Empty the world, build the table and the object at ``transform``, let it rest ``duration`` s.
 
     ``resetSimulation`` first, so that a push does not depend on what this process
@@ -477,7 +519,8 @@ def _place(pb, client, body: BodyModel, transform: np.ndarray, mu_table: float, 
     """
     pb.resetSimulation(physicsClientId=client)
     pb.setGravity(0, 0, -config.topple.gravity, physicsClientId=client)
-    pb.setPhysicsEngineParameter(fixedTimeStep=TIME_STEP, numSolverIterations=SOLVER_ITERATIONS, physicsClientId=client)
+    pb.setPhysicsEngineParameter(fixedTimeStep=settings.time_step, numSolverIterations=settings.solver_iterations,
+                                 physicsClientId=client)
 
     # The table is a thick box with its top face at z = 0 (a GEOM_PLANE costs ~15 ms to create).
     half = [TABLE_HALF_SIZE] * 3
@@ -505,7 +548,7 @@ def _place(pb, client, body: BodyModel, transform: np.ndarray, mu_table: float, 
         collisionMargin=COLLISION_MARGIN,
         physicsClientId=client,
     )
-    for _ in range(round(duration / TIME_STEP)):
+    for _ in range(round(duration / settings.time_step)):
         pb.stepSimulation(physicsClientId=client)
     return table, obj_id
 
