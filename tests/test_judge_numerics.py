@@ -1,0 +1,147 @@
+"""The judge's-numerics comparison (pipeline.studies.judge_numerics): two logs of the same pushes and
+noise draws compared trial by trial and through the model's metrics, checked on logs whose answer is
+known: a log against itself, against a world where nothing topples, and against one that lacks an object."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import trimesh
+from shapes import DATA, THESIS
+
+from pipeline.build.atomic import file_sha256
+from pipeline.build.corpus import ObjectSpec
+from pipeline.model.config import Config
+from pipeline.studies import judge_numerics, playlog
+from pipeline.studies.logreader import read_log
+from pipeline.studies.pushsim import FINGER_SPEED, PlayerSettings
+
+TINY = THESIS.with_overrides({"contacts.n_contacts": 40, "topple.n_trials": 8})
+PARAMS = playlog.PlayParams(actions=3, repeats=3, eps=0.05, max_poses=2, seed=3, config=TINY)
+RESAMPLES = 200
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    """A log of a box and one pybullet_data object, and the same play with the finger at half speed."""
+    root = tmp_path_factory.mktemp("judge")
+    mesh = trimesh.creation.box((0.05, 0.08, 0.15))
+    mesh.export(root / "box.stl")
+    path = f"{DATA}/random_urdfs/002/002.obj"
+    specs = [ObjectSpec("box", str(root / "box.stl"), 1.0, 0.25, "test", file_sha256(root / "box.stl")),
+             ObjectSpec("random_002", path, 0.015, 0.1, "pybullet_data/random_urdfs/002/002.urdf", file_sha256(path))]
+    playlog.play(specs, PARAMS, root / "base", workers=1)
+    playlog.play(specs, replace(PARAMS, player=PlayerSettings(finger_speed=FINGER_SPEED / 2)), root / "slow", workers=1)
+    return root
+
+
+def _rewritten(source, out, change):
+    """A copy of a log directory with every part file's table passed through ``change`` (metadata kept)."""
+    out.mkdir()
+    for part in sorted(source.glob("*.parquet")):
+        table = pq.read_table(part)
+        changed = change(table)
+        if changed is not None:
+            pq.write_table(changed.replace_schema_metadata(table.schema.metadata), out / part.name)
+    return out
+
+
+def _compare(base, variant, rate=0.3):
+    config = Config()
+    return judge_numerics.compare(read_log([base], config), read_log([variant], config), config, rate, RESAMPLES)
+
+
+def test_a_log_against_itself_agrees_in_every_trial_and_every_metric(logs):
+    result = _compare(logs / "base", logs / "base")
+    assert result["same_final_pose"] == result["same_toppled"] == 1.0 and result["push_tv"] == 0.0
+    assert result["unpaired_pushes"] == {"base_only": 0, "variant_only": 0}
+    assert result["topple_rate"]["difference"] == 0.0 and result["topple_rate"]["ci"] == [0.0, 0.0]
+    for predictor in judge_numerics.PREDICTORS:
+        for key, d in result["predictors"][predictor]["difference"].items():
+            assert d["difference"] == 0.0 or np.isnan(d["difference"]), (predictor, key)
+
+
+def _tipped(table):
+    """Every first repeat's final transform replaced by its start turned 90 degrees about the world's x
+    axis: a trial that surely left its start pose (its down vector is 90 degrees from the start's)."""
+    start = np.stack(table.column("start_transform").to_numpy(zero_copy_only=False)).reshape(-1, 4, 4)
+    final = np.stack(table.column("final_transform").to_numpy(zero_copy_only=False)).reshape(-1, 4, 4)
+    turn = np.eye(4)
+    turn[1:3, 1:3] = [[0.0, -1.0], [1.0, 0.0]]
+    first = table.column("repeat").to_numpy() == 0
+    final[first] = turn @ start[first]
+    column = pa.array(list(final.reshape(-1, 16)), type=table.schema.field("final_transform").type)
+    return table.set_column(table.schema.get_field_index("final_transform"), "final_transform", column)
+
+
+def test_against_a_world_where_every_first_repeat_topples_exactly_those_trials_disagree(logs, tmp_path):
+    """Base's trials all stay (the play draws pushes this small model rarely topples); the variant
+    topples every first repeat of PARAMS.repeats: a third of the trials disagree, and never-topples,
+    perfect on base, loses exactly what those topples cost it."""
+    base = read_log([logs / "base"], Config())
+    outcomes = np.concatenate([p.outcomes for p in base.pushes])
+    starts = np.concatenate([np.full(len(p.outcomes), p.pose) for p in base.pushes])
+    assert np.all(outcomes == starts), "the test reads base as a log where nothing topples"
+    result = _compare(logs / "base", _rewritten(logs / "base", tmp_path / "tipped", _tipped))
+    share = 1.0 / PARAMS.repeats
+    assert result["trials"] == len(outcomes)
+    assert result["topple_rate"]["base"] == 0.0 and result["topple_rate"]["variant"] == pytest.approx(share)
+    assert result["same_toppled"] == pytest.approx(1.0 - share) and result["same_final_pose"] == pytest.approx(1.0 - share)
+    assert result["topple_rate"]["difference"] == pytest.approx(share) and result["topple_rate"]["ci"] == pytest.approx([share, share])
+    assert result["push_tv"] == pytest.approx(share), "each push: a third of its mass moved off the start pose"
+    never = result["predictors"]["never_topples"]
+    assert never["base"]["tv_all"] == 0.0 and never["base"]["brier"] == 0.0
+    # Per push the empirical distribution is (2/3 on the start, 1/3 elsewhere): Brier (1/3)^2 + (1/3)^2.
+    assert never["variant"]["brier"] == pytest.approx(2 * share**2) and never["variant"]["tv_all"] == pytest.approx(share)
+    assert never["difference"]["brier"]["difference"] == pytest.approx(2 * share**2)
+    model = result["predictors"]["default"]
+    assert np.isnan(model["base"]["ap"]), "no push topples in base: no precision to average"
+    # Nothing observed toppling in base: every bin's gap is its mean P, so ECE is the mean P.
+    assert model["base"]["ece"] == pytest.approx(np.mean(read_p(logs / "base")))
+
+
+def read_p(log_dir):
+    """The default model's P(topple) per push of a log, as the comparison scores it."""
+    from pipeline.studies.scoring import Scorer
+
+    config = Config()
+    scorer = Scorer(read_log([log_dir], config), config.seed, config.contacts)
+    return scorer.score_predictions(scorer.predict(config.topple)).p_topple
+
+
+def test_pushes_one_log_lacks_are_counted_and_left_out(logs, tmp_path):
+    fewer = _rewritten(logs / "base", tmp_path / "fewer", lambda t: None if t.column("object_id")[0].as_py() == "box" else t)
+    result = _compare(logs / "base", fewer)
+    base = read_log([logs / "base"], Config())
+    box_pushes = sum(p.object_id == "box" for p in base.pushes)
+    assert box_pushes > 0 and result["unpaired_pushes"] == {"base_only": box_pushes, "variant_only": 0}
+    assert result["objects"] == 1 and result["pushes"] == len(base.pushes) - box_pushes
+
+
+def test_logs_of_other_pushes_are_refused(logs, tmp_path):
+    def moved(table):
+        return table.set_column(table.schema.get_field_index("point_x"), "point_x",
+                                pa.array(table.column("point_x").to_numpy() + 0.001))
+
+    other = _rewritten(logs / "base", tmp_path / "other", moved)
+    with pytest.raises(judge_numerics.JudgeError, match="not the same play"):
+        _compare(logs / "base", other)
+
+
+def test_the_same_play_at_half_the_finger_speed_is_compared_push_by_push(logs, tmp_path, capsys):
+    out = tmp_path / "judge.json"
+    assert judge_numerics.main(["--base", str(logs / "base"), "--variant", f"slow={logs / 'slow'}",
+                                "--rate-from", str(logs / "base"), "--bootstrap", str(RESAMPLES), "--json", str(out)]) == 0
+    result = json.loads(out.read_text())["variants"]["slow"]
+    base, slow = read_log([logs / "base"], Config()), read_log([logs / "slow"], Config())
+    assert result["pushes"] == len(base.pushes) == len(slow.pushes) and result["unpaired_pushes"]["base_only"] == 0
+    agree = np.mean(np.concatenate([a.outcomes == b.outcomes for a, b in zip(base.pushes, slow.pushes)]))
+    assert result["same_final_pose"] == pytest.approx(agree)
+    assert "slow:" in capsys.readouterr().out
+    assert judge_numerics.main(["--base", str(logs / "base"), "--variant", "slow"]) == 2
+    assert "NAME=LOG" in capsys.readouterr().err
