@@ -61,7 +61,18 @@ from ..build.corpus import (
 from ..model.config import PRESETS, Config, parameter_table
 from ..model.rng import stream
 from .logreader import PLAY_METADATA_KEY, LogError, log_files, match_downs, object_downs, read_tables
-from .pushsim import DEFAULT_PLAYER, FINGER_SPEED, PlayedPush, PlayerSettings, body_model, draw_noise, play_push, player_parameters
+from .pushsim import (
+    DEFAULT_PLAYER,
+    FINGER_SPEED,
+    PlayedPush,
+    PlayerSettings,
+    add_player_options,
+    body_model,
+    draw_noise,
+    play_push,
+    player_from_args,
+    player_parameters,
+)
 
 OBJECT_MODES = ("corpus", "heldout")
 PURPOSE = "play"
@@ -556,13 +567,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--noise-draws", type=int, default=0, metavar="K",
                         help="0: a log (default); K > 0: the same pushes as the log of these arguments, played with "
                              "the K-th independent set of noise draws (a replay, for `report --replay`)")
-    parser.add_argument("--time-step", type=float, default=DEFAULT_PLAYER.time_step, metavar="S",
-                        help="the player's simulation step, s (default: 1/240): with the two options below, to "
-                             "measure how much physics depends on its own numerics (docs/VALIDATION.md)")
-    parser.add_argument("--solver-iterations", type=int, default=DEFAULT_PLAYER.solver_iterations, metavar="N",
-                        help="Bullet's constraint solver iterations per step (default: %(default)s)")
-    parser.add_argument("--finger-speed", type=float, default=DEFAULT_PLAYER.finger_speed, metavar="V",
-                        help="the finger's speed along its stroke, m/s (default: %(default)s)")
+    add_player_options(parser)
     parser.add_argument("--workers", type=positive_int, help="worker processes (default: all cores)")
     parser.add_argument("--config", type=Path, metavar="FILE.toml", help="model and noise parameters from a TOML file")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -579,7 +584,7 @@ def main(argv: list[str] | None = None) -> int:
             raise UsageError("give --out (play a log) or --list (write the objects' corpus list), not both or neither")
         config = make_config(args)
         try:
-            player = PlayerSettings(args.time_step, args.solver_iterations, args.finger_speed)
+            player = player_from_args(args)
         except ValueError as err:
             raise UsageError(str(err)) from None
         params = PlayParams(args.actions, args.repeats, args.eps, args.max_poses, args.seed, config, args.noise_draws, player)

@@ -132,6 +132,23 @@ DEFAULT_PLAYER = PlayerSettings()
 """The settings every log is played with."""
 
 
+def add_player_options(parser) -> None:
+    """``--time-step``, ``--solver-iterations`` and ``--finger-speed`` on an argparse parser, defaulting
+    to ``DEFAULT_PLAYER`` (read back with ``player_from_args``)."""
+    parser.add_argument("--time-step", type=float, default=DEFAULT_PLAYER.time_step, metavar="S",
+                        help="the player's simulation step, s (default: 1/240): with the two options below, to "
+                             "measure how much physics depends on its own numerics (docs/VALIDATION.md)")
+    parser.add_argument("--solver-iterations", type=int, default=DEFAULT_PLAYER.solver_iterations, metavar="N",
+                        help="Bullet's constraint solver iterations per step (default: %(default)s)")
+    parser.add_argument("--finger-speed", type=float, default=DEFAULT_PLAYER.finger_speed, metavar="V",
+                        help="the finger's speed along its stroke, m/s (default: %(default)s)")
+
+
+def player_from_args(args) -> PlayerSettings:
+    """The settings ``add_player_options``'s options give; raises ValueError naming a bad one."""
+    return PlayerSettings(args.time_step, args.solver_iterations, args.finger_speed)
+
+
 def player_parameters(settings: PlayerSettings = DEFAULT_PLAYER) -> dict:
     """The player's constants and ``settings``, for the parameters recorded with a push log."""
     return {

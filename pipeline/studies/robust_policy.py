@@ -69,7 +69,16 @@ from ..model.mdp import IMPROVEMENT, belief_value_iteration, choice_by_means, po
 from ..model.rng import stream
 from .policies_physics import PURPOSE, ExperimentError, ObjectPlan, load_planned, mean_se, object_plans, open_trials, world_config
 from .policy_experiment import useful_starts
-from .pushsim import body_model, draw_noise, play_push
+from .pushsim import (
+    DEFAULT_PLAYER,
+    PlayerSettings,
+    add_player_options,
+    body_model,
+    draw_noise,
+    play_push,
+    player_from_args,
+    player_parameters,
+)
 
 ROBUST_POLICY = "smoothed_vi"
 """Name of the robust policy (a fourth ``<name>_action`` column if the contract adopts it)."""
@@ -530,7 +539,8 @@ class Push:
 
 
 def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], config: Config, seed: int, max_pushes: int,
-                world: Config | None, policies: tuple[str, ...] = COMPARED) -> tuple[str, dict, list[Push]]:
+                world: Config | None, policies: tuple[str, ...] = COMPARED,
+                player: PlayerSettings = DEFAULT_PLAYER) -> tuple[str, dict, list[Push]]:
     """Play ``policies`` (each one of ``plan.actions``) from each (trial, start) of one object (runs in a worker).
 
     The noise of push k of a trial is the k-th draw of the stream ``policies-physics`` uses,
@@ -569,7 +579,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
                 to_object = np.linalg.inv(plan.transforms[pose])
                 point = to_object[:3, :3] @ c.points[action] + to_object[:3, 3]
                 direction = to_object[:3, :3] @ c.directions[action]
-                played = play_push(body, transform, point, direction, config, noises[step])
+                played = play_push(body, transform, point, direction, config, noises[step], settings=player)
                 after = settle(pose_set, obj, played.final_transform[:3, :3])
                 top = float(np.nanmax(c.points[:, 2]))
                 landing = extra["landings"][pose]
@@ -621,7 +631,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
                workers: int | None = 1, world: Config | None = None, progress: bool = False,
                exclusion: Exclusion = Exclusion(), landing_prior: float | None = None,
                landing_trust: tuple[float, ...] | None = None, landing_direction: tuple[float, ...] | None = None,
-               variant: dict[str, float | bool] | None = None, per_trial: bool = False) -> tuple[dict, list[Push]]:
+               variant: dict[str, float | bool] | None = None, per_trial: bool = False,
+               player: PlayerSettings = DEFAULT_PLAYER) -> tuple[dict, list[Push]]:
     """Play the ``COMPARED`` policies (and the ``PRIOR_POLICIES`` with a landing prior, the
     ``VARIANT_POLICIES`` under another MDP); the report
     (JSON-ready) and every push played.
@@ -643,7 +654,9 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
       landing prior (the same caveats); not with either of the two above
     variant : ``mdp`` values (``VARIANT_FIELDS``) the ``VARIANT_POLICIES`` plan under, the dataset's
       for the others; given, they are played too (the same caveat on dropped trials).
-    per_trial : the report also holds ``trial_records``, every played trial's record (``trial_records``)"""
+    per_trial : the report also holds ``trial_records``, every played trial's record (``trial_records``)
+    player : the push player's numerics (``pushsim.PlayerSettings``; the docs' runs have the default), recorded
+      in the report: the same trials under other settings measure how much the judge depends on them"""
     from ..build.fanout import map_unordered
 
     started = time.perf_counter()
@@ -719,7 +732,7 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
                              "budget_choosable": budget_choosable, "variant_mdp": variant_mdp,
                              "variant_choosable": variant_choosable, "variant_q": variant_q,
                                   "landings": landings, "belief_q1": belief_q1, "belief_budget_q1": belief_budget_q1}, by_object[object_id],
-                      config, seed, max_pushes, world, policies))
+                      config, seed, max_pushes, world, policies, player))
 
     runs: dict[int, dict[str, list[int]]] = {}
     pushes: list[Push] = []
@@ -735,7 +748,8 @@ def experiment(root: str | Path, n_trials: int, smoothing: Smoothing = Smoothing
                    "landing_direction": None if landing_direction is None else landing_direction.tolist(),
                    "variant": variant or None, "dataset": str(Path(root).resolve()), "trials": n_trials, "objects": len(by_object),
                    "failed_objects": failures, "seed": seed, "max_pushes": max_pushes,
-                   "smoothing": vars(smoothing), "exclusion": vars(exclusion), "wall_s": round(time.perf_counter() - started, 1)})
+                   "smoothing": vars(smoothing), "exclusion": vars(exclusion), "player": player_parameters(player),
+                   "wall_s": round(time.perf_counter() - started, 1)})
     if per_trial:
         report["trial_records"] = trial_records(tables, starts, runs, policies)
     return report, pushes
@@ -921,10 +935,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats-then-grasp", action="store_const", const=True,
                         help="with --choose-for-repeats: a client that grasps once repeating is worth less "
                              "(mdp.repeats_then_grasp, docs/MODEL.md (12.17))")
+    add_player_options(parser)
     args = parser.parse_args(argv)
     if refused_outputs(args.json, args.trials_out, args.pushes):
         return 2
     try:
+        player = player_from_args(args)
         smoothing = Smoothing(args.radius, args.max_angle, args.min_neighbours)
         report, pushes = experiment(args.dataset, args.trials, smoothing, max_pushes=args.max_pushes, seed=args.seed,
                                     workers=args.workers, world=world_config(args.world),
@@ -932,7 +948,7 @@ def main(argv: list[str] | None = None) -> int:
                                     landing_prior=args.landing_prior, landing_trust=args.landing_trust,
                                     landing_direction=args.landing_direction,
                                     variant={name: getattr(args, name) for name in VARIANT_FIELDS if getattr(args, name) is not None},
-                                    per_trial=args.trials_out is not None)
+                                    per_trial=args.trials_out is not None, player=player)
     except (ExperimentError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
