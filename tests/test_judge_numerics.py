@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute
 import pyarrow.parquet as pq
 import pytest
 import trimesh
@@ -20,21 +21,28 @@ from pipeline.model.config import Config
 from pipeline.studies import judge_numerics, playlog
 from pipeline.studies.logreader import read_log
 from pipeline.studies.pushsim import FINGER_SPEED, PlayerSettings
+from pipeline.studies.scoring import Scorer
+from pipeline.studies.validation import push_metrics
 
 TINY = THESIS.with_overrides({"contacts.n_contacts": 40, "topple.n_trials": 8})
 PARAMS = playlog.PlayParams(actions=3, repeats=3, eps=0.05, max_poses=2, seed=3, config=TINY)
 RESAMPLES = 200
 
 
+def _specs(root):
+    """A box (its mesh written under ``root``) and one pybullet_data object."""
+    if not (root / "box.stl").exists():
+        trimesh.creation.box((0.05, 0.08, 0.15)).export(root / "box.stl")
+    path = f"{DATA}/random_urdfs/002/002.obj"
+    return [ObjectSpec("box", str(root / "box.stl"), 1.0, 0.25, "test", file_sha256(root / "box.stl")),
+            ObjectSpec("random_002", path, 0.015, 0.1, "pybullet_data/random_urdfs/002/002.urdf", file_sha256(path))]
+
+
 @pytest.fixture(scope="module")
 def logs(tmp_path_factory):
     """A log of a box and one pybullet_data object, and the same play with the finger at half speed."""
     root = tmp_path_factory.mktemp("judge")
-    mesh = trimesh.creation.box((0.05, 0.08, 0.15))
-    mesh.export(root / "box.stl")
-    path = f"{DATA}/random_urdfs/002/002.obj"
-    specs = [ObjectSpec("box", str(root / "box.stl"), 1.0, 0.25, "test", file_sha256(root / "box.stl")),
-             ObjectSpec("random_002", path, 0.015, 0.1, "pybullet_data/random_urdfs/002/002.urdf", file_sha256(path))]
+    specs = _specs(root)
     playlog.play(specs, PARAMS, root / "base", workers=1)
     playlog.play(specs, replace(PARAMS, player=PlayerSettings(finger_speed=FINGER_SPEED / 2)), root / "slow", workers=1)
     return root
@@ -59,7 +67,7 @@ def _compare(base, variant, rate=0.3):
 def test_a_log_against_itself_agrees_in_every_trial_and_every_metric(logs):
     result = _compare(logs / "base", logs / "base")
     assert result["same_final_pose"] == result["same_toppled"] == 1.0 and result["push_tv"] == 0.0
-    assert result["unpaired_pushes"] == {"base_only": 0, "variant_only": 0}
+    assert result["unpaired"] == {"base_only": 0, "variant_only": 0, "pushes_without_common_trials": 0, "trials_unpaired": 0}
     assert result["topple_rate"]["difference"] == 0.0 and result["topple_rate"]["ci"] == [0.0, 0.0]
     for predictor in judge_numerics.PREDICTORS:
         for key, d in result["predictors"][predictor]["difference"].items():
@@ -107,8 +115,6 @@ def test_against_a_world_where_every_first_repeat_topples_exactly_those_trials_d
 
 def read_p(log_dir):
     """The default model's P(topple) per push of a log, as the comparison scores it."""
-    from pipeline.studies.scoring import Scorer
-
     config = Config()
     scorer = Scorer(read_log([log_dir], config), config.seed, config.contacts)
     return scorer.score_predictions(scorer.predict(config.topple)).p_topple
@@ -119,7 +125,7 @@ def test_pushes_one_log_lacks_are_counted_and_left_out(logs, tmp_path):
     result = _compare(logs / "base", fewer)
     base = read_log([logs / "base"], Config())
     box_pushes = sum(p.object_id == "box" for p in base.pushes)
-    assert box_pushes > 0 and result["unpaired_pushes"] == {"base_only": box_pushes, "variant_only": 0}
+    assert box_pushes > 0 and result["unpaired"]["base_only"] == box_pushes and result["unpaired"]["variant_only"] == 0
     assert result["objects"] == 1 and result["pushes"] == len(base.pushes) - box_pushes
 
 
@@ -139,9 +145,52 @@ def test_the_same_play_at_half_the_finger_speed_is_compared_push_by_push(logs, t
                                 "--rate-from", str(logs / "base"), "--bootstrap", str(RESAMPLES), "--json", str(out)]) == 0
     result = json.loads(out.read_text())["variants"]["slow"]
     base, slow = read_log([logs / "base"], Config()), read_log([logs / "slow"], Config())
-    assert result["pushes"] == len(base.pushes) == len(slow.pushes) and result["unpaired_pushes"]["base_only"] == 0
+    assert result["pushes"] == len(base.pushes) == len(slow.pushes) and result["unpaired"]["base_only"] == 0
+    assert result["player"]["finger_speed"] == FINGER_SPEED / 2
     agree = np.mean(np.concatenate([a.outcomes == b.outcomes for a, b in zip(base.pushes, slow.pushes)]))
     assert result["same_final_pose"] == pytest.approx(agree)
     assert "slow:" in capsys.readouterr().out
+    # The model's metrics against the slow log are what a scorer of that log alone gives.
+    config = Config()
+    alone = Scorer(slow, config.seed, config.contacts)
+    scores = alone.score(config.topple)
+    expected = push_metrics(scores.tv, scores.p_topple, alone.empirical_topple, alone.object_index, scores.brier)
+    expected = {key: None if np.isnan(value) else value for key, value in expected.items()}  # NaN is null in JSON
+    assert result["predictors"]["default"]["variant"] == pytest.approx(expected)
     assert judge_numerics.main(["--base", str(logs / "base"), "--variant", "slow"]) == 2
     assert "NAME=LOG" in capsys.readouterr().err
+    assert judge_numerics.main(["--base", str(logs / "base"), "--variant", f"a={logs / 'slow'}", "--variant", f"a={logs / 'slow'}"]) == 2
+    assert "given twice" in capsys.readouterr().err
+
+
+def test_trials_are_paired_by_their_repeat_number(logs, tmp_path):
+    """Base lacks every repeat 0, the variant every repeat 1: only repeat 2 is a trial of both. Both
+    copies of one log, so those trials agree, whatever the outcomes of the others."""
+    def without(repeat):
+        return lambda t: t.filter(pa.compute.not_equal(t.column("repeat"), repeat))
+
+    a = _rewritten(logs / "base", tmp_path / "a", without(0))
+    b = _rewritten(logs / "base", tmp_path / "b", _tipped)  # every repeat 0 toppled ...
+    b = _rewritten(b, tmp_path / "b1", without(1))  # ... and repeat 1 gone
+    result = _compare(a, b)
+    pushes = len(read_log([logs / "base"], Config()).pushes)
+    assert result["pushes"] == pushes and result["trials"] == pushes
+    assert result["unpaired"]["trials_unpaired"] == 2 * pushes
+    assert result["same_final_pose"] == result["same_toppled"] == 1.0 and result["topple_rate"]["difference"] == 0.0
+
+
+def test_only_one_play_under_two_settings_is_compared(logs, tmp_path, capsys):
+    """A replay (other noise draws), a log with the sides swapped, and a push named twice are refused."""
+    replay = tmp_path / "replay"
+    playlog.play(_specs(logs), replace(PARAMS, noise_draws=1), replay, workers=1)
+    assert judge_numerics.main(["--base", str(logs / "base"), "--variant", f"replay={replay}"]) == 2
+    assert "noise_draws" in capsys.readouterr().err
+    assert judge_numerics.main(["--base", str(logs / "slow"), "--variant", f"base={logs / 'base'}"]) == 2
+    assert "not played with the player's defaults" in capsys.readouterr().err
+    assert judge_numerics.main(["--base", str(logs / "base"), str(logs / "base" / "box.parquet"), "--variant",
+                                f"slow={logs / 'slow'}"]) == 2
+    assert "in two files" in capsys.readouterr().err
+    config = Config()
+    twice = read_log([logs / "base", logs / "slow"], config)
+    with pytest.raises(judge_numerics.JudgeError, match="in two of the base logs"):
+        judge_numerics.compare(twice, read_log([logs / "slow"], config), config, None, RESAMPLES)

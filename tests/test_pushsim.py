@@ -348,6 +348,42 @@ def test_bullet_integrates_with_the_settings_asked(box):
     assert engine["fixedTimeStep"] == pytest.approx(TIME_STEP) and engine["numSolverIterations"] == SOLVER_ITERATIONS
 
 
+def test_every_step_of_a_push_runs_at_the_settings_asked(box, monkeypatch):
+    """Each Bullet step, at rest before the push, along the stroke and while settling, runs at the asked step
+    and iterations; the stroke takes ``finger_steps`` of them and the object is at rest only after a 0.1 s
+    window of them."""
+    from pipeline.studies import pushsim
+
+    obj, pose_set, standing = box
+    settings = PlayerSettings(time_step=1 / 480, solver_iterations=7, finger_speed=0.025)
+    real_client = pushsim._client
+    seen = []
+
+    class Counting:
+        def __init__(self, pb, client):
+            self.pb, self.client = pb, client
+
+        def __getattr__(self, name):
+            return getattr(self.pb, name)
+
+        def stepSimulation(self, **kwargs):
+            engine = self.pb.getPhysicsEngineParameters(physicsClientId=self.client)
+            seen.append((engine["fixedTimeStep"], engine["numSolverIterations"]))
+            return self.pb.stepSimulation(**kwargs)
+
+    def counting_client():
+        pb, client = real_client()
+        return Counting(pb, client), client
+
+    monkeypatch.setattr(pushsim, "_client", counting_client)
+    low = np.array([0.025, 0.0, 0.5 * 0.05 / (2 * MU_TABLE)])  # slides and stays standing: at rest soon after
+    played = play_push(body_model(obj), pose_set.poses[standing].transform, low, PUSH["direction"], Config(), settings=settings)
+    assert played.at_rest and {iterations for _, iterations in seen} == {7}
+    assert np.allclose([step for step, _ in seen], 1 / 480, rtol=1e-12)
+    settling = len(seen) - round(0.2 / settings.time_step) - finger_steps(Config(), settings)
+    assert settings.rest_steps <= settling <= int(1.5 / settings.time_step)
+
+
 @pytest.mark.parametrize("settings", [PlayerSettings(time_step=TIME_STEP / 2), PlayerSettings(finger_speed=FINGER_SPEED / 2),
                                       PlayerSettings(solver_iterations=2 * SOLVER_ITERATIONS)],
                          ids=["half_step", "half_speed", "twice_iterations"])

@@ -11,7 +11,9 @@ the player's numerics. This compares them, trial by trial and through the defaul
         --variant step=data/logs/judge_step --variant slow=data/logs/judge_slow \\
         --rate-from data/logs/corpus --exclude-corpus --json reports/judge_numerics_s68.json
 
-Per variant, on the pushes both logs hold with the same repeats:
+The logs must be one play: every object both hold played with the same seed, model, noise and mesh, base at
+the player's defaults (the part files' recorded keys say so). Per variant, on the trials both logs hold (a
+trial is a push's repeat):
 - the share of trials whose final pose agrees, and whose toppled-or-not agrees;
 - each log's topple rate and the variant's minus base's, with a 95 % bootstrap interval over objects;
 - the mean sup-TV between the two logs' observed next-pose distributions per push;
@@ -25,14 +27,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from ..model.config import Config
-from .logreader import LogError, PushLog, read_log
+from .logreader import PLAY_METADATA_KEY, LogError, Push, PushLog, log_files, read_log, same_push
+from .pushsim import player_parameters
 from .scoring import Scorer, Scores, sup_tv
-from .validation import BOOTSTRAP, observed_topple_rate, percentile_interval, push_metrics, to_json
+from .validation import BOOTSTRAP, bootstrap_metric_difference, observed_topple_rate, percentile_interval, push_metrics, to_json
 
 PREDICTORS = ("default", "never_topples", "constant_rate")
 """What is scored on every log: the default model and the two trivial predictors."""
@@ -42,42 +48,97 @@ class JudgeError(ValueError):
     """Logs that cannot be compared; one line."""
 
 
-def common_pushes(base: PushLog, variant: PushLog) -> tuple[PushLog, PushLog, dict]:
-    """Both logs restricted to the pushes they both hold, with as many repeats in each.
+def played_with(paths: list[str | Path]) -> dict[str, dict]:
+    """What each object of ``toppledb play`` logs was played with: object id -> its part file's key
+    (``playlog.PlayParams.key``: the object, the model and noise, the seed, the player).
 
-    A push is named by (object id, push id); the two must agree on its start pose, point and direction
-    (the same push), else the logs are not one play under two settings.
-    returns : (base, variant, {"base_only": pushes, "variant_only": pushes}) with pushes in the same order
-    raises JudgeError : a push the two logs describe differently
+    raises JudgeError : a file that is not a ``toppledb play`` part file, or an object in two files
     """
-    def by_key(log: PushLog) -> dict:
-        return {(p.object_id, p.push_id): p for p in log.pushes}
+    keys: dict[str, dict] = {}
+    for file in log_files(paths):
+        try:
+            key = json.loads((pq.read_schema(file).metadata or {})[PLAY_METADATA_KEY])["key"]
+        except (OSError, KeyError, ValueError, pa.ArrowException):
+            raise JudgeError(f"{file} is not a toppledb play part file: only plays of known settings can be compared") from None
+        if key["object_id"] in keys:
+            raise JudgeError(f"object {key['object_id']} is in two files of one side ({file}): give each side one play")
+        keys[key["object_id"]] = key
+    return keys
 
-    a, b = by_key(base), by_key(variant)
-    keep = []
+
+def same_play(base: dict[str, dict], variant: dict[str, dict]) -> dict:
+    """Check that two logs are one play under two player settings; the two sides' settings.
+
+    base, variant : ``played_with``'s
+    returns : {"base": player parameters, "variant": player parameters}
+    raises JudgeError : an object both sides hold played otherwise than by the player (another seed, noise
+      draws, model or mesh), base not at the player's defaults, or a side with more than one setting
+    """
+    for name, keys in (("base", base), ("variant", variant)):
+        if len({json.dumps(k["player"], sort_keys=True) for k in keys.values()}) > 1:
+            raise JudgeError(f"the {name} logs were played with more than one player setting")
+    for object_id in base.keys() & variant.keys():
+        a, b = ({k: v for k, v in key[object_id].items() if k != "player"} for key in (base, variant))
+        if a != b:
+            differ = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+            raise JudgeError(f"object {object_id} was played otherwise, not only by the player ({', '.join(differ)} "
+                             "differ): not the same play under other settings")
+    players = {name: next(iter(keys.values()))["player"] for name, keys in (("base", base), ("variant", variant))}
+    if players["base"] != player_parameters():
+        raise JudgeError("the base logs were not played with the player's defaults")
+    return players
+
+
+def common_pushes(base: PushLog, variant: PushLog) -> tuple[PushLog, PushLog, dict]:
+    """Both logs restricted to the trials they both hold: the pushes of both, each with the repeats of both.
+
+    A push is named by (object id, push id) and a trial by its repeat number within it, so a row one log
+    rejected (an object that left its pose before the push, say) leaves that trial out of both.
+    returns : (base, variant, counts) with the same pushes in the same order and each push's outcomes in
+      repeat order; counts : {"base_only", "variant_only"}, pushes one log lacks, and "trials_unpaired",
+      trials of common pushes one log lacks
+    raises JudgeError : a push named twice in one log, or one the two logs describe differently
+    """
+    def by_key(log: PushLog, name: str) -> dict:
+        pushes = {}
+        for push in log.pushes:
+            if pushes.setdefault((push.object_id, push.push_id), push) is not push:
+                raise JudgeError(f"push {push.push_id} of {push.object_id} is in two of the {name} logs")
+        return pushes
+
+    a, b = by_key(base, "base"), by_key(variant, "variant")
+    pairs, unpaired_trials = [], 0
     for key in sorted(a.keys() & b.keys()):
         first, second = a[key], b[key]
-        if first.pose != second.pose or not (np.allclose(first.point, second.point, atol=1e-9)
-                                             and np.allclose(first.direction, second.direction, atol=1e-9)):
+        if not same_push(first, second):
             raise JudgeError(f"push {key[1]} of {key[0]} differs between the logs: not the same play under other settings")
-        if len(first.outcomes) == len(second.outcomes):
-            keep.append(key)
-    kept = set(keep)
+        both = np.intersect1d(first.repeats, second.repeats)
+        unpaired_trials += len(first.repeats) + len(second.repeats) - 2 * len(both)
+        if len(both):
+            pairs.append((on_repeats(first, both), on_repeats(second, both)))
 
-    def restricted(log: PushLog, pushes: dict) -> PushLog:
-        chosen = [pushes[key] for key in keep]
-        objects = {p.object_id for p in chosen}
-        return PushLog({k: v for k, v in log.objects.items() if k in objects}, chosen, log.rejected, log.examples,
+    def restricted(log: PushLog, pushes: list) -> PushLog:
+        objects = {p.object_id for p in pushes}
+        return PushLog({k: v for k, v in log.objects.items() if k in objects}, pushes, log.rejected, log.examples,
                        log.rows, log.files, log.logs)
 
-    unpaired = {"base_only": len(a.keys() - kept), "variant_only": len(b.keys() - kept)}
-    return restricted(base, a), restricted(variant, b), unpaired
+    paired = {(p.object_id, p.push_id) for p, _ in pairs}
+    counts = {"base_only": len(a.keys() - b.keys()), "variant_only": len(b.keys() - a.keys()),
+              "pushes_without_common_trials": len(a.keys() & b.keys()) - len(paired), "trials_unpaired": int(unpaired_trials)}
+    return restricted(base, [p for p, _ in pairs]), restricted(variant, [q for _, q in pairs]), counts
+
+
+def on_repeats(push: Push, repeats: np.ndarray) -> Push:
+    """``push`` with only the outcomes of ``repeats`` ((k,) int, sorted, each one of ``push.repeats``), in their order."""
+    order = np.argsort(push.repeats)
+    return replace(push, outcomes=push.outcomes[order][np.searchsorted(push.repeats[order], repeats)], repeats=repeats)
 
 
 def trial_agreement(base: PushLog, variant: PushLog) -> dict:
-    """How often the same trial ends the same way: shares over every paired trial.
+    """How often the same trial ends the same way, over every paired trial.
 
-    base, variant : ``common_pushes``'s, the same pushes in the same order
+    base, variant : ``common_pushes``'s, the same pushes and repeats in the same order
+    returns : {"trials": int, "same_final_pose": share, "same_toppled": share}
     """
     first = np.concatenate([p.outcomes for p in base.pushes])
     second = np.concatenate([p.outcomes for p in variant.pushes])
@@ -88,7 +149,11 @@ def trial_agreement(base: PushLog, variant: PushLog) -> dict:
 
 def topple_rates(base: PushLog, variant: PushLog, n_resamples: int = BOOTSTRAP, seed: int = 0) -> dict:
     """Each log's topple rate over its trials, and the variant's minus base's with a 95 % interval
-    over objects (the same objects resampled for both)."""
+    over objects (the same objects resampled for both).
+
+    base, variant : ``common_pushes``'s
+    returns : {"base": share, "variant": share, "difference": float, "ci": [low, high]}
+    """
     objects = sorted({p.object_id for p in base.pushes})
     index = {name: i for i, name in enumerate(objects)}
     which = np.array([index[p.object_id] for p in base.pushes])
@@ -101,43 +166,38 @@ def topple_rates(base: PushLog, variant: PushLog, n_resamples: int = BOOTSTRAP, 
 
 
 def distribution_tv(base: Scorer, variant: Scorer) -> float:
-    """Mean over pushes of the sup-TV between the two logs' observed next-pose distributions."""
+    """Mean over pushes of the sup-TV between the two logs' observed next-pose distributions (in [0, 1])."""
     tv = [sup_tv(a.empirical, b.empirical) for a, b in zip(base.groups, variant.groups)]
     return float(np.mean(np.concatenate(tv)))
 
 
 def paired_metrics(base: Scores, variant: Scores, observed: tuple[np.ndarray, np.ndarray], objects: np.ndarray,
                    n_resamples: int = BOOTSTRAP, seed: int = 0) -> dict:
-    """One predictor's metrics on each log and the variant's minus base's, bootstrapped over objects.
+    """One predictor's metrics (``validation.push_metrics``) on each log, and the variant's minus base's
+    bootstrapped over objects.
 
     base, variant : the predictor's scores against each log (the same pushes in the same order)
     observed : (n,) float each, the pushes' topple rates in base and in the variant
     objects : (n,) int, object of each push
     returns : {"base": metrics, "variant": metrics, "difference": metric -> {"difference", "ci"}}
     """
-    rows = [np.flatnonzero(objects == i) for i in range(int(objects.max()) + 1)]
-
-    def metrics(draw: np.ndarray) -> tuple[dict, dict]:
-        index = np.concatenate([rows[d] for d in draw])
-        copies = np.repeat(np.arange(len(draw)), [len(rows[d]) for d in draw])
-        return tuple(push_metrics(s.tv[index], s.p_topple[index], o[index], copies, s.brier[index])
-                     for s, o in zip((base, variant), observed))
-
-    first, second = metrics(np.arange(len(rows)))
-    rng = np.random.default_rng(seed)
-    draws = [metrics(rng.integers(len(rows), size=len(rows))) for _ in range(n_resamples)]
-    difference = {key: {"difference": second[key] - first[key],
-                        "ci": percentile_interval([b[key] - a[key] for a, b in draws], fewest=n_resamples // 2 + 1)}
-                  for key in first}
-    return {"base": first, "variant": second, "difference": difference}
+    on = [push_metrics(s.tv, s.p_topple, o, objects, s.brier) for s, o in zip((base, variant), observed)]
+    difference = bootstrap_metric_difference(variant, base, observed[1], objects, n_resamples, seed, second_observed=observed[0])
+    return {"base": on[0], "variant": on[1], "difference": difference}
 
 
 def compare(base: PushLog, variant: PushLog, config: Config, rate: float | None, n_resamples: int = BOOTSTRAP) -> dict:
-    """Everything the module docstring lists for one variant against base."""
-    base, variant, unpaired = common_pushes(base, variant)
+    """Everything the module docstring lists for one variant against base (JSON-ready).
+
+    rate : the constant-rate predictor's topple rate (left out when None)
+    raises JudgeError : logs with no push in common, or pushes they describe differently
+    """
+    base, variant, counts = common_pushes(base, variant)
     if not base.pushes:
         raise JudgeError("the logs hold no push in common")
     scorers = [Scorer(log, config.seed, config.contacts) for log in (base, variant)]
+    groups = [[(g.object_id, g.pose.index, tuple(g.rows)) for g in s.groups] for s in scorers]
+    assert groups[0] == groups[1], "common_pushes gives both logs the same pushes in the same order"
     # The same pushes: the model's rows are predicted once and scored against both logs.
     predictions = scorers[0].predict(config.topple)
     scores = {"default": [s.score_predictions(predictions) for s in scorers],
@@ -148,7 +208,7 @@ def compare(base: PushLog, variant: PushLog, config: Config, rate: float | None,
     return {
         "pushes": len(base.pushes),
         "objects": len(scorers[0].object_ids),
-        "unpaired_pushes": unpaired,
+        "unpaired": counts,
         **trial_agreement(base, variant),
         "topple_rate": topple_rates(base, variant, n_resamples, config.seed),
         "push_tv": distribution_tv(*scorers),
@@ -194,15 +254,20 @@ def main(argv: list[str] | None = None) -> int:
             name, _, paths = given.partition("=")
             if not name or not paths:
                 raise JudgeError(f"--variant takes NAME=LOG[,LOG...], got {given!r}")
+            if name in variants:
+                raise JudgeError(f"--variant {name} is given twice")
             variants[name] = paths.split(",")
+        # Before minutes of reading: every variant must be the base's play under other player settings.
+        base_keys = played_with(args.base)
+        players = {name: same_play(base_keys, played_with(paths)) for name, paths in variants.items()}
         corpus = load_corpus("default", config.mesh.default_mass) if args.exclude_corpus else None
         base = read_log(args.base, config, corpus, exclude_corpus=args.exclude_corpus)
         rate = observed_topple_rate(read_log(args.rate_from, config)) if args.rate_from else None
-        out = {"base": args.base, "rate": rate, "rate_from": args.rate_from, "model": "the defaults", "variants": {}}
+        out = {"base": args.base, "base_player": player_parameters(), "rate": rate, "rate_from": args.rate_from, "model": "the defaults", "variants": {}}
         for name, paths in variants.items():
             variant = read_log(paths, config, corpus, exclude_corpus=args.exclude_corpus)
             result = compare(base, variant, config, rate, args.bootstrap)
-            out["variants"][name] = {"logs": paths, **result}
+            out["variants"][name] = {"logs": paths, "player": players[name]["variant"], **result}
             print(format_comparison(name, result), flush=True)
     except (JudgeError, LogError, CorpusError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -94,6 +94,7 @@ class Push:
     outcomes : (R,) int, final pose of each repeat (``OUTSIDE`` when not in the pose set)
     log : which log the push was read from, an index into ``PushLog.logs`` (push ids are unique only
       within one)
+    repeats : (R,) int, the log's repeat number of each outcome (None for a push not read from a log)
     """
 
     object_id: str
@@ -103,6 +104,7 @@ class Push:
     direction: np.ndarray
     outcomes: np.ndarray
     log: int = 0
+    repeats: np.ndarray | None = None
 
     @property
     def key(self) -> tuple[int, str, int]:
@@ -176,6 +178,13 @@ class PushLog:
 
 
 # ---------------------------------------------------------------- files
+
+
+def same_push(a: Push, b: Push) -> bool:
+    """Whether two logs' pushes are one push: the same start pose, and point and direction (pose frame)
+    within ``SAME_PUSH_TOLERANCE``."""
+    return a.pose == b.pose and bool(np.allclose(a.point, b.point, rtol=0, atol=SAME_PUSH_TOLERANCE)
+                                     and np.allclose(a.direction, b.direction, rtol=0, atol=SAME_PUSH_TOLERANCE))
 
 
 def log_files(paths: list[str | Path]) -> list[Path]:
@@ -483,6 +492,7 @@ def read_log(
                 direction=directions[rows[0]] @ to_pose[:3, :3].T,
                 outcomes=final_index[rows],
                 log=log,
+                repeats=repeat[rows].astype(int),
             )
         )
     pushes.sort(key=lambda p: (p.object_id, p.pose, p.log, p.push_id))  # by object and pose, then ``Push.key``

@@ -115,7 +115,7 @@ class PlayerSettings:
     def __post_init__(self):
         for name in ("time_step", "finger_speed"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"player {name} must be a positive number, got {value!r}")
         if isinstance(self.solver_iterations, bool) or not isinstance(self.solver_iterations, int) or self.solver_iterations < 1:
             raise ValueError(f"player solver_iterations must be a positive integer, got {self.solver_iterations!r}")

@@ -40,7 +40,7 @@ from ..model.feature_map import DOWN_FEATURES, FEATURES, SIDE_FEATURES, down_fea
 from ..model.outcomes import Actions, StablePose, ToppleTable
 from ..model.rng import stream
 from ..model.topple import TrialNoise, Trials, evaluate_pose, noisy_trials, pose_noise
-from .logreader import SAME_PUSH_TOLERANCE, LogError, Push, PushLog
+from .logreader import LogError, Push, PushLog, same_push
 
 
 @dataclass
@@ -358,8 +358,7 @@ class Scorer:
                            "replay the same objects and pushes, one replay per log in the logs' order")
         for push in self.log.pushes:
             twin = replayed[push.key]
-            if twin.pose != push.pose or not (np.allclose(twin.point, push.point, rtol=0, atol=SAME_PUSH_TOLERANCE)
-                                              and np.allclose(twin.direction, push.direction, rtol=0, atol=SAME_PUSH_TOLERANCE)):
+            if not same_push(twin, push):
                 raise LogError(f"push_id {push.push_id} of object {push.object_id} is another push in the replay "
                                "(start pose, point or direction differ); replay with the log's own seed and parameters")
 

@@ -273,24 +273,29 @@ def bootstrap_metric_difference(
     n_resamples: int = BOOTSTRAP,
     seed: int = 0,
     confidence: float = CONFIDENCE,
+    second_observed: np.ndarray | None = None,
 ) -> dict[str, dict]:
     """Paired bootstrap over objects of ``first - second`` for every metric of ``push_metrics``
     (ECE, AP and mAP included): both predictors are scored on the same resampled objects, each
     drawn copy of an object counting as its own object.
 
+    second_observed : (n,) float, the topple rates ``second`` is scored against when they are not
+      ``observed`` (one predictor against two logs of the same pushes, ``judge_numerics``)
     returns : metric -> {"difference": point estimate, "ci": [low, high]}
     """
     rng = np.random.default_rng(seed)
     names, which = np.unique(objects, return_inverse=True)
     rows = [np.flatnonzero(which == i) for i in range(len(names))]
 
-    def metrics(scores: Scores, index: np.ndarray, copies: np.ndarray) -> dict[str, float]:
-        return push_metrics(scores.tv[index], scores.p_topple[index], observed[index], copies, scores.brier[index])
+    seen = (observed, observed if second_observed is None else second_observed)
+
+    def metrics(scores: Scores, against: np.ndarray, index: np.ndarray, copies: np.ndarray) -> dict[str, float]:
+        return push_metrics(scores.tv[index], scores.p_topple[index], against[index], copies, scores.brier[index])
 
     def difference(draw: np.ndarray) -> dict[str, float]:
         index = np.concatenate([rows[d] for d in draw])
         copies = np.repeat(np.arange(len(draw)), [len(rows[d]) for d in draw])
-        a, b = metrics(first, index, copies), metrics(second, index, copies)
+        a, b = metrics(first, seen[0], index, copies), metrics(second, seen[1], index, copies)
         return {key: a[key] - b[key] for key in a}
 
     point = difference(np.arange(len(names)))
