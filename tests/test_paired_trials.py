@@ -57,6 +57,22 @@ def test_a_pair_counts_the_trials_either_run_calls_useful_and_neither_leaves_out
     assert result["pooled"] == pytest.approx(0.25) and result["trials"] == 4
 
 
+def test_a_gain_over_a_baseline_pairs_the_difference_of_differences(tmp_path, capsys):
+    """Issue 9's measure, value iteration over Max-Height, compared between two runs of the same trials."""
+    a = write(tmp_path / "a.jsonl", [record(0, 3, {"vi": 0.5, "mh": 0.3}), record(1, 4, {"vi": 0.1, "mh": 0.2})])
+    b = write(tmp_path / "b.jsonl", [record(0, 3, {"vi": 0.7, "mh": 0.2}), record(1, 4, {"vi": 0.4, "mh": 0.4})])
+    result = compare([(a, b)], ["vi"], over="mh")
+    assert result["over"] == "mh"
+    pair = result["policies"]["vi"]["pairs"][0]
+    assert pair["a"] == pytest.approx((0.2 - 0.1) / 2) and pair["b"] == pytest.approx((0.5 + 0.0) / 2)
+    assert pair["b_minus_a"] == pytest.approx(((0.5 - 0.2) + (0.0 + 0.1)) / 2)
+    assert compare([(a, b)], ["mh"], over="mh")["policies"]["mh"]["pooled"] == 0.0
+    with pytest.raises(PairingError, match="no policy 'never'"):
+        compare([(a, b)], ["vi"], over="never")
+    assert main([a, b, "--over", "mh", "--policies", "vi"]) == 0
+    assert "B minus A +0.2000" in capsys.readouterr().out
+
+
 def test_runs_of_other_trials_or_starts_are_refused_in_one_line(tmp_path, capsys):
     a = write(tmp_path / "a.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 4, {"vi": 0.1})])
     other_start = write(tmp_path / "b.jsonl", [record(0, 3, {"vi": 0.5}), record(1, 7, {"vi": 0.1})])

@@ -11,6 +11,10 @@ push from a pose that is not the object's best): the trials where either table s
 pay, the same for both.
 
     python -m pipeline.studies.paired_trials A.jsonl B.jsonl [A2.jsonl B2.jsonl ...] --policies value_iteration
+
+``--over max_height`` pairs each policy's gain over another's instead (issue 9's measure): B's minus A's
+of (policy - baseline), trial by trial. Runs of one dataset and seed under other player settings pair the
+same way (docs/VALIDATION.md, "The judge's own numerics").
 """
 
 from __future__ import annotations
@@ -62,9 +66,10 @@ def counted_trials(a: dict[int, dict], b: dict[int, dict]) -> list[int]:
     return [t for t in sorted(a) if t in b and not a[t]["outside"] and not b[t]["outside"] and (a[t]["useful"] or b[t]["useful"])]
 
 
-def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str) -> tuple[np.ndarray, np.ndarray]:
+def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str, over: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A policy's V_s gain in run ``a`` and in run ``b`` on the trials both count.
 
+    over : a baseline policy: the gain is then the policy's minus the baseline's, trial by trial
     returns : (n,) float each, in trial order, over the trials both played, neither left outside
       and either calls useful
     raises PairingError : the runs played different trials, or a trial starts in different poses
@@ -79,27 +84,31 @@ def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str) -> tuple[n
     counted = counted_trials(a, b)
     for run in (a, b):
         for t in counted:
-            if policy not in run[t]["gains"]:
-                raise PairingError(f"trial {t} has no policy {policy!r}; it played {', '.join(sorted(run[t]['gains']))}")
-    return (np.array([a[t]["gains"][policy] for t in counted], dtype=float),
-            np.array([b[t]["gains"][policy] for t in counted], dtype=float))
+            for name in filter(None, (policy, over)):
+                if name not in run[t]["gains"]:
+                    raise PairingError(f"trial {t} has no policy {name!r}; it played {', '.join(sorted(run[t]['gains']))}")
+
+    def gains(run: dict[int, dict]) -> np.ndarray:
+        return np.array([run[t]["gains"][policy] - (run[t]["gains"][over] if over else 0.0) for t in counted], dtype=float)
+
+    return gains(a), gains(b)
 
 
-def compare(pairs: list[tuple[str, str]], policies: list[str]) -> dict:
+def compare(pairs: list[tuple[str, str]], policies: list[str], over: str | None = None) -> dict:
     """Per policy: each pair's paired difference (B minus A, mean and SE over its trials), the mean
     of the pairs' means with its SE over pairs, and the difference pooled over every counted trial
     with its SE clustered by object (``pooled_gain.clustered_mean_se``; None when a record names no
     object): pairs of several seeds replay the same objects, and what a change does to an object
-    it does on every seed."""
+    it does on every seed. ``over``: each policy's gain over this baseline's (``paired_gains``)."""
     from .pooled_gain import clustered_mean_se
 
     runs = [(read_trials(a), read_trials(b)) for a, b in pairs]
-    out = {"pairs": [{"a": str(a), "b": str(b)} for a, b in pairs], "policies": {}}
+    out = {"pairs": [{"a": str(a), "b": str(b)} for a, b in pairs], "over": over, "policies": {}}
     objects = [a[t]["object_id"] for a, b in runs for t in counted_trials(a, b)]
     for policy in policies:
         per_pair, pooled = [], []
         for (a, b), names in zip(runs, pairs):
-            gain_a, gain_b = paired_gains(a, b, policy)
+            gain_a, gain_b = paired_gains(a, b, policy, over)
             mean, se = mean_se(gain_b - gain_a)
             per_pair.append({"trials": len(gain_a), "a": mean_se(gain_a)[0], "b": mean_se(gain_b)[0], "b_minus_a": mean,
                              "b_minus_a_se": se})
@@ -139,13 +148,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("files", nargs="+", metavar="A.jsonl B.jsonl",
                         help="pairs of runs' --trials-out files, A then B; the difference is B minus A")
     parser.add_argument("--policies", nargs="+", default=["value_iteration"], help="policies to compare (default: %(default)s)")
+    parser.add_argument("--over", metavar="POLICY", help="pair each policy's gain over this one's, e.g. max_height")
     parser.add_argument("--json", type=Path, help="write the comparison here")
     args = parser.parse_args(argv)
     if len(args.files) % 2:
         print(f"error: {len(args.files)} files do not make pairs; give A B for each pair", file=sys.stderr)
         return 2
     try:
-        result = compare(list(zip(args.files[::2], args.files[1::2])), args.policies)
+        result = compare(list(zip(args.files[::2], args.files[1::2])), args.policies, args.over)
     except PairingError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
