@@ -67,6 +67,9 @@ def test_a_gain_over_a_baseline_pairs_the_difference_of_differences(tmp_path, ca
     assert pair["a"] == pytest.approx((0.2 - 0.1) / 2) and pair["b"] == pytest.approx((0.5 + 0.0) / 2)
     assert pair["b_minus_a"] == pytest.approx(((0.5 - 0.2) + (0.0 + 0.1)) / 2)
     assert compare([(a, b)], ["mh"], over="mh")["policies"]["mh"]["pooled"] == 0.0
+    # Never pushing gains 0 on every trial, though no record holds it: over Max-Height, minus its gain.
+    never = compare([(a, b)], ["never_push"], over="mh")["policies"]["never_push"]["pairs"][0]
+    assert never["a"] == pytest.approx(-0.25) and never["b"] == pytest.approx(-0.3)
     with pytest.raises(PairingError, match="no policy 'never'"):
         compare([(a, b)], ["vi"], over="never")
     assert main([a, b, "--over", "mh", "--policies", "vi"]) == 0

@@ -28,6 +28,10 @@ import numpy as np
 
 from .policies_physics import mean_se
 
+NEVER_PUSH = "never_push"
+"""The planner that never pushes: its V_s gain is 0 on every trial (``robust_policy``'s ``never_push``);
+the records do not hold it, so it is read as 0 wherever a policy is asked for."""
+
 
 class PairingError(ValueError):
     """Two runs that are not the same trials; one line."""
@@ -85,11 +89,15 @@ def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str, over: str 
     for run in (a, b):
         for t in counted:
             for name in filter(None, (policy, over)):
-                if name not in run[t]["gains"]:
+                if name not in {NEVER_PUSH, *run[t]["gains"]}:
                     raise PairingError(f"trial {t} has no policy {name!r}; it played {', '.join(sorted(run[t]['gains']))}")
 
     def gains(run: dict[int, dict]) -> np.ndarray:
-        return np.array([run[t]["gains"][policy] - (run[t]["gains"][over] if over else 0.0) for t in counted], dtype=float)
+        values = []
+        for t in counted:
+            gain = {NEVER_PUSH: 0.0, **run[t]["gains"]}
+            values.append(gain[policy] - (gain[over] if over else 0.0))
+        return np.array(values, dtype=float)
 
     return gains(a), gains(b)
 

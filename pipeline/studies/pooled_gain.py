@@ -27,12 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .paired_trials import PairingError, read_trials
+from .paired_trials import NEVER_PUSH, PairingError, read_trials
 from .policies_physics import mean_se
 
 Z_95 = 1.959963984540054
-NEVER_PUSH = "never_push"
-"""The planner that never pushes: its V_s gain is 0 on every trial (``robust_policy``'s ``never_push``)."""
 
 
 def run_differences(trials: dict[int, dict], policy: str, baseline: str, path: str | Path) -> tuple[np.ndarray, list[str]]:
