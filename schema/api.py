@@ -147,9 +147,17 @@ RigidTransform = Annotated[
 
 
 class Model(BaseModel):
-    """Base of every API model: unknown request fields are an error, not silently ignored."""
+    """Base of every request model (and of the geometry both directions share): an unknown field is an
+    error, not silently ignored, so a misspelt field reaches its sender as a 422."""
 
     model_config = ConfigDict(extra="forbid")
+
+
+class Answer(BaseModel):
+    """Base of every answer model: an unknown field is ignored, so a newer service may add a field to an
+    answer without breaking a client built on an older copy of these models (docs/SERVICE.md, "Versions")."""
+
+    model_config = ConfigDict(extra="ignore")
 
 
 class Point(Model):
@@ -208,13 +216,13 @@ class RosPose(Model):
 # --- errors -------------------------------------------------------------------------
 
 
-class ErrorBody(Model):
+class ErrorBody(Answer):
     """Body of every error response (404, 409, 413, 422, 500)."""
 
     detail: str = Field(description="What went wrong, in one message")
 
 
-class FieldError(Model):
+class FieldError(Answer):
     loc: list[str | int] = Field(description="Where in the request, e.g. ['body', 'pose', 1, 2]")
     msg: str
     type: str
@@ -249,7 +257,7 @@ class OffTableBody(ErrorBody):
 # --- service -----------------------------------------------------------------------
 
 
-class Counts(Model):
+class Counts(Answer):
     objects: int
     poses: int
     actions: int
@@ -257,7 +265,7 @@ class Counts(Model):
     transitions: int
 
 
-class DatasetIdentity(Model):
+class DatasetIdentity(Answer):
     """Which build the service answers from."""
 
     path: str = Field(description="Dataset directory as the service was given it")
@@ -270,7 +278,7 @@ class DatasetIdentity(Model):
     loaded_at: str = Field(description="UTC, ISO 8601, when this worker loaded it")
 
 
-class Health(Model):
+class Health(Answer):
     status: Literal["ok"]
     schema_version: str
     service_version: str = Field(description="toppledb version of the running service")
@@ -287,24 +295,24 @@ class Health(Model):
 # --- objects and poses -------------------------------------------------------------
 
 
-class ObjectSummary(Model):
+class ObjectSummary(Answer):
     object_id: str
     n_poses: int
     mass: float = Field(description="kg")
     source: str = Field(description="Where the mesh comes from, e.g. pybullet_data/random_urdfs")
 
 
-class ObjectList(Model):
+class ObjectList(Answer):
     count: int
     objects: list[ObjectSummary]
 
 
-class PolicyChoice(Model):
+class PolicyChoice(Answer):
     action: int | None = Field(description="Action index within the pose; null: no push (grasp now)")
     value: float = Field(description="Expected value of the choice (stored <policy>_value); V_s for no push")
 
 
-class PoseSummary(Model):
+class PoseSummary(Answer):
     pose: int
     probability: float = Field(description="Probability of coming to rest in this pose when dropped")
     height: float = Field(description="m, top of the object above the table")
@@ -322,17 +330,17 @@ class ObjectDetail(ObjectSummary):
     poses: list[PoseSummary]
 
 
-class PoseList(Model):
+class PoseList(Answer):
     object_id: str
     poses: list[PoseSummary]
 
 
-class Grasp(Model):
+class Grasp(Answer):
     point: Vector3 = Field(description="m, suction contact point")
     axis: Vector3 = Field(description="unit approach axis, gripper -> object")
 
 
-class PoseDetail(Model):
+class PoseDetail(Answer):
     object_id: str
     pose: int
     probability: float
@@ -351,12 +359,12 @@ class PoseDetail(Model):
 # --- actions and Q-values ----------------------------------------------------------
 
 
-class NextPose(Model):
+class NextPose(Answer):
     next_pose: int = Field(description="Pose the object comes to rest in (equal to pose: it stayed)")
     probability: float = Field(description="P(next_pose | pose, action)")
 
 
-class ActionDetail(Model):
+class ActionDetail(Answer):
     """One candidate push (pose frame) and, when it can be executed, where it leads."""
 
     object_id: str
@@ -377,7 +385,7 @@ class ActionDetail(Model):
     next_poses: list[NextPose] = Field(description="P(next pose | pose, action), sums to 1; empty unless ok")
 
 
-class RankedAction(Model):
+class RankedAction(Answer):
     action: int
     q: float
     greedy: float
@@ -386,7 +394,7 @@ class RankedAction(Model):
     choosable: bool = Field(description="Whether greedy and value iteration may choose this push (ok, and its direction's u_z at least the build's mdp.min_direction_z); its q is its value either way")
 
 
-class QValues(Model):
+class QValues(Answer):
     object_id: str
     pose: int
     by: RankBy = Field(description="Column the top actions are ranked by")
@@ -466,7 +474,7 @@ class PlanRequest(Model):
         return np.asarray(self.pose, dtype=np.float64) if self.pose is not None else self.ros_pose.matrix()
 
 
-class PoseMatch(Model):
+class PoseMatch(Answer):
     pose: int = Field(description="Matched stable pose")
     angle_error: float = Field(description="rad, between the observed and the stable pose's down vectors")
     tolerance: float = Field(description="rad, largest angle_error that matches")
@@ -485,7 +493,7 @@ class PoseMatch(Model):
     )
 
 
-class WorldPush(Model):
+class WorldPush(Answer):
     """A push in the world frame, ready to execute."""
 
     point: Vector3 = Field(description="m, contact point")
@@ -508,7 +516,7 @@ Decision = Literal["push", "grasp", "no_grasp"]
 policy does not push and this pose has no suction grasp (V_s = 0): neither helps."""
 
 
-class PlanResponse(Model):
+class PlanResponse(Answer):
     """Every value field means the same for every policy; the policy only chooses ``action``."""
 
     object_id: str
@@ -565,30 +573,30 @@ class PlanBatch(Model):
     items: list[PlanRequest] = Field(max_length=MAX_BATCH)
 
 
-class ItemError(Model):
+class ItemError(Answer):
     status: int = Field(description="HTTP status the item would have had alone: 404 or 409")
     detail: str
 
 
-class TransitionResult(Model):
+class TransitionResult(Answer):
     """One batch item: exactly one of ``result`` and ``error`` is set."""
 
     result: ActionDetail | None = None
     error: ItemError | None = None
 
 
-class TransitionResults(Model):
+class TransitionResults(Answer):
     results: list[TransitionResult]
 
 
-class PlanResult(Model):
+class PlanResult(Answer):
     """One batch item: exactly one of ``result`` and ``error`` is set."""
 
     result: PlanResponse | None = None
     error: ItemError | None = None
 
 
-class PlanResults(Model):
+class PlanResults(Answer):
     results: list[PlanResult]
 
 
@@ -655,7 +663,7 @@ class HeapPlanRequest(Model):
     seed: StrictInt = Field(0, ge=0, le=MAX_SEED, description="Seed of quasi_random's draws (the same seed, the same push)")
 
 
-class HeapPush(Model):
+class HeapPush(Answer):
     """A straight finger stroke, world frame: the finger comes down at ``start`` and moves to ``end``."""
 
     target: int = Field(description="Index of the pushed object in the request's objects")
@@ -666,7 +674,7 @@ class HeapPush(Model):
     length: float = Field(description="m, |end - start|")
 
 
-class HeapPlanResponse(Model):
+class HeapPlanResponse(Answer):
     """The policy's push, or ``push`` null when it finds no collision-free one (thesis 3.4)."""
 
     policy: HeapPolicy

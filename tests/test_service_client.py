@@ -31,6 +31,37 @@ def pushing(tables) -> tuple[str, int]:
     return next((o, p) for (o, p), r in sorted(tables["poses"].items()) if r["value_iteration_action"] != NO_OP)
 
 
+def _with_new_fields(value):
+    """An answer as a newer service might send it: every object given a field this code does not know."""
+    if isinstance(value, dict):
+        return {**{k: _with_new_fields(v) for k, v in value.items()}, "added_by_a_newer_service": {"n": 1}}
+    if isinstance(value, list):
+        return [_with_new_fields(v) for v in value]
+    return value
+
+
+def test_a_client_reads_an_answer_from_a_newer_service_that_added_fields(client, tables):
+    """Answers are open for extension: a field the client's models do not know is ignored at every depth,
+    and the fields it knows read as before. Requests stay closed: a misspelt field is a 422."""
+    object_id, pose = pushing(tables)
+    observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
+    item = plan_item(object_id, pose=observed)
+    answers = {"/plan": client.post("/plan", json=item), "/health": client.get("/health"),
+               "/batch/plan": client.post("/batch/plan", json={"items": [item, {**item, "object_id": "nope"}]})}
+
+    def handler(request):
+        return httpx.Response(200, json=_with_new_fields(answers[request.url.path].json()))
+
+    newer = Client(http=httpx.Client(transport=httpx.MockTransport(handler), base_url="http://x"), retries=0)
+    plan = newer.plan(object_id, pose=observed)
+    assert plan.model_dump(mode="json") == answers["/plan"].json()
+    assert newer.health().model_dump(mode="json", exclude_none=True) == answers["/health"].json()
+    batch = newer.plan_batch([item, {**item, "object_id": "nope"}])
+    assert batch.model_dump(mode="json") == answers["/batch/plan"].json() and batch.results[1].error.status == 404
+    misspelt = client.post("/plan", json={**item, "polciy": "value_iteration"})
+    assert misspelt.status_code == 422 and "polciy" in misspelt.json()["detail"]
+
+
 def test_typed_answers_equal_the_json(typed, client, tables):
     object_id, pose = pushing(tables)
     observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
