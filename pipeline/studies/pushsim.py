@@ -532,6 +532,7 @@ def _place(pb, client, body: BodyModel, transform: np.ndarray, mu_table: float, 
 
     ``resetSimulation`` first, so that a push does not depend on what this process
     played before it (results are the same whatever the number of workers).
+    settings : the step and solver iterations the world is integrated with (``PlayerSettings``)
     returns : (table body id, object body id)
     """
     pb.resetSimulation(physicsClientId=client)

@@ -545,7 +545,7 @@ def play_object(plan: ObjectPlan, extra: dict, trials: list[tuple[int, int]], co
 
     The noise of push k of a trial is the k-th draw of the stream ``policies-physics`` uses,
     shared by all policies (common random numbers).  An action table of shape (pushes, P) is a
-    budget's: row k is played with ``pushes - k`` pushes left.
+    budget's: row k is played with ``pushes - k`` pushes left.  ``player``: the push player's numerics.
     returns : (object id, {trial: {policy: visited poses}} or {"failure": reason}, pushes)
     """
     from ..model.poses import settle
