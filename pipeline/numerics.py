@@ -66,6 +66,26 @@ def pin_blas_kernel(environ: MutableMapping[str, str] = os.environ, flags: froze
     return PINNED_KERNEL
 
 
+def numpy_simd() -> list[str] | None:
+    """The SIMD targets numpy's own loops dispatch to in this process (its ``__cpu_dispatch__`` that the
+    processor has and ``NPY_DISABLE_CPU_FEATURES`` leaves on), e.g. ["X86_V3", "X86_V4", ...]; None where
+    numpy does not say.
+
+    Not pinned, only recorded: on a processor with AVX-512 numpy's float64 exp, log, arctan2 and power take
+    paths that round otherwise in the last bit, and builds and reports differ from an AVX2 machine's in the
+    fourth digit (docs/DATASET.md, "Reproducible across machines"); a manifest that names them says why."""
+    try:
+        import numpy  # noqa: F401  (its loops must be loaded to be described)
+
+        try:
+            from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+        except ImportError:  # numpy 1.x
+            from numpy.core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+    except ImportError:
+        return None
+    return [target for target in __cpu_dispatch__ if __cpu_features__.get(target)]
+
+
 def blas_kernel() -> dict[str, str | None]:
     """What numpy's BLAS computes with in this process: library, version and kernel ("architecture"),
     as threadpoolctl reads them from the loaded library (None each where it cannot), and the kernel

@@ -122,6 +122,9 @@ class CodeVersion(_Open):
     blas: dict[str, str | None] = Field(default={}, description=(
         "numpy's BLAS in the building process: library, version, kernel, and the kernel requested by "
         "OPENBLAS_CORETYPE (pipeline.numerics pins one on x86-64); empty in manifests before stop 63"))
+    simd: list[str] | None = Field(default=None, description=(
+        "the SIMD targets numpy's own loops dispatched to in the building process (pipeline.numerics.numpy_simd): "
+        "not pinned, and AVX-512 ones round some float64 functions otherwise; absent before stop 68"))
 
 
 class CorpusObject(_Closed):

@@ -34,6 +34,7 @@ from pipeline.build.dataset import compute_shard, staging_dir
 from pipeline.build.verify import verify_dataset
 from pipeline.cli import main
 from pipeline.model.config import Config
+from pipeline.numerics import numpy_simd
 from schema import TABLES, layout
 from schema.manifest import read_manifest
 from schema.reader import Dataset
@@ -125,6 +126,7 @@ def test_dataset_builds_with_manifest_and_verifies(reference, capsys):
     blas = manifest.code_version.blas  # the kernel the build computed with (pipeline.numerics)
     assert set(blas) == {"library", "version", "kernel", "requested"}
     assert blas["library"] == "openblas" and blas["kernel"]
+    assert manifest.code_version.simd == numpy_simd()  # numpy's own loops, recorded, not pinned
     assert [o.object_id for o in manifest.corpus.objects] == OBJECTS
     assert all(len(o.sha256) == 64 for o in manifest.corpus.objects)
     assert set(manifest.shards) == set(OBJECTS)

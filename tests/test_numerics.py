@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.numerics import KERNEL_VARIABLE, NEEDS, PINNED_KERNEL, blas_kernel, cpu_flags, pin_blas_kernel
+from pipeline.numerics import KERNEL_VARIABLE, NEEDS, PINNED_KERNEL, blas_kernel, cpu_flags, numpy_simd, pin_blas_kernel
 
 ROOT = Path(__file__).resolve().parent.parent
 HASWELL_FLAGS = frozenset({"sse4_2", "avx", "avx2", "fma"})
@@ -90,3 +90,21 @@ def test_the_description_names_numpys_blas():
     assert set(info) == {"library", "version", "kernel", "requested"}
     assert info["requested"] == os.environ.get(KERNEL_VARIABLE)
     assert info["library"] == "openblas" and info["kernel"] and info["version"]  # numpy's wheels carry OpenBLAS
+
+
+def test_the_simd_targets_numpy_computes_with_are_named_and_follow_what_the_user_turns_off():
+    """Recorded in the manifest (``code_version.simd``): which of numpy's dispatch targets this process uses.
+    Turning one off in the environment before numpy loads removes it from the record."""
+    simd = numpy_simd()
+    assert simd is not None and all(isinstance(target, str) for target in simd)
+    try:
+        from numpy._core._multiarray_umath import __cpu_dispatch__
+    except ImportError:  # numpy 1.x
+        from numpy.core._multiarray_umath import __cpu_dispatch__
+    assert set(simd) <= set(__cpu_dispatch__)
+    if not simd:
+        pytest.skip("numpy dispatches to no SIMD target here")
+    code = "import pipeline; from pipeline.numerics import numpy_simd; print(' '.join(numpy_simd()))"
+    assert _fresh_python(code).split() == simd
+    turned_off = simd[-1]
+    assert _fresh_python(code, NPY_DISABLE_CPU_FEATURES=turned_off).split() == [t for t in simd if t != turned_off]

@@ -41,7 +41,7 @@ def code_version() -> dict[str, Any]:
     ``pipeline.numerics``)."""
     from importlib import metadata
 
-    from ..numerics import blas_kernel
+    from ..numerics import blas_kernel, numpy_simd
 
     def version(name: str) -> str | None:
         try:
@@ -55,6 +55,7 @@ def code_version() -> dict[str, Any]:
         "python": platform.python_version(),
         "libraries": {name: version(name) for name in LIBRARIES},
         "blas": blas_kernel(),
+        "simd": numpy_simd(),
     }
 
 
