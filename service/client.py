@@ -99,7 +99,11 @@ def _error(response: httpx.Response) -> ServiceError:
 
 class Client:
     """Synchronous client.  ``timeout`` (s, per attempt) configures the ``httpx.Client`` made
-    here; a client passed as ``http`` keeps its own timeouts (tests pass FastAPI's TestClient)."""
+    here; a client passed as ``http`` keeps its own timeouts (tests pass FastAPI's TestClient).
+
+    ``build``: the manifest SHA-256 of the dataset build the last answer came from (its
+    ``x-toppledb-build`` header; None before one, or from a service older than stop 68). Action
+    indices name one build's candidates: clear the ``failed_actions`` you keep when it changes."""
 
     def __init__(
         self,
@@ -114,6 +118,7 @@ class Client:
         self.http = http or httpx.Client(base_url=base_url, timeout=timeout)
         self.http.headers.update(headers)
         self.timeout, self.retries, self.backoff = timeout, retries, backoff
+        self.build: str | None = None
 
     def __enter__(self) -> Self:
         return self
@@ -182,6 +187,7 @@ class Client:
                     raise Unreachable(0, f"{method} {path}: no answer after {attempt + 1} tries "
                                          f"({type(err).__name__}: {err})") from err
             else:
+                self.build = response.headers.get("x-toppledb-build", self.build)
                 if response.status_code < 300:
                     return model.model_validate_json(response.content)
                 if response.status_code not in RETRY_STATUSES or last:

@@ -10,14 +10,15 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
+from .guard import answered_from
 from .settings import Settings
 from .store import Store
 
 
 async def get_store(request: Request) -> Store:
     """The store being served when the request arrived: taken once, so a dataset swap
-    during the request never mixes two builds in one answer."""
-    return request.app.state.live.store
+    during the request never mixes two builds in one answer; the answer names it (``guard.BUILD_HEADER``)."""
+    return answered_from(request.scope, request.app.state.live.store)
 
 
 async def get_settings(request: Request) -> Settings:

@@ -19,7 +19,7 @@ from types import SimpleNamespace
 
 from schema.api import PlanRequest
 
-from .guard import replay
+from .guard import answered_from, replay
 from .planning import answer_json, plan
 from .settings import Settings
 from .store import LiveStore
@@ -49,7 +49,7 @@ class FastPlan:
             return
         try:
             request = PlanRequest.model_validate_json(body)
-            answer = answer_json(plan(self.live.store, request, self.settings))
+            answer = answer_json(plan(answered_from(scope, self.live.store), request, self.settings))
         except Exception:  # noqa: BLE001 (every failure is the FastAPI route's to answer, bugs included)
             await self.app(scope, replay(message, receive), send)
             return

@@ -4,7 +4,8 @@ Pure ASGI (no BaseHTTPMiddleware): it costs a few microseconds a request and ans
 401/413/415 before FastAPI reads or parses anything, so an oversized or non-JSON body
 never reaches the JSON parser on the event loop.  Order, outermost first:
 
-1. metrics: every response counted and timed per route (``service.metrics``);
+1. metrics: every response counted and timed per route (``service.metrics``), and stamped with
+   ``BUILD_HEADER`` when a build answered it (``answered_from``);
 2. token: ``Authorization: Bearer <token>`` on every path except /health, when set (401);
 3. body: a POST to a route that takes one (``POST_PATHS``) must say ``content-type:
    application/json`` (415); any body must be at most ``max_body_bytes`` for /batch/* and
@@ -97,6 +98,20 @@ CLIENT_CLOSED = 499
 went away (nginx's "client closed request"); nothing is sent."""
 
 
+BUILD_SCOPE_KEY = "toppledb.build"
+"""ASGI scope key of the manifest SHA-256 of the build a request is answered from (set by ``answered_from``);
+the guard sends it back as ``BUILD_HEADER``."""
+BUILD_HEADER = b"x-toppledb-build"
+"""Response header naming the build an answer came from, so that a controller sees a dataset swap in the
+answer itself: action indices, ``failed_actions`` among them, name one build's candidates."""
+
+
+def answered_from(scope: dict, store):
+    """``store`` (a ``store.Store``), noted in the request's ``scope`` as the build it is answered from."""
+    scope[BUILD_SCOPE_KEY] = store.manifest_sha256
+    return store
+
+
 class Guard:
     """ASGI middleware: see the module docstring."""
 
@@ -117,6 +132,9 @@ class Guard:
             nonlocal status
             if message["type"] == "http.response.start":
                 status = message["status"]
+                build = scope.get(BUILD_SCOPE_KEY)
+                if build is not None:  # the build the answer came from (dependencies.BUILD_HEADER)
+                    message = {**message, "headers": [*message.get("headers", ()), (BUILD_HEADER, build.encode())]}
             await send(message)
 
         try:

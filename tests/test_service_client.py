@@ -62,6 +62,27 @@ def test_a_client_reads_an_answer_from_a_newer_service_that_added_fields(client,
     assert misspelt.status_code == 422 and "polciy" in misspelt.json()["detail"]
 
 
+def test_every_answer_from_the_dataset_names_its_build(client, dataset, tables):
+    """``x-toppledb-build``: the manifest SHA-256 of the build an answer came from, on the fast /plan path
+    and the routes alike, errors included; not where no build was consulted (a refused token)."""
+    build = client.get("/health").json()["dataset"]["manifest_sha256"]
+    object_id, pose = pushing(tables)
+    observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
+    item = plan_item(object_id, pose=observed)
+    answers = [client.post("/plan", json=item), client.get("/objects"), client.get(f"/objects/{object_id}/poses/{pose}/q"),
+               client.post("/batch/plan", json={"items": [item]}), client.get("/objects/nope"),
+               client.post("/plan", json={**item, "object_id": "nope"})]
+    assert [a.status_code for a in answers] == [200, 200, 200, 200, 404, 404]
+    assert all(a.headers["x-toppledb-build"] == build for a in answers)
+    typed = Client(http=client, retries=0)
+    assert typed.build is None
+    typed.plan(object_id, pose=observed)
+    assert typed.build == build, "the typed client keeps the build of its last answer"
+    with TestClient(create_app(dataset, settings=Settings(token=TOKEN))) as guarded:
+        refused = guarded.get("/objects")
+        assert refused.status_code == 401 and "x-toppledb-build" not in refused.headers
+
+
 def test_typed_answers_equal_the_json(typed, client, tables):
     object_id, pose = pushing(tables)
     observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)

@@ -124,6 +124,7 @@ def test_the_watcher_swaps_builds_while_requests_keep_succeeding(dataset, tmp_pa
     shutil.copytree(dataset, copy)
     with TestClient(create_app(copy, settings=Settings(watch_seconds=0.05))) as client:
         before = client.get("/health").json()["dataset"]["manifest_sha256"]
+        assert client.get("/objects/random_001/poses/0/q").headers["x-toppledb-build"] == before
         rebuilt(copy, "2031-01-01T00:00:00+00:00")
         statuses = []
 
@@ -135,6 +136,8 @@ def test_the_watcher_swaps_builds_while_requests_keep_succeeding(dataset, tmp_pa
         health = client.get("/health").json()
         assert health["dataset"]["manifest_sha256"] != before and health["dataset"]["created"].startswith("2031")
         assert set(statuses) == {200}
+        # Each answer names the build it came from: a controller sees the swap without polling /health.
+        assert client.get("/objects/random_001/poses/0/q").headers["x-toppledb-build"] == health["dataset"]["manifest_sha256"]
         assert 'toppledb_dataset_reloads_total 1.0' in client.get("/metrics").text
         assert "reload_error" not in health  # left out while there is none: older clients' models forbid it
         # A broken rebuild: still served, and /health and /metrics say why the new one is not.
