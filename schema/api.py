@@ -26,10 +26,10 @@ from decimal import Decimal
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
 from schema.horizon import MAX_PUSHES_LEFT
-from schema.vocabulary import PolicyName, StatusName
+from schema.vocabulary import POLICIES, STATUS_NAMES, PolicyName, StatusName
 
 MAX_BATCH = 1000
 """Most items in one batch request; more is a 422."""
@@ -147,8 +147,8 @@ RigidTransform = Annotated[
 
 
 class Model(BaseModel):
-    """Base of every request model (and of the geometry both directions share): an unknown field is an
-    error, not silently ignored, so a misspelt field reaches its sender as a 422."""
+    """Base of every request model and of what requests hold: an unknown field is an error, not silently
+    ignored, so a misspelt field reaches its sender as a 422."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -158,6 +158,17 @@ class Answer(BaseModel):
     answer without breaking a client built on an older copy of these models (docs/SERVICE.md, "Versions")."""
 
     model_config = ConfigDict(extra="ignore")
+
+
+def known_keys(names: tuple[str, ...]) -> BeforeValidator:
+    """For an answer's map keyed by a closed vocabulary (``PoseDetail.policies``): keys this code does not
+    know are dropped, as unknown fields are, so a newer service may add a policy or a status."""
+    known = frozenset(names)
+
+    def keep_known(value):
+        return {k: v for k, v in value.items() if k in known} if isinstance(value, dict) else value
+
+    return BeforeValidator(keep_known)
 
 
 class Point(Model):
@@ -351,9 +362,9 @@ class PoseDetail(Answer):
     v_s: float = Field(description="Robust quality of the best suction grasp from above, in [0, 1]")
     grasp: Grasp | None = Field(description="Best suction grasp, pose frame; null when there is none")
     v_t: float = Field(description="V_T, value under value iteration")
-    policies: dict[Policy, PolicyChoice]
+    policies: Annotated[dict[Policy, PolicyChoice], known_keys(POLICIES)]
     n_actions: int
-    action_counts: dict[Status, int] = Field(description="Candidate pushes by status")
+    action_counts: Annotated[dict[Status, int], known_keys(STATUS_NAMES)] = Field(description="Candidate pushes by status")
 
 
 # --- actions and Q-values ----------------------------------------------------------

@@ -48,6 +48,10 @@ def test_a_client_reads_an_answer_from_a_newer_service_that_added_fields(client,
     item = plan_item(object_id, pose=observed)
     answers = {"/plan": client.post("/plan", json=item), "/health": client.get("/health"),
                "/batch/plan": client.post("/batch/plan", json={"items": [item, {**item, "object_id": "nope"}]})}
+    gets = {"objects": "/objects", "object": f"/objects/{object_id}",
+            "pose": f"/objects/{object_id}/poses/{pose}", "action": f"/objects/{object_id}/poses/{pose}/actions/0",
+            "q_values": f"/objects/{object_id}/poses/{pose}/q"}
+    answers.update({path: client.get(path) for path in gets.values()})
 
     def handler(request):
         return httpx.Response(200, json=_with_new_fields(answers[request.url.path].json()))
@@ -58,6 +62,11 @@ def test_a_client_reads_an_answer_from_a_newer_service_that_added_fields(client,
     assert newer.health().model_dump(mode="json", exclude_none=True) == answers["/health"].json()
     batch = newer.plan_batch([item, {**item, "object_id": "nope"}])
     assert batch.model_dump(mode="json") == answers["/batch/plan"].json() and batch.results[1].error.status == 404
+    # The routes' answers too, the pose's maps keyed by policy and by status among them: a new key is dropped.
+    read = {"objects": newer.objects(), "object": newer.object(object_id),
+            "pose": newer.pose(object_id, pose), "action": newer.action(object_id, pose, 0), "q_values": newer.q_values(object_id, pose)}
+    for name, typed_answer in read.items():
+        assert typed_answer.model_dump(mode="json") == answers[gets[name]].json(), name
     misspelt = client.post("/plan", json={**item, "polciy": "value_iteration"})
     assert misspelt.status_code == 422 and "polciy" in misspelt.json()["detail"]
 
@@ -174,3 +183,43 @@ def test_retries_transport_errors_and_503_but_never_4xx(dataset):
         with pytest.raises(ServiceError):
             Client(http=httpx.Client(transport=httpx.MockTransport(lambda r: httpx.Response(503, json={"detail": "busy"})),
                                      base_url="http://x"), retries=1, backoff=0.0).health()
+
+
+def _models_within(model) -> set:
+    """``model`` and every pydantic model its fields hold, at any depth (lists, maps, unions)."""
+    import typing
+
+    from pydantic import BaseModel
+
+    found, stack = set(), [model]
+    while stack:
+        current = stack.pop()
+        if current in found:
+            continue
+        found.add(current)
+        for field in current.model_fields.values():
+            annotations = [field.annotation]
+            while annotations:
+                annotation = annotations.pop()
+                if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+                    stack.append(annotation)
+                annotations.extend(typing.get_args(annotation))
+    return found
+
+
+def test_requests_refuse_unknown_fields_at_every_depth_and_answers_ignore_them():
+    """Every model a request body holds forbids extra fields (a misspelt field is a 422); every other API
+    model is an answer's and ignores them (docs/SERVICE.md, "Versions")."""
+    from pydantic import BaseModel
+
+    from schema import api
+
+    bodies = [api.PlanRequest, api.PlanBatch, api.TransitionBatch, api.HeapPlanRequest]
+    requests = set().union(*map(_models_within, bodies))
+    assert {api.RosPose, api.Point, api.Quaternion, api.HeapBin, api.HeapObject, api.TransitionQuery} <= requests
+    models = {m for m in vars(api).values() if isinstance(m, type) and issubclass(m, BaseModel) and m.__module__ == api.__name__}
+    answers = models - requests - {api.Model, api.Answer}
+    assert all(m.model_config.get("extra") == "forbid" for m in requests), sorted(m.__name__ for m in requests)
+    assert answers and all(m.model_config.get("extra") == "ignore" for m in answers), sorted(
+        m.__name__ for m in answers if m.model_config.get("extra") != "ignore")
+    assert not requests & set().union(*(_models_within(m) for m in answers)), "no answer holds a request's model"
