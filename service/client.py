@@ -101,9 +101,10 @@ class Client:
     """Synchronous client.  ``timeout`` (s, per attempt) configures the ``httpx.Client`` made
     here; a client passed as ``http`` keeps its own timeouts (tests pass FastAPI's TestClient).
 
-    ``build``: the manifest SHA-256 of the dataset build the last answer came from (its
-    ``x-toppledb-build`` header; None before one, or from a service older than stop 68). Action
-    indices name one build's candidates: clear the ``failed_actions`` you keep when it changes."""
+    ``build``: the manifest SHA-256 of the dataset build the last answer that named one came from (its
+    ``x-toppledb-build`` header; None until one did: a service older than stop 68 names none, and
+    ``/health`` names its build in its body). Action indices name one build's candidates: an answer to
+    a ``/plan`` with ``failed_actions`` from another build is to be discarded (docs/SERVICE.md)."""
 
     def __init__(
         self,

@@ -19,7 +19,7 @@ from types import SimpleNamespace
 
 from schema.api import PlanRequest
 
-from .guard import answered_from, replay
+from .guard import BUILD_SCOPE_KEY, answered_from, replay
 from .planning import answer_json, plan
 from .settings import Settings
 from .store import LiveStore
@@ -51,6 +51,7 @@ class FastPlan:
             request = PlanRequest.model_validate_json(body)
             answer = answer_json(plan(answered_from(scope, self.live.store), request, self.settings))
         except Exception:  # noqa: BLE001 (every failure is the FastAPI route's to answer, bugs included)
+            scope.pop(BUILD_SCOPE_KEY, None)  # the route names the build it answers from, if any
             await self.app(scope, replay(message, receive), send)
             return
         scope["route"] = ROUTE

@@ -26,9 +26,10 @@ from fastapi.testclient import TestClient
 
 from service import create_app
 from service.__main__ import DEFAULT_HOST, build_parser
+from service.client import plan_item
 from service.settings import Settings
 from service.store import DatasetError, LiveStore, Store
-from tests.test_service import ROOT, dataset  # noqa: F401 (fixture)
+from tests.test_service import ROOT, dataset, tables  # noqa: F401 (fixtures)
 
 DEADLINE = 30.0
 """s, the most any wait here takes before the test fails (generous: 2 shared cores)."""
@@ -147,6 +148,49 @@ def test_the_watcher_swaps_builds_while_requests_keep_succeeding(dataset, tmp_pa
         assert client.get("/health").json()["dataset"]["manifest_sha256"] == health["dataset"]["manifest_sha256"]
         assert 'toppledb_dataset_reload_failures_total 1.0' in client.get("/metrics").text
         assert client.get("/objects/random_001/poses/0/q").status_code == 200
+
+
+def _swapping(live, real):
+    """``real``, with the served store swapped for another build while it runs (and back after)."""
+    def swapped(*args, **kwargs):
+        served, live.store = live.store, SimpleNamespace(manifest_sha256="f" * 64)
+        try:
+            return real(*args, **kwargs)
+        finally:
+            live.store = served
+    return swapped
+
+
+@pytest.mark.parametrize("staged", [False, True], ids=["create_app", "staged"])
+def test_the_build_header_names_the_build_a_request_took_even_if_a_swap_comes_during_it(dataset, tables, monkeypatch,
+                                                                                           staged):
+    """The header is what ``get_store`` or the fast /plan path took when the request arrived, not the store
+    served when the answer is sent: on the fast path, on a route that plans in an executor (/heaps/plan), on
+    FastAPI's app and on the staged server that answers before FastAPI is built."""
+    from service import fastplan, planning
+    from service.routers import heaps
+    from service.runtime import Runtime
+    from service.staged import StagedApp
+    from tests.test_service import planar_transform, stored_transform
+    from tests.test_service_client import pushing
+
+    if staged:
+        runtime = Runtime.open(Settings.from_env(dataset=dataset))
+        app, live = StagedApp(runtime), runtime.live
+    else:
+        app = create_app(dataset, settings=Settings())
+        live = app.state.live
+    with TestClient(app) as client:
+        build = client.get("/health").json()["dataset"]["manifest_sha256"]
+        object_id, pose = pushing(tables)
+        observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
+        monkeypatch.setattr(fastplan, "plan", _swapping(live, planning.plan))
+        monkeypatch.setattr(heaps, "plan_heap", _swapping(live, heaps.plan_heap))
+        answers = [client.post("/plan", json=plan_item(object_id, pose=observed)),
+                   client.post("/heaps/plan", json={"objects": [{"object_id": object_id,
+                                                                   "pose": stored_transform(tables, object_id, pose).tolist()}]})]
+        assert [a.status_code for a in answers] == [200, 200]
+        assert all(a.headers.get_list("x-toppledb-build") == [build] for a in answers)
 
 
 def free_port() -> int:
