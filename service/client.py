@@ -41,6 +41,8 @@ from schema.api import (
     TransitionResults,
 )
 
+from .errors import validation_body
+
 DEFAULT_TIMEOUT = 1.0
 """s, per attempt (connect, read, write each); a controller at 50 Hz wants well under its period."""
 DEFAULT_RETRIES = 2
@@ -228,8 +230,7 @@ def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None 
             # A RosPose is checked again: its fields may have been assigned since it was made.
             checked = RosPose.model_validate(ros_pose.model_dump() if isinstance(ros_pose, RosPose) else ros_pose)
         except ValidationError as err:
-            errors = [{"loc": ["ros_pose", *e["loc"]], "msg": e["msg"], "type": e["type"]} for e in err.errors()]
-            detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors)
-            raise InvalidRequest(422, detail, {"detail": detail, "errors": errors}) from None
+            body = validation_body([{**e, "loc": ("ros_pose", *e["loc"])} for e in err.errors()])  # the service's 422 body
+            raise InvalidRequest(422, body["detail"], body) from None
         item["ros_pose"] = checked.model_dump()
     return item
