@@ -12,37 +12,25 @@ import pyarrow as pa
 import pyarrow.compute
 import pyarrow.parquet as pq
 import pytest
-import trimesh
-from shapes import DATA, THESIS
+from shapes import THESIS
 
-from pipeline.build.atomic import file_sha256
-from pipeline.build.corpus import ObjectSpec
 from pipeline.model.config import Config
 from pipeline.studies import judge_numerics, playlog
 from pipeline.studies.logreader import read_log
 from pipeline.studies.pushsim import FINGER_SPEED, PlayerSettings
 from pipeline.studies.scoring import Scorer
 from pipeline.studies.validation import push_metrics
+from tests.test_pushsim import specs  # noqa: F401 (fixture: a box and random_002)
 
 TINY = THESIS.with_overrides({"contacts.n_contacts": 40, "topple.n_trials": 8})
 PARAMS = playlog.PlayParams(actions=3, repeats=3, eps=0.05, max_poses=2, seed=3, config=TINY)
 RESAMPLES = 200
 
 
-def _specs(root):
-    """A box (its mesh written under ``root``) and one pybullet_data object."""
-    if not (root / "box.stl").exists():
-        trimesh.creation.box((0.05, 0.08, 0.15)).export(root / "box.stl")
-    path = f"{DATA}/random_urdfs/002/002.obj"
-    return [ObjectSpec("box", str(root / "box.stl"), 1.0, 0.25, "test", file_sha256(root / "box.stl")),
-            ObjectSpec("random_002", path, 0.015, 0.1, "pybullet_data/random_urdfs/002/002.urdf", file_sha256(path))]
-
-
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory):
+def logs(specs, tmp_path_factory):  # noqa: F811 (fixture)
     """A log of a box and one pybullet_data object, and the same play with the finger at half speed."""
     root = tmp_path_factory.mktemp("judge")
-    specs = _specs(root)
     playlog.play(specs, PARAMS, root / "base", workers=1)
     playlog.play(specs, replace(PARAMS, player=PlayerSettings(finger_speed=FINGER_SPEED / 2)), root / "slow", workers=1)
     return root
@@ -179,10 +167,10 @@ def test_trials_are_paired_by_their_repeat_number(logs, tmp_path):
     assert result["same_final_pose"] == result["same_toppled"] == 1.0 and result["topple_rate"]["difference"] == 0.0
 
 
-def test_only_one_play_under_two_settings_is_compared(logs, tmp_path, capsys):
+def test_only_one_play_under_two_settings_is_compared(logs, specs, tmp_path, capsys):  # noqa: F811 (fixture)
     """A replay (other noise draws), a log with the sides swapped, and a push named twice are refused."""
     replay = tmp_path / "replay"
-    playlog.play(_specs(logs), replace(PARAMS, noise_draws=1), replay, workers=1)
+    playlog.play(specs, replace(PARAMS, noise_draws=1), replay, workers=1)
     assert judge_numerics.main(["--base", str(logs / "base"), "--variant", f"replay={replay}"]) == 2
     assert "noise_draws" in capsys.readouterr().err
     assert judge_numerics.main(["--base", str(logs / "slow"), "--variant", f"base={logs / 'base'}"]) == 2
