@@ -17,11 +17,15 @@ from __future__ import annotations
 
 import hmac
 import time
+from typing import TYPE_CHECKING
 
 import orjson
 
 from .errors import validation_body
 from .metrics import Metrics
+
+if TYPE_CHECKING:  # the store imports numpy and pyarrow, which the guard need not load
+    from .store import Store
 
 OPEN_PATHS = frozenset({"/health"})
 """Paths answered without the bearer token (liveness probes carry no secrets)."""
@@ -106,8 +110,8 @@ BUILD_HEADER = b"x-toppledb-build"
 answer itself: action indices, ``failed_actions`` among them, name one build's candidates."""
 
 
-def answered_from(scope: dict, store):
-    """``store`` (a ``store.Store``), noted in the request's ``scope`` as the build it is answered from."""
+def answered_from(scope: dict, store: Store) -> Store:
+    """``store``, noted in the request's ``scope`` as the build it is answered from."""
     scope[BUILD_SCOPE_KEY] = store.manifest_sha256
     return store
 
