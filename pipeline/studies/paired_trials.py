@@ -86,16 +86,14 @@ def paired_gains(a: dict[int, dict], b: dict[int, dict], policy: str, over: str 
                                f"{b[t]['start']} of {b[t]['object_id']} in the other: the runs are not of one seed on "
                                "datasets of the same objects and poses")
     counted = counted_trials(a, b)
-    for run in (a, b):
-        for t in counted:
-            for name in filter(None, (policy, over)):
-                if name not in {NEVER_PUSH, *run[t]["gains"]}:
-                    raise PairingError(f"trial {t} has no policy {name!r}; it played {', '.join(sorted(run[t]['gains']))}")
 
     def gains(run: dict[int, dict]) -> np.ndarray:
         values = []
         for t in counted:
             gain = {NEVER_PUSH: 0.0, **run[t]["gains"]}
+            for name in filter(None, (policy, over)):
+                if name not in gain:
+                    raise PairingError(f"trial {t} has no policy {name!r}; it played {', '.join(sorted(run[t]['gains']))}")
             values.append(gain[policy] - (gain[over] if over else 0.0))
         return np.array(values, dtype=float)
 
