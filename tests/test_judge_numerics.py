@@ -182,3 +182,20 @@ def test_only_one_play_under_two_settings_is_compared(logs, specs, tmp_path, cap
     twice = read_log([logs / "base", logs / "slow"], config)
     with pytest.raises(judge_numerics.JudgeError, match="in two of the base logs"):
         judge_numerics.compare(twice, read_log([logs / "slow"], config), config, None, RESAMPLES)
+
+
+def test_base_is_predicted_once_for_every_variant_that_pairs_its_pushes(logs, monkeypatch):
+    """The model's rows depend on the pushes, not on what physics made of them: a second variant of the same
+    pushes reuses base's predictions, and reads as it does without them."""
+    config = Config()
+    base, slow = read_log([logs / "base"], config), read_log([logs / "slow"], config)
+    alone = judge_numerics.compare(base, slow, config, 0.3, RESAMPLES)
+    calls = []
+    predict = Scorer.predict
+    monkeypatch.setattr(Scorer, "predict", lambda self, topple: calls.append(1) or predict(self, topple))
+    predicted: dict = {}
+    first = judge_numerics.compare(base, slow, config, 0.3, RESAMPLES, predicted)
+    second = judge_numerics.compare(base, base, config, 0.3, RESAMPLES, predicted)
+    assert len(calls) == 1 and len(predicted) == 1
+    assert json.dumps(first, sort_keys=True) == json.dumps(alone, sort_keys=True)  # NaN (no AP) reads as NaN
+    assert second["predictors"]["default"]["difference"]["brier"]["difference"] == 0.0

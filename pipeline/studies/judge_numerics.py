@@ -186,10 +186,13 @@ def paired_metrics(base: Scores, variant: Scores, observed: tuple[np.ndarray, np
     return {"base": on[0], "variant": on[1], "difference": difference}
 
 
-def compare(base: PushLog, variant: PushLog, config: Config, rate: float | None, n_resamples: int = BOOTSTRAP) -> dict:
+def compare(base: PushLog, variant: PushLog, config: Config, rate: float | None, n_resamples: int = BOOTSTRAP,
+            predicted: dict | None = None) -> dict:
     """Everything the module docstring lists for one variant against base (JSON-ready).
 
     rate : the constant-rate predictor's topple rate (left out when None)
+    predicted : the model's predictions by the pushes they are of, kept between calls on one base: every
+      variant that pairs all of base's pushes reuses them instead of predicting base again
     raises JudgeError : logs with no push in common, or pushes they describe differently
     """
     base, variant, counts = common_pushes(base, variant)
@@ -198,8 +201,13 @@ def compare(base: PushLog, variant: PushLog, config: Config, rate: float | None,
     scorers = [Scorer(log, config.seed, config.contacts) for log in (base, variant)]
     groups = [[(g.object_id, g.pose.index, tuple(g.rows)) for g in s.groups] for s in scorers]
     assert groups[0] == groups[1], "common_pushes gives both logs the same pushes in the same order"
-    # The same pushes: the model's rows are predicted once and scored against both logs.
-    predictions = scorers[0].predict(config.topple)
+    # The same pushes: the model's rows are predicted once and scored against both logs (and every variant
+    # of the same pushes): they depend on the pushes, not on what physics made of them.
+    predicted = {} if predicted is None else predicted
+    pushes = tuple((p.object_id, p.push_id) for p in base.pushes)
+    if pushes not in predicted:
+        predicted[pushes] = scorers[0].predict(config.topple)
+    predictions = predicted[pushes]
     scores = {"default": [s.score_predictions(predictions) for s in scorers],
               "never_topples": [s.never_topples() for s in scorers]}
     if rate is not None:
@@ -264,9 +272,10 @@ def main(argv: list[str] | None = None) -> int:
         base = read_log(args.base, config, corpus, exclude_corpus=args.exclude_corpus)
         rate = observed_topple_rate(read_log(args.rate_from, config)) if args.rate_from else None
         out = {"base": args.base, "base_player": player_parameters(), "rate": rate, "rate_from": args.rate_from, "model": "the defaults", "variants": {}}
+        predicted: dict = {}
         for name, paths in variants.items():
             variant = read_log(paths, config, corpus, exclude_corpus=args.exclude_corpus)
-            result = compare(base, variant, config, rate, args.bootstrap)
+            result = compare(base, variant, config, rate, args.bootstrap, predicted)
             out["variants"][name] = {"logs": paths, "player": players[name]["variant"], **result}
             print(format_comparison(name, result), flush=True)
     except (JudgeError, LogError, CorpusError) as err:
