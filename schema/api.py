@@ -228,7 +228,7 @@ class RosPose(Model):
 
 
 class ErrorBody(Answer):
-    """Body of every error response (404, 409, 413, 422, 500)."""
+    """Body of every error response (404, 409, 412, 413, 422, 500)."""
 
     detail: str = Field(description="What went wrong, in one message")
 
@@ -263,6 +263,13 @@ class OffTableBody(ErrorBody):
     pose: int = Field(description="The matched stable pose")
     z_offset: float = Field(description="m, observed height of the pose's support point (pose frame origin) above z = 0")
     height_tolerance: float = Field(description="m, largest |z_offset| accepted")
+
+
+class OtherBuildBody(ErrorBody):
+    """412: the request names (in ``x-toppledb-build``) a build other than the one that would answer it."""
+
+    build: str = Field(description="The build that would have answered (manifest SHA-256), as the answer's x-toppledb-build")
+    requested: str = Field(description="The build the request named (at most its first 80 characters)")
 
 
 # --- service -----------------------------------------------------------------------

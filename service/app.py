@@ -45,8 +45,9 @@ a ROS pose). The contract for robot teams is docs/SERVICE.md.
 SI units (m, kg, N, rad). World frame: z up, table at z = 0. Pose frame: a stable pose's
 canonical frame (z up, table at z = 0, centre of mass over the origin). Matrices are 4x4,
 row-major. Errors are JSON `{"detail": "..."}`: 401 missing or wrong bearer token (when the
-service has one), 404 unknown ids, 409 no matching stable pose or not on the table, 413 body
-too large, 415 body not JSON, 422 malformed input, 503 overloaded (retry).
+service has one), 404 unknown ids, 409 no matching stable pose or not on the table, 412 the
+request names (`x-toppledb-build`) a build other than the one served, 413 body too large, 415 body
+not JSON, 422 malformed input, 503 overloaded (retry).
 """
 
 DOCS_ASSETS = "/docs-assets"

@@ -11,7 +11,8 @@
 
 Every answer is the ``schema.api`` model of the route (``PlanResponse``, ``Health``, ...).
 Errors are exceptions carrying the service's ``detail``: ``NotFound`` (404),
-``NoStablePose`` and ``OffTable`` (409, by ``reason``), ``InvalidRequest`` (422, also a
+``NoStablePose`` and ``OffTable`` (409, by ``reason``), ``OtherBuild`` (412: failed actions
+recorded under a build the service no longer serves), ``InvalidRequest`` (422, also a
 pose with NaN or infinite entries, refused before sending), ``Unreachable`` (no answer
 after every retry), and ``ServiceError`` (their base) for anything else.  Every request is read-only, hence safe to repeat:
 connection errors, timeouts and 503s are retried ``retries`` times with exponential
@@ -73,6 +74,11 @@ class OffTable(ServiceError):
     """409 off_table: the object is not on the table (``body['z_offset']``, ``height_tolerance``)."""
 
 
+class OtherBuild(ServiceError):
+    """412: the request's failed actions were recorded under another build than the one now served
+    (``body['build']``, also the client's ``build`` now): clear them and ask again."""
+
+
 class InvalidRequest(ServiceError):
     """422 (or 413, 415): the request is malformed; ``body['errors']`` lists the problems."""
 
@@ -93,7 +99,8 @@ def _error(response: httpx.Response) -> ServiceError:
         body = {"detail": response.text[:200]}
     detail = str(body.get("detail", "")) if isinstance(body, dict) else str(body)
     status = response.status_code
-    kind = {401: Unauthorized, 404: NotFound, 413: InvalidRequest, 415: InvalidRequest, 422: InvalidRequest}.get(status, ServiceError)
+    kind = {401: Unauthorized, 404: NotFound, 412: OtherBuild, 413: InvalidRequest, 415: InvalidRequest,
+            422: InvalidRequest}.get(status, ServiceError)
     if status == 409:
         kind = OffTable if body.get("reason") == "off_table" else NoStablePose
     return kind(status, detail, body if isinstance(body, dict) else {})
@@ -105,8 +112,9 @@ class Client:
 
     ``build``: the manifest SHA-256 of the dataset build the last answer that named one came from (its
     ``x-toppledb-build`` header; None until one did: a service older than stop 68 names none, and
-    ``/health`` names its build in its body). Action indices name one build's candidates: an answer to
-    a ``/plan`` with ``failed_actions`` from another build is to be discarded (docs/SERVICE.md)."""
+    ``/health`` names its build in its body). Action indices name one build's candidates, so ``plan``
+    sends ``failed_actions`` with the build they were recorded under, and a rebuild since is ``OtherBuild``
+    (docs/SERVICE.md, "Operations")."""
 
     def __init__(
         self,
@@ -160,17 +168,24 @@ class Client:
         policy: str = "value_iteration",
         pushes_left: int | None = None,
         failed_actions: list[int] | None = None,
+        build: str | None = None,
     ) -> PlanResponse:
         """The decision for one observed object: ``pose`` a 4x4 object -> world matrix (array or
         nested lists) or ``ros_pose`` (position, orientation x, y, z, w, frame_id); with
         ``pushes_left``, value iteration's push for that budget; with ``failed_actions`` (the
-        actions of earlier answers that left the object in this pose), a push that has not failed."""
-        item = plan_item(object_id, pose, ros_pose, policy, pushes_left, failed_actions)
-        return self._call("POST", "/plan", PlanResponse, json=item)
+        actions of earlier answers that left the object in this pose), a push that has not failed.
 
-    def plan_batch(self, items: list[dict]) -> PlanResults:
-        """Up to 1000 items of ``plan_item(...)``; per-item errors are in ``results[i].error``."""
-        return self._call("POST", "/batch/plan", PlanResults, json={"items": items})
+        build : the build ``failed_actions`` were recorded under (default: the client's ``build``, that of
+            its last answer, the one that served the push that failed in the usual loop); another build
+            raises ``OtherBuild``. Sent only with ``failed_actions``, the only indices a plan takes."""
+        item = plan_item(object_id, pose, ros_pose, policy, pushes_left, failed_actions)
+        return self._call("POST", "/plan", PlanResponse, json=item, requested=self._recorded_under(item, build))
+
+    def plan_batch(self, items: list[dict], build: str | None = None) -> PlanResults:
+        """Up to 1000 items of ``plan_item(...)``; per-item errors are in ``results[i].error``.
+        ``build`` as ``plan``'s, for the whole batch when an item has ``failed_actions``."""
+        requested = self._recorded_under(next((i for i in items if i.get("failed_actions")), {}), build)
+        return self._call("POST", "/batch/plan", PlanResults, json={"items": items}, requested=requested)
 
     def transitions(self, items: list[tuple[str, int, int]]) -> TransitionResults:
         """(object_id, pose, action) triples, up to 1000."""
@@ -179,7 +194,15 @@ class Client:
 
     # --- transport ----------------------------------------------------------------
 
-    def _call(self, method: str, path: str, model: type[Model], **kwargs) -> Model:
+    def _recorded_under(self, item: dict, build: str | None) -> str | None:
+        """The build to name for a plan ``item``: with failed actions, ``build`` or the last answer's."""
+        return (build or self.build) if item.get("failed_actions") else None
+
+    def _call(self, method: str, path: str, model: type[Model], requested: str | None = None, **kwargs) -> Model:
+        """``method path`` answered as ``model``, retried as the module says; ``requested``: the build the
+        request's action indices were recorded under, sent as ``x-toppledb-build``."""
+        if requested is not None:
+            kwargs["headers"] = {"x-toppledb-build": requested}
         wait = self.backoff
         for attempt in range(self.retries + 1):
             last = attempt == self.retries
@@ -192,6 +215,11 @@ class Client:
             else:
                 self.build = response.headers.get("x-toppledb-build", self.build)
                 if response.status_code < 300:
+                    if requested is not None and self.build != requested:
+                        # A stop-68 service stamps answers with their build but does not check the request's.
+                        raise OtherBuild(412, f"answered by build {self.build}, not {requested} that the failed actions "
+                                              "were recorded under: clear them and ask again",
+                                         {"build": self.build, "requested": requested})
                     return model.model_validate_json(response.content)
                 if response.status_code not in RETRY_STATUSES or last:
                     raise _error(response)

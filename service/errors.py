@@ -2,9 +2,10 @@
 
 Every error body is ``{"detail": "<one message>"}`` (``schema.api.ErrorBody``), so a
 client needs one code path: 401 a missing or wrong bearer token, 404 unknown ids, 409 an
-observed pose that is no stable pose or not on the table (``reason`` says which), 413 a body
-over the limit, 415 a body that is not JSON, 422 malformed input (with ``errors``, one entry
-per problem), 500 a bug (its traceback logged, at most ``TRACEBACKS_PER_MINUTE`` a minute).
+observed pose that is no stable pose or not on the table (``reason`` says which), 412 a request
+naming a build other than the one that serves it (``OtherBuild``), 413 a body over the limit, 415 a
+body that is not JSON, 422 malformed input (with ``errors``, one entry per problem), 500 a bug (its
+traceback logged, at most ``TRACEBACKS_PER_MINUTE`` a minute).
 
 Framework-free, so the planning code and the early control path (``service.staged``) import
 it without FastAPI; ``service.handlers`` turns these errors into FastAPI's responses.
@@ -52,6 +53,23 @@ class OffTable(ServiceError):
 
     status_code = 409
     reason = "off_table"
+
+
+class OtherBuild(ServiceError):
+    """A request that names, in ``x-toppledb-build``, a build other than the one that would answer it.
+
+    Action indices (a /plan's ``failed_actions``, a transition's ``action``) name one build's candidates,
+    so a controller that recorded them under one build sends its name, and after a rebuild is refused
+    (HTTP's "precondition failed") rather than answered about other pushes under the same numbers."""
+
+    status_code = 412
+
+    def __init__(self, requested: str, served: str):
+        # A header may be kilobytes of anything: the body echoes a bounded, printable part of it.
+        shown = requested[:80].encode("ascii", "backslashreplace").decode()
+        super().__init__(f"this request names build {shown!r} in x-toppledb-build, but build {served} answers it: "
+                         "action indices name one build's candidates; clear them and ask again", build=served,
+                         requested=shown)
 
 
 class UnknownFrame(ServiceError):

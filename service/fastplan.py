@@ -7,8 +7,9 @@ and answers a valid POST /plan directly: validate the body with the same pydanti
 plan with the same ``service.planning.plan``, serialise with the same ``answer_json``.
 
 Anything else — another route, a body that does not validate, an unknown object, a pose
-that matches nothing, a bug — goes on to the FastAPI route, which answers it exactly as it
-always did (the 404/409/422 bodies, the OpenAPI document, the error handlers).  So the
+that matches nothing, a request naming another build, a bug — goes on to the FastAPI route,
+which answers it exactly as it always did (the 404/409/412/422 bodies, the OpenAPI document,
+the error handlers).  So the
 fast path can change how quickly /plan answers, never what it answers;
 tests/test_service_fastplan.py holds the two paths to the same bytes.
 """
@@ -19,7 +20,7 @@ from types import SimpleNamespace
 
 from schema.api import PlanRequest
 
-from .guard import BUILD_SCOPE_KEY, answered_from, replay
+from .guard import BUILD_SCOPE_KEY, answered_from, replay, requested_build
 from .planning import answer_json, plan
 from .settings import Settings
 from .store import LiveStore
@@ -49,7 +50,7 @@ class FastPlan:
             return
         try:
             request = PlanRequest.model_validate_json(body)
-            answer = answer_json(plan(answered_from(scope, self.live.store), request, self.settings))
+            answer = answer_json(plan(answered_from(scope, self.live.store, requested_build(scope)), request, self.settings))
         except Exception:  # noqa: BLE001 (every failure is the FastAPI route's to answer, bugs included)
             scope.pop(BUILD_SCOPE_KEY, None)  # the route names the build it answers from, if any
             await self.app(scope, replay(message, receive), send)

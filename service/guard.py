@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import orjson
 
-from .errors import validation_body
+from .errors import OtherBuild, validation_body
 from .metrics import Metrics
 
 if TYPE_CHECKING:  # the store imports numpy and pyarrow, which the guard need not load
@@ -107,12 +107,24 @@ BUILD_SCOPE_KEY = "toppledb.build"
 the guard sends it back as ``BUILD_HEADER``."""
 BUILD_HEADER = b"x-toppledb-build"
 """Response header naming the build an answer came from, so that a controller sees a dataset swap in the
-answer itself: action indices, ``failed_actions`` among them, name one build's candidates."""
+answer itself: action indices, ``failed_actions`` among them, name one build's candidates.  On a request,
+the build the request's action indices were recorded under: another build refuses it (412, ``OtherBuild``)."""
 
 
-def answered_from(scope: dict, store: Store) -> Store:
-    """``store``, noted in the request's ``scope`` as the build it is answered from."""
+def requested_build(scope: dict) -> str | None:
+    """The build a request names in ``BUILD_HEADER`` (the first such header, as FastAPI reads it), or None."""
+    return next((value.decode("latin-1") for name, value in scope["headers"] if name == BUILD_HEADER), None)
+
+
+def answered_from(scope: dict, store: Store, requested: str | None) -> Store:
+    """``store``, noted in the request's ``scope`` as the build it is answered from.
+
+    requested : the build the request names (``requested_build``), or None
+    Raises ``OtherBuild`` when the request names another build; the refusal names ``store`` too.
+    """
     scope[BUILD_SCOPE_KEY] = store.manifest_sha256
+    if requested is not None and requested != store.manifest_sha256:
+        raise OtherBuild(requested, store.manifest_sha256)
     return store
 
 

@@ -14,9 +14,20 @@ from fastapi.testclient import TestClient
 from schema.api import PlanResponse, RosPose
 from schema.vocabulary import NO_OP
 from service import create_app
-from service.client import Client, InvalidRequest, NoStablePose, NotFound, OffTable, ServiceError, Unauthorized, Unreachable, plan_item
+from service.client import (
+    Client,
+    InvalidRequest,
+    NoStablePose,
+    NotFound,
+    OffTable,
+    OtherBuild,
+    ServiceError,
+    Unauthorized,
+    Unreachable,
+    plan_item,
+)
 from service.settings import Settings
-from tests.test_service import client, dataset, planar_transform, stored_transform, tables, tilted  # noqa: F401
+from tests.test_service import JSON, client, dataset, planar_transform, stored_transform, tables, tilted  # noqa: F401
 
 TOKEN = "client-test-token-0123"
 
@@ -90,6 +101,95 @@ def test_every_answer_from_the_dataset_names_its_build(client, dataset, tables):
     with TestClient(create_app(dataset, settings=Settings(token=TOKEN))) as guarded:
         refused = guarded.get("/objects")
         assert refused.status_code == 401 and "x-toppledb-build" not in refused.headers
+
+
+OTHER_BUILD = "f" * 64
+
+
+@pytest.mark.parametrize("staged", [False, True], ids=["create_app", "staged"])
+def test_a_request_naming_another_build_is_refused_with_412_on_every_route_that_reads_the_dataset(
+        dataset, tables, monkeypatch, staged):
+    """``x-toppledb-build`` on a request: the build its action indices were recorded under. The build it
+    names answers as if it were not there; another is a 412 naming both, on the fast /plan path and the
+    FastAPI route byte for byte, on the GET, batch and heap routes; /health does not read the dataset."""
+    from service import fastplan
+    from service.runtime import Runtime
+    from service.staged import StagedApp
+
+    app = StagedApp(Runtime.open(Settings.from_env(dataset=dataset))) if staged else create_app(dataset, settings=Settings())
+    object_id, pose = pushing(tables)
+    observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
+    with TestClient(app) as client:
+        build = client.get("/health").json()["dataset"]["manifest_sha256"]
+        first = client.post("/plan", json=plan_item(object_id, pose=observed)).json()["action"]
+        item = plan_item(object_id, pose=observed, failed_actions=[first])
+        plain = client.post("/plan", json=item)
+        assert plain.status_code == 200
+        cases = [(build, 200), (OTHER_BUILD, 412), ("not a build \u00e9", 412), ((build, OTHER_BUILD), 200), ((OTHER_BUILD, build), 412)]
+        for named, status in cases:
+            # Bytes: a header value need not be ASCII. Given twice, the first counts, on both paths as FastAPI reads it.
+            header = [("x-toppledb-build", value.encode()) for value in ((named,) if isinstance(named, str) else named)]
+            named = named if isinstance(named, str) else named[0]
+            fast = client.post("/plan", json=item, headers=header)
+            with monkeypatch.context() as patch:
+                patch.setattr(fastplan, "PATH", "/not-the-fast-path")
+                routed = client.post("/plan", json=item, headers=header)
+            assert fast.status_code == routed.status_code == status and fast.content == routed.content
+            assert fast.headers["x-toppledb-build"] == routed.headers["x-toppledb-build"] == build
+            if status == 200:
+                assert fast.content == plain.content, "the build it names answers as if the header were not there"
+            else:
+                body = fast.json()
+                assert body["build"] == build and named.startswith(body["requested"][:5]) and build in body["detail"]
+        other = {"x-toppledb-build": OTHER_BUILD}
+        routes = [client.get(f"/objects/{object_id}/poses/{pose}/actions/{first}", headers=other),
+                  client.get("/objects", headers=other),
+                  client.post("/batch/plan", json={"items": [item]}, headers=other),
+                  client.post("/batch/transitions", json={"items": [{"object_id": object_id, "pose": pose, "action": first}]},
+                              headers=other),
+                  client.post("/heaps/plan", json={"objects": [{"object_id": object_id, "pose": observed.tolist()}]},
+                              headers=other)]
+        assert [r.status_code for r in routes] == [412] * len(routes)
+        assert all(r.json()["build"] == build and r.headers["x-toppledb-build"] == build for r in routes)
+        assert client.get("/health", headers=other).status_code == 200
+        assert 'route="/plan",status="412"' in client.get("/metrics").text
+
+
+def test_the_client_names_the_build_of_its_failed_actions_and_raises_other_build(client, tables):
+    """``plan`` sends ``x-toppledb-build`` only with failed actions: the build given, else its last answer's.
+    A 412 is ``OtherBuild`` and leaves ``build`` on the served one, so the controller clears and asks again;
+    a service that stamps answers but does not check requests (stop 68) is caught by the client itself."""
+    object_id, pose = pushing(tables)
+    observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
+    sent: list[str | None] = []
+
+    def recording(request):  # the service's own answer, with what the client sent noted
+        sent.append(request.headers.get("x-toppledb-build"))
+        real = client.post(request.url.path, content=request.content, headers=dict(request.headers))
+        return httpx.Response(real.status_code, content=real.content, headers={"x-toppledb-build": real.headers["x-toppledb-build"]})
+
+    served = client.get("/health").json()["dataset"]["manifest_sha256"]
+    typed = Client(http=httpx.Client(transport=httpx.MockTransport(recording), base_url="http://x"), retries=0)
+    first = typed.plan(object_id, pose=observed)
+    after = typed.plan(object_id, pose=observed, failed_actions=[first.action])
+    assert sent == [None, served] and after.action != first.action
+    with pytest.raises(OtherBuild) as refused:
+        typed.plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
+    assert refused.value.status == 412 and refused.value.body["build"] == served and sent[-1] == OTHER_BUILD
+    assert "but build" in refused.value.detail, "the service's own refusal"
+    typed.build = OTHER_BUILD  # as if its last answer came from a build since replaced
+    with pytest.raises(OtherBuild):
+        typed.plan_batch([plan_item(object_id, pose=observed, failed_actions=[first.action])])
+    assert sent[-1] == OTHER_BUILD and typed.build == served, "the refusal names the build now served"
+    typed.plan_batch([plan_item(object_id, pose=observed)])
+    assert sent[-1] is None, "indices only in failed actions: without them no build is named"
+
+    # A stop-68 service ignores the request's header, and the client compares the answer's build itself.
+    unchecking = Client(http=httpx.Client(transport=httpx.MockTransport(
+        lambda r: httpx.Response(200, content=client.post("/plan", content=r.content, headers=JSON).content,
+                                 headers={"x-toppledb-build": served})), base_url="http://x"), retries=0)
+    with pytest.raises(OtherBuild, match="answered by build"):
+        unchecking.plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
 
 
 def test_typed_answers_equal_the_json(typed, client, tables):

@@ -139,6 +139,9 @@ def test_the_watcher_swaps_builds_while_requests_keep_succeeding(dataset, tmp_pa
         assert set(statuses) == {200}
         # Each answer names the build it came from: a controller sees the swap without polling /health.
         assert client.get("/objects/random_001/poses/0/q").headers["x-toppledb-build"] == health["dataset"]["manifest_sha256"]
+        # A request naming the build its action indices came from is refused once that build is replaced.
+        stale = client.get("/objects/random_001/poses/0/actions/0", headers={"x-toppledb-build": before})
+        assert stale.status_code == 412 and stale.json()["build"] == health["dataset"]["manifest_sha256"]
         assert 'toppledb_dataset_reloads_total 1.0' in client.get("/metrics").text
         assert "reload_error" not in health  # left out while there is none: older clients' models forbid it
         # A broken rebuild: still served, and /health and /metrics say why the new one is not.

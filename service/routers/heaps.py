@@ -27,12 +27,12 @@ from schema.api import (
     ValidationErrorBody,
 )
 
-from ..dependencies import SettingsDep, StoreDep
+from ..dependencies import BUILD_RESPONSES, SettingsDep, StoreDep
 from ..errors import NotFound, ServiceError
 from ..settings import Settings
 from ..store import Store
 
-router = APIRouter(tags=["heaps"])
+router = APIRouter(tags=["heaps"], responses=BUILD_RESPONSES)
 
 PLANNER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="heap-planner")
 """The thread heap plans run in, one per worker process (its thread starts with the first plan,

@@ -32,15 +32,15 @@ from schema.api import (
 from schema.vocabulary import NO_OP, POLICIES
 
 from .. import batches
-from ..dependencies import StoreDep
+from ..dependencies import BUILD_RESPONSES, StoreDep
 from ..planning import next_poses
 from ..store import ObjectData, optional, widen
 
 ERRORS = {404: {"model": ErrorBody, "description": "Unknown object, pose or action"},
           422: {"model": ValidationErrorBody, "description": "Malformed request"}}
 
-router = APIRouter(prefix="/objects", tags=["objects"], responses=ERRORS)
-batch = APIRouter(prefix="/batch", tags=["batch"], responses={422: ERRORS[422]})
+router = APIRouter(prefix="/objects", tags=["objects"], responses={**ERRORS, **BUILD_RESPONSES})
+batch = APIRouter(prefix="/batch", tags=["batch"], responses={422: ERRORS[422], **BUILD_RESPONSES})
 
 
 def _action_or_none(action) -> int | None:

@@ -18,11 +18,11 @@ from schema.api import (
 )
 
 from .. import batches
-from ..dependencies import SettingsDep, StoreDep
+from ..dependencies import BUILD_RESPONSES, SettingsDep, StoreDep
 from ..planning import answer_json, plan
 
-router = APIRouter(tags=["plan"])
-batch = APIRouter(prefix="/batch", tags=["batch"])
+router = APIRouter(tags=["plan"], responses=BUILD_RESPONSES)
+batch = APIRouter(prefix="/batch", tags=["batch"], responses=BUILD_RESPONSES)
 
 
 @router.post(
