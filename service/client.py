@@ -112,9 +112,12 @@ class Client:
 
     ``build``: the manifest SHA-256 of the dataset build the last answer that named one came from (its
     ``x-toppledb-build`` header; None until one did: a service older than stop 68 names none, and
-    ``/health`` names its build in its body). Action indices name one build's candidates, so ``plan``
-    sends ``failed_actions`` with the build they were recorded under, and a rebuild since is ``OtherBuild``
-    (docs/SERVICE.md, "Operations")."""
+    ``/health`` names its build in its body).
+
+    ``plan_build``: the build of the last ``plan`` or ``plan_batch`` answer (a 2xx), whose pushes'
+    action indices are that build's. Only those answers set it, not a refusal nor another route's answer,
+    so ``plan`` sends ``failed_actions`` with it (or the ``build=`` given), and a rebuild since is
+    ``OtherBuild`` however often the call is repeated (docs/SERVICE.md, "Python client")."""
 
     def __init__(
         self,
@@ -130,6 +133,7 @@ class Client:
         self.http.headers.update(headers)
         self.timeout, self.retries, self.backoff = timeout, retries, backoff
         self.build: str | None = None
+        self.plan_build: str | None = None
 
     def __enter__(self) -> Self:
         return self
@@ -154,8 +158,10 @@ class Client:
     def pose(self, object_id: str, pose: int) -> PoseDetail:
         return self._call("GET", f"/objects/{object_id}/poses/{pose}", PoseDetail)
 
-    def action(self, object_id: str, pose: int, action: int) -> ActionDetail:
-        return self._call("GET", f"/objects/{object_id}/poses/{pose}/actions/{action}", ActionDetail)
+    def action(self, object_id: str, pose: int, action: int, build: str | None = None) -> ActionDetail:
+        """One candidate push; ``build``: the build ``action`` was taken from (another one is ``OtherBuild``)."""
+        return self._call("GET", f"/objects/{object_id}/poses/{pose}/actions/{action}", ActionDetail,
+                          requested=_build_name(build))
 
     def q_values(self, object_id: str, pose: int, top: int = 10, by: str = "q") -> QValues:
         return self._call("GET", f"/objects/{object_id}/poses/{pose}/q", QValues, params={"top": top, "by": by})
@@ -175,28 +181,33 @@ class Client:
         ``pushes_left``, value iteration's push for that budget; with ``failed_actions`` (the
         actions of earlier answers that left the object in this pose), a push that has not failed.
 
-        build : the build ``failed_actions`` were recorded under (default: the client's ``build``, that of
-            its last answer, the one that served the push that failed in the usual loop); another build
-            raises ``OtherBuild``. Sent only with ``failed_actions``, the only indices a plan takes."""
+        build : the build ``failed_actions`` were recorded under (default ``plan_build``, that of the last
+            plan answer, which served the push that failed when one object is planned at a time); another
+            build raises ``OtherBuild``. Sent only with ``failed_actions``, the only indices a plan takes."""
         item = plan_item(object_id, pose, ros_pose, policy, pushes_left, failed_actions)
-        return self._call("POST", "/plan", PlanResponse, json=item, requested=self._recorded_under(item, build))
+        return self._plan("/plan", PlanResponse, item, self._recorded_under(item, build))
 
     def plan_batch(self, items: list[dict], build: str | None = None) -> PlanResults:
         """Up to 1000 items of ``plan_item(...)``; per-item errors are in ``results[i].error``.
         ``build`` as ``plan``'s, for the whole batch when an item has ``failed_actions``."""
         requested = self._recorded_under(next((i for i in items if i.get("failed_actions")), {}), build)
-        return self._call("POST", "/batch/plan", PlanResults, json={"items": items}, requested=requested)
+        return self._plan("/batch/plan", PlanResults, {"items": items}, requested)
 
-    def transitions(self, items: list[tuple[str, int, int]]) -> TransitionResults:
-        """(object_id, pose, action) triples, up to 1000."""
+    def transitions(self, items: list[tuple[str, int, int]], build: str | None = None) -> TransitionResults:
+        """(object_id, pose, action) triples, up to 1000; ``build``: the build the actions were taken from."""
         body = {"items": [{"object_id": o, "pose": int(p), "action": int(a)} for o, p, a in items]}
-        return self._call("POST", "/batch/transitions", TransitionResults, json=body)
+        return self._call("POST", "/batch/transitions", TransitionResults, json=body, requested=_build_name(build))
 
     # --- transport ----------------------------------------------------------------
 
     def _recorded_under(self, item: dict, build: str | None) -> str | None:
-        """The build to name for a plan ``item``: with failed actions, ``build`` or the last answer's."""
-        return (build or self.build) if item.get("failed_actions") else None
+        """The build to name for a plan ``item``: with failed actions, ``build`` or the last plan answer's."""
+        return (_build_name(build) or self.plan_build) if item.get("failed_actions") else None
+
+    def _plan(self, path: str, model: type[Model], body: dict, requested: str | None) -> Model:
+        answer = self._call("POST", path, model, json=body, requested=requested)
+        self.plan_build = self.build
+        return answer
 
     def _call(self, method: str, path: str, model: type[Model], requested: str | None = None, **kwargs) -> Model:
         """``method path`` answered as ``model``, retried as the module says; ``requested``: the build the
@@ -213,19 +224,28 @@ class Client:
                     raise Unreachable(0, f"{method} {path}: no answer after {attempt + 1} tries "
                                          f"({type(err).__name__}: {err})") from err
             else:
-                self.build = response.headers.get("x-toppledb-build", self.build)
+                answered = response.headers.get("x-toppledb-build")
+                self.build = answered or self.build
                 if response.status_code < 300:
-                    if requested is not None and self.build != requested:
+                    if requested is not None and answered is not None and answered != requested:
                         # A stop-68 service stamps answers with their build but does not check the request's.
-                        raise OtherBuild(412, f"answered by build {self.build}, not {requested} that the failed actions "
+                        raise OtherBuild(412, f"answered by build {answered}, not {requested} that the action indices "
                                               "were recorded under: clear them and ask again",
-                                         {"build": self.build, "requested": requested})
+                                         {"build": answered, "requested": requested})
                     return model.model_validate_json(response.content)
                 if response.status_code not in RETRY_STATUSES or last:
                     raise _error(response)
             time.sleep(wait)
             wait *= 2
         raise AssertionError("unreachable")
+
+
+def _build_name(build: str | None) -> str | None:
+    """``build`` as sent in ``x-toppledb-build``: a manifest SHA-256 (64 hex digits), as answers name it."""
+    if build is not None and not (len(build) == 64 and all(c in "0123456789abcdef" for c in build)):
+        raise ValueError(f"build must be a manifest SHA-256 (64 lowercase hex digits) as x-toppledb-build names it, "
+                         f"got {build[:80]!r}")
+    return build
 
 
 def _integer(value: Any, name: str) -> int:

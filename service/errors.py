@@ -66,8 +66,8 @@ class OtherBuild(ServiceError):
 
     def __init__(self, requested: str, served: str):
         # A header may be kilobytes of anything: the body echoes a bounded, printable part of it.
-        shown = requested[:80].encode("ascii", "backslashreplace").decode()
-        super().__init__(f"this request names build {shown!r} in x-toppledb-build, but build {served} answers it: "
+        shown = requested.encode("ascii", "backslashreplace").decode()[:80]
+        super().__init__(f"this request names build '{shown}' in x-toppledb-build, but build {served} answers it: "
                          "action indices name one build's candidates; clear them and ask again", build=served,
                          requested=shown)
 

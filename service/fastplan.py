@@ -6,10 +6,12 @@ request-object plumbing as the planning itself.  This middleware sits just insid
 and answers a valid POST /plan directly: validate the body with the same pydantic model,
 plan with the same ``service.planning.plan``, serialise with the same ``answer_json``.
 
-Anything else — another route, a body that does not validate, an unknown object, a pose
-that matches nothing, a request naming another build, a bug — goes on to the FastAPI route,
-which answers it exactly as it always did (the 404/409/412/422 bodies, the OpenAPI document,
-the error handlers).  So the
+A valid one that names another build (``x-toppledb-build``) it refuses itself with the route's
+412, so that a controller whose dataset was rebuilt is told at once, also while the staged
+server is still building FastAPI.  Anything else — another route, a body that does not
+validate, an unknown object, a pose that matches nothing, a bug — goes on to the FastAPI
+route, which answers it exactly as it always did (the 404/409/422 bodies, the OpenAPI
+document, the error handlers).  So the
 fast path can change how quickly /plan answers, never what it answers;
 tests/test_service_fastplan.py holds the two paths to the same bytes.
 """
@@ -20,7 +22,8 @@ from types import SimpleNamespace
 
 from schema.api import PlanRequest
 
-from .guard import BUILD_SCOPE_KEY, answered_from, replay, requested_build
+from .errors import OtherBuild
+from .guard import BUILD_SCOPE_KEY, answered_from, json_messages, replay, requested_build
 from .planning import answer_json, plan
 from .settings import Settings
 from .store import LiveStore
@@ -51,7 +54,12 @@ class FastPlan:
         try:
             request = PlanRequest.model_validate_json(body)
             answer = answer_json(plan(answered_from(scope, self.live.store, requested_build(scope)), request, self.settings))
-        except Exception:  # noqa: BLE001 (every failure is the FastAPI route's to answer, bugs included)
+        except OtherBuild as refused:  # as get_store refuses it on the route (the guard names the build)
+            scope["route"] = ROUTE
+            for reply in json_messages(refused.status_code, refused.body()):
+                await send(reply)
+            return
+        except Exception:  # noqa: BLE001 (every other failure is the FastAPI route's to answer, bugs included)
             scope.pop(BUILD_SCOPE_KEY, None)  # the route names the build it answers from, if any
             await self.app(scope, replay(message, receive), send)
             return

@@ -156,40 +156,53 @@ def test_a_request_naming_another_build_is_refused_with_412_on_every_route_that_
 
 
 def test_the_client_names_the_build_of_its_failed_actions_and_raises_other_build(client, tables):
-    """``plan`` sends ``x-toppledb-build`` only with failed actions: the build given, else its last answer's.
-    A 412 is ``OtherBuild`` and leaves ``build`` on the served one, so the controller clears and asks again;
-    a service that stamps answers but does not check requests (stop 68) is caught by the client itself."""
+    """``plan`` sends ``x-toppledb-build`` only with failed actions: the build given, else that of its last plan
+    answer (``plan_build``), which neither a refusal nor another route's answer changes, so a repeated call stays
+    refused. A 412 is ``OtherBuild``. A stop-68 service, which stamps answers but does not check requests, is
+    caught by the client itself; a service that names no build is not taken for another one."""
     object_id, pose = pushing(tables)
     observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
     sent: list[str | None] = []
 
     def recording(request):  # the service's own answer, with what the client sent noted
         sent.append(request.headers.get("x-toppledb-build"))
-        real = client.post(request.url.path, content=request.content, headers=dict(request.headers))
+        real = client.request(request.method, request.url.path, content=request.content, headers=dict(request.headers))
         return httpx.Response(real.status_code, content=real.content, headers={"x-toppledb-build": real.headers["x-toppledb-build"]})
 
     served = client.get("/health").json()["dataset"]["manifest_sha256"]
     typed = Client(http=httpx.Client(transport=httpx.MockTransport(recording), base_url="http://x"), retries=0)
     first = typed.plan(object_id, pose=observed)
     after = typed.plan(object_id, pose=observed, failed_actions=[first.action])
-    assert sent == [None, served] and after.action != first.action
+    assert sent == [None, served] and after.action != first.action and typed.plan_build == served
     with pytest.raises(OtherBuild) as refused:
         typed.plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
     assert refused.value.status == 412 and refused.value.body["build"] == served and sent[-1] == OTHER_BUILD
     assert "but build" in refused.value.detail, "the service's own refusal"
-    typed.build = OTHER_BUILD  # as if its last answer came from a build since replaced
-    with pytest.raises(OtherBuild):
-        typed.plan_batch([plan_item(object_id, pose=observed, failed_actions=[first.action])])
-    assert sent[-1] == OTHER_BUILD and typed.build == served, "the refusal names the build now served"
+    typed.plan_build = OTHER_BUILD  # as if the push that failed came from a build since replaced
+    for _ in range(2):  # repeated, and after another route's answer from the new build: still refused
+        with pytest.raises(OtherBuild):
+            typed.plan_batch([plan_item(object_id, pose=observed, failed_actions=[first.action])])
+        assert sent[-1] == OTHER_BUILD and typed.build == served and typed.plan_build == OTHER_BUILD
+        typed.objects()
     typed.plan_batch([plan_item(object_id, pose=observed)])
-    assert sent[-1] is None, "indices only in failed actions: without them no build is named"
+    assert sent[-1] is None and typed.plan_build == served, "asked afresh: the new build's indices from here on"
+    for lookup in (lambda: typed.action(object_id, pose, first.action, build=OTHER_BUILD),
+                   lambda: typed.transitions([(object_id, pose, first.action)], build=OTHER_BUILD)):
+        with pytest.raises(OtherBuild):
+            lookup()
+    assert typed.action(object_id, pose, first.action, build=served).action == first.action
+    with pytest.raises(ValueError, match="64 lowercase hex"):
+        typed.plan(object_id, pose=observed, failed_actions=[first.action], build="\u00e9")
 
-    # A stop-68 service ignores the request's header, and the client compares the answer's build itself.
-    unchecking = Client(http=httpx.Client(transport=httpx.MockTransport(
-        lambda r: httpx.Response(200, content=client.post("/plan", content=r.content, headers=JSON).content,
-                                 headers={"x-toppledb-build": served})), base_url="http://x"), retries=0)
+    def older(stamp):  # a service from before stop 69: answers whatever build the request names
+        return Client(http=httpx.Client(transport=httpx.MockTransport(
+            lambda r: httpx.Response(200, content=client.post("/plan", content=r.content, headers=JSON).content,
+                                     headers=stamp)), base_url="http://x"), retries=0)
+
     with pytest.raises(OtherBuild, match="answered by build"):
-        unchecking.plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
+        older({"x-toppledb-build": served}).plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
+    unnamed = older({}).plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
+    assert unnamed.action == after.action, "a service naming no build (before stop 68) cannot be checked"
 
 
 def test_typed_answers_equal_the_json(typed, client, tables):

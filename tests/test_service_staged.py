@@ -71,6 +71,9 @@ def test_health_and_plan_answer_while_the_api_is_being_built(dataset, tables, mo
     with TestClient(app) as client:
         assert client.get("/health").json()["status"] == "ok"
         assert client.post("/plan", content=valid, headers=JSON).status_code == 200
+        # A controller whose dataset was rebuilt since its failed pushes is told so at once too.
+        stale = client.post("/plan", content=valid, headers={**JSON, "x-toppledb-build": "f" * 64})
+        assert stale.status_code == 412 and stale.json()["build"] == stale.headers["x-toppledb-build"]
         assert app.api is None, "the control path must not have waited for the FastAPI app"
         waiting: dict = {}
         caller = threading.Thread(target=lambda: waiting.setdefault("response", client.get("/objects")))
