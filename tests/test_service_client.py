@@ -152,6 +152,8 @@ def test_a_request_naming_another_build_is_refused_with_412_on_every_route_that_
         assert [r.status_code for r in routes] == [412] * len(routes)
         assert all(r.json()["build"] == build and r.headers["x-toppledb-build"] == build for r in routes)
         assert client.get("/health", headers=other).status_code == 200
+        long = client.get("/objects", headers={"x-toppledb-build": "f" * 200}).json()["requested"]
+        assert long == "f" * 80, "the refusal echoes at most 80 characters of what it was sent"
         assert 'route="/plan",status="412"' in client.get("/metrics").text
 
 
@@ -186,21 +188,26 @@ def test_the_client_names_the_build_of_its_failed_actions_and_raises_other_build
         typed.objects()
     typed.plan_batch([plan_item(object_id, pose=observed)])
     assert sent[-1] is None and typed.plan_build == served, "asked afresh: the new build's indices from here on"
+    with pytest.raises(OtherBuild):  # a build given outranks plan_build, in a batch too
+        typed.plan_batch([plan_item(object_id, pose=observed, failed_actions=[first.action])], build=OTHER_BUILD)
+    assert sent[-1] == OTHER_BUILD and typed.plan_build == served
     for lookup in (lambda: typed.action(object_id, pose, first.action, build=OTHER_BUILD),
                    lambda: typed.transitions([(object_id, pose, first.action)], build=OTHER_BUILD)):
         with pytest.raises(OtherBuild):
             lookup()
     assert typed.action(object_id, pose, first.action, build=served).action == first.action
-    with pytest.raises(ValueError, match="64 lowercase hex"):
-        typed.plan(object_id, pose=observed, failed_actions=[first.action], build="\u00e9")
+    for malformed in ("\u00e9", "abc", "g" * 64, "F" * 64, served + "0"):  # not 64 lowercase hex digits
+        with pytest.raises(ValueError, match="64 lowercase hex"):
+            typed.plan(object_id, pose=observed, failed_actions=[first.action], build=malformed)
 
     def older(stamp):  # a service from before stop 69: answers whatever build the request names
         return Client(http=httpx.Client(transport=httpx.MockTransport(
             lambda r: httpx.Response(200, content=client.post("/plan", content=r.content, headers=JSON).content,
                                      headers=stamp)), base_url="http://x"), retries=0)
 
-    with pytest.raises(OtherBuild, match="answered by build"):
+    with pytest.raises(OtherBuild, match="answered by build .*: clear them and ask again$") as caught:
         older({"x-toppledb-build": served}).plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
+    assert caught.value.status == 412 and caught.value.body == {"build": served, "requested": OTHER_BUILD}
     unnamed = older({}).plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
     assert unnamed.action == after.action, "a service naming no build (before stop 68) cannot be checked"
 

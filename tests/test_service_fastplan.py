@@ -90,10 +90,13 @@ def test_fast_path_requests_are_counted_under_the_plan_route(dataset, tables):
     with TestClient(create_app(dataset)) as client:
         for _ in range(3):
             assert client.post("/plan", json=body).status_code == 200
+        # The fast path's own refusal of a request naming another build is counted under the route too.
+        assert client.post("/plan", json=body, headers={"x-toppledb-build": "f" * 64}).status_code == 412
         metrics = client.get("/metrics").text
-    counted = [line for line in metrics.splitlines() if line.startswith("toppledb_requests_total") and 'route="/plan"' in line
-               and 'status="200"' in line]
-    assert counted and float(counted[0].rsplit(" ", 1)[1]) == 3.0, counted
+    for status, count in (("200", 3.0), ("412", 1.0)):
+        counted = [line for line in metrics.splitlines() if line.startswith("toppledb_requests_total")
+                   and 'route="/plan"' in line and f'status="{status}"' in line]
+        assert counted and float(counted[0].rsplit(" ", 1)[1]) == count, counted
 
 
 def test_plan_answers_are_the_response_model_exactly(dataset, tables):
