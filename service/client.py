@@ -22,6 +22,7 @@ nothing of the server, which the client does not import."""
 from __future__ import annotations
 
 import operator
+import re
 import time
 from typing import Any, Self, TypeVar
 
@@ -242,7 +243,7 @@ class Client:
 
 def _build_name(build: str | None) -> str | None:
     """``build`` as sent in ``x-toppledb-build``: a manifest SHA-256 (64 hex digits), as answers name it."""
-    if build is not None and not (len(build) == 64 and all(c in "0123456789abcdef" for c in build)):
+    if build is not None and not re.fullmatch(r"[0-9a-f]{64}", build):
         raise ValueError(f"build must be a manifest SHA-256 (64 lowercase hex digits) as x-toppledb-build names it, "
                          f"got {build[:80]!r}")
     return build

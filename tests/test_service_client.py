@@ -113,10 +113,9 @@ def test_a_request_naming_another_build_is_refused_with_412_on_every_route_that_
     names answers as if it were not there; another is a 412 naming both, on the fast /plan path and the
     FastAPI route byte for byte, on the GET, batch and heap routes; /health does not read the dataset."""
     from service import fastplan
-    from service.runtime import Runtime
-    from service.staged import StagedApp
+    from tests.test_service_staged import staged_app
 
-    app = StagedApp(Runtime.open(Settings.from_env(dataset=dataset))) if staged else create_app(dataset, settings=Settings())
+    app = staged_app(dataset) if staged else create_app(dataset, settings=Settings())
     object_id, pose = pushing(tables)
     observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
     with TestClient(app) as client:

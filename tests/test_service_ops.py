@@ -172,14 +172,13 @@ def test_the_build_header_names_the_build_a_request_took_even_if_a_swap_comes_du
     FastAPI's app and on the staged server that answers before FastAPI is built."""
     from service import fastplan, planning
     from service.routers import heaps
-    from service.runtime import Runtime
-    from service.staged import StagedApp
     from tests.test_service import planar_transform, stored_transform
     from tests.test_service_client import pushing
+    from tests.test_service_staged import staged_app
 
     if staged:
-        runtime = Runtime.open(Settings.from_env(dataset=dataset))
-        app, live = StagedApp(runtime), runtime.live
+        app = staged_app(dataset)
+        live = app.runtime.live
     else:
         app = create_app(dataset, settings=Settings())
         live = app.state.live
