@@ -115,10 +115,12 @@ class Client:
     ``x-toppledb-build`` header; None until one did: a service older than stop 68 names none, and
     ``/health`` names its build in its body).
 
-    ``plan_build``: the build of the last ``plan`` or ``plan_batch`` answer (a 2xx), whose pushes'
-    action indices are that build's. Only those answers set it, not a refusal nor another route's answer,
-    so ``plan`` sends ``failed_actions`` with it (or the ``build=`` given), and a rebuild since is
-    ``OtherBuild`` however often the call is repeated (docs/SERVICE.md, "Python client")."""
+    ``plan_build``: the build of the last ``plan`` or ``plan_batch`` answer (a 2xx).
+    ``plan_builds``: per object id, the build of the last plan answer that served that object a push,
+    whose action indices are that build's. Only those answers set them, not a refusal nor another
+    route's answer, so ``plan`` sends an object's ``failed_actions`` with its entry (or the ``build=``
+    given), and a rebuild since is ``OtherBuild`` however often the call is repeated, also when other
+    objects were planned under the new build in between (docs/SERVICE.md, "Python client")."""
 
     def __init__(
         self,
@@ -135,6 +137,7 @@ class Client:
         self.timeout, self.retries, self.backoff = timeout, retries, backoff
         self.build: str | None = None
         self.plan_build: str | None = None
+        self.plan_builds: dict[str, str | None] = {}
 
     def __enter__(self) -> Self:
         return self
@@ -182,17 +185,22 @@ class Client:
         ``pushes_left``, value iteration's push for that budget; with ``failed_actions`` (the
         actions of earlier answers that left the object in this pose), a push that has not failed.
 
-        build : the build ``failed_actions`` were recorded under (default ``plan_build``, that of the last
-            plan answer, which served the push that failed when one object is planned at a time); another
-            build raises ``OtherBuild``. Sent only with ``failed_actions``, the only indices a plan takes."""
+        build : the build ``failed_actions`` were recorded under (default ``plan_builds[object_id]``, that of
+            the last answer that served this object a push); another build raises ``OtherBuild``. Sent only
+            with ``failed_actions``, the only indices a plan takes."""
         item = plan_item(object_id, pose, ros_pose, policy, pushes_left, failed_actions)
-        return self._plan("/plan", PlanResponse, item, self._recorded_under(item, build))
+        answer = self._plan("/plan", PlanResponse, item, self._recorded_under([item], build))
+        self._served([item], [answer])
+        return answer
 
     def plan_batch(self, items: list[dict], build: str | None = None) -> PlanResults:
         """Up to 1000 items of ``plan_item(...)``; per-item errors are in ``results[i].error``.
-        ``build`` as ``plan``'s, for the whole batch when an item has ``failed_actions``."""
-        requested = self._recorded_under(next((i for i in items if i.get("failed_actions")), {}), build)
-        return self._plan("/batch/plan", PlanResults, {"items": items}, requested)
+        ``build`` as ``plan``'s, for the whole batch when an item has ``failed_actions``; items whose
+        objects' failed actions were recorded under different builds cannot all be current, and raise
+        ``OtherBuild`` before anything is sent."""
+        answer = self._plan("/batch/plan", PlanResults, {"items": items}, self._recorded_under(items, build))
+        self._served(items, [r.result for r in answer.results])
+        return answer
 
     def transitions(self, items: list[tuple[str, int, int]], build: str | None = None) -> TransitionResults:
         """(object_id, pose, action) triples, up to 1000; ``build``: the build the actions were taken from."""
@@ -201,14 +209,31 @@ class Client:
 
     # --- transport ----------------------------------------------------------------
 
-    def _recorded_under(self, item: dict, build: str | None) -> str | None:
-        """The build to name for a plan ``item``: with failed actions, ``build`` or the last plan answer's."""
-        return (_build_name(build) or self.plan_build) if item.get("failed_actions") else None
+    def _recorded_under(self, items: list[dict], build: str | None) -> str | None:
+        """The build to name for plan ``items``: with failed actions, ``build``, else the build of the answer
+        that last served each such item's object a push (none known: no build named, any build answers)."""
+        failed = [item["object_id"] for item in items if item.get("failed_actions")]
+        if not failed or build is not None:
+            return _build_name(build) if failed else None
+        recorded = {object_id: self.plan_builds.get(object_id) for object_id in failed}
+        if len(set(recorded.values())) > 1:
+            # One header names the build of every item's indices; of two builds at most one is served.
+            raise OtherBuild(412, f"failed actions recorded under {len(set(recorded.values()))} builds in one batch "
+                                  f"({', '.join(f'{o}: {str(b)[:12]}' for o, b in recorded.items())}): at most one is "
+                                  "served; clear the older ones or plan them in separate calls",
+                             {"build": self.build, "requested": recorded})
+        return recorded[failed[0]]
 
     def _plan(self, path: str, model: type[Model], body: dict, requested: str | None) -> Model:
         answer = self._call("POST", path, model, json=body, requested=requested)
         self.plan_build = self.build
         return answer
+
+    def _served(self, items: list[dict], answers: list[PlanResponse | None]) -> None:
+        """Note the build that served each item's object a push: its action indices are that build's."""
+        for item, answer in zip(items, answers, strict=True):
+            if answer is not None and answer.action is not None:
+                self.plan_builds[item["object_id"]] = self.build
 
     def _call(self, method: str, path: str, model: type[Model], requested: str | None = None, **kwargs) -> Model:
         """``method path`` answered as ``model``, retried as the module says; ``requested``: the build the

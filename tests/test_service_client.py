@@ -175,21 +175,22 @@ def test_the_client_names_the_build_of_its_failed_actions_and_raises_other_build
     first = typed.plan(object_id, pose=observed)
     after = typed.plan(object_id, pose=observed, failed_actions=[first.action])
     assert sent == [None, served] and after.action != first.action and typed.plan_build == served
+    assert typed.plan_builds == {object_id: served}
     with pytest.raises(OtherBuild) as refused:
         typed.plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
     assert refused.value.status == 412 and refused.value.body["build"] == served and sent[-1] == OTHER_BUILD
     assert "but build" in refused.value.detail, "the service's own refusal"
-    typed.plan_build = OTHER_BUILD  # as if the push that failed came from a build since replaced
+    typed.plan_builds[object_id] = OTHER_BUILD  # as if the push that failed came from a build since replaced
     for _ in range(2):  # repeated, and after another route's answer from the new build: still refused
         with pytest.raises(OtherBuild):
             typed.plan_batch([plan_item(object_id, pose=observed, failed_actions=[first.action])])
-        assert sent[-1] == OTHER_BUILD and typed.build == served and typed.plan_build == OTHER_BUILD
+        assert sent[-1] == OTHER_BUILD and typed.build == served and typed.plan_builds[object_id] == OTHER_BUILD
         typed.objects()
     typed.plan_batch([plan_item(object_id, pose=observed)])
-    assert sent[-1] is None and typed.plan_build == served, "asked afresh: the new build's indices from here on"
-    with pytest.raises(OtherBuild):  # a build given outranks plan_build, in a batch too
+    assert sent[-1] is None and typed.plan_builds[object_id] == served, "asked afresh: the new build's indices from here on"
+    with pytest.raises(OtherBuild):  # a build given outranks plan_builds, in a batch too
         typed.plan_batch([plan_item(object_id, pose=observed, failed_actions=[first.action])], build=OTHER_BUILD)
-    assert sent[-1] == OTHER_BUILD and typed.plan_build == served
+    assert sent[-1] == OTHER_BUILD and typed.plan_builds[object_id] == served
     for lookup in (lambda: typed.action(object_id, pose, first.action, build=OTHER_BUILD),
                    lambda: typed.transitions([(object_id, pose, first.action)], build=OTHER_BUILD)):
         with pytest.raises(OtherBuild):
@@ -209,6 +210,51 @@ def test_the_client_names_the_build_of_its_failed_actions_and_raises_other_build
     assert caught.value.status == 412 and caught.value.body == {"build": served, "requested": OTHER_BUILD}
     unnamed = older({}).plan(object_id, pose=observed, failed_actions=[first.action], build=OTHER_BUILD)
     assert unnamed.action == after.action, "a service naming no build (before stop 68) cannot be checked"
+
+
+def test_the_client_names_each_objects_own_build_when_a_swap_falls_between_two_objects_plans(client, tables):
+    """A controller planning two objects in turn across a rebuild: the failed push of the first object carries
+    the build that served it, not the build that answered the second object since, so the new build refuses
+    it (with the last plan answer's build, ``plan_build``, the new build would read the old indices). A batch
+    whose failed actions were recorded under two builds is refused before it is sent; an answer that served no
+    push, or an item refused, records nothing."""
+    pushes = [(o, p) for (o, p), r in sorted(tables["poses"].items()) if r["value_iteration_action"] != NO_OP]
+    (first_id, first_pose), (second_id, second_pose) = pushes[0], next(q for q in pushes if q[0] != pushes[0][0])
+    observed = {o: planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, o, p)
+                for o, p in ((first_id, first_pose), (second_id, second_pose))}
+    served = client.get("/health").json()["dataset"]["manifest_sha256"]
+    stamps, sent = [OTHER_BUILD], []  # the first answer comes from a build replaced before the second
+
+    def recording(request):
+        sent.append(request.headers.get("x-toppledb-build"))
+        real = client.request(request.method, request.url.path, content=request.content, headers=dict(request.headers))
+        return httpx.Response(real.status_code, content=real.content,
+                              headers={"x-toppledb-build": stamps.pop() if stamps else real.headers["x-toppledb-build"]})
+
+    typed = Client(http=httpx.Client(transport=httpx.MockTransport(recording), base_url="http://x"), retries=0)
+    failed = typed.plan(first_id, pose=observed[first_id]).action
+    other = typed.plan(second_id, pose=observed[second_id]).action
+    assert typed.plan_builds == {first_id: OTHER_BUILD, second_id: served} and typed.plan_build == served
+    with pytest.raises(OtherBuild) as refused:
+        typed.plan(first_id, pose=observed[first_id], failed_actions=[failed])
+    assert sent[-1] == OTHER_BUILD and refused.value.body["build"] == served, "the service's own 412"
+    calls = len(sent)
+    both = [plan_item(first_id, pose=observed[first_id], failed_actions=[failed]),
+            plan_item(second_id, pose=observed[second_id], failed_actions=[other])]
+    with pytest.raises(OtherBuild, match="2 builds") as mixed:
+        typed.plan_batch(both)
+    assert len(sent) == calls and mixed.value.body["requested"] == {first_id: OTHER_BUILD, second_id: served}
+    answer = typed.plan_batch(both, build=served)  # the caller's word outranks the records
+    assert sent[-1] == served and all(r.result is not None for r in answer.results)
+    assert typed.plan_builds == {first_id: served, second_id: served}
+    typed.plan_builds[first_id] = OTHER_BUILD
+    refused_item = plan_item("no-such-object", pose=observed[first_id])
+    typed.plan_batch([refused_item, plan_item(second_id, pose=observed[second_id])])
+    assert typed.plan_builds == {first_id: OTHER_BUILD, second_id: served}, "an item refused records nothing"
+    stranger = plan_item(second_id, pose=observed[second_id], failed_actions=[other])
+    typed.plan_builds.clear()
+    typed.plan_batch([stranger])
+    assert sent[-1] is None, "failed actions of an object no answer served: no build is named"
 
 
 def test_typed_answers_equal_the_json(typed, client, tables):
