@@ -53,8 +53,9 @@ class SimConfig:
     rest_steps: int = 24
     """Steps in a row at rest (0.1 s at 240 Hz) [ours]."""
     object_friction: tuple[float, float] = (0.3, 0.7)
-    """Uniform range of the heap's friction coefficient (objects, bin and finger share it; one
-    draw per heap).  [thesis] samples friction coefficients per heap without giving the
+    """Uniform range of the heap's friction coefficient mu (one draw per heap; each object gets it,
+    the bin and the finger 1, and Bullet multiplies two bodies' coefficients: mu against the bin or
+    the finger, mu squared between two objects).  [thesis] samples friction coefficients per heap without giving the
     distribution; [ours] the range brackets Dex-Net's mean 0.5 [DN2]."""
     finger_radius: float = 0.01
     """m, radius of the pushing finger, a vertical cylinder (a closed parallel-jaw gripper
