@@ -39,6 +39,11 @@ MAX_FAILED_ACTIONS = 100
 ROTATION_TOLERANCE = 1e-3
 """Largest |R^T R - I| entry and |det R - 1| accepted for the rotation of an observed pose."""
 
+MAX_TRANSLATION = 1e6
+"""m, largest |x|, |y| or |z| of a pose's translation in a request: 1,000 km admits any frame a robot
+works in; past it a push's 1.5 cm approach and 4 cm depth would soon vanish in float64 (at 1e14 m
+its spacing is 1.6 cm), so a start, contact and end served as one point would read as executable."""
+
 HEIGHT_TOLERANCE = 0.005
 """m, default largest |z_offset| of an observed pose: the height above z = 0 of the matched
 stable pose's support point (the pose frame's origin, on the bottom under the centre of mass).
@@ -116,6 +121,9 @@ def check_rigid(matrix: list[list[float]]) -> list[list[float]]:
         transposed = max(abs(matrix[i][3] - (1.0 if i == 3 else 0.0)) for i in range(4)) <= 1e-9
         hint = " (the last column is [0, 0, 0, 1]: is the matrix column-major? send it row by row)" if transposed else ""
         raise ValueError(f"the last row must be [0, 0, 0, 1], got {list(matrix[3])}{hint}")
+    if not max(abs(matrix[i][3]) for i in range(3)) <= MAX_TRANSLATION:
+        raise ValueError(f"the translation {[matrix[i][3] for i in range(3)]} is beyond {MAX_TRANSLATION:g} m: "
+                         "send metres in the table frame")
     return matrix
 
 
@@ -171,12 +179,16 @@ def known_keys(names: tuple[str, ...]) -> BeforeValidator:
     return BeforeValidator(keep_known)
 
 
+Coordinate = Annotated[Finite, Field(ge=-MAX_TRANSLATION, le=MAX_TRANSLATION)]
+"""m, a position's coordinate in a request (``MAX_TRANSLATION``)."""
+
+
 class Point(Model):
     """geometry_msgs/Point: m."""
 
-    x: Finite
-    y: Finite
-    z: Finite
+    x: Coordinate
+    y: Coordinate
+    z: Coordinate
 
 
 class Quaternion(Model):
@@ -594,6 +606,8 @@ class PlanBatch(Model):
 class ItemError(Answer):
     status: int = Field(description="HTTP status the item would have had alone: 404 or 409")
     detail: str
+    reason: Literal["no_stable_pose", "off_table"] | None = Field(
+        None, description="A 409's cause, as the single route's body names it; null for a 404")
 
 
 class TransitionResult(Answer):

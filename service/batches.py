@@ -50,7 +50,7 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
         try:
             results.append(result_model(result=item(request)))
         except ServiceError as err:
-            results.append(result_model(error={"status": err.status_code, "detail": err.detail}))
+            results.append(result_model(error={"status": err.status_code, "detail": err.detail, "reason": err.reason}))
     return results_model(results=results).model_dump_json().encode()
 
 

@@ -355,6 +355,12 @@ MALFORMED = [
     # A translated pose sent column-major: the translation lands in the last row, and the message says so.
     (json.dumps({"object_id": "random_001", "pose": np.array([[1.0, 0, 0, 0.3], [0, 1, 0, -0.1], [0, 0, 1, 0], [0, 0, 0, 1]]).T.tolist()}),
      "the last column is [0, 0, 0, 1]: is the matrix column-major? send it row by row"),
+    # Far beyond any robot's frame (metres sent for millimetres, or garbage): the push's offsets would vanish in float64.
+    (json.dumps({"object_id": "random_001", "pose": _identity_with(0, 3, 1.7e308)}), "is beyond 1e+06 m"),
+    (json.dumps({"object_id": "random_001", "pose": _identity_with(2, 3, -1.000001e6)}), "is beyond 1e+06 m"),
+    (json.dumps({"object_id": "random_001", "ros_pose": {"position": {"x": 0, "y": 2e6, "z": 0},
+                 "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}, "frame_id": "world"}}),
+     "body.ros_pose.position.y: Input should be less than or equal to 1000000"),
     (json.dumps({"object_id": "random_001", "pose": np.eye(3).tolist()}), "at least 4 items"),
     (json.dumps({"object_id": "random_001", "pose": np.eye(4).ravel().tolist()}), "at most 4 items"),
     (json.dumps({"object_id": "random_001", "pose": _identity_with(1, 1, "one")}), "valid number"),
@@ -519,8 +525,24 @@ def test_batch_plan_answers_each_item_and_rejects_malformed_batches(client, tabl
     first, unknown, no_match = response.json()["results"]
     assert first == {"result": client.post("/plan", json=items[0]).json(), "error": None}
     assert first["result"]["match"]["pose"] == 3
-    assert unknown == {"result": None, "error": {"status": 404, "detail": "unknown object 'mug' (3 objects; GET /objects lists them)"}}
+    assert unknown == {"result": None, "error": {"status": 404, "detail": "unknown object 'mug' (3 objects; GET /objects lists them)",
+                                                 "reason": None}}
     assert no_match["error"]["status"] == 409 and "no stable pose" in no_match["error"]["detail"]
+    # A 409 item names its cause as the single route's body does, so a client need not parse the English.
+    lifted = observed.copy()
+    lifted[2, 3] += 0.1
+    items.append({"object_id": "random_002", "pose": lifted.tolist()})
+    causes = [r["error"] and r["error"]["reason"] for r in client.post("/batch/plan", json={"items": items}).json()["results"]]
+    alone = [(r.json().get("reason") if r.status_code != 200 else None) for r in (client.post("/plan", json=i) for i in items)]
+    assert causes == alone == [None, None, "no_stable_pose", "off_table"]
+
+    # A translation at the bound is a pose like any other; past it the whole batch is malformed.
+    far = observed.copy()
+    far[0, 3] = 1e6
+    assert client.post("/batch/plan", json={"items": [{"object_id": "random_002", "pose": far.tolist()}]}).status_code == 200
+    far[0, 3] = np.nextafter(1e6, 2e6)
+    beyond = client.post("/batch/plan", json={"items": [{"object_id": "random_002", "pose": far.tolist()}]})
+    assert beyond.status_code == 422 and "body.items.0.pose: the translation [1000000.0000000001, " in beyond.json()["detail"]
 
     nan = json.dumps({"items": items[:1]}).replace("1.0]]", "NaN]]", 1)
     assert "NaN" in nan

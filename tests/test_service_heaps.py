@@ -211,6 +211,7 @@ MALFORMED = [
     ('{"objects": [{"object_id": "random_001", "pose": [[NaN,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}', "finite number"),
     (json.dumps({"objects": [{"object_id": "random_001", "pose": np.diag([2.0, 1, 1, 1]).tolist()}]}), "not a rotation"),
     (json.dumps({"objects": [{"object_id": "random_001", "pose": _eye_with(3, 2, 0.5)}]}), "last row must be [0, 0, 0, 1]"),
+    (json.dumps({"objects": [{"object_id": "random_001", "pose": _eye_with(1, 3, 1e300)}]}), "is beyond 1e+06 m"),
     (json.dumps({"objects": [{"object_id": "random_001"}]}), "body.objects.0: give exactly one of pose"),
     (json.dumps({"objects": [ONE], "policy": "shove"}), "body.policy"),
     (json.dumps({"objects": []}), "body.objects: List should have at least 1 item"),
