@@ -25,6 +25,7 @@ import operator
 import re
 import time
 from typing import Any, Self, TypeVar
+from urllib.parse import quote
 
 import httpx
 import numpy as np
@@ -42,6 +43,7 @@ from schema.api import (
     RosPose,
     TransitionResults,
 )
+from schema.layout import OBJECT_ID_PATTERN
 
 from .errors import validation_body
 
@@ -157,18 +159,18 @@ class Client:
         return self._call("GET", "/objects", ObjectList)
 
     def object(self, object_id: str) -> ObjectDetail:
-        return self._call("GET", f"/objects/{object_id}", ObjectDetail)
+        return self._call("GET", _object_path(object_id), ObjectDetail)
 
     def pose(self, object_id: str, pose: int) -> PoseDetail:
-        return self._call("GET", f"/objects/{object_id}/poses/{pose}", PoseDetail)
+        return self._call("GET", f"{_object_path(object_id)}/poses/{_integer(pose, 'pose')}", PoseDetail)
 
     def action(self, object_id: str, pose: int, action: int, build: str | None = None) -> ActionDetail:
         """One candidate push; ``build``: the build ``action`` was taken from (another one is ``OtherBuild``)."""
-        return self._call("GET", f"/objects/{object_id}/poses/{pose}/actions/{action}", ActionDetail,
-                          requested=_build_name(build))
+        path = f"{_object_path(object_id)}/poses/{_integer(pose, 'pose')}/actions/{_integer(action, 'action')}"
+        return self._call("GET", path, ActionDetail, requested=_build_name(build))
 
     def q_values(self, object_id: str, pose: int, top: int = 10, by: str = "q") -> QValues:
-        return self._call("GET", f"/objects/{object_id}/poses/{pose}/q", QValues, params={"top": top, "by": by})
+        return self._call("GET", f"{_object_path(object_id)}/poses/{_integer(pose, 'pose')}/q", QValues, params={"top": top, "by": by})
 
     def plan(
         self,
@@ -272,6 +274,15 @@ def _build_name(build: str | None) -> str | None:
         raise ValueError(f"build must be a manifest SHA-256 (64 lowercase hex digits) as x-toppledb-build names it, "
                          f"got {build[:80]!r}")
     return build
+
+
+def _object_path(object_id: str) -> str:
+    """``/objects/<id>`` with the id escaped whole, so that "bunny?x=1" asks for an object of that id (none
+    has one: a 404), not bunny with a query.  A "/" or a dot segment would still reach another route (the
+    server decodes the path before routing), and no object id holds them (``schema.layout.OBJECT_ID_PATTERN``)."""
+    if "/" in object_id or object_id in (".", ".."):
+        raise ValueError(f"{object_id[:80]!r} is no object id: ids match {OBJECT_ID_PATTERN.pattern}")
+    return f"/objects/{quote(object_id, safe='')}"
 
 
 def _integer(value: Any, name: str) -> int:

@@ -299,6 +299,21 @@ def test_errors_are_exceptions_by_status_and_reason(typed, tables):
         with pytest.raises(TypeError):
             plan_item(object_id, pose=np.eye(4), pushes_left=budget)
     assert plan_item(object_id, pose=np.eye(4), pushes_left=np.int64(2))["pushes_left"] == 2
+    # An id is one path segment, escaped: never a query, nor a path to another route.
+    for odd in (f"{object_id}?x=1", "a b#c", "%2e%2e", "-"):
+        with pytest.raises(NotFound):
+            typed.object(odd)
+    for path in (f"{object_id}/poses", "../health", "..", "."):  # would reach another route: no id is one
+        with pytest.raises(ValueError, match="is no object id"):
+            typed.object(path)
+    with pytest.raises(NotFound, match="unknown object 'a b#c'"):
+        typed.pose("a b#c", 0)
+    assert typed.pose(object_id, np.int64(pose)).pose == pose
+    for index in (float(pose), "1", True):  # as the plan's integers: refused, not formatted into the path
+        with pytest.raises(TypeError):
+            typed.pose(object_id, index)
+        with pytest.raises(TypeError):
+            typed.action(object_id, pose, index)
     with pytest.raises(Unauthorized):
         Client(http=typed.http, retries=0, token="another-token-of-length").objects()
 
