@@ -173,6 +173,7 @@ def test_millimetre_meshes_fail_with_a_unit_hint_until_units_are_given(tmp_path,
 
     assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--units", "mm", "--mass", "0.2", "--strict", *FAST]) == 1
     assert "--strict: noise:" in capsys.readouterr().err
+    assert not staging_dir(out).exists(), "a failed --strict run leaves no empty staging directory beside --out"
 
 
 def test_help_shows_defaults_set_keys_and_examples(capsys, monkeypatch):

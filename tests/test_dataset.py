@@ -26,6 +26,7 @@ import pyarrow as pa
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 import pytest
+import trimesh
 
 from pipeline.build import dataset, fanout, rows, shards
 from pipeline.build.atomic import file_sha256
@@ -232,6 +233,7 @@ def test_failed_runs_leave_the_finished_dataset_intact(reference, corpus, tmp_pa
     assert build(grown, copy, *unreachable) == 1
     assert "cannot connect to the dask scheduler at tcp://127.0.0.1:1" in capsys.readouterr().err
     assert_intact(copy, before)
+    assert not staging_dir(copy).exists(), "no empty hidden staging directory is left beside --out"
 
     # Bad parameters, and a strict run that meets a broken mesh, change nothing either.
     assert build(corpus, copy, "--set", "topple.mu_table_mean=many") == 2
@@ -239,6 +241,12 @@ def test_failed_runs_leave_the_finished_dataset_intact(reference, corpus, tmp_pa
     broken = write_corpus(tmp_path, OBJECTS, "flat,,flat.obj,1,0.1\n")
     assert build(broken, copy, "--strict", "--workers", "1") == 1
     assert_intact(copy, before)
+    assert not staging_dir(copy).exists(), "the failed object's staging is gone; nothing else was staged"
+
+    # A fresh --out on an unreachable scheduler: neither it nor a staging directory is left.
+    fresh = tmp_path / "fresh" / "sched"
+    assert build(grown, fresh, *unreachable) == 1
+    assert not (tmp_path / "fresh").exists()
 
 
 def test_analysts_read_the_tables_and_counts_match_the_manifest(reference):
@@ -558,8 +566,27 @@ def test_broken_mesh_is_a_failure_and_strict_makes_it_fatal(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: --strict: flat: ") and err.count("\n") == 1
     assert not (tmp_path / "new" / "strict").exists(), "a fresh --out the failed run made is not left behind empty"
-    # Its parent, made by the run too, keeps only the staged shards beside it, for the same command to resume from.
-    assert {p.name for p in (tmp_path / "new").iterdir()} <= {staging_dir(tmp_path / "new" / "strict").name}
+    # Nor its parent, made by the run too: the staging directory beside --out held nothing to resume from.
+    assert not (tmp_path / "new").exists()
+
+
+def test_a_strict_run_keeps_the_shards_it_finished_for_the_next_run(tmp_path, capsys):
+    """--strict stops at a failed object, but the objects it finished before stay staged (a rerun
+    reuses them); only a staging directory with nothing to resume is removed."""
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    (meshes / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nf 1 2 3\nf 1 3 4\n")
+    # Largest mesh first (``_compute``): with one worker random_000 is finished before flat fails.
+    corpus = write_corpus(tmp_path, OBJECTS[:1], "flat,,meshes/flat.obj,1,0.1\n")
+    out = tmp_path / "strict"
+    assert build(corpus, out, "--strict", "--workers", "1") == 1
+    staged = staging_dir(out) / layout.SHARDS_DIR
+    assert [p.parent.name for p in staged.glob("*/complete.json")] == [OBJECTS[0]]
+    capsys.readouterr()
+    assert build(corpus, out, "--workers", "1") == 0
+    assert f"resuming: 1 of 2 objects already complete in {staging_dir(out)}" in capsys.readouterr().err
+    run = read_manifest(out).run  # flat is tried again (and fails); random_000 is not recomputed
+    assert (run["computed"], run["reused"]) == (1, 1) and not staging_dir(out).exists()
 
 
 def test_other_parameters_are_refused_and_force_rebuilds(reference, corpus, tmp_path, capsys):
@@ -636,6 +663,13 @@ def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_
     err = capsys.readouterr().err
     assert rejected["junk.ply"] in err and err.count("\n") == 1, err
     assert_intact(copy, before)
+    # A mesh that loads but that the model rejects (a sphere has no pose worth pushing) fails inside the
+    # build: still exit 2, and no empty staging directory is left beside the dataset.
+    trimesh.creation.icosphere(radius=0.03).export(tmp_path / "ball.obj")
+    assert main(["add", str(copy), str(tmp_path / "ball.obj"), "--no-progress"]) == 2
+    assert "nearly a sphere" in capsys.readouterr().err
+    assert_intact(copy, before)
+    assert not staging_dir(copy).exists()
 
     assert main(["add", str(copy), str(mesh), "--scale", "0.015", "--mass", "0.1", "--id", "extra", "--no-progress"]) == 0
     out = capsys.readouterr().out

@@ -221,13 +221,16 @@ def build_dataset(
     staging = staging_dir(out)
 
     with _exclusive(out):
+        staging_existed = staging.exists()
         try:
             summary = _build_locked(corpus, config, out, staging, started, workers, scheduler, force, strict, progress,
                                     process, log, previous_failures or {})
         except BaseException:
-            # --strict, an unreachable scheduler, Ctrl-C: a fresh --out this run made is not left behind
-            # empty (its staged shards stay beside it, for the same command to resume from).  Only
-            # while holding the lock: a run that never got it must not remove the one that has it.
+            # --strict, an unreachable scheduler, Ctrl-C, a mesh `add` rejects: neither a staging directory
+            # with nothing to resume nor a fresh --out this run made is left behind empty (staged shards
+            # stay, for the same command to resume from).  Only while holding the lock: a run that never
+            # got it must not remove what the one that has it is writing.
+            _discard_idle_staging(staging, created_now=not staging_existed)
             if created:
                 _remove_if_only_lock(out, created)
             raise
@@ -350,6 +353,25 @@ def _build_locked(
         shutil.rmtree(staging, ignore_errors=True)
     order_repairs = {s.object_id: repairs[s.object_id] for s in corpus.specs if s.object_id in repairs}
     return Summary(written, computed=len(todo), reused=reused, wall_s=wall, repairs=order_repairs, committed=committed)
+
+
+def _discard_idle_staging(staging: Path, created_now: bool) -> None:
+    """After a failed or interrupted run: remove ``staging`` when it holds nothing a rerun would use,
+    so that no empty hidden ``.<name>.staging`` is left beside ``--out``.  Kept when it holds a
+    complete shard (the same command resumes from it) or a commit plan (the next run rolls the
+    commit forward).  One that was there before this run is removed only when it holds no file at
+    all: what an earlier run left is that run's to judge, not this one's."""
+    if not staging.is_dir() or _worth_resuming(staging):
+        return
+    if created_now or not any(path.is_file() for path in staging.rglob("*")):
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _worth_resuming(staging: Path) -> bool:
+    """Whether ``staging`` holds work a rerun would reuse: a begun commit or a complete shard."""
+    return (staging / COMMIT_PLAN).exists() or any(
+        shards.read_record(staging, object_id) is not None for object_id in _shard_ids_on_disk(staging)
+    )
 
 
 def _remove_if_only_lock(out: Path, created: list[Path]) -> None:
