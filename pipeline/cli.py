@@ -460,7 +460,7 @@ def run_policies(args: argparse.Namespace) -> int:
         print(f"plot: {args.plot}")
     for policy in result["policies"].values():
         policy.pop("gains_useful")
-    print(json.dumps(result))
+    print(json.dumps(result, allow_nan=False))  # a NaN would be no JSON at all; no useful trial is null
     return EXIT_OK
 
 

@@ -1,5 +1,7 @@
 """The thesis 4.4.3 policy experiment on hand-built tables with known answers."""
 
+import json
+
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -60,6 +62,25 @@ def test_cli_reports_and_refuses_a_missing_dataset(tmp_path, capsys):
     capsys.readouterr()
     assert main(["policies", str(tmp_path / "nowhere")]) == 2
     assert "no such dataset directory" in capsys.readouterr().err
+
+
+def test_no_useful_trial_is_said_in_words_and_null_in_the_json(tmp_path, capsys):
+    """Every drop lands in the best pose: no mean to report, so no nan on the console and no bare
+    NaN (not JSON) on the JSON line; null, as ``policies-physics`` writes."""
+    _write(tmp_path, p_success=0.3, drop=(0.0, 1.0))
+    write_minimal_manifest(tmp_path, {"cup": 2})
+    assert main(["policies", str(tmp_path), "--trials", "200", "--plot", str(tmp_path / "p.png")]) == 0
+    out = capsys.readouterr().out
+    assert "0 useful trials of 200" in out and "no useful trials" in out and "nan" not in out.lower()
+
+    def refuse(constant):
+        raise ValueError(f"{constant} is not JSON")
+
+    record = json.loads(out.strip().splitlines()[-1], parse_constant=refuse)
+    for policy in record["policies"].values():
+        assert policy["mean_gain_useful"] is None and policy["mean_pushes_useful"] is None
+        assert policy.get("gain_over_max_height", None) is None and policy["mean_gain_all"] == 0.0
+    assert (tmp_path / "p.png").read_bytes().startswith(b"\x89PNG")
 
 
 def _drop_tables(probability, poses_per_object):

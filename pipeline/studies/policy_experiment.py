@@ -157,15 +157,22 @@ def experiment(root: str | Path | Dataset, n_trials: int = 20_000, max_steps: in
         final, pushes = run_policy(tables, policy, starts, uniforms)
         gain = tables.v_s[final] - tables.v_s[starts]
         result["policies"][policy] = {
-            "mean_gain_useful": float(gain[useful].mean()) if useful.any() else float("nan"),
+            "mean_gain_useful": _mean(gain[useful]),
             "mean_gain_all": float(gain.mean()),
-            "mean_pushes_useful": float(pushes[useful].mean()) if useful.any() else float("nan"),
+            "mean_pushes_useful": _mean(pushes[useful]),
             "gains_useful": gain[useful],
         }
     base = result["policies"]["max_height"]["mean_gain_useful"]
     for policy in ("greedy", "value_iteration"):
-        result["policies"][policy]["gain_over_max_height"] = result["policies"][policy]["mean_gain_useful"] - base
+        mean = result["policies"][policy]["mean_gain_useful"]
+        result["policies"][policy]["gain_over_max_height"] = None if base is None else mean - base
     return result
+
+
+def _mean(values: np.ndarray) -> float | None:
+    """The mean, or None for no values (JSON null, as ``policies_physics.mean_se`` gives): a dataset
+    without a useful trial has no gain to report, and NaN is not JSON."""
+    return float(values.mean()) if len(values) else None
 
 
 def plot(result: dict, path: str | Path) -> None:
@@ -180,9 +187,10 @@ def plot(result: dict, path: str | Path) -> None:
     figure, axis = plt.subplots(figsize=(6, 4))
     names = list(POLICIES)
     means = [result["policies"][p]["mean_gain_useful"] for p in names]
-    axis.bar([n.replace("_", " ") for n in names], means, color=["#999999", "#4c78a8", "#f58518"])
+    # No useful trial: empty bars labelled so, rather than a failed plot.
+    axis.bar([n.replace("_", " ") for n in names], [m or 0.0 for m in means], color=["#999999", "#4c78a8", "#f58518"])
     for x, mean in enumerate(means):
-        axis.text(x, mean, f"{mean:+.3f}", ha="center", va="bottom")
+        axis.text(x, mean or 0.0, "none useful" if mean is None else f"{mean:+.3f}", ha="center", va="bottom")
     axis.set(
         ylabel="mean change in V_s",
         title=f"Policies on {result['useful_trials']} useful of {result['trials']} trials",
@@ -195,6 +203,11 @@ def plot(result: dict, path: str | Path) -> None:
 def summary(result: dict) -> str:
     steps = result["max_steps"]
     lines = [f"{result['useful_trials']} useful trials of {result['trials']} (at most {steps} push{'es' if steps != 1 else ''} each)"]
+    if not result["useful_trials"]:
+        # Every drop lands in its object's best pose, or where Greedy would not push: a mean over
+        # no trials is no number, so the line says so instead of printing nan.
+        lines.append("no useful trials (no start where a push can raise V_s): no policy gains to compare")
+        return "\n".join(lines)
     for policy in POLICIES:
         r = result["policies"][policy]
         line = f"{policy:16s} mean V_s gain {r['mean_gain_useful']:+.3f} ({r['mean_pushes_useful']:.2f} pushes)"
