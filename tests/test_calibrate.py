@@ -40,8 +40,25 @@ def test_grouped_folds_put_each_object_in_exactly_one_fold():
     assert max(sizes) - min(sizes) <= max(pushes.values())  # greedy balance: within one object
     assert grouped_folds(pushes, 6, seed=3) == folds
     assert grouped_folds(pushes, 6, seed=4) != folds
-    with pytest.raises(CalibrationError, match="cannot fill 6 folds"):
+    with pytest.raises(CalibrationError, match="6 folds grouped by object need at least 6 objects"):
         grouped_folds({"a": 1, "b": 2}, 6, seed=0)
+
+
+@pytest.mark.parametrize("objects, k, advice", [
+    (1, 6, "the pushes are of 1 object, and cross-validation holds out whole objects: log pushes of at least 2 objects"),
+    (1, 2, "the pushes are of 1 object, and cross-validation holds out whole objects: log pushes of at least 2 objects"),
+    (2, 6, "the pushes are of 2 objects: use --folds 2, or log pushes of more objects"),
+    (4, 6, "the pushes are of 4 objects: use --folds 4 or fewer, or log pushes of more objects"),
+])
+def test_too_few_objects_for_the_folds_says_what_is_needed_and_never_a_fold_count_that_fails(objects, k, advice):
+    pushes = {f"obj{i}": 3 for i in range(objects)}
+    with pytest.raises(CalibrationError) as error:
+        grouped_folds(pushes, k, seed=0)
+    message = str(error.value)
+    assert message == f"{k} folds grouped by object need at least {k} objects; {advice}"
+    if "--folds" in message:  # the fold count it suggests works
+        suggested = int(message.split("--folds ")[1].split()[0].rstrip(","))
+        assert len(grouped_folds(pushes, suggested, seed=0)) == suggested
 
 
 def test_settings_stay_in_bounds_and_the_plan_adds_up():

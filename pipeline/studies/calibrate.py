@@ -100,7 +100,7 @@ def grouped_folds(pushes_per_object: dict[str, int], k: int, seed: int) -> list[
     if k < 2:
         raise CalibrationError(f"cross-validation needs at least 2 folds, got {k}")
     if len(names) < k:
-        raise CalibrationError(f"{len(names)} objects cannot fill {k} folds grouped by object; use --folds {max(2, len(names))} or more objects")
+        raise CalibrationError(_too_few_objects(len(names), k))
     order = np.random.default_rng(seed).permutation(len(names))
     folds: list[list[str]] = [[] for _ in range(k)]
     load = np.zeros(k)
@@ -109,6 +109,17 @@ def grouped_folds(pushes_per_object: dict[str, int], k: int, seed: int) -> list[
         folds[f].append(names[i])
         load[f] += pushes_per_object[names[i]]
     return [sorted(f) for f in folds]
+
+
+def _too_few_objects(objects: int, k: int) -> str:
+    """Why ``objects`` cannot fill ``k`` folds grouped by object, and what would: each fold holds
+    whole objects, so k folds need k objects, and cross-validation at least 2 folds.  A fold count
+    is suggested only when one can work (never "--folds 2" to a log of one object)."""
+    have = f"{k} folds grouped by object need at least {k} objects; the pushes are of {objects} object{'s' if objects != 1 else ''}"
+    if objects < 2:
+        return f"{have}, and cross-validation holds out whole objects: log pushes of at least 2 objects"
+    fewer = "--folds 2" if objects == 2 else f"--folds {objects} or fewer"
+    return f"{have}: use {fewer}, or log pushes of more objects"
 
 
 def settings_plan(total: int) -> tuple[int, tuple[int, ...]]:
