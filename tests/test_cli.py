@@ -153,7 +153,7 @@ def test_millimetre_meshes_fail_with_a_unit_hint_until_units_are_given(tmp_path,
     captured = capsys.readouterr()
     assert "error: every object failed (3)" in captured.err
     assert "2  too large for a tabletop (block, bracket); try --units mm" in captured.out
-    assert "1  cannot read # (noise)" in captured.out
+    assert "1  cannot read <file> (noise)" in captured.out, "the file name masked, and said to be one"
     # A dataset's corpus can give units in a sidecar or a list's column too: its hint says so.
     assert 'failed    block: too large for a tabletop' in captured.out
     assert 'use --units mm (or units = "mm" in corpus.toml, or a scale column)' in captured.out
@@ -174,6 +174,16 @@ def test_millimetre_meshes_fail_with_a_unit_hint_until_units_are_given(tmp_path,
     assert main(["dataset", "--corpus", str(meshes), "--out", str(out), "--units", "mm", "--mass", "0.2", "--strict", *FAST]) == 1
     assert "--strict: noise:" in capsys.readouterr().err
     assert not staging_dir(out).exists(), "a failed --strict run leaves no empty staging directory beside --out"
+
+
+def test_failures_group_by_reason_with_file_names_and_numbers_named_not_hidden():
+    from pipeline.build.dataset import failure_groups
+
+    groups = failure_groups([
+        ("a", "a: cannot read a.stl: no triangles"), ("b", "b: cannot read parts/b.obj: bad header"),
+        ("c", "c: found 3 bodies (glued)"), ("d", "d: found 12 bodies"), ("e", "e: nearly a sphere"),
+    ])
+    assert groups == {"cannot read <file>": ["a", "b"], "found <n> bodies": ["c", "d"], "nearly a sphere": ["e"]}
 
 
 def test_help_shows_defaults_set_keys_and_examples(capsys, monkeypatch):

@@ -179,16 +179,22 @@ def failure_groups(failures: list[tuple[str, str]]) -> dict[str, list[str]]:
     """Failed object ids grouped by the kind of their reason, most common first.
 
     The kind is the reason without its object id, cut at the first detail (':' or
-    '('), with file names and numbers masked: "too large for a tabletop",
-    "cannot read #", "mesh file not found".
+    '('), with file names and numbers masked so that reasons differing only in them
+    group together: "too large for a tabletop", "cannot read <file>", "mesh file not found".
+    The masks say what was there, since the console shows the kind.
     """
     groups: dict[str, list[str]] = {}
     for object_id, reason in failures:
         text = reason.removeprefix(f"{object_id}: ")
         kind = re.split(r"[:(;]", text, maxsplit=1)[0].strip()
-        kind = re.sub(r"\S*[\d./\\]\S*", "#", kind) or text[:60]
+        kind = re.sub(r"\S*[\d./\\]\S*", _mask, kind) or text[:60]
         groups.setdefault(kind, []).append(object_id)
     return dict(sorted(groups.items(), key=lambda item: -len(item[1])))
+
+
+def _mask(token: re.Match) -> str:
+    """``failure_groups``' stand-in for a number or a file name in a reason's kind."""
+    return "<n>" if re.fullmatch(r"[-+]?[\d.,]+%?", token.group(0)) else "<file>"
 
 
 def build_dataset(
