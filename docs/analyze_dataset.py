@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import duckdb
@@ -25,6 +26,15 @@ import polars as pl  # noqa: E402
 import pyarrow.dataset as ds  # noqa: E402
 
 
+def dataset_problem(root: Path) -> str | None:
+    """Why ``root`` is not a finished dataset this script can read (no directory, no manifest.json), or None."""
+    if not root.is_dir():
+        return "no such directory; give a dataset directory (toppledb dataset --out DIR)"
+    if not (root / "manifest.json").is_file():
+        return "no manifest.json: not a finished toppledb dataset"
+    return None
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dataset", nargs="?", default="data/dataset", type=Path)
@@ -32,6 +42,11 @@ def main() -> None:
     parser.add_argument("--plot", type=Path, default=Path("dataset_overview.png"))
     args = parser.parse_args()
     root = args.dataset
+    problem = dataset_problem(root)
+    if problem:
+        # A bad path is the user's to fix: one line and exit 2, as the toppledb commands give, not a traceback.
+        print(f"error: {root}: {problem}", file=sys.stderr)
+        sys.exit(2)
 
     # pandas: the consolidated tables are single files; partitioned ones read as one table.
     poses = pd.read_parquet(root / "poses.parquet")
