@@ -8,6 +8,7 @@
     toppledb corpus [--out pipeline/build/corpus_default.csv] [--count 189]
     toppledb policies DIR [--trials 20000] [--plot PNG]
     toppledb bench | report | calibrate | recalibrate | serve [their own options]
+    toppledb --version
 
 Parameters: defaults (``pipeline.model.config``), then ``--config``, then each ``--set``,
 then the dedicated flags (``--contacts`` etc.).  Bad arguments, paths or
@@ -163,7 +164,13 @@ def corpus_units(args: argparse.Namespace):
 
 
 def parser() -> argparse.ArgumentParser:
+    from schema.version import SCHEMA_VERSION
+
+    from . import __version__
+
     main = argparse.ArgumentParser(prog="toppledb", description="toppledb: build, check, study and serve datasets")
+    # The schema beside the package: a dataset of another schema version is refused by this code.
+    main.add_argument("--version", action="version", version=f"toppledb {__version__} (dataset schema {SCHEMA_VERSION})")
     commands = main.add_subparsers(dest="command", required=True, metavar="{" + ",".join(COMMANDS) + "}")
 
     defaults = Config()

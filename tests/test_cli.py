@@ -186,6 +186,15 @@ def test_failures_group_by_reason_with_file_names_and_numbers_named_not_hidden()
     assert groups == {"cannot read <file>": ["a", "b"], "found <n> bodies": ["c", "d"], "nearly a sphere": ["e"]}
 
 
+def test_version_prints_the_package_and_schema_versions(capsys):
+    from schema.version import CODE_VERSION, SCHEMA_VERSION
+
+    with pytest.raises(SystemExit) as exit:
+        main(["--version"])
+    assert exit.value.code == 0
+    assert capsys.readouterr().out == f"toppledb {CODE_VERSION} (dataset schema {SCHEMA_VERSION})\n"
+
+
 def test_help_shows_defaults_set_keys_and_examples(capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "250")  # argparse wraps to the terminal width
     with pytest.raises(SystemExit):
