@@ -93,15 +93,14 @@ Matrix4 = Annotated[list[Annotated[list[float], Field(min_length=4, max_length=4
 """4x4 homogeneous matrix, row-major (``matrix[row][column]``)."""
 
 
-def check_rigid(matrix: list[list[float]]) -> list[list[float]]:
-    """Accept a 4x4 rigid transform: rotation (orthonormal, det +1) and last row [0, 0, 0, 1].
+def rotation_problem(r) -> str | None:
+    """Why a 3x3 block (rows of numbers) is no rotation: its columns are not orthonormal, or its
+    determinant is not +1 (a reflection), each within ``ROTATION_TOLERANCE``; None when it is one.
 
-    The tolerance (``ROTATION_TOLERANCE``) admits rotations that went through float32 or
-    a few printed digits; anything further off is a client bug, not a pose.  Plain Python
-    arithmetic: on a 3x3 block it is several times faster than numpy's per-call overhead,
-    and it runs on every /plan request.
+    Plain Python arithmetic: on a 3x3 block it is several times faster than numpy's per-call
+    overhead, and it runs on every /plan request.  Shared with the Python API (``pipeline``'s
+    ``settle`` and ``plan``), so that both refuse the same matrices in the same words.
     """
-    r = [row[:3] for row in matrix[:3]]
     try:
         drift = max(
             abs(sum(r[k][i] * r[k][j] for k in range(3)) - (1.0 if i == j else 0.0)) for i in range(3) for j in range(3)
@@ -111,12 +110,22 @@ def check_rigid(matrix: list[list[float]]) -> list[list[float]]:
     except OverflowError:  # huge entries: not a rotation either
         drift = det = math.inf
     if not drift <= ROTATION_TOLERANCE:  # NaN too
-        raise ValueError(
-            f"the upper-left 3x3 block is not a rotation: its columns are not orthonormal "
-            f"(largest |R^T R - I| entry {drift:.3g}, at most {ROTATION_TOLERANCE:g})"
-        )
+        return (f"its columns are not orthonormal "
+                f"(largest |R^T R - I| entry {drift:.3g}, at most {ROTATION_TOLERANCE:g})")
     if not abs(det - 1.0) <= ROTATION_TOLERANCE:
-        raise ValueError(f"the upper-left 3x3 block is not a rotation: det = {det:.3g}, expected +1 (a reflection?)")
+        return f"det = {det:.3g}, expected +1 (a reflection?)"
+    return None
+
+
+def check_rigid(matrix: list[list[float]]) -> list[list[float]]:
+    """Accept a 4x4 rigid transform: rotation (orthonormal, det +1) and last row [0, 0, 0, 1].
+
+    The tolerance (``ROTATION_TOLERANCE``) admits rotations that went through float32 or
+    a few printed digits; anything further off is a client bug, not a pose.
+    """
+    problem = rotation_problem([row[:3] for row in matrix[:3]])
+    if problem is not None:
+        raise ValueError(f"the upper-left 3x3 block is not a rotation: {problem}")
     if max(abs(a - b) for a, b in zip(matrix[3], (0.0, 0.0, 0.0, 1.0))) > 1e-9:
         transposed = max(abs(matrix[i][3] - (1.0 if i == 3 else 0.0)) for i in range(4)) <= 1e-9
         hint = " (the last column is [0, 0, 0, 1]: is the matrix column-major? send it row by row)" if transposed else ""

@@ -29,6 +29,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from schema.api import rotation_problem
 from schema.frames import canonical_transform, transform_points, unit
 
 from .config import PoseConfig
@@ -432,9 +433,36 @@ def _pose_geometry(obj: ObjectModel, down: np.ndarray, face_pose: np.ndarray, in
 def settle(pose_set: PoseSet, obj: ObjectModel, rotation: np.ndarray) -> int:
     """Stable pose an object comes to rest in when released in an orientation.
 
-    rotation : (3, 3) float, object frame -> world frame (z up)
+    rotation : (3, 3) float, object frame -> world frame (z up): a proper rotation (orthonormal,
+      det +1, within ``schema.api.ROTATION_TOLERANCE``); of a 4x4 transform, its ``[:3, :3]``
     returns : int, pose index, or -1 when it rests in a pose left out of ``pose_set``
+    Raises ValueError for anything else (``check_rotation``).
     """
-    down = rotation.T @ np.array([0.0, 0.0, -1.0])
+    down = check_rotation(rotation, "settle's rotation").T @ np.array([0.0, 0.0, -1.0])
     face = face_below(obj.hull, obj.center_mass, down[None])[0]
     return int(pose_set.face_pose[face])
+
+
+def check_rotation(rotation, name: str) -> np.ndarray:
+    """``rotation`` as a (3, 3) float array when it is a finite proper rotation, else ValueError
+    naming ``name`` and what was given.  A scaled or reflected matrix would still give a down
+    vector, and so a confident wrong pose, so it is refused rather than normalised."""
+    try:
+        given = np.asarray(rotation, dtype=float)
+    except (TypeError, ValueError):  # ragged rows, text: numpy's own words say nothing of rotations
+        raise ValueError(f"{name} must be a finite (3, 3) rotation, got {rotation!r}") from None
+    if given.shape == (4, 4):
+        raise ValueError(f"{name} must be a (3, 3) rotation, got a (4, 4) matrix: pass its upper-left 3x3 (transform[:3, :3])")
+    if given.shape != (3, 3) or not np.all(np.isfinite(given)):
+        raise ValueError(f"{name} must be a finite (3, 3) rotation, got {_shown(given)}")
+    problem = rotation_problem(given.tolist())
+    if problem is not None:
+        raise ValueError(f"{name} is not a rotation: {problem}; got {_shown(given)}")
+    return given
+
+
+def _shown(array: np.ndarray) -> str:
+    """A given array for an error message: its values when small, else its shape."""
+    if array.size <= 16:
+        return np.array2string(array, precision=4, separator=", ").replace("\n", "")
+    return f"an array of shape {array.shape}"
