@@ -17,14 +17,14 @@ from typing import Protocol
 import numpy as np
 
 from schema import horizon, retry
-from schema.api import height_in_mm, rests_on_table
+from schema.api import check_rigid, height_in_mm, rests_on_table
 from schema.frames import PoseMatch, match_pose, place_push, transform_points
 from schema.neighbourhood import neighbour_mean
 from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .collision import collision_object
-from .config import Config
-from .contacts import explicit_actions, object_contacts, pose_actions, with_probes
+from .config import Config, ContactConfig, field_range
+from .contacts import explicit_actions, object_contacts, pose_actions, push_arrays, with_probes
 from .mdp import pose_values
 from .mesh import ObjectModel, load_mesh
 from .outcomes import Actions, ObjectResult, PolicyChoice, PoseValues, StablePose, SuctionResult, ToppleTable
@@ -207,20 +207,26 @@ def evaluate(
 ) -> PoseEvaluation:
     """Evaluate the toppling model on one stable pose.
 
-    points, directions : optional explicit pushes, (A, 3) pose frame; otherwise the
+    pose : which of ``poses``, 0 to P - 1 (an int or numpy integer)
+    points, directions : optional explicit pushes, (A, 3) finite, pose frame (z up, table at z = 0, centre of
+      mass over the origin), points in m, on the surface within ``contacts.SNAP_TOLERANCE`` (1 mm; each is
+      snapped to the closest surface point), directions non-zero, one per point; otherwise the
       pose's ``n_contacts`` candidates plus the Max-Height action.  A model that smooths or maps
       its rows over the candidates (the default) predicts each push among them, as the dataset
       does: a push that is an ok candidate (within 1e-6) gets its row, any other is averaged over
       the candidates and itself (docs/MODEL.md C.12, "Probes"), its noise drawn after theirs in the
       order given
-    n_contacts, n_trials, variant : override ``config.contacts`` / ``config.topple``
+    n_contacts, n_trials, variant : override ``config.contacts`` / ``config.topple`` (n_contacts within the
+      range the config accepts, 1 to 100,000)
     seed : root of the random streams (same seed, same result); default ``config.seed``, the
       dataset's, so that a push is predicted as the dataset built with ``config`` predicts it.  With
       the default model, explicit pushes cost a whole pose's evaluation (a few tenths of a second):
       ask about many pushes of a pose in one call
+    Raises ValueError, saying what was wrong, for anything else.
     """
+    pose = pose_index(pose, poses)
     seed = config.seed if seed is None else seed
-    contact_config = config.contacts if n_contacts is None else replace(config.contacts, n_contacts=n_contacts)
+    contact_config = config.contacts if n_contacts is None else replace(config.contacts, n_contacts=contacts_count(n_contacts))
     topple_config = config.topple
     if n_trials is not None or variant is not None:
         topple_config = replace(
@@ -229,22 +235,20 @@ def evaluate(
             variant=topple_config.variant if variant is None else variant,
         )
     stable = poses.poses[pose]
+    # Explicit pushes are checked (and snapped) before the pose's candidates cost anything.
+    pushes = None if points is None else explicit_actions(obj, stable.transform, points, directions)
     trials = stream(seed, obj.name, pose, "trials")
     if points is None or topple_config.needs_candidates:
         contacts, normals = object_contacts(obj, contact_config, seed)
         candidates = pose_actions(contacts, normals, obj.mesh, collision_object(obj.mesh), stable.transform, contact_config)
-    if points is None:
+    if pushes is None:
         table = evaluate_pose(obj, stable, poses.probabilities, candidates, topple_config, trials)
         return PoseEvaluation(pose=pose, actions=candidates, table=table)
-    pushes = explicit_actions(obj, stable.transform, points, directions)
-    if len(pushes.directions) != len(pushes.points):
-        raise ValueError(f"evaluate needs one direction per point (or none): {len(pushes.points)} points, "
-                         f"{len(pushes.directions)} directions")
     if not topple_config.needs_candidates:  # each push's row is its own trials alone
         return PoseEvaluation(pose=pose, actions=pushes, table=evaluate_pose(obj, stable, poses.probabilities, pushes, topple_config, trials))
     # A model that smooths or maps a row over the pose's candidates (docs/MODEL.md C.12-C.19) predicts a push among
     # them, as the dataset does: a push that is a candidate gets that candidate's row, any other is a probe.
-    given = np.atleast_2d(np.asarray(points, dtype=float))
+    given, _ = push_arrays(points, None)
     evaluated, n_candidates, rows = with_probes(candidates, pushes, given, pushes.directions)
     table = evaluate_pose(obj, stable, poses.probabilities, evaluated, topple_config, trials, candidates=n_candidates)
     return PoseEvaluation(pose=pose, actions=pushes, table=table_rows(table, rows))
@@ -257,8 +261,26 @@ def table_rows(table: ToppleTable, rows: np.ndarray) -> ToppleTable:
 
 
 def grasp_quality(obj: ObjectModel, poses: PoseSet, pose: int, config: Config = Config()) -> SuctionResult:
-    """V_s and the best suction grasp (pose frame) of one stable pose."""
-    return pose_suction(obj, poses.poses[pose], config)
+    """V_s and the best suction grasp (pose frame) of one stable pose (``pose`` : 0 to P - 1)."""
+    return pose_suction(obj, poses.poses[pose_index(pose, poses)], config)
+
+
+def pose_index(pose, poses: PoseSet) -> int:
+    """``pose`` as an int when it names one of ``poses``' P stable poses (0 to P - 1; a numpy integer
+    will do), else ValueError.  A negative index would silently name a pose from the end."""
+    count = len(poses.poses)
+    if isinstance(pose, (bool, np.bool_)) or not isinstance(pose, (int, np.integer)) or not 0 <= pose < count:
+        raise ValueError(f"pose must be an integer from 0 to {count - 1} (the object has {count} stable poses), got {pose!r}")
+    return int(pose)
+
+
+def contacts_count(n_contacts) -> int:
+    """``n_contacts`` as an int when ``config.contacts.n_contacts`` accepts it (the range the config
+    and the CLI check, ``ContactConfig``'s field), else ValueError."""
+    accepted = field_range(ContactConfig, "n_contacts")
+    if isinstance(n_contacts, (bool, np.bool_)) or not isinstance(n_contacts, (int, np.integer)) or not accepted.contains(n_contacts):
+        raise ValueError(f"n_contacts must be an integer {accepted.text()}, got {n_contacts!r}")
+    return int(n_contacts)
 
 
 def solve(evaluations: list["PoseEvaluation"], v_s: np.ndarray, config: Config = Config()) -> list[PoseValues]:
@@ -306,6 +328,9 @@ def observe(
 ) -> ObservedPose:
     """Match an observed 4x4 pose (object -> world, z up) to the nearest stable pose.
 
+    observed : (4, 4) finite rigid transform (rotation block orthonormal with det +1 within
+      ``schema.api.ROTATION_TOLERANCE``, last row [0, 0, 0, 1]), else ValueError in the service's words
+      (``schema.api.check_rigid``)
     poses : the stable poses, or a ``PoseSet`` (whose merged symmetric orientations also match)
     tolerance : rad, largest angle between down vectors (default ``config.poses.same_pose_angle``, 10 deg)
     table_height : m, the table's z in the world frame; ``z_offset`` is measured from it
@@ -313,6 +338,10 @@ def observe(
     observed = np.asarray(observed, dtype=float)
     if observed.shape != (4, 4) or not np.all(np.isfinite(observed)):
         raise ValueError("observed must be a finite (4, 4) object-to-world transform")
+    try:  # the service's check: a reflection or a scaled matrix would match some pose, wrongly placed
+        check_rigid(observed.tolist())
+    except ValueError as error:
+        raise ValueError(f"observed is no rigid object-to-world transform: {error}") from None
     tolerance = config.poses.same_pose_angle if tolerance is None else tolerance
     if isinstance(poses, PoseSet):
         downs, transforms, owner = poses.match_arrays()
