@@ -3,6 +3,8 @@ poses, topple tables, V_s, value iteration, and the plan for an observed pose.""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from shapes import random_object
@@ -364,3 +366,137 @@ def test_an_objects_result_carries_its_identity_and_what_each_stage_cost(box):
     n = len(poses.poses)
     assert {name: len(seconds) for name, seconds in per_pose.items()} == {
         "shared_contacts": 1, "actions": n, "topple": n, "suction": n, "mdp": 1}
+
+
+# --- what the API refuses, and what it still takes ------------------------------------------
+
+
+def test_evaluate_refuses_a_pose_the_object_does_not_have(box):
+    obj, poses, pose, _ = box
+    last = len(poses.poses) - 1
+    for bad in (last + 1, 99, -1, True, 1.0, "0"):
+        with pytest.raises(ValueError, match=rf"pose must be an integer from 0 to {last} \(the object has {last + 1} stable poses\), got"):
+            toppledb.evaluate(obj, poses, bad, n_contacts=12, n_trials=3, config=CONFIG)
+    with pytest.raises(ValueError, match=rf"pose must be an integer from 0 to {last}"):
+        toppledb.grasp_quality(obj, poses, -1, CONFIG)
+    # A numpy integer names the same pose, with the same table, and the result says which pose as an int.
+    plain = toppledb.evaluate(obj, poses, pose, n_contacts=12, n_trials=3, config=CONFIG)
+    numpy = toppledb.evaluate(obj, poses, np.int64(pose), n_contacts=12, n_trials=3, config=CONFIG)
+    assert type(numpy.pose) is int and numpy.pose == pose
+    np.testing.assert_array_equal(numpy.actions.points, plain.actions.points)
+    np.testing.assert_array_equal(numpy.table.next_pose, plain.table.next_pose)
+    np.testing.assert_array_equal(numpy.table.outcomes, plain.table.outcomes)
+
+
+def test_evaluate_refuses_n_contacts_outside_the_configs_range(box):
+    from pipeline.model.config import ContactConfig, field_range
+
+    obj, poses, pose, _ = box
+    accepted = field_range(ContactConfig, "n_contacts")  # the bounds --set and a TOML file are held to
+    for bad in (0, -3, int(accepted.hi) + 1, True, 12.0):
+        with pytest.raises(ValueError, match=rf"n_contacts must be an integer {re.escape(accepted.text())}, got"):
+            toppledb.evaluate(obj, poses, pose, n_contacts=bad, n_trials=3, config=CONFIG)
+    assert len(toppledb.evaluate(obj, poses, pose, n_contacts=np.int32(1), n_trials=3, config=CONFIG).actions.status) in (1, 2)
+
+
+def test_evaluate_refuses_malformed_pushes(box):
+    obj, poses, pose, result = box
+    point = result.actions[pose].points[0]
+    inward = result.actions[pose].directions[0]
+    refusals = [
+        (dict(points=[[0.0, 0.0]]), r"points must be a \(k, 3\) array .* got shape \(1, 2\)"),
+        (dict(points=[]), r"points must be a \(k, 3\) array"),
+        (dict(points=[[0.0, 0.0, 0.1], [0.0, 0.1]]), r"points must be a \(k, 3\) array of numbers"),
+        (dict(points=[point, [np.nan, 0.0, 0.05]]), r"points must be finite: row 1 is \[nan, 0.0, 0.05\]"),
+        (dict(points=[point], directions=[[1.0, 0.0]]), r"directions must be a \(k, 3\) array"),
+        (dict(points=[point], directions=[inward, inward]), r"one direction per point \(or none\): 1 points, 2 directions"),
+        (dict(points=[point], directions=[[np.inf, 0.0, 0.0]]), r"directions must be finite: row 0"),
+        (dict(points=[point, point], directions=[inward, [0.0, 0.0, 0.0]]),
+         r"directions must be non-zero: direction 1 is \[0.0, 0.0, 0.0\]"),
+    ]
+    for given, message in refusals:
+        with pytest.raises(ValueError, match=message):
+            toppledb.evaluate(obj, poses, pose, config=CONFIG, **given)
+
+
+def test_evaluate_refuses_a_point_off_the_surface_and_snaps_one_within_the_tolerance(box):
+    from pipeline.model.contacts import SNAP_TOLERANCE, explicit_actions, snap_to_surface
+
+    obj, poses, pose, result = box
+    actions = result.actions[pose]
+    ok = int(np.flatnonzero(actions.status == STATUS_OK)[0])
+    point, normal, direction = actions.points[ok], actions.normals[ok], actions.directions[ok]
+    assert SNAP_TOLERANCE == 1e-3
+    where = r"points are in metres in the pose frame \(z up, table at z = 0, centre of mass over the origin\)"
+    with pytest.raises(ValueError, match=rf"point 0 \[1.0, 1.0, 1.0\] is \d+ mm from the object's surface, more than the 1 mm tolerance; {where}"):
+        toppledb.evaluate(obj, poses, pose, points=[[1.0, 1.0, 1.0]], config=CONFIG)
+    # Just past the tolerance, out along the normal: refused, naming how far.
+    with pytest.raises(ValueError, match=r"point 1 .* is 1.5 mm from the object's surface, more than the 1 mm tolerance"):
+        toppledb.evaluate(obj, poses, pose, points=[point, point + 1.5e-3 * normal], config=CONFIG)
+    # Within it: snapped back onto the surface, where the candidate is.
+    near = toppledb.evaluate(obj, poses, pose, points=[point + 0.9e-3 * normal], directions=[direction], config=CONFIG)
+    np.testing.assert_allclose(near.actions.points, [point], atol=1e-9)
+    assert near.table.p_topple.shape == (1,) and np.isfinite(near.table.p_topple[0])
+    # Internal callers that mean to snap however far (a test's hand-placed push) say so.
+    transform, off = poses.poses[pose].transform, (point + 0.02 * normal)[None]
+    with pytest.raises(ValueError, match=r"mm from the object's surface, more than the 1 mm tolerance"):
+        explicit_actions(obj, transform, off, None)
+    _, _, moved = snap_to_surface(obj, transform, explicit_actions(obj, transform, off, None, tolerance=np.inf).points)
+    assert moved[0] < 1e-9, "snapped onto the surface"
+
+
+def test_a_logged_push_is_scored_as_before(box):
+    """The validation scorer snaps logged pushes through the same check: the logs' pushes lie within
+    2.2e-6 m of the surface (scratch/s70/api/snap_distances.py), far inside the tolerance, so a push
+    logged that far off is taken and snapped exactly as the unchecked snapping did."""
+    from pipeline.model.contacts import explicit_actions
+    from pipeline.studies.logreader import LoggedObject, Push, PushLog
+    from pipeline.studies.scoring import Scorer
+
+    obj, poses, pose, result = box
+    actions = result.actions[pose]
+    rows = np.flatnonzero(actions.status == STATUS_OK)[:3]
+    points = actions.points[rows] + 2.2e-6 * actions.normals[rows]  # as far off as the furthest logged push
+    pushes = [Push(obj.name, i, pose, p, d, np.array([pose, pose])) for i, (p, d) in enumerate(zip(points, actions.directions[rows]))]
+    log = PushLog({obj.name: LoggedObject(obj.name, obj, poses, "")}, pushes)
+    (group,) = Scorer(log).groups
+    unchecked = explicit_actions(obj, poses.poses[pose].transform, points, actions.directions[rows], tolerance=np.inf)
+    for name in ("points", "normals", "directions", "status"):
+        np.testing.assert_array_equal(getattr(group.actions, name), getattr(unchecked, name))
+    asked = toppledb.evaluate(obj, poses, pose, points=points, directions=actions.directions[rows], config=CONFIG)
+    np.testing.assert_array_equal(asked.actions.points, unchecked.points)
+
+
+def test_settle_refuses_what_is_not_a_rotation(box):
+    obj, poses, _, _ = box
+    for pose in poses.poses:  # a rotation, in float64 or float32: the pose it is
+        assert toppledb.settle(poses, obj, pose.transform[:3, :3]) == pose.index
+        assert toppledb.settle(poses, obj, pose.transform[:3, :3].astype(np.float32)) == pose.index
+    with pytest.raises(ValueError, match=r"got a \(4, 4\) matrix: pass its upper-left 3x3 \(transform\[:3, :3\]\)"):
+        toppledb.settle(poses, obj, np.eye(4))
+    with pytest.raises(ValueError, match=r"is not a rotation: its columns are not orthonormal .*; got \[\[2., 0., 0.\]"):
+        toppledb.settle(poses, obj, 2 * np.eye(3))
+    with pytest.raises(ValueError, match=r"is not a rotation: det = -1, expected \+1 \(a reflection\?\)"):
+        toppledb.settle(poses, obj, np.diag([-1.0, 1.0, 1.0]))
+    for bad in (np.eye(2), np.full((3, 3), np.nan), [[1, 0, 0], [0, 1]]):
+        with pytest.raises(ValueError, match=r"must be a finite \(3, 3\) rotation, got"):
+            toppledb.settle(poses, obj, bad)
+
+
+def test_plan_says_a_reflection_is_no_rotation_as_the_service_does(box):
+    from schema.api import check_rigid
+
+    _, poses, standing, result = box
+    reflection = np.diag([-1.0, 1.0, 1.0, 1.0])
+    with pytest.raises(ValueError) as service:
+        check_rigid(reflection.tolist())
+    for call in (lambda m: toppledb.plan(result, m, config=CONFIG), lambda m: toppledb.match_pose(m, poses)):
+        with pytest.raises(ValueError, match=r"det = -1, expected \+1 \(a reflection\?\)") as refused:
+            call(reflection)
+        assert not isinstance(refused.value, toppledb.NotResting) and str(service.value) in str(refused.value)
+        with pytest.raises(ValueError, match=r"columns are not orthonormal"):
+            call(world(2 * poses.poses[standing].transform, 0.0))
+        skewed = world(poses.poses[standing].transform, 0.0)
+        skewed[3] = [0.0, 0.0, 0.1, 1.0]
+        with pytest.raises(ValueError, match=r"the last row must be \[0, 0, 0, 1\]"):
+            call(skewed)
