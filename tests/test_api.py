@@ -404,14 +404,14 @@ def test_evaluate_refuses_malformed_pushes(box):
     point = result.actions[pose].points[0]
     inward = result.actions[pose].directions[0]
     refusals = [
-        (dict(points=[[0.0, 0.0]]), r"points must be a \(k, 3\) array .* got shape \(1, 2\)"),
-        (dict(points=[]), r"points must be a \(k, 3\) array"),
-        (dict(points=[[0.0, 0.0, 0.1], [0.0, 0.1]]), r"points must be a \(k, 3\) array of numbers"),
-        (dict(points=[point, [np.nan, 0.0, 0.05]]), r"points must be finite: row 1 is \[nan, 0.0, 0.05\]"),
-        (dict(points=[point], directions=[[1.0, 0.0]]), r"directions must be a \(k, 3\) array"),
-        (dict(points=[point], directions=[inward, inward]), r"one direction per point \(or none\): 1 points, 2 directions"),
-        (dict(points=[point], directions=[[np.inf, 0.0, 0.0]]), r"directions must be finite: row 0"),
-        (dict(points=[point, point], directions=[inward, [0.0, 0.0, 0.0]]),
+        ({"points": [[0.0, 0.0]]}, r"points must be a \(k, 3\) array .* got shape \(1, 2\)"),
+        ({"points": []}, r"points must be a \(k, 3\) array"),
+        ({"points": [[0.0, 0.0, 0.1], [0.0, 0.1]]}, r"points must be a \(k, 3\) array of numbers"),
+        ({"points": [point, [np.nan, 0.0, 0.05]]}, r"points must be finite: row 1 is \[nan, 0.0, 0.05\]"),
+        ({"points": [point], "directions": [[1.0, 0.0]]}, r"directions must be a \(k, 3\) array"),
+        ({"points": [point], "directions": [inward, inward]}, r"one direction per point \(or none\): 1 points, 2 directions"),
+        ({"points": [point], "directions": [[np.inf, 0.0, 0.0]]}, r"directions must be finite: row 0"),
+        ({"points": [point, point], "directions": [inward, [0.0, 0.0, 0.0]]},
          r"directions must be non-zero: direction 1 is \[0.0, 0.0, 0.0\]"),
     ]
     for given, message in refusals:
