@@ -465,6 +465,10 @@ def test_a_logged_push_is_scored_as_before(box):
         np.testing.assert_array_equal(getattr(group.actions, name), getattr(unchecked, name))
     asked = toppledb.evaluate(obj, poses, pose, points=points, directions=actions.directions[rows], config=CONFIG)
     np.testing.assert_array_equal(asked.actions.points, unchecked.points)
+    # A log whose push lies a centimetre off the surface was recorded on another mesh or frame: refused, naming it.
+    far = [Push(obj.name, 7, pose, points[0] + 0.01 * actions.normals[rows[0]], actions.directions[rows[0]], np.array([pose]))]
+    with pytest.raises(ValueError, match=rf"log of {obj.name}, pose {pose}, pushes \[7\]: point 0 .* is 9.8\d* mm from the object's surface"):
+        Scorer(PushLog(log.objects, far))
 
 
 def test_settle_refuses_what_is_not_a_rotation(box):

@@ -124,12 +124,17 @@ class Scorer:
             directions = np.array([p.direction for p in pushes])
             drop = logged.poses.probabilities
             n_poses = len(drop)
+            try:
+                actions = explicit_actions(logged.model, pose.transform, points, directions)
+            except ValueError as error:  # a point off the surface: the log's mesh or frame is not the one read here
+                raise ValueError(f"log of {object_id}, pose {pose_index}, pushes "
+                                 f"{[p.push_id for p in pushes][:10]}: {error}") from None
             self.groups.append(
                 Group(
                     object_id=object_id,
                     pose=pose,
                     drop_probabilities=drop,
-                    actions=explicit_actions(logged.model, pose.transform, points, directions),
+                    actions=actions,
                     rows=np.array(rows),
                     empirical=np.array([p.empirical(n_poses) for p in pushes]),
                 )
