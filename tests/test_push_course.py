@@ -348,6 +348,7 @@ def course_of(tilt, pressing, tip=(1.0, 0.0)) -> Course:
 def test_a_play_is_described_against_its_rows_and_values_by_hand(dataset, monkeypatch):  # noqa: F811 (fixture)
     # play_object's bookkeeping with the physics replaced: each play's course and landing pose are given, so
     # its topple, kind, side, landing, values and probability can be worked out by hand from the rows.
+    from pipeline.model.contacts import snap_to_surface
     from pipeline.model.evaluation import load_object
     from pipeline.model.poses import stable_poses
     from schema.reader import Dataset
@@ -362,9 +363,12 @@ def test_a_play_is_described_against_its_rows_and_values_by_hand(dataset, monkey
     assert n >= 3
     v_s = np.linspace(0.1, 0.8, n)
     # Pose-frame pushes: from above at pose 0, from the side at pose 1, from below at pose 2.
-    pushes = {(0, 1): (np.array([0.01, -0.02, 0.03]), np.array([0.6, 0.0, -0.8]), 0.35),
-              (1, 2): (np.array([0.0, 0.01, 0.02]), np.array([0.0, 1.0, 0.0]), 0.2),
-              (2, 3): (np.array([-0.01, 0.0, 0.01]), np.array([0.8, 0.0, 0.6]), 0.9)}
+    # Each point is put on the surface, where the dataset's pushes are (the model refuses a push off it).
+    near = {(0, 1): (np.array([0.01, -0.02, 0.03]), np.array([0.6, 0.0, -0.8]), 0.35),
+            (1, 2): (np.array([0.0, 0.01, 0.02]), np.array([0.0, 1.0, 0.0]), 0.2),
+            (2, 3): (np.array([-0.01, 0.0, 0.01]), np.array([0.8, 0.0, 0.6]), 0.9)}
+    pushes = {(p, a): (snap_to_surface(obj, pose_set.poses[p].transform, point[None])[0][0], direction, q)
+              for (p, a), (point, direction, q) in near.items()}
     plan = dataclasses.replace(plans["random_002"], v_s=v_s, pushes=pushes)
     rows = [np.zeros((4, n)) for _ in range(n)]
     rows[0][1] = np.arange(1.0, n + 1) / np.arange(1.0, n + 1).sum()  # P(x' | 0, 1) grows with x'
@@ -434,7 +438,11 @@ def test_a_play_is_described_against_its_rows_and_values_by_hand(dataset, monkey
     offsets = [noise.contact_offset.tolist() for *_, noise in calls]
     assert len({tuple(o) for o in offsets}) == 9
     m = len(plans["random_000"].transforms)
-    other = dataclasses.replace(plans["random_000"], v_s=np.zeros(m), pushes=pushes)
+    obj = load_object(plans["random_000"].spec, config)
+    first = stable_poses(obj, config.poses).poses[0]
+    point, direction, q = near[0, 1]
+    other = dataclasses.replace(plans["random_000"], v_s=np.zeros(m),
+                                pushes={(0, 1): (snap_to_surface(obj, first.transform, point[None])[0][0], direction, q)})
     calls.clear()
     played_poses, landed_poses, courses = iter([0]), iter([0]), iter([course_of([0, 1, 1], [0, 1, 1])])
     play_object(other, [(0, 1)], [np.full((4, m), 1.0 / m)], config, world, 1, seed=11)
