@@ -613,10 +613,10 @@ class PlanBatch(Model):
 
 
 class ItemError(Answer):
-    status: int = Field(description="HTTP status the item would have had alone: 404 or 409")
+    status: int = Field(description="HTTP status the item would have had alone: 404, 409, or 422 for a ros_pose in an unknown frame")
     detail: str
     reason: Literal["no_stable_pose", "off_table"] | None = Field(
-        None, description="A 409's cause, as the single route's body names it; null for a 404")
+        None, description="A 409's cause, as the single route's body names it; left out of the other errors")
 
 
 class TransitionResult(Answer):

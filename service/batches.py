@@ -45,13 +45,17 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
         raise BatchInvalid(
             [{"type": e["type"], "loc": ("body", *e["loc"]), "msg": e["msg"]} for e in err.errors(include_url=False)]
         ) from None
-    results = []
-    for request in parsed.items:
+    results, reasonless = [], {}
+    for i, request in enumerate(parsed.items):
         try:
             results.append(result_model(result=item(request)))
         except ServiceError as err:
             results.append(result_model(error={"status": err.status_code, "detail": err.detail, "reason": err.reason}))
-    return results_model(results=results).model_dump_json().encode()
+            if err.reason is None:
+                reasonless[i] = {"error": {"reason"}}
+    # ``reason`` is left out of an error that has none, as /health leaves out ``reload_error``: answers of the
+    # service before it had the key are read by clients whose models forbid keys they do not know.
+    return results_model(results=results).model_dump_json(exclude={"results": reasonless} if reasonless else None).encode()
 
 
 def answer_kind(kind: str, body: bytes, store, settings) -> bytes:

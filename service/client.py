@@ -212,19 +212,21 @@ class Client:
     # --- transport ----------------------------------------------------------------
 
     def _recorded_under(self, items: list[dict], build: str | None) -> str | None:
-        """The build to name for plan ``items``: with failed actions, ``build``, else the build of the answer
-        that last served each such item's object a push (none known: no build named, any build answers)."""
+        """The build to name for plan ``items``: with failed actions, ``build``, else the build of the answers
+        that last served those items' objects a push (none known, as after a restart: no build named, and any
+        build answers)."""
         failed = [item["object_id"] for item in items if item.get("failed_actions")]
         if not failed or build is not None:
             return _build_name(build) if failed else None
-        recorded = {object_id: self.plan_builds.get(object_id) for object_id in failed}
-        if len(set(recorded.values())) > 1:
+        recorded = {o: self.plan_builds[o] for o in failed if self.plan_builds.get(o) is not None}
+        builds = sorted(set(recorded.values()))
+        if len(builds) > 1:
             # One header names the build of every item's indices; of two builds at most one is served.
-            raise OtherBuild(412, f"failed actions recorded under {len(set(recorded.values()))} builds in one batch "
-                                  f"({', '.join(f'{o}: {str(b)[:12]}' for o, b in recorded.items())}): at most one is "
+            raise OtherBuild(412, f"failed actions recorded under {len(builds)} builds in one batch "
+                                  f"({', '.join(f'{o}: {b[:12]}' for o, b in recorded.items())}): at most one is "
                                   "served; clear the older ones or plan them in separate calls",
-                             {"build": self.build, "requested": recorded})
-        return recorded[failed[0]]
+                             {"build": self.build, "requested": ", ".join(builds), "recorded": recorded})
+        return builds[0] if builds else None
 
     def _plan(self, path: str, model: type[Model], body: dict, requested: str | None) -> Model:
         answer = self._call("POST", path, model, json=body, requested=requested)

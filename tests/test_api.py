@@ -417,6 +417,14 @@ def test_evaluate_refuses_malformed_pushes(box):
     for given, message in refusals:
         with pytest.raises(ValueError, match=message):
             toppledb.evaluate(obj, poses, pose, config=CONFIG, **given)
+    # A direction is only a direction: one whose square leaves float64 is pushed along, as its unit vector is.
+    from pipeline.model.contacts import explicit_actions
+
+    transform = poses.poses[pose].transform
+    plain = explicit_actions(obj, transform, [point, point], [inward, [1.0, 0.0, 0.0]])
+    for scale in (1e200, 1e-170, 1e-320):
+        scaled = explicit_actions(obj, transform, [point, point], [inward, [scale, 0.0, 0.0]])
+        np.testing.assert_array_equal(scaled.directions, plain.directions)
 
 
 def test_evaluate_refuses_a_point_off_the_surface_and_snaps_one_within_the_tolerance(box):
@@ -450,7 +458,7 @@ def test_a_logged_push_is_scored_as_before(box):
     2.2e-6 m of the surface (scratch/s70/api/snap_distances.py), far inside the tolerance, so a push
     logged that far off is taken and snapped exactly as the unchecked snapping did."""
     from pipeline.model.contacts import explicit_actions
-    from pipeline.studies.logreader import LoggedObject, Push, PushLog
+    from pipeline.studies.logreader import LogError, LoggedObject, Push, PushLog
     from pipeline.studies.scoring import Scorer
 
     obj, poses, pose, result = box
@@ -467,7 +475,9 @@ def test_a_logged_push_is_scored_as_before(box):
     np.testing.assert_array_equal(asked.actions.points, unchecked.points)
     # A log whose push lies a centimetre off the surface was recorded on another mesh or frame: refused, naming it.
     far = [Push(obj.name, 7, pose, points[0] + 0.01 * actions.normals[rows[0]], actions.directions[rows[0]], np.array([pose]))]
-    with pytest.raises(ValueError, match=rf"log of {obj.name}, pose {pose}, pushes \[7\]: point 0 .* is 9.8\d* mm from the object's surface"):
+    with pytest.raises(LogError, match=rf"^{obj.name}, pose {pose}, pushes \[7\]: a logged push is not on the surface of the mesh read "
+                                        rf"here \(point 0 .* is 9.8\d* mm from the object's surface, more than the 1 mm tolerance\): "
+                                        r"was the log recorded with another mesh or scale\?$"):
         Scorer(PushLog(log.objects, far))
 
 

@@ -200,9 +200,18 @@ def push_arrays(points, directions) -> tuple[np.ndarray, np.ndarray | None]:
     if len(directions) != len(points):
         raise ValueError(f"explicit pushes need one direction per point (or none): {len(points)} points, "
                          f"{len(directions)} directions")
-    zero = np.flatnonzero(~(np.linalg.norm(directions, axis=1) > 0))
+    largest = np.abs(directions).max(axis=1)
+    zero = np.flatnonzero(~(largest > 0))
     if len(zero):  # ``unit`` would leave it zero: a push that goes nowhere, evaluated all the same
         raise ValueError(f"directions must be non-zero: direction {zero[0]} is {directions[zero[0]].tolist()}")
+    # A length whose square leaves float64 ([1e200, 0, 0] overflows, [1e-170, 0, 0] underflows) would normalise to
+    # zero or NaN: such rows are scaled by their largest component first. Every other row is kept bit for bit.
+    with np.errstate(over="ignore", under="ignore"):
+        length = np.linalg.norm(directions, axis=1)
+    extreme = ~((length > 1e-100) & (length < 1e100))
+    if extreme.any():
+        directions = directions.copy()
+        directions[extreme] /= largest[extreme, None]
     return points, directions
 
 

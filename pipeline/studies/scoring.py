@@ -126,9 +126,10 @@ class Scorer:
             n_poses = len(drop)
             try:
                 actions = explicit_actions(logged.model, pose.transform, points, directions)
-            except ValueError as error:  # a point off the surface: the log's mesh or frame is not the one read here
-                raise ValueError(f"log of {object_id}, pose {pose_index}, pushes "
-                                 f"{[p.push_id for p in pushes][:10]}: {error}") from None
+            except ValueError as error:  # a point off the surface: the log was recorded on another mesh, scale or frame
+                raise LogError(f"{object_id}, pose {pose_index}, pushes {[p.push_id for p in pushes][:10]}: a logged push "
+                               f"is not on the surface of the mesh read here ({error.args[0].split(';')[0]}): was the log "
+                               "recorded with another mesh or scale?") from None
             self.groups.append(
                 Group(
                     object_id=object_id,
