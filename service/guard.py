@@ -28,6 +28,9 @@ if TYPE_CHECKING:  # the store imports numpy and pyarrow, which the guard need n
     from .store import Store
 
 OPEN_PATHS = frozenset({"/health"})
+HEAD_PATHS = frozenset({"/health"})
+"""Paths a HEAD request is answered on, as its GET with the body left out: uptime monitors and load
+balancers probe liveness with HEAD (RFC 9110 9.3.2), and the routes are GET only."""
 """Paths answered without the bearer token (liveness probes carry no secrets)."""
 
 BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
@@ -143,6 +146,11 @@ class Guard:
             return
         started = time.perf_counter()
         status = None  # the response's, once one starts
+        method = scope["method"]
+        if method == "HEAD" and route_path(scope) in HEAD_PATHS:
+            # Answered as the GET, headers and all (content-length included); the server, which knows the request
+            # was a HEAD, sends no body.
+            scope = {**scope, "method": "GET"}
 
         async def send_counted(message):
             nonlocal status
@@ -162,7 +170,7 @@ class Guard:
         finally:
             route = scope.get("route")
             # No status after an exception: the server sends 500.
-            self.metrics.observe(scope["method"], getattr(route, "path", None), 500 if status is None else status,
+            self.metrics.observe(method, getattr(route, "path", None), 500 if status is None else status,
                                  time.perf_counter() - started)
 
     async def _guarded(self, scope, receive, send):

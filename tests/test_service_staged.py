@@ -57,6 +57,20 @@ def test_staged_app_answers_what_create_app_answers(dataset, tables):
     assert 'route="/health",status="200"' in metrics and 'route="/plan",status="200"' in metrics
 
 
+def test_head_on_health_answers_the_get_without_its_body_on_both_apps(dataset):
+    """Uptime monitors probe with HEAD: /health answers it as its GET, headers and all, with no body; any
+    other path keeps its HEAD answer (405 on a GET route), also without a body. Counted under HEAD."""
+    with TestClient(staged_app(dataset)) as staged, TestClient(create_app(dataset)) as eager:
+        for client in (staged, eager):
+            get, head = client.get("/health"), client.head("/health")
+            assert head.status_code == 200 and head.content == b""
+            assert head.headers["content-type"] == get.headers["content-type"] == "application/json"
+            assert int(head.headers["content-length"]) == len(get.content) > 0
+            other = client.head("/objects")
+            assert other.status_code == 405 and other.content == b""
+            assert 'method="HEAD",route="/health",status="200"' in client.get("/metrics").text
+
+
 def test_health_and_plan_answer_while_the_api_is_being_built(dataset, tables, monkeypatch):
     release = threading.Event()
     real_build = service_app.build_api
