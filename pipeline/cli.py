@@ -344,6 +344,12 @@ def run_dataset(args: argparse.Namespace) -> int:
 
     config = make_config(args)
     corpus = load_corpus(args.corpus, config.mesh.default_mass, corpus_units(args)).limit(args.limit)
+    renamed = corpus.renamed()
+    if renamed:  # otherwise only the manifest would say which id a file became
+        shown = ", ".join(f"{name} -> {object_id}" for name, object_id in renamed[:5])
+        more = f", and {len(renamed) - 5} more" if len(renamed) > 5 else ""
+        print(f"ids: {len(renamed)} mesh{'es' if len(renamed) != 1 else ''} named otherwise than the file: {shown}{more} "
+              "(the manifest's corpus lists every id)", file=sys.stderr)
     summary = build_dataset(
         corpus,
         config,

@@ -176,6 +176,19 @@ def test_millimetre_meshes_fail_with_a_unit_hint_until_units_are_given(tmp_path,
     assert not staging_dir(out).exists(), "a failed --strict run leaves no empty staging directory beside --out"
 
 
+def test_ids_derived_otherwise_than_their_file_names_are_said_before_the_build(tmp_path, capsys):
+    import trimesh
+
+    meshes = tmp_path / "parts"
+    meshes.mkdir()
+    for name in ("3can.STL", "part.stl", "part.obj", "lid.stl"):  # mm-sized: each fails at once, nothing computed
+        trimesh.creation.box([50.0, 40.0, 90.0]).export(meshes / name)
+    assert main(["dataset", "--corpus", str(meshes), "--out", str(tmp_path / "out"), *FAST]) == 1
+    err = capsys.readouterr().err
+    assert "ids: 2 meshes named otherwise than the file: 3can.STL -> obj_3can, part.stl -> part-2" in err
+    assert "lid.stl ->" not in err and "(the manifest's corpus lists every id)" in err
+
+
 def test_failures_group_by_reason_with_file_names_and_numbers_named_not_hidden():
     from pipeline.build.dataset import failure_groups
 

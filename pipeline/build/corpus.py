@@ -221,6 +221,13 @@ class Corpus:
     specs: list[ObjectSpec]
     problems: dict[str, str] = field(default_factory=dict)
 
+    def renamed(self) -> list[tuple[str, str]]:
+        """(file name, object id) of each mesh of a directory corpus whose id is not its file's stem: ids
+        are derived so that they are unique, safe as file names and read as text by every table reader
+        (``object_id_from_name``), and a user asks for an object by the id, not the file."""
+        return [(Path(s.path).name, s.object_id) for s in self.specs
+                if s.source.startswith("dir:") and Path(s.path).stem != s.object_id]
+
     def limit(self, n: int | None) -> "Corpus":
         """The first ``n`` objects (all when ``n`` is None)."""
         if n is None:
