@@ -28,10 +28,10 @@ if TYPE_CHECKING:  # the store imports numpy and pyarrow, which the guard need n
     from .store import Store
 
 OPEN_PATHS = frozenset({"/health"})
+"""Paths answered without the bearer token (liveness probes carry no secrets)."""
 HEAD_PATHS = frozenset({"/health"})
 """Paths a HEAD request is answered on, as its GET with the body left out: uptime monitors and load
 balancers probe liveness with HEAD (RFC 9110 9.3.2), and the routes are GET only."""
-"""Paths answered without the bearer token (liveness probes carry no secrets)."""
 
 BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
 """Methods that carry a body: a declared length over the limit is 413 whatever the method."""
