@@ -191,18 +191,14 @@ class Client:
             the last answer that served this object a push); another build raises ``OtherBuild``. Sent only
             with ``failed_actions``, the only indices a plan takes."""
         item = plan_item(object_id, pose, ros_pose, policy, pushes_left, failed_actions)
-        answer = self._plan("/plan", PlanResponse, item, self._recorded_under([item], build))
-        self._served([item], [answer])
-        return answer
+        return self._plan("/plan", PlanResponse, item, [item], build)
 
     def plan_batch(self, items: list[dict], build: str | None = None) -> PlanResults:
         """Up to 1000 items of ``plan_item(...)``; per-item errors are in ``results[i].error``.
         ``build`` as ``plan``'s, for the whole batch when an item has ``failed_actions``; items whose
         objects' failed actions were recorded under different builds cannot all be current, and raise
         ``OtherBuild`` before anything is sent."""
-        answer = self._plan("/batch/plan", PlanResults, {"items": items}, self._recorded_under(items, build))
-        self._served(items, [r.result for r in answer.results])
-        return answer
+        return self._plan("/batch/plan", PlanResults, {"items": items}, items, build)
 
     def transitions(self, items: list[tuple[str, int, int]], build: str | None = None) -> TransitionResults:
         """(object_id, pose, action) triples, up to 1000; ``build``: the build the actions were taken from."""
@@ -228,16 +224,16 @@ class Client:
                              {"build": self.build, "requested": ", ".join(builds), "recorded": recorded})
         return builds[0] if builds else None
 
-    def _plan(self, path: str, model: type[Model], body: dict, requested: str | None) -> Model:
-        answer = self._call("POST", path, model, json=body, requested=requested)
+    def _plan(self, path: str, model: type[Model], body: dict, items: list[dict], build: str | None) -> Model:
+        """A plan or a batch of ``items``, naming the build their failed actions were recorded under; then the
+        build that answered is noted, per object for each item it served a push (those indices are its)."""
+        answer = self._call("POST", path, model, json=body, requested=self._recorded_under(items, build))
         self.plan_build = self.build
-        return answer
-
-    def _served(self, items: list[dict], answers: list[PlanResponse | None]) -> None:
-        """Note the build that served each item's object a push: its action indices are that build's."""
-        for item, answer in zip(items, answers, strict=True):
-            if answer is not None and answer.action is not None:
+        answers = [r.result for r in answer.results] if isinstance(answer, PlanResults) else [answer]
+        for item, served in zip(items, answers, strict=True):
+            if served is not None and served.action is not None:
                 self.plan_builds[item["object_id"]] = self.build
+        return answer
 
     def _call(self, method: str, path: str, model: type[Model], requested: str | None = None, **kwargs) -> Model:
         """``method path`` answered as ``model``, retried as the module says; ``requested``: the build the

@@ -158,6 +158,20 @@ def test_a_request_naming_another_build_is_refused_with_412_on_every_route_that_
         assert 'route="/plan",status="412"' in client.get("/metrics").text
 
 
+def recording_client(client, sent: list, stamps: list | None = None) -> Client:
+    """A ``Client`` whose requests the service (``client``) answers, each request's ``x-toppledb-build`` noted in
+    ``sent``; ``stamps``: builds the first answers claim instead of their own, as if served before a rebuild."""
+    stamps = list(stamps or [])
+
+    def recording(request):
+        sent.append(request.headers.get("x-toppledb-build"))
+        real = client.request(request.method, request.url.path, content=request.content, headers=dict(request.headers))
+        return httpx.Response(real.status_code, content=real.content,
+                              headers={"x-toppledb-build": stamps.pop(0) if stamps else real.headers["x-toppledb-build"]})
+
+    return Client(http=httpx.Client(transport=httpx.MockTransport(recording), base_url="http://x"), retries=0)
+
+
 def test_the_client_names_the_build_of_its_failed_actions_and_raises_other_build(client, tables):
     """``plan`` sends ``x-toppledb-build`` only with failed actions: the build given, else that of its last plan
     answer (``plan_build``), which neither a refusal nor another route's answer changes, so a repeated call stays
@@ -166,14 +180,8 @@ def test_the_client_names_the_build_of_its_failed_actions_and_raises_other_build
     object_id, pose = pushing(tables)
     observed = planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, object_id, pose)
     sent: list[str | None] = []
-
-    def recording(request):  # the service's own answer, with what the client sent noted
-        sent.append(request.headers.get("x-toppledb-build"))
-        real = client.request(request.method, request.url.path, content=request.content, headers=dict(request.headers))
-        return httpx.Response(real.status_code, content=real.content, headers={"x-toppledb-build": real.headers["x-toppledb-build"]})
-
     served = client.get("/health").json()["dataset"]["manifest_sha256"]
-    typed = Client(http=httpx.Client(transport=httpx.MockTransport(recording), base_url="http://x"), retries=0)
+    typed = recording_client(client, sent)
     first = typed.plan(object_id, pose=observed)
     after = typed.plan(object_id, pose=observed, failed_actions=[first.action])
     assert sent == [None, served] and after.action != first.action and typed.plan_build == served
@@ -225,15 +233,8 @@ def test_the_client_names_each_objects_own_build_when_a_swap_falls_between_two_o
     observed = {o: planar_transform(0.4, 0.1, 0.2) @ stored_transform(tables, o, p)
                 for o, p in ((first_id, first_pose), (second_id, second_pose))}
     served = client.get("/health").json()["dataset"]["manifest_sha256"]
-    stamps, sent = [OTHER_BUILD], []  # the first answer comes from a build replaced before the second
-
-    def recording(request):
-        sent.append(request.headers.get("x-toppledb-build"))
-        real = client.request(request.method, request.url.path, content=request.content, headers=dict(request.headers))
-        return httpx.Response(real.status_code, content=real.content,
-                              headers={"x-toppledb-build": stamps.pop() if stamps else real.headers["x-toppledb-build"]})
-
-    typed = Client(http=httpx.Client(transport=httpx.MockTransport(recording), base_url="http://x"), retries=0)
+    sent: list[str | None] = []
+    typed = recording_client(client, sent, stamps=[OTHER_BUILD])  # the first answer from a build replaced before the second
     failed = typed.plan(first_id, pose=observed[first_id]).action
     other = typed.plan(second_id, pose=observed[second_id]).action
     assert typed.plan_builds == {first_id: OTHER_BUILD, second_id: served} and typed.plan_build == served
