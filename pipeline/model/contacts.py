@@ -240,6 +240,15 @@ def snap_to_surface(obj: ObjectModel, transform: np.ndarray, points: np.ndarray)
     return transform_points(transform, closest), faces, distance
 
 
+class OffSurface(ValueError):
+    """An explicit push's point further from the surface than the tolerance; ``where`` names the point
+    and how far it is, for a caller (the log scorer) that explains it in its own terms."""
+
+    def __init__(self, where: str):
+        super().__init__(f"{where}; points are in metres in the pose frame (z up, table at z = 0, centre of mass over the origin)")
+        self.where = where
+
+
 def explicit_actions(obj: ObjectModel, transform: np.ndarray, points: np.ndarray, directions: np.ndarray | None,
                      tolerance: float = SNAP_TOLERANCE) -> Actions:
     """Actions at caller-chosen contact points (pose frame); all are evaluated (status ``ok``).
@@ -247,18 +256,16 @@ def explicit_actions(obj: ObjectModel, transform: np.ndarray, points: np.ndarray
     points : (A, 3) float, m, pose frame (z up, table at z = 0, centre of mass over the origin), on the
       surface within ``tolerance`` (m, default ``SNAP_TOLERANCE``); each is snapped to the closest surface point
     directions : (A, 3) float, pose frame, non-zero push directions; the inward normal when None
-    Raises ValueError for malformed points or directions (``push_arrays``) or a point further than
-    ``tolerance`` from the surface.
+    Raises ValueError for malformed points or directions (``push_arrays``), ``OffSurface`` for a point further
+    than ``tolerance`` from the surface.
     """
     points, directions = push_arrays(points, directions)
     closest, faces, distance = snap_to_surface(obj, transform, points)
     far = np.flatnonzero(~(distance <= tolerance))
     if len(far):
         i = far[np.argmax(distance[far])]
-        raise ValueError(
-            f"point {i} {points[i].tolist()} is {distance[i] * 1000:.4g} mm from the object's surface, more than the "
-            f"{tolerance * 1000:g} mm tolerance; points are in metres in the pose frame (z up, table at z = 0, "
-            f"centre of mass over the origin)")
+        raise OffSurface(f"point {i} {points[i].tolist()} is {distance[i] * 1000:.4g} mm from the object's surface, "
+                         f"more than the {tolerance * 1000:g} mm tolerance")
     normals = obj.mesh.face_normals[faces] @ transform[:3, :3].T
     directions = -normals if directions is None else unit(directions)
     return Actions(closest, normals, directions, np.full(len(closest), STATUS_OK, dtype=np.int8), max_height=-1)

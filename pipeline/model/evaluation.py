@@ -235,7 +235,10 @@ def evaluate(
             variant=topple_config.variant if variant is None else variant,
         )
     stable = poses.poses[pose]
-    # Explicit pushes are checked (and snapped) before the pose's candidates cost anything.
+    # Explicit pushes are checked (and snapped) before the pose's candidates cost anything; the points as given
+    # are what ``with_probes`` matches to the candidates.
+    if points is not None:
+        points, directions = push_arrays(points, directions)
     pushes = None if points is None else explicit_actions(obj, stable.transform, points, directions)
     trials = stream(seed, obj.name, pose, "trials")
     if points is None or topple_config.needs_candidates:
@@ -248,8 +251,7 @@ def evaluate(
         return PoseEvaluation(pose=pose, actions=pushes, table=evaluate_pose(obj, stable, poses.probabilities, pushes, topple_config, trials))
     # A model that smooths or maps a row over the pose's candidates (docs/MODEL.md C.12-C.19) predicts a push among
     # them, as the dataset does: a push that is a candidate gets that candidate's row, any other is a probe.
-    given, _ = push_arrays(points, None)
-    evaluated, n_candidates, rows = with_probes(candidates, pushes, given, pushes.directions)
+    evaluated, n_candidates, rows = with_probes(candidates, pushes, points, pushes.directions)
     table = evaluate_pose(obj, stable, poses.probabilities, evaluated, topple_config, trials, candidates=n_candidates)
     return PoseEvaluation(pose=pose, actions=pushes, table=table_rows(table, rows))
 
@@ -269,7 +271,7 @@ def pose_index(pose, poses: PoseSet) -> int:
     """``pose`` as an int when it names one of ``poses``' P stable poses (0 to P - 1; a numpy integer
     will do), else ValueError.  A negative index would silently name a pose from the end."""
     count = len(poses.poses)
-    if isinstance(pose, (bool, np.bool_)) or not isinstance(pose, (int, np.integer)) or not 0 <= pose < count:
+    if not _whole(pose) or not 0 <= pose < count:
         raise ValueError(f"pose must be an integer from 0 to {count - 1} (the object has {count} stable poses), got {pose!r}")
     return int(pose)
 
@@ -278,9 +280,14 @@ def contacts_count(n_contacts) -> int:
     """``n_contacts`` as an int when ``config.contacts.n_contacts`` accepts it (the range the config
     and the CLI check, ``ContactConfig``'s field), else ValueError."""
     accepted = field_range(ContactConfig, "n_contacts")
-    if isinstance(n_contacts, (bool, np.bool_)) or not isinstance(n_contacts, (int, np.integer)) or not accepted.contains(n_contacts):
+    if not _whole(n_contacts) or not accepted.contains(n_contacts):
         raise ValueError(f"n_contacts must be an integer {accepted.text()}, got {n_contacts!r}")
     return int(n_contacts)
+
+
+def _whole(value) -> bool:
+    """Whether ``value`` is an integer, Python's or numpy's, and not a bool (which Python counts as one)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
 def solve(evaluations: list["PoseEvaluation"], v_s: np.ndarray, config: Config = Config()) -> list[PoseValues]:

@@ -33,7 +33,7 @@ from ..model.boosted_map import FEATURES as BOOSTED_FEATURES
 from ..model.boosted_map import boosted_features
 from ..model.collision import collision_object
 from ..model.config import ContactConfig, ToppleConfig
-from ..model.contacts import explicit_actions, object_contacts, pose_actions
+from ..model.contacts import OffSurface, explicit_actions, object_contacts, pose_actions
 from ..model.contacts import with_probes as probed_candidates
 from ..model.edges import EdgeGeometry, edge_geometry
 from ..model.feature_map import DOWN_FEATURES, FEATURES, SIDE_FEATURES, down_features, landing_rows, pose_features, side_features, side_rows
@@ -126,9 +126,9 @@ class Scorer:
             n_poses = len(drop)
             try:
                 actions = explicit_actions(logged.model, pose.transform, points, directions)
-            except ValueError as error:  # a point off the surface: the log was recorded on another mesh, scale or frame
+            except OffSurface as error:  # the log was recorded on another mesh, scale or frame
                 raise LogError(f"{object_id}, pose {pose_index}, pushes {[p.push_id for p in pushes][:10]}: a logged push "
-                               f"is not on the surface of the mesh read here ({error.args[0].split(';')[0]}): was the log "
+                               f"is not on the surface of the mesh read here ({error.where}): was the log "
                                "recorded with another mesh or scale?") from None
             self.groups.append(
                 Group(
