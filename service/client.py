@@ -201,8 +201,9 @@ class Client:
         return self._plan("/batch/plan", PlanResults, {"items": items}, items, build)
 
     def transitions(self, items: list[tuple[str, int, int]], build: str | None = None) -> TransitionResults:
-        """(object_id, pose, action) triples, up to 1000; ``build``: the build the actions were taken from."""
-        body = {"items": [{"object_id": o, "pose": int(p), "action": int(a)} for o, p, a in items]}
+        """(object_id, pose, action) triples, up to 1000; ``build``: the build the actions were taken from.
+        Indices are integers (numpy's too); 2.0, "1" and True raise TypeError, as ``pose`` and ``action`` do."""
+        body = {"items": [{"object_id": o, "pose": _integer(p, "pose"), "action": _integer(a, "action")} for o, p, a in items]}
         return self._call("POST", "/batch/transitions", TransitionResults, json=body, requested=_build_name(build))
 
     # --- transport ----------------------------------------------------------------

@@ -321,6 +321,11 @@ def test_errors_are_exceptions_by_status_and_reason(typed, tables):
             typed.pose(object_id, index)
         with pytest.raises(TypeError):
             typed.action(object_id, pose, index)
+        with pytest.raises(TypeError):  # a batch's indices too: int() would have rounded 1.7 to another push
+            typed.transitions([(object_id, pose, index)])
+        with pytest.raises(TypeError):
+            typed.transitions([(object_id, index, 0)])
+    assert typed.transitions([(object_id, np.int64(pose), np.int64(0))]).results[0].result.pose == pose
     with pytest.raises(Unauthorized):
         Client(http=typed.http, retries=0, token="another-token-of-length").objects()
 
