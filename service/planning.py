@@ -28,7 +28,7 @@ import numpy as np
 import orjson
 
 from schema import horizon, retry
-from schema.api import PlanRequest, height_in_mm, rests_on_table
+from schema.api import PlanRequest, Quaternion, height_in_mm, rests_on_table
 from schema.frames import match_pose, place_push
 from schema.vocabulary import NO_OP, STATUS_OK
 
@@ -65,6 +65,26 @@ def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
             "(z up, table at z = 0); transform the pose into it first (e.g. tf2)"
         )
     return request.observed()
+
+
+def w_first_hint(request: PlanRequest, obj: ObjectData, tolerance: float, height_tolerance: float) -> str:
+    """For a ROS pose refused as no stable pose or off the table: a sentence naming the pose its
+    quaternion would be read w first, when that reading rests on the table in a stable pose, else "".
+    Eigen, transforms3d and pyquaternion order a quaternion w, x, y, z where geometry_msgs orders it
+    x, y, z, w, and one sent in the wrong order reads as another, arbitrary rotation.  When that
+    rotation also rests in a pose the service cannot tell, so it only says so when it refuses."""
+    if request.ros_pose is None:
+        return ""
+    q = request.ros_pose.orientation
+    reread = request.ros_pose.model_copy(update={"orientation": Quaternion.model_construct(x=q.y, y=q.z, z=q.w, w=q.x)})
+    observed = reread.matrix()
+    match = match_pose(observed, obj.match_downs, obj.match_transforms, np.inf, obj.match_inverses)
+    z_offset = float((observed @ obj.match_inverses[match.pose])[2, 3])
+    if match.angle_error > tolerance or not rests_on_table(z_offset, height_tolerance):
+        return ""
+    return (f" Read as w, x, y, z (its w field the x part, and so on), the quaternion would be pose "
+            f"{int(obj.match_pose[match.pose])}, {np.degrees(match.angle_error):.1f} deg away, on the table: "
+            "geometry_msgs orders it x, y, z, w")
 
 
 def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
@@ -128,7 +148,8 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         raise NoStablePose(
             f"the observed orientation of '{obj.object_id}' is no stable pose: the nearest, pose {pose}, "
             f"is {np.degrees(match.angle_error):.1f} deg away (tolerance {np.degrees(store.tolerance):.1f} deg); "
-            "is the object resting on the table, and is the world frame z up?",
+            f"is the object resting on the table, and is the world frame z up?"
+            f"{w_first_hint(request, obj, store.tolerance, settings.height_tolerance)}",
             object_id=obj.object_id,
             nearest_pose=pose,
             angle_error=match.angle_error,
@@ -141,7 +162,8 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
             f"'{obj.object_id}' is observed {height_in_mm(z_offset, settings.height_tolerance)} mm "
             f"{'above' if z_offset > 0 else 'below'} the table "
             f"(pose {pose}'s support point at z = {z_offset:.4g} m, tolerance {settings.height_tolerance * 1000:.1f} mm): "
-            "it is not resting on the table z = 0, so no stored push applies; is the world frame's origin on the table?",
+            "it is not resting on the table z = 0, so no stored push applies; is the world frame's origin on the table?"
+            f"{w_first_hint(request, obj, store.tolerance, settings.height_tolerance)}",
             object_id=obj.object_id,
             pose=pose,
             z_offset=z_offset,

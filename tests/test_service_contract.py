@@ -219,6 +219,34 @@ def test_malformed_ros_poses_are_422(client, tables, change, message):
     assert response.status_code == 422 and message in response.json()["detail"], response.text
 
 
+def test_a_quaternion_sent_w_first_is_named_in_the_refusal(client, tables):
+    """Eigen, transforms3d and pyquaternion order a quaternion w, x, y, z; geometry_msgs x, y, z, w. Sent in
+    the wrong order it reads as another rotation: refused (409: no stable pose, or one off the table), the
+    refusal names the pose it would be."""
+    refused = 0
+    for object_id, pose, _ in pushing_poses(tables):
+        for yaw in np.linspace(0.0, 2 * math.pi, 7, endpoint=False):
+            observed = planar_transform(yaw, 0.3, -0.2) @ stored_transform(tables, object_id, pose)
+            if np.trace(observed[:3, :3]) < -0.9:  # near a half turn, where ``quaternion`` would skip the test
+                continue
+            given = ros_pose(observed)
+            x, y, z, w = (given["orientation"][k] for k in "xyzw")
+            sent = {**given, "orientation": {"x": w, "y": x, "z": y, "w": z}}  # w first
+            response = client.post("/plan", json={"object_id": object_id, "ros_pose": sent})
+            if response.status_code != 409:  # the wrong reading happens to rest on another pose: nothing to tell
+                assert response.status_code == 200, response.text
+                continue
+            refused += 1
+            detail = response.json()["detail"]
+            assert detail.endswith(f"Read as w, x, y, z (its w field the x part, and so on), the quaternion would be pose {pose}, "
+                                   "0.0 deg away, on the table: geometry_msgs orders it x, y, z, w"), detail
+            # The same orientation as a matrix, tilted off every pose: no quaternion, so no such hint.
+            tilted = rotation_about([1.0, 2.0, 0.0], math.radians(40)) @ observed
+            response = post_plan(client, object_id, tilted)
+            assert response.status_code == 409 and "Read as w" not in response.json()["detail"]
+    assert refused >= 5  # the wrong order is refused for most orientations
+
+
 def test_both_pose_forms_at_once_are_422(client, tables):
     object_id, pose, _ = pushing_poses(tables)[0]
     observed = observe(tables, object_id, pose)

@@ -58,9 +58,10 @@ def requests(tables) -> list[bytes]:
         rotation = observed[:3, :3]
         if np.trace(rotation) > -0.9:
             x, y, z, w = quaternion(rotation)
-            bodies.append(json.dumps({"object_id": object_id, "ros_pose": {
-                "position": dict(zip("xyz", observed[:3, 3].tolist())), "orientation": {"x": x, "y": y, "z": z, "w": w},
-                "frame_id": "world"}}).encode())
+            for orientation in ({"x": x, "y": y, "z": z, "w": w}, {"x": w, "y": x, "z": y, "w": z}):  # and sent w first
+                bodies.append(json.dumps({"object_id": object_id, "ros_pose": {
+                    "position": dict(zip("xyz", observed[:3, 3].tolist())), "orientation": orientation,
+                    "frame_id": "world"}}).encode())
     identity = np.eye(4).tolist()
     bodies += [
         json.dumps({"object_id": "no_such_object", "pose": identity}).encode(),
