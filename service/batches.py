@@ -42,9 +42,9 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
     try:
         parsed = request_model.model_validate(data)
     except ValidationError as err:
-        raise BatchInvalid(
-            [{"type": e["type"], "loc": ("body", *e["loc"]), "msg": e["msg"]} for e in err.errors(include_url=False)]
-        ) from None
+        # A null input is kept (``errors.validation_body`` says it was one); any other is dropped unread.
+        raise BatchInvalid([{"type": e["type"], "loc": ("body", *e["loc"]), "msg": e["msg"], **({"input": None} if e.get("input", 0) is None else {})}
+                            for e in err.errors(include_url=False)]) from None
     results, reasonless = [], {}
     for i, request in enumerate(parsed.items):
         try:

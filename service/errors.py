@@ -144,7 +144,8 @@ def validation_body(errors: list[dict]) -> dict:
 
 def _message(error: dict) -> str:
     """An error's message; a JSON decode error says why and where (the parser's words are in ``ctx``,
-    which the body leaves out), so a client can find the broken character."""
+    which the body leaves out), so a client can find the broken character, and a null says it was one
+    (``input`` is left out too)."""
     message = str(error.get("msg", "")).removeprefix("Value error, ")
     if error.get("type") == "json_invalid" and message == "JSON decode error":
         reason = (error.get("ctx") or {}).get("error")
@@ -153,6 +154,9 @@ def _message(error: dict) -> str:
             message += f": {reason}"
         if len(loc) > 1 and isinstance(loc[1], int):
             message += f" at character {loc[1]}"
+    elif "input" in error and error["input"] is None and error.get("type") != "missing":
+        # Serialisers that write an unset optional as null (a dict's None, std::optional) meet this first.
+        message += ", got null (leave an optional field out rather than sending null)"
     return message
 
 

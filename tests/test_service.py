@@ -370,6 +370,12 @@ MALFORMED = [
     (json.dumps({"object_id": "random_001", "pose": np.eye(4).tolist(), "frame": "world"}), "body.frame: Extra inputs"),
     (json.dumps([1, 2, 3]), "valid dictionary"),
     ("{not json", "JSON decode error"),
+    # An unset optional written as null (a dict's None, std::optional): said to be one, with what to do instead.
+    (json.dumps({"object_id": "random_001", "pose": np.eye(4).tolist(), "pushes_left": None}),
+     "body.pushes_left: Input should be a valid integer, got null (leave an optional field out rather than sending null)"),
+    (json.dumps({"object_id": "random_001", "ros_pose": None, "pose": np.eye(4).tolist()}), "body.ros_pose: Input should be a valid dictionary"
+     " or object to extract fields from, got null"),
+    (json.dumps({"object_id": None, "pose": np.eye(4).tolist()}), "body.object_id: Input should be a valid string, got null"),
 ]
 
 
@@ -549,6 +555,11 @@ def test_batch_plan_answers_each_item_and_rejects_malformed_batches(client, tabl
     assert malformed.status_code == 422 and "body.items.0.pose" in malformed.json()["detail"]
     too_many = client.post("/batch/plan", json={"items": items[:1] * 1001})
     assert too_many.status_code == 422 and "at most 1000" in too_many.json()["detail"]
+    # A null is said to be one, as /plan says it (the batch is parsed outside FastAPI).
+    for path, item in (("/batch/plan", {**items[0], "pushes_left": None}), ("/batch/transitions", {"object_id": "random_002", "pose": None, "action": 0})):
+        null = client.post(path, json={"items": [item]})
+        assert null.status_code == 422 and ", got null (leave an optional field out" in null.json()["detail"], null.text
+    assert ", got null" not in beyond.json()["detail"] + too_many.json()["detail"]
 
 
 def test_openapi_documents_every_endpoint(client):

@@ -70,6 +70,7 @@ def requests(tables) -> list[bytes]:
         b'{"object_id": ',
         b"[]",
         json.dumps({"object_id": "random_000", "pose": identity, "unexpected": 1}).encode(),
+        json.dumps({"object_id": "random_000", "pose": identity, "pushes_left": None}).encode(),
         json.dumps({"object_id": "random_000", "pose": [[1, 0, 0, 1.7e308], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}).encode(),
     ]
     return bodies
