@@ -68,8 +68,8 @@ def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
 
 
 def w_first_hint(request: PlanRequest, obj: ObjectData, tolerance: float, height_tolerance: float) -> str:
-    """For a ROS pose refused as no stable pose or off the table: a sentence naming the pose its
-    quaternion would be read w first, when that reading rests on the table in a stable pose, else "".
+    """For a ROS pose refused as no stable pose or off the table: a sentence naming the pose its quaternion
+    gives when read w first, if that reading rests on the table in a stable pose, else "".
     Eigen, transforms3d and pyquaternion order a quaternion w, x, y, z where geometry_msgs orders it
     x, y, z, w, and one sent in the wrong order reads as another, arbitrary rotation.  When that
     rotation also rests in a pose the service cannot tell, so it only says so when it refuses."""
@@ -82,8 +82,8 @@ def w_first_hint(request: PlanRequest, obj: ObjectData, tolerance: float, height
     z_offset = float((observed @ obj.match_inverses[match.pose])[2, 3])
     if match.angle_error > tolerance or not rests_on_table(z_offset, height_tolerance):
         return ""
-    return (f" Read as w, x, y, z (its w field the x part, and so on), the quaternion would be pose "
-            f"{int(obj.match_pose[match.pose])}, {np.degrees(match.angle_error):.1f} deg away, on the table: "
+    return (f" Read in the order w, x, y, z (the x field as w, y as x, z as y, w as z), the quaternion would be pose "
+            f"{int(obj.match_pose[match.pose])}, {np.degrees(match.angle_error):.1f} deg away and on the table: "
             "geometry_msgs orders it x, y, z, w")
 
 
@@ -148,7 +148,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
         raise NoStablePose(
             f"the observed orientation of '{obj.object_id}' is no stable pose: the nearest, pose {pose}, "
             f"is {np.degrees(match.angle_error):.1f} deg away (tolerance {np.degrees(store.tolerance):.1f} deg); "
-            f"is the object resting on the table, and is the world frame z up?"
+            "is the object resting on the table, and is the world frame z up?"
             f"{w_first_hint(request, obj, store.tolerance, settings.height_tolerance)}",
             object_id=obj.object_id,
             nearest_pose=pose,

@@ -373,8 +373,8 @@ MALFORMED = [
     # An unset optional written as null (a dict's None, std::optional): said to be one, with what to do instead.
     (json.dumps({"object_id": "random_001", "pose": np.eye(4).tolist(), "pushes_left": None}),
      "body.pushes_left: Input should be a valid integer, got null (leave an optional field out rather than sending null)"),
-    (json.dumps({"object_id": "random_001", "ros_pose": None, "pose": np.eye(4).tolist()}), "body.ros_pose: Input should be a valid dictionary"
-     " or object to extract fields from, got null"),
+    (json.dumps({"object_id": "random_001", "ros_pose": None, "pose": np.eye(4).tolist()}),
+     "body.ros_pose: Input should be a valid dictionary or object to extract fields from, got null"),
     (json.dumps({"object_id": None, "pose": np.eye(4).tolist()}), "body.object_id: Input should be a valid string, got null"),
 ]
 

@@ -238,12 +238,12 @@ def test_a_quaternion_sent_w_first_is_named_in_the_refusal(client, tables):
                 continue
             refused += 1
             detail = response.json()["detail"]
-            assert detail.endswith(f"Read as w, x, y, z (its w field the x part, and so on), the quaternion would be pose {pose}, "
-                                   "0.0 deg away, on the table: geometry_msgs orders it x, y, z, w"), detail
+            assert detail.endswith(f"Read in the order w, x, y, z (the x field as w, y as x, z as y, w as z), the quaternion would "
+                                   f"be pose {pose}, 0.0 deg away and on the table: geometry_msgs orders it x, y, z, w"), detail
             # The same orientation as a matrix, tilted off every pose: no quaternion, so no such hint.
             tilted = rotation_about([1.0, 2.0, 0.0], math.radians(40)) @ observed
             response = post_plan(client, object_id, tilted)
-            assert response.status_code == 409 and "Read as w" not in response.json()["detail"]
+            assert response.status_code == 409 and "the order w, x, y, z" not in response.json()["detail"]
     assert refused >= 5  # the wrong order is refused for most orientations
 
 
