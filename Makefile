@@ -11,11 +11,12 @@ DATASET ?= data/dataset
 
 venv: $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml
+# constraints.txt pins every distribution to the versions last tested (see its header).
+$(VENV)/.installed: pyproject.toml constraints.txt
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or make PYTHON=python3)"; exit 1; }
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[all,dev]" --config-settings editable_mode=compat
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[all,dev]" --config-settings editable_mode=compat
 	touch $@
 
 dataset: venv

@@ -119,6 +119,45 @@ def declared(*extras: str) -> set[str]:
     return {canonicalize_name(Requirement(r).name) for r in requirements}
 
 
+def pinned() -> dict[str, str]:
+    """constraints.txt as {canonical name: version}; every line a comment, blank or ``name==version``, once."""
+    from packaging.utils import canonicalize_name
+
+    pins: dict[str, str] = {}
+    for number, line in enumerate((ROOT / "constraints.txt").read_text().splitlines(), 1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        name, equals, version = line.partition("==")
+        assert equals and version and " " not in line, f"constraints.txt:{number}: {line!r} is no name==version"
+        assert canonicalize_name(name) not in pins, f"constraints.txt:{number}: {name} pinned twice"
+        pins[canonicalize_name(name)] = version
+    return pins
+
+
+def test_constraints_pin_every_declared_distribution_within_its_range_and_this_venv_has_them():
+    """``make`` installs with ``-c constraints.txt``: a pin for each dependency pyproject declares, inside the
+    range it declares, so that the versions CI and a fresh machine get are the tested ones; the tests
+    run in such a venv (one made another way, or after an upgrade by hand, is named here)."""
+    import tomllib
+    from importlib.metadata import version
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    requirements = [Requirement(r) for r in project["dependencies"] + sum(project["optional-dependencies"].values(), [])]
+    requirements = [r for r in requirements if canonicalize_name(r.name) != "toppledb" and (r.marker is None or r.marker.evaluate())]
+    pins = pinned()
+    assert requirements and len(pins) > len(requirements)  # the declared ones and what they bring
+    for requirement in requirements:
+        name = canonicalize_name(requirement.name)
+        assert name in pins, f"constraints.txt pins no {requirement.name}, which pyproject.toml declares"
+        assert requirement.specifier.contains(pins[name], prereleases=True), f"{name}=={pins[name]} is outside {requirement}"
+        assert version(requirement.name) == pins[name], (
+            f"this venv has {requirement.name} {version(requirement.name)}, constraints.txt pins {pins[name]}: "
+            "run `make` (it reinstalls when constraints.txt changes), or refresh constraints.txt as its header says")
+
+
 @pytest.mark.parametrize(("modules", "extras"), [("server", ("service",)), ("client", ("client",))])
 def test_each_install_declares_every_distribution_its_modules_import(modules, extras):
     from importlib.metadata import packages_distributions
@@ -195,13 +234,13 @@ def test_wheel_ships_every_module_the_default_corpus_and_type_markers(wheel, sou
 
 @pytest.fixture(scope="module")
 def service_venv(wheel, tmp_path_factory) -> Path:
-    """A fresh venv holding ``toppledb[service]`` and nothing of this venv."""
+    """A fresh venv holding ``toppledb[service]`` and nothing of this venv, at the versions of constraints.txt."""
     venv = tmp_path_factory.mktemp("service_only") / "venv"
     run([sys.executable, "-m", "venv", "--without-pip", venv], timeout=120)
     python = venv / "bin" / "python"
     started = time.monotonic()
     run(
-        [sys.executable, "-m", "pip", "--python", python, "install", "--quiet", f"{wheel}[service]"],
+        [sys.executable, "-m", "pip", "--python", python, "install", "--quiet", "-c", ROOT / "constraints.txt", f"{wheel}[service]"],
         timeout=PIP_TIMEOUT,
         env=isolated_env(),
     )
