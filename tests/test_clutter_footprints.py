@@ -212,3 +212,134 @@ def test_clip_overhang_and_inside_box():
     assert low[2] > high[2]
     assert fp.overhang(np.array([[[0.0, 0.0], [1.2, 0.1]], [[0.1, 0.1], [-0.5, 0.4]]]), half) == pytest.approx([0.2, -0.1])
     assert list(fp.inside_box(np.array([[1.0, 0.5], [1.01, 0.0]]), half)) == [True, False]
+
+
+# --- cases the mutation run (stop 71) found untested ------------------------------------------
+
+
+def test_three_points_make_a_counter_clockwise_hull_without_collinear_ones():
+    # Sorted by x these run clockwise; the hull must turn them and drop the collinear middle point.
+    hull = fp.convex_hull_2d(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 0.0]]))
+    assert len(hull) == 3 and fp.polygon_areas(hull) == pytest.approx(1.0)
+    line = fp.convex_hull_2d(np.array([[0.0, 0.0], [2.0, 2.0], [1.0, 1.0]]))
+    assert {tuple(p) for p in line} == {(0.0, 0.0), (2.0, 2.0)}
+
+
+def test_the_hull_of_grid_points_with_ties_and_repeats():
+    # Many points share an x or a y, some repeat: the hull is the grid's bounding corners.
+    rng = np.random.default_rng(12)
+    for _ in range(20):
+        points = rng.integers(0, 4, size=(int(rng.integers(5, 40)), 2)).astype(float)
+        hull = fp.convex_hull_2d(points)
+        assert fp.polygon_areas(hull) > 0 or len(hull) <= 2
+        # Every point is inside the hull, every hull vertex is a strict corner (a left turn).
+        if len(hull) >= 3:
+            assert fp.points_in_polygons(points, hull[None]).all()
+            a, b = np.roll(hull, -1, axis=0) - hull, np.roll(hull, -2, axis=0) - np.roll(hull, -1, axis=0)
+            turn = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+            assert np.all(turn > 0)
+
+
+def test_the_octagon_filter_drops_only_points_strictly_inside_it():
+    # A square's corners (the octagon repeats them: axis directions tie on two corners) and
+    # points inside it: every interior point is dropped, no corner is.
+    rng = np.random.default_rng(13)
+    interior = rng.uniform(-0.9, 0.9, size=(30, 2))
+    points = np.concatenate([[[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]], interior, [[0.0, 0.0], [0.5, 0.0], [0.0, -0.5]]])
+    inside = fp.strictly_inside_octagon(points)
+    assert not inside[:4].any() and inside[4:].all()
+    # On a circle every point is its own extreme in some direction or on the octagon's edge.
+    circle = np.stack([np.cos(np.arange(24) * np.pi / 12), np.sin(np.arange(24) * np.pi / 12)], axis=1)
+    assert not fp.strictly_inside_octagon(circle).any()
+    assert np.array_equal(fp.convex_hull_2d(points), fp.monotone_chain(points))
+
+
+def test_a_segment_that_ends_inside_a_polygon_meets_it():
+    # Start outside, end inside: exactly one edge crossed, so the crossing test alone decides.
+    rng = np.random.default_rng(14)
+    for _ in range(40):
+        poly = random_polygon(rng, [0.0, 0.0], 0.5, 10)
+        end = poly.mean(axis=0)
+        start = end + rng.normal(size=2) * 3.0
+        if fp.points_in_polygons(start, poly[None], 0.0):
+            continue
+        assert fp.segment_polygon_distance(start[None], end[None], poly[None])[0] == 0.0
+        assert fp.segment_polygon_distance(end[None], start[None], poly[None])[0] == 0.0
+
+
+def test_ray_interval_along_slanted_directions_and_through_padded_polygons():
+    rng = np.random.default_rng(15)
+    poly = random_polygon(rng, [0.0, 0.0], 0.5, 9)
+    padded = fp.pad_polygons([poly, np.zeros((len(poly) + 4, 2))])[0]
+    origins = rng.uniform(-2, 2, size=(50, 2))
+    angles = rng.uniform(0, 2 * np.pi, 50)
+    directions = np.stack([np.cos(angles), np.sin(angles)], axis=1) * rng.uniform(0.5, 2.0, (50, 1))
+    t_in, t_out = fp.ray_interval(origins, directions, poly[None])
+    pad_in, pad_out = fp.ray_interval(origins, directions, padded[None])
+    assert np.allclose(t_in, pad_in) and np.allclose(t_out, pad_out)
+    hit = t_in < t_out
+    assert 5 < hit.sum() < 50
+    # Where it hits, the ends of the interval are on the boundary and its middle is inside.
+    for t in (t_in[hit], t_out[hit]):
+        ends = origins[hit] + t[:, None] * directions[hit]
+        assert np.allclose(fp.point_polygon_distance(ends, poly[None]), 0.0, atol=1e-9)
+        assert np.all(np.abs(fp.edge_slack(ends, poly[None]).max(axis=-1)) < 1e-9)
+    middle = origins[hit] + ((t_in + t_out) / 2)[hit, None] * directions[hit]
+    assert fp.points_in_polygons(middle, poly[None]).all()
+    # A miss: no point of the line is inside.
+    for o, d in zip(origins[~hit], directions[~hit]):
+        samples = o + np.linspace(-5, 5, 2001)[:, None] * d
+        assert not fp.points_in_polygons(samples, poly[None], 0.0).any()
+
+
+def test_functions_broadcast_over_leading_dimensions():
+    rng = np.random.default_rng(16)
+    polys = fp.pad_polygons([random_polygon(rng, rng.uniform(-1, 1, 2), 0.5, k) for k in (5, 8, 11, 6, 9, 7)]).reshape(2, 3, -1, 2)
+    origins = rng.uniform(-2, 2, size=(2, 3, 2))
+    directions = rng.normal(size=(2, 3, 2))
+    t_in, t_out = fp.ray_interval(origins, directions, polys)
+    assert t_in.shape == t_out.shape == (2, 3)
+    for a in range(2):
+        for b in range(3):
+            one_in, one_out = fp.ray_interval(origins[a, b][None], directions[a, b][None], polys[a, b][None])
+            assert (t_in[a, b], t_out[a, b]) == (one_in[0], one_out[0])
+    points = np.array([[[0.5, 0.2], [1.2, 0.0]], [[0.0, -0.6], [-1.0, 0.5]]])
+    assert fp.inside_box(points, np.array([1.0, 0.5])).tolist() == [[True, False], [False, True]]
+
+
+def test_the_minkowski_difference_of_squares_with_level_edges():
+    # Level bottom edges tie on the lowest y: the start must be the lowest-then-leftmost vertex.
+    for roll, shift in enumerate(([2.0, 0.0], [0.5, -0.25], [-3.0, 1.0], [0.0, 0.0])):
+        # The same square listed from every corner: the level edges' ends come in either order.
+        moving, fixed = np.roll(SQUARE, roll, axis=0), np.roll(SQUARE, roll + 1, axis=0) + shift
+        diff = fp.minkowski_difference(moving, fixed)
+        expected = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) + shift
+        assert np.allclose(diff.min(axis=0), expected.min(axis=0)) and np.allclose(diff.max(axis=0), expected.max(axis=0))
+        assert fp.polygon_areas(diff) == pytest.approx(4.0)
+        assert set(map(tuple, np.round(diff, 12))) >= set(map(tuple, np.round(expected, 12)))
+
+
+def test_clip_to_box_along_slanted_lines():
+    half = np.array([1.0, 0.5])
+    d = np.array([[0.6, 0.8], [-0.8, 0.6]])
+    starts = np.array([[-2.0, -2.0], [0.3, 0.1]])
+    low, high = fp.clip_to_box(starts, d, half)
+    for s, di, lo, hi in zip(starts, d, low, high):
+        assert lo < hi
+        for t in (lo, hi):  # the ends are on the box's boundary
+            p = s + t * di
+            assert fp.inside_box(p, half) and np.isclose(np.max(np.abs(p) - half), 0.0)
+        assert not fp.inside_box(s + (lo - 1e-6) * di, half) and not fp.inside_box(s + (hi + 1e-6) * di, half)
+
+
+def test_no_warning_on_parallel_edges_padding_and_points_on_walls():
+    import warnings
+
+    square = fp.pad_polygons([SQUARE, np.zeros((7, 2))])[:1]  # padded: zero-length edges
+    axes = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fp.ray_interval(np.array([[0.0, 0.0], [-1.0, 0.5], [0.5, 2.0], [1.0, 1.0]]), axes, square)
+        fp.translation_clearance(np.concatenate([square, square + [2.0, 0.0]]), axes)
+        fp.wall_clearance(square - 1.0, axes, np.array([1.0, 1.0]))  # vertices on the walls
+        fp.clip_to_box(np.array([[1.0, 0.0], [0.0, 0.5], [-1.0, -0.5], [0.2, 0.2]]), axes, np.array([1.0, 0.5]))
