@@ -14,8 +14,11 @@ from clutter import footprints as fp
 from clutter.policies import (
     POLICIES,
     PushConfig,
+    best_stroke,
     clearance_ratios,
+    closest_pair,
     clusters,
+    cosine,
     floor_grid,
     free_space_points,
     outside_bin,
@@ -23,6 +26,7 @@ from clutter.policies import (
     room,
     scene,
     strokes,
+    unit,
 )
 from clutter.state import Bin, HeapState
 
@@ -299,3 +303,307 @@ def test_plan_heap_takes_meshes():
     assert push.target == expected.target and np.allclose(push.end, expected.end) and direction(push)[1] == pytest.approx(1.0)
     with pytest.raises(ValueError, match="no mesh given for 'box1'"):
         toppledb.plan_heap(state.object_ids, state.poses, {"box0": box_model})
+
+
+# --- cases the mutation run (stop 71) found untested ------------------------------------------
+
+
+def test_config_limits_are_inclusive_where_documented_and_errors_name_the_field():
+    assert PushConfig(approach_offset=0.01, finger_radius=0.01).approach_offset == 0.01  # "at least finger_radius"
+    assert PushConfig(directions=4).directions == 4  # "even and at least 4"
+    with pytest.raises(ValueError, match="PushConfig.min_push must be a positive number, got 0"):
+        PushConfig(min_push=0)
+    with pytest.raises(TypeError, match=r"PushConfig.directions must be an integer, got 16.0"):
+        PushConfig(directions=16.0)
+
+
+def test_bad_input_names_the_object_it_is_about():
+    state, hulls, com = heap([(0.0, 0.0), (0.1, 0.0), (-0.1, 0.0)])
+    bad_com = com.copy()
+    bad_com[2, 0] = np.nan
+    with pytest.raises(ValueError, match=r"object 2 \('box2'\): its centre of mass is not finite"):
+        plan_push("max_clearance", state, hulls, bad_com)
+    bad_hull = hulls[1].copy()
+    bad_hull[3, 2] = np.inf
+    with pytest.raises(ValueError, match=r"object 1 \('box1'\): its hull vertices are not all finite"):
+        plan_push("max_clearance", state, [hulls[0], bad_hull, hulls[2]], com)
+    with pytest.raises(ValueError, match="known: quasi_random, boundary_shear, free_space, max_clearance, cluster_diffusion$"):
+        plan_push("shove", state, hulls, com)
+    with pytest.raises(ValueError, match=r"^the quasi_random policy needs rng \(a numpy Generator\)$"):
+        plan_push("quasi_random", state, hulls, com)
+    with pytest.raises(ValueError, match="^got 2 hulls for an empty heap$"):
+        plan_push("free_space", HeapState(Bin(), (), np.zeros((0, 4, 4))), hulls[:2], np.zeros((0, 3)))
+    # Three vertices are enough (V >= 3): a triangle lying on the floor.
+    triangle = np.array([[0.0, 0.0, 0.0], [0.04, 0.0, 0.0], [0.0, 0.04, 0.0]])
+    assert scene(state, [triangle, hulls[1], hulls[2]], com, CONFIG).polygons.shape[0] == 3
+
+
+@pytest.mark.parametrize("half", [[0.25, 0.2], [0.4, 0.1], [0.003, 0.2]])
+@pytest.mark.parametrize("max_points", [20_000, 16])
+def test_the_floor_grid_has_the_fewest_cells_no_larger_than_its_resolution(half, max_points):
+    half = np.array(half)
+    config = PushConfig(max_grid_points=max_points)
+    size, counts = floor_grid(half, config)
+    extent = 2 * half
+    # The cell is the configured one unless that would make more than max_grid_points cells.
+    resolution = max(config.grid_resolution, math.sqrt(extent[0] * extent[1] / max_points))
+    assert counts.dtype.kind == "i" and np.allclose(size * counts, extent)
+    assert np.all((counts - 1) * resolution < extent) and np.all(extent <= counts * resolution * (1 + 1e-12))
+    assert counts.prod() <= max_points + counts.sum() + 1  # the budget, but for rounding up per side
+
+
+def test_the_closest_pair_is_by_centre_distance():
+    state, hulls, com = heap([(-0.15, 0.0), (0.05, 0.0), (0.12, 0.0)])
+    assert closest_pair(scene(state, hulls, com, CONFIG)) == (1, 2)
+
+
+def test_cosine_of_any_vectors():
+    a = np.array([[3.0, 4.0], [1.0, 0.0], [0.0, 0.0], [2.0, 2.0], [0.0, 5.0]])
+    b = np.array([[6.0, 8.0], [-2.0, 0.0], [1.0, 1.0], [0.0, 0.0], [3.0, 0.0]])
+    assert np.allclose(cosine(a, b), [1.0, -1.0, 0.0, 0.0, 0.0])
+    rng = np.random.default_rng(18)
+    a, b = rng.normal(size=(20, 2)) * 3, rng.normal(size=(20, 2)) * 0.2
+    angle = np.arctan2(a[:, 1], a[:, 0]) - np.arctan2(b[:, 1], b[:, 0])
+    assert np.allclose(cosine(a, b), np.cos(angle))
+
+
+def test_free_space_points_in_a_bin_two_cells_wide():
+    # Alone, every cell at |x| <= 0.245 ties on room (5 mm to a long wall): the point is the
+    # object's own cell, and an object there has no direction of most free space.
+    narrow = Bin(length=0.5, width=0.02)
+    for y in (-0.005, 0.005):
+        state, hulls, com = heap([(0.005, y)], hulls=[box(0.004, 0.004)], bin=narrow)
+        points, free = free_space_points(scene(state, hulls, com, CONFIG), np.array([0]))
+        assert np.allclose(points[0], [0.005, y], atol=1e-12) and np.array_equal(free[0], [0.0, 0.0])
+
+
+def test_the_direction_of_most_free_space_is_unit_beyond_half_a_cell_and_zero_within():
+    # In the default bin the best cells of a lone object tie around the middle (room 0.195 m).
+    for place, unit_length in (((0.0, 0.0), True), ((0.009, 0.005), False)):
+        state, hulls, com = heap([place])
+        points, free = free_space_points(scene(state, hulls, com, CONFIG), np.array([0]))
+        offset = points[0] - place
+        if unit_length:  # 7.1 mm from the nearest best cells
+            assert np.linalg.norm(offset) > CONFIG.grid_resolution / 2 and np.allclose(free[0], offset / np.linalg.norm(offset))
+        else:  # 4 mm from it
+            assert np.linalg.norm(offset) < CONFIG.grid_resolution / 2 and np.array_equal(free[0], [0.0, 0.0])
+    # Several objects at once: each direction is its own unit vector c -> p (or zero).
+    state, hulls, com = random_heap(np.random.default_rng(19), 6)
+    sc = scene(state, hulls, com, CONFIG)
+    points, free = free_space_points(sc, np.arange(6))
+    offset = points - sc.centers
+    far = np.linalg.norm(offset, axis=1) > CONFIG.grid_resolution / 2
+    assert far.sum() >= 5
+    assert np.allclose(free[far], offset[far] / np.linalg.norm(offset[far], axis=1, keepdims=True))
+    assert np.all(free[~far] == 0.0)
+
+
+def test_a_clearance_ratio_is_the_inverse_of_its_opposite():
+    state, hulls, com = random_heap(np.random.default_rng(20), 5)
+    ratios, directions = clearance_ratios(scene(state, hulls, com, CONFIG))
+    opposite = np.roll(ratios, -CONFIG.directions // 2, axis=1)
+    assert np.allclose(directions, -np.roll(directions, -CONFIG.directions // 2, axis=0))
+    roomy = (ratios > 0) & (opposite > 0) & np.isfinite(ratios) & np.isfinite(opposite)
+    assert roomy.sum() > 20
+    # Both clearances at least min_clearance there, forward / backward times backward / forward is 1.
+    both = roomy & (ratios * opposite > 1e-6)
+    assert np.allclose((ratios * opposite)[both], 1.0)
+
+
+def test_a_stroke_starts_approach_offset_behind_the_footprint_and_pushes_push_length_past_contact():
+    # The centre of mass 15 mm off the box's middle: the start is measured from the footprint's back.
+    state, hulls, _ = heap([(0.0, 0.0), (0.15, 0.1)])
+    com = np.array([[0.015, 0.0, 0.02], [0.0, 0.0, 0.02]])
+    sc = scene(state, hulls, com, CONFIG)
+    for d in ([1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [math.sqrt(0.5), -math.sqrt(0.5)]):
+        s = strokes(sc, np.array([0]), np.array([d]))
+        assert s.feasible[0]
+        t_in, _ = fp.ray_interval(s.start, s.direction, sc.polygons[:1])  # along the stroke, to the footprint
+        assert t_in[0] == pytest.approx(CONFIG.approach_offset)
+        travel = np.linalg.norm(s.end[0] - s.start[0])
+        assert travel == pytest.approx(CONFIG.approach_offset - CONFIG.finger_radius + CONFIG.push_length)
+        line = s.end[0] - s.start[0]
+        assert abs(line[0] * (sc.centers[0] - s.start[0])[1] - line[1] * (sc.centers[0] - s.start[0])[0]) < 1e-12
+
+
+def test_a_start_past_the_wall_is_infeasible_unless_clipped_forward():
+    # A box 2 cm from the right wall pushed left: the finger would start outside the bin.
+    state, hulls, com = heap([(0.2, 0.0)])
+    sc = scene(state, hulls, com, CONFIG)
+    d = np.array([[-1.0, 0.0]])
+    assert not strokes(sc, np.array([0]), d).feasible[0]
+    assert not strokes(sc, np.array([0]), d, clip_start=False).feasible[0]
+    clipped = strokes(sc, np.array([0]), d, clip_start=True)
+    assert clipped.feasible[0]
+    box_half = sc.half_extents - CONFIG.finger_radius
+    assert clipped.start[0] == pytest.approx([box_half[0], 0.0])  # moved forward onto the limit
+
+
+def test_a_stroke_cut_short_by_the_wall_is_feasible_only_if_it_moves_the_target_min_push():
+    # A 8 mm box pushed towards the right wall: the finger meets it at x - 14 mm and may go on
+    # to 0.24 m (a finger radius from the wall), at most push_length.
+    config = PushConfig(min_push=0.02)
+    limit = 0.25 - config.finger_radius
+    for x in np.linspace(0.15, 0.245, 20):
+        state, hulls, com = heap([(float(x), 0.0)], hulls=[box(0.004, 0.004)])
+        sc = scene(state, hulls, com, config)
+        s = strokes(sc, np.array([0]), np.array([[1.0, 0.0]]))
+        contact = x - 0.004 - config.finger_radius
+        travel = min(config.push_length, limit - contact)
+        assert s.feasible[0] == (travel >= config.min_push - 1e-12)
+        if s.feasible[0]:
+            assert s.end[0, 0] == pytest.approx(contact + travel)
+
+
+def test_the_approach_is_checked_against_the_other_objects_unless_told_not_to():
+    # A small box 8 mm beside the approach of a push of box 0 along +x, but 13 mm from the start.
+    state, hulls, com = heap([(0.0, 0.0), (-0.036, 0.012)], hulls=[box(), box(0.004, 0.004)])
+    sc = scene(state, hulls, com, CONFIG)
+    d = np.array([[1.0, 0.0]])
+    assert not strokes(sc, np.array([0]), d).feasible[0]
+    assert strokes(sc, np.array([0]), d, check_approach=False).feasible[0]
+
+
+def test_best_stroke_looks_past_every_chunk_of_infeasible_candidates():
+    # 39 pushes whose start is past the wall score highest; the one feasible push scores lowest.
+    state, hulls, com = heap([(0.215, 0.0)])
+    sc = scene(state, hulls, com, CONFIG)
+    directions = np.array([[-1.0, 0.0]] * 39 + [[0.0, 1.0]])
+    push = best_stroke(sc, "max_clearance", np.zeros(40, dtype=int), directions, -np.arange(40.0))
+    assert push is not None and direction(push) == pytest.approx([0.0, 1.0])
+
+
+def test_quasi_random_takes_the_first_draw_whose_clipped_start_is_free_approach_unchecked():
+    rng = np.random.default_rng(21)
+    clipped = approach_blocked = 0
+    corners = heap([(0.21, 0.16), (-0.21, -0.16), (0.21, -0.16)])  # fingers often start past a wall here
+    for seed in range(60):
+        state, hulls, com = random_heap(rng, int(rng.integers(6, 12))) if seed % 2 else corners
+        sc = scene(state, hulls, com, CONFIG)
+        draws = np.random.default_rng(seed)  # the baseline's draws: all objects first, then all angles
+        targets = draws.integers(len(sc), size=CONFIG.random_attempts)
+        d = unit(draws.uniform(0.0, 2 * np.pi, size=CONFIG.random_attempts))
+        s = strokes(sc, targets, d, check_approach=False, clip_start=True)
+        push = plan_push("quasi_random", state, hulls, com, rng=np.random.default_rng(seed))
+        if not s.feasible.any():
+            assert push is None
+            continue
+        k = int(np.argmax(s.feasible))
+        assert push.target == targets[k] and np.allclose(direction(push), d[k]) and np.allclose(push.start[:2], s.start[k])
+        one = (sc, targets[k:k + 1], d[k:k + 1])
+        approach_blocked += not strokes(*one, check_approach=True, clip_start=True).feasible[0]
+        clipped += not strokes(*one, check_approach=False, clip_start=False).feasible[0]
+    assert approach_blocked >= 1 and clipped >= 1
+
+
+def test_quasi_random_directions_cover_the_circle_evenly():
+    state, hulls, com = heap([(0.0, 0.0)])  # alone in the middle: every first draw is taken
+    angles = np.array([math.atan2(*direction(plan_push("quasi_random", state, hulls, com, rng=np.random.default_rng(seed)))[::-1])
+                       for seed in range(400)]) % (2 * np.pi)
+    octants = np.bincount((angles // (np.pi / 4)).astype(int), minlength=8)
+    assert len(octants) == 8 and octants.min() >= 25  # 50 expected in each
+    assert abs(np.mean(angles < np.pi) - 0.5) < 0.1
+
+
+def test_boundary_shear_pushes_across_a_diagonal_pair():
+    state, hulls, com = heap([(-0.03, -0.03), (0.03, 0.03)])
+    push = plan_push("boundary_shear", state, hulls, com)
+    assert push is not None and abs(direction(push) @ [1.0, 1.0]) < 1e-9
+    check_push(push, state, hulls, com)
+
+
+@pytest.mark.parametrize("blocked", [0, 1])
+def test_boundary_shear_pushes_the_other_object_when_one_cannot_be_reached(blocked):
+    # Two boxes by the top wall, a third above one of them where the finger would come down for
+    # its push towards the room below: that push is the other box's.
+    places = [(-0.031, 0.1), (0.031, 0.1), ((-0.031, 0.031)[blocked], 0.17)]
+    state, hulls, com = heap(places)
+    push = plan_push("boundary_shear", state, hulls, com)
+    assert push is not None and push.target == 1 - blocked
+    assert direction(push) == pytest.approx([0.0, -1.0])
+    check_push(push, state, hulls, com)
+
+
+def test_free_space_turns_a_blocked_ideal_direction_by_the_fewest_steps():
+    # A neighbour 5 mm behind each box's ideal push: the finger cannot come down there.
+    state, hulls, com = heap([(0.0, 0.0), (-0.065, 0.0)])
+    sc = scene(state, hulls, com, CONFIG)
+    push = plan_push("free_space", state, hulls, com)
+    assert push is not None
+    check_push(push, state, hulls, com)
+    _, free = free_space_points(sc, np.array([push.target]))
+    step = 2 * np.pi / CONFIG.directions
+    turn = (math.atan2(*direction(push)[::-1]) - math.atan2(free[0, 1], free[0, 0])) / step
+    k = round(turn)
+    assert abs(turn - k) < 1e-9
+    k = (k + CONFIG.directions // 2) % CONFIG.directions - CONFIG.directions // 2  # -8 .. 7
+    assert k != 0
+    nearer = np.array([j for j in range(-CONFIG.directions // 2, CONFIG.directions // 2 + 1) if abs(j) < abs(k)])
+    ideal = math.atan2(free[0, 1], free[0, 0])
+    assert not strokes(sc, np.full(len(nearer), push.target), unit(ideal + nearer * step)).feasible.any()
+
+
+def test_best_stroke_breaks_ties_by_the_earlier_candidate():
+    # 60 candidates scoring 1 or 2 in blocks of three; the first four of score 2 cannot start
+    # (past the wall), the others are told apart by their direction.
+    state, hulls, com = heap([(0.215, 0.0)])
+    sc = scene(state, hulls, com, CONFIG)
+    score = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0] * 10)
+    angles = np.radians(-80.0 + np.arange(60) * 160.0 / 60)
+    angles[[3, 4, 5, 9]] = np.pi
+    push = best_stroke(sc, "max_clearance", np.zeros(60, dtype=int), unit(angles), score)
+    assert push is not None and direction(push) == pytest.approx(unit(angles[10]))
+
+
+def test_an_object_ahead_of_the_target_does_not_block_the_push():
+    # Only the finger's way down and in to the target is checked, not where the target goes.
+    state, hulls, com = heap([(-0.1, 0.0), (0.1, 0.0)])
+    s = strokes(scene(state, hulls, com, CONFIG), np.array([0, 1]), np.array([[1.0, 0.0], [-1.0, 0.0]]))
+    assert s.feasible.all()
+
+
+def test_free_space_has_no_push_when_both_objects_sit_at_their_free_space_points():
+    # A bin four cells wide: each small box stands in a cell of most room, far from the other.
+    state, hulls, com = heap([(0.005, 0.005), (0.205, 0.005)], hulls=[box(0.004, 0.004)] * 2, bin=Bin(length=0.5, width=0.04))
+    sc = scene(state, hulls, com, CONFIG)
+    points, free = free_space_points(sc, np.array([0, 1]))
+    assert np.allclose(points, sc.centers, atol=1e-12) and np.all(free == 0.0)
+    assert plan_push("free_space", state, hulls, com) is None
+
+
+def test_free_space_and_boundary_shear_choose_by_their_rules_on_random_heaps():
+    rng = np.random.default_rng(22)
+    step = 2 * np.pi / CONFIG.directions
+    turns = set()
+    for _ in range(40):
+        state, hulls, com = random_heap(rng, int(rng.integers(3, 10)))
+        sc = scene(state, hulls, com, CONFIG)
+        i, j = closest_pair(sc)
+        _, free = free_space_points(sc, np.array([i, j]))
+        push = plan_push("free_space", state, hulls, com)
+        if push is not None:
+            t = push.target
+            ideal = np.arctan2(*free[[i, j].index(t)][::-1])
+            turn = (math.atan2(*direction(push)[::-1]) - ideal) / step
+            assert abs(turn - round(turn)) < 1e-9
+            half = CONFIG.directions // 2
+            k = (round(turn) + half) % CONFIG.directions - half
+            k = half if k == -half else k
+            # Every turn tried before it (fewer steps; of two the same size, counter-clockwise first) is blocked.
+            order = [0, *[s * m for m in range(1, half) for s in (1, -1)], half]
+            before = np.array(order[: order.index(k)], dtype=float)
+            if len(before):
+                assert not strokes(sc, np.full(len(before), t), unit(ideal + before * step)).feasible.any()
+            turns.add(k)
+        # Boundary shear: the feasible one of the four pushes closest to its own object's free direction.
+        push = plan_push("boundary_shear", state, hulls, com)
+        if push is not None:
+            across = sc.centers[j] - sc.centers[i]
+            b = np.array([-across[1], across[0]]) / np.linalg.norm(across)
+            targets, dirs = np.array([i, i, j, j]), np.stack([b, -b, b, -b])
+            s = strokes(sc, targets, dirs)
+            score = cosine(dirs, free[[0, 0, 1, 1]])
+            chosen = [n for n in range(4) if targets[n] == push.target and np.allclose(dirs[n], direction(push))]
+            assert len(chosen) == 1 and s.feasible[chosen[0]]
+            assert score[chosen[0]] >= score[s.feasible].max() - 1e-12
+    assert len(turns) >= 4 and min(turns) < 0 < max(turns)
