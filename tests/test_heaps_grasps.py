@@ -2,12 +2,30 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import fcl
 import numpy as np
 import pytest
 
 from clutter.state import HeapState
 from pipeline.heaps.config import HeapConfig
-from pipeline.heaps.grasps import build_scene, force_closure, heap_confidence, suction_blocked
+from pipeline.heaps.grasps import (
+    best_first,
+    build_scene,
+    cast_first,
+    force_closure,
+    heap_confidence,
+    jaw_approach,
+    jaw_candidates,
+    jaw_options,
+    jaw_parts,
+    part_hits,
+    suction_blocked,
+    suction_candidates,
+    suction_options,
+    tilt_within,
+)
 from pipeline.heaps.objects import ObjectLibrary, box_model
 
 CONFIG = HeapConfig()
@@ -103,3 +121,194 @@ def test_confidence_is_reproducible_and_per_object(boxes):
     only_slab = heap_confidence(state, CONFIG, boxes, objects=[1])
     assert only_slab.parallel_jaw.target == 1 and only_slab.suction.target == 1
     assert first.overall >= only_slab.overall
+
+
+# --- cases the mutation run (stop 71) found untested ------------------------------------------
+
+
+def test_grasps_name_their_gripper_and_objects_limits_both_grippers(boxes):
+    state = heap(boxes, ("brick", -0.1), ("slab", 0.1))
+    for objects in ([0], [1]):
+        confidence = heap_confidence(state, CONFIG, boxes, objects=objects)
+        assert confidence.suction.gripper == "suction" and confidence.parallel_jaw.gripper == "parallel_jaw"
+        assert confidence.suction.target == objects[0] and confidence.parallel_jaw.target == objects[0]
+        jaw = confidence.parallel_jaw
+        assert abs(jaw.point[0] - state.poses[objects[0], 0, 3]) < 0.05  # on the object grasped
+        np.testing.assert_array_equal(confidence.suction.approach, confidence.suction.axis)
+
+
+def test_objects_without_candidates_do_not_hide_the_next_ones(boxes):
+    # A brick with a body diagonal up has no face within 45 degrees of straight down for the cup;
+    # the wide box has no jaw grasp.  The next object is still scored.
+    tilted = np.eye(4)
+    d = np.ones(3) / np.sqrt(3.0)  # the rotation taking this diagonal onto +z
+    axis = np.cross(d, [0.0, 0.0, 1.0])
+    angle = np.arccos(d[2])
+    k = axis / np.linalg.norm(axis)
+    skew = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    tilted[:3, :3] = np.eye(3) + np.sin(angle) * skew + (1 - np.cos(angle)) * skew @ skew
+    tilted[:3, 3] = [-0.12, 0.0, 0.08]
+    state = HeapState(CONFIG.bin, ("brick", "brick"), np.stack([tilted, on_floor(boxes, "brick", 0.12)]))
+    owner, *_ = suction_options(state, [boxes[k] for k in state.object_ids], CONFIG)
+    assert len(owner) and set(owner.tolist()) == {1}
+    assert heap_confidence(state, CONFIG, boxes).suction.target == 1
+    library = ObjectLibrary()
+    library.add("cube", box_model((0.16, 0.16, 0.16)))  # wider than the jaws open every way, no candidate at all
+    library.add("brick", box_model((0.06, 0.09, 0.04)))
+    assert not len(jaw_candidates(library["cube"], CONFIG.jaw, CONFIG.seed, "cube").quality)
+    state = heap(library, ("cube", -0.12), ("brick", 0.13))
+    owner, *_ = jaw_options(state, [library[k] for k in state.object_ids], CONFIG)
+    assert len(owner) and set(owner.tolist()) == {1}
+    assert heap_confidence(state, CONFIG, library).parallel_jaw.target == 1
+
+
+def test_candidates_are_cached_per_configuration_and_drawn_per_object_id():
+    library = ObjectLibrary()
+    model = box_model((0.06, 0.09, 0.04))
+    a, b = library.add("a", model), library.add("b", model)
+    few = dataclasses.replace(CONFIG.suction, n_candidates=7)
+    assert len(suction_candidates(a, CONFIG.suction, 0, "a").points) == CONFIG.suction.n_candidates
+    assert len(suction_candidates(a, few, 0, "a").points) == 7
+    # Two ids of one model draw their own candidates (the stream is keyed by the object id).
+    assert not np.array_equal(suction_candidates(b, CONFIG.suction, 0, "b").points, suction_candidates(a, CONFIG.suction, 0, "a").points)
+    first = jaw_candidates(a, CONFIG.jaw, 0, "a")
+    small = jaw_candidates(a, dataclasses.replace(CONFIG.jaw, n_candidates=10), 0, "a")
+    assert len(first.quality) > 10 >= len(small.quality)
+    assert not np.array_equal(jaw_candidates(b, CONFIG.jaw, 0, "b").centres, first.centres)
+    # And through the heap (fresh caches): the same box at the same pose, under two ids, is scored on its own draws.
+    fresh = ObjectLibrary()
+    a, b = fresh.add("a", model), fresh.add("b", model)
+    state = HeapState(CONFIG.bin, ("a", "b"), np.stack([on_floor(fresh, "a")] * 2))
+    for options in (suction_options, jaw_options):
+        owner, _, points, *_ = options(state, [a, b], CONFIG)
+        assert not np.array_equal(points[owner == 0], points[owner == 1])
+
+
+def test_jaw_candidates_are_nominally_in_force_closure_within_the_sampling_cone():
+    library = ObjectLibrary()
+    obj = library.add("brick", box_model((0.06, 0.09, 0.04)))
+    cand = jaw_candidates(obj, CONFIG.jaw, 0, "brick")
+    assert len(cand.quality) > 20 and np.all(cand.quality > 0) and np.all(cand.widths <= CONFIG.jaw.max_opening)
+    # Each axis is a box face's normal tilted by at most cone_spread * atan(mu).
+    limit = CONFIG.jaw.cone_spread * np.arctan(CONFIG.jaw.friction)
+    tilt = np.arccos(np.clip(np.abs(cand.axes).max(axis=1), -1, 1))
+    assert tilt.max() <= limit + 1e-9 and tilt.max() > limit / 2
+    # The contacts along each axis through its centre are in force closure and that wide.
+    reach = 1.0
+    mesh = obj.model.mesh
+    o1, n1 = cast_first(mesh, cand.centres - reach * cand.axes, cand.axes)
+    o2, n2 = cast_first(mesh, cand.centres + reach * cand.axes, -cand.axes)
+    assert np.allclose(np.linalg.norm(o2 - o1, axis=1), cand.widths)
+    assert force_closure(o1, n1, o2, n2, np.full(len(o1), CONFIG.jaw.friction), CONFIG.jaw.min_width).all()
+
+
+def test_cast_first_hits_every_triangle_on_its_plane():
+    mesh = box_model((0.06, 0.09, 0.04)).mesh
+    centres = mesh.triangles.mean(axis=1)
+    normals = mesh.face_normals
+    origins = centres + 0.05 * normals
+    points, hit_normals = cast_first(mesh, origins, -normals)
+    assert np.allclose(points, centres, atol=1e-9) and np.allclose(hit_normals, normals)
+    miss, miss_normals = cast_first(mesh, origins, normals)  # away from the box
+    assert np.isnan(miss).all() and np.isnan(miss_normals).all()
+
+
+def test_tilted_axes_stay_in_the_cone_and_spread_around_it():
+    rng = np.random.default_rng(0)
+    axes = np.tile([0.0, 0.0, 1.0], (4000, 1))
+    tilted = tilt_within(axes, 0.3, rng)
+    assert np.allclose(np.linalg.norm(tilted, axis=1), 1.0)
+    angle = np.arccos(np.clip(tilted[:, 2], -1, 1))
+    assert angle.max() <= 0.3 + 1e-12 and abs(angle.mean() - 0.15) < 0.01  # uniform in [0, 0.3]
+    azimuth = np.arctan2(tilted[:, 1], tilted[:, 0]) % (2 * np.pi)
+    octants = np.bincount((azimuth // (np.pi / 4)).astype(int), minlength=8)
+    assert octants.min() > 0.8 * 500 and octants.max() < 1.2 * 500
+
+
+def test_the_jaws_approach_is_the_steepest_direction_across_the_axis():
+    rng = np.random.default_rng(1)
+    axes = rng.normal(size=(50, 3)) * [1.0, 1.0, 0.3]
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    approach = jaw_approach(axes)
+    assert np.allclose(np.linalg.norm(approach, axis=1), 1.0) and np.allclose(np.sum(approach * axes, axis=1), 0.0)
+    assert np.allclose(approach[:, 2], -np.sqrt(1.0 - axes[:, 2] ** 2))
+
+
+@pytest.mark.parametrize("width", [0.05, 0.135])
+def test_the_open_jaws_fingers_and_palm_in_the_grasp_frame(width):
+    config = CONFIG.jaw
+    axis = np.array([1.0, 0.5, 0.2]) / np.linalg.norm([1.0, 0.5, 0.2])
+    approach = jaw_approach(axis[None])[0]
+    centre = np.array([0.01, -0.02, 0.03])
+    parts, rotation = jaw_parts(centre, axis, approach, width, config)
+    side = np.cross(approach, axis)
+    np.testing.assert_allclose(rotation, np.stack([axis, side, approach], axis=1))
+    opening = min(width + 2 * config.clearance, config.max_opening)
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    ranges = []
+    for half, part_centre in parts:
+        corners = part_centre + (signs * half) @ rotation.T - centre
+        local = corners @ np.stack([axis, side, approach], axis=1)  # (axis, side, approach) coordinates
+        ranges.append(np.stack([local.min(axis=0), local.max(axis=0)], axis=1))
+    tip, top = config.tip_depth, config.tip_depth - config.finger_length
+    finger = [[-config.finger_width / 2, config.finger_width / 2], [top, tip]]
+    np.testing.assert_allclose(ranges[0], [[opening / 2, opening / 2 + config.finger_thickness], *finger], atol=1e-12)
+    np.testing.assert_allclose(ranges[1], [[-opening / 2 - config.finger_thickness, -opening / 2], *finger], atol=1e-12)
+    outer = opening / 2 + config.finger_thickness
+    np.testing.assert_allclose(ranges[2], [[-outer, outer], finger[0], [top - config.palm_thickness, top]], atol=1e-12)
+
+
+def test_the_cup_may_touch_only_its_own_object_and_the_body_not_even_that(boxes):
+    # A brick beside the tile's contact, 14 mm from the approach axis: inside the cup's radius
+    # (15 mm), outside the body's (12.5 mm).
+    down = np.array([0.0, 0.0, -1.0])
+    for gap, blocked in ((0.014, True), (0.016, False)):
+        state = HeapState(CONFIG.bin, ("tile", "brick"), np.stack([on_floor(boxes, "tile"), on_floor(boxes, "brick", gap + 0.03, 0.0, 0.03)]))
+        scene = build_scene(state, [boxes[k] for k in state.object_ids])
+        assert suction_blocked(scene, 0, np.array([0.0, 0.0, 0.03]), down, CONFIG.suction) == blocked
+    # The bin is no object the cup may touch: a contact 14 mm from a wall is blocked, whichever object it is on.
+    x = CONFIG.bin.half_extents[0] - 0.014
+    state = heap(boxes, ("tile", -0.1), ("brick", x - 0.02))
+    scene = build_scene(state, [boxes[k] for k in state.object_ids])
+    assert suction_blocked(scene, 1, np.array([x, 0.0, 0.04]), down, CONFIG.suction)
+    assert not suction_blocked(scene, 1, np.array([x - 0.004, 0.0, 0.04]), down, CONFIG.suction)
+    # A contact sunk into its own object deeper than max_deflection (4 mm): the rigid body hits it.
+    scene = build_scene(heap(boxes, ("tile",)), [boxes["tile"]])
+    assert not suction_blocked(scene, 0, np.array([0.0, 0.0, 0.0275]), down, CONFIG.suction)
+    assert suction_blocked(scene, 0, np.array([0.0, 0.0, 0.025]), down, CONFIG.suction)
+    assert not suction_blocked(scene, 0, np.array([0.0, 0.0, 0.03]), down, CONFIG.suction)
+
+
+def test_parts_and_objects_collide_as_rotated_not_by_their_bounding_boxes(boxes):
+    yaw = np.eye(4)
+    c = s = np.sqrt(0.5)
+    yaw[:2, :2] = [[c, -s], [s, c]]
+    yaw[:3, 3] = [0.0, 0.0, 0.02]
+    state = HeapState(CONFIG.bin, ("brick",), yaw[None])
+    scene = build_scene(state, [boxes["brick"]])
+    probe = fcl.Box(0.01, 0.01, 0.01)
+    # Inside the brick as if unrotated and inside its world bounding box, but 13 mm outside it.
+    p = np.array([0.028, 0.040, 0.02])
+    assert not part_hits(scene, probe, p, np.eye(3), p - 0.005, p + 0.005, None)
+    top = np.array([0.0, 0.0, 0.04])  # across the brick's top face
+    assert part_hits(scene, probe, top, np.eye(3), top - 0.005, top + 0.005, None)
+    # A long thin part turned a quarter about z: along y it reaches the (unrotated) brick, along x it would not.
+    flat = build_scene(heap(boxes, ("brick",)), [boxes["brick"]])
+    rod = fcl.Box(0.1, 0.004, 0.004)
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    centre = np.array([0.0, 0.09, 0.02])
+    lower, upper = centre - [0.002, 0.05, 0.002], centre + [0.002, 0.05, 0.002]
+    assert part_hits(flat, rod, centre, turn, lower, upper, None)
+    assert not part_hits(flat, rod, centre, turn, lower, upper, 0)  # the object itself skipped
+
+
+def test_best_first_drops_zero_quality_and_other_objects_and_keeps_ties_in_order():
+    owner = np.array([0, 0, 1, 1, 2])
+    quality = np.array([0.5, 0.0, 0.5, 0.9, 0.5])
+    assert best_first(owner, quality, None).tolist() == [3, 0, 2, 4]
+    assert best_first(owner, quality, [0]).tolist() == [0]
+    assert best_first(owner, quality, [1, 2]).tolist() == [3, 2, 4]
+    rng = np.random.default_rng(2)
+    many = rng.choice([0.2, 0.4, 0.6], size=200)
+    expected = [i for q in (0.6, 0.4, 0.2) for i in range(200) if many[i] == q]
+    assert best_first(np.zeros(200, int), many, None).tolist() == expected
