@@ -312,3 +312,13 @@ def test_best_first_drops_zero_quality_and_other_objects_and_keeps_ties_in_order
     many = rng.choice([0.2, 0.4, 0.6], size=200)
     expected = [i for q in (0.6, 0.4, 0.2) for i in range(200) if many[i] == q]
     assert best_first(np.zeros(200, int), many, None).tolist() == expected
+
+
+def test_a_post_narrower_than_the_cup_has_no_suction_grasp():
+    # Its only face within 45 degrees of straight down is 1 cm square: the 15 mm cup seals nowhere.
+    library = ObjectLibrary()
+    library.add("post", box_model((0.01, 0.01, 0.1)))
+    state = heap(library, ("post",))
+    owner, quality, *_ = suction_options(state, [library["post"]], CONFIG)
+    assert len(owner) and np.all(quality == 0.0)
+    assert heap_confidence(state, CONFIG, library).suction is None
