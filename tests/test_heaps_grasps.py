@@ -7,6 +7,7 @@ import dataclasses
 import fcl
 import numpy as np
 import pytest
+import trimesh
 
 from clutter.state import HeapState
 from pipeline.heaps.config import HeapConfig
@@ -27,6 +28,7 @@ from pipeline.heaps.grasps import (
     tilt_within,
 )
 from pipeline.heaps.objects import ObjectLibrary, box_model
+from pipeline.model.mesh import model_from_mesh
 
 CONFIG = HeapConfig()
 
@@ -322,3 +324,14 @@ def test_a_post_narrower_than_the_cup_has_no_suction_grasp():
     owner, quality, *_ = suction_options(state, [library["post"]], CONFIG)
     assert len(owner) and np.all(quality == 0.0)
     assert heap_confidence(state, CONFIG, library).suction is None
+
+
+def test_a_balls_jaw_quality_counts_only_samples_in_force_closure():
+    # Across a ball of radius r every chord at distance d from the centre meets both normals at
+    # asin(d / r): in the friction cone while d <= r sin(atan mu) = 13.4 mm (mu 0.5, r 3 cm).  The
+    # samples move the grasp by N(0, 5 mm) + N(0, 10 mm) per axis, about sigma = 11.2 mm across the
+    # axis, so a fraction 1 - exp(-13.4^2 / (2 sigma^2)) = 0.51 close; the widths all fit the jaws.
+    library = ObjectLibrary()
+    ball = library.add("ball", model_from_mesh(trimesh.creation.icosphere(subdivisions=3, radius=0.03), mass=0.2, name="ball"))
+    cand = jaw_candidates(ball, CONFIG.jaw, 0, "ball")
+    assert len(cand.quality) > 100 and 0.3 < cand.quality.mean() < 0.65
