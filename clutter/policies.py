@@ -391,7 +391,8 @@ def boundary_shear(sc: Scene) -> Push | None:
 def free_space(sc: Scene) -> Push | None:
     """Thesis 3.2.3: the two closest objects; each one's free space point p; per object the
     collision-free direction closest to c p (the ideal turned by ``directions`` steps, nearest
-    first); of the two, the push whose object is nearer its p."""
+    first, counter-clockwise before clockwise at the same size: the thesis names no order, and a fixed
+    one keeps the choice reproducible); of the two, the push whose object is nearer its p."""
     if len(sc) < 2:
         return None
     pair = np.array(closest_pair(sc))
