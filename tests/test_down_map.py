@@ -331,3 +331,12 @@ def test_the_engine_keeps_the_probes_out_of_the_down_maps_neighbourhoods(pose_an
     seen.clear()
     evaluate_pose(obj, pose, pose_set.probabilities, actions, topple, stream(3, obj.name, pose.index, "trials"))
     assert seen["pool"] == len(actions.status), "with no probes every push is a candidate"
+
+
+def test_a_down_candidate_with_nowhere_to_land_keeps_its_row_beside_a_probe_that_lands():
+    # Pushes 0 and 2 press down; candidates 0 and 1 never topple, probe 2 (3 cm away, past the pool) does.
+    actions = _pushes(3)
+    rows = np.array([[1.0, 0, 0], [1.0, 0, 0], [0.5, 0, 0.5]])
+    mapped, p = _map(rows, rows, actions, pool=2)
+    assert np.array_equal(mapped[:2], rows[:2]) and np.array_equal(p[:2], [0.0, 0.0]), "no landing known: no topple"
+    assert np.allclose(mapped.sum(axis=1), 1.0) and p[2] > 0 and mapped[2, 1] == 0.0

@@ -223,3 +223,71 @@ def test_the_scorer_gives_features_of_logged_candidates_and_the_fit_is_written(m
     assert result["pushes"] == 2 * len(log.pushes), "each log read on its own, both used"
     twice = np.vstack([features, features])
     assert np.allclose(result["weights"], fit_weights(twice, np.tile(scorer.empirical_topple, 2), np.tile(scorer.repeats, 2)))
+
+
+# ---------------------------------------------------------------- mutation-testing gaps (stop 71)
+
+
+def test_the_maps_logit_is_clipped_at_its_own_floor():
+    from pipeline.model.feature_map import LOGIT_FLOOR
+
+    assert logit(np.array([0.0, 1.0])) == pytest.approx(np.log(LOGIT_FLOOR / (1 - LOGIT_FLOOR)) * np.array([1.0, -1.0]))
+
+
+def test_pose_features_take_n_over_the_neighbourhoods_limits():
+    from pipeline.model.feature_map import pose_features
+    from schema.neighbourhood import RADIUS
+
+    # Pushes 0 and 1 within RADIUS of each other, push 2 five radii away: its N is its own P.
+    points = np.array([[0, 0, 0], [0.5 * RADIUS, 0, 0], [5.5 * RADIUS, 0, 0]])
+    p = np.array([0.2, 0.4, 0.9])
+    f = pose_features(p, points, np.array([X, X, X]), np.full(3, np.nan), 1.0)
+    assert np.allclose(f[:, 2], logit(np.array([0.3, 0.3, 0.9])))
+    assert np.allclose(pose_features(p, points, np.array([X, X, X]), np.full(3, np.nan), 1.0, rows=np.array([2, 0])), f[[2, 0]])
+
+
+def test_no_weights_give_the_rows_back_bit_for_bit():
+    rows = _rows([0.9, 0.3])  # 1 - (1 - 0.1) is not 0.1 in floats
+    mapped, p = map_rows(rows, 0, np.zeros((2, 3)), np.array([X, X]), np.full(2, np.nan), 1.0, ())
+    assert np.array_equal(mapped, rows) and np.array_equal(p, 1 - rows[:, 0])
+
+
+def test_map_rows_takes_n_over_the_pool_when_given_no_neighbours():
+    # Candidates 0 and 1 far apart; probes 2 and 3 within a centimetre of each other, past the pool.
+    points = np.array([[0, 0, 0], [0.3, 0, 0], [0.6, 0, 0], [0.605, 0, 0]])
+    rows = _rows([0.2, 0.4, 0.6, 0.8])
+    n_only = (0.0, 0.0, 1.0, 0.0, 0.0, 0.0)  # q = N
+    _, pooled = map_rows(rows, 0, points, np.array([X] * 4), np.full(4, np.nan), 1.0, n_only, pool=2)
+    _, everyone = map_rows(rows, 0, points, np.array([X] * 4), np.full(4, np.nan), 1.0, n_only)
+    assert np.allclose(pooled, [0.2, 0.4, 0.6, 0.8]), "a probe's neighbourhood is the pool and itself"
+    assert np.allclose(everyone[2:], 0.7)
+
+
+def test_a_pool_with_no_ok_push_lends_no_landing_and_warns_of_nothing():
+    import warnings
+
+    rows = np.array([[np.nan] * 3, [0.5, 0.5, 0.0]])  # the one candidate is not ok; the probe topples
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mapped, p = map_rows(rows, 0, np.array([[0, 0, 0], [0.3, 0, 0]]), np.array([X, X]), np.full(2, np.nan), 1.0,
+                             IDENTITY, pool=1)
+        landing = landing_rows(np.array([[np.nan] * 3, [1.0, 0, 0]]), 0, np.zeros((2, 3)), np.array([X, X]), pool=1)
+    assert np.all(np.isnan(mapped[0])) and np.allclose(mapped[1], [0.5, 0.5, 0.0]) and p[1] == pytest.approx(0.5)
+    assert np.all(np.isnan(landing[0])) and np.array_equal(landing[1], [0.0, 0.0, 0.0])
+
+
+def test_fitted_weights_are_where_the_ridged_likelihood_is_flat():
+    """The gradient of the binomial log-likelihood less RIDGE x total weight x |w|^2 / 2 (the bias
+    unpenalised) vanishes at the fit, here where the feature separates the pushes and only the ridge
+    keeps its weight finite."""
+    from pipeline.model.feature_map import RIDGE
+
+    x = np.linspace(-1, 1, 10)
+    features = np.column_stack([np.ones(10), x, x**2, np.zeros((10, 3))])
+    observed, repeats = (x > 0).astype(float), np.arange(1.0, 11.0)
+    w = fit_weights(features, observed, repeats)
+    q = mapped_probability(features, w)
+    penalty = RIDGE * repeats.sum() * np.r_[0.0, np.ones(5)]
+    gradient = features.T @ (repeats * (observed - q)) - penalty * w
+    assert np.all(np.isfinite(w)) and np.max(np.abs(gradient)) < 1e-8
+    assert 5 < w[1] < 100, "finite, yet large: the ridge is small"
