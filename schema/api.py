@@ -233,16 +233,21 @@ class RosPose(Model):
 
     def matrix(self) -> np.ndarray:
         """(4, 4) float, object frame -> ``frame_id``."""
-        q = np.array([self.orientation.x, self.orientation.y, self.orientation.z, self.orientation.w], dtype=float)
-        x, y, z, w = q / np.linalg.norm(q)
+        q = self.orientation
         out = np.eye(4)
-        out[:3, :3] = [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
+        out[:3, :3] = quaternion_matrix(q.x, q.y, q.z, q.w)
         out[:3, 3] = [self.position.x, self.position.y, self.position.z]
         return out
+
+
+def quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """(3, 3) float rotation of the Hamilton quaternion x, y, z, w (w the scalar part), normalised first."""
+    x, y, z, w = np.array([x, y, z, w], dtype=float) / np.linalg.norm([x, y, z, w])
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
 
 
 # --- errors -------------------------------------------------------------------------

@@ -11,16 +11,25 @@ from collections.abc import Callable
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 
-from .errors import ServiceError, undecodable_body
+from .errors import NOT_GIVEN, ServiceError, undecodable_body
 
 
 class BatchInvalid(Exception):
-    """A malformed batch: ``errors`` as FastAPI's validation errors (type, loc, msg only, so that
-    it crosses a process boundary)."""
+    """A malformed batch: ``errors`` as FastAPI's validation errors (type, loc, msg, and input only
+    when it is null: plain values, so that it crosses a process boundary)."""
 
     def __init__(self, errors: list[dict]):
         super().__init__(errors)
         self.errors = errors
+
+
+def _located(error: dict) -> dict:
+    """A pydantic error of a batch body as FastAPI's would be: located under ``body``, its input dropped
+    unread but for a null, which ``errors.validation_body`` says it was."""
+    located = {"type": error["type"], "loc": ("body", *error["loc"]), "msg": error["msg"]}
+    if error.get("input", NOT_GIVEN) is None:
+        located["input"] = None
+    return located
 
 
 def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_model: type[BaseModel], result_model) -> bytes:
@@ -42,9 +51,7 @@ def answer(body: bytes, request_model: type[BaseModel], item: Callable, results_
     try:
         parsed = request_model.model_validate(data)
     except ValidationError as err:
-        # A null input is kept (``errors.validation_body`` says it was one); any other is dropped unread.
-        raise BatchInvalid([{"type": e["type"], "loc": ("body", *e["loc"]), "msg": e["msg"], **({"input": None} if e.get("input", 0) is None else {})}
-                            for e in err.errors(include_url=False)]) from None
+        raise BatchInvalid([_located(e) for e in err.errors(include_url=False)]) from None
     results, reasonless = [], {}
     for i, request in enumerate(parsed.items):
         try:

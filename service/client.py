@@ -203,7 +203,8 @@ class Client:
     def transitions(self, items: list[tuple[str, int, int]], build: str | None = None) -> TransitionResults:
         """(object_id, pose, action) triples, up to 1000; ``build``: the build the actions were taken from.
         Indices are integers (numpy's too); 2.0, "1" and True raise TypeError, as ``pose`` and ``action`` do."""
-        body = {"items": [{"object_id": o, "pose": _integer(p, "pose"), "action": _integer(a, "action")} for o, p, a in items]}
+        body = {"items": [{"object_id": o, "pose": _integer(p, f"items[{i}] pose"), "action": _integer(a, f"items[{i}] action")}
+                          for i, (o, p, a) in enumerate(items)]}
         return self._call("POST", "/batch/transitions", TransitionResults, json=body, requested=_build_name(build))
 
     # --- transport ----------------------------------------------------------------
@@ -287,9 +288,12 @@ def _object_path(object_id: str) -> str:
 def _integer(value: Any, name: str) -> int:
     """``value`` as an int when it is one (numpy's too), else TypeError: 2.7, "3" and True are
     refused here as the service refuses them (422), not rounded or read into another request."""
-    if isinstance(value, (bool, np.bool_)):
-        raise TypeError(f"{name} must be an integer, got {value!r}")
-    return operator.index(value)
+    if not isinstance(value, (bool, np.bool_)):
+        try:
+            return operator.index(value)
+        except TypeError:
+            pass
+    raise TypeError(f"{name} must be an integer, got {value!r}")
 
 
 def plan_item(object_id: str, pose: Any = None, ros_pose: RosPose | dict | None = None, policy: str = "value_iteration",

@@ -142,6 +142,10 @@ def validation_body(errors: list[dict]) -> dict:
     return {"detail": detail or "malformed request", "errors": errors}
 
 
+NOT_GIVEN = object()
+"""An error dict's ``input`` when it has none (``None`` is an input: JSON null)."""
+
+
 def _message(error: dict) -> str:
     """An error's message; a JSON decode error says why and where (the parser's words are in ``ctx``,
     which the body leaves out), so a client can find the broken character, and a null says it was one
@@ -154,9 +158,10 @@ def _message(error: dict) -> str:
             message += f": {reason}"
         if len(loc) > 1 and isinstance(loc[1], int):
             message += f" at character {loc[1]}"
-    elif "input" in error and error["input"] is None and error.get("type") != "missing":
-        # Serialisers that write an unset optional as null (a dict's None, std::optional) meet this first.
-        message += ", got null (leave an optional field out rather than sending null)"
+    elif error.get("input", NOT_GIVEN) is None and error.get("type") != "missing":
+        # Serialisers that write an unset optional as null (a dict's None, std::optional) meet this first;
+        # the same words fit a required field, an array's entry and a whole body.
+        message += ", got null (null is never read as absent: send a value, or leave an optional field out)"
     return message
 
 

@@ -28,8 +28,8 @@ import numpy as np
 import orjson
 
 from schema import horizon, retry
-from schema.api import PlanRequest, Quaternion, height_in_mm, rests_on_table
-from schema.frames import match_pose, place_push
+from schema.api import PlanRequest, height_in_mm, quaternion_matrix, rests_on_table
+from schema.frames import PoseMatch, match_pose, place_push
 from schema.vocabulary import NO_OP, STATUS_OK
 
 from .errors import NoStablePose, OffTable, UnknownAction, UnknownFrame
@@ -67,24 +67,36 @@ def observed_pose(request: PlanRequest, settings: Settings) -> np.ndarray:
     return request.observed()
 
 
+W_FIRST_MATCH = 0.25
+"""The share of the pose tolerance within which a refused ROS quaternion read w first must match a pose for the
+refusal to name it.  A quaternion really sent w first reads, so, at the perception error; a tilted object's
+quaternion read w first lands anywhere within the tolerance, and a quarter of it names few of those."""
+
+
+def nearest_pose(obj: ObjectData, observed: np.ndarray) -> tuple[PoseMatch, np.ndarray]:
+    """The stable pose nearest an observed object -> world transform (at any angle: a 409 names it), and
+    that pose's frame in the world, (4, 4) pose -> world: its z translation is the support point's height."""
+    match = match_pose(observed, obj.match_downs, obj.match_transforms, np.inf, obj.match_inverses)
+    return match, observed @ obj.match_inverses[match.pose]
+
+
 def w_first_hint(request: PlanRequest, obj: ObjectData, tolerance: float, height_tolerance: float) -> str:
     """For a ROS pose refused as no stable pose or off the table: a sentence naming the pose its quaternion
-    gives when read w first, if that reading rests on the table in a stable pose, else "".
-    Eigen, transforms3d and pyquaternion order a quaternion w, x, y, z where geometry_msgs orders it
-    x, y, z, w, and one sent in the wrong order reads as another, arbitrary rotation.  When that
-    rotation also rests in a pose the service cannot tell, so it only says so when it refuses."""
+    gives read w first, if that reading rests on the table in a stable pose (within ``W_FIRST_MATCH`` of the
+    tolerance), else "".  Eigen's ``Quaterniond(w, x, y, z)`` constructor, transforms3d and pyquaternion
+    order a quaternion w first, geometry_msgs x, y, z, w; sent in the wrong order it reads as another
+    rotation.  When that rotation also rests in a pose the service cannot tell, so only a refusal says so."""
     if request.ros_pose is None:
         return ""
     q = request.ros_pose.orientation
-    reread = request.ros_pose.model_copy(update={"orientation": Quaternion.model_construct(x=q.y, y=q.z, z=q.w, w=q.x)})
-    observed = reread.matrix()
-    match = match_pose(observed, obj.match_downs, obj.match_transforms, np.inf, obj.match_inverses)
-    z_offset = float((observed @ obj.match_inverses[match.pose])[2, 3])
-    if match.angle_error > tolerance or not rests_on_table(z_offset, height_tolerance):
+    observed = request.observed()
+    observed[:3, :3] = quaternion_matrix(q.y, q.z, q.w, q.x)  # the fields x, y, z, w read as w, x, y, z
+    match, pose_to_world = nearest_pose(obj, observed)
+    if match.angle_error > W_FIRST_MATCH * tolerance or not rests_on_table(float(pose_to_world[2, 3]), height_tolerance):
         return ""
-    return (f" Read in the order w, x, y, z (the x field as w, y as x, z as y, w as z), the quaternion would be pose "
-            f"{int(obj.match_pose[match.pose])}, {np.degrees(match.angle_error):.1f} deg away and on the table: "
-            "geometry_msgs orders it x, y, z, w")
+    return (" If the quaternion came from a library that orders it w, x, y, z (Eigen's Quaterniond constructor, "
+            f"transforms3d, pyquaternion): read so, it is pose {int(obj.match_pose[match.pose])}, "
+            f"{np.degrees(match.angle_error):.1f} deg away and on the table; geometry_msgs orders it x, y, z, w")
 
 
 def untried_push(obj: ObjectData, pose: int, request: PlanRequest, gamma: float,
@@ -142,7 +154,7 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
     observed = observed_pose(request, settings)
     # Every orientation that is a pose (a symmetric object's merged turns too); an infinite
     # tolerance always names the nearest, which the 409 message reports.
-    match = match_pose(observed, obj.match_downs, obj.match_transforms, np.inf, obj.match_inverses)
+    match, pose_to_world = nearest_pose(obj, observed)
     pose = int(obj.match_pose[match.pose])
     if match.angle_error > store.tolerance:
         raise NoStablePose(
@@ -155,7 +167,6 @@ def plan(store: Store, request: PlanRequest, settings: Settings) -> dict:
             angle_error=match.angle_error,
             tolerance=store.tolerance,
         )
-    pose_to_world = observed @ obj.match_inverses[match.pose]
     z_offset = float(pose_to_world[2, 3])
     if not rests_on_table(z_offset, settings.height_tolerance):
         raise OffTable(

@@ -372,7 +372,8 @@ MALFORMED = [
     ("{not json", "JSON decode error"),
     # An unset optional written as null (a dict's None, std::optional): said to be one, with what to do instead.
     (json.dumps({"object_id": "random_001", "pose": np.eye(4).tolist(), "pushes_left": None}),
-     "body.pushes_left: Input should be a valid integer, got null (leave an optional field out rather than sending null)"),
+     ("body.pushes_left: Input should be a valid integer, got null (null is never read as absent: send a value, or leave "
+      "an optional field out)")),
     (json.dumps({"object_id": "random_001", "ros_pose": None, "pose": np.eye(4).tolist()}),
      "body.ros_pose: Input should be a valid dictionary or object to extract fields from, got null"),
     (json.dumps({"object_id": None, "pose": np.eye(4).tolist()}), "body.object_id: Input should be a valid string, got null"),
@@ -558,7 +559,7 @@ def test_batch_plan_answers_each_item_and_rejects_malformed_batches(client, tabl
     # A null is said to be one, as /plan says it (the batch is parsed outside FastAPI).
     for path, item in (("/batch/plan", {**items[0], "pushes_left": None}), ("/batch/transitions", {"object_id": "random_002", "pose": None, "action": 0})):
         null = client.post(path, json={"items": [item]})
-        assert null.status_code == 422 and ", got null (leave an optional field out" in null.json()["detail"], null.text
+        assert null.status_code == 422 and ", got null (null is never read as absent" in null.json()["detail"], null.text
     assert ", got null" not in beyond.json()["detail"] + too_many.json()["detail"]
 
 

@@ -321,9 +321,9 @@ def test_errors_are_exceptions_by_status_and_reason(typed, tables):
             typed.pose(object_id, index)
         with pytest.raises(TypeError):
             typed.action(object_id, pose, index)
-        with pytest.raises(TypeError):  # a batch's indices too: int() would have rounded 1.7 to another push
-            typed.transitions([(object_id, pose, index)])
-        with pytest.raises(TypeError):
+        with pytest.raises(TypeError, match=r"items\[1\] action must be an integer"):  # int() would truncate 1.7 to push 1
+            typed.transitions([(object_id, pose, 0), (object_id, pose, index)])
+        with pytest.raises(TypeError, match=r"items\[0\] pose must be an integer"):
             typed.transitions([(object_id, index, 0)])
     assert typed.transitions([(object_id, np.int64(pose), np.int64(0))]).results[0].result.pose == pose
     with pytest.raises(Unauthorized):

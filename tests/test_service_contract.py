@@ -219,32 +219,57 @@ def test_malformed_ros_poses_are_422(client, tables, change, message):
     assert response.status_code == 422 and message in response.json()["detail"], response.text
 
 
+W_FIRST = ("If the quaternion came from a library that orders it w, x, y, z (Eigen's Quaterniond constructor, transforms3d, "
+           "pyquaternion): read so, it is pose {pose}, {angle} deg away and on the table; geometry_msgs orders it x, y, z, w")
+
+
+def sent_w_first(given: dict) -> dict:
+    x, y, z, w = (given["orientation"][k] for k in "xyzw")
+    return {**given, "orientation": {"x": w, "y": x, "z": y, "w": z}}
+
+
 def test_a_quaternion_sent_w_first_is_named_in_the_refusal(client, tables):
-    """Eigen, transforms3d and pyquaternion order a quaternion w, x, y, z; geometry_msgs x, y, z, w. Sent in
-    the wrong order it reads as another rotation: refused (409: no stable pose, or one off the table), the
-    refusal names the pose it would be."""
+    """Eigen's constructor, transforms3d and pyquaternion order a quaternion w, x, y, z; geometry_msgs x, y, z, w.
+    Sent in the wrong order it reads as another rotation: refused (409: no stable pose, or one off the table),
+    the refusal names the pose it would be, also when the object is observed a little tilted."""
     refused = 0
     for object_id, pose, _ in pushing_poses(tables):
         for yaw in np.linspace(0.0, 2 * math.pi, 7, endpoint=False):
-            observed = planar_transform(yaw, 0.3, -0.2) @ stored_transform(tables, object_id, pose)
-            if np.trace(observed[:3, :3]) < -0.9:  # near a half turn, where ``quaternion`` would skip the test
+            for tilt, angle in ((0.0, "0.0"), (math.radians(1.5), "1.5")):  # 1.5 deg: within the hint's 2.5
+                observed = planar_transform(yaw, 0.0, 0.0) @ observe(tables, object_id, pose, tilt=tilt)
+                if np.trace(observed[:3, :3]) < -0.9:  # near a half turn, where ``quaternion`` would skip the test
+                    continue
+                response = client.post("/plan", json={"object_id": object_id, "ros_pose": sent_w_first(ros_pose(observed))})
+                if response.status_code != 409:  # the wrong reading happens to rest on another pose: nothing to tell
+                    assert response.status_code == 200, response.text
+                    continue
+                refused += 1
+                detail = response.json()["detail"]
+                assert detail.endswith(" " + W_FIRST.format(pose=pose, angle=angle)), detail
+    assert refused >= 10  # the wrong order is refused for most orientations
+
+
+def test_a_tilted_object_sent_in_order_is_rarely_taken_for_one_sent_w_first(client, tables):
+    """A correctly ordered quaternion of a tilted object, read w first, lands anywhere within the pose
+    tolerance: the hint names only readings within a quarter of it (2.5 deg), so few refusals carry it."""
+    rng = np.random.default_rng(71)
+    refused, hinted = 0, 0
+    for object_id, pose, _ in pushing_poses(tables):
+        for _ in range(40):
+            axis = rng.normal(size=3)
+            observed = observe(tables, object_id, pose)
+            observed[:3, :3] = rotation_about(axis, float(np.linalg.norm(rng.normal(0.0, 0.5, 3))))[:3, :3] @ observed[:3, :3]
+            if np.trace(observed[:3, :3]) < -0.9:
                 continue
-            given = ros_pose(observed)
-            x, y, z, w = (given["orientation"][k] for k in "xyzw")
-            sent = {**given, "orientation": {"x": w, "y": x, "z": y, "w": z}}  # w first
-            response = client.post("/plan", json={"object_id": object_id, "ros_pose": sent})
-            if response.status_code != 409:  # the wrong reading happens to rest on another pose: nothing to tell
-                assert response.status_code == 200, response.text
+            response = client.post("/plan", json={"object_id": object_id, "ros_pose": ros_pose(observed)})
+            if response.status_code != 409:
                 continue
             refused += 1
             detail = response.json()["detail"]
-            assert detail.endswith(f"Read in the order w, x, y, z (the x field as w, y as x, z as y, w as z), the quaternion would "
-                                   f"be pose {pose}, 0.0 deg away and on the table: geometry_msgs orders it x, y, z, w"), detail
-            # The same orientation as a matrix, tilted off every pose: no quaternion, so no such hint.
-            tilted = rotation_about([1.0, 2.0, 0.0], math.radians(40)) @ observed
-            response = post_plan(client, object_id, tilted)
-            assert response.status_code == 409 and "the order w, x, y, z" not in response.json()["detail"]
-    assert refused >= 5  # the wrong order is refused for most orientations
+            hint = re.search(r"read so, it is pose \d+, ([0-9.]+) deg away", detail)
+            hinted += hint is not None
+            assert hint is None or float(hint.group(1)) <= 2.5, detail
+    assert refused >= 50 and hinted <= 0.05 * refused, (refused, hinted)
 
 
 def test_both_pose_forms_at_once_are_422(client, tables):
