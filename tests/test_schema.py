@@ -7,6 +7,8 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
+from pydantic import ValidationError
 
 from schema import SCHEMA_VERSION, TABLES, describe, file_schema, hdf5
 
@@ -99,3 +101,133 @@ def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_pus
         del before["mdp"][key]
     assert Parameters.model_validate(before).mdp.choice_radius == 0.0
     assert Parameters.model_validate(Config().to_dict()).mdp.choice_radius == Config().mdp.choice_radius == 0.02
+
+
+# --- schema.api: the request models' checks, at their limits -------------------------
+
+
+def _refusal(function, *args) -> str:
+    with pytest.raises(ValueError) as refused:
+        function(*args)
+    return str(refused.value)
+
+
+def _rigid(rotation=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), translation=(0.0, 0.0, 0.0), last=(0.0, 0.0, 0.0, 1.0)):
+    return [[*rotation[i], translation[i]] for i in range(3)] + [list(last)]
+
+
+def test_a_rotation_is_accepted_up_to_its_tolerance_inclusive_and_huge_entries_are_refused_in_words():
+    """``ROTATION_TOLERANCE`` is the largest |R^T R - I| entry accepted: exactly it passes (two columns
+    whose dot product is exactly 1e-3), just past it does not; entries too large for a float (Python
+    integers through the Python API) are no rotation rather than an OverflowError or a TypeError."""
+    from schema.api import ROTATION_TOLERANCE, check_rigid, rotation_problem
+
+    at_limit = [[1.0, ROTATION_TOLERANCE, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    assert rotation_problem(at_limit) is None
+    assert check_rigid(_rigid(at_limit)) == _rigid(at_limit)
+    past = [[1.0, 1.01 * ROTATION_TOLERANCE, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    assert rotation_problem(past) == "its columns are not orthonormal (largest |R^T R - I| entry 0.00101, at most 0.001)"
+    assert rotation_problem([[10**400, 0, 0], [0, 1, 0], [0, 0, 1]]) == \
+        "its columns are not orthonormal (largest |R^T R - I| entry inf, at most 0.001)"
+    assert rotation_problem([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]) == "det = -1, expected +1 (a reflection?)"
+
+
+def test_a_rigid_transforms_last_row_and_translation_are_refused_in_full_sentences():
+    """The last row is [0, 0, 0, 1] within 1e-9 inclusive; the column-major hint only when the last
+    column is [0, 0, 0, 1] (within the same 1e-9), not for any row-major matrix with a bad last row;
+    the translation is bounded by ``MAX_TRANSLATION`` inclusive, its message naming the three coordinates."""
+    from schema.api import MAX_TRANSLATION, check_rigid
+
+    assert check_rigid(_rigid(translation=(0.5, 0.0, 0.0), last=(1e-9, 0.0, 0.0, 1.0)))[3] == [1e-9, 0.0, 0.0, 1.0]
+    assert _refusal(check_rigid, _rigid(translation=(0.5, 0.0, 0.0), last=(2e-9, 0.0, 0.0, 1.0))) == \
+        "the last row must be [0, 0, 0, 1], got [2e-09, 0.0, 0.0, 1.0]"
+    hint = " (the last column is [0, 0, 0, 1]: is the matrix column-major? send it row by row)"
+    # Row-major with a translation and a bad last row: no hint, the last column is not [0, 0, 0, 1].
+    assert _refusal(check_rigid, _rigid(translation=(0.5, 0.0, 0.0), last=(0.0, 0.0, 0.5, 1.0))) == \
+        "the last row must be [0, 0, 0, 1], got [0.0, 0.0, 0.5, 1.0]"
+    # Column-major (the translation in the last row): the hint, also with a last column off by exactly 1e-9.
+    assert _refusal(check_rigid, _rigid(translation=(1e-9, 0.0, 0.0), last=(0.5, 0.0, 0.0, 1.0))) == \
+        "the last row must be [0, 0, 0, 1], got [0.5, 0.0, 0.0, 1.0]" + hint
+    assert _refusal(check_rigid, _rigid(translation=(2e-9, 0.0, 0.0), last=(0.5, 0.0, 0.0, 1.0))) == \
+        "the last row must be [0, 0, 0, 1], got [0.5, 0.0, 0.0, 1.0]"
+    assert check_rigid(_rigid(translation=(MAX_TRANSLATION, -MAX_TRANSLATION, 0.0)))[0][3] == MAX_TRANSLATION
+    assert _refusal(check_rigid, _rigid(translation=(0.0, 0.0, -2 * MAX_TRANSLATION))) == \
+        "the translation [0.0, 0.0, -2000000.0] is beyond 1e+06 m: send metres in the table frame"
+
+
+def test_request_text_with_a_lone_surrogate_is_refused_in_words():
+    from schema.api import TransitionQuery, check_text
+
+    assert check_text("random_001") == "random_001" and check_text("bo\u00eete \U0001f4e6") == "bo\u00eete \U0001f4e6"
+    message = "is not Unicode text: it holds a lone UTF-16 surrogate (\\ud800-\\udfff)"
+    assert _refusal(check_text, "a\ud800") == message
+    with pytest.raises(ValidationError) as refused:
+        TransitionQuery.model_validate({"object_id": "x\udfff", "pose": 0, "action": 0})
+    assert refused.value.errors()[0]["msg"] == "Value error, " + message
+
+
+def test_known_keys_drops_keys_it_does_not_know_and_leaves_other_values_to_the_type():
+    """An answer's map keyed by a closed vocabulary keeps the keys it knows (a newer service's new
+    policy or status is dropped); a value that is no map is refused by the type, not by the validator."""
+    from typing import Annotated, Literal
+
+    from pydantic import TypeAdapter
+
+    from schema.api import PoseDetail, known_keys
+
+    adapter = TypeAdapter(Annotated[dict[Literal["a", "b"], int], known_keys(("a", "b"))])
+    assert adapter.validate_python({"a": 1, "c": 3, "b": 2}) == {"a": 1, "b": 2}
+    assert adapter.validate_python({}) == {}
+    with pytest.raises(ValidationError, match="valid dictionary"):
+        adapter.validate_python([("a", 1)])
+    detail = {"object_id": "o", "pose": 0, "probability": 1.0, "down": [0, 0, -1], "transform": _rigid(), "height": 0.1,
+              "com_height": 0.05, "v_s": 0.5, "grasp": None, "v_t": 0.5, "n_actions": 0,
+              "policies": {"greedy": {"action": None, "value": 0.5}, "a_newer_policy": {"action": 1, "value": 0.9}},
+              "action_counts": {"ok": 3, "a_newer_status": 1}}
+    read = PoseDetail.model_validate(detail)
+    assert list(read.policies) == ["greedy"] and read.action_counts == {"ok": 3}
+
+
+def test_a_quaternion_is_normalised_before_it_is_a_rotation():
+    """``quaternion_matrix`` normalises first: a quaternion the request accepts within
+    ``QUATERNION_TOLERANCE`` of unit, or any positive multiple, gives an orthonormal matrix."""
+    from schema.api import QUATERNION_TOLERANCE, RosPose, quaternion_matrix, rotation_problem
+
+    assert np.array_equal(quaternion_matrix(0.0, 0.0, 0.0, 2.0), np.eye(3))
+    half = np.sqrt(0.5)
+    assert np.allclose(quaternion_matrix(0.0, 0.0, 3 * half, 3 * half), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+    scale = 1 + 0.9 * QUATERNION_TOLERANCE
+    pose = RosPose.model_validate({"position": {"x": 0.4, "y": -0.1, "z": 0.02}, "frame_id": "world",
+                                   "orientation": {"x": 0.1 * scale, "y": -0.2 * scale, "z": 0.3 * scale, "w": np.sqrt(0.86) * scale}})
+    matrix = pose.matrix()
+    assert np.allclose(matrix[:3, :3].T @ matrix[:3, :3], np.eye(3), atol=1e-15)
+    assert rotation_problem(matrix[:3, :3].tolist()) is None and np.linalg.det(matrix[:3, :3]) == pytest.approx(1.0, abs=1e-14)
+    assert matrix[:3, 3].tolist() == [0.4, -0.1, 0.02] and matrix[3].tolist() == [0.0, 0.0, 0.0, 1.0]
+
+
+def test_a_heap_objects_observed_pose_from_either_form():
+    """``HeapObject.observed``: the 4x4 as sent, or the ROS pose's matrix; exactly one of them."""
+    from schema.api import HeapObject
+
+    sent = _rigid(((0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)), (0.1, -0.05, 0.02))
+    observed = HeapObject.model_validate({"object_id": "o", "pose": sent}).observed()
+    assert observed.dtype == np.float64 and observed.tolist() == sent
+    half = float(np.sqrt(0.5))
+    ros = {"position": {"x": 0.1, "y": -0.05, "z": 0.02}, "orientation": {"x": 0.0, "y": 0.0, "z": half, "w": half}, "frame_id": "world"}
+    assert np.allclose(HeapObject.model_validate({"object_id": "o", "ros_pose": ros}).observed(), sent, atol=1e-15)
+    for both_or_neither in ({"object_id": "o"}, {"object_id": "o", "pose": sent, "ros_pose": ros}):
+        with pytest.raises(ValidationError, match="give exactly one of pose"):
+            HeapObject.model_validate(both_or_neither)
+
+
+def test_heights_at_the_tables_edge_and_past_a_thousand_km():
+    """``rests_on_table`` includes its edge, ``HEIGHT_ROUNDING`` too; ``height_in_mm`` compares the height
+    with the tolerance as printed (four decimals where one would read as it), and from 1e9 mm (z at
+    ``MAX_TRANSLATION``) prints four figures."""
+    from schema.api import HEIGHT_ROUNDING, MAX_TRANSLATION, height_in_mm, rests_on_table
+
+    assert rests_on_table(0.005 + HEIGHT_ROUNDING, 0.005) and rests_on_table(-(0.01 + HEIGHT_ROUNDING), 0.01)
+    assert height_in_mm(0.1001, 0.1) == "100.1", "100.1 mm is not the tolerance's 100.0"
+    assert height_in_mm(0.10004, 0.1) == "100.0400"
+    assert height_in_mm(MAX_TRANSLATION, 0.005) == "1e+9" and height_in_mm(-MAX_TRANSLATION, 0.005) == "1e+9"
+    assert height_in_mm(999_999.9, 0.005) == "999999900.0"
