@@ -231,3 +231,75 @@ def test_heights_at_the_tables_edge_and_past_a_thousand_km():
     assert height_in_mm(0.10004, 0.1) == "100.0400"
     assert height_in_mm(MAX_TRANSLATION, 0.005) == "1e+9" and height_in_mm(-MAX_TRANSLATION, 0.005) == "1e+9"
     assert height_in_mm(999_999.9, 0.005) == "999999900.0"
+
+
+def _errors(model, value) -> list[tuple[tuple, str]]:
+    with pytest.raises(ValidationError) as refused:
+        model.model_validate(value)
+    return [(error["loc"], error["msg"]) for error in refused.value.errors()]
+
+
+def test_a_quaternion_is_unit_within_its_tolerance_on_either_side():
+    """|q| within ``QUATERNION_TOLERANCE`` of 1, short of it as well as past it: a quaternion of norm 0.5
+    is as much a client bug as one of norm 2."""
+    from schema.api import Quaternion
+
+    for w in (0.9991, 1.0009):
+        assert Quaternion(x=0.0, y=0.0, z=0.0, w=w).w == w
+    for w, shown in ((0.5, "0.5"), (0.9989, "0.9989"), (1.0011, "1.0011"), (-2.0, "2")):
+        assert _errors(Quaternion, {"x": 0.0, "y": 0.0, "z": 0.0, "w": w}) == \
+            [((), f"Value error, the orientation quaternion is not unit: |q| = {shown} (tolerance 0.001)")]
+
+
+def test_a_plan_requests_combinations_are_refused_by_the_model_itself():
+    """What ``PlanRequest`` refuses before the service looks at the dataset: the 422's own words, not a
+    later check's (the routes refuse a bad index too, but only the model says why max_height cannot)."""
+    from schema.api import MAX_FAILED_ACTIONS, MAX_PUSHES_LEFT, PlanRequest
+
+    base = {"object_id": "o", "pose": _rigid()}
+    assert _errors(PlanRequest, {**base, "failed_actions": [0], "policy": "max_height"}) == [((), (
+        "Value error, max_height has one push per pose and nothing to choose after it fails; give failed_actions "
+        "with greedy or value_iteration"))]
+    assert _errors(PlanRequest, {**base, "failed_actions": [3, -1]}) == \
+        [(("failed_actions", 1), "Input should be greater than or equal to 0")]
+    assert PlanRequest.model_validate({**base, "failed_actions": [0], "policy": "greedy"}).failed_actions == [0]
+    assert len(PlanRequest.model_validate({**base, "failed_actions": list(range(MAX_FAILED_ACTIONS))}).failed_actions) == MAX_FAILED_ACTIONS
+    assert _errors(PlanRequest, {**base, "failed_actions": list(range(MAX_FAILED_ACTIONS + 1))})[0][0] == ("failed_actions",)
+    assert _errors(PlanRequest, {**base, "pushes_left": 2, "policy": "greedy"}) == [((), (
+        "Value error, pushes_left plans by value iteration for a budget; it cannot be combined with policy greedy"))]
+    assert [PlanRequest.model_validate({**base, "pushes_left": n}).pushes_left for n in (1, MAX_PUSHES_LEFT)] == [1, MAX_PUSHES_LEFT]
+    assert _errors(PlanRequest, {**base, "pushes_left": 0}) == [(("pushes_left",), "Input should be greater than or equal to 1")]
+    assert _errors(PlanRequest, {"object_id": "o"}) == \
+        [((), "Value error, give exactly one of pose (a 4x4 matrix) and ros_pose (position, orientation, frame_id)")]
+    read = PlanRequest.model_validate(base)
+    assert (read.policy, read.pushes_left, read.failed_actions, read.ros_pose) == ("value_iteration", None, [], None)
+
+
+def test_a_ros_positions_coordinates_are_bounded_both_ways():
+    """Each of x, y and z within +/- ``MAX_TRANSLATION`` m, the limit included, as the 4x4 form's translation."""
+    from schema.api import MAX_TRANSLATION, Point
+
+    assert Point(x=-MAX_TRANSLATION, y=MAX_TRANSLATION, z=-MAX_TRANSLATION).z == -MAX_TRANSLATION
+    for name in "xyz":
+        for value, bound in ((-1.5 * MAX_TRANSLATION, "greater than or equal to -1000000"),
+                             (1.5 * MAX_TRANSLATION, "less than or equal to 1000000")):
+            assert _errors(Point, {"x": 0.0, "y": 0.0, "z": 0.0, name: value}) == [((name,), f"Input should be {bound}")]
+
+
+def test_a_heap_requests_defaults_and_strict_bin_lengths():
+    """``HeapPlanRequest`` omitted fields: the default tote, boundary_shear (the policy that ran on the
+    robot), seed 0; a bin length is a JSON number, not true or a string, and finite."""
+    from schema.api import BIN_TOLERANCE, MAX_SEED, HeapBin, HeapPlanRequest
+
+    assert BIN_TOLERANCE == 0.005, "docs/SERVICE.md: an object reaching more than 5 mm past a wall is a 409"
+    # The largest seed is JavaScript's Number.MAX_SAFE_INTEGER: the float64 it reads as is its own alone (one past
+    # it, 2**53, is also 2**53 + 1 read as a float64).
+    assert float(MAX_SEED) == MAX_SEED and float(MAX_SEED + 1) == MAX_SEED + 1 == float(MAX_SEED + 2)
+    one = {"object_id": "o", "pose": _rigid()}
+    read = HeapPlanRequest.model_validate({"objects": [one]})
+    assert (read.policy, read.seed, read.bin) == ("boundary_shear", 0, HeapBin(length=0.5, width=0.4, height=0.15, wall=0.01))
+    assert HeapPlanRequest.model_validate({"objects": [one], "seed": MAX_SEED}).seed == MAX_SEED
+    assert _errors(HeapPlanRequest, {"objects": [one], "seed": -1}) == [(("seed",), "Input should be greater than or equal to 0")]
+    for value, message in ((True, "Input should be a valid number"), ("0.5", "Input should be a valid number"),
+                           (float("inf"), "Input should be a finite number")):
+        assert _errors(HeapBin, {"length": value}) == [(("length",), message)]
