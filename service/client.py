@@ -214,8 +214,10 @@ class Client:
         that last served those items' objects a push (none known, as after a restart: no build named, and any
         build answers)."""
         failed = [item["object_id"] for item in items if item.get("failed_actions")]
-        if not failed or build is not None:
-            return _build_name(build) if failed else None
+        if not failed:
+            return None
+        if build is not None:
+            return _build_name(build)
         recorded = {o: self.plan_builds[o] for o in failed if self.plan_builds.get(o) is not None}
         builds = sorted(set(recorded.values()))
         if len(builds) > 1:
