@@ -24,7 +24,7 @@ from schema.vocabulary import NO_OP, POLICIES, STATUS_NAMES, STATUS_OK
 
 from .collision import collision_object
 from .config import Config, ContactConfig, field_range
-from .contacts import explicit_actions, object_contacts, pose_actions, push_arrays, with_probes
+from .contacts import explicit_actions, object_contacts, pose_actions, with_probes
 from .mdp import pose_values
 from .mesh import ObjectModel, load_mesh
 from .outcomes import Actions, ObjectResult, PolicyChoice, PoseValues, StablePose, SuctionResult, ToppleTable
@@ -235,10 +235,8 @@ def evaluate(
             variant=topple_config.variant if variant is None else variant,
         )
     stable = poses.poses[pose]
-    # Explicit pushes are checked (and snapped) before the pose's candidates cost anything; the points as given
-    # are what ``with_probes`` matches to the candidates.
-    if points is not None:
-        points, directions = push_arrays(points, directions)
+    # Explicit pushes are checked (``contacts.push_arrays``) and snapped before the pose's candidates cost anything;
+    # the points as given are what ``with_probes`` matches to the candidates.
     pushes = None if points is None else explicit_actions(obj, stable.transform, points, directions)
     trials = stream(seed, obj.name, pose, "trials")
     if points is None or topple_config.needs_candidates:
