@@ -19,7 +19,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import HTMLResponse, Response
@@ -118,8 +118,8 @@ def build_api(runtime: Runtime) -> FastAPI:
     app.include_router(heaps.router)
 
     @app.get("/health", response_model=Health, tags=["service"], summary="Liveness and which build is served")
-    async def health() -> Response:
-        return Response(runtime.health_json(), media_type="application/json")
+    async def health(request: Request) -> Response:
+        return Response(runtime.health_json(request.scope), media_type="application/json")
 
     metrics = runtime.metrics
 

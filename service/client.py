@@ -114,8 +114,8 @@ class Client:
     here; a client passed as ``http`` keeps its own timeouts (tests pass FastAPI's TestClient).
 
     ``build``: the manifest SHA-256 of the dataset build the last answer that named one came from (its
-    ``x-toppledb-build`` header; None until one did: a service older than stop 68 names none, and
-    ``/health`` names its build in its body).
+    ``x-toppledb-build`` header; None until one did: a service older than stop 68 names none, and one
+    older than stop 72 names its build on ``/health`` in the body only).
 
     ``plan_build``: the build of the last ``plan`` or ``plan_batch`` answer (a 2xx).
     ``plan_builds``: per object id, the build of the last plan answer that served that object a push,

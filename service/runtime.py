@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from schema.api import Counts, DatasetIdentity, Health
 from schema.version import CODE_VERSION
 
+from .guard import BUILD_SCOPE_KEY
 from .lane import Lane
 from .metrics import Metrics
 from .prefetch import Prefetch
@@ -68,11 +69,16 @@ class Runtime:
             reload_error=self.live.reload_error,
         )
 
-    def health_json(self) -> bytes:
+    def health_json(self, scope: dict) -> bytes:
         """/health's body.  ``reload_error`` is left out while there is none, so that a client from before it
         existed (whose models forbid fields they do not know) reads a healthy answer as before; while a reload
-        is failing such a client cannot read /health (docs/SERVICE.md)."""
+        is failing such a client cannot read /health (docs/SERVICE.md).
+
+        scope : the request's ASGI scope, noted with the build the body names, which the guard sends as
+          ``x-toppledb-build`` as on every route that reads the dataset (so that a HEAD probe sees a swap too)
+        """
         health = self.health()
+        scope[BUILD_SCOPE_KEY] = health.dataset.manifest_sha256
         return health.model_dump_json(exclude=None if health.reload_error is not None else {"reload_error"}).encode()
 
     def solve_budgets(self) -> None:

@@ -59,7 +59,7 @@ class StagedApp:
 
     async def _route(self, scope, receive, send):
         if scope["type"] == "http" and scope["path"] == "/health" and scope["method"] == "GET":
-            body = self.runtime.health_json()
+            body = self.runtime.health_json(scope)
             scope["route"] = HEALTH
             await send({"type": "http.response.start", "status": 200,
                         "headers": [*HEADERS, (b"content-length", str(len(body)).encode())]})

@@ -4,6 +4,7 @@ path before FastAPI is built, and never imports a web framework before it is nee
 
 from __future__ import annotations
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -69,6 +70,24 @@ def test_head_on_health_answers_the_get_without_its_body_on_both_apps(dataset):
             other = client.head("/objects")
             assert other.status_code == 405 and other.content == b""
             assert 'method="HEAD",route="/health",status="200"' in client.get("/metrics").text
+
+
+def test_health_names_its_build_in_the_header_as_the_routes_that_read_the_dataset_do(dataset, tables):
+    """A HEAD probe sees which build is served (and a swap) without a body to parse: /health sends the
+    build its body names as x-toppledb-build, on both apps, and a request naming another build is still
+    answered (liveness never refuses)."""
+    served = hashlib.sha256((dataset / "manifest.json").read_bytes()).hexdigest()
+    object_id, _ = next(iter(tables["poses"]))
+    with TestClient(staged_app(dataset)) as staged, TestClient(create_app(dataset)) as eager:
+        for client in (staged, eager):
+            get, head = client.get("/health"), client.head("/health")
+            assert get.headers["x-toppledb-build"] == head.headers["x-toppledb-build"] == served
+            assert get.json()["dataset"]["manifest_sha256"] == served
+            assert get.headers["x-toppledb-build"] == client.get(f"/objects/{object_id}").headers["x-toppledb-build"]
+            other = client.get("/health", headers={"x-toppledb-build": "f" * 64})
+            assert other.status_code == 200 and other.headers["x-toppledb-build"] == served
+            # Refused before any route runs: no build answered it, so none is named.
+            assert "x-toppledb-build" not in client.post("/plan", content=b"{}").headers
 
 
 def test_health_and_plan_answer_while_the_api_is_being_built(dataset, tables, monkeypatch):
