@@ -101,12 +101,13 @@ def _error(response: httpx.Response) -> ServiceError:
     except ValueError:
         body = {"detail": response.text[:200]}
     detail = str(body.get("detail", "")) if isinstance(body, dict) else str(body)
+    fields = body if isinstance(body, dict) else {}  # JSON that is no object (a proxy's list or string): no fields
     status = response.status_code
     kind = {401: Unauthorized, 404: NotFound, 412: OtherBuild, 413: InvalidRequest, 415: InvalidRequest,
             422: InvalidRequest}.get(status, ServiceError)
     if status == 409:
-        kind = OffTable if body.get("reason") == "off_table" else NoStablePose
-    return kind(status, detail, body if isinstance(body, dict) else {})
+        kind = OffTable if fields.get("reason") == "off_table" else NoStablePose
+    return kind(status, detail, fields)
 
 
 class Client:

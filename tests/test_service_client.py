@@ -377,6 +377,23 @@ def test_retries_transport_errors_and_503_but_never_4xx(dataset):
                                      base_url="http://x"), retries=1, backoff=0.0).health()
 
 
+def answering(status: int, **response) -> Client:
+    """A client of a server (a proxy, a load balancer) that answers every request with ``status`` and ``response``."""
+    return Client(http=httpx.Client(transport=httpx.MockTransport(lambda r: httpx.Response(status, **response)),
+                                    base_url="http://x"), retries=0)
+
+
+def test_a_409_whose_json_is_no_object_is_a_service_error_not_an_attribute_error():
+    """A 409 is read by its ``reason``; JSON that is no object has none, and is the 409's default exception
+    with what it said as ``detail`` (it raised AttributeError, looking up ``reason`` in a list)."""
+    for said, detail in ((b'["conflict"]', "['conflict']"), (b'"conflict"', "conflict"), (b"null", "None")):
+        with pytest.raises(NoStablePose) as refused:
+            answering(409, content=said).health()
+        assert refused.value.status == 409 and refused.value.detail == detail and refused.value.body == {}
+    with pytest.raises(OffTable):
+        answering(409, json={"detail": "lifted", "reason": "off_table"}).health()
+
+
 def _models_within(model) -> set:
     """``model`` and every pydantic model its fields hold, at any depth (lists, maps, unions)."""
     import typing
