@@ -394,6 +394,46 @@ def test_a_409_whose_json_is_no_object_is_a_service_error_not_an_attribute_error
         answering(409, json={"detail": "lifted", "reason": "off_table"}).health()
 
 
+def test_an_answer_not_from_the_service_is_the_exception_of_its_status():
+    """A proxy in front of the service answers in its own words: a page that is not JSON (``detail`` its first
+    200 characters), JSON without ``detail`` (an empty one) or JSON that is no object (said as ``detail``, no
+    fields). 413 and 415 are malformed requests, as 422; a status the client does not know is a ``ServiceError``."""
+    page = "<html><body>" + "504 Gateway Time-out " * 20 + "</body></html>"
+    with pytest.raises(ServiceError) as html:
+        answering(504, text=page).health()
+    assert type(html.value) is ServiceError and html.value.status == 504
+    assert html.value.detail == page[:200] and html.value.body == {"detail": page[:200]}
+    with pytest.raises(ServiceError) as bare:
+        answering(500, json={"error": "upstream"}).health()
+    assert bare.value.detail == "" and bare.value.body == {"error": "upstream"}
+    with pytest.raises(NotFound) as listed:
+        answering(404, json=["no", "route"]).health()
+    assert listed.value.detail == "['no', 'route']" and listed.value.body == {}
+    for status in (413, 415, 422):
+        with pytest.raises(InvalidRequest) as malformed:
+            answering(status, json={"detail": "too large"}).health()
+        assert malformed.value.status == status and malformed.value.detail == "too large"
+    for status in (414, 416):
+        with pytest.raises(ServiceError) as other:
+            answering(status, json={"detail": "odd"}).health()
+        assert type(other.value) is ServiceError
+
+
+def test_q_values_asks_for_the_ranking_and_length_given(client, tables):
+    """``top`` and ``by`` reach the service; the defaults are the route's (ten actions by Q)."""
+    typed = Client(http=client, retries=0)
+    object_id, pose = pushing(tables)
+    path = f"/objects/{object_id}/poses/{pose}/q"
+    default = client.get(path).json()
+    assert len(default["top"]) == 10 and default["by"] == "q", "the pose has more than ten ranked actions"
+    assert typed.q_values(object_id, pose).model_dump(mode="json") == default
+    ranked = typed.q_values(object_id, pose, top=3, by="p_topple")
+    assert ranked.by == "p_topple" and len(ranked.top) == 3
+    assert ranked.model_dump(mode="json") == client.get(path, params={"top": 3, "by": "p_topple"}).json()
+    with pytest.raises(TypeError, match=r"^pose must be an integer, got 1\.0$"):
+        typed.q_values(object_id, 1.0)
+
+
 def _models_within(model) -> set:
     """``model`` and every pydantic model its fields hold, at any depth (lists, maps, unions)."""
     import typing
