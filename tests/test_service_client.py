@@ -434,6 +434,22 @@ def test_q_values_asks_for_the_ranking_and_length_given(client, tables):
         typed.q_values(object_id, 1.0)
 
 
+@pytest.mark.parametrize("status,tries", [(500, 1), (501, 1), (502, 3), (503, 3), (504, 3), (429, 1)])
+def test_only_a_gateways_or_an_overloaded_services_answer_is_retried(status, tries):
+    """502, 503 and 504 say the service was not reached or could not take the request now (docs/SERVICE.md,
+    "Python client"); a 500 is a bug the same request meets again, and is answered at once."""
+    asked = []
+
+    def answer(request):
+        asked.append(request.url.path)
+        return httpx.Response(status, json={"detail": "no"})
+
+    flaky = Client(http=httpx.Client(transport=httpx.MockTransport(answer), base_url="http://x"), retries=2, backoff=0.0)
+    with pytest.raises(ServiceError) as refused:
+        flaky.objects()
+    assert refused.value.status == status and asked == ["/objects"] * tries
+
+
 def _models_within(model) -> set:
     """``model`` and every pydantic model its fields hold, at any depth (lists, maps, unions)."""
     import typing
