@@ -112,7 +112,8 @@ def _error(response: httpx.Response) -> ServiceError:
 
 class Client:
     """Synchronous client.  ``timeout`` (s, per attempt) configures the ``httpx.Client`` made
-    here; a client passed as ``http`` keeps its own timeouts (tests pass FastAPI's TestClient).
+    here; a client passed as ``http`` keeps its own timeouts and headers, the token going with each
+    request instead (tests pass FastAPI's TestClient).
 
     ``build``: the manifest SHA-256 of the dataset build the last answer that named one came from (its
     ``x-toppledb-build`` header; None until one did: a service older than stop 68 names none, and one
@@ -134,9 +135,10 @@ class Client:
         backoff: float = DEFAULT_BACKOFF,
         http: httpx.Client | None = None,
     ):
-        headers = {"authorization": f"Bearer {token}"} if token else {}
+        # Sent with each request rather than set on ``http``: a client passed in may be shared (its connection
+        # pool) with other Clients holding other tokens, or with code of the caller's own.
+        self.headers = {"authorization": f"Bearer {token}"} if token else {}
         self.http = http or httpx.Client(base_url=base_url, timeout=timeout)
-        self.http.headers.update(headers)
         self.timeout, self.retries, self.backoff = timeout, retries, backoff
         self.build: str | None = None
         self.plan_build: str | None = None
@@ -243,8 +245,7 @@ class Client:
     def _call(self, method: str, path: str, model: type[Model], requested: str | None = None, **kwargs) -> Model:
         """``method path`` answered as ``model``, retried as the module says; ``requested``: the build the
         request's action indices were recorded under, sent as ``x-toppledb-build``."""
-        if requested is not None:
-            kwargs["headers"] = {"x-toppledb-build": requested}
+        kwargs["headers"] = self.headers if requested is None else {**self.headers, "x-toppledb-build": requested}
         wait = self.backoff
         for attempt in range(self.retries + 1):
             last = attempt == self.retries

@@ -328,6 +328,12 @@ def test_errors_are_exceptions_by_status_and_reason(typed, tables):
     assert typed.transitions([(object_id, np.int64(pose), np.int64(0))]).results[0].result.pose == pose
     with pytest.raises(Unauthorized):
         Client(http=typed.http, retries=0, token="another-token-of-length").objects()
+    # The shared http client is not rewritten: the first Client's token still goes with its requests, and a Client
+    # given no token sends none of its own.
+    assert typed.objects().objects
+    with pytest.raises(Unauthorized):
+        Client(http=typed.http, retries=0).objects()
+    assert "authorization" not in typed.http.headers
 
 
 def test_retries_transport_errors_and_503_but_never_4xx(dataset):
