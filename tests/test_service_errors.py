@@ -69,8 +69,9 @@ def test_a_ros_pose_in_another_frame_and_an_unknown_failed_action_are_422s_like_
 
 @pytest.mark.parametrize(
     "body",
-    [b"", b'{"items": [,]}', b'{"items": [{"object_id": "\xff"}]}', b"[" * 20_000, b'{"items": ' + b"1" * 5000 + b"}"],
-    ids=["empty", "broken", "not-utf8", "nested", "huge-integer"],
+    [b"", b" \n", b'{"items": [,]}', b'{"items": [{"object_id": "\xff"}]}', b"[" * 20_000,
+     b'{"items": ' + b"1" * 5000 + b"}"],
+    ids=["empty", "whitespace", "broken", "not-utf8", "nested", "huge-integer"],
 )
 def test_a_batch_is_refused_as_fastapi_refuses_a_single_request(client, monkeypatch, body):
     """Batches are parsed outside FastAPI (in the batch lane), so their refusals are made to match its own:
