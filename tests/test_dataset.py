@@ -198,6 +198,52 @@ def test_a_rerun_rewrites_consolidated_tables_damaged_since_the_build(reference,
     assert main(["verify", str(copy)]) == 0
     assert_same_dataset(reference, copy)
     assert file_sha256(served_actions) == file_sha256(reference / "served" / "actions.arrow")
+    (copy / "objects.parquet").unlink()  # one table: the line names it alone
+    assert build(corpus, copy, "--workers", "1") == 0
+    assert f"{copy}: every shard is complete but objects.parquet: missing; writing the tables again from the shards\n" in (
+        capsys.readouterr().err)
+    assert_same_dataset(reference, copy)
+
+
+def test_served_tables_the_manifest_does_not_describe_are_written_again(reference, corpus, tmp_path, capsys):
+    """Served bytes as recorded, but not the tables this manifest's build wrote (here a row count that is
+    not the file's): not up to date, whatever the checksums say; the rerun writes them again from the shards."""
+    from schema import served
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    relative = served.FILES["actions"]
+    data = json.loads((copy / layout.MANIFEST).read_text())
+    rows = data["tables"][relative]["rows"]
+    data["tables"][relative]["rows"] = rows + 1
+    (copy / layout.MANIFEST).write_text(json.dumps(data))
+    assert verify_dataset(copy) == [f"{relative} holds {rows} rows, manifest.json says {rows + 1}"]
+    capsys.readouterr()
+    assert build(corpus, copy, "--workers", "1") == 0
+    assert "up to date" not in capsys.readouterr().err
+    assert read_manifest(copy).tables[relative].rows == rows
+    assert (read_manifest(copy).run["computed"], read_manifest(copy).run["reused"]) == (0, len(OBJECTS))
+    assert verify_dataset(copy) == []
+
+
+def test_a_lost_manifest_is_written_again_from_the_shards(reference, corpus, tmp_path, capsys):
+    """Every shard complete but no readable manifest (deleted, or cut short): not up to date; the rerun
+    reuses every shard and writes the tables and the manifest again."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    # The manifest also says how the run was made: one worker as asked, else every core (loky's default).
+    for damage, workers in (((copy / layout.MANIFEST).unlink, 1),
+                            (lambda: (copy / layout.MANIFEST).write_text('{"schema_ver'), fanout.default_workers())):
+        damage()
+        capsys.readouterr()
+        assert build(corpus, copy, *(["--workers", "1"] if workers == 1 else [])) == 0
+        assert f"resuming: {len(OBJECTS)} of {len(OBJECTS)} objects already complete in {copy}\n" in capsys.readouterr().err
+        run = read_manifest(copy).run
+        assert {key: run[key] for key in ("workers", "backend", "scheduler", "computed", "reused")} == {
+            "workers": workers, "backend": "loky", "scheduler": None, "computed": 0, "reused": len(OBJECTS)}
+        assert 0 < read_manifest(copy).timings.wall_s < 600, "this run's wall time, from its start"
+        assert verify_dataset(copy) == [] and not staging_dir(copy).exists()
+        assert_same_dataset(reference, copy)
 
 
 def snapshot(root: Path) -> dict[str, tuple[str, int]]:
@@ -374,7 +420,9 @@ def test_dask_backend_gives_the_same_dataset_as_loky(reference, corpus, tmp_path
 
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
         assert build(corpus, tmp_path / "dask", "--scheduler", cluster.scheduler_address) == 0
-    assert read_manifest(tmp_path / "dask").run["backend"] == "dask"
+        address = cluster.scheduler_address
+    run = read_manifest(tmp_path / "dask").run
+    assert (run["backend"], run["scheduler"], run["workers"]) == ("dask", address, None), "the cluster decides the workers"
     assert_same_dataset(reference, tmp_path / "dask")
 
 
@@ -506,6 +554,45 @@ def test_sigkill_while_extending_a_finished_dataset_keeps_it_until_the_commit(re
     assert_same_dataset(reference, out)
 
 
+def test_a_commit_moves_shard_files_then_removes_dropped_objects_then_records_and_the_manifest_last(
+    reference, corpus, tmp_path, monkeypatch
+):
+    """The commit's order (module docstring): the new shards' files, then the shards the new manifest no
+    longer lists removed, then the completion records, the consolidated tables, and the manifest last; so
+    a kill at any step leaves no record before its files and no manifest before what it lists."""
+    from schema import served
+
+    out = tmp_path / "dataset"
+    shutil.copytree(reference, out)
+    move, remove, events = dataset._move, dataset._remove_object_files, []
+
+    def logged_move(source, target):
+        if source.exists():
+            events.append(("move", target.relative_to(out).as_posix()))
+        move(source, target)
+
+    def logged_remove(root, object_id):
+        if root == out:
+            events.append(("remove", object_id))
+        remove(root, object_id)
+
+    monkeypatch.setattr(dataset, "_move", logged_move)
+    monkeypatch.setattr(dataset, "_remove_object_files", logged_remove)
+    assert build(corpus, out, "--limit", "1", "--force", "--workers", "1") == 0
+    kept = OBJECTS[0]
+    record = layout.completion_record(kept)
+    consolidated = [layout.OBJECTS_FILE, layout.POSES_FILE, *served.FILES.values()]
+    files = [e for e in events if e[0] == "move" and e[1] not in (record, *consolidated, layout.MANIFEST)]
+    assert files and all(kept in relative for _, relative in files), events
+    assert set(read_manifest(out).shards[kept].files) == {relative for _, relative in files}
+    removed = sorted(object_id for kind, object_id in events if kind == "remove")
+    assert removed == sorted(OBJECTS[1:])
+    tail = events[len(files) + len(removed):]
+    assert events[:len(files)] == files and tail[0] == ("move", record), events
+    assert sorted(tail[1:-1]) == sorted(("move", name) for name in consolidated) and tail[-1] == ("move", layout.MANIFEST)
+    assert verify_dataset(out) == []
+
+
 def test_interrupted_shard_write_leaves_an_incomplete_shard(tmp_path, monkeypatch, corpus):
     spec = read_list(corpus, default_mass=0.25).specs[0]
     config = Config().with_overrides({"contacts.n_contacts": 10, "topple.n_trials": 2, "suction.n_candidates": 5})
@@ -567,6 +654,13 @@ def test_broken_mesh_is_a_failure_and_strict_makes_it_fatal(tmp_path, capsys):
     assert err.startswith("error: --strict: flat: ") and err.count("\n") == 1
     assert not (tmp_path / "new" / "strict").exists(), "a fresh --out the failed run made is not left behind empty"
     # Nor its parent, made by the run too: the staging directory beside --out held nothing to resume from.
+    assert not (tmp_path / "new").exists()
+
+    # A corpus problem (a missing file) stops a strict run before anything is computed, in the corpus's words.
+    gone = write_corpus(tmp_path, OBJECTS[:1], "gone,,meshes/gone.obj,1,0.1\n")
+    assert build(gone, tmp_path / "new" / "gone", "--strict", "--workers", "1") == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: --strict: gone: ") and err.endswith(f"{failures['gone'].reason}\n") and err.count("\n") == 1
     assert not (tmp_path / "new").exists()
 
 
@@ -637,7 +731,7 @@ def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_
     mesh = Path(read_list(write_corpus(tmp_path, ["random_003"]), 0.25).specs[0].path)
 
     assert main(["add", str(copy), str(mesh), "--id", "random_000"]) == 2, "an id already in the dataset"
-    assert "already has an object 'random_000'; choose another --id" in capsys.readouterr().err
+    assert capsys.readouterr().err == f"error: {copy} already has an object 'random_000'; choose another --id\n"
     assert main(["add", str(copy), str(mesh), "--id", "Random_000"]) == 2, "the same files on macOS or Windows"
     assert "already has an object 'random_000'; choose another --id (ids that differ only in case" in capsys.readouterr().err
     # A mesh toppledb cannot use is bad input (2), as in ``figures``, in toppledb's words, not trimesh's.
@@ -694,6 +788,71 @@ def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_
     assert stored.equals(expected.rows["actions"])
 
 
+def test_add_says_why_a_dataset_cannot_be_extended_and_changes_nothing(reference, tmp_path, capsys):
+    """``add`` refuses what it cannot extend consistently, each in one line: no dataset, parameters this
+    code does not know, shards of other inputs (the first three differences, or the schema when the
+    record keeps none); a mesh is named by the id it is added under; a begun commit is finished first."""
+    from pipeline.model.topple import ENGINE_REVISION
+    from schema.version import SCHEMA_VERSION
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    mesh = Path(read_list(write_corpus(tmp_path, ["random_003"]), 0.25).specs[0].path)
+    add = ["--scale", "0.015", "--mass", "0.1", "--no-progress"]
+
+    nowhere = tmp_path / "nowhere"
+    assert main(["add", str(nowhere), str(mesh), *add]) == 2
+    assert capsys.readouterr().err == f"error: cannot add to {nowhere}: {nowhere}: no such dataset directory\n"
+
+    manifest_bytes = (copy / layout.MANIFEST).read_bytes()
+    data = json.loads(manifest_bytes)
+    data["parameters"]["topple"]["nope"] = 1  # the manifest's model keeps it; this code's Config does not
+    (copy / layout.MANIFEST).write_text(json.dumps(data))
+    assert main(["add", str(copy), str(mesh), *add]) == 1
+    assert capsys.readouterr().err == (
+        f"error: {copy}: its parameters do not fit this code (unknown config key(s): topple.nope); rebuild it\n"
+    )
+    (copy / layout.MANIFEST).write_bytes(manifest_bytes)
+
+    record_path = copy / layout.completion_record(OBJECTS[0])  # the first shard is the one compared
+    record_bytes = record_path.read_bytes()
+    record = json.loads(record_bytes)
+    inputs = record["inputs"]
+    assert (inputs["config"]["contacts"]["n_contacts"], inputs["config"]["topple"]["n_trials"]) == (30, 5)
+    inputs["config"]["contacts"]["n_contacts"] = 40
+    inputs["config"]["topple"]["n_trials"] = 7
+    inputs["engine_revision"] = -1
+    inputs["schema_version"] = "0.0"  # a fourth difference, not shown
+    record["fingerprint"] = shards.fingerprint(inputs)
+    record_path.write_text(json.dumps(record))
+    rebuild = "`add` needs the code that built it: rebuild the dataset with this code (toppledb dataset --force) first\n"
+    assert main(["add", str(copy), str(mesh), *add]) == 1
+    assert capsys.readouterr().err == (
+        f"error: {copy} was built with parameters this code no longer gives it (config.contacts.n_contacts: 40 -> 30; "
+        f"config.topple.n_trials: 7 -> 5; engine_revision: -1 -> {ENGINE_REVISION}); " + rebuild
+    )
+    assert SCHEMA_VERSION != "0.0"
+    record = json.loads(record_bytes)
+    record["fingerprint"] = "0" * 64  # the same inputs, fingerprinted otherwise (another schema's hashing)
+    record_path.write_text(json.dumps(record))
+    assert main(["add", str(copy), str(mesh), *add]) == 1
+    assert capsys.readouterr().err == f"error: {copy} was built with parameters this code no longer gives it (schema); " + rebuild
+    record_path.write_bytes(record_bytes)
+    assert verify_dataset(copy) == [] and not staging_dir(copy).exists(), "a refused add writes nothing"
+
+    # A mesh that cannot be used is named by the id the user gave it, not by its file's name.
+    (tmp_path / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nf 1 2 3\n")
+    assert main(["add", str(copy), str(tmp_path / "flat.obj"), "--id", "slab", "--no-progress"]) == 2
+    assert capsys.readouterr().err.startswith("error: slab: zero volume")
+
+    # A commit a killed run began (here one with nothing left to move) is finished before the object is added.
+    staging_dir(copy).mkdir()
+    (staging_dir(copy) / "commit.json").write_text(json.dumps({"moves": [], "keep": OBJECTS}))
+    assert main(["add", str(copy), str(mesh), *add, "--id", "extra"]) == 0
+    assert capsys.readouterr().err.startswith(f"finished the commit of an interrupted run in {copy}\n")
+    assert list(read_manifest(copy).shards) == [*OBJECTS, "extra"] and not staging_dir(copy).exists()
+
+
 def test_a_damaged_completion_record_is_redone_not_blamed_on_other_inputs(reference, corpus, tmp_path, capsys):
     """A record that reads as JSON but holds no fingerprint is a shard without a record: the same
     command redoes it (the others reused) instead of asking for --force over 'other inputs'."""
@@ -708,6 +867,8 @@ def test_a_damaged_completion_record_is_redone_not_blamed_on_other_inputs(refere
     assert build(corpus, copy, "--workers", "1") == 0
     out = capsys.readouterr().out  # up to date: the cpu line says whose time it is
     assert "objects   3 (0 computed, 3 reused)" in out and "(when the shards were computed; none was this run)" in out
+    wall = [line for line in out.splitlines() if line.startswith("wall ")][-1]
+    assert 0 <= float(wall.split()[1]) < 60, "this run's own wall time, from its start"
 
 
 def test_a_killed_force_run_resumes_when_run_again_and_a_new_one_starts_over(reference, corpus, tmp_path, capsys):
@@ -730,6 +891,92 @@ def test_a_killed_force_run_resumes_when_run_again_and_a_new_one_starts_over(ref
     assert build(corpus, out, "--force", "--workers", "1") == 0
     assert read_manifest(out).run["computed"] == len(OBJECTS), "another code's staged shards are not reused"
     assert_same_dataset(reference, out)
+
+
+def test_only_a_force_run_of_the_same_code_resumes_a_stopped_force_run(reference, corpus, tmp_path, monkeypatch, capsys):
+    """In process (one worker, where mutmut sees it): a --force run stopped after its first object resumes
+    from its staged shard when run again; one whose staging names other code, or a stopped run without
+    --force, is recomputed whole by --force."""
+    from pipeline.build.dataset import FORCED_RUN
+    from pipeline.model import evaluation
+
+    real, seen = evaluation.process_object, []
+
+    def stopped_after_one(spec, config):
+        seen.append(spec.object_id)
+        if len(seen) > 1:
+            raise KeyboardInterrupt  # as Ctrl-C part-way: the finished shard stays staged
+        return real(spec, config)
+
+    def stop_after_one(*extra) -> list[str]:
+        seen.clear()
+        monkeypatch.setattr(evaluation, "process_object", stopped_after_one)
+        assert build(corpus, out, "--workers", "1", *extra) == 130
+        monkeypatch.setattr(evaluation, "process_object", real)
+        return sorted(p.parent.name for p in (staging_dir(out) / layout.SHARDS_DIR).glob("*/complete.json"))
+
+    out = tmp_path / "dataset"
+    shutil.copytree(reference, out)
+    assert len(stop_after_one("--force")) == 1 and (staging_dir(out) / FORCED_RUN).is_file()
+    capsys.readouterr()
+    assert build(corpus, out, "--force", "--workers", "1") == 0
+    assert f"resuming: 1 of {len(OBJECTS)} objects already complete in {staging_dir(out)}\n" in capsys.readouterr().err
+    assert (read_manifest(out).run["computed"], read_manifest(out).run["reused"]) == (len(OBJECTS) - 1, 1)
+    assert_same_dataset(reference, out)
+
+    assert len(stop_after_one("--force")) == 1
+    (staging_dir(out) / FORCED_RUN).write_text('{"code_version": "another"}')
+    assert build(corpus, out, "--force", "--workers", "1") == 0
+    assert (read_manifest(out).run["computed"], read_manifest(out).run["reused"]) == (len(OBJECTS), 0)
+
+    for object_id in OBJECTS[1:]:  # a plain run then has two objects to compute, and stops after one
+        (out / layout.completion_record(object_id)).write_text("{}")
+    assert len(stop_after_one()) == 1 and not (staging_dir(out) / FORCED_RUN).exists()
+    assert build(corpus, out, "--force", "--workers", "1") == 0
+    assert (read_manifest(out).run["computed"], read_manifest(out).run["reused"]) == (len(OBJECTS), 0)
+    assert_same_dataset(reference, out)
+
+
+def test_a_given_process_computes_each_object_and_its_errors_are_failures_with_their_traceback(corpus, tmp_path):
+    """``build_dataset``'s ``process`` is what computes an object (here the real one, but for one object
+    it raises): an unexpected error is that object's failure, kind ``error``, with the last lines of its
+    traceback; the others are built."""
+    from pipeline.build.dataset import build_dataset
+    from pipeline.model.evaluation import process_object
+
+    calls = []
+
+    def process(spec, config):
+        calls.append(spec.object_id)
+        if spec.object_id == OBJECTS[1]:
+            raise ValueError("no  such\n  luck")
+        return process_object(spec, config)
+
+    config = Config().with_overrides({"contacts.n_contacts": 10, "topple.n_trials": 2, "suction.n_candidates": 5})
+    out = tmp_path / "dataset"
+    summary = build_dataset(read_list(corpus, 0.25), config, out, workers=1, progress=False, process=process, log=lambda _: None)
+    assert sorted(calls) == sorted(OBJECTS) and summary.committed and summary.computed == len(OBJECTS)
+    manifest = read_manifest(out)
+    assert list(manifest.shards) == [OBJECTS[0], OBJECTS[2]]
+    assert manifest.timings.wall_s == round(summary.wall_s, 3), "the run's wall time, in ms"
+    [failure] = manifest.failures
+    assert (failure.object_id, failure.kind, failure.reason) == (OBJECTS[1], "error", "ValueError: no such luck")
+    assert "in process" in failure.detail and failure.detail.rstrip().endswith("ValueError: no  such\n  luck")
+    assert verify_dataset(out) == [] and not staging_dir(out).exists()
+
+
+def test_a_staging_path_that_is_not_a_directory_is_the_users_to_change(reference, corpus, tmp_path, capsys):
+    """A file where the staging directory goes (``.<name>.staging`` beside --out): exit 2 in one line, before
+    any computing, and the dataset and the file stay as they were."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    (copy / layout.completion_record(OBJECTS[1])).write_text("{}")  # one object to compute again
+    before = snapshot(copy)
+    staging_dir(copy).write_text("not a directory")
+    assert build(corpus, copy, "--workers", "1") == 2
+    assert capsys.readouterr().err == (f"resuming: 2 of 3 objects already complete in {copy}\n"
+                                       f"error: cannot create staging directory {staging_dir(copy)}: File exists\n")
+    assert snapshot(copy) == before and staging_dir(copy).read_text() == "not a directory"
 
 
 def test_input_differences_name_every_changed_added_and_removed_key():
