@@ -766,8 +766,9 @@ def test_add_computes_only_the_new_object_and_commits_atomically(reference, tmp_
     assert not staging_dir(copy).exists()
 
     assert main(["add", str(copy), str(mesh), "--scale", "0.015", "--mass", "0.1", "--id", "extra", "--no-progress"]) == 0
-    out = capsys.readouterr().out
-    assert out.startswith("added     extra: ") and "(1 computed, 3 reused)" in out
+    captured = capsys.readouterr()
+    assert captured.out.startswith("added     extra: ") and "(1 computed, 3 reused)" in captured.out
+    assert captured.err == "", "no progress bar (--no-progress), and no 'resuming:' line for the objects it reuses"
     assert verify_dataset(copy) == []
     manifest = read_manifest(copy)
     assert list(manifest.shards) == [*OBJECTS, "extra"] and manifest.counts.objects == 4
@@ -851,6 +852,38 @@ def test_add_says_why_a_dataset_cannot_be_extended_and_changes_nothing(reference
     assert main(["add", str(copy), str(mesh), *add, "--id", "extra"]) == 0
     assert capsys.readouterr().err.startswith(f"finished the commit of an interrupted run in {copy}\n")
     assert list(read_manifest(copy).shards) == [*OBJECTS, "extra"] and not staging_dir(copy).exists()
+
+
+def test_add_keeps_the_builds_failures_and_a_crash_is_a_failed_build(tmp_path, capsys, monkeypatch):
+    """The objects that failed before stay failures, as they were, and are not tried again; the new
+    object crashing (not a mesh the model rejects) is a failed build, exit 1, and changes nothing."""
+    from pipeline.model import evaluation
+
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nf 1 2 3\nf 1 3 4\n")
+    corpus = write_corpus(tmp_path, OBJECTS[:1], "flat,,meshes/flat.obj,1,0.1\ngone,,meshes/gone.obj,1,0.1\n")
+    out = tmp_path / "dataset"
+    assert build(corpus, out, "--workers", "1") == 0
+    failures = [f.model_dump() for f in read_manifest(out).failures]
+    assert [(f["object_id"], f["kind"]) for f in failures] == [("flat", "mesh"), ("gone", "corpus")]
+    mesh = read_list(write_corpus(tmp_path, ["random_002"]), 0.25).specs[0].path
+    add = ["add", str(out), mesh, "--scale", "0.015", "--mass", "0.1", "--id", "extra", "--no-progress"]
+
+    def crash(spec, config):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(evaluation, "process_object", crash)
+    capsys.readouterr()
+    assert main(add) == 1
+    assert capsys.readouterr().err == "error: extra: RuntimeError: boom\n"
+    monkeypatch.undo()
+    assert list(read_manifest(out).shards) == [OBJECTS[0]] and not staging_dir(out).exists()
+
+    assert main(add) == 0
+    manifest = read_manifest(out)
+    assert list(manifest.shards) == [OBJECTS[0], "extra"] and manifest.run["computed"] == 1
+    assert [f.model_dump() for f in manifest.failures] == failures
+    assert verify_dataset(out) == []
 
 
 def test_a_damaged_completion_record_is_redone_not_blamed_on_other_inputs(reference, corpus, tmp_path, capsys):
