@@ -1025,3 +1025,37 @@ def test_input_differences_name_every_changed_added_and_removed_key():
         "topple.n_trials: 100 -> 50",
     ]
     assert shards.input_differences(new, new) == []
+
+
+def test_add_checks_the_mesh_against_the_datasets_own_mesh_limits(tmp_path, capsys):
+    """A dataset built with other mesh limits is extended under them, not under the defaults: built to take
+    objects up to 0.7 m, it takes a 0.62 m one (the default limit is 0.5 m) and refuses a 0.74 m one, naming
+    its own limit, before any work."""
+    out = tmp_path / "dataset"
+    assert build(write_corpus(tmp_path, ["random_000"]), out, "--set", "mesh.max_extent=0.7") == 0  # 0.12 m
+    mesh = Path(read_list(write_corpus(tmp_path, ["random_003"]), 0.25).specs[0].path)  # 6.18 m as the file has it
+    add = [str(out), str(mesh), "--mass", "0.1", "--no-progress"]
+    before = snapshot(out)
+    assert main(["add", *add, "--scale", "0.12", "--id", "large"]) == 2
+    err = capsys.readouterr().err
+    assert "large: too large for a tabletop: largest side 0.7413 m > 0.7 m" in err and err.count("\n") == 1, err
+    assert_intact(out, before)
+    assert main(["add", *add, "--scale", "0.1", "--id", "wide"]) == 0
+    assert list(read_manifest(out).shards) == ["random_000", "wide"] and verify_dataset(out) == []
+
+
+def test_the_summary_names_what_loading_repaired_beyond_merged_vertices(tmp_path, capsys):
+    """A box missing a face is closed before it is computed, and the run's summary says so on one line;
+    merging an STL-style triangle soup's duplicate vertices is routine and kept to objects.parquet."""
+    box = trimesh.creation.box([0.05, 0.06, 0.07])
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    trimesh.Trimesh(box.vertices, box.faces[1:], process=False).export(meshes / "holed.obj")
+    trimesh.Trimesh(box.triangles.reshape(-1, 3), np.arange(36).reshape(-1, 3), process=False).export(meshes / "soup.stl")
+    out = tmp_path / "dataset"
+    assert main(["dataset", "--corpus", str(meshes), "--out", str(out), *PARAMS]) == 0
+    repaired = [line for line in capsys.readouterr().out.splitlines() if line.startswith("repaired")]
+    assert repaired == ["repaired  holed: filled holes"]
+    objects = pq.read_table(out / "objects.parquet").to_pylist()
+    assert {o["object_id"]: o["repairs"] for o in objects} == {"holed": ["filled holes"],
+                                                                "soup": ["merged 28 duplicate vertices"]}
