@@ -6,12 +6,15 @@ from __future__ import annotations
 import csv
 import re
 import sys
+import tomllib
 import types
 from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
+from pipeline.build import fanout
 from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import (
     DEFAULT_LIST,
@@ -23,7 +26,9 @@ from pipeline.build.corpus import (
     read_list,
     scan_directory,
     urdf_mesh,
+    write_list,
 )
+from pipeline.build.fanout import SchedulerError
 from pipeline.build.selection import DEFAULT_COUNT, regenerate_default
 from pipeline.model.config import Config
 from schema.layout import check_object_id
@@ -198,11 +203,33 @@ def test_regenerate_applies_the_selection_rule_in_candidate_order(tmp_path, monk
     """The rule itself (pipeline.model.mdp.is_selected) and V_s are the compute side's; here a
     stand-in select_info shows that the list keeps the first selected candidates, in
     candidate order, and that failures are counted, not fatal."""
-    selected = {"duck", "random_001", "random_003", "random_004"}
+    config = Config()
+    _stand_in_select_info(monkeypatch, config, selected={"duck", "random_001", "random_003", "random_004"})
+    out = tmp_path / "corpus.csv"
+    counts = regenerate_default(config, out, count=3, limit=10, workers=1, progress=False)
+    # A failure's reason is one line of at most 300 characters.
+    reason = ("ValueError: broken on two lines " + "x" * 400)[:300]
+    assert counts == {"candidates": 10, "failed": 1, "selected": 4, "kept": 3, "failures": {"random_002": reason}}
+    corpus = read_list(out, default_mass=0.25)
+    assert [s.object_id for s in corpus.specs] == ["duck", "random_001", "random_003"]
+    assert corpus.problems == {}
+    assert not any(p.name.endswith(".tmp") for p in tmp_path.iterdir())
+    # Written as the committed list is: paths relative to pybullet_data, one newline a row.
+    with open(out, newline="") as f:
+        paths = [row["path"] for row in csv.DictReader(f)]
+    assert paths == [Path(s.path).relative_to(pybullet_data_dir()).as_posix() for s in corpus.specs]
+    assert b"\r" not in out.read_bytes()
 
-    def select_info(spec, config):
+
+def _stand_in_select_info(monkeypatch, config: Config, selected: set[str]) -> None:
+    """A stand-in select_info: V_s and COM heights that pass the rule for ``selected``, an error for
+    random_002, and an error for any other configuration than ``config``."""
+
+    def select_info(spec, given):
+        if given is not config:
+            raise AssertionError("evaluated with another configuration than the one given")
         if spec.object_id == "random_002":
-            raise ValueError("broken")
+            raise ValueError("broken\n  on two lines " + "x" * 400)
         if spec.object_id in selected:  # high-quality pose with the higher COM
             return np.array([0.9, 0.1]), np.array([0.05, 0.02])
         return np.array([0.1, 0.1]), np.array([0.05, 0.02])
@@ -211,13 +238,16 @@ def test_regenerate_applies_the_selection_rule_in_candidate_order(tmp_path, monk
     fake.select_info = select_info
     monkeypatch.setitem(sys.modules, "pipeline.model.evaluation", fake)
 
-    out = tmp_path / "corpus.csv"
-    counts = regenerate_default(Config(), out, count=3, limit=10, workers=1, progress=False)
-    assert counts == {"candidates": 10, "failed": 1, "selected": 4, "kept": 3, "failures": {"random_002": "ValueError: broken"}}
-    corpus = read_list(out, default_mass=0.25)
-    assert [s.object_id for s in corpus.specs] == ["duck", "random_001", "random_003"]
-    assert corpus.problems == {}
-    assert not any(p.name.endswith(".tmp") for p in tmp_path.iterdir())
+
+def test_regenerate_shows_its_progress_and_reports_an_unreachable_scheduler(tmp_path, monkeypatch, capsys):
+    config = Config()
+    _stand_in_select_info(monkeypatch, config, selected={"duck"})
+    regenerate_default(config, tmp_path / "corpus.csv", count=1, limit=2, workers=1, progress=True)
+    assert "selecting: 100%" in capsys.readouterr().err
+    monkeypatch.setattr(fanout, "CONNECT_TIMEOUT_S", 0.5)
+    with pytest.raises(SchedulerError, match=re.escape("cannot connect to the dask scheduler at tcp://127.0.0.1:1")):
+        regenerate_default(config, tmp_path / "other.csv", count=1, limit=2, scheduler="tcp://127.0.0.1:1", progress=False)
+    assert not (tmp_path / "other.csv").exists()
 
 
 def _cube_dir(tmp_path: Path, names: list[str]) -> Path:
@@ -261,13 +291,21 @@ def test_directory_sidecar_csv_and_flags_without_sidecar(tmp_path):
     [
         ("corpus.toml", 'units = "furlong"\n', "units 'furlong' is not one of mm, cm, in, m"),
         ("corpus.toml", 'units = "mm"\nscale = 0.001\n', "units or scale, not both"),
-        ("corpus.toml", "mass = -1\n", "mass must be positive"),
+        ("corpus.toml", "mass = -1\n", "corpus.toml: mass must be positive and finite, got -1"),
         ("corpus.toml", "mass = true\n", "mass True is not a number"),
-        ("corpus.toml", "colour = 1\n", "unknown key(s) ['colour']"),
+        ("corpus.toml", 'scale = "big"\n', "corpus.toml: scale 'big' is not a number"),
+        ("corpus.toml", "density = 0\n", "corpus.toml: density must be positive and finite, got 0"),
+        ("corpus.toml", "colour = 1\n", "corpus.toml: unknown key(s) ['colour']"),
+        ("corpus.toml", 'object_id = "a"\n', 'corpus.toml: object_id belongs in an [objects."path"] table'),
+        ("corpus.toml", "objects = 1\n", 'corpus.toml: [objects."path"] entries must be tables'),
+        ("corpus.toml", '[objects]\n"a.obj" = 1\n', 'corpus.toml: [objects."path"] entries must be tables'),
+        ("corpus.toml", '[objects."a.obj"]\ndensity = "dense"\n', "corpus.toml [objects.'a.obj']: density 'dense' is not a number"),
         ("corpus.toml", '[objects."missing.obj"]\nmass = 1\n', "names meshes that are not there"),
         ("corpus.toml", "units = \n", "corpus.toml"),
-        ("corpus.csv", "path,mass,density\na.obj,1,2\n", "mass or density, not both"),
+        ("corpus.csv", "path,mass,density\na.obj,1,2\n", "corpus.csv row 2: give mass or density, not both"),
         ("corpus.csv", "path,mass\na.obj,1,2\n", "corpus.csv row 2: 3 fields, more than the header's 2"),
+        ("corpus.csv", "path,mass\n,1\n", "corpus.csv row 2: empty path"),
+        ("corpus.csv", "path,scale\na.obj,inf\n", "corpus.csv row 2: scale must be positive and finite, got inf"),
     ],
 )
 def test_bad_sidecars_give_one_line_errors(tmp_path, sidecar, text, message):
@@ -281,3 +319,126 @@ def test_bad_sidecars_give_one_line_errors(tmp_path, sidecar, text, message):
 def test_unit_flags_are_refused_for_list_corpora():
     with pytest.raises(CorpusError, match="apply to a directory of meshes"):
         load_corpus("default", 0.25, Units(scale=0.001))
+
+
+def test_a_sidecar_names_its_own_problems(tmp_path):
+    _cube_dir(tmp_path, ["a.obj"])
+    (tmp_path / "corpus.toml").write_text("units = \n")
+    (tmp_path / "corpus.csv").write_text("path,mass\na.obj,1\n")
+    with pytest.raises(CorpusError) as err:
+        scan_directory(tmp_path, default_mass=0.4)
+    assert str(err.value) == f"{tmp_path.resolve()}: both corpus.toml and corpus.csv; keep one"
+
+    # A TOML syntax error: the parser's own reason, on one line, after the file's path.
+    (tmp_path / "corpus.csv").unlink()
+    try:
+        tomllib.loads("units = \n")
+    except tomllib.TOMLDecodeError as parser:
+        reason = " ".join(str(parser).split())
+    with pytest.raises(CorpusError) as err:
+        scan_directory(tmp_path, default_mass=0.4)
+    assert str(err.value) == f"{tmp_path.resolve() / 'corpus.toml'}: {reason}"
+
+    # A CSV sidecar that is not text in this locale's encoding: the decoder's reason, after the path.
+    (tmp_path / "corpus.toml").unlink()
+    (tmp_path / "corpus.csv").write_bytes(b"path,mass\na.obj,\xff\xfe1\n")
+    try:
+        (tmp_path / "corpus.csv").read_text()
+    except UnicodeDecodeError as decoder:
+        reason = str(decoder)
+    with pytest.raises(CorpusError) as err:
+        scan_directory(tmp_path, default_mass=0.4)
+    assert str(err.value) == f"{tmp_path.resolve() / 'corpus.csv'}: {reason}"
+
+
+def test_a_csv_sidecar_takes_empty_cells_as_not_set(tmp_path):
+    # Each row fills one of units/scale and one of mass/density: the empty cell is no value, not a second one.
+    _cube_dir(tmp_path, ["a.obj", "b.obj"])
+    (tmp_path / "corpus.csv").write_text("path,units,scale,mass,density\na.obj,,0.05,,1000\nb.obj,cm,,0.7,\n")
+    specs = {s.object_id: s for s in scan_directory(tmp_path, default_mass=0.4).specs}
+    assert (specs["a"].scale, specs["a"].mass) == (0.05, pytest.approx(1000 * 0.05**3))
+    assert (specs["b"].scale, specs["b"].mass) == (0.01, 0.7)
+
+
+def test_density_weighs_the_mesh_or_its_hull_and_an_unreadable_mesh_keeps_the_default_mass(tmp_path):
+    # A closed ring: its own volume, well below its hull's.
+    ring = trimesh.creation.annulus(r_min=0.02, r_max=0.05, height=0.03)
+    ring.export(tmp_path / "ring.obj")
+    closed = trimesh.load(tmp_path / "ring.obj", force="mesh")
+    assert closed.is_volume and closed.volume < 0.9 * closed.convex_hull.volume
+    # A cube with its top and one side open: a hole no repair fills, so its hull is what is weighed.
+    faces = [line for line in CUBE_OBJ.splitlines() if line not in ("f 5 6 7", "f 5 7 8", "f 1 2 6", "f 1 6 5")]
+    (tmp_path / "open.obj").write_text("\n".join(faces) + "\n")
+    (tmp_path / "zgarbage.obj").write_text("this is not a mesh\n")
+    (tmp_path / "corpus.toml").write_text('density = 800\n[objects."open.obj"]\nscale = 0.05\n')
+    specs = {s.object_id: s for s in scan_directory(tmp_path, default_mass=0.4).specs}
+    assert specs["ring"].mass == pytest.approx(800 * closed.volume, rel=1e-9)
+    assert specs["open"].mass == pytest.approx(800 * 0.05**3, rel=1e-9), "the unit cube's hull, scaled"
+    assert specs["zgarbage"].mass == 0.4, "no volume to weigh: the default mass (the build then says why)"
+
+
+def test_a_directory_corpus_is_named_by_its_path_and_ordered_by_relative_path(tmp_path):
+    # "a-b/..." sorts before "a/..." as text ('-' < '/'), after it part by part: the order is the text's,
+    # the same the sidecar's keys are written in, so which of two equal stems gets "-2" does not depend on it.
+    _cube_dir(tmp_path, ["a/x.obj", "a-b/x.obj", "a0.obj"])
+    corpus = scan_directory(tmp_path, default_mass=0.4)
+    relative = [Path(s.path).relative_to(tmp_path.resolve()).as_posix() for s in corpus.specs]
+    assert relative == sorted(relative) == ["a-b/x.obj", "a/x.obj", "a0.obj"]
+    assert [s.object_id for s in corpus.specs] == ["x", "x-2", "a0"]
+    assert corpus.name == str(tmp_path.resolve())
+    assert {s.source for s in corpus.specs} == {f"dir:{tmp_path.resolve().name}"}
+
+    (tmp_path / "corpus.toml").write_text('[objects."a0.obj"]\nobject_id = "bad/id"\n')
+    with pytest.raises(CorpusError, match=re.escape(f"{tmp_path.resolve()}: bad object id")):
+        scan_directory(tmp_path, default_mass=0.4)
+    # Entries for meshes that are not there: the first three are named, in order.
+    (tmp_path / "corpus.toml").write_text("".join(f'[objects."{n}.obj"]\nmass = 1\n' for n in "pqrs"))
+    with pytest.raises(CorpusError) as err:
+        scan_directory(tmp_path, default_mass=0.4)
+    assert str(err.value).endswith("not there: ['p.obj', 'q.obj', 'r.obj']")
+
+
+def _urdf(path: Path, geometry: str, inertial: str = '<inertial><mass value="0.3"/></inertial>') -> Path:
+    path.write_text(f'<robot name="x"><link name="l">{inertial}{geometry}</link></robot>')
+    return path
+
+
+def test_urdf_meshes_their_fallbacks_and_refusals(tmp_path):
+    visual = '<visual><geometry><mesh filename="seen.obj"/></geometry></visual>'
+    collision = '<collision><geometry><mesh filename="hull.obj" scale="2 2 2"/></geometry></collision>'
+    assert urdf_mesh(_urdf(tmp_path / "a.urdf", collision + visual)) == (tmp_path / "seen.obj", None, 0.3), "visual first"
+    assert urdf_mesh(_urdf(tmp_path / "b.urdf", collision)) == (tmp_path / "hull.obj", 2.0, 0.3), "else the collision mesh"
+    assert urdf_mesh(_urdf(tmp_path / "c.urdf", visual, inertial="")) == (tmp_path / "seen.obj", None, None), "no mass given"
+    assert urdf_mesh(_urdf(tmp_path / "d.urdf", visual, '<inertial><mass value="0"/></inertial>'))[2] is None, "static body"
+    with pytest.raises(CorpusError, match=r"^e\.urdf: no mesh geometry$"):
+        urdf_mesh(_urdf(tmp_path / "e.urdf", '<visual><geometry><box size="1 1 1"/></geometry></visual>'))
+    (tmp_path / "f.urdf").write_text("<robot>")
+    with pytest.raises(CorpusError, match=re.escape(f"cannot parse {tmp_path / 'f.urdf'}: ")):
+        urdf_mesh(tmp_path / "f.urdf")
+
+
+def test_candidates_of_a_pybullet_data_tree_without_some_named_urdfs(tmp_path):
+    # duck's URDF (listed before teddy's) is missing: it is skipped, and the later named meshes still come.
+    (tmp_path / "bunny.obj").write_text(CUBE_OBJ)
+    (tmp_path / "teddy.obj").write_text(CUBE_OBJ)
+    _urdf(tmp_path / "teddy_vhacd.urdf", '<visual><geometry><mesh filename="teddy.obj" scale="0.1 0.1 0.1"/></geometry></visual>')
+    (tmp_path / "random_urdfs" / "007").mkdir(parents=True)
+    (tmp_path / "random_urdfs" / "007" / "007.obj").write_text(CUBE_OBJ)
+    _urdf(tmp_path / "random_urdfs" / "007" / "007.urdf", '<visual><geometry><mesh filename="007.obj"/></geometry></visual>',
+          inertial="")
+    specs = candidate_specs(default_mass=0.25, root=tmp_path)
+    assert [s.object_id for s in specs] == ["bunny", "teddy", "random_007"]
+    bunny, teddy, random = specs
+    assert (bunny.scale, bunny.mass, bunny.source) == (0.1, 0.25, "pybullet_data")
+    assert (teddy.scale, teddy.mass, teddy.source) == (0.1, 0.3, "pybullet_data/teddy_vhacd.urdf")
+    assert (random.scale, random.mass) == (1.0, 0.25), "no scale or mass in its URDF: 1 and the default mass"
+    assert random.source == "pybullet_data/random_urdfs/007/007.urdf"
+    assert random.path == str((tmp_path / "random_urdfs" / "007" / "007.obj").resolve())
+
+
+def test_a_list_written_with_absolute_paths_reads_back_the_same(tmp_path):
+    corpus = scan_directory(_cube_dir(tmp_path / "meshes", ["a.obj", "sub/b.obj"]), default_mass=0.4)
+    write_list(corpus.specs, tmp_path / "list.csv", root=None)
+    assert b"\r" not in (tmp_path / "list.csv").read_bytes(), "one newline a row, as the committed default list"
+    again = read_list(tmp_path / "list.csv", default_mass=0.9)
+    assert again.specs == corpus.specs and again.problems == {}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -449,6 +450,47 @@ def test_dask_workers_on_another_blas_kernel_are_named_in_a_warning(capsys, monk
           backend(scheduler=cluster.scheduler_address)):
         pass
     assert "warning" not in capsys.readouterr().err, "workers in this process compute as it does"
+
+
+def test_the_progress_bar_counts_objects_poses_and_failures(capsys):
+    bar = fanout.Progress(total=5, already_done=2)
+    bar.object_done(3)
+    bar.object_done(0, failed=True)
+    bar.object_done(4)
+    assert (bar.poses, bar.new_poses, bar.failures) == (7, 7, 1)
+    assert (bar.bar.n, bar.bar.total) == (5, 5), "the objects already done count from the start"
+    poses, failed, rate = re.fullmatch(r"poses=(\d+), failed=(\d+), (\d+\.\d\d) poses/s", bar.bar.postfix).groups()
+    assert (poses, failed) == ("7", "1")
+    # 7 poses over the time since the bar started, rounded to two decimals: at least 7 over the time until now.
+    assert float(rate) >= 7 / (time.perf_counter() - bar.started) - 0.005
+    bar.close()
+    err = capsys.readouterr().err
+    assert "objects: 100%" in err and "5/5" in err and "poses=7, failed=1" in err
+    quiet = fanout.Progress(total=2, enabled=False)
+    quiet.object_done(3)
+    quiet.close()
+    assert quiet.poses == 3 and capsys.readouterr().err == "", "--no-progress: nothing on stderr"
+
+
+def test_the_kernel_warning_counts_the_workers_on_other_kernels_and_names_each_kernel_once():
+    # The dask test above has one worker; here several, two of them on one other kernel and one
+    # that could not say (None, as blas_kernel gives when threadpoolctl cannot read the library).
+    workers = {
+        "tcp://w1": {"kernel": "Haswell", "library": "openblas"},
+        "tcp://w2": {"kernel": "Sandybridge"},
+        "tcp://w3": {"kernel": "Sandybridge"},
+        "tcp://w4": {"kernel": "Nehalem"},
+        "tcp://w5": {"kernel": None},
+    }
+    assert fanout.kernel_mismatch("Haswell", workers) == (
+        "4 of 5 dask workers compute with BLAS kernel Nehalem, None, Sandybridge, this process with Haswell, "
+        "so their shards may differ in the last bits from a local build's; start them with OPENBLAS_CORETYPE=Haswell "
+        '(docs/DATASET.md, "Reproducible across machines")'
+    )
+    assert fanout.kernel_mismatch("Haswell", {"tcp://w1": {"kernel": "Haswell"}, "tcp://w2": {"kernel": "Haswell"}}) is None
+    assert fanout.kernel_mismatch(None, {"tcp://w1": {"kernel": None}}) is None, "no kernel known on either side: no warning"
+    assert fanout.kernel_mismatch("Haswell", {}) is None, "no workers, nothing to warn about"
+    assert fanout.kernel_mismatch("Haswell", {"tcp://w1": {}}).startswith("1 of 1 dask workers compute with BLAS kernel None,")
 
 
 KILLABLE = (
