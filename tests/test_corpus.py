@@ -296,6 +296,10 @@ def test_directory_sidecar_csv_and_flags_without_sidecar(tmp_path):
         ("corpus.toml", 'scale = "big"\n', "corpus.toml: scale 'big' is not a number"),
         ("corpus.toml", "density = 0\n", "corpus.toml: density must be positive and finite, got 0"),
         ("corpus.toml", "colour = 1\n", "corpus.toml: unknown key(s) ['colour']"),
+        # The table's and the CSV's own words are no settings: in a setting's place they are unknown too.
+        ("corpus.toml", 'path = "meshes"\n', "corpus.toml: unknown key(s) ['path']; known: units, scale, mass, density, object_id"),
+        ("corpus.toml", '[objects."a.obj"]\npath = "b.obj"\n', "corpus.toml [objects.'a.obj']: unknown key(s) ['path']"),
+        ("corpus.csv", "path,objects\na.obj,b.obj\n", "corpus.csv row 2: unknown key(s) ['objects']"),
         ("corpus.toml", 'object_id = "a"\n', 'corpus.toml: object_id belongs in an [objects."path"] table'),
         ("corpus.toml", "objects = 1\n", 'corpus.toml: [objects."path"] entries must be tables'),
         ("corpus.toml", '[objects]\n"a.obj" = 1\n', 'corpus.toml: [objects."path"] entries must be tables'),

@@ -97,7 +97,7 @@ class Units:
         """From a sidecar table or CSV row: ``units`` or ``scale``, ``mass`` or ``density``."""
         from ..model.mesh import UNIT_SCALES
 
-        known = {"units", "scale", "mass", "density", "object_id", "path", "objects"}
+        known = {"units", "scale", "mass", "density", "object_id"}
         unknown = set(values) - known
         if unknown:
             raise CorpusError(f"{where}: unknown key(s) {sorted(unknown)}; known: units, scale, mass, density, object_id")
@@ -160,7 +160,8 @@ def read_sidecar(directory: Path) -> tuple[Units, dict[str, Units]]:
             row = _csv_row(row, f"{SIDECAR_CSV} row {number}")
             if not row.get("path"):
                 raise CorpusError(f"{SIDECAR_CSV} row {number}: empty path")
-            entries[_posix(row["path"])] = Units.parse(row, f"{SIDECAR_CSV} row {number}")
+            settings = {k: v for k, v in row.items() if k != "path"}
+            entries[_posix(row["path"])] = Units.parse(settings, f"{SIDECAR_CSV} row {number}")
         return Units(), entries
     return Units(), {}
 
