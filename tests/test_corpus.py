@@ -14,14 +14,18 @@ import numpy as np
 import pytest
 import trimesh
 
+from pipeline.build import corpus as corpus_module
 from pipeline.build import fanout
 from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import (
     DEFAULT_LIST,
+    Corpus,
     CorpusError,
     Units,
+    _unique,
     candidate_specs,
     load_corpus,
+    object_id_from_name,
     pybullet_data_dir,
     read_list,
     scan_directory,
@@ -142,8 +146,12 @@ def test_list_file_resolves_paths_and_defaults(tmp_path):
         ("path,scale\na.obj,big\n", "row 2: scale 'big' is not a number"),
         ("path,mass\na.obj,-1\n", "mass must be positive"),
         ("path,mass\na.obj,0\n", "mass must be positive"),
-        ("path,colour\na.obj,red\n", "unknown column"),
-        ("object_id,path\nsame,a.obj\nsame,b.obj\n", "duplicate object ids"),
+        ("path,colour\na.obj,red\n", re.escape("list.csv: unknown column(s) ['colour']; known: object_id, source, path, scale, mass, sha256")),
+        ("object_id,path\nsame,a.obj\nsame,b.obj\n", "list.csv: duplicate object ids"),
+        ("object_id,path\n" + "".join(f"{c},{n}.obj\n" for n in range(2) for c in "abcdef"),
+         re.escape("duplicate object ids ['a', 'b', 'c', 'd', 'e'] (ids")),
+        ("path,mass\na.obj,heavy\n", "list.csv row 2: mass 'heavy' is not a number"),
+        ("path,scale\n,1\n", "list.csv row 2: empty path"),
         ("object_id,path\nPart,a.obj\npart,b.obj\n", "duplicate object ids \\['Part', 'part'\\] \\(ids name files"),
         ("object_id,path\nbad/id,a.obj\n", "bad object id"),
         ("path\n", "no objects"),
@@ -446,3 +454,67 @@ def test_a_list_written_with_absolute_paths_reads_back_the_same(tmp_path):
     assert b"\r" not in (tmp_path / "list.csv").read_bytes(), "one newline a row, as the committed default list"
     again = read_list(tmp_path / "list.csv", default_mass=0.9)
     assert again.specs == corpus.specs and again.problems == {}
+
+
+def test_list_files_read_as_written(tmp_path, monkeypatch):
+    (tmp_path / "a.obj").write_text(CUBE_OBJ)
+    (tmp_path / "b.obj").write_text(CUBE_OBJ)
+    listing = tmp_path / "list.csv"
+    # An indented comment is a comment too; a row without mass takes the default one.
+    listing.write_text(f"path,mass,sha256\n  # b.obj is listed below\na.obj,0.2,\nb.obj,,{'0' * 64}\nc.obj,,\n")
+    corpus = load_corpus(str(listing), default_mass=0.3)
+    assert corpus.name == str(listing.resolve())
+    assert [(s.object_id, s.mass) for s in corpus.specs] == [("a", 0.2), ("b", 0.3), ("c", 0.3)]
+    listed, found = "0" * 12, file_sha256(tmp_path / "b.obj")[:12]
+    assert corpus.problems == {
+        "b": f"mesh file changed since the corpus was listed: sha256 {found}..., listed {listed}...",
+        "c": f"mesh file not found: {tmp_path / 'c.obj'}",
+    }
+    # The first of them, with only its own problems.
+    first = corpus.limit(1)
+    assert (first.name, first.specs, first.problems) == (corpus.name, corpus.specs[:1], {})
+    last_two = Corpus(corpus.name, corpus.specs[1:], corpus.problems).limit(1)
+    assert last_two.problems == {"b": corpus.problems["b"]} and corpus.limit(None) is corpus
+    # A mesh that is there but cannot be read (its checksum comes back empty).
+    monkeypatch.setattr(corpus_module, "file_sha256", lambda path: "")
+    assert read_list(listing, 0.3).problems["a"] == f"mesh file cannot be read: {tmp_path / 'a.obj'}"
+
+    listing.write_bytes(b"path\n\xff\xfe.obj\n")
+    try:
+        listing.read_text()
+    except UnicodeDecodeError as decoder:
+        reason = str(decoder)
+    with pytest.raises(CorpusError) as err:
+        read_list(listing, 0.3)
+    assert str(err.value) == f"cannot read corpus list {listing.resolve()}: {reason}"
+
+
+def test_the_default_and_pybullet_data_corpora_by_name(monkeypatch):
+    default = load_corpus("default", default_mass=0.25)
+    assert default.name == "default" and len(default.specs) == DEFAULT_COUNT
+    every = load_corpus("pybullet_data", default_mass=0.3)
+    assert every.name == "pybullet_data" and every.problems == {}
+    assert every.specs == candidate_specs(default_mass=0.3)
+    assert every.specs[0].object_id == "bunny" and every.specs[0].mass == 0.3, "no URDF: the mass given"
+    with pytest.raises(CorpusError) as err:
+        load_corpus("default", 0.25, Units(scale=0.001))
+    assert str(err.value) == ("--units, --scale, --mass and --density apply to a directory of meshes; "
+                              "a list file has scale and mass columns")
+    monkeypatch.setattr(corpus_module, "DEFAULT_LIST", Path("/no/such/corpus_default.csv"))
+    with pytest.raises(CorpusError) as err:
+        load_corpus("default", 0.25)
+    assert str(err.value) == "default corpus list /no/such/corpus_default.csv is missing; run `toppledb corpus`"
+    monkeypatch.setitem(sys.modules, "pybullet_data", None)  # import pybullet_data now raises ImportError
+    with pytest.raises(CorpusError) as err:
+        pybullet_data_dir()
+    assert str(err.value) == "pybullet_data is not installed (pip install pybullet)"
+
+
+def test_ids_derived_from_file_names():
+    assert object_id_from_name("") == "obj"
+    assert object_id_from_name("x" * 200) == "x" * 120, "cut to 120 characters"
+    assert object_id_from_name("a b/c") == "a_b_c"
+    # Words a reader would type as a number or boolean, in any case, and digits first get a prefix.
+    assert [object_id_from_name(n) for n in ("True", "NaN", "inf", "7up", "Truly")] == [
+        "obj_True", "obj_NaN", "obj_inf", "obj_7up", "Truly"]
+    assert _unique(["x", "x", "X", "x-2"]) == ["x", "x-2", "X-3", "x-2-2"], "the smallest free suffix, case ignored"
