@@ -33,6 +33,7 @@ from pipeline.build import dataset, fanout, rows, shards
 from pipeline.build.atomic import file_sha256
 from pipeline.build.corpus import read_list
 from pipeline.build.dataset import compute_shard, staging_dir
+from pipeline.build.fanout import SchedulerError
 from pipeline.build.verify import verify_dataset
 from pipeline.cli import main
 from pipeline.model.config import Config
@@ -470,6 +471,61 @@ def test_the_progress_bar_counts_objects_poses_and_failures(capsys):
     quiet.object_done(3)
     quiet.close()
     assert quiet.poses == 3 and capsys.readouterr().err == "", "--no-progress: nothing on stderr"
+
+
+def test_a_scheduler_is_reached_through_one_default_client_closed_after_the_run(monkeypatch, capsys):
+    # The dask tests above run a real cluster; this one sees what backend() does with the client and
+    # how it refuses, with a stand-in client and joblib configuration (the dask backend finds the
+    # client as distributed's default one, hence set_as_default).
+    import contextlib
+
+    import distributed
+    import joblib
+
+    events = []
+
+    class Client:
+        def __init__(self, address, timeout, set_as_default):
+            events.append(("connect", address, timeout, set_as_default))
+
+        def run(self, function):
+            events.append(("run", function))
+            return {"tcp://w1": {"kernel": "Other"}}
+
+        def close(self):
+            events.append("close")
+
+    @contextlib.contextmanager
+    def parallel_config(backend):
+        events.append(("backend", backend))
+        yield
+
+    monkeypatch.setattr(distributed, "Client", Client)
+    monkeypatch.setattr(joblib, "parallel_config", parallel_config)
+    with pytest.raises(RuntimeError, match="^inside$"), fanout.backend(workers=3, scheduler="tcp://host:8786") as n_jobs:
+        assert n_jobs == -1, "the cluster decides"
+        raise RuntimeError("inside")
+    assert events == [("connect", "tcp://host:8786", f"{fanout.CONNECT_TIMEOUT_S}s", True), ("run", fanout.blas_kernel), ("backend", "dask"), "close"]
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("warning: 1 of 1 dask workers compute with BLAS kernel Other, this process with ")
+
+    for error in (OSError("refused"), TimeoutError("no answer"), ValueError("not an address")):
+        def refuse(*args, error=error, **kwargs):
+            raise error
+
+        monkeypatch.setattr(distributed, "Client", refuse)
+        with pytest.raises(SchedulerError) as refused, fanout.backend(scheduler="tcp://host:8786"):
+            pass
+        assert str(refused.value) == f"cannot connect to the dask scheduler at tcp://host:8786: {error}"
+    monkeypatch.setitem(sys.modules, "distributed", None)  # not installed: the import raises ImportError
+    with pytest.raises(SchedulerError) as refused, fanout.backend(scheduler="tcp://host:8786"):
+        pass
+    assert str(refused.value) == "--scheduler needs dask.distributed (pip install 'dask[distributed]')"
+
+    with fanout.backend(workers=3) as n_jobs:
+        assert n_jobs == 3
+    with fanout.backend() as n_jobs:
+        assert n_jobs == fanout.default_workers() == max(1, joblib.cpu_count())
 
 
 def test_the_kernel_warning_counts_the_workers_on_other_kernels_and_names_each_kernel_once():
