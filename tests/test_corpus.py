@@ -104,7 +104,7 @@ def test_urdf_with_non_uniform_scale_is_refused(tmp_path):
         '<robot name="x"><link name="l"><inertial><mass value="0.3"/></inertial>'
         '<visual><geometry><mesh filename="thing.obj" scale="1 2 1"/></geometry></visual></link></robot>'
     )
-    with pytest.raises(CorpusError, match="non-uniform"):
+    with pytest.raises(CorpusError, match=re.escape("thing.urdf: non-uniform mesh scale '1 2 1'")):
         urdf_mesh(urdf)
     urdf.write_text(urdf.read_text().replace('scale="1 2 1"', 'scale="0.5 0.5 0.5"'))
     assert urdf_mesh(urdf) == (tmp_path / "thing.obj", 0.5, 0.3)
@@ -378,14 +378,15 @@ def test_density_weighs_the_mesh_or_its_hull_and_an_unreadable_mesh_keeps_the_de
     ring.export(tmp_path / "ring.obj")
     closed = trimesh.load(tmp_path / "ring.obj", force="mesh")
     assert closed.is_volume and closed.volume < 0.9 * closed.convex_hull.volume
-    # A cube with its top and one side open: a hole no repair fills, so its hull is what is weighed.
-    faces = [line for line in CUBE_OBJ.splitlines() if line not in ("f 5 6 7", "f 5 7 8", "f 1 2 6", "f 1 6 5")]
-    (tmp_path / "open.obj").write_text("\n".join(faces) + "\n")
+    # The ring without its top: two holes no repair fills, so its hull is what is weighed (the surface
+    # integral of an open mesh is no volume; here it happens to give the closed ring's).
+    trimesh.Trimesh(ring.vertices, ring.faces[ring.face_normals[:, 2] < 0.9]).export(tmp_path / "open.obj")
+    hull = trimesh.load(tmp_path / "open.obj", force="mesh").convex_hull.volume
     (tmp_path / "zgarbage.obj").write_text("this is not a mesh\n")
-    (tmp_path / "corpus.toml").write_text('density = 800\n[objects."open.obj"]\nscale = 0.05\n')
+    (tmp_path / "corpus.toml").write_text('density = 800\n[objects."open.obj"]\nscale = 2\n')
     specs = {s.object_id: s for s in scan_directory(tmp_path, default_mass=0.4).specs}
     assert specs["ring"].mass == pytest.approx(800 * closed.volume, rel=1e-9)
-    assert specs["open"].mass == pytest.approx(800 * 0.05**3, rel=1e-9), "the unit cube's hull, scaled"
+    assert specs["open"].mass == pytest.approx(800 * 2**3 * hull, rel=1e-9), "the open ring's hull, scaled"
     assert specs["zgarbage"].mass == 0.4, "no volume to weigh: the default mass (the build then says why)"
 
 
