@@ -467,10 +467,14 @@ def test_the_progress_bar_counts_objects_poses_and_failures(capsys):
     bar.close()
     err = capsys.readouterr().err
     assert "objects: 100%" in err and "5/5" in err and "poses=7, failed=1" in err
+    assert re.search(r"obj/s|s/obj", err), "objects, not tqdm's 'it'"
     quiet = fanout.Progress(total=2, enabled=False)
     quiet.object_done(3)
     quiet.close()
     assert quiet.poses == 3 and capsys.readouterr().err == "", "--no-progress: nothing on stderr"
+    # The fan-out draws no bar of its own unless asked (the dataset's bar is this one).
+    assert sorted(fanout.map_unordered(abs, [(-1,), (2,)], workers=1)) == [1, 2]
+    assert capsys.readouterr().err == ""
 
 
 def test_a_scheduler_is_reached_through_one_default_client_closed_after_the_run(monkeypatch, capsys):
@@ -526,6 +530,8 @@ def test_a_scheduler_is_reached_through_one_default_client_closed_after_the_run(
         assert n_jobs == 3
     with fanout.backend() as n_jobs:
         assert n_jobs == fanout.default_workers() == max(1, joblib.cpu_count())
+    monkeypatch.setattr(joblib, "cpu_count", lambda: 1)
+    assert fanout.default_workers() == 1, "one core: one worker"
 
 
 def test_the_kernel_warning_counts_the_workers_on_other_kernels_and_names_each_kernel_once():
