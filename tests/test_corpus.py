@@ -251,7 +251,8 @@ def test_regenerate_shows_its_progress_and_reports_an_unreachable_scheduler(tmp_
     config = Config()
     _stand_in_select_info(monkeypatch, config, selected={"duck"})
     regenerate_default(config, tmp_path / "corpus.csv", count=1, limit=2, workers=1, progress=True)
-    assert "selecting: 100%" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "selecting: 100%" in err and re.search(r"obj/s|s/obj", err), "candidates counted as objects"
     monkeypatch.setattr(fanout, "CONNECT_TIMEOUT_S", 0.5)
     with pytest.raises(SchedulerError, match=re.escape("cannot connect to the dask scheduler at tcp://127.0.0.1:1")):
         regenerate_default(config, tmp_path / "other.csv", count=1, limit=2, scheduler="tcp://127.0.0.1:1", progress=False)
