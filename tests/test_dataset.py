@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import time
+import traceback
 from pathlib import Path
 
 import duckdb
@@ -1081,12 +1082,13 @@ def test_a_given_process_computes_each_object_and_its_errors_are_failures_with_t
     from pipeline.build.dataset import build_dataset
     from pipeline.model.evaluation import process_object
 
-    calls = []
+    calls, raised = [], []
 
     def process(spec, config):
         calls.append(spec.object_id)
         if spec.object_id == OBJECTS[1]:
-            raise ValueError("no  such\n  luck")
+            raised.append(ValueError("no  such\n  luck"))
+            raise raised[-1]
         return process_object(spec, config)
 
     config = Config().with_overrides({"contacts.n_contacts": 10, "topple.n_trials": 2, "suction.n_candidates": 5})
@@ -1099,6 +1101,9 @@ def test_a_given_process_computes_each_object_and_its_errors_are_failures_with_t
     [failure] = manifest.failures
     assert (failure.object_id, failure.kind, failure.reason) == (OBJECTS[1], "error", "ValueError: no such luck")
     assert "in process" in failure.detail and failure.detail.rstrip().endswith("ValueError: no  such\n  luck")
+    # The traceback's last lines as Python prints them (one worker computes in this process: the same error).
+    printed = "".join(traceback.format_exception(raised[0]))
+    assert printed.endswith(failure.detail) and failure.detail.startswith(("Traceback", "  File "))
     assert verify_dataset(out) == [] and not staging_dir(out).exists()
 
 
@@ -1163,3 +1168,42 @@ def test_the_summary_names_what_loading_repaired_beyond_merged_vertices(tmp_path
     objects = pq.read_table(out / "objects.parquet").to_pylist()
     assert {o["object_id"]: o["repairs"] for o in objects} == {"holed": ["filled holes"],
                                                                 "soup": ["merged 28 duplicate vertices"]}
+
+
+def test_the_progress_bar_counts_every_object_and_starts_at_those_already_settled(corpus, tmp_path, monkeypatch):
+    """The bar's total is every object of the corpus; it starts at the objects reused and those the corpus
+    already failed, and each object computed moves it by one with its poses (0 and a failure when it failed)."""
+    from pipeline.build.dataset import build_dataset
+    from pipeline.model.evaluation import process_object
+
+    bars = []
+
+    class Bar:
+        def __init__(self, total, already_done=0, enabled=True):
+            self.opened, self.done, self.closed = (total, already_done, enabled), [], False
+            bars.append(self)
+
+        def object_done(self, n_poses, failed=False):
+            self.done.append((n_poses, failed))
+
+        def close(self):
+            self.closed = True
+
+    def process(spec, config):
+        if spec.object_id == OBJECTS[1]:
+            raise ValueError("no luck")
+        return process_object(spec, config)
+
+    config = Config().with_overrides({"contacts.n_contacts": 10, "topple.n_trials": 2, "suction.n_candidates": 5})
+    out = tmp_path / "dataset"
+    first = write_corpus(tmp_path, OBJECTS[:1])
+    build_dataset(read_list(first, 0.25), config, out, workers=1, progress=False, log=lambda _: None)
+    monkeypatch.setattr(fanout, "Progress", Bar)
+    (tmp_path / "more").mkdir()
+    more = write_corpus(tmp_path / "more", OBJECTS, "gone,,meshes/gone.obj,1,0.1\n")  # a missing file
+    summary = build_dataset(read_list(more, 0.25), config, out, workers=1, process=process, log=lambda _: None)
+    assert (summary.reused, summary.computed, summary.manifest.counts.failed) == (1, 2, 2)
+    [bar] = bars
+    assert bar.opened == (4, 2, True), "4 objects, 1 reused and 1 failed by the corpus before computing"
+    poses = pq.read_table(out / "poses.parquet").column("object_id").to_pylist().count(OBJECTS[2])
+    assert poses > 0 and sorted(bar.done) == [(0, True), (poses, False)] and bar.closed
