@@ -1207,3 +1207,17 @@ def test_the_progress_bar_counts_every_object_and_starts_at_those_already_settle
     assert bar.opened == (4, 2, True), "4 objects, 1 reused and 1 failed by the corpus before computing"
     poses = pq.read_table(out / "poses.parquet").column("object_id").to_pylist().count(OBJECTS[2])
     assert poses > 0 and sorted(bar.done) == [(0, True), (poses, False)] and bar.closed
+
+
+def test_an_unfinished_shard_of_an_object_outside_the_corpus_is_deleted_not_refused(reference, corpus, tmp_path, capsys):
+    """A shard with no completion record is an interrupted write: of an object outside the corpus, nothing to
+    keep or to refuse the run for; it is deleted and the dataset is as the build left it."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    before = snapshot(copy)
+    (copy / layout.arrays_file("gone")).write_bytes(b"partial")
+    (copy / layout.shard_dir("gone")).mkdir()
+    (copy / layout.shard_dir("gone") / "objects.parquet").write_bytes(b"partial")
+    assert build(corpus, copy, "--workers", "1") == 0
+    assert "up to date: all 3 objects" in capsys.readouterr().err
+    assert snapshot(copy) == before and verify_dataset(copy) == []
