@@ -1221,3 +1221,19 @@ def test_an_unfinished_shard_of_an_object_outside_the_corpus_is_deleted_not_refu
     assert build(corpus, copy, "--workers", "1") == 0
     assert "up to date: all 3 objects" in capsys.readouterr().err
     assert snapshot(copy) == before and verify_dataset(copy) == []
+
+
+def test_shards_whose_record_predates_recorded_inputs_are_refused_as_not_recorded(reference, corpus, tmp_path, capsys):
+    """A complete shard of another fingerprint whose record does not say its inputs (written before records
+    kept them): the refusal says so instead of listing differences, and the dataset is unchanged."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    path = copy / layout.completion_record(OBJECTS[0])
+    record = json.loads(path.read_text())
+    del record["inputs"]
+    path.write_text(json.dumps({**record, "fingerprint": "from an older version"}))
+    before = snapshot(copy)
+    assert build(corpus, copy, "--workers", "1") == 2
+    err = capsys.readouterr().err
+    assert f"{copy} holds 1 shard(s) built from other inputs (not recorded). To replace it, add --force" in err
+    assert err.count("\n") == 1 and snapshot(copy) == before
