@@ -1237,3 +1237,17 @@ def test_shards_whose_record_predates_recorded_inputs_are_refused_as_not_recorde
     err = capsys.readouterr().err
     assert f"{copy} holds 1 shard(s) built from other inputs (not recorded). To replace it, add --force" in err
     assert err.count("\n") == 1 and snapshot(copy) == before
+
+
+def test_a_refusal_over_other_inputs_names_the_first_three_differences(reference, corpus, tmp_path, capsys):
+    """Four parameters changed: the one-line refusal names three of them, "; " apart, and changes nothing."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    changed = ["--trials", "6", "--contacts", "31", "--set", "suction.n_candidates=21", "--set", "suction.n_samples=6"]
+    assert main(["dataset", "--corpus", str(corpus), "--out", str(copy), *PARAMS, *changed]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and verify_dataset(copy) == []
+    named = err.split("3 shard(s) built from other inputs (", 1)[1].split("). To replace it", 1)[0].split("; ")
+    every = {"config.topple.n_trials: 5 -> 6", "config.contacts.n_contacts: 30 -> 31",
+             "config.suction.n_candidates: 20 -> 21", "config.suction.n_samples: 5 -> 6"}
+    assert len(named) == 3 and set(named) < every, named
