@@ -1251,3 +1251,19 @@ def test_a_refusal_over_other_inputs_names_the_first_three_differences(reference
     every = {"config.topple.n_trials: 5 -> 6", "config.contacts.n_contacts: 30 -> 31",
              "config.suction.n_candidates: 20 -> 21", "config.suction.n_samples: 5 -> 6"}
     assert len(named) == 3 and set(named) < every, named
+
+
+def test_an_unfinished_staged_shard_is_computed_again(reference, corpus, tmp_path, capsys):
+    """A killed run left part of a shard in the staging directory (no completion record): the next run
+    deletes it, computes that object again and commits the same dataset."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    (copy / layout.completion_record(OBJECTS[1])).unlink()
+    staged = staging_dir(copy) / layout.arrays_file(OBJECTS[1])
+    staged.parent.mkdir(parents=True)
+    staged.write_bytes((reference / layout.arrays_file(OBJECTS[1])).read_bytes()[:100])
+    assert build(corpus, copy, "--workers", "1") == 0, capsys.readouterr().err
+    assert f"resuming: 2 of 3 objects already complete in {copy}\n" in capsys.readouterr().err
+    assert (read_manifest(copy).run["computed"], read_manifest(copy).run["reused"]) == (1, 2)
+    assert not staging_dir(copy).exists() and verify_dataset(copy) == []
+    assert_same_dataset(reference, copy)
