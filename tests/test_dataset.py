@@ -1267,3 +1267,14 @@ def test_an_unfinished_staged_shard_is_computed_again(reference, corpus, tmp_pat
     assert (read_manifest(copy).run["computed"], read_manifest(copy).run["reused"]) == (1, 2)
     assert not staging_dir(copy).exists() and verify_dataset(copy) == []
     assert_same_dataset(reference, copy)
+
+
+def test_a_staged_leftover_of_an_object_outside_the_corpus_is_deleted_by_an_up_to_date_run(reference, corpus, tmp_path):
+    """Part of a shard staged by a killed run of another corpus: a run with nothing to do still deletes it."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(reference, copy)
+    leftover = staging_dir(copy) / layout.arrays_file("gone")
+    leftover.parent.mkdir(parents=True)
+    leftover.write_bytes(b"partial")
+    assert build(corpus, copy, "--workers", "1") == 0
+    assert not leftover.exists() and verify_dataset(copy) == []
