@@ -1278,3 +1278,22 @@ def test_a_staged_leftover_of_an_object_outside_the_corpus_is_deleted_by_an_up_t
     leftover.write_bytes(b"partial")
     assert build(corpus, copy, "--workers", "1") == 0
     assert not leftover.exists() and verify_dataset(copy) == []
+
+
+def test_a_failed_run_removes_only_the_staging_directory_it_made(tmp_path, capsys):
+    """A --force --strict run stopped by its only object: the staging directory it made holds just its
+    forced-run note, nothing to resume, and goes; one that was there before with a file in it is an earlier
+    run's to judge and stays."""
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    (meshes / "flat.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nf 1 2 3\nf 1 3 4\n")
+    corpus = write_corpus(tmp_path, [], "flat,,meshes/flat.obj,1,0.1\n")
+    fresh = tmp_path / "fresh"
+    assert build(corpus, fresh, "--force", "--strict", "--workers", "1") == 1
+    assert not staging_dir(fresh).exists() and not fresh.exists()
+    kept = tmp_path / "kept"
+    staging_dir(kept).mkdir()
+    (staging_dir(kept) / "notes.txt").write_text("an earlier run's")
+    assert build(corpus, kept, "--strict", "--workers", "1") == 1
+    assert (staging_dir(kept) / "notes.txt").read_text() == "an earlier run's"
+    capsys.readouterr()
