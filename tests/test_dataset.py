@@ -1297,3 +1297,26 @@ def test_a_failed_run_removes_only_the_staging_directory_it_made(tmp_path, capsy
     assert build(corpus, kept, "--strict", "--workers", "1") == 1
     assert (staging_dir(kept) / "notes.txt").read_text() == "an earlier run's"
     capsys.readouterr()
+
+
+def test_a_force_runs_note_changes_with_any_source_file_and_the_kernel_but_not_who_requested_it(monkeypatch):
+    """``_forced_run`` tells this code from any other: an edit to a file of ``pipeline`` or ``schema`` or another
+    BLAS kernel changes it; which kernel was requested (not the one computed with) does not."""
+    from pipeline.build import manifest
+
+    note = dataset._forced_run()
+    read_bytes = Path.read_bytes
+    for edited in ("pipeline/build/rows.py", "schema/layout.py"):
+        monkeypatch.setattr(Path, "read_bytes", lambda p, e=edited: read_bytes(p) + (b"#" if p.as_posix().endswith(e) else b""))
+        assert dataset._forced_run() != note, edited
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
+    code_version = manifest.code_version
+
+    def with_blas(**blas):
+        version = code_version()
+        return {**version, "blas": {**version["blas"], **blas}}
+
+    monkeypatch.setattr(manifest, "code_version", lambda: with_blas(requested="another"))
+    assert dataset._forced_run() == note
+    monkeypatch.setattr(manifest, "code_version", lambda: with_blas(kernel="another"))
+    assert dataset._forced_run() != note
