@@ -1320,3 +1320,9 @@ def test_a_force_runs_note_changes_with_any_source_file_and_the_kernel_but_not_w
     assert dataset._forced_run() == note
     monkeypatch.setattr(manifest, "code_version", lambda: with_blas(kernel="another"))
     assert dataset._forced_run() != note
+
+
+def test_failure_groups_put_the_most_common_reason_first():
+    """Grouped by the reason without its id and details, the largest group first (not alphabetical)."""
+    groups = dataset.failure_groups([("a", "a: too large (3 m)"), ("b", "b: too large (4 m)"), ("c", "c: cannot read c.obj")])
+    assert list(groups.items()) == [("too large", ["a", "b"]), ("cannot read <file>", ["c"])]
