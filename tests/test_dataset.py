@@ -1270,14 +1270,15 @@ def test_an_unfinished_staged_shard_is_computed_again(reference, corpus, tmp_pat
 
 
 def test_a_staged_leftover_of_an_object_outside_the_corpus_is_deleted_by_an_up_to_date_run(reference, corpus, tmp_path):
-    """Part of a shard staged by a killed run of another corpus: a run with nothing to do still deletes it."""
+    """Part of a shard staged by a killed run of another corpus: a run with nothing to do still deletes it,
+    and the staging directory it leaves holding no file (no empty hidden directory beside --out)."""
     copy = tmp_path / "dataset"
     shutil.copytree(reference, copy)
     leftover = staging_dir(copy) / layout.arrays_file("gone")
     leftover.parent.mkdir(parents=True)
     leftover.write_bytes(b"partial")
     assert build(corpus, copy, "--workers", "1") == 0
-    assert not leftover.exists() and verify_dataset(copy) == []
+    assert not staging_dir(copy).exists() and verify_dataset(copy) == []
 
 
 def test_a_failed_run_removes_only_the_staging_directory_it_made(tmp_path, capsys):

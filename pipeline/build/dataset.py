@@ -301,6 +301,7 @@ def _build_locked(
         damaged = _damaged_tables(out, current)
         if not damaged:
             log(f"up to date: all {len(records)} objects of {out} are complete; nothing to do")
+            _discard_idle_staging(staging, created_now=False)  # the stale files just removed may have been all it held
             return Summary(current, computed=0, reused=len(records), wall_s=time.perf_counter() - started)
         log(f"{out}: every shard is complete but {damaged[0]}{f' (and {len(damaged) - 1} more)' if len(damaged) > 1 else ''}; "
             "writing the tables again from the shards")
