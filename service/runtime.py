@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from schema.api import Counts, DatasetIdentity, Health
 from schema.version import CODE_VERSION
 
-from .guard import BUILD_SCOPE_KEY
+from .guard import answered_from
 from .lane import Lane
 from .metrics import Metrics
 from .prefetch import Prefetch
@@ -48,9 +48,8 @@ class Runtime:
         runtime.metrics.serving(live.store.manifest_sha256, live.store.manifest.created)
         return runtime
 
-    def health(self) -> Health:
-        """/health's answer: liveness and which build this worker serves."""
-        store = self.live.store
+    def health(self, store: Store) -> Health:
+        """/health's answer: liveness and which build this worker serves (``store``, the one it serves now)."""
         return Health(
             status="ok",
             schema_version=store.schema_version,
@@ -74,11 +73,11 @@ class Runtime:
         existed (whose models forbid fields they do not know) reads a healthy answer as before; while a reload
         is failing such a client cannot read /health (docs/SERVICE.md).
 
-        scope : the request's ASGI scope, noted with the build the body names, which the guard sends as
-          ``x-toppledb-build`` as on every route that reads the dataset (so that a HEAD probe sees a swap too)
+        scope : the request's ASGI scope, noted with the build the body names (``guard.answered_from``, as every
+          route that reads the dataset notes it; the guard sends it as ``x-toppledb-build``, so that a HEAD probe
+          sees a swap too). A build the request names is not checked: liveness never refuses.
         """
-        health = self.health()
-        scope[BUILD_SCOPE_KEY] = health.dataset.manifest_sha256
+        health = self.health(answered_from(scope, self.live.store, None))
         return health.model_dump_json(exclude=None if health.reload_error is not None else {"reload_error"}).encode()
 
     def solve_budgets(self) -> None:
