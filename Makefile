@@ -11,12 +11,14 @@ DATASET ?= data/dataset
 
 venv: $(VENV)/.installed
 
-# constraints.txt pins every distribution to the versions last tested (see its header).
-$(VENV)/.installed: pyproject.toml constraints.txt
+# constraints.txt pins every distribution to the versions last tested (see its header); build-constraints.txt
+# pins pip and the build backend that installs toppledb itself.
+$(VENV)/.installed: pyproject.toml constraints.txt build-constraints.txt
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) on PATH (or make PYTHON=python3)"; exit 1; }
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[all,dev]" --config-settings editable_mode=compat
+	$(PY) -m pip install --quiet -c build-constraints.txt --upgrade pip
+	$(PY) -m pip install --quiet -c constraints.txt --build-constraint build-constraints.txt -e ".[all,dev]" \
+		--config-settings editable_mode=compat
 	touch $@
 
 dataset: venv
