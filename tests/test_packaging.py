@@ -119,17 +119,17 @@ def declared(*extras: str) -> set[str]:
     return {canonicalize_name(Requirement(r).name) for r in requirements}
 
 
-def pinned() -> dict[str, str]:
-    """constraints.txt as {canonical name: version}; every line a comment, blank or ``name==version``, once."""
+def pinned(file: str = "constraints.txt") -> dict[str, str]:
+    """A constraints file as {canonical name: version}; every line a comment, blank or ``name==version``, once."""
     from packaging.utils import canonicalize_name
 
     pins: dict[str, str] = {}
-    for number, line in enumerate((ROOT / "constraints.txt").read_text().splitlines(), 1):
+    for number, line in enumerate((ROOT / file).read_text().splitlines(), 1):
         if not line.strip() or line.startswith("#"):
             continue
         name, equals, version = line.partition("==")
-        assert equals and version and " " not in line, f"constraints.txt:{number}: {line!r} is no name==version"
-        assert canonicalize_name(name) not in pins, f"constraints.txt:{number}: {name} pinned twice"
+        assert equals and version and " " not in line, f"{file}:{number}: {line!r} is no name==version"
+        assert canonicalize_name(name) not in pins, f"{file}:{number}: {name} pinned twice"
         pins[canonicalize_name(name)] = version
     return pins
 
@@ -161,6 +161,31 @@ def test_constraints_pin_every_declared_distribution_within_its_range_and_this_v
             f"this venv has {name} {installed[name]}, constraints.txt pins {pin}: run `make` (it reinstalls when "
             "constraints.txt changes), or refresh constraints.txt as its header says")
     assert {canonicalize_name(r.name) for r in requirements} <= set(installed)
+
+
+def test_build_constraints_pin_pip_and_every_build_requirement_within_its_range():
+    """``make`` upgrades pip and builds toppledb's editable install under build-constraints.txt: a pin for
+    pip and for each of pyproject's ``[build-system] requires``, inside its range (else the build cannot
+    resolve), none of them also in constraints.txt (whose recipe rewrites it from the venv); this venv's pip
+    is the pinned one."""
+    import tomllib
+    from importlib.metadata import version
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    pins = pinned("build-constraints.txt")
+    requires = [Requirement(r) for r in tomllib.loads((ROOT / "pyproject.toml").read_text())["build-system"]["requires"]]
+    assert requires
+    for requirement in requires:
+        name = canonicalize_name(requirement.name)
+        assert name in pins, f"build-constraints.txt pins no {requirement.name}, which [build-system] requires"
+        assert requirement.specifier.contains(pins[name]), f"{name}=={pins[name]} is outside {requirement}"
+    assert "pip" in pins and not set(pins) & set(pinned())
+    assert version("pip") == pins["pip"], (
+        f"this venv has pip {version('pip')}, build-constraints.txt pins {pins['pip']}: run `make`")
+    makefile = (ROOT / "Makefile").read_text()
+    assert "-c build-constraints.txt --upgrade pip" in makefile and "--build-constraint build-constraints.txt" in makefile
 
 
 @pytest.mark.parametrize(("modules", "extras"), [("server", ("service",)), ("client", ("client",))])
