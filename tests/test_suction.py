@@ -437,6 +437,23 @@ def test_torsional_friction_limits_twist_about_the_approach():
     assert held == [True, False]
 
 
+def test_without_torsional_friction_the_ring_still_limits_sliding():
+    # r_t = 0: the limit surface collapses to |f_t| <= mu f_N with no twist at all.  Centre of
+    # mass at the contact (no torque), approach tilted by theta: the friction balance of
+    # test_friction_on_a_tilted_approach_... decides, r_t or no r_t; and any twist slips.
+    config = dataclasses.replace(CONFIG, vacuum_force=10.0, friction=0.5, torsional_friction=0.0)
+    g, theta = 9.81, np.radians(40)
+    critical = config.vacuum_force / (g * (np.sin(theta) / config.friction + np.cos(theta)))
+    axis = np.array([np.sin(theta), 0.0, -np.cos(theta)])
+    contact = np.zeros(3)
+    held = [
+        wrench_resisted(contact, axis, com, np.array(critical * f), np.array(0.5), config, g).item()
+        for com, f in (([0.0, 0.0, 0.0], 0.9), ([0.0, 0.0, 0.0], 1.1), ([0.0, 0.001, 0.0], 0.1))
+    ]
+    assert held == [True, False, False]
+    assert not wrench_resisted(contact, axis, contact, np.array(0.1), np.array(0.0), config).item()
+
+
 def test_zero_friction_cannot_hold_a_tilted_grasp():
     axis = np.array([np.sin(0.3), 0.0, -np.cos(0.3)])
     held = wrench_resisted(np.zeros(3), axis, np.zeros(3), np.array(0.1), np.array(0.0), CONFIG)

@@ -202,8 +202,10 @@ def wrench_resisted(
     normal = config.vacuum_force + f_z
     limit = friction * np.maximum(normal, 0.0)
     # Multiplied through by r_t^2 so that r_t = 0 (no torsional friction) needs no division.
+    # That product loses |f_t| <= mu f_N when r_t = 0 (the ellipse collapses to a segment of
+    # the f_t axis), so the sliding limit is also checked alone; for r_t > 0 it adds nothing.
     r_t = config.torsional_friction
-    slip = (r_t * f_t) ** 2 + tau_z**2 > (r_t * limit) ** 2
+    slip = ((r_t * f_t) ** 2 + tau_z**2 > (r_t * limit) ** 2) | (f_t > limit)
     return (normal >= 0.0) & ~slip & (tau_t <= config.elastic_limit)
 
 
