@@ -215,6 +215,16 @@ def test_rays_find_their_distance_to_every_face_the_first_included():
     assert np.isnan(away).all()
 
 
+def test_rays_from_inside_find_the_face_they_leave_through():
+    # From the centre of a box, a ray along each face's outward normal meets that face (seen
+    # from behind) at half the box's extent: a first hit is a hit whichever side it is seen from.
+    extents = np.array([0.1, 0.08, 0.06])
+    box = trimesh.creation.box(extents)
+    directions = np.vstack([np.eye(3), -np.eye(3)])
+    depths = cast_depths(box, np.zeros((6, 3)), directions)
+    np.testing.assert_allclose(depths, np.tile(extents / 2, 2), atol=1e-12)
+
+
 def test_perturbations_draw_the_configured_noise_around_each_grasp():
     config = dataclasses.replace(CONFIG, n_samples=20000, friction_std=0.05)
     tilt, mass = 0.4, 0.3
@@ -235,6 +245,19 @@ def test_perturbations_draw_the_configured_noise_around_each_grasp():
     np.testing.assert_allclose(np.linalg.norm(a, axis=-1), 1.0)
     angle = np.arccos(np.clip(np.sum(a * axes[:, None], axis=-1), -1.0, 1.0))
     np.testing.assert_allclose(np.sqrt(np.mean(angle**2, axis=1)), np.sqrt(2) * config.axis_std, rtol=0.05)
+
+
+def test_a_large_axis_noise_tilts_by_the_drawn_perpendicular_amount_only():
+    # a_s = unit(a + t_perp): the tilt's tangent is |t_perp| exactly, whose mean square is
+    # 2 axis_std^2 (two perpendicular components), and a_s never turns past 90 degrees from a;
+    # a component of the draw along a would only rescale a and is removed, not kept.
+    config = dataclasses.replace(CONFIG, n_samples=20000, axis_std=1.0)
+    axes = np.array([[0.0, 0.0, -1.0], [np.sin(0.4), 0.0, -np.cos(0.4)]])
+    _, a, _, _ = perturb(np.zeros((2, 3)), axes, 0.3, config, np.random.default_rng(5))
+    along = np.sum(a * axes[:, None], axis=-1)
+    assert along.min() > 0.0
+    tangent = np.linalg.norm(a - along[..., None] * axes[:, None], axis=-1) / along
+    np.testing.assert_allclose(np.sqrt(np.mean(tangent**2, axis=1)), np.sqrt(2) * config.axis_std, rtol=0.05)
 
 
 def test_perturbed_friction_and_mass_are_never_negative():
@@ -275,6 +298,19 @@ def test_the_grasp_moves_with_the_object_across_the_table():
     assert there.quality == here.quality
     np.testing.assert_allclose(there.point, here.point + shift, atol=1e-9)
     np.testing.assert_allclose(there.axis, here.axis, atol=1e-12)
+
+
+def test_the_cup_lands_on_the_surface_wherever_the_noisy_aim_falls_along_the_approach():
+    # A 2 mm plate on the table, approached straight down at its centre: every sample seals on
+    # the flat top and a light plate held at its centre cannot slip or bend the cup.  The
+    # position noise also moves the aim point up and down (here by 3 mm rms, often more than
+    # the plate's 2 mm plus the body's 4 mm stand-off below the top), but the cup stops on the
+    # plate, so the body is placed behind the contact the seal found, never in the table.
+    plate = resting(trimesh.creation.box([0.2, 0.2, 0.002]))
+    config = dataclasses.replace(CONFIG, position_std=0.003, axis_std=0.0, n_samples=500)
+    point, down = np.array([[0.0, 0.0, 0.002]]), np.array([[0.0, 0.0, -1.0]])
+    rng = np.random.default_rng(0)
+    assert grasp_qualities(plate, plate.center_mass, LIGHT, point, down, config, rng)[0] == 1.0
 
 
 def test_gravity_is_what_the_grasp_holds_against():
@@ -337,6 +373,20 @@ def test_seal_fails_over_a_hole_inside_the_ring():
     sealed, contacts = seal_contacts(washer, points, axis, small)
     np.testing.assert_array_equal(sealed, [False, True])
     assert np.isnan(contacts[0]).all()
+
+
+def test_a_bump_under_the_centre_exactly_max_deflection_high_still_seals():
+    # A flat top with a small bump under the cup's centre, the ring all round it on the top:
+    # the hits' spread along the approach is the bump's height d.  Every length is a power of
+    # two, so the depths are exact and the limit (iii), spread <= max_deflection, is met at equality.
+    d = 2.0**-8
+    top = trimesh.creation.box([0.125, 0.125, 0.0625], trimesh.transformations.translation_matrix([0, 0, 0.03125]))
+    bump = trimesh.creation.box([2.0**-7, 2.0**-7, 2 * d], trimesh.transformations.translation_matrix([0, 0, 0.0625]))
+    mesh = trimesh.util.concatenate([top, bump])
+    config = dataclasses.replace(CONFIG, cup_radius=2.0**-6)
+    point, down = np.array([[0.0, 0.0, 0.0625]]), np.array([[0.0, 0.0, -1.0]])
+    sealed = [seal_contacts(mesh, point, down, dataclasses.replace(config, max_deflection=m))[0][0] for m in (d, d - 2.0**-16)]
+    assert sealed == [True, False]
 
 
 def test_seal_strain_limit_on_a_curved_surface():
@@ -420,6 +470,22 @@ def test_vacuum_force_limits_the_pull():
     np.testing.assert_array_equal(held, [True, False])
 
 
+def test_the_wrench_limits_hold_at_equality():
+    # Dex-Net's constraints are closed: f_z >= -V and |tau_t| <= M_b.  With powers of two the
+    # wrench is exact: 1 kg at g = 8 pulls 8 N; its centre of mass 0.25 m beside a vertical
+    # contact bends the cup by 2 N m.  A vacuum of exactly 8 N (f_N = 0) and a limit of exactly
+    # 2 N m hold; a hair less does not.
+    g, m, tiny = 8.0, np.array(1.0), 2.0**-10
+    down, contact = np.array([0.0, 0.0, -1.0]), np.zeros(3)
+    pull = [wrench_resisted(contact, down, contact, m, np.array(0.5), dataclasses.replace(CONFIG, vacuum_force=v), g).item()
+            for v in (8.0, 8.0 - tiny)]
+    assert pull == [True, False]
+    beside = np.array([0.25, 0.0, 0.0])
+    bend = [wrench_resisted(contact, down, beside, m, np.array(0.5), dataclasses.replace(CONFIG, elastic_limit=b), g).item()
+            for b in (2.0, 2.0 - tiny)]
+    assert bend == [True, False]
+
+
 def test_torsional_friction_limits_twist_about_the_approach():
     # Tilted approach with the centre of mass off to the side in y: gravity twists the cup.
     config = dataclasses.replace(CONFIG, elastic_limit=1e3)
@@ -454,6 +520,26 @@ def test_without_torsional_friction_the_ring_still_limits_sliding():
     assert not wrench_resisted(contact, axis, contact, np.array(0.1), np.array(0.0), config).item()
 
 
+def test_sliding_and_twisting_share_one_elliptic_limit():
+    # Tilted approach, centre of mass y beside the contact: a sliding load f_t = m g sin(theta)
+    # and a twist tau_z = f_t y.  The vacuum is set so that f_t uses 0.6 of mu f_N; the ellipse
+    # (f_t / mu f_N)^2 + (tau_z / r_t mu f_N)^2 <= 1 then leaves a twist of 0.8 r_t mu f_N, i.e.
+    # y <= 0.8 / 0.6 r_t, where each limit alone (its bounding box) would allow y up to r_t / 0.6.
+    theta, g, m, mu = np.radians(30), 9.81, 0.2, 0.5
+    f_t = m * g * np.sin(theta)
+    vacuum = m * g * np.cos(theta) + f_t / (0.6 * mu)
+    config = dataclasses.replace(CONFIG, vacuum_force=vacuum, elastic_limit=1e3)
+    r_t = config.torsional_friction
+    y_max = 0.8 / 0.6 * r_t
+    assert 1.1 * y_max < r_t / 0.6  # the outer case is inside the box, outside the ellipse
+    axis = np.array([np.sin(theta), 0.0, -np.cos(theta)])
+    held = [
+        wrench_resisted(np.zeros(3), axis, np.array([0.0, f * y_max, 0.0]), np.array(m), np.array(mu), config, g).item()
+        for f in (0.9, 1.1)
+    ]
+    assert held == [True, False]
+
+
 def test_zero_friction_cannot_hold_a_tilted_grasp():
     axis = np.array([np.sin(0.3), 0.0, -np.cos(0.3)])
     held = wrench_resisted(np.zeros(3), axis, np.zeros(3), np.array(0.1), np.array(0.0), CONFIG)
@@ -469,6 +555,15 @@ def test_gripper_body_near_the_table_collides_when_tilted():
     tilt = np.radians(45)
     axes = np.array([[0, 0, -1.0], [np.sin(tilt), 0, -np.cos(tilt)], [np.sin(tilt), 0, -np.cos(tilt)]])
     np.testing.assert_array_equal(table_collisions(points, axes, CONFIG), [False, True, False])
+
+
+def test_gripper_body_touching_the_table_is_clear():
+    # A horizontal body's lowest line is its axis lowered by the radius: with the axis exactly
+    # one radius above the table it touches (clear, nothing dips below z = 0); lower, it collides.
+    config = dataclasses.replace(CONFIG, gripper_radius=2.0**-6)
+    points = np.array([[0.0, 0.0, 2.0**-6], [0.0, 0.0, 2.0**-6 - 2.0**-16]])
+    axes = np.tile([1.0, 0.0, 0.0], (2, 1))
+    np.testing.assert_array_equal(table_collisions(points, axes, config), [False, True])
 
 
 def test_gripper_body_must_clear_the_table_on_a_low_slope():
