@@ -1,5 +1,7 @@
 """Candidate pushes: exactly N, evenly spread, statuses, Max-Height action."""
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -9,14 +11,19 @@ from shapes import box_object, pose_with_down, random_object
 from pipeline.model.collision import collision_object
 from pipeline.model.config import ContactConfig
 from pipeline.model.contacts import (
+    OffSurface,
     explicit_actions,
     farthest_point_subset,
     finger_collisions,
     max_height_contact,
     pose_actions,
+    push_arrays,
+    snap_to_surface,
     surface_points,
+    with_probes,
 )
 from pipeline.model.mesh import model_from_mesh
+from pipeline.model.outcomes import Actions
 from pipeline.model.poses import stable_poses
 from pipeline.model.sampling import points_in_triangles
 from schema.vocabulary import (
@@ -156,10 +163,10 @@ def test_the_finger_hits_the_table_under_a_low_contact():
     # A horizontal push whose finger (radius 4 mm) would reach below the table; the object is far away.
     far = collision_object(trimesh.creation.box([0.01, 0.01, 0.01]))
     config = ContactConfig()
-    heights = np.array([0.5, 1.5]) * config.finger_radius
-    points = np.column_stack([np.full(2, 1.0), np.zeros(2), heights])
-    hits = finger_collisions(far, np.eye(4), points, np.tile([1.0, 0.0, 0.0], (2, 1)), config)
-    np.testing.assert_array_equal(hits, [True, False])
+    heights = np.array([0.5, 1.0, 1.5]) * config.finger_radius
+    points = np.column_stack([np.full(3, 1.0), np.zeros(3), heights])
+    hits = finger_collisions(far, np.eye(4), points, np.tile([1.0, 0.0, 0.0], (3, 1)), config)
+    np.testing.assert_array_equal(hits, [True, False, False])  # touching the table is no hit: the table is z < 0
 
 
 def test_explicit_pushes_default_to_the_inward_normal():
@@ -172,3 +179,92 @@ def test_explicit_pushes_default_to_the_inward_normal():
     assert actions.status.dtype == np.int8 and np.all(actions.status == STATUS_OK)
     pushed = explicit_actions(obj, np.eye(4), points[:1], np.array([[-2.0, 0.0, -2.0]]))
     np.testing.assert_allclose(pushed.directions, [[-np.sqrt(0.5), 0.0, -np.sqrt(0.5)]])
+
+
+def test_a_pose_with_no_pushable_candidate_checks_no_finger():
+    far = collision_object(trimesh.creation.box([0.01, 0.01, 0.01]))
+    hits = finger_collisions(far, np.eye(4), np.empty((0, 3)), np.empty((0, 3)), ContactConfig())
+    assert hits.shape == (0,) and hits.dtype == bool
+    # The squat cone has no Max-Height action; contacts all near its base are too low, so no finger is checked.
+    cone = trimesh.creation.cone(radius=0.05, height=0.05, sections=32)
+    points = np.array([[0.049, 0.0, 0.001], [0.0, -0.049, 0.001]])
+    normals = unit_rows([[1.0, 0.0, 1.0], [0.0, -1.0, 1.0]])
+    actions = pose_actions(points, normals, cone, collision_object(cone), np.eye(4), ContactConfig())
+    assert actions.max_height == -1
+    np.testing.assert_array_equal(actions.status, [STATUS_TOO_LOW, STATUS_TOO_LOW])
+
+
+def unit_rows(rows) -> np.ndarray:
+    rows = np.asarray(rows, dtype=float)
+    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+
+def test_the_status_limits_are_strict_and_the_max_height_angle_inclusive():
+    # MODEL.md (6.4) and (6.5): too low strictly below the fraction of the height, pushing up strictly above
+    # the angle. The standing box's pose is the identity, so the heights compared are the ones given here.
+    obj = box_object((0.05, 0.08, 0.15))
+    height = obj.mesh.vertices[:, 2].max()
+    config = ContactConfig(max_up_angle=np.pi / 2)  # sin is exactly 1: a push straight up is at the limit
+    points = np.array([[0.025, 0.0, config.min_height_fraction * height], [0.025, 0.0, 0.1]])
+    normals = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    actions = pose_actions(points, normals, obj.mesh, collision_object(obj.mesh), np.eye(4), config)
+    assert actions.status[0] == STATUS_OK
+    # Not pushing up; the finger, coming from below along the side face, hits the box instead.
+    assert actions.status[1] == STATUS_FINGER_COLLISION
+    # A face exactly max_angle off vertical still counts as steep.
+    angle = np.radians(15)
+    wall = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, 0.1]])
+    tilted = np.array([[0.0, -np.cos(angle), np.sin(angle)]])
+    assert max_height_contact(wall, np.array([[0, 1, 2]]), tilted, angle) is not None
+
+
+def test_explicit_pushes_off_the_surface_are_refused_naming_the_farthest_and_the_tolerance_is_inclusive():
+    obj = box_object((0.05, 0.08, 0.15))
+    on, two, five = [0.025, 0.0, 0.1], [0.027, 0.0, 0.1], [0.030, 0.0, 0.1]  # on the +x face, 2 and 5 mm out
+    with pytest.raises(OffSurface, match=r"^point 2 \[0.03, 0.0, 0.1\] is 5 mm from the object's surface, more than the 1 mm tolerance; "
+                                         r"points are in metres in the pose frame") as refused:
+        explicit_actions(obj, np.eye(4), np.array([on, two, five, on]), None)
+    assert refused.value.where.startswith("point 2 ") and refused.value.where.endswith("the 1 mm tolerance")
+    _, _, distance = snap_to_surface(obj, np.eye(4), np.array([[0.0255, 0.0, 0.1]]))
+    assert distance[0] == pytest.approx(5e-4, abs=1e-12)
+    np.testing.assert_allclose(explicit_actions(obj, np.eye(4), [0.0255, 0.0, 0.1], None, tolerance=distance[0]).points,
+                               [[0.025, 0.0, 0.1]], atol=1e-12)
+    with pytest.raises(OffSurface):
+        explicit_actions(obj, np.eye(4), [0.0255, 0.0, 0.1], None, tolerance=np.nextafter(distance[0], 0.0))
+
+
+def test_push_arrays_keep_ordinary_directions_bit_for_bit_and_rescale_extreme_ones_quietly():
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-0.05, 0.05, (6, 3))
+    directions = np.concatenate([rng.normal(size=(3, 3)), 0.01 * rng.normal(size=(3, 3))])  # lengths above and below 1
+    got_points, got_directions = push_arrays(points, directions)
+    np.testing.assert_array_equal(got_points, points)
+    np.testing.assert_array_equal(got_directions, directions)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a length that overflows or underflows float64 is no warning of the caller's
+        _, extreme = push_arrays(points[:3], [[1e200, 0.0, 0.0], [0.0, -1e-170, 0.0], [3e-200, 4e-200, 0.0]])
+    np.testing.assert_allclose(extreme, [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.75, 1.0, 0.0]], rtol=1e-15)
+    # Numbers of any type are floats; text is refused in the pushes' own words.
+    got_points, got_directions = push_arrays([[0, 0, 1]], [[1, 0, 0]])
+    assert got_points.dtype == float and got_directions.dtype == float
+    with pytest.raises(ValueError, match=r"points must be a \(k, 3\) array of numbers \(m, pose frame\), got \[\['a', 'b', 'c'\]\]"):
+        push_arrays([["a", "b", "c"]], None)
+
+
+def test_with_probes_matches_a_push_to_the_first_ok_candidate_within_the_tolerance():
+    points = np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 0.1], [0.02, 0.0, 0.1]])
+    directions = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    pool = Actions(points, -directions, directions, np.array([STATUS_TOO_LOW, STATUS_OK, STATUS_OK], dtype=np.int8), max_height=2)
+    asked = np.array([[0.0, 0.0, 0.1], [0.02, 0.0, 0.1], [0.02, 0.0, 0.1 + 1e-9]])
+    asked_directions = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    pushes = Actions(asked, -asked_directions, asked_directions, np.full(3, STATUS_OK, dtype=np.int8))
+    # Tolerance 0 takes only the very candidate: the first push is candidate 1 (candidate 0 is not ok), the
+    # second candidate 2, the third, a nanometre off, a probe after the pool.
+    actions, n, rows = with_probes(pool, pushes, asked, asked_directions, tolerance=0.0)
+    assert n == 3 and actions.max_height == 2
+    np.testing.assert_array_equal(rows, [1, 2, 3])
+    np.testing.assert_array_equal(actions.points, np.vstack([points, asked[2:]]))
+    np.testing.assert_array_equal(actions.status, [STATUS_TOO_LOW, STATUS_OK, STATUS_OK, STATUS_OK])
+    np.testing.assert_array_equal(with_probes(pool, pushes, asked, asked_directions)[2], [1, 2, 2])  # within 1e-6 m
+    with pytest.raises(ValueError, match=r"^with_probes needs one point and one direction per push: 3 points, 2 directions, 3 pushes$"):
+        with_probes(pool, pushes, asked, asked_directions[:2])
