@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
@@ -164,7 +165,8 @@ def test_without_discount_a_push_that_never_topples_again_adds_no_fixed_point():
     k, stay = 2.1, 0.3
     b = p ** (k - 1.0)
     v1 = max(stay, q0[choosable & (p > 0)].max())
-    with np.errstate(all="raise"):
+    with np.errstate(all="raise"), warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy warns of a `where` with no `out` to fill: the 0 / 0 entries would be garbage
         q1 = retry.failed_state_values(q0, p, stay, 1.0, k, choosable)
     np.testing.assert_allclose(q1, b * q0 + (1.0 - b) * v1, atol=1e-14)
     np.testing.assert_allclose(q1[p == 0], v1, atol=0)
@@ -176,7 +178,7 @@ def test_without_discount_a_push_that_never_topples_again_adds_no_fixed_point():
 def test_a_build_that_believes_failures_needs_both_its_gamma_and_its_choosable_pushes():
     q, p, choosable = np.array([0.5, 0.7]), np.array([0.9, 0.2]), np.ones(2, dtype=bool)
     for missing in ({"gamma": 0.95}, {"choosable": choosable}):
-        with pytest.raises(ValueError, match="gamma and choosable"):
+        with pytest.raises(ValueError, match=r"^a build that believes failures ranks by Q1, which needs its gamma and choosable pushes$"):
             retry.ranking_values(q, p, 0.3, 0.6, 2.1, True, believes=True, **missing)
     np.testing.assert_array_equal(
         retry.ranking_values(q, p, 0.3, 0.6, 2.1, True, believes=True, gamma=0.95, choosable=choosable),
@@ -209,6 +211,28 @@ def test_a_poses_q_is_the_budgets_own_bits():
             assert (q[action] if action != NO_OP else v_s[x]) == values[h, x], "the same sums, bit for bit"
             choices += action != NO_OP
     assert choices > 0
+
+
+def test_float32_values_and_probabilities_are_read_as_their_float64_values():
+    # Tables and studies may hand over float32 columns; each is widened exactly first, so a choice and a
+    # belief are float64's.  float32(0.8) is 0.800000011920929: it beats grasping at 0.8 by more than the
+    # margin, which float32 arithmetic (0.8 + 1e-12 rounds to float32(0.8)) would call a tie.
+    narrow = np.float32([0.8, 0.3])
+    everything = np.ones(2, dtype=bool)
+    assert float(narrow[0]) - 0.8 > retry.POLICY_IMPROVEMENT
+    assert retry.best_untried(narrow, everything, 0.8, retry.POLICY_IMPROVEMENT) == 0
+    assert retry.best_untried(narrow, everything, 0.76, retry.POLICY_IMPROVEMENT, scale=0.95) == 0, "0.95 x 0.80000001 > 0.76"
+    # P(topple) in float32: clipped and raised to k as the same numbers in float64, bit for bit.
+    p = np.float32([0.0, 0.1, 0.35, 0.9, 1.0])
+    wide = p.astype(np.float64)
+    assert retry.clip_probability(p).dtype == np.float64
+    for got, expected in zip(retry.failed_ratios(p, 2.1), retry.failed_ratios(wide, 2.1), strict=True):
+        assert got.dtype == np.float64
+        np.testing.assert_array_equal(got, expected)
+    # Without a map the ranking is the table's Q, as float64.
+    ranked = retry.ranking_values(narrow, p[:2], 0.3, 0.6, None, True)
+    assert ranked.dtype == np.float64
+    np.testing.assert_array_equal(ranked, narrow.astype(np.float64))
 
 
 # --- the service --------------------------------------------------------------------
