@@ -7,10 +7,12 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pyarrow as pa
 import pytest
 from pydantic import ValidationError
 
 from schema import SCHEMA_VERSION, TABLES, describe, file_schema, hdf5
+from schema.tables import PARTITION_KEY, PARTITIONED, column
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "DATASET.md"
 
@@ -31,6 +33,45 @@ def test_dataset_docs_show_the_current_schemas():
     for spec in hdf5.OBJECT_ARRAYS + hdf5.POSE_ARRAYS:
         assert spec.name in text
     assert f"It describes schema {SCHEMA_VERSION};" in text
+
+
+def test_a_column_is_nullable_exactly_where_its_description_says_null():
+    """Missing values are nulls, and only where the contract says so (``tables.column`` and ``xyz`` make a
+    field non-nullable unless asked): the grasp of a pose without one and an action's numbers when it is not
+    ok. A reader may rely on every other column being filled."""
+    nullable = {name: [field.name for field in schema if field.nullable] for name, schema in TABLES.items()}
+    assert nullable == {
+        "objects": [],
+        "poses": [f"grasp_{vector}_{axis}" for vector in ("point", "axis") for axis in "xyz"],
+        "actions": ["p_topple", "mean_force", "q", "greedy"],
+        "transitions": [],
+    }
+    for name, schema in TABLES.items():
+        for field in schema:
+            assert field.nullable == ("null" in field.metadata[b"description"].decode()), f"{name}.{field.name}"
+
+
+def test_a_partition_files_schema_is_its_tables_without_the_partition_column():
+    """``file_schema`` drops ``object_id`` (the directory name holds it) and keeps the rest in order with
+    the table's metadata; a schema without it, such as a partition file's own, is returned as it is."""
+    for name in PARTITIONED:
+        table = TABLES[name]
+        in_file = file_schema(table)
+        assert in_file.names == [n for n in table.names if n != PARTITION_KEY]
+        assert in_file.metadata == table.metadata
+        assert file_schema(in_file).equals(in_file, check_metadata=True)
+
+
+def test_describe_renders_undocumented_fields_empty_and_escapes_pipes():
+    """A field without metadata gets empty unit and description cells; a ``|`` in a cell would end it
+    early in Markdown, so it is escaped."""
+    schema = pa.schema([pa.field("bare", pa.int32()), column("p", pa.float64(), "P(a | b)", "m")])
+    assert describe(schema).splitlines() == [
+        "| column | type | unit | description |",
+        "| --- | --- | --- | --- |",
+        "| `bare` | int32 |  |  |",
+        "| `p` | double | m | P(a \\| b) |",
+    ]
 
 
 def test_hdf5_layout_check_names_what_is_wrong(tmp_path):
@@ -58,6 +99,56 @@ def test_hdf5_layout_check_names_what_is_wrong(tmp_path):
         assert "/poses/000/edge_final_pose: shape (5,)" in problems[1]
         assert hdf5.check_file(f, {"object_id": "y"}) == ["attribute object_id = 'x', expected 'y'"]
         assert any("outcomes" in p for p in hdf5.check_file(f, {"A": [6]}))
+
+
+def _layout_file(path, n_poses: int = 1, edges: int = 4, actions: int = 7, trials: int = 4) -> None:
+    """An HDF5 file that follows the layout, every pose with the same sizes."""
+    with h5py.File(path, "w") as f:
+        f.attrs.update({"schema_version": SCHEMA_VERSION, "object_id": "x", "n_poses": n_poses, "n_trials": trials})
+        f["center_mass"] = np.zeros(3)
+        f["hull/vertices"] = np.zeros((8, 3))
+        f["hull/faces"] = np.zeros((12, 3), dtype=np.int32)
+        for pose in range(n_poses):
+            group = f.create_group(hdf5.pose_group(pose))
+            for spec in hdf5.POSE_ARRAYS:
+                sizes = {"E": edges, "A": actions, "T": trials}
+                group[spec.name] = np.zeros([sizes.get(n, n) for n in spec.shape], dtype=spec.dtype)
+
+
+def test_hdf5_layout_check_reports_every_problem_in_words(tmp_path):
+    """``check_file`` names each missing attribute, every bad object array (not only the last one checked)
+    and pose groups that are not the attribute's ``n_poses``, also when there is no ``poses`` group at all."""
+    path = tmp_path / "x.h5"
+    _layout_file(path, n_poses=2)
+    with h5py.File(path) as f:
+        assert hdf5.check_file(f, {"object_id": "x", "n_poses": 2, "A": [7, 7]}) == []
+    with h5py.File(path, "a") as f:
+        del f.attrs["n_trials"], f.attrs["schema_version"]
+    with h5py.File(path) as f:
+        assert hdf5.check_file(f, {"object_id": "x"}) == ["missing attribute schema_version", "missing attribute n_trials"]
+
+    _layout_file(path, n_poses=1)
+    with h5py.File(path, "a") as f:
+        del f["center_mass"]
+        del f["hull/vertices"]
+        f["hull/vertices"] = np.zeros((8, 2))
+        f.create_group(hdf5.pose_group(1))  # a group the attribute n_poses = 1 does not count
+    with h5py.File(path) as f:
+        assert hdf5.check_file(f, {"A": [7]}) == [
+            "missing dataset /center_mass",
+            "/hull/vertices: shape (8, 2), expected ('V', 3) with {'T': 4, 'V': 8}",
+            "pose groups ['000', '001'], expected ['000']",
+        ]
+
+    _layout_file(path, n_poses=1)
+    with h5py.File(path, "a") as f:
+        del f["poses"]
+    with h5py.File(path) as f:
+        problems = hdf5.check_file(f, {"A": [7]})
+    assert problems == ["pose groups [], expected ['000']"] + [f"missing dataset /poses/000/{spec.name}" for spec in hdf5.POSE_ARRAYS]
+    _layout_file(path, n_poses=0)  # no pose, so no group "poses" either
+    with h5py.File(path) as f:
+        assert "poses" not in f and hdf5.check_file(f, {"n_poses": 0}) == []
 
 
 def test_a_manifest_from_before_min_direction_z_reads_as_choosing_from_every_push():
