@@ -74,6 +74,25 @@ def test_describe_renders_undocumented_fields_empty_and_escapes_pipes():
     ]
 
 
+def test_hdf5_specs_are_the_layout_the_dataset_docs_give():
+    """Each array's dtype and shape in ``hdf5.OBJECT_ARRAYS`` and ``POSE_ARRAYS``, and the root's attributes,
+    are those of docs/DATASET.md's HDF5 block (what analysts read with h5py): fixed sizes as numbers, so a
+    wrong length is refused, and every attribute, object_id included, required."""
+    block = DOCS.read_text().split("## HDF5 arrays")[1].split("```")[1]
+    documented = {}
+    for line in block.splitlines():
+        if line.startswith("/") and "(" in line:
+            path, rest = line.split(None, 1)
+            shape, dtype = rest.split(")", 1)
+            sizes = [size.strip() for size in shape.strip("( ").split(",") if size.strip()]
+            documented[path] = (tuple(int(size) if size.isdigit() else size for size in sizes), dtype.split()[0])
+    attributes = block.splitlines()[1].split("attrs:")[1]
+    assert hdf5.ATTRIBUTES == tuple(name.strip() for name in attributes.split(","))
+    specs = {"/" + spec.name: spec for spec in hdf5.OBJECT_ARRAYS}
+    specs |= {f"/{hdf5.pose_group(0)}/{spec.name}": spec for spec in hdf5.POSE_ARRAYS}
+    assert {path: (spec.shape, str(spec.dtype)) for path, spec in specs.items()} == documented
+
+
 def test_hdf5_layout_check_names_what_is_wrong(tmp_path):
     path = tmp_path / "x.h5"
     with h5py.File(path, "w") as f:
