@@ -12,6 +12,7 @@ import json
 import math
 import re
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -541,3 +542,208 @@ def test_the_edge_of_the_table_is_inside_and_a_nan_height_is_not():
     assert height_in_mm(0.005001, 0.005) == "5.0010" and height_in_mm(-0.00504, 0.005) == "5.0400", "not the tolerance's 5.0"
     assert height_in_mm(0.0051, 0.005) == "5.1"
     assert height_in_mm(1e308, 0.005) == "1e+311" and height_in_mm(-2.5e6, 0.005) == "2.5e+9", "not inf mm"
+
+
+# --- the guard alone: its refusals' words, what it hands on, what it counts ------------------
+
+
+def through_guard(path="/plan", method="POST", headers=(), messages=(), token=None, max_body_bytes=4096, root_path=None):
+    """One request through a ``Guard`` in front of an app that records what reached it and answers 200 ``{}``.
+    Returns (the messages sent, what reached the app: its scope and the first two messages it received (None
+    after a disconnect), or None, the metrics)."""
+    from service.guard import Guard, json_messages
+    from service.metrics import Metrics
+
+    reached = []
+
+    async def app(scope, receive, send):
+        first = await receive()
+        reached.append((scope, first, None if first["type"] == "http.disconnect" else await receive()))
+        for message in json_messages(200, {}):
+            await send(message)
+
+    metrics = Metrics()
+    scope = {"type": "http", "method": method, "path": path, "headers": list(headers)}
+    if root_path is not None:
+        scope["root_path"] = root_path
+    sent = call(Guard(app, metrics, token=token, max_body_bytes=max_body_bytes), scope, *messages)
+    return sent, (reached[0] if reached else None), metrics
+
+
+def refusal(sent) -> tuple[int, dict, dict]:
+    """The status, headers and JSON body of the error the guard sent (``sent``, two ASGI messages)."""
+    start, body = sent
+    assert start["type"] == "http.response.start" and body["type"] == "http.response.body"
+    headers = dict(start["headers"])
+    assert headers[b"content-type"] == b"application/json" and int(headers[b"content-length"]) == len(body["body"])
+    return start["status"], headers, json.loads(body["body"])
+
+
+BODY = {"type": "http.request", "body": b"{}", "more_body": False}
+JSON_TYPE = (b"content-type", b"application/json")
+
+
+def test_the_guards_401_says_whether_the_token_was_missing_or_wrong():
+    hint = "send 'Authorization: Bearer <token>'"
+    for given, why in ((None, "missing bearer token"), (b"Bearer " + b"x" * 22, "wrong bearer token"),
+                       (TOKEN.encode(), "wrong bearer token"), (b"", "missing bearer token")):
+        headers = [JSON_TYPE] + ([] if given is None else [(b"authorization", given)])
+        sent, reached, _ = through_guard(headers=headers, messages=[BODY], token=TOKEN)
+        status, sent_headers, body = refusal(sent)
+        assert (status, body) == (401, {"detail": f"{why}: {hint}"}) and reached is None
+        assert sent_headers[b"www-authenticate"] == b"Bearer"
+    # The token's own surrounding spaces are not part of it; /health, also behind a root path, needs none.
+    sent, reached, _ = through_guard(headers=[JSON_TYPE, (b"authorization", b"BEARER  " + TOKEN.encode() + b" ")],
+                                     messages=[BODY], token=TOKEN)
+    assert sent[0]["status"] == 200 and reached is not None
+    for path, root in (("/health", None), ("/api/health", "/api")):
+        sent, reached, _ = through_guard(path, "GET", token=TOKEN, root_path=root)
+        assert sent[0]["status"] == 200 and reached is not None
+
+
+def test_the_guards_413_names_the_declared_length_and_the_limit():
+    for path, limit, maximum in (("/plan", 4096, 4096), ("/plan", 64 * 1024, 10**6), ("/batch/plan", 10**6, 10**6)):
+        for declared, shown in ((str(limit + 1).encode(), str(limit + 1)), (b"12x", "12x"), (b"-1", "-1"),
+                                (b"9" * 30, "9" * 20)):
+            sent, reached, _ = through_guard(path, headers=[JSON_TYPE, (b"content-length", declared)], messages=[BODY],
+                                             max_body_bytes=maximum)
+            status, headers, body = refusal(sent)
+            assert (status, body) == (413, {"detail": f"request body of {shown} bytes; at most {limit}"}), (path, declared)
+            assert headers[b"connection"] == b"close" and reached is None
+        # Exactly the limit is within it.
+        sent, reached, _ = through_guard(path, headers=[JSON_TYPE, (b"content-length", str(limit).encode())],
+                                         messages=[BODY], max_body_bytes=maximum)
+        assert sent[0]["status"] == 200 and reached is not None
+
+
+def test_a_chunked_body_is_handed_on_whole_and_refused_only_past_the_limit():
+    half = b" " * 2048
+    chunks = [{"type": "http.request", "body": half, "more_body": True},
+              {"type": "http.request", "body": half, "more_body": True},
+              {"type": "http.request", "body": b"", "more_body": False}]
+    sent, reached, _ = through_guard(headers=[JSON_TYPE], messages=chunks)
+    assert sent[0]["status"] == 200
+    _, first, second = reached
+    # One message with the whole body, then what the client sends next (here it leaves).
+    assert first == {"type": "http.request", "body": half * 2, "more_body": False}
+    assert second == {"type": "http.disconnect"}
+    over = [*chunks[:2], {"type": "http.request", "body": b" ", "more_body": False}]
+    sent, reached, _ = through_guard(headers=[JSON_TYPE], messages=over)
+    status, headers, body = refusal(sent)
+    assert (status, body) == (413, {"detail": "request body over 4096 bytes"}) and headers[b"connection"] == b"close"
+    assert reached is None
+    # A last message without "more_body" ends the body, and one without "body" adds none (ASGI's defaults).
+    sent, reached, _ = through_guard(headers=[JSON_TYPE], messages=[{"type": "http.request", "body": b"{}"}])
+    assert sent[0]["status"] == 200 and reached[1]["body"] == b"{}"
+    sent, reached, _ = through_guard(headers=[JSON_TYPE], messages=[{"type": "http.request", "body": b"{", "more_body": True},
+                                                                    {"type": "http.request"}])
+    assert sent[0]["status"] == 200 and reached[1] == {"type": "http.request", "body": b"{", "more_body": False}
+
+
+def test_the_guards_415_shows_the_content_types_given():
+    hint = "send the body as application/json"
+    for types, shown in (([], "none"), ([b"text/plain"], "text/plain"),
+                         ([b"text/plain", b"application/json"], "text/plain, application/json"),
+                         ([b"text/" + b"x" * 100], "text/" + "x" * 55)):
+        sent, reached, _ = through_guard(headers=[(b"content-type", t) for t in types], messages=[BODY])
+        assert refusal(sent)[::2] == (415, {"detail": f"content-type {shown!r}: {hint}"}) and reached is None
+
+
+def test_json_media_types_and_what_the_guard_calls_utf16():
+    from service.guard import is_json, not_utf8
+
+    for media in (b"application/json", b"Application/JSON", b"application/json; charset=utf-8", b" application/json ",
+                  b"application/problem+json", b"application/vnd.toppledb+JSON;v=1"):
+        assert is_json(media), media
+    for media in (b"text/json", b"application/jsonx", b"application/json-seq", b"text/x+json", b"application/xml",
+                  b"", b"json"):
+        assert not is_json(media), media
+    for body in ('{"a": 1}'.encode("utf-16-le"), '{"a": 1}'.encode("utf-16-be"), b"\xff\xfe", b"\xfe\xff",
+                 b"{\x00", b"  \x00{", b"\x00"):
+        assert not_utf8(body), body
+    # Only the first two bytes are a byte-order mark; only the first four could hold UTF-16's or UTF-32's NUL.
+    for body in (b"", b"{}", b'{"a": "\xc3\xa9"}', b'    {"a": "\\u0000"}', b"\xef\xbb\xbf{}", b"{\xff\xfe}", b'{"a"\x00}'):
+        assert not not_utf8(body), body
+
+
+def test_a_utf16_body_is_a_located_json_decode_error():
+    body = {"type": "http.request", "body": '{"a": 1}'.encode("utf-16"), "more_body": False}
+    sent, reached, _ = through_guard(headers=[JSON_TYPE], messages=[body])
+    status, _, answer = refusal(sent)
+    message = "JSON decode error: the body is UTF-16 or UTF-32; send UTF-8"
+    assert (status, answer) == (422, {"detail": f"body: {message}", "errors": [{"loc": ["body"], "msg": message,
+                                                                                  "type": "json_invalid"}]})
+    assert reached is None
+
+
+def test_route_paths_behind_a_root_path():
+    from service.guard import route_path
+
+    for path, root, route in (("/plan", None, "/plan"), ("/plan", "", "/plan"), ("/api/plan", "/api", "/plan"),
+                              ("/api", "/api", "/"), ("/plan", "/api", "/plan"), ("/api/health", "", "/api/health")):
+        scope = {"path": path} if root is None else {"path": path, "root_path": root}
+        assert route_path(scope) == route, (path, root)
+
+
+def test_what_the_guard_hands_on_unread():
+    # Methods without a body, a PUT within the limit and a POST to a path without a body route reach the app
+    # with their messages as sent; a lifespan scope passes through untouched.
+    for method, path in (("GET", "/objects"), ("PUT", "/plan"), ("POST", "/objects"), ("POST", "/nowhere"),
+                         ("DELETE", "/plan")):
+        sent, reached, _ = through_guard(path, method, headers=[(b"content-type", b"text/plain")], messages=[BODY])
+        scope, first, second = reached
+        assert sent[0]["status"] == 200 and scope["method"] == method and (first, second) == (BODY, {"type": "http.disconnect"})
+    from service.guard import Guard
+    from service.metrics import Metrics
+
+    seen = []
+
+    async def app(scope, receive, send):
+        seen.append((scope, await receive()))
+
+    lifespan = {"type": "lifespan"}
+    assert call(Guard(app, Metrics(), token=TOKEN, max_body_bytes=1), lifespan, {"type": "lifespan.startup"}) == []
+    assert seen == [(lifespan, {"type": "lifespan.startup"})]
+
+
+def test_head_is_answered_as_get_only_on_health_and_counted_as_head():
+    for path, root, method in (("/health", None, "GET"), ("/api/health", "/api", "GET"), ("/objects", None, "HEAD"),
+                               ("/health/x", None, "HEAD")):
+        _, (scope, _, _), metrics = through_guard(path, "HEAD", root_path=root)
+        assert scope["method"] == method, path
+        assert 'toppledb_requests_total{method="HEAD",route="unmatched",status="200"} 1.0' in metrics.render().decode()
+
+
+def test_the_build_header_joins_the_apps_own_headers_and_an_exception_is_counted_as_500():
+    from service.guard import BUILD_HEADER, BUILD_SCOPE_KEY, Guard, requested_build
+    from service.metrics import Metrics
+
+    async def app(scope, receive, send):
+        scope[BUILD_SCOPE_KEY] = "ab" * 32
+        await send({"type": "http.response.start", "status": 200, "headers": [(b"x-own", b"1")]})
+        await send({"type": "http.response.body", "body": b""})
+
+    sent = call(Guard(app, Metrics(), token=None, max_body_bytes=1), {"type": "http", "method": "GET", "path": "/x",
+                                                                      "headers": []})
+    assert sent[0]["headers"] == [(b"x-own", b"1"), (BUILD_HEADER, b"ab" * 32)]
+
+    async def bare(scope, receive, send):  # a start message without headers
+        scope[BUILD_SCOPE_KEY] = "cd" * 32
+        await send({"type": "http.response.start", "status": 204})
+
+    sent = call(Guard(bare, Metrics(), token=None, max_body_bytes=1), {"type": "http", "method": "GET", "path": "/x",
+                                                                       "headers": []})
+    assert sent == [{"type": "http.response.start", "status": 204, "headers": [(BUILD_HEADER, b"cd" * 32)]}]
+
+    async def broken(scope, receive, send):
+        scope["route"] = SimpleNamespace(path="/objects/{object_id}")
+        raise RuntimeError("a bug")
+
+    metrics = Metrics()
+    with pytest.raises(RuntimeError, match="a bug"):
+        call(Guard(broken, metrics, token=None, max_body_bytes=1), {"type": "http", "method": "GET", "path": "/objects/a",
+                                                                     "headers": []})
+    assert 'toppledb_requests_total{method="GET",route="/objects/{object_id}",status="500"} 1.0' in metrics.render().decode()
+    # The build a request names: its first such header, read as FastAPI reads it (latin-1).
+    scope = {"headers": [(b"accept", b"*/*"), (BUILD_HEADER, b"caf\xe9"), (BUILD_HEADER, b"second")]}
+    assert requested_build(scope) == "caf\u00e9" and requested_build({"headers": [(b"accept", b"*/*")]}) is None

@@ -5,6 +5,7 @@ forked workers of ``--workers N`` (the tiny dataset of tests/test_service.py).""
 
 from __future__ import annotations
 
+import asyncio
 import concurrent.futures
 import contextlib
 import json
@@ -15,6 +16,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -27,6 +29,7 @@ from fastapi.testclient import TestClient
 from service import create_app
 from service.__main__ import DEFAULT_HOST, build_parser
 from service.client import plan_item
+from service.runtime import Runtime
 from service.settings import Settings
 from service.store import DatasetError, LiveStore, Store
 from tests.test_service import ROOT, dataset, tables  # noqa: F401 (fixtures)
@@ -193,6 +196,139 @@ def test_the_build_header_names_the_build_a_request_took_even_if_a_swap_comes_du
                                                                    "pose": stored_transform(tables, object_id, pose).tolist()}]})]
         assert [a.status_code for a in answers] == [200, 200]
         assert all(a.headers.get_list("x-toppledb-build") == [build] for a in answers)
+
+
+# --- the runtime: /health's answer, swaps, the watcher, a worker's life ------------------------
+
+
+def runtime_of(directory: Path, **settings) -> Runtime:
+    runtime = Runtime.open(Settings.from_env(dataset=directory, **settings))
+    runtime.lane = SimpleNamespace(closed=0)
+    runtime.lane.close = lambda: setattr(runtime.lane, "closed", runtime.lane.closed + 1)
+    return runtime
+
+
+def served(runtime: Runtime) -> list[str]:
+    """The ``toppledb_dataset_info`` series /metrics shows (one per build: the gauge is cleared on a swap)."""
+    return [line for line in runtime.metrics.render().decode().splitlines() if line.startswith("toppledb_dataset_info{")]
+
+
+def test_runtime_health_reports_the_store_it_is_given_and_reload_error_only_while_one_fails(dataset, tmp_path):
+    from schema.version import CODE_VERSION
+    from service.guard import BUILD_SCOPE_KEY
+
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    runtime = runtime_of(copy)
+    other = Store.load(dataset)
+    other.load_seconds = 1.23456
+    health = runtime.health(other)
+    assert (health.status, health.schema_version, health.service_version) == ("ok", other.schema_version, CODE_VERSION)
+    assert health.dataset.path == str(dataset) and health.dataset.manifest_sha256 == other.manifest_sha256
+    assert (health.dataset.created, health.dataset.code_version, health.dataset.parameters_sha256, health.dataset.loaded_at) == (
+        other.manifest.created, other.code_version, other.parameters_sha256, other.loaded_at)
+    assert health.counts.model_dump() == other.counts and health.load_seconds == 1.235
+    assert (health.reloads, health.reload_error) == (0, None)
+    scope: dict = {}
+    body = json.loads(runtime.health_json(scope))
+    assert "reload_error" not in body and body["dataset"]["path"] == str(copy) and body["reloads"] == 0
+    assert scope[BUILD_SCOPE_KEY] == runtime.live.store.manifest_sha256 == body["dataset"]["manifest_sha256"]
+    runtime.live.reloads, runtime.live.reload_error = 3, "manifest.json is not JSON"
+    body = json.loads(runtime.health_json({}))
+    assert (body["reloads"], body["reload_error"]) == (3, "manifest.json is not JSON")
+
+
+def test_runtime_reload_swaps_only_a_new_build_unless_forced_and_says_so_to_metrics_and_callbacks(dataset, tmp_path):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    runtime = runtime_of(copy)
+    swaps = []
+    runtime.on_swap.append(lambda: swaps.append(runtime.live.store.manifest.created))
+    runtime.on_swap.append(lambda: swaps.append("second"))
+    first = served(runtime)
+    assert len(first) == 1 and runtime.live.store.manifest_sha256 in first[0]
+    assert not asyncio.run(runtime.reload()) and swaps == [] and served(runtime) == first
+    rebuilt(copy, "2033-01-01T00:00:00+00:00")
+    assert asyncio.run(runtime.reload()) and swaps == ["2033-01-01T00:00:00+00:00", "second"]
+    now = served(runtime)
+    assert len(now) == 1 and runtime.live.store.manifest_sha256 in now[0] and 'created="2033-01-01T00:00:00+00:00"' in now[0]
+    assert "toppledb_dataset_reloads_total 1.0" in runtime.metrics.render().decode()
+    assert asyncio.run(runtime.reload(force=True)) and len(swaps) == 4  # SIGHUP: the same build again
+    assert "toppledb_dataset_reloads_total 2.0" in runtime.metrics.render().decode()
+
+
+def test_the_watcher_keeps_watching_after_a_failed_check(dataset, tmp_path, caplog):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    runtime = runtime_of(copy, watch_seconds=0.02)
+    checks, real = [], runtime.live.changed
+
+    def changed():  # the first check fails; the watcher logs it and checks again
+        checks.append(True)
+        if len(checks) == 1:
+            raise OSError("the disk went away")
+        return real()
+
+    runtime.live.changed = changed
+
+    async def watch():
+        task = asyncio.create_task(runtime._watch())
+        await asyncio.sleep(0.5)
+        task.cancel()
+
+    rebuilt(copy, "2034-01-01T00:00:00+00:00")
+    with caplog.at_level(logging.ERROR, logger="service"):
+        asyncio.run(watch())
+    assert len(checks) >= 3 and runtime.live.store.manifest.created.startswith("2034") and runtime.live.reloads == 1
+    assert [r.getMessage() for r in caplog.records] == ["dataset watcher: reload failed"]
+    assert "the disk went away" in caplog.text
+
+
+def test_runtime_solves_every_objects_budgets_in_a_daemon_thread_of_its_own(dataset):
+    runtime = runtime_of(dataset)
+    assert all(obj._budgets is None for obj in runtime.live.store.objects.values())
+    store, release = runtime.live.store, threading.Event()
+    store.solve_budgets = lambda: release.wait(30) and Store.solve_budgets(store)  # held until the thread is seen
+    runtime.solve_budgets()
+    solver = [thread for thread in threading.enumerate() if thread.name == "budgets"]
+    assert len(solver) == 1 and solver[0].daemon  # a worker's exit does not wait for it
+    release.set()
+    solver[0].join(30)
+    assert all(obj._budgets is not None for obj in runtime.live.store.objects.values())
+
+
+@pytest.mark.parametrize("watch_seconds", [0.0, 0.02])
+def test_a_workers_life_reloads_a_build_swapped_before_it_watches_only_when_asked_and_answers_sighup(
+        dataset, tmp_path, watch_seconds):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    runtime = runtime_of(copy, watch_seconds=watch_seconds)
+    rebuilt(copy, "2035-01-01T00:00:00+00:00")  # swapped in by the other workers before this one was forked
+    seen = {}
+
+    async def life():
+        async with runtime.serving():
+            seen["start"] = runtime.live.store.manifest.created, runtime.live.reloads, served(runtime)
+            rebuilt(copy, "2036-01-01T00:00:00+00:00")
+            await asyncio.sleep(0.3)
+            seen["watched"] = runtime.live.store.manifest.created
+            os.kill(os.getpid(), signal.SIGHUP)
+            await asyncio.sleep(0.3)
+            seen["hup"] = runtime.live.reloads
+            assert runtime.lane.closed == 0
+        seen["handler"] = signal.getsignal(signal.SIGHUP)
+        rebuilt(copy, "2037-01-01T00:00:00+00:00")
+        await asyncio.sleep(0.3)  # the watcher stopped with the worker
+        seen["after"] = runtime.live.store.manifest.created
+
+    before = signal.getsignal(signal.SIGHUP)
+    asyncio.run(life())
+    created, reloads, metrics = seen["start"]
+    assert created.startswith("2035") and reloads == 1 and len(metrics) == 1 and 'created="2035' in metrics[0]
+    assert seen["watched"].startswith("2036" if watch_seconds else "2035")
+    assert seen["hup"] == (3 if watch_seconds else 2)  # a SIGHUP reloads even the same build
+    assert seen["after"].startswith("2036") and runtime.lane.closed == 1
+    assert seen["handler"] == before == signal.SIG_DFL
 
 
 def free_port() -> int:
