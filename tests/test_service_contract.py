@@ -653,12 +653,12 @@ def test_json_media_types_and_what_the_guard_calls_utf16():
     from service.guard import is_json, not_utf8
 
     for media in (b"application/json", b"Application/JSON", b"application/json; charset=utf-8", b" application/json ",
-                  b"application/problem+json", b"application/vnd.toppledb+JSON;v=1"):
+                  b"application/problem+json", b"application/vnd.toppledb+JSON;v=1", b"application/json; charset=utf-8; v=1"):
         assert is_json(media), media
     for media in (b"text/json", b"application/jsonx", b"application/json-seq", b"text/x+json", b"application/xml",
                   b"", b"json"):
         assert not is_json(media), media
-    for body in ('{"a": 1}'.encode("utf-16-le"), '{"a": 1}'.encode("utf-16-be"), b"\xff\xfe", b"\xfe\xff",
+    for body in ('{"a": 1}'.encode("utf-16-le"), '{"a": 1}'.encode("utf-16-be"), b"\xff\xfe", b"\xfe\xff", b"\xff\xfe{}",
                  b"{\x00", b"  \x00{", b"\x00"):
         assert not_utf8(body), body
     # Only the first two bytes are a byte-order mark; only the first four could hold UTF-16's or UTF-32's NUL.
@@ -711,7 +711,11 @@ def test_head_is_answered_as_get_only_on_health_and_counted_as_head():
                                ("/health/x", None, "HEAD")):
         _, (scope, _, _), metrics = through_guard(path, "HEAD", root_path=root)
         assert scope["method"] == method, path
-        assert 'toppledb_requests_total{method="HEAD",route="unmatched",status="200"} 1.0' in metrics.render().decode()
+        text = metrics.render().decode()
+        assert 'toppledb_requests_total{method="HEAD",route="unmatched",status="200"} 1.0' in text
+        # The time from the request to the end of its answer: well under a second here.
+        seconds = float(re.search(r'toppledb_request_seconds_sum\{method="HEAD",route="unmatched"\} (\S+)', text).group(1))
+        assert 0 < seconds < 1
 
 
 def test_the_build_header_joins_the_apps_own_headers_and_an_exception_is_counted_as_500():

@@ -246,7 +246,8 @@ def test_runtime_reload_swaps_only_a_new_build_unless_forced_and_says_so_to_metr
     runtime.on_swap.append(lambda: swaps.append(runtime.live.store.manifest.created))
     runtime.on_swap.append(lambda: swaps.append("second"))
     first = served(runtime)
-    assert len(first) == 1 and runtime.live.store.manifest_sha256 in first[0]
+    created = runtime.live.store.manifest.created
+    assert len(first) == 1 and runtime.live.store.manifest_sha256 in first[0] and f'created="{created}"' in first[0]
     assert not asyncio.run(runtime.reload()) and swaps == [] and served(runtime) == first
     rebuilt(copy, "2033-01-01T00:00:00+00:00")
     assert asyncio.run(runtime.reload()) and swaps == ["2033-01-01T00:00:00+00:00", "second"]
