@@ -115,8 +115,9 @@ class Runtime:
             await self.reload()
         watcher = asyncio.create_task(self._watch()) if self.settings.watch_seconds > 0 else None
         loop = asyncio.get_running_loop()
-        hup = False
+        hup, before = False, None
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError, AttributeError):
+            before = signal.getsignal(signal.SIGHUP)
             loop.add_signal_handler(signal.SIGHUP, lambda: asyncio.ensure_future(self.reload(force=True)))
             hup = True
         try:
@@ -125,5 +126,9 @@ class Runtime:
             if watcher is not None:
                 watcher.cancel()
             if hup:
+                # asyncio leaves SIG_DFL behind; a worker started under nohup (SIG_IGN) must not die of a
+                # SIGHUP while it shuts down, so the disposition it had comes back.
                 loop.remove_signal_handler(signal.SIGHUP)
+                if before is not None:
+                    signal.signal(signal.SIGHUP, before)
             self.lane.close()
