@@ -137,3 +137,24 @@ def test_a_boosted_map_a_config_file_names_by_a_relative_path_is_the_file_beside
         assert Config.from_toml(tmp_path / "robot" / "robot.toml").topple.boosted_map == expected, value
     on_the_line = Config().with_overrides({"topple.boosted_map": "robot.trees.json"})
     assert on_the_line.topple.boosted_map == "robot.trees.json"
+
+
+@pytest.mark.parametrize(
+    "accepted, text",
+    [
+        (Range(0.0, None, lo_open=True), "> 0"),
+        (Range(1, None), ">= 1"),
+        (Range(None, 2.5, hi_open=True), "< 2.5"),
+        (Range(None, 2.5), "<= 2.5"),
+        (Range(), "finite"),
+        (Range(0.0, 1.0, hi_open=True), "in [0, 1)"),
+        (Range(0.0, 1.0, lo_open=True), "in (0, 1]"),
+    ],
+)
+def test_a_range_names_its_bounds_and_whether_each_is_open(accepted, text):
+    assert accepted.text() == text
+
+
+@pytest.mark.parametrize("accepted", [Range(), Range(0.0, None), Range(None, 1.0), Range(0.0, 1.0, lo_open=True, hi_open=True)])
+def test_no_range_holds_a_non_finite_number(accepted):
+    assert not any(accepted.contains(v) for v in (math.nan, math.inf, -math.inf))
