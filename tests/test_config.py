@@ -158,3 +158,14 @@ def test_a_range_names_its_bounds_and_whether_each_is_open(accepted, text):
 @pytest.mark.parametrize("accepted", [Range(), Range(0.0, None), Range(None, 1.0), Range(0.0, 1.0, lo_open=True, hi_open=True)])
 def test_no_range_holds_a_non_finite_number(accepted):
     assert not any(accepted.contains(v) for v in (math.nan, math.inf, -math.inf))
+
+
+def test_a_config_file_s_bad_keys_and_sections_are_named_with_their_section(tmp_path):
+    path = tmp_path / "params.toml"
+    for text, message in [("[topple]\nnope = 1\nalso = 2\n", "unknown config key(s): topple.also, topple.nope"),
+                          ("topple = 3\n", "config section 'topple' must be a table"),
+                          ("[topple]\nrecalibration_x = [0.0, nan]\n", "config key every entry of 'topple.recalibration_x' must be a finite number"),
+                          ("[topple]\nn_trials = 'many'\n", "config key 'topple.n_trials' expects int")]:
+        path.write_text(text)
+        with pytest.raises(ValueError, match=re.escape(message)):
+            Config.from_toml(path)
