@@ -26,6 +26,7 @@ from pipeline.model.mesh import model_from_mesh
 from pipeline.model.outcomes import Actions
 from pipeline.model.poses import stable_poses
 from pipeline.model.sampling import points_in_triangles
+from schema.frames import unit
 from schema.vocabulary import (
     STATUS_FINGER_COLLISION,
     STATUS_OK,
@@ -188,15 +189,10 @@ def test_a_pose_with_no_pushable_candidate_checks_no_finger():
     # The squat cone has no Max-Height action; contacts all near its base are too low, so no finger is checked.
     cone = trimesh.creation.cone(radius=0.05, height=0.05, sections=32)
     points = np.array([[0.049, 0.0, 0.001], [0.0, -0.049, 0.001]])
-    normals = unit_rows([[1.0, 0.0, 1.0], [0.0, -1.0, 1.0]])
+    normals = unit(np.array([[1.0, 0.0, 1.0], [0.0, -1.0, 1.0]]))
     actions = pose_actions(points, normals, cone, collision_object(cone), np.eye(4), ContactConfig())
     assert actions.max_height == -1
     np.testing.assert_array_equal(actions.status, [STATUS_TOO_LOW, STATUS_TOO_LOW])
-
-
-def unit_rows(rows) -> np.ndarray:
-    rows = np.asarray(rows, dtype=float)
-    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
 
 
 def test_the_status_limits_are_strict_and_the_max_height_angle_inclusive():
