@@ -547,22 +547,24 @@ def test_the_edge_of_the_table_is_inside_and_a_nan_height_is_not():
 # --- the guard alone: its refusals' words, what it hands on, what it counts ------------------
 
 
-def through_guard(path="/plan", method="POST", headers=(), messages=(), token=None, max_body_bytes=4096, root_path=None):
-    """One request through a ``Guard`` in front of an app that records what reached it and answers 200 ``{}``.
-    Returns (the messages sent, what reached the app: its scope and the first two messages it received (None
-    after a disconnect), or None, the metrics)."""
+def through_guard(path="/plan", method="POST", headers=(), messages=(), token=None, max_body_bytes=4096, root_path=None,
+                  app=None, metrics=None):
+    """One request through a ``Guard`` in front of ``app``, by default one that records what reached it and
+    answers 200 ``{}``. Returns (the messages sent, what reached the default app: its scope and the first two
+    messages it received (None after a disconnect), or None, the metrics)."""
     from service.guard import Guard, json_messages
     from service.metrics import Metrics
 
     reached = []
 
-    async def app(scope, receive, send):
+    async def recorder(scope, receive, send):
         first = await receive()
         reached.append((scope, first, None if first["type"] == "http.disconnect" else await receive()))
         for message in json_messages(200, {}):
             await send(message)
 
-    metrics = Metrics()
+    app = app or recorder
+    metrics = metrics or Metrics()
     scope = {"type": "http", "method": method, "path": path, "headers": list(headers)}
     if root_path is not None:
         scope["root_path"] = root_path
@@ -719,7 +721,7 @@ def test_head_is_answered_as_get_only_on_health_and_counted_as_head():
 
 
 def test_the_build_header_joins_the_apps_own_headers_and_an_exception_is_counted_as_500():
-    from service.guard import BUILD_HEADER, BUILD_SCOPE_KEY, Guard, requested_build
+    from service.guard import BUILD_HEADER, BUILD_SCOPE_KEY, requested_build
     from service.metrics import Metrics
 
     async def app(scope, receive, send):
@@ -727,16 +729,14 @@ def test_the_build_header_joins_the_apps_own_headers_and_an_exception_is_counted
         await send({"type": "http.response.start", "status": 200, "headers": [(b"x-own", b"1")]})
         await send({"type": "http.response.body", "body": b""})
 
-    sent = call(Guard(app, Metrics(), token=None, max_body_bytes=1), {"type": "http", "method": "GET", "path": "/x",
-                                                                      "headers": []})
+    sent, _, _ = through_guard("/x", "GET", app=app)
     assert sent[0]["headers"] == [(b"x-own", b"1"), (BUILD_HEADER, b"ab" * 32)]
 
     async def bare(scope, receive, send):  # a start message without headers
         scope[BUILD_SCOPE_KEY] = "cd" * 32
         await send({"type": "http.response.start", "status": 204})
 
-    sent = call(Guard(bare, Metrics(), token=None, max_body_bytes=1), {"type": "http", "method": "GET", "path": "/x",
-                                                                       "headers": []})
+    sent, _, _ = through_guard("/x", "GET", app=bare)
     assert sent == [{"type": "http.response.start", "status": 204, "headers": [(BUILD_HEADER, b"cd" * 32)]}]
 
     async def broken(scope, receive, send):
@@ -745,8 +745,7 @@ def test_the_build_header_joins_the_apps_own_headers_and_an_exception_is_counted
 
     metrics = Metrics()
     with pytest.raises(RuntimeError, match="a bug"):
-        call(Guard(broken, metrics, token=None, max_body_bytes=1), {"type": "http", "method": "GET", "path": "/objects/a",
-                                                                     "headers": []})
+        through_guard("/objects/a", "GET", app=broken, metrics=metrics)
     assert 'toppledb_requests_total{method="GET",route="/objects/{object_id}",status="500"} 1.0' in metrics.render().decode()
     # The build a request names: its first such header, read as FastAPI reads it (latin-1).
     scope = {"headers": [(b"accept", b"*/*"), (BUILD_HEADER, b"caf\xe9"), (BUILD_HEADER, b"second")]}
